@@ -8,4 +8,6 @@
 //! - [`bench`]: the `bench tracers` comparison and its chart.
 #![warn(missing_docs)]
 
+pub mod scene;
+pub mod trace;
 pub mod world;

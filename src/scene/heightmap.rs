@@ -1,0 +1,147 @@
+//! The `heightmap:FILE.png` scene: an 8- or 16-bit grayscale PNG where pixel
+//! (u, v) with value h makes column x = u, z = v solid for 0 ≤ y < h,
+//! coloured by height (a green–brown–white ramp) and slope (greys).
+
+use std::io::Cursor;
+use std::path::Path;
+
+use glam::IVec3;
+
+use super::SceneError;
+use super::heightfield::Heightfield;
+use crate::world::Palette;
+
+/// Largest accepted file, bytes.
+pub const MAX_FILE_BYTES: u64 = 256 << 20;
+/// Largest accepted image side, pixels.
+pub const MAX_SIDE: u32 = 16384;
+/// Tallest accepted column, voxels.
+pub const MAX_HEIGHT: i32 = 4096;
+
+const RAMP: u8 = 200; // materials 1..=200: height ramp
+const ROCK: u8 = 201; // 201..=240: steep slopes by height
+const DEEP: u8 = 255;
+
+/// A decoded heightmap.
+#[derive(Clone, Debug)]
+pub struct Heightmap {
+    width: i32,
+    depth: i32,
+    heights: Vec<u16>,
+    max: i32,
+}
+
+impl Heightmap {
+    /// Load and validate a PNG.
+    pub fn load(path: &Path) -> Result<Self, SceneError> {
+        let meta = std::fs::metadata(path).map_err(|e| SceneError::io(path, e))?;
+        if meta.len() > MAX_FILE_BYTES {
+            return Err(SceneError::too_large(path, format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len())));
+        }
+        let bytes = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
+        Self::decode(&bytes).map_err(|msg| SceneError::Format {
+            path: path.to_path_buf(),
+            kind: "PNG heightmap",
+            msg,
+        })
+    }
+
+    /// Decode PNG bytes.
+    pub fn decode(bytes: &[u8]) -> Result<Self, String> {
+        let mut decoder = png::Decoder::new(Cursor::new(bytes));
+        decoder.set_limits(png::Limits { bytes: 1 << 30 });
+        let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
+        let info = reader.info();
+        let (w, h) = (info.width, info.height);
+        if w > MAX_SIDE || h > MAX_SIDE {
+            return Err(format!("image is {w}x{h}, over the {MAX_SIDE}x{MAX_SIDE} limit"));
+        }
+        let (color, depth) = (info.color_type, info.bit_depth);
+        if color != png::ColorType::Grayscale {
+            return Err(format!("expected 8- or 16-bit grayscale, found {color:?}"));
+        }
+        if depth != png::BitDepth::Eight && depth != png::BitDepth::Sixteen {
+            return Err(format!("expected 8- or 16-bit grayscale, found {depth:?}-bit"));
+        }
+        let size = reader.output_buffer_size().ok_or("image too large")?;
+        let mut buf = vec![0u8; size];
+        let frame = reader.next_frame(&mut buf).map_err(|e| e.to_string())?;
+        let stride = frame.line_size;
+        let mut heights = Vec::with_capacity((w * h) as usize);
+        for v in 0..h as usize {
+            let row = &buf[v * stride..];
+            for u in 0..w as usize {
+                let value = if depth == png::BitDepth::Sixteen {
+                    u16::from_be_bytes([row[2 * u], row[2 * u + 1]])
+                } else {
+                    row[u] as u16
+                };
+                heights.push(value);
+            }
+        }
+        let max = heights.iter().copied().max().unwrap_or(0) as i32;
+        if max > MAX_HEIGHT {
+            return Err(format!("a pixel value of {max} asks for a column taller than the {MAX_HEIGHT}-voxel limit"));
+        }
+        Ok(Heightmap {
+            width: w as i32,
+            depth: h as i32,
+            heights,
+            max,
+        })
+    }
+
+    /// Height of column (x, z), exactly the pixel value (0 outside the image).
+    pub fn value(&self, x: i32, z: i32) -> i32 {
+        if x < 0 || z < 0 || x >= self.width || z >= self.depth {
+            return 0;
+        }
+        self.heights[(z * self.width + x) as usize] as i32
+    }
+
+    /// The palette this scene's materials index.
+    pub fn palette() -> Palette {
+        let mut p = Palette::grey_ramp();
+        for i in 0..RAMP {
+            let t = i as f32 / (RAMP - 1) as f32;
+            let stops = [[70.0, 130.0, 60.0], [150.0, 140.0, 80.0], [120.0, 90.0, 60.0], [245.0, 245.0, 250.0]];
+            let s = t * 3.0;
+            let k = (s.floor() as usize).min(2);
+            let f = s - k as f32;
+            let c = [0, 1, 2].map(|c| (stops[k][c] + (stops[k + 1][c] - stops[k][c]) * f) as u8);
+            p.set(1 + i, c);
+        }
+        for i in 0..40u8 {
+            let g = 90 + i * 3;
+            p.set(ROCK + i, [g, g.saturating_sub(4), g.saturating_sub(8)]);
+        }
+        p.set(DEEP, [80, 76, 74]);
+        p
+    }
+}
+
+impl Heightfield for Heightmap {
+    fn extent(&self) -> IVec3 {
+        IVec3::new(self.width, self.max.max(1), self.depth)
+    }
+
+    fn height(&self, x: i32, z: i32) -> i32 {
+        self.value(x.clamp(0, self.width - 1), z.clamp(0, self.depth - 1))
+    }
+
+    fn material(&self, _x: i32, y: i32, _z: i32, h: i32, slope: f32) -> u8 {
+        if h - 1 - y >= 3 {
+            return DEEP;
+        }
+        let t = h as f32 / self.max.max(1) as f32;
+        if slope > 1.5 {
+            ROCK + (t * 39.0) as u8
+        } else {
+            1 + (t * (RAMP - 1) as f32) as u8
+        }
+    }
+
+    fn deep(&self) -> Option<(i32, u8)> {
+        Some((3, DEEP))
+    }
+}

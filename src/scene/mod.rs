@@ -1,0 +1,250 @@
+//! Scene sources and the traced world built from them.
+//!
+//! Every source is deterministic from its seed. `--size XxYxZ` sizes the
+//! procedural ones (Y is up); heightmaps and `.vox` files size themselves.
+//! A [`SceneWorld`] holds the store, the brick grid over the scene's bounds
+//! and builds the three tracers over the same local frame.
+
+mod heightfield;
+mod heightmap;
+mod noise;
+mod shapes;
+mod terrain;
+mod vox;
+
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use glam::{DVec3, IVec3};
+use indicatif::ProgressBar;
+use thiserror::Error;
+
+pub use heightfield::{Heightfield, voxelize};
+pub use heightmap::Heightmap;
+pub use noise::Noise;
+pub use shapes::{Prim, Rng, rasterize};
+pub use terrain::Terrain;
+pub use vox::{parse as parse_vox, store_from_voxels, voxels as vox_voxels};
+
+use crate::trace::{BrickmapTracer, DenseGrid, Frame, Svo, TraceError};
+use crate::world::{BRICK_SHIFT, BrickGrid, BrickStore, WorldError, brick_of};
+
+/// Errors loading or building a scene.
+#[derive(Debug, Error)]
+pub enum SceneError {
+    /// A file could not be read.
+    #[error("cannot read {}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// A file is not valid in its format.
+    #[error("{} is not a valid {kind}: {msg}", path.display())]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// Expected format.
+        kind: &'static str,
+        /// What is wrong.
+        msg: String,
+    },
+    /// A file is too large.
+    #[error("{} is too large: {msg}", path.display())]
+    TooLarge {
+        /// The file.
+        path: PathBuf,
+        /// Details.
+        msg: String,
+    },
+    /// The scene name is not known.
+    #[error("unknown scene '{0}' (expected terrain, terrain:caves, balls, hairball, heightmap:FILE.png or vox:FILE.vox)")]
+    UnknownScene(String),
+    /// The world structures could not be built.
+    #[error(transparent)]
+    World(#[from] WorldError),
+}
+
+impl SceneError {
+    fn io(path: &Path, source: std::io::Error) -> Self {
+        SceneError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+    fn too_large(path: &Path, msg: String) -> Self {
+        SceneError::TooLarge {
+            path: path.to_path_buf(),
+            msg,
+        }
+    }
+}
+
+/// Which scene to build.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum SceneSpec {
+    /// fBm terrain, optionally with caves and overhangs.
+    Terrain {
+        /// Carve caves and overhangs.
+        caves: bool,
+    },
+    /// Random spheres.
+    Balls,
+    /// Random thick tubes.
+    Hairball,
+    /// A grayscale PNG heightmap.
+    Heightmap(PathBuf),
+    /// A MagicaVoxel file.
+    Vox(PathBuf),
+}
+
+impl SceneSpec {
+    /// Whether `--size` applies.
+    pub fn is_procedural(&self) -> bool {
+        !matches!(self, SceneSpec::Heightmap(_) | SceneSpec::Vox(_))
+    }
+}
+
+impl FromStr for SceneSpec {
+    type Err = SceneError;
+    fn from_str(s: &str) -> Result<Self, SceneError> {
+        Ok(match s {
+            "terrain" => SceneSpec::Terrain { caves: false },
+            "terrain:caves" => SceneSpec::Terrain { caves: true },
+            "balls" => SceneSpec::Balls,
+            "hairball" => SceneSpec::Hairball,
+            _ => {
+                if let Some(f) = s.strip_prefix("heightmap:").filter(|f| !f.is_empty()) {
+                    SceneSpec::Heightmap(PathBuf::from(f))
+                } else if let Some(f) = s.strip_prefix("vox:").filter(|f| !f.is_empty()) {
+                    SceneSpec::Vox(PathBuf::from(f))
+                } else {
+                    return Err(SceneError::UnknownScene(s.to_string()));
+                }
+            }
+        })
+    }
+}
+
+/// A viewpoint.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct View {
+    /// Eye position.
+    pub eye: [f64; 3],
+    /// Look-at point.
+    pub target: [f64; 3],
+    /// Vertical field of view, degrees.
+    pub fov: f64,
+}
+
+/// A scene ready to trace: its store, bounds and brick grid.
+#[derive(Debug)]
+pub struct SceneWorld {
+    /// The voxels.
+    pub store: BrickStore,
+    /// The brick grid over the bounds.
+    pub grid: BrickGrid,
+    /// Voxel bounds `[min, max)`.
+    pub bounds: (IVec3, IVec3),
+}
+
+impl SceneWorld {
+    /// Wrap a store whose voxels lie in `[lo, hi)`.
+    pub fn new(store: BrickStore, lo: IVec3, hi: IVec3) -> Result<Self, WorldError> {
+        let b0 = brick_of(lo);
+        let b1 = brick_of(hi - IVec3::ONE);
+        let grid = BrickGrid::build(&store, b0, b1 - b0 + IVec3::ONE)?;
+        Ok(SceneWorld {
+            store,
+            grid,
+            bounds: (lo, hi),
+        })
+    }
+
+    /// The local frame every tracer of this world uses.
+    pub fn frame(&self) -> Frame {
+        Frame {
+            anchor: self.grid.origin() << BRICK_SHIFT,
+        }
+    }
+
+    /// The brickmap tracer (borrows the grid and the store's pool).
+    pub fn brickmap(&self) -> BrickmapTracer<'_> {
+        BrickmapTracer::new(&self.grid, self.store.pool())
+    }
+
+    /// Build the sparse voxel octree.
+    pub fn svo(&self, progress: &ProgressBar) -> Result<Svo, TraceError> {
+        Svo::build(&self.grid, self.store.pool(), progress)
+    }
+
+    /// Build the dense grid, refusing above `limit` bytes.
+    pub fn dense(&self, limit: u64) -> Result<DenseGrid, TraceError> {
+        let frame = self.frame();
+        DenseGrid::build(&self.store, frame, self.bounds.1 - frame.anchor, limit)
+    }
+
+    /// Patch the grid with the store's pending edits; returns the bricks changed.
+    pub fn apply_edits(&mut self) -> Vec<IVec3> {
+        let changed = self.store.take_modified();
+        self.grid.apply_edits(&self.store, &changed);
+        changed
+    }
+
+    /// Three documented viewpoints from the bounds: a distant overview, a
+    /// medium view and a close-up, all looking at the centre from the
+    /// (−x, +y, −z) side.
+    pub fn default_views(&self) -> [View; 3] {
+        let (lo, hi) = (self.bounds.0.as_dvec3(), self.bounds.1.as_dvec3());
+        let c = (lo + hi) * 0.5;
+        let e = hi - lo;
+        let radius = e.length() * 0.5;
+        let dir = DVec3::new(-0.62, 0.5, -0.6).normalize();
+        let top = DVec3::new(c.x, hi.y, c.z);
+        [
+            View {
+                eye: (c + dir * radius * 1.45).to_array(),
+                target: c.to_array(),
+                fov: 50.0,
+            },
+            View {
+                eye: (c + dir * radius * 0.8).to_array(),
+                target: (c * 0.7 + top * 0.3).to_array(),
+                fov: 50.0,
+            },
+            View {
+                eye: (top + DVec3::new(-0.18 * e.x, 0.05 * e.y + 4.0, -0.18 * e.z)).to_array(),
+                target: (c + DVec3::new(0.08 * e.x, -0.2 * e.y, 0.1 * e.z)).to_array(),
+                fov: 60.0,
+            },
+        ]
+    }
+}
+
+/// Build `spec` at `size` voxels (procedural scenes only) from `seed`.
+pub fn build_scene(spec: &SceneSpec, size: IVec3, seed: u64, progress: &ProgressBar) -> Result<SceneWorld, SceneError> {
+    let (store, lo, hi) = match spec {
+        SceneSpec::Terrain { caves } => {
+            let t = Terrain::new(size, seed, *caves);
+            (voxelize(&t, terrain::palette(), progress), IVec3::ZERO, size)
+        }
+        SceneSpec::Balls => {
+            let prims = shapes::balls(size, seed);
+            (rasterize(&prims, size, shapes::palette(), progress), IVec3::ZERO, size)
+        }
+        SceneSpec::Hairball => {
+            let prims = shapes::hairball(size, seed);
+            (rasterize(&prims, size, shapes::palette(), progress), IVec3::ZERO, size)
+        }
+        SceneSpec::Heightmap(path) => {
+            let hm = Heightmap::load(path)?;
+            let ext = hm.extent();
+            (voxelize(&hm, Heightmap::palette(), progress), IVec3::ZERO, ext)
+        }
+        SceneSpec::Vox(path) => vox::load(path)?,
+    };
+    let mut world = SceneWorld::new(store, lo, hi)?;
+    world.store.take_modified();
+    Ok(world)
+}

@@ -1,0 +1,120 @@
+//! The procedural `terrain` scene: an fBm landscape coloured by height and
+//! slope, with optional overhangs and caves (`terrain:caves`).
+
+use glam::IVec3;
+
+use super::heightfield::Heightfield;
+use super::noise::{Noise, hash64};
+use crate::world::Palette;
+
+/// Materials of the terrain palette.
+mod mat {
+    pub const GRASS: u8 = 1; // 1..=3
+    pub const DIRT: u8 = 4; // 4..=5
+    pub const ROCK: u8 = 6; // 6..=8
+    pub const SNOW: u8 = 9; // 9..=10
+    pub const SAND: u8 = 11;
+    pub const DEEP: u8 = 12;
+}
+
+/// The terrain palette.
+pub fn palette() -> Palette {
+    let mut p = Palette::grey_ramp();
+    let colors: [(u8, [u8; 3]); 12] = [
+        (1, [88, 140, 62]),
+        (2, [101, 152, 70]),
+        (3, [79, 128, 56]),
+        (4, [120, 92, 64]),
+        (5, [108, 82, 58]),
+        (6, [128, 124, 118]),
+        (7, [116, 112, 108]),
+        (8, [140, 136, 128]),
+        (9, [240, 242, 246]),
+        (10, [226, 230, 238]),
+        (11, [214, 196, 140]),
+        (12, [96, 92, 90]),
+    ];
+    for (m, c) in colors {
+        p.set(m, c);
+    }
+    p
+}
+
+/// fBm terrain.
+#[derive(Clone, Debug)]
+pub struct Terrain {
+    extent: IVec3,
+    noise: Noise,
+    caves: bool,
+    scale: f64,
+}
+
+impl Terrain {
+    /// A terrain of `extent` voxels (x, max height, z).
+    pub fn new(extent: IVec3, seed: u64, caves: bool) -> Self {
+        let scale = (extent.x.max(extent.z) as f64 / 3.0).clamp(64.0, 512.0);
+        Terrain {
+            extent,
+            noise: Noise::new(seed),
+            caves,
+            scale,
+        }
+    }
+
+    fn jitter(&self, x: i32, z: i32, n: u64) -> u8 {
+        (hash64(((x as u64) << 32) ^ (z as u32 as u64) ^ 0xa5a5) % n) as u8
+    }
+}
+
+impl Heightfield for Terrain {
+    fn extent(&self) -> IVec3 {
+        self.extent
+    }
+
+    fn height(&self, x: i32, z: i32) -> i32 {
+        let x = x.clamp(0, self.extent.x - 1) as f64;
+        let z = z.clamp(0, self.extent.z - 1) as f64;
+        let n = self.noise.fbm2(x / self.scale, z / self.scale, 7);
+        let y = self.extent.y as f64;
+        ((0.42 + 0.34 * n) * y).clamp(1.0, y - 1.0) as i32
+    }
+
+    fn material(&self, x: i32, y: i32, z: i32, h: i32, slope: f32) -> u8 {
+        let depth = h - 1 - y;
+        let ey = self.extent.y;
+        if depth >= 4 {
+            mat::DEEP
+        } else if slope > 1.25 {
+            mat::ROCK + self.jitter(x, z, 3)
+        } else if h * 100 > ey * 72 {
+            mat::SNOW + self.jitter(x, z, 2)
+        } else if h * 100 < ey * 20 {
+            mat::SAND
+        } else if depth <= 0 {
+            mat::GRASS + self.jitter(x, z, 3)
+        } else {
+            mat::DIRT + self.jitter(x, z, 2)
+        }
+    }
+
+    fn solid(&self, x: i32, y: i32, z: i32, h: i32) -> bool {
+        if !self.caves {
+            return y < h;
+        }
+        let (fx, fy, fz) = (x as f64, y as f64, z as f64);
+        let overhang = 5.0 * self.noise.noise3(fx / 11.0, fy / 9.0, fz / 11.0);
+        if (h - y) as f64 + overhang <= 0.0 {
+            return false;
+        }
+        let cave = self.noise.noise3(fx / 29.0 + 100.0, fy / 17.0, fz / 29.0);
+        !(y > 2 && cave > 0.42)
+    }
+
+    fn margin_above(&self) -> i32 {
+        if self.caves { 6 } else { 0 }
+    }
+
+    fn deep(&self) -> Option<(i32, u8)> {
+        if self.caves { None } else { Some((4, mat::DEEP)) }
+    }
+}

@@ -1,0 +1,216 @@
+//! The `vox:FILE.vox` scene: MagicaVoxel files through `dot_vox`, with every
+//! model of the scene graph placed.
+//!
+//! **Placement.** A shape's model of size `s` has its voxel `v` centred at
+//! `c = v + 0.5 − floor(s / 2)`; transforms apply `R·c + t` from the shape up
+//! to the root (MagicaVoxel's convention). MagicaVoxel is Z-up; the world is
+//! Y-up, so a transformed centre `(x, y, z)` lands in voxel
+//! `floor((x, z, −y))` — a rotation, so models are not mirrored.
+//! Files without a scene graph place each model at the origin.
+//!
+//! **Colours.** Voxel colour index `i` (0-based, as `dot_vox` reports it)
+//! becomes material `i + 1`, coloured by the file's palette entry `i`.
+
+use std::path::Path;
+
+use glam::{DVec3, IVec3};
+use rustc_hash::FxHashMap;
+
+use super::SceneError;
+use crate::world::{BRICK_EDGE, BRICK_VOXELS, BrickContent, BrickStore, Palette, brick_of, voxel_index};
+
+/// Largest accepted `.vox` file, bytes.
+pub const MAX_FILE_BYTES: u64 = 256 << 20;
+/// Deepest scene graph followed.
+const MAX_DEPTH: u32 = 64;
+
+/// A signed permutation matrix plus translation.
+#[derive(Clone, Copy, Debug)]
+struct Xform {
+    r: [[i32; 3]; 3],
+    t: [i32; 3],
+}
+
+impl Xform {
+    const IDENTITY: Xform = Xform {
+        r: [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+        t: [0; 3],
+    };
+
+    fn then(&self, child: &Xform) -> Xform {
+        let mut r = [[0; 3]; 3];
+        let mut t = self.t;
+        for i in 0..3 {
+            for j in 0..3 {
+                r[i][j] = (0..3).map(|k| self.r[i][k] * child.r[k][j]).sum();
+            }
+            t[i] += (0..3).map(|k| self.r[i][k] * child.t[k]).sum::<i32>();
+        }
+        Xform { r, t }
+    }
+
+    fn apply(&self, p: DVec3) -> DVec3 {
+        let p = [p.x, p.y, p.z];
+        let v: [f64; 3] = std::array::from_fn(|i| {
+            (0..3).map(|k| self.r[i][k] as f64 * p[k]).sum::<f64>() + self.t[i] as f64
+        });
+        DVec3::from(v)
+    }
+}
+
+/// Parse MagicaVoxel's `_r` rotation byte without panicking on bad input.
+fn parse_rotation(s: &str) -> Result<[[i32; 3]; 3], String> {
+    let b: u8 = s.trim().parse().map_err(|_| format!("rotation '{s}' is not a byte"))?;
+    let i1 = (b & 3) as usize;
+    let i2 = ((b >> 2) & 3) as usize;
+    if i1 == 3 || i2 == 3 || i1 == i2 {
+        return Err(format!("rotation byte {b} is not a signed permutation"));
+    }
+    let i3 = 3 - i1 - i2;
+    let sign = |bit: u8| if b & (1 << bit) != 0 { -1 } else { 1 };
+    let mut r = [[0; 3]; 3];
+    r[0][i1] = sign(4);
+    r[1][i2] = sign(5);
+    r[2][i3] = sign(6);
+    Ok(r)
+}
+
+fn parse_translation(s: &str) -> Result<[i32; 3], String> {
+    let v: Vec<i32> = s
+        .split_whitespace()
+        .map(|p| p.parse::<i32>().map_err(|_| format!("translation '{s}' is not three integers")))
+        .collect::<Result<_, _>>()?;
+    if v.len() != 3 || v.iter().any(|c| c.abs() > 1 << 20) {
+        return Err(format!("translation '{s}' is not three integers within ±2^20"));
+    }
+    Ok([v[0], v[1], v[2]])
+}
+
+/// The voxels of a file, each as (world voxel, material), plus the palette.
+pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette), String> {
+    let mut out = Vec::new();
+    let mut placed: Vec<(u32, Xform)> = Vec::new();
+    if data.scenes.is_empty() {
+        placed.extend((0..data.models.len() as u32).map(|m| (m, Xform::IDENTITY)));
+    } else {
+        walk(data, 0, Xform::IDENTITY, 0, &mut placed)?;
+    }
+    for (model_id, xf) in placed {
+        let model = data
+            .models
+            .get(model_id as usize)
+            .ok_or_else(|| format!("scene graph names model {model_id}, but the file has {}", data.models.len()))?;
+        let half = DVec3::new((model.size.x / 2) as f64, (model.size.y / 2) as f64, (model.size.z / 2) as f64);
+        for v in &model.voxels {
+            let c = DVec3::new(v.x as f64, v.y as f64, v.z as f64) + 0.5 - half;
+            let w = xf.apply(c);
+            let p = DVec3::new(w.x, w.z, -w.y).floor().as_ivec3();
+            out.push((p, v.i.saturating_add(1)));
+        }
+    }
+    let mut palette = Palette::grey_ramp();
+    for (i, c) in data.palette.iter().enumerate().take(255) {
+        palette.set(i as u8 + 1, [c.r, c.g, c.b]);
+    }
+    Ok((out, palette))
+}
+
+fn walk(data: &dot_vox::DotVoxData, node: u32, xf: Xform, depth: u32, out: &mut Vec<(u32, Xform)>) -> Result<(), String> {
+    if depth > MAX_DEPTH {
+        return Err(format!("scene graph deeper than {MAX_DEPTH} levels (a cycle?)"));
+    }
+    let n = data
+        .scenes
+        .get(node as usize)
+        .ok_or_else(|| format!("scene graph names node {node}, but the file has {}", data.scenes.len()))?;
+    match n {
+        dot_vox::SceneNode::Transform { frames, child, .. } => {
+            let mut local = Xform::IDENTITY;
+            if let Some(f) = frames.first() {
+                if let Some(r) = f.attributes.get("_r") {
+                    local.r = parse_rotation(r)?;
+                }
+                if let Some(t) = f.attributes.get("_t") {
+                    local.t = parse_translation(t)?;
+                }
+            }
+            walk(data, *child, xf.then(&local), depth + 1, out)
+        }
+        dot_vox::SceneNode::Group { children, .. } => {
+            for c in children {
+                walk(data, *c, xf, depth + 1, out)?;
+            }
+            Ok(())
+        }
+        dot_vox::SceneNode::Shape { models, .. } => {
+            out.extend(models.iter().map(|m| (m.model_id, xf)));
+            Ok(())
+        }
+    }
+}
+
+/// Parse `.vox` bytes, turning any parser failure (even a panic) into an error.
+pub fn parse(bytes: &[u8]) -> Result<dot_vox::DotVoxData, String> {
+    match std::panic::catch_unwind(|| dot_vox::load_bytes(bytes)) {
+        Ok(Ok(d)) => Ok(d),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(_) => Err("the .vox parser rejected the file (malformed chunk)".into()),
+    }
+}
+
+/// Load a `.vox` file into a store; returns it with its voxel bounds `[min, max)`.
+pub fn load(path: &Path) -> Result<(BrickStore, IVec3, IVec3), SceneError> {
+    let meta = std::fs::metadata(path).map_err(|e| SceneError::io(path, e))?;
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(SceneError::too_large(path, format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len())));
+    }
+    let bytes = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
+    let fmt_err = |msg: String| SceneError::Format {
+        path: path.to_path_buf(),
+        kind: "MagicaVoxel .vox",
+        msg,
+    };
+    let data = parse(&bytes).map_err(fmt_err)?;
+    let (vox, palette) = voxels(&data).map_err(fmt_err)?;
+    if vox.is_empty() {
+        return Err(fmt_err("the file holds no voxels".into()));
+    }
+    let (store, lo, hi) = store_from_voxels(&vox, palette);
+    Ok((store, lo, hi))
+}
+
+/// Build a store from a voxel list; returns it with the bounds `[min, max)`.
+pub fn store_from_voxels(vox: &[(IVec3, u8)], palette: Palette) -> (BrickStore, IVec3, IVec3) {
+    let mut bricks: FxHashMap<IVec3, Box<[u8; BRICK_VOXELS]>> = FxHashMap::default();
+    let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
+    for &(p, m) in vox {
+        lo = lo.min(p);
+        hi = hi.max(p);
+        let b = brick_of(p);
+        let l = p - b * BRICK_EDGE;
+        bricks.entry(b).or_insert_with(|| Box::new([0; BRICK_VOXELS]))[voxel_index(l.x, l.y, l.z)] = m;
+    }
+    let mut keys: Vec<IVec3> = bricks.keys().copied().collect();
+    keys.sort_by_key(|k| (k.z, k.y, k.x));
+    let mut store = BrickStore::new(palette);
+    for k in keys {
+        let c = BrickContent::from_dense(&bricks[&k], store.palette());
+        store.set_brick(k, c);
+    }
+    (store, lo, hi + IVec3::ONE)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rotation_bytes_are_validated_not_panicked_on() {
+        assert_eq!(parse_rotation("4").unwrap(), [[1, 0, 0], [0, 1, 0], [0, 0, 1]]);
+        assert!(parse_rotation("3").is_err());
+        assert!(parse_rotation("15").is_err());
+        assert!(parse_rotation("x").is_err());
+        assert!(parse_translation("1 2").is_err());
+        assert_eq!(parse_translation("-1 2 3").unwrap(), [-1, 2, 3]);
+    }
+}

@@ -1,0 +1,305 @@
+//! The exact hierarchical DDA that every tracer shares.
+//!
+//! **The canonical answer.** A ray visits the cells `floor(o + t·d)` for
+//! `t ≥ 0`: its origin cell, then every cell in which it spends a positive
+//! length. The crossing time of the plane `k` on axis `a` is always computed
+//! by one formula, [`DdaRay::crossing_into`]: `(k − o[a]) · (1 / d[a])` in
+//! `f32`. When several axes cross at the same time (the ray passes exactly
+//! through an edge or corner) they step *together*, so a ray that only touches
+//! a voxel at a corner does not hit it. Axes whose direction component is 0
+//! (or −0.0, or so small that its reciprocal is not finite) are switched off
+//! and never step: no `inf · 0 = NaN` can arise.
+//!
+//! **Why it is exact across structures.** Crossing times are monotone along
+//! the ray on each axis, so the state after "every crossing with time ≤ T"
+//! is a pure function of `T`. A coarse skip over an empty aligned cube of
+//! edge 2ˢ computes the cube's exit time T by the same formula and then the
+//! per-axis cell after T ([`DdaRay::cell_after`]). That is bit-for-bit the
+//! state the voxel-by-voxel walk would reach, so the dense grid, the octree
+//! and the brickmap report the same voxel, face and `t` for every ray. No
+//! face-bias epsilon is used anywhere.
+
+use super::ray::Ray;
+
+/// Per-ray constants of the DDA (local frame).
+#[derive(Clone, Copy, Debug)]
+pub struct DdaRay {
+    o: [f32; 3],
+    d: [f32; 3],
+    inv: [f32; 3],
+    step: [i32; 3],
+    active: [bool; 3],
+}
+
+/// The walk's state: the current cell and the next crossing on each axis.
+#[derive(Clone, Copy, Debug)]
+pub struct DdaState {
+    /// Current cell (local voxel coordinates).
+    pub cell: [i32; 3],
+    /// Time of the next plane crossing on each axis (`+inf` when switched off).
+    pub tmax: [f32; 3],
+    /// Time at which the current cell was entered (0 for the origin cell).
+    pub t: f32,
+    /// Axes that stepped at `t` (bit a), 0 for the origin cell.
+    pub axes: u8,
+}
+
+/// Largest local coordinate magnitude the DDA accepts (f32 integers stay exact).
+pub const MAX_LOCAL: f32 = 16_777_216.0;
+
+impl DdaRay {
+    /// Prepare a ray, or `None` if its origin or direction is unusable
+    /// (non-finite, zero direction, or an origin beyond [`MAX_LOCAL`]).
+    pub fn new(ray: &Ray) -> Option<Self> {
+        let o = ray.origin.to_array();
+        let d = ray.dir.to_array();
+        if o.iter().chain(d.iter()).any(|v| !v.is_finite()) || o.iter().any(|v| v.abs() > MAX_LOCAL)
+        {
+            return None;
+        }
+        let mut inv = [f32::INFINITY; 3];
+        let mut step = [0; 3];
+        let mut active = [false; 3];
+        for a in 0..3 {
+            let r = 1.0 / d[a];
+            if d[a] != 0.0 && r.is_finite() {
+                inv[a] = r;
+                step[a] = if d[a] > 0.0 { 1 } else { -1 };
+                active[a] = true;
+            }
+        }
+        if !active.iter().any(|&x| x) {
+            return None;
+        }
+        Some(DdaRay {
+            o,
+            d,
+            inv,
+            step,
+            active,
+        })
+    }
+
+    /// Step direction per axis (−1, 0 or +1).
+    #[inline(always)]
+    pub fn step(&self) -> [i32; 3] {
+        self.step
+    }
+
+    /// Time at which the ray enters cell `c` along axis `a` (the crossing of
+    /// the plane between `c − step` and `c`). `+inf` for a switched-off axis.
+    #[inline(always)]
+    pub fn crossing_into(&self, a: usize, c: i32) -> f32 {
+        if !self.active[a] {
+            return f32::INFINITY;
+        }
+        let k = if self.step[a] > 0 { c } else { c + 1 };
+        (k as f32 - self.o[a]) * self.inv[a]
+    }
+
+    /// The cell on axis `a` after every crossing with time ≤ `t`, walking
+    /// forward from `start`.
+    #[inline]
+    pub fn cell_after(&self, a: usize, t: f32, start: i32) -> i32 {
+        if !self.active[a] {
+            return start;
+        }
+        let s = self.step[a];
+        let est = (self.o[a] + t * self.d[a]).floor();
+        let est = est.clamp(-MAX_LOCAL * 2.0, MAX_LOCAL * 2.0) as i32;
+        let mut c = if s > 0 { est.max(start) } else { est.min(start) };
+        let mut guard = 0;
+        while self.crossing_into(a, c + s) <= t && guard < 1 << 12 {
+            c += s;
+            guard += 1;
+        }
+        while c != start && self.crossing_into(a, c) > t && guard < 1 << 13 {
+            c -= s;
+            guard += 1;
+        }
+        c
+    }
+
+    fn state_at(&self, t: f32, start: [i32; 3]) -> DdaState {
+        let mut cell = start;
+        let mut axes = 0u8;
+        let mut tmax = [f32::INFINITY; 3];
+        for a in 0..3 {
+            cell[a] = self.cell_after(a, t, start[a]);
+            if cell[a] != start[a] && self.crossing_into(a, cell[a]) == t {
+                axes |= 1 << a;
+            }
+            tmax[a] = self.crossing_into(a, cell[a] + self.step[a]);
+        }
+        DdaState {
+            cell,
+            tmax,
+            t,
+            axes,
+        }
+    }
+
+    /// Start the walk in the box `[lo, hi)` (local voxels): the origin cell if
+    /// it is inside, else the first cell inside along the ray. `None` if the
+    /// ray never spends positive length inside the box.
+    #[inline]
+    pub fn enter(&self, lo: [i32; 3], hi: [i32; 3]) -> Option<DdaState> {
+        let start = [
+            self.o[0].floor() as i32,
+            self.o[1].floor() as i32,
+            self.o[2].floor() as i32,
+        ];
+        let mut t_enter = 0.0f32;
+        let mut outside = false;
+        for a in 0..3 {
+            if start[a] < lo[a] || start[a] >= hi[a] {
+                outside = true;
+                let first = if start[a] < lo[a] { lo[a] } else { hi[a] - 1 };
+                let moving_in = (start[a] < lo[a] && self.step[a] > 0)
+                    || (start[a] >= hi[a] && self.step[a] < 0);
+                if !moving_in {
+                    return None;
+                }
+                t_enter = t_enter.max(self.crossing_into(a, first));
+            }
+        }
+        if !outside {
+            let mut tmax = [0.0; 3];
+            for (a, tm) in tmax.iter_mut().enumerate() {
+                *tm = self.crossing_into(a, start[a] + self.step[a]);
+            }
+            return Some(DdaState {
+                cell: start,
+                tmax,
+                t: 0.0,
+                axes: 0,
+            });
+        }
+        let st = self.state_at(t_enter, start);
+        for a in 0..3 {
+            if st.cell[a] < lo[a] || st.cell[a] >= hi[a] {
+                return None;
+            }
+        }
+        Some(st)
+    }
+
+    /// Advance one cell (every axis whose crossing is next steps together).
+    #[inline(always)]
+    pub fn step_fine(&self, st: &mut DdaState) {
+        let t = st.tmax[0].min(st.tmax[1]).min(st.tmax[2]);
+        let mut axes = 0u8;
+        for a in 0..3 {
+            if st.tmax[a] == t {
+                st.cell[a] += self.step[a];
+                st.tmax[a] = self.crossing_into(a, st.cell[a] + self.step[a]);
+                axes |= 1 << a;
+            }
+        }
+        st.t = t;
+        st.axes = axes;
+    }
+
+    /// Skip the empty aligned cube of edge `1 << shift` holding the current
+    /// cell: the state becomes exactly what [`step_fine`](Self::step_fine)
+    /// would reach on leaving the cube.
+    #[inline]
+    pub fn skip(&self, st: &mut DdaState, shift: u32) {
+        if shift == 0 {
+            return self.step_fine(st);
+        }
+        let size = 1i32 << shift;
+        let mut t = f32::INFINITY;
+        for a in 0..3 {
+            let base = (st.cell[a] >> shift) << shift;
+            let exit = if self.step[a] > 0 { base + size } else { base - 1 };
+            t = t.min(self.crossing_into(a, exit));
+        }
+        *st = self.state_at(t, st.cell);
+    }
+
+    /// Outward face normal for a hit on the cell entered at `st` (the lowest
+    /// axis that stepped into it); zero for the origin cell.
+    #[inline]
+    pub fn normal(&self, st: &DdaState) -> [i32; 3] {
+        let mut n = [0; 3];
+        if st.axes != 0 {
+            let a = st.axes.trailing_zeros() as usize;
+            n[a] = -self.step[a];
+        }
+        n
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    fn ray(o: [f32; 3], d: [f32; 3]) -> DdaRay {
+        DdaRay::new(&Ray::new(Vec3::from(o), Vec3::from(d))).unwrap()
+    }
+
+    #[test]
+    fn zero_and_negative_zero_components_never_step() {
+        let r = ray([0.5, 1.0, 0.5], [1.0, -0.0, 0.0]);
+        let mut st = r.enter([0; 3], [8; 3]).unwrap();
+        for _ in 0..7 {
+            r.step_fine(&mut st);
+            assert_eq!(st.cell[1], 1);
+            assert_eq!(st.cell[2], 0);
+        }
+        assert_eq!(st.cell[0], 7);
+    }
+
+    #[test]
+    fn skip_equals_the_fine_walk() {
+        let dirs = [
+            [0.3f32, -0.7, 0.2],
+            [1.0, 1.0, 1.0],
+            [-1.0, 0.0, 0.5],
+            [1e-7, 1.0, -1e-7],
+        ];
+        for d in dirs {
+            let r = ray([3.25, 9.5, 4.0], d);
+            let start = r.enter([-64; 3], [64; 3]).unwrap();
+            for shift in 1..5 {
+                let mut coarse = start;
+                r.skip(&mut coarse, shift);
+                let mut fine = start;
+                let base: Vec<i32> = (0..3).map(|a| start.cell[a] >> shift).collect();
+                while (0..3).all(|a| fine.cell[a] >> shift == base[a]) {
+                    r.step_fine(&mut fine);
+                }
+                assert_eq!(coarse.cell, fine.cell, "dir {d:?} shift {shift}");
+                assert_eq!(coarse.t, fine.t);
+                assert_eq!(coarse.axes, fine.axes);
+                assert_eq!(coarse.tmax, fine.tmax);
+            }
+        }
+    }
+
+    #[test]
+    fn corner_touch_steps_all_axes_together() {
+        let r = ray([1.0, 1.0, 0.0], [-1.0, -1.0, -1.0]);
+        let mut st = r.enter([-4; 3], [4; 3]).unwrap();
+        assert_eq!(st.cell, [1, 1, 0]);
+        r.step_fine(&mut st);
+        assert_eq!(st.cell, [0, 0, -1]);
+        assert_eq!(st.axes, 0b111);
+    }
+
+    #[test]
+    fn entering_from_outside_lands_on_the_first_inside_cell() {
+        let r = ray([-10.0, 0.5, 0.5], [1.0, 0.0, 0.0]);
+        let st = r.enter([0; 3], [4; 3]).unwrap();
+        assert_eq!(st.cell, [0, 0, 0]);
+        assert_eq!(st.t, 10.0);
+        assert_eq!(r.normal(&st), [-1, 0, 0]);
+        // Moving away, or parallel outside: no entry.
+        let away = ray([-10.0, 0.5, 0.5], [-1.0, 0.0, 0.0]);
+        assert!(away.enter([0; 3], [4; 3]).is_none());
+        let parallel = ray([-10.0, 5.0, 0.5], [1.0, 0.0, 0.0]);
+        assert!(parallel.enter([0; 3], [4; 3]).is_none());
+    }
+}

@@ -1,0 +1,147 @@
+//! The tiled CPU renderer: 16×16 tiles traced in parallel on a rayon pool,
+//! Lambert shading with one directional light and optional hard shadows.
+//!
+//! Shadow rays start from the exact hit point clamped into the empty
+//! neighbour cell the primary ray came from (bit-exact cell bounds, no
+//! epsilon), so a surface can never shadow itself.
+
+use glam::{DVec3, IVec3, Vec3};
+use rayon::prelude::*;
+
+use super::camera::Camera;
+use super::ray::{Hit, Ray};
+use super::Tracer;
+use crate::world::Palette;
+
+/// Tile edge in pixels.
+pub const TILE: usize = 16;
+
+/// Lighting settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Shading {
+    /// Direction *towards* the light (normalised).
+    pub light: Vec3,
+    /// Ambient term in [0, 1].
+    pub ambient: f32,
+}
+
+impl Default for Shading {
+    fn default() -> Self {
+        Shading {
+            light: Vec3::new(0.45, 0.8, 0.35).normalize(),
+            ambient: 0.3,
+        }
+    }
+}
+
+/// What to render.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RenderOptions {
+    /// Trace a shadow ray towards the light from every hit.
+    pub shadows: bool,
+    /// Lighting.
+    pub shading: Shading,
+}
+
+/// A rendered frame: 8-bit RGB, depth (t, +inf on a miss) and the hit per pixel.
+#[derive(Clone, Debug)]
+pub struct RenderOutput {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Row-major RGB8.
+    pub rgb: Vec<u8>,
+    /// Row-major depth: t along the normalised ray, +inf for a miss.
+    pub depth: Vec<f32>,
+    /// Row-major primary hits.
+    pub hits: Vec<Option<Hit>>,
+}
+
+impl RenderOutput {
+    /// Fraction of pixels whose primary ray hit.
+    pub fn hit_fraction(&self) -> f64 {
+        self.hits.iter().filter(|h| h.is_some()).count() as f64 / self.hits.len().max(1) as f64
+    }
+}
+
+fn sky(dir: DVec3) -> [f32; 3] {
+    let k = dir.y.clamp(0.0, 1.0) as f32;
+    let horizon = [0.78, 0.86, 0.95];
+    let zenith = [0.33, 0.52, 0.84];
+    [0, 1, 2].map(|c| horizon[c] + (zenith[c] - horizon[c]) * k)
+}
+
+fn shade(tracer: &dyn Tracer, ray: &Ray, hit: &Hit, palette: &Palette, opts: &RenderOptions) -> [f32; 3] {
+    let base = palette.rgb(hit.material).map(|c| c as f32 / 255.0);
+    let n = hit.normal.as_vec3();
+    let light = opts.shading.light;
+    let mut lambert = n.dot(light).max(0.0);
+    if opts.shadows && lambert > 0.0 {
+        // Start inside the empty cell the ray came from, at the hit point.
+        let frame = tracer.frame();
+        let cell = hit.voxel + hit.normal - frame.anchor;
+        let p = ray.origin + ray.dir * hit.t;
+        let lo = cell.as_vec3();
+        let hi = (cell + IVec3::ONE).as_vec3();
+        let clamped = Vec3::new(
+            p.x.clamp(lo.x, hi.x.next_down()),
+            p.y.clamp(lo.y, hi.y.next_down()),
+            p.z.clamp(lo.z, hi.z.next_down()),
+        );
+        if tracer.trace(&Ray::new(clamped, light), f32::INFINITY).is_some() {
+            lambert = 0.0;
+        }
+    }
+    let k = if hit.normal == IVec3::ZERO {
+        opts.shading.ambient
+    } else {
+        opts.shading.ambient + (1.0 - opts.shading.ambient) * lambert
+    };
+    base.map(|c| c * k)
+}
+
+/// Render `camera`'s view of `tracer` on the current rayon pool.
+pub fn render(tracer: &dyn Tracer, camera: &Camera, palette: &Palette, opts: &RenderOptions) -> RenderOutput {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut rgb = vec![0u8; w * h * 3];
+    let mut depth = vec![f32::INFINITY; w * h];
+    let mut hits = vec![None; w * h];
+    let frame = tracer.frame();
+    let origin = frame.to_local(camera.eye);
+    rgb.par_chunks_mut(w * 3 * TILE)
+        .zip(depth.par_chunks_mut(w * TILE))
+        .zip(hits.par_chunks_mut(w * TILE))
+        .enumerate()
+        .for_each(|(band, ((rgb, depth), hits))| {
+            let rows = depth.len() / w;
+            for tx in (0..w).step_by(TILE) {
+                for r in 0..rows {
+                    let j = band * TILE + r;
+                    for i in tx..(tx + TILE).min(w) {
+                        let dir = camera.direction(i as u32, j as u32);
+                        let ray = Ray::new(origin, dir.as_vec3());
+                        let px = r * w + i;
+                        let c = match tracer.trace(&ray, f32::INFINITY) {
+                            Some(hit) => {
+                                depth[px] = hit.t;
+                                hits[px] = Some(hit);
+                                shade(tracer, &ray, &hit, palette, opts)
+                            }
+                            None => sky(dir),
+                        };
+                        for k in 0..3 {
+                            rgb[px * 3 + k] = (c[k].clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+                        }
+                    }
+                }
+            }
+        });
+    RenderOutput {
+        width: camera.width,
+        height: camera.height,
+        rgb,
+        depth,
+        hits,
+    }
+}
