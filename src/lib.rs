@@ -6,8 +6,54 @@
 //! - [`trace`]: the exact DDA, three interchangeable CPU tracers (dense grid,
 //!   sparse voxel octree, brickmap), the camera and the tiled renderer.
 //! - [`bench`]: the `bench tracers` comparison and its chart.
+//! - [`cli`], [`config`], [`app`]: the command line, its validation, and `run`.
 #![warn(missing_docs)]
 
+pub mod app;
+pub mod bench;
+pub mod cli;
+pub mod config;
+pub mod progress;
 pub mod scene;
 pub mod trace;
 pub mod world;
+
+/// Replace Rust's panic message with a one-line report (no backtrace unless
+/// `RUST_BACKTRACE` is set): a panic is a bug, but users should not see a
+/// wall of frames.
+pub fn install_panic_hook() {
+    if std::env::var_os("RUST_BACKTRACE").is_some() {
+        return;
+    }
+    std::panic::set_hook(Box::new(|info| {
+        if QUIET_PANICS.with(|q| q.get()) {
+            return;
+        }
+        let msg = info
+            .payload()
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| info.payload().downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown panic".into());
+        let at = info
+            .location()
+            .map(|l| format!(" at {}:{}", l.file(), l.line()))
+            .unwrap_or_default();
+        eprintln!(
+            "error: internal bug: {msg}{at} (please report it; set RUST_BACKTRACE=1 for details)"
+        );
+    }));
+}
+
+thread_local! {
+    static QUIET_PANICS: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Run `f`, turning a panic inside it into `Err` without printing anything.
+/// Used around third-party parsers fed untrusted files.
+pub fn catch_quietly<T>(f: impl FnOnce() -> T + std::panic::UnwindSafe) -> Result<T, ()> {
+    QUIET_PANICS.with(|q| q.set(true));
+    let r = std::panic::catch_unwind(f);
+    QUIET_PANICS.with(|q| q.set(false));
+    r.map_err(|_| ())
+}

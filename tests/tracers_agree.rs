@@ -7,7 +7,11 @@ use brickworld::trace::Tracer;
 use common::*;
 
 fn rays_per_scene() -> usize {
-    if cfg!(debug_assertions) { 50_000 } else { 1_000_000 }
+    if cfg!(debug_assertions) {
+        50_000
+    } else {
+        1_000_000
+    }
 }
 
 fn check(name: &str, b: &Built, seed: u64) {
@@ -19,15 +23,27 @@ fn check(name: &str, b: &Built, seed: u64) {
     let n = rays_per_scene();
     for i in 0..n {
         let ray = random_ray(&mut rng, ext);
-        let t_max = if i % 5 == 0 { rng.range(0.0, ext.x) } else { f32::INFINITY };
+        let t_max = if i % 5 == 0 {
+            rng.range(0.0, ext.x)
+        } else {
+            f32::INFINITY
+        };
         let r0 = tracers[0].trace(&ray, t_max);
         for t in &tracers[1..] {
             let r = t.trace(&ray, t_max);
-            assert_eq!(r0, r, "{name}: ray #{i} {ray:?} t_max {t_max}: dense vs {}", t.name());
+            assert_eq!(
+                r0,
+                r,
+                "{name}: ray #{i} {ray:?} t_max {t_max}: dense vs {}",
+                t.name()
+            );
         }
         hits += r0.is_some() as usize;
     }
-    assert!(hits > n / 50, "{name}: too few hits ({hits}) for a meaningful test");
+    assert!(
+        hits > n / 50,
+        "{name}: too few hits ({hits}) for a meaningful test"
+    );
     assert!(hits < n, "{name}: every ray hit; the generator is broken");
 }
 

@@ -36,7 +36,13 @@ fn slope_at(field: &dyn Heightfield, x: i32, z: i32) -> f32 {
     (dx * dx + dz * dz).sqrt()
 }
 
-fn column(field: &dyn Heightfield, bx: i32, bz: i32, out: &mut Vec<(IVec3, BrickContent)>, palette: &Palette) {
+fn column(
+    field: &dyn Heightfield,
+    bx: i32,
+    bz: i32,
+    out: &mut Vec<(IVec3, BrickContent)>,
+    palette: &Palette,
+) {
     let ext = field.extent();
     let mut h = [[0i32; 8]; 8];
     let mut slope = [[0f32; 8]; 8];

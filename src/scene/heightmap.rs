@@ -36,7 +36,10 @@ impl Heightmap {
     pub fn load(path: &Path) -> Result<Self, SceneError> {
         let meta = std::fs::metadata(path).map_err(|e| SceneError::io(path, e))?;
         if meta.len() > MAX_FILE_BYTES {
-            return Err(SceneError::too_large(path, format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len())));
+            return Err(SceneError::too_large(
+                path,
+                format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len()),
+            ));
         }
         let bytes = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
         Self::decode(&bytes).map_err(|msg| SceneError::Format {
@@ -54,14 +57,18 @@ impl Heightmap {
         let info = reader.info();
         let (w, h) = (info.width, info.height);
         if w > MAX_SIDE || h > MAX_SIDE {
-            return Err(format!("image is {w}x{h}, over the {MAX_SIDE}x{MAX_SIDE} limit"));
+            return Err(format!(
+                "image is {w}x{h}, over the {MAX_SIDE}x{MAX_SIDE} limit"
+            ));
         }
         let (color, depth) = (info.color_type, info.bit_depth);
         if color != png::ColorType::Grayscale {
             return Err(format!("expected 8- or 16-bit grayscale, found {color:?}"));
         }
         if depth != png::BitDepth::Eight && depth != png::BitDepth::Sixteen {
-            return Err(format!("expected 8- or 16-bit grayscale, found {depth:?}-bit"));
+            return Err(format!(
+                "expected 8- or 16-bit grayscale, found {depth:?}-bit"
+            ));
         }
         let size = reader.output_buffer_size().ok_or("image too large")?;
         let mut buf = vec![0u8; size];
@@ -81,7 +88,9 @@ impl Heightmap {
         }
         let max = heights.iter().copied().max().unwrap_or(0) as i32;
         if max > MAX_HEIGHT {
-            return Err(format!("a pixel value of {max} asks for a column taller than the {MAX_HEIGHT}-voxel limit"));
+            return Err(format!(
+                "a pixel value of {max} asks for a column taller than the {MAX_HEIGHT}-voxel limit"
+            ));
         }
         Ok(Heightmap {
             width: w as i32,
@@ -104,7 +113,12 @@ impl Heightmap {
         let mut p = Palette::grey_ramp();
         for i in 0..RAMP {
             let t = i as f32 / (RAMP - 1) as f32;
-            let stops = [[70.0, 130.0, 60.0], [150.0, 140.0, 80.0], [120.0, 90.0, 60.0], [245.0, 245.0, 250.0]];
+            let stops = [
+                [70.0, 130.0, 60.0],
+                [150.0, 140.0, 80.0],
+                [120.0, 90.0, 60.0],
+                [245.0, 245.0, 250.0],
+            ];
             let s = t * 3.0;
             let k = (s.floor() as usize).min(2);
             let f = s - k as f32;

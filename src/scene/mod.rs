@@ -59,7 +59,9 @@ pub enum SceneError {
         msg: String,
     },
     /// The scene name is not known.
-    #[error("unknown scene '{0}' (expected terrain, terrain:caves, balls, hairball, heightmap:FILE.png or vox:FILE.vox)")]
+    #[error(
+        "unknown scene '{0}' (expected terrain, terrain:caves, balls, hairball, heightmap:FILE.png or vox:FILE.vox)"
+    )]
     UnknownScene(String),
     /// The world structures could not be built.
     #[error(transparent)]
@@ -223,24 +225,45 @@ impl SceneWorld {
 }
 
 /// Build `spec` at `size` voxels (procedural scenes only) from `seed`.
-pub fn build_scene(spec: &SceneSpec, size: IVec3, seed: u64, progress: &ProgressBar) -> Result<SceneWorld, SceneError> {
+pub fn build_scene(
+    spec: &SceneSpec,
+    size: IVec3,
+    seed: u64,
+    progress: &ProgressBar,
+) -> Result<SceneWorld, SceneError> {
     let (store, lo, hi) = match spec {
         SceneSpec::Terrain { caves } => {
             let t = Terrain::new(size, seed, *caves);
-            (voxelize(&t, terrain::palette(), progress), IVec3::ZERO, size)
+            (
+                voxelize(&t, terrain::palette(), progress),
+                IVec3::ZERO,
+                size,
+            )
         }
         SceneSpec::Balls => {
             let prims = shapes::balls(size, seed);
-            (rasterize(&prims, size, shapes::palette(), progress), IVec3::ZERO, size)
+            (
+                rasterize(&prims, size, shapes::palette(), progress),
+                IVec3::ZERO,
+                size,
+            )
         }
         SceneSpec::Hairball => {
             let prims = shapes::hairball(size, seed);
-            (rasterize(&prims, size, shapes::palette(), progress), IVec3::ZERO, size)
+            (
+                rasterize(&prims, size, shapes::palette(), progress),
+                IVec3::ZERO,
+                size,
+            )
         }
         SceneSpec::Heightmap(path) => {
             let hm = Heightmap::load(path)?;
             let ext = hm.extent();
-            (voxelize(&hm, Heightmap::palette(), progress), IVec3::ZERO, ext)
+            (
+                voxelize(&hm, Heightmap::palette(), progress),
+                IVec3::ZERO,
+                ext,
+            )
         }
         SceneSpec::Vox(path) => vox::load(path)?,
     };

@@ -89,9 +89,18 @@ impl Rng {
 pub fn palette() -> Palette {
     let mut p = Palette::grey_ramp();
     let colors = [
-        [230, 85, 70], [240, 170, 60], [235, 220, 90], [120, 200, 90],
-        [70, 180, 160], [80, 140, 230], [140, 100, 220], [220, 110, 190],
-        [200, 200, 200], [150, 110, 80], [90, 90, 100], [250, 240, 220],
+        [230, 85, 70],
+        [240, 170, 60],
+        [235, 220, 90],
+        [120, 200, 90],
+        [70, 180, 160],
+        [80, 140, 230],
+        [140, 100, 220],
+        [220, 110, 190],
+        [200, 200, 200],
+        [150, 110, 80],
+        [90, 90, 100],
+        [250, 240, 220],
     ];
     for (i, c) in colors.iter().enumerate() {
         p.set(1 + i as u8, *c);
@@ -108,8 +117,16 @@ pub fn balls(size: IVec3, seed: u64) -> Vec<Prim> {
     (0..n)
         .map(|i| {
             let r = rng.range(min / 40.0, min / 10.0).max(1.5);
-            let c = DVec3::new(rng.range(0.0, size.x as f64), rng.range(0.0, size.y as f64), rng.range(0.0, size.z as f64));
-            Prim::Sphere { c, r, m: 1 + (i % 12) as u8 }
+            let c = DVec3::new(
+                rng.range(0.0, size.x as f64),
+                rng.range(0.0, size.y as f64),
+                rng.range(0.0, size.z as f64),
+            );
+            Prim::Sphere {
+                c,
+                r,
+                m: 1 + (i % 12) as u8,
+            }
         })
         .collect()
 }
@@ -124,13 +141,31 @@ pub fn hairball(size: IVec3, seed: u64) -> Vec<Prim> {
     let seg = min / 10.0;
     let mut prims = Vec::new();
     for i in 0..n {
-        let mut p = DVec3::new(rng.range(0.0, s.x), rng.range(0.0, s.y), rng.range(0.0, s.z));
-        let mut d = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)).normalize_or(DVec3::X);
+        let mut p = DVec3::new(
+            rng.range(0.0, s.x),
+            rng.range(0.0, s.y),
+            rng.range(0.0, s.z),
+        );
+        let mut d = DVec3::new(
+            rng.range(-1.0, 1.0),
+            rng.range(-1.0, 1.0),
+            rng.range(-1.0, 1.0),
+        )
+        .normalize_or(DVec3::X);
         for _ in 0..8 {
-            let turn = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
+            let turn = DVec3::new(
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+            );
             d = (d + turn * 0.6).normalize_or(d);
             let q = (p + d * seg).clamp(DVec3::ZERO, s - 1.0);
-            prims.push(Prim::Capsule { a: p, b: q, r, m: 1 + (i % 6) as u8 * 2 });
+            prims.push(Prim::Capsule {
+                a: p,
+                b: q,
+                r,
+                m: 1 + (i % 6) as u8 * 2,
+            });
             p = q;
         }
     }
@@ -140,7 +175,12 @@ pub fn hairball(size: IVec3, seed: u64) -> Vec<Prim> {
 const BUCKET_SHIFT: i32 = 6; // 64-voxel buckets = 8³ bricks
 
 /// Rasterise primitives (clipped to `[0, size)`) into a new store.
-pub fn rasterize(prims: &[Prim], size: IVec3, palette: Palette, progress: &ProgressBar) -> BrickStore {
+pub fn rasterize(
+    prims: &[Prim],
+    size: IVec3,
+    palette: Palette,
+    progress: &ProgressBar,
+) -> BrickStore {
     let mut buckets: FxHashMap<IVec3, Vec<u32>> = FxHashMap::default();
     for (i, p) in prims.iter().enumerate() {
         let (lo, hi) = p.aabb();
@@ -149,7 +189,10 @@ pub fn rasterize(prims: &[Prim], size: IVec3, palette: Palette, progress: &Progr
         for z in lo.z..=hi.z {
             for y in lo.y..=hi.y {
                 for x in lo.x..=hi.x {
-                    buckets.entry(IVec3::new(x, y, z)).or_default().push(i as u32);
+                    buckets
+                        .entry(IVec3::new(x, y, z))
+                        .or_default()
+                        .push(i as u32);
                 }
             }
         }
@@ -184,7 +227,8 @@ pub fn rasterize(prims: &[Prim], size: IVec3, palette: Palette, progress: &Progr
                             continue;
                         }
                         for (i, d) in dense.iter_mut().enumerate() {
-                            let l = IVec3::new((i & 7) as i32, ((i >> 3) & 7) as i32, (i >> 6) as i32);
+                            let l =
+                                IVec3::new((i & 7) as i32, ((i >> 3) & 7) as i32, (i >> 6) as i32);
                             let v = b * BRICK_EDGE + l;
                             *d = 0;
                             if v.cmpge(size).any() {

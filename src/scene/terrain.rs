@@ -74,9 +74,11 @@ impl Heightfield for Terrain {
     fn height(&self, x: i32, z: i32) -> i32 {
         let x = x.clamp(0, self.extent.x - 1) as f64;
         let z = z.clamp(0, self.extent.z - 1) as f64;
-        let n = self.noise.fbm2(x / self.scale, z / self.scale, 7);
+        let n = self.noise.fbm2(x / self.scale, z / self.scale, 5);
+        // Sharpen peaks a little so snow caps and valleys both appear.
+        let n = n + 0.35 * n * n.abs();
         let y = self.extent.y as f64;
-        ((0.42 + 0.34 * n) * y).clamp(1.0, y - 1.0) as i32
+        ((0.40 + 0.42 * n) * y).clamp(1.0, y - 1.0) as i32
     }
 
     fn material(&self, x: i32, y: i32, z: i32, h: i32, slope: f32) -> u8 {
@@ -115,6 +117,10 @@ impl Heightfield for Terrain {
     }
 
     fn deep(&self) -> Option<(i32, u8)> {
-        if self.caves { None } else { Some((4, mat::DEEP)) }
+        if self.caves {
+            None
+        } else {
+            Some((4, mat::DEEP))
+        }
     }
 }

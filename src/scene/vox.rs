@@ -17,7 +17,9 @@ use glam::{DVec3, IVec3};
 use rustc_hash::FxHashMap;
 
 use super::SceneError;
-use crate::world::{BRICK_EDGE, BRICK_VOXELS, BrickContent, BrickStore, Palette, brick_of, voxel_index};
+use crate::world::{
+    BRICK_EDGE, BRICK_VOXELS, BrickContent, BrickStore, Palette, brick_of, voxel_index,
+};
 
 /// Largest accepted `.vox` file, bytes.
 pub const MAX_FILE_BYTES: u64 = 256 << 20;
@@ -60,7 +62,10 @@ impl Xform {
 
 /// Parse MagicaVoxel's `_r` rotation byte without panicking on bad input.
 fn parse_rotation(s: &str) -> Result<[[i32; 3]; 3], String> {
-    let b: u8 = s.trim().parse().map_err(|_| format!("rotation '{s}' is not a byte"))?;
+    let b: u8 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("rotation '{s}' is not a byte"))?;
     let i1 = (b & 3) as usize;
     let i2 = ((b >> 2) & 3) as usize;
     if i1 == 3 || i2 == 3 || i1 == i2 {
@@ -78,10 +83,15 @@ fn parse_rotation(s: &str) -> Result<[[i32; 3]; 3], String> {
 fn parse_translation(s: &str) -> Result<[i32; 3], String> {
     let v: Vec<i32> = s
         .split_whitespace()
-        .map(|p| p.parse::<i32>().map_err(|_| format!("translation '{s}' is not three integers")))
+        .map(|p| {
+            p.parse::<i32>()
+                .map_err(|_| format!("translation '{s}' is not three integers"))
+        })
         .collect::<Result<_, _>>()?;
     if v.len() != 3 || v.iter().any(|c| c.abs() > 1 << 20) {
-        return Err(format!("translation '{s}' is not three integers within ±2^20"));
+        return Err(format!(
+            "translation '{s}' is not three integers within ±2^20"
+        ));
     }
     Ok([v[0], v[1], v[2]])
 }
@@ -96,11 +106,17 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
         walk(data, 0, Xform::IDENTITY, 0, &mut placed)?;
     }
     for (model_id, xf) in placed {
-        let model = data
-            .models
-            .get(model_id as usize)
-            .ok_or_else(|| format!("scene graph names model {model_id}, but the file has {}", data.models.len()))?;
-        let half = DVec3::new((model.size.x / 2) as f64, (model.size.y / 2) as f64, (model.size.z / 2) as f64);
+        let model = data.models.get(model_id as usize).ok_or_else(|| {
+            format!(
+                "scene graph names model {model_id}, but the file has {}",
+                data.models.len()
+            )
+        })?;
+        let half = DVec3::new(
+            (model.size.x / 2) as f64,
+            (model.size.y / 2) as f64,
+            (model.size.z / 2) as f64,
+        );
         for v in &model.voxels {
             let c = DVec3::new(v.x as f64, v.y as f64, v.z as f64) + 0.5 - half;
             let w = xf.apply(c);
@@ -115,14 +131,24 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
     Ok((out, palette))
 }
 
-fn walk(data: &dot_vox::DotVoxData, node: u32, xf: Xform, depth: u32, out: &mut Vec<(u32, Xform)>) -> Result<(), String> {
+fn walk(
+    data: &dot_vox::DotVoxData,
+    node: u32,
+    xf: Xform,
+    depth: u32,
+    out: &mut Vec<(u32, Xform)>,
+) -> Result<(), String> {
     if depth > MAX_DEPTH {
-        return Err(format!("scene graph deeper than {MAX_DEPTH} levels (a cycle?)"));
+        return Err(format!(
+            "scene graph deeper than {MAX_DEPTH} levels (a cycle?)"
+        ));
     }
-    let n = data
-        .scenes
-        .get(node as usize)
-        .ok_or_else(|| format!("scene graph names node {node}, but the file has {}", data.scenes.len()))?;
+    let n = data.scenes.get(node as usize).ok_or_else(|| {
+        format!(
+            "scene graph names node {node}, but the file has {}",
+            data.scenes.len()
+        )
+    })?;
     match n {
         dot_vox::SceneNode::Transform { frames, child, .. } => {
             let mut local = Xform::IDENTITY;
@@ -151,7 +177,7 @@ fn walk(data: &dot_vox::DotVoxData, node: u32, xf: Xform, depth: u32, out: &mut 
 
 /// Parse `.vox` bytes, turning any parser failure (even a panic) into an error.
 pub fn parse(bytes: &[u8]) -> Result<dot_vox::DotVoxData, String> {
-    match std::panic::catch_unwind(|| dot_vox::load_bytes(bytes)) {
+    match crate::catch_quietly(|| dot_vox::load_bytes(bytes)) {
         Ok(Ok(d)) => Ok(d),
         Ok(Err(e)) => Err(e.to_string()),
         Err(_) => Err("the .vox parser rejected the file (malformed chunk)".into()),
@@ -162,7 +188,10 @@ pub fn parse(bytes: &[u8]) -> Result<dot_vox::DotVoxData, String> {
 pub fn load(path: &Path) -> Result<(BrickStore, IVec3, IVec3), SceneError> {
     let meta = std::fs::metadata(path).map_err(|e| SceneError::io(path, e))?;
     if meta.len() > MAX_FILE_BYTES {
-        return Err(SceneError::too_large(path, format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len())));
+        return Err(SceneError::too_large(
+            path,
+            format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len()),
+        ));
     }
     let bytes = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
     let fmt_err = |msg: String| SceneError::Format {
@@ -188,7 +217,9 @@ pub fn store_from_voxels(vox: &[(IVec3, u8)], palette: Palette) -> (BrickStore, 
         hi = hi.max(p);
         let b = brick_of(p);
         let l = p - b * BRICK_EDGE;
-        bricks.entry(b).or_insert_with(|| Box::new([0; BRICK_VOXELS]))[voxel_index(l.x, l.y, l.z)] = m;
+        bricks
+            .entry(b)
+            .or_insert_with(|| Box::new([0; BRICK_VOXELS]))[voxel_index(l.x, l.y, l.z)] = m;
     }
     let mut keys: Vec<IVec3> = bricks.keys().copied().collect();
     keys.sort_by_key(|k| (k.z, k.y, k.x));
@@ -206,7 +237,10 @@ mod tests {
 
     #[test]
     fn rotation_bytes_are_validated_not_panicked_on() {
-        assert_eq!(parse_rotation("4").unwrap(), [[1, 0, 0], [0, 1, 0], [0, 0, 1]]);
+        assert_eq!(
+            parse_rotation("4").unwrap(),
+            [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+        );
         assert!(parse_rotation("3").is_err());
         assert!(parse_rotation("15").is_err());
         assert!(parse_rotation("x").is_err());

@@ -8,9 +8,9 @@
 
 use glam::IVec3;
 
+use super::Tracer;
 use super::dda::DdaRay;
 use super::ray::{Frame, Hit, Ray};
-use super::Tracer;
 use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool, OCC_SHIFT, UNIFORM, voxel_index};
 
 /// A tracer over a [`BrickGrid`] and the pool its pointers index.

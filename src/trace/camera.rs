@@ -18,7 +18,9 @@ pub enum CameraError {
     #[error("camera eye equals its target: the view direction is undefined")]
     EyeIsTarget,
     /// The view is vertical, so "right" is undefined.
-    #[error("camera looks straight up or down: the right vector f × (0,1,0) is zero; tilt the target slightly")]
+    #[error(
+        "camera looks straight up or down: the right vector f × (0,1,0) is zero; tilt the target slightly"
+    )]
     Vertical,
     /// Field of view out of range.
     #[error("fov must be in (0, 180) degrees, got {0}")]
@@ -57,7 +59,13 @@ pub struct Camera {
 
 impl Camera {
     /// Validate and build a camera.
-    pub fn new(eye: DVec3, target: DVec3, fov_deg: f64, width: u32, height: u32) -> Result<Self, CameraError> {
+    pub fn new(
+        eye: DVec3,
+        target: DVec3,
+        fov_deg: f64,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, CameraError> {
         if !eye.is_finite() {
             return Err(CameraError::NotFinite("eye"));
         }

@@ -24,11 +24,26 @@ use super::ray::Ray;
 /// Per-ray constants of the DDA (local frame).
 #[derive(Clone, Copy, Debug)]
 pub struct DdaRay {
+    /// The true origin.
     o: [f32; 3],
+    /// Origin used in crossing times: `-inf` on switched-off axes, so that
+    /// `(k − o) · inv = +inf · +inf = +inf` there, branch-free and NaN-free.
+    o_cross: [f32; 3],
     d: [f32; 3],
     inv: [f32; 3],
     step: [i32; 3],
+    /// 0 when stepping up (enter cell c through plane c), 1 when stepping down
+    /// (through plane c + 1).
+    plane: [i32; 3],
     active: [bool; 3],
+}
+
+/// `floor(x)` as an integer without a libm call (baseline x86-64 has no
+/// SSE4.1 rounding instruction); exact for |x| < 2³¹.
+#[inline(always)]
+pub fn floor_i32(x: f32) -> i32 {
+    let i = x as i32;
+    if (i as f32) > x { i - 1 } else { i }
 }
 
 /// The walk's state: the current cell and the next crossing on each axis.
@@ -59,13 +74,17 @@ impl DdaRay {
         }
         let mut inv = [f32::INFINITY; 3];
         let mut step = [0; 3];
+        let mut plane = [0; 3];
         let mut active = [false; 3];
+        let mut o_cross = [f32::NEG_INFINITY; 3];
         for a in 0..3 {
             let r = 1.0 / d[a];
             if d[a] != 0.0 && r.is_finite() {
                 inv[a] = r;
                 step[a] = if d[a] > 0.0 { 1 } else { -1 };
+                plane[a] = (d[a] < 0.0) as i32;
                 active[a] = true;
+                o_cross[a] = o[a];
             }
         }
         if !active.iter().any(|&x| x) {
@@ -73,9 +92,11 @@ impl DdaRay {
         }
         Some(DdaRay {
             o,
+            o_cross,
             d,
             inv,
             step,
+            plane,
             active,
         })
     }
@@ -90,53 +111,70 @@ impl DdaRay {
     /// the plane between `c − step` and `c`). `+inf` for a switched-off axis.
     #[inline(always)]
     pub fn crossing_into(&self, a: usize, c: i32) -> f32 {
-        if !self.active[a] {
-            return f32::INFINITY;
-        }
-        let k = if self.step[a] > 0 { c } else { c + 1 };
-        (k as f32 - self.o[a]) * self.inv[a]
+        ((c + self.plane[a]) as f32 - self.o_cross[a]) * self.inv[a]
     }
 
     /// The cell on axis `a` after every crossing with time ≤ `t`, walking
     /// forward from `start`.
     #[inline]
     pub fn cell_after(&self, a: usize, t: f32, start: i32) -> i32 {
-        if !self.active[a] {
-            return start;
-        }
-        let s = self.step[a];
-        let est = (self.o[a] + t * self.d[a]).floor();
-        let est = est.clamp(-MAX_LOCAL * 2.0, MAX_LOCAL * 2.0) as i32;
-        let mut c = if s > 0 { est.max(start) } else { est.min(start) };
-        let mut guard = 0;
-        while self.crossing_into(a, c + s) <= t && guard < 1 << 12 {
-            c += s;
-            guard += 1;
-        }
-        while c != start && self.crossing_into(a, c) > t && guard < 1 << 13 {
-            c -= s;
-            guard += 1;
-        }
-        c
+        self.axis_after(a, t, start).0
     }
 
-    fn state_at(&self, t: f32, start: [i32; 3]) -> DdaState {
-        let mut cell = start;
-        let mut axes = 0u8;
-        let mut tmax = [f32::INFINITY; 3];
-        for a in 0..3 {
-            cell[a] = self.cell_after(a, t, start[a]);
-            if cell[a] != start[a] && self.crossing_into(a, cell[a]) == t {
-                axes |= 1 << a;
+    /// [`cell_after`](Self::cell_after) plus the next crossing time on that
+    /// axis and whether the axis stepped exactly at `t`.
+    #[inline(always)]
+    fn axis_after(&self, a: usize, t: f32, start: i32) -> (i32, f32, bool) {
+        if !self.active[a] {
+            return (start, f32::INFINITY, false);
+        }
+        let s = self.step[a];
+        let est = floor_i32((self.o[a] + t * self.d[a]).clamp(-MAX_LOCAL * 2.0, MAX_LOCAL * 2.0));
+        let mut c = if s > 0 {
+            est.max(start)
+        } else {
+            est.min(start)
+        };
+        let mut next = self.crossing_into(a, c + s);
+        let mut guard = 0;
+        while next <= t && guard < 1 << 12 {
+            c += s;
+            next = self.crossing_into(a, c + s);
+            guard += 1;
+        }
+        let mut at = false;
+        while c != start && guard < 1 << 13 {
+            let cur = self.crossing_into(a, c);
+            if cur > t {
+                next = cur;
+                c -= s;
+                guard += 1;
+            } else {
+                at = cur == t;
+                break;
             }
-            tmax[a] = self.crossing_into(a, cell[a] + self.step[a]);
         }
-        DdaState {
-            cell,
-            tmax,
-            t,
-            axes,
+        (c, next, at)
+    }
+
+    /// Move `st` to the state after every crossing with time ≤ `t`, walking
+    /// forward from its current cell; updated in place (no struct copy).
+    #[inline(always)]
+    fn advance_to(&self, st: &mut DdaState, t: f32) {
+        let mut axes = 0u8;
+        for a in 0..3 {
+            // An axis whose next crossing is later than `t` stays put: the
+            // common case, and free. (`tmax` is exact for the current cell.)
+            if st.tmax[a] > t {
+                continue;
+            }
+            let (c, next, at) = self.axis_after(a, t, st.cell[a]);
+            st.cell[a] = c;
+            st.tmax[a] = next;
+            axes |= (at as u8) << a;
         }
+        st.t = t;
+        st.axes = axes;
     }
 
     /// Start the walk in the box `[lo, hi)` (local voxels): the origin cell if
@@ -145,9 +183,9 @@ impl DdaRay {
     #[inline]
     pub fn enter(&self, lo: [i32; 3], hi: [i32; 3]) -> Option<DdaState> {
         let start = [
-            self.o[0].floor() as i32,
-            self.o[1].floor() as i32,
-            self.o[2].floor() as i32,
+            floor_i32(self.o[0]),
+            floor_i32(self.o[1]),
+            floor_i32(self.o[2]),
         ];
         let mut t_enter = 0.0f32;
         let mut outside = false;
@@ -175,7 +213,16 @@ impl DdaRay {
                 axes: 0,
             });
         }
-        let st = self.state_at(t_enter, start);
+        let mut st = DdaState {
+            cell: start,
+            tmax: [0.0; 3],
+            t: 0.0,
+            axes: 0,
+        };
+        for a in 0..3 {
+            st.tmax[a] = self.crossing_into(a, start[a] + self.step[a]);
+        }
+        self.advance_to(&mut st, t_enter);
         for a in 0..3 {
             if st.cell[a] < lo[a] || st.cell[a] >= hi[a] {
                 return None;
@@ -203,7 +250,7 @@ impl DdaRay {
     /// Skip the empty aligned cube of edge `1 << shift` holding the current
     /// cell: the state becomes exactly what [`step_fine`](Self::step_fine)
     /// would reach on leaving the cube.
-    #[inline]
+    #[inline(always)]
     pub fn skip(&self, st: &mut DdaState, shift: u32) {
         if shift == 0 {
             return self.step_fine(st);
@@ -212,10 +259,14 @@ impl DdaRay {
         let mut t = f32::INFINITY;
         for a in 0..3 {
             let base = (st.cell[a] >> shift) << shift;
-            let exit = if self.step[a] > 0 { base + size } else { base - 1 };
+            let exit = if self.step[a] > 0 {
+                base + size
+            } else {
+                base - 1
+            };
             t = t.min(self.crossing_into(a, exit));
         }
-        *st = self.state_at(t, st.cell);
+        self.advance_to(st, t);
     }
 
     /// Outward face normal for a hit on the cell entered at `st` (the lowest

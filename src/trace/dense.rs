@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::dda::DdaRay;
 use super::ray::{Frame, Hit, Ray};
-use super::{Tracer, TraceError};
+use super::{TraceError, Tracer};
 use crate::world::{BRICK_EDGE, BRICK_VOXELS, BrickStore};
 
 /// Dense occupancy bits and materials over a box of voxels.
@@ -29,7 +29,12 @@ impl DenseGrid {
 
     /// Copy the voxels of `store` inside `[anchor, anchor + dims)` into a
     /// dense grid. Refuses with [`TraceError::DenseTooLarge`] over `limit` bytes.
-    pub fn build(store: &BrickStore, frame: Frame, dims: IVec3, limit: u64) -> Result<Self, TraceError> {
+    pub fn build(
+        store: &BrickStore,
+        frame: Frame,
+        dims: IVec3,
+        limit: u64,
+    ) -> Result<Self, TraceError> {
         let bytes = Self::bytes_for(dims);
         if bytes > limit {
             return Err(TraceError::DenseTooLarge { dims, bytes, limit });

@@ -10,7 +10,7 @@
 //! All three share [`dda::DdaRay`], so they agree on every ray: same voxel,
 //! same face, same `t`.
 
-mod brickmap;
+pub mod brickmap;
 mod camera;
 pub mod dda;
 mod dense;
@@ -104,7 +104,9 @@ impl FromStr for Structure {
             "dense" => Ok(Structure::Dense),
             "svo" => Ok(Structure::Svo),
             "brickmap" => Ok(Structure::Brickmap),
-            _ => Err(format!("unknown structure '{s}' (expected dense, svo or brickmap)")),
+            _ => Err(format!(
+                "unknown structure '{s}' (expected dense, svo or brickmap)"
+            )),
         }
     }
 }

@@ -11,7 +11,9 @@ pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> std::io::R
     enc.set_color(png::ColorType::Rgb);
     enc.set_depth(png::BitDepth::Eight);
     let mut writer = enc.write_header().map_err(std::io::Error::other)?;
-    writer.write_image_data(rgb).map_err(std::io::Error::other)?;
+    writer
+        .write_image_data(rgb)
+        .map_err(std::io::Error::other)?;
     writer.finish().map_err(std::io::Error::other)
 }
 
@@ -19,7 +21,8 @@ pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> std::io::R
 /// (format 1.0, little-endian `<f4`, C order).
 pub fn write_npy(path: &Path, width: u32, height: u32, data: &[f32]) -> std::io::Result<()> {
     assert_eq!(data.len(), width as usize * height as usize);
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({height}, {width}), }}");
+    let mut header =
+        format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({height}, {width}), }}");
     // Magic (6) + version (2) + length (2) + header + '\n' must be a multiple of 64.
     let pad = 64 - (10 + header.len() + 1) % 64;
     header.push_str(&" ".repeat(pad % 64));

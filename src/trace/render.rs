@@ -8,9 +8,9 @@
 use glam::{DVec3, IVec3, Vec3};
 use rayon::prelude::*;
 
+use super::Tracer;
 use super::camera::Camera;
 use super::ray::{Hit, Ray};
-use super::Tracer;
 use crate::world::Palette;
 
 /// Tile edge in pixels.
@@ -72,7 +72,13 @@ fn sky(dir: DVec3) -> [f32; 3] {
     [0, 1, 2].map(|c| horizon[c] + (zenith[c] - horizon[c]) * k)
 }
 
-fn shade(tracer: &dyn Tracer, ray: &Ray, hit: &Hit, palette: &Palette, opts: &RenderOptions) -> [f32; 3] {
+fn shade(
+    tracer: &dyn Tracer,
+    ray: &Ray,
+    hit: &Hit,
+    palette: &Palette,
+    opts: &RenderOptions,
+) -> [f32; 3] {
     let base = palette.rgb(hit.material).map(|c| c as f32 / 255.0);
     let n = hit.normal.as_vec3();
     let light = opts.shading.light;
@@ -89,7 +95,10 @@ fn shade(tracer: &dyn Tracer, ray: &Ray, hit: &Hit, palette: &Palette, opts: &Re
             p.y.clamp(lo.y, hi.y.next_down()),
             p.z.clamp(lo.z, hi.z.next_down()),
         );
-        if tracer.trace(&Ray::new(clamped, light), f32::INFINITY).is_some() {
+        if tracer
+            .trace(&Ray::new(clamped, light), f32::INFINITY)
+            .is_some()
+        {
             lambert = 0.0;
         }
     }
@@ -102,7 +111,12 @@ fn shade(tracer: &dyn Tracer, ray: &Ray, hit: &Hit, palette: &Palette, opts: &Re
 }
 
 /// Render `camera`'s view of `tracer` on the current rayon pool.
-pub fn render(tracer: &dyn Tracer, camera: &Camera, palette: &Palette, opts: &RenderOptions) -> RenderOutput {
+pub fn render(
+    tracer: &dyn Tracer,
+    camera: &Camera,
+    palette: &Palette,
+    opts: &RenderOptions,
+) -> RenderOutput {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut rgb = vec![0u8; w * h * 3];
     let mut depth = vec![f32::INFINITY; w * h];

@@ -29,7 +29,9 @@ use rayon::prelude::*;
 use super::dda::DdaRay;
 use super::ray::{Frame, Hit, Ray};
 use super::{TraceError, Tracer};
-use crate::world::{BRICK_SHIFT, BRICK_VOXELS, BrickGrid, BrickPool, OCC_SHIFT, UNIFORM, voxel_index};
+use crate::world::{
+    BRICK_SHIFT, BRICK_VOXELS, BrickGrid, BrickPool, OCC_SHIFT, UNIFORM, voxel_index,
+};
 
 const LEAF_SHIFT: u32 = 0;
 const VALID_SHIFT: u32 = 8;
@@ -89,7 +91,9 @@ impl NodeBuf {
 
 fn combine(children: [Built; 8]) -> Built {
     if let Built::Solid(m) = children[0]
-        && children.iter().all(|c| matches!(c, Built::Solid(x) if *x == m))
+        && children
+            .iter()
+            .all(|c| matches!(c, Built::Solid(x) if *x == m))
     {
         return Built::Solid(m);
     }
@@ -181,7 +185,11 @@ fn combine(children: [Built; 8]) -> Built {
 fn build_dense(dense: &[u8; BRICK_VOXELS], shift: u32, o: [i32; 3]) -> Built {
     if shift == 0 {
         let m = dense[voxel_index(o[0], o[1], o[2])];
-        return if m == 0 { Built::Empty } else { Built::Solid(m) };
+        return if m == 0 {
+            Built::Empty
+        } else {
+            Built::Solid(m)
+        };
     }
     let h = 1 << (shift - 1);
     combine(std::array::from_fn(|k| {
@@ -189,7 +197,11 @@ fn build_dense(dense: &[u8; BRICK_VOXELS], shift: u32, o: [i32; 3]) -> Built {
         build_dense(
             dense,
             shift - 1,
-            [o[0] + (k & 1) * h, o[1] + ((k >> 1) & 1) * h, o[2] + ((k >> 2) & 1) * h],
+            [
+                o[0] + (k & 1) * h,
+                o[1] + ((k >> 1) & 1) * h,
+                o[2] + ((k >> 2) & 1) * h,
+            ],
         )
     }))
 }
@@ -246,7 +258,11 @@ impl Source<'_> {
 
 impl Svo {
     /// Build the octree over the region of `grid` (mixed bricks from `pool`).
-    pub fn build(grid: &BrickGrid, pool: &BrickPool, progress: &ProgressBar) -> Result<Self, TraceError> {
+    pub fn build(
+        grid: &BrickGrid,
+        pool: &BrickPool,
+        progress: &ProgressBar,
+    ) -> Result<Self, TraceError> {
         let dims_vox = grid.dims() << BRICK_SHIFT;
         let edge = dims_vox.max_element().max(8) as u32;
         let root_shift = edge.next_power_of_two().trailing_zeros();
@@ -273,7 +289,11 @@ impl Svo {
         };
         let mut nodes = Vec::with_capacity(2 + root.body.len());
         let mut d = ((root.leaf as u64) << LEAF_SHIFT) | ((root.valid as u64) << VALID_SHIFT);
-        let body_start = if root.leaf_count() > INLINE_LEAVES { 2 } else { 1 };
+        let body_start = if root.leaf_count() > INLINE_LEAVES {
+            2
+        } else {
+            1
+        };
         if !root.body.is_empty() {
             d |= (body_start as u64) << PTR_SHIFT;
         }
@@ -286,7 +306,12 @@ impl Svo {
             nodes.push(d);
         }
         nodes.extend_from_slice(&root.body);
-        Ok(Svo::from_root(grid, root_shift, nodes, root.descriptors + 1))
+        Ok(Svo::from_root(
+            grid,
+            root_shift,
+            nodes,
+            root.descriptors + 1,
+        ))
     }
 
     fn from_root(grid: &BrickGrid, root_shift: u32, nodes: Vec<u64>, descriptors: u64) -> Self {
@@ -368,7 +393,8 @@ impl Tracer for Svo {
             let d = self.nodes[idx];
             let cs = s - 1;
             let c = st.cell;
-            let k = (((c[0] >> cs) & 1) | (((c[1] >> cs) & 1) << 1) | (((c[2] >> cs) & 1) << 2)) as u32;
+            let k =
+                (((c[0] >> cs) & 1) | (((c[1] >> cs) & 1) << 1) | (((c[2] >> cs) & 1) << 2)) as u32;
             let valid = (d >> VALID_SHIFT) as u8;
             let leaf = (d >> LEAF_SHIFT) as u8;
             if valid & (1 << k) == 0 {
@@ -390,7 +416,8 @@ impl Tracer for Svo {
                 });
             }
             let inner = valid & !leaf;
-            let child = self.children_block(idx, d) + (inner & ((1u16 << k) - 1) as u8).count_ones() as usize;
+            let child = self.children_block(idx, d)
+                + (inner & ((1u16 << k) - 1) as u8).count_ones() as usize;
             s = cs;
             stack[s as usize] = child as u32;
         }

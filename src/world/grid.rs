@@ -103,7 +103,10 @@ impl BrickGrid {
         for z in 0..OCC_EDGE {
             for y in 0..OCC_EDGE {
                 let row = self.index(base + IVec3::new(0, y, z)).unwrap();
-                if self.cells[row..row + OCC_EDGE as usize].iter().any(|&c| c != 0) {
+                if self.cells[row..row + OCC_EDGE as usize]
+                    .iter()
+                    .any(|&c| c != 0)
+                {
                     return true;
                 }
             }

@@ -135,7 +135,10 @@ mod tests {
         assert!(pool.remove(a).is_some());
         let b = pool.insert(some_brick(2));
         assert_eq!(a.index(), b.index(), "slot is reused");
-        assert!(pool.get(a).is_none(), "stale id must not read the new brick");
+        assert!(
+            pool.get(a).is_none(),
+            "stale id must not read the new brick"
+        );
         assert_eq!(pool.get(b).unwrap().material_index(3), 2);
         assert!(pool.remove(a).is_none());
         assert_eq!(pool.len(), 1);

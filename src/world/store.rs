@@ -108,10 +108,7 @@ impl BrickStore {
         match self.cell(b) {
             Cell::Empty => 0,
             Cell::Uniform(m) => m,
-            Cell::Mixed(id) => self
-                .pool
-                .get(id)
-                .map_or(0, |br| br.material(l.x, l.y, l.z)),
+            Cell::Mixed(id) => self.pool.get(id).map_or(0, |br| br.material(l.x, l.y, l.z)),
         }
     }
 
@@ -238,10 +235,8 @@ impl BrickStore {
     }
 
     fn cell_matches(&self, b: IVec3, content: &BrickContent) -> bool {
-        matches!(
-            (self.cell(b), content),
-            (Cell::Empty, BrickContent::Empty)
-        ) || matches!((self.cell(b), content), (Cell::Uniform(a), BrickContent::Uniform(c)) if a == *c)
+        matches!((self.cell(b), content), (Cell::Empty, BrickContent::Empty))
+            || matches!((self.cell(b), content), (Cell::Uniform(a), BrickContent::Uniform(c)) if a == *c)
     }
 
     /// Fill every voxel whose centre lies within `radius` of `center`.

@@ -88,7 +88,11 @@ pub fn random_ray(rng: &mut TestRng, ext: Vec3) -> Ray {
         1 => o.x = o.x.floor(),
         _ => {}
     }
-    let mut d = Vec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
+    let mut d = Vec3::new(
+        rng.range(-1.0, 1.0),
+        rng.range(-1.0, 1.0),
+        rng.range(-1.0, 1.0),
+    );
     match rng.next() % 8 {
         0 => {
             let a = (rng.next() % 3) as usize;

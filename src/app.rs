@@ -1,0 +1,101 @@
+//! The binary's edge: turns parsed arguments into work and reports errors
+//! with context (anyhow lives here and in `main`, nowhere else).
+
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use glam::DVec3;
+
+use crate::cli::{BenchCommand, Cli, Command};
+use crate::config::{BenchTracersSettings, RenderSettings, SceneSettings};
+use crate::progress::bar;
+use crate::scene::{SceneWorld, build_scene};
+use crate::trace::{Camera, RenderOptions, Structure, Tracer, render, write_npy, write_png};
+
+/// Run a parsed command line.
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
+        Command::Bench(BenchCommand::Tracers(a)) => {
+            crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
+        }
+    }
+}
+
+/// A rayon pool of `threads` workers (all cores when `None`).
+pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
+    let mut b = rayon::ThreadPoolBuilder::new();
+    if let Some(n) = threads {
+        b = b.num_threads(n);
+    }
+    b.build().context("cannot start the worker threads")
+}
+
+/// Build the scene with a progress bar.
+pub fn build_world(s: &SceneSettings) -> Result<SceneWorld> {
+    let pb = bar("scene", 0);
+    let world = build_scene(&s.spec, s.size, s.seed, &pb)
+        .with_context(|| format!("cannot build scene {:?}", s.spec))?;
+    pb.finish_and_clear();
+    Ok(world)
+}
+
+fn run_render(s: RenderSettings) -> Result<()> {
+    let pool = thread_pool(s.view.threads)?;
+    pool.install(|| {
+        let t0 = Instant::now();
+        let world = build_world(&s.scene)?;
+        let view = s.view.view.unwrap_or_else(|| {
+            let mut v = world.default_views()[0];
+            if let Some(f) = s.view.fov {
+                v.fov = f;
+            }
+            v
+        });
+        let camera = Camera::new(
+            DVec3::from(view.eye),
+            DVec3::from(view.target),
+            view.fov,
+            s.view.width,
+            s.view.height,
+        )
+        .context("invalid camera")?;
+        let opts = RenderOptions {
+            shadows: s.shadows,
+            ..Default::default()
+        };
+        let built = t0.elapsed();
+        let t1 = Instant::now();
+        let out = match s.structure {
+            Structure::Brickmap => render(&world.brickmap(), &camera, world.store.palette(), &opts),
+            Structure::Svo => {
+                let pb = bar("octree", 0);
+                let svo = world.svo(&pb)?;
+                pb.finish_and_clear();
+                render(&svo, &camera, world.store.palette(), &opts)
+            }
+            Structure::Dense => {
+                let dense = world.dense(s.dense_limit)?;
+                render(&dense as &dyn Tracer, &camera, world.store.palette(), &opts)
+            }
+        };
+        let traced = t1.elapsed();
+        write_png(&s.out, out.width, out.height, &out.rgb)
+            .with_context(|| format!("cannot write {}", s.out.display()))?;
+        if let Some(d) = &s.depth_out {
+            write_npy(d, out.width, out.height, &out.depth)
+                .with_context(|| format!("cannot write {}", d.display()))?;
+        }
+        eprintln!(
+            "rendered {}x{} with {} in {:.3} s (scene built in {:.2} s; {:.1}% of rays hit) -> {}",
+            out.width,
+            out.height,
+            s.structure,
+            traced.as_secs_f64(),
+            built.as_secs_f64(),
+            out.hit_fraction() * 100.0,
+            s.out.display()
+        );
+        Ok(())
+    })
+}

@@ -1,0 +1,91 @@
+//! SVG charts of bench results (plotters).
+
+use std::path::Path;
+
+use plotters::prelude::*;
+
+use super::tracers::{BenchReport, StructureReport};
+
+fn color(name: &str) -> RGBColor {
+    match name {
+        "dense" => RGBColor(200, 70, 60),
+        "svo" => RGBColor(60, 110, 200),
+        _ => RGBColor(40, 150, 80),
+    }
+}
+
+/// Memory (MiB, log scale) against speed (Mrays/s), one point per structure
+/// and scene, labelled `scene/structure`.
+pub fn memory_vs_speed(path: &Path, reports: &[&BenchReport]) -> Result<(), ChartError> {
+    draw(path, reports).map_err(|e| ChartError(e.to_string()))
+}
+
+/// A chart could not be drawn or written.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot draw the chart: {0}")]
+pub struct ChartError(String);
+
+fn draw(path: &Path, reports: &[&BenchReport]) -> Result<(), Box<dyn std::error::Error>> {
+    let mut pts: Vec<(String, &'static str, f64, f64)> = Vec::new();
+    for r in reports {
+        for s in &r.structures {
+            if let StructureReport::Ok(f) = s {
+                pts.push((
+                    r.scene.clone(),
+                    f.name,
+                    (f.bytes as f64 / (1 << 20) as f64).max(1e-3),
+                    f.mrays_per_s,
+                ));
+            }
+        }
+    }
+    if pts.is_empty() {
+        return Err("no structure was measured".into());
+    }
+    let xmin = pts.iter().map(|p| p.2).fold(f64::INFINITY, f64::min) / 2.0;
+    let xmax = pts.iter().map(|p| p.2).fold(0.0, f64::max) * 2.0;
+    let ymax = pts.iter().map(|p| p.3).fold(0.0, f64::max) * 1.2;
+    let root = SVGBackend::new(path, (800, 520)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let title = if reports.len() == 1 {
+        format!(
+            "{} {}x{}x{}, {}x{}, {} thread(s)",
+            reports[0].scene,
+            reports[0].size[0],
+            reports[0].size[1],
+            reports[0].size[2],
+            reports[0].width,
+            reports[0].height,
+            reports[0].threads
+        )
+    } else {
+        "memory against speed".to_string()
+    };
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(16)
+        .x_label_area_size(40)
+        .y_label_area_size(56)
+        .build_cartesian_2d((xmin..xmax).log_scale(), 0.0..ymax.max(0.1))?;
+    chart
+        .configure_mesh()
+        .x_desc("structure size (MiB, log)")
+        .y_desc("primary rays (Mrays/s)")
+        .draw()?;
+    for (scene, name, x, y) in &pts {
+        let c = color(name);
+        chart.draw_series(std::iter::once(Circle::new((*x, *y), 6, c.filled())))?;
+        let label = if reports.len() == 1 {
+            name.to_string()
+        } else {
+            format!("{scene}/{name}")
+        };
+        chart.draw_series(std::iter::once(Text::new(
+            label,
+            (*x, *y),
+            ("sans-serif", 14).into_font(),
+        )))?;
+    }
+    root.present()?;
+    Ok(())
+}

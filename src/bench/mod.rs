@@ -1,0 +1,5 @@
+//! Benchmarks run from the binary (`brickworld bench …`): measured figures,
+//! JSON that other tools read, and SVG charts.
+
+pub mod chart;
+pub mod tracers;

@@ -1,0 +1,118 @@
+//! Command-line surface (clap). Values stay raw strings here; [`crate::config`]
+//! validates them into typed settings whose errors name the bad flag.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+/// brickworld: a voxel world engine on sparse 8³ bricks.
+#[derive(Debug, Parser)]
+#[command(name = "brickworld", version, about, propagate_version = true)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Build a scene and ray-trace it to a PNG (and optionally depth .npy).
+    Render(RenderArgs),
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+/// Benchmarks.
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Compare the dense, svo and brickmap tracers on one scene.
+    Tracers(BenchTracersArgs),
+}
+
+/// Scene selection shared by every command.
+#[derive(Debug, Args, Clone)]
+pub struct SceneArgs {
+    /// terrain, terrain:caves, balls, hairball, heightmap:FILE.png or vox:FILE.vox
+    #[arg(long, default_value = "terrain")]
+    pub scene: String,
+    /// Scene size XxYxZ in voxels, Y up (procedural scenes only)
+    #[arg(long)]
+    pub size: Option<String>,
+    /// Seed for procedural scenes
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+/// Camera and image flags shared by render and bench.
+#[derive(Debug, Args, Clone)]
+pub struct ViewArgs {
+    /// Eye position x,y,z (world voxels); default: the scene's overview
+    #[arg(long, allow_hyphen_values = true)]
+    pub eye: Option<String>,
+    /// Look-at point x,y,z; required with --eye
+    #[arg(long, allow_hyphen_values = true)]
+    pub target: Option<String>,
+    /// Vertical field of view in degrees
+    #[arg(long)]
+    pub fov: Option<String>,
+    /// Image width in pixels
+    #[arg(long)]
+    pub width: Option<String>,
+    /// Image height in pixels
+    #[arg(long)]
+    pub height: Option<String>,
+    /// Worker threads (default: all cores)
+    #[arg(long)]
+    pub threads: Option<String>,
+}
+
+/// `brickworld render`.
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Tracer: dense, svo or brickmap
+    #[arg(long, default_value = "brickmap")]
+    pub structure: String,
+    /// Trace hard shadows towards the light
+    #[arg(long)]
+    pub shadows: bool,
+    /// Output PNG
+    #[arg(long, default_value = "brickworld.png")]
+    pub out: PathBuf,
+    /// Also write depth as float32 .npy, shape (H, W), +inf for a miss
+    #[arg(long)]
+    pub depth_out: Option<PathBuf>,
+    /// Largest dense grid to build, MiB
+    #[arg(long, default_value_t = 8192)]
+    pub dense_limit_mib: u64,
+}
+
+/// `brickworld bench tracers`.
+#[derive(Debug, Args)]
+pub struct BenchTracersArgs {
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Also draw memory against speed as SVG
+    #[arg(long)]
+    pub chart: Option<PathBuf>,
+    /// Timed renders per view and structure; the fastest counts
+    #[arg(long, default_value_t = 1)]
+    pub repeat: u32,
+    /// Largest dense grid to build, MiB (bigger grids report an error and the bench goes on)
+    #[arg(long, default_value_t = 8192)]
+    pub dense_limit_mib: u64,
+}

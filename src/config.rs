@@ -1,0 +1,319 @@
+//! Second stage of argument handling: raw CLI strings become validated,
+//! typed settings. Every error names the flag at fault.
+
+use std::path::PathBuf;
+
+use glam::{DVec3, IVec3};
+use thiserror::Error;
+
+use crate::cli::{BenchTracersArgs, RenderArgs, SceneArgs, ViewArgs};
+use crate::scene::{SceneSpec, View};
+use crate::trace::Structure;
+
+/// A flag with a bad value.
+#[derive(Debug, Error, PartialEq, Eq)]
+#[error("invalid {flag} '{value}': {reason}")]
+pub struct ConfigError {
+    /// The flag, e.g. `--size`.
+    pub flag: &'static str,
+    /// The value given.
+    pub value: String,
+    /// What is wrong with it.
+    pub reason: String,
+}
+
+fn bad(flag: &'static str, value: &str, reason: impl Into<String>) -> ConfigError {
+    ConfigError {
+        flag,
+        value: value.to_string(),
+        reason: reason.into(),
+    }
+}
+
+/// Largest procedural extent along x and z.
+pub const MAX_XZ: i32 = 65536;
+/// Largest procedural extent along y.
+pub const MAX_Y: i32 = 4096;
+
+/// Parse `XxYxZ`.
+pub fn parse_size(s: &str) -> Result<IVec3, ConfigError> {
+    let parts: Vec<&str> = s.split(['x', 'X']).collect();
+    if parts.len() != 3 {
+        return Err(bad("--size", s, "expected XxYxZ, e.g. 512x128x512"));
+    }
+    let mut v = [0i32; 3];
+    for (i, p) in parts.iter().enumerate() {
+        v[i] = p
+            .trim()
+            .parse::<i32>()
+            .map_err(|_| bad("--size", s, format!("'{p}' is not a whole number")))?;
+    }
+    let v = IVec3::from(v);
+    if v.min_element() < 8 {
+        return Err(bad("--size", s, "every side must be at least 8 voxels"));
+    }
+    if v.x > MAX_XZ || v.z > MAX_XZ || v.y > MAX_Y {
+        return Err(bad(
+            "--size",
+            s,
+            format!("the limit is {MAX_XZ}x{MAX_Y}x{MAX_XZ}"),
+        ));
+    }
+    Ok(v)
+}
+
+/// Parse `x,y,z` into a finite vector.
+pub fn parse_vec3(flag: &'static str, s: &str) -> Result<DVec3, ConfigError> {
+    let parts: Vec<&str> = s.split(',').collect();
+    if parts.len() != 3 {
+        return Err(bad(flag, s, "expected x,y,z"));
+    }
+    let mut v = [0f64; 3];
+    for (i, p) in parts.iter().enumerate() {
+        let x: f64 = p
+            .trim()
+            .parse()
+            .map_err(|_| bad(flag, s, format!("'{p}' is not a number")))?;
+        if !x.is_finite() {
+            return Err(bad(flag, s, "coordinates must be finite (no NaN or inf)"));
+        }
+        if x.abs() > 1e9 {
+            return Err(bad(flag, s, "coordinates must be within ±1e9 voxels"));
+        }
+        v[i] = x;
+    }
+    Ok(DVec3::from(v))
+}
+
+fn parse_num<T: std::str::FromStr>(
+    flag: &'static str,
+    s: &str,
+    lo: T,
+    hi: T,
+) -> Result<T, ConfigError>
+where
+    T: PartialOrd + std::fmt::Display + Copy,
+{
+    let v: T = s.trim().parse().map_err(|_| bad(flag, s, "not a number"))?;
+    if !(v >= lo && v <= hi) {
+        return Err(bad(flag, s, format!("must be in {lo}..={hi}")));
+    }
+    Ok(v)
+}
+
+/// Validated scene choice.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneSettings {
+    /// Which scene.
+    pub spec: SceneSpec,
+    /// Size for procedural scenes.
+    pub size: IVec3,
+    /// Seed.
+    pub seed: u64,
+}
+
+impl SceneSettings {
+    /// Validate scene flags; `default_size` applies when `--size` is absent.
+    pub fn from_args(a: &SceneArgs, default_size: IVec3) -> Result<Self, ConfigError> {
+        let spec: SceneSpec = a
+            .scene
+            .parse()
+            .map_err(|e: crate::scene::SceneError| bad("--scene", &a.scene, e.to_string()))?;
+        let size = match &a.size {
+            Some(s) if !spec.is_procedural() => {
+                return Err(bad(
+                    "--size",
+                    s,
+                    "heightmap and vox scenes take their size from the file",
+                ));
+            }
+            Some(s) => parse_size(s)?,
+            None => default_size,
+        };
+        Ok(SceneSettings {
+            spec,
+            size,
+            seed: a.seed,
+        })
+    }
+}
+
+/// Validated camera and image flags (the view itself may default later).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewSettings {
+    /// Explicit view, if --eye/--target were given.
+    pub view: Option<View>,
+    /// Field of view when no explicit view is given, or with one.
+    pub fov: Option<f64>,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Thread count (None: all cores).
+    pub threads: Option<usize>,
+}
+
+impl ViewSettings {
+    /// Validate view flags with default image size `w`×`h`.
+    pub fn from_args(a: &ViewArgs, w: u32, h: u32) -> Result<Self, ConfigError> {
+        let fov = a
+            .fov
+            .as_deref()
+            .map(|s| parse_num("--fov", s, 0.01f64, 179.0))
+            .transpose()?;
+        let view = match (&a.eye, &a.target) {
+            (Some(e), Some(t)) => {
+                let eye = parse_vec3("--eye", e)?;
+                let target = parse_vec3("--target", t)?;
+                if eye == target {
+                    return Err(bad(
+                        "--target",
+                        t,
+                        "equals --eye, so the view direction is undefined",
+                    ));
+                }
+                let f = (target - eye).normalize();
+                if f.cross(DVec3::Y).length() < 1e-9 {
+                    return Err(bad(
+                        "--target",
+                        t,
+                        "is straight above or below --eye; tilt it slightly",
+                    ));
+                }
+                Some(View {
+                    eye: eye.to_array(),
+                    target: target.to_array(),
+                    fov: fov.unwrap_or(50.0),
+                })
+            }
+            (Some(e), None) => return Err(bad("--eye", e, "needs --target too")),
+            (None, Some(t)) => return Err(bad("--target", t, "needs --eye too")),
+            (None, None) => None,
+        };
+        Ok(ViewSettings {
+            view,
+            fov,
+            width: a
+                .width
+                .as_deref()
+                .map(|s| parse_num("--width", s, 1u32, 16384))
+                .transpose()?
+                .unwrap_or(w),
+            height: a
+                .height
+                .as_deref()
+                .map(|s| parse_num("--height", s, 1u32, 16384))
+                .transpose()?
+                .unwrap_or(h),
+            threads: a
+                .threads
+                .as_deref()
+                .map(|s| parse_num("--threads", s, 1usize, 1024))
+                .transpose()?,
+        })
+    }
+}
+
+/// Settings of `brickworld render`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// Scene.
+    pub scene: SceneSettings,
+    /// View.
+    pub view: ViewSettings,
+    /// Tracer.
+    pub structure: Structure,
+    /// Hard shadows.
+    pub shadows: bool,
+    /// PNG path.
+    pub out: PathBuf,
+    /// Depth path.
+    pub depth_out: Option<PathBuf>,
+    /// Dense grid limit, bytes.
+    pub dense_limit: u64,
+}
+
+/// Default size of procedural scenes for `render`.
+pub const RENDER_DEFAULT_SIZE: IVec3 = IVec3::new(512, 128, 512);
+/// Default size of procedural scenes for `bench tracers`.
+pub const BENCH_DEFAULT_SIZE: IVec3 = IVec3::new(512, 128, 512);
+
+impl RenderSettings {
+    /// Validate `render` arguments.
+    pub fn from_args(a: &RenderArgs) -> Result<Self, ConfigError> {
+        Ok(RenderSettings {
+            scene: SceneSettings::from_args(&a.scene, RENDER_DEFAULT_SIZE)?,
+            view: ViewSettings::from_args(&a.view, 960, 540)?,
+            structure: a
+                .structure
+                .parse()
+                .map_err(|e: String| bad("--structure", &a.structure, e))?,
+            shadows: a.shadows,
+            out: a.out.clone(),
+            depth_out: a.depth_out.clone(),
+            dense_limit: a.dense_limit_mib.saturating_mul(1 << 20),
+        })
+    }
+}
+
+/// Settings of `brickworld bench tracers`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BenchTracersSettings {
+    /// Scene.
+    pub scene: SceneSettings,
+    /// View.
+    pub view: ViewSettings,
+    /// JSON path.
+    pub json: PathBuf,
+    /// Chart path.
+    pub chart: Option<PathBuf>,
+    /// Repeats per view.
+    pub repeat: u32,
+    /// Dense grid limit, bytes.
+    pub dense_limit: u64,
+}
+
+impl BenchTracersSettings {
+    /// Validate `bench tracers` arguments.
+    pub fn from_args(a: &BenchTracersArgs) -> Result<Self, ConfigError> {
+        if a.repeat == 0 || a.repeat > 100 {
+            return Err(bad("--repeat", &a.repeat.to_string(), "must be in 1..=100"));
+        }
+        Ok(BenchTracersSettings {
+            scene: SceneSettings::from_args(&a.scene, BENCH_DEFAULT_SIZE)?,
+            view: ViewSettings::from_args(&a.view, 1024, 768)?,
+            json: a.json.clone(),
+            chart: a.chart.clone(),
+            repeat: a.repeat,
+            dense_limit: a.dense_limit_mib.saturating_mul(1 << 20),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_parse_and_bad_ones_name_the_flag() {
+        assert_eq!(
+            parse_size("512x128x256").unwrap(),
+            IVec3::new(512, 128, 256)
+        );
+        for s in ["512x128", "axbxc", "4x8x8", "100000x8x8", "-8x8x8", ""] {
+            let e = parse_size(s).unwrap_err();
+            assert_eq!(e.flag, "--size", "{s}");
+        }
+    }
+
+    #[test]
+    fn vectors_reject_nan_and_wrong_arity() {
+        assert_eq!(
+            parse_vec3("--eye", "1,-2.5,3").unwrap(),
+            DVec3::new(1.0, -2.5, 3.0)
+        );
+        for s in ["NaN,0,0", "1,2", "inf,0,0", "a,b,c", "1,2,3,4"] {
+            assert_eq!(parse_vec3("--eye", s).unwrap_err().flag, "--eye", "{s}");
+        }
+    }
+}
