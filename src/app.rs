@@ -34,8 +34,7 @@ pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
 /// Build the scene with a progress bar.
 pub fn build_world(s: &SceneSettings) -> Result<SceneWorld> {
     let pb = bar("scene", 0);
-    let world = build_scene(&s.spec, s.size, s.seed, &pb)
-        .with_context(|| format!("cannot build scene {:?}", s.spec))?;
+    let world = build_scene(&s.spec, s.size, s.seed, &pb).context("cannot build the scene")?;
     pb.finish_and_clear();
     Ok(world)
 }

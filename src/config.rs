@@ -85,14 +85,9 @@ pub fn parse_vec3(flag: &'static str, s: &str) -> Result<DVec3, ConfigError> {
     Ok(DVec3::from(v))
 }
 
-fn parse_num<T: std::str::FromStr>(
-    flag: &'static str,
-    s: &str,
-    lo: T,
-    hi: T,
-) -> Result<T, ConfigError>
+fn parse_num<T>(flag: &'static str, s: &str, lo: T, hi: T) -> Result<T, ConfigError>
 where
-    T: PartialOrd + std::fmt::Display + Copy,
+    T: std::str::FromStr + PartialOrd + std::fmt::Display + Copy,
 {
     let v: T = s.trim().parse().map_err(|_| bad(flag, s, "not a number"))?;
     if !(v >= lo && v <= hi) {

@@ -49,11 +49,16 @@ thread_local! {
     static QUIET_PANICS: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
+/// A panic caught by [`catch_quietly`].
+#[derive(Debug, thiserror::Error)]
+#[error("the operation panicked")]
+pub struct Panicked;
+
 /// Run `f`, turning a panic inside it into `Err` without printing anything.
 /// Used around third-party parsers fed untrusted files.
-pub fn catch_quietly<T>(f: impl FnOnce() -> T + std::panic::UnwindSafe) -> Result<T, ()> {
+pub fn catch_quietly<T>(f: impl FnOnce() -> T + std::panic::UnwindSafe) -> Result<T, Panicked> {
     QUIET_PANICS.with(|q| q.set(true));
     let r = std::panic::catch_unwind(f);
     QUIET_PANICS.with(|q| q.set(false));
-    r.map_err(|_| ())
+    r.map_err(|_| Panicked)
 }

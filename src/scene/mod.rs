@@ -33,12 +33,13 @@ use crate::world::{BRICK_SHIFT, BrickGrid, BrickStore, WorldError, brick_of};
 #[derive(Debug, Error)]
 pub enum SceneError {
     /// A file could not be read.
-    #[error("cannot read {}: {source}", path.display())]
+    #[error("cannot read {}: {error}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
-        /// Why.
-        source: std::io::Error,
+        /// Why (part of the message, deliberately not a `source`, so that
+        /// error chains do not print it twice).
+        error: std::io::Error,
     },
     /// A file is not valid in its format.
     #[error("{} is not a valid {kind}: {msg}", path.display())]
@@ -72,7 +73,7 @@ impl SceneError {
     fn io(path: &Path, source: std::io::Error) -> Self {
         SceneError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         }
     }
     fn too_large(path: &Path, msg: String) -> Self {

@@ -113,7 +113,7 @@ pub fn balls(size: IVec3, seed: u64) -> Vec<Prim> {
     let mut rng = Rng::new(seed);
     let min = size.min_element() as f64;
     let vol = size.as_dvec3().element_product();
-    let n = ((vol / 160f64.powi(3)) as usize).clamp(12, 20_000);
+    let n = ((vol / 100f64.powi(3)) as usize).clamp(24, 20_000);
     (0..n)
         .map(|i| {
             let r = rng.range(min / 40.0, min / 10.0).max(1.5);
@@ -136,7 +136,9 @@ pub fn hairball(size: IVec3, seed: u64) -> Vec<Prim> {
     let mut rng = Rng::new(seed ^ 0x4a1b);
     let s = size.as_dvec3();
     let min = size.min_element() as f64;
-    let n = ((s.element_product() / 1024f64.powi(3) * 600.0) as usize).clamp(12, 50_000);
+    // About 3000 tubes at 1024³, fewer (by surface) at smaller sizes.
+    let n = ((s.element_product() / 1024f64.powi(3)).powf(2.0 / 3.0) * 3000.0) as usize;
+    let n = n.clamp(24, 50_000);
     let r = (min / 200.0).max(1.5);
     let seg = min / 10.0;
     let mut prims = Vec::new();

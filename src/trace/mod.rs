@@ -37,7 +37,7 @@ pub use svo::Svo;
 #[derive(Debug, Error)]
 pub enum TraceError {
     /// The dense grid would exceed its memory limit.
-    #[error("dense grid of {dims} voxels needs {} MiB, over the limit of {} MiB", bytes >> 20, limit >> 20)]
+    #[error("dense grid of {}x{}x{} voxels needs {} MiB, over the limit of {} MiB (raise --dense-limit-mib or use svo/brickmap)", dims.x, dims.y, dims.z, bytes >> 20, limit >> 20)]
     DenseTooLarge {
         /// Grid size in voxels.
         dims: IVec3,

@@ -149,15 +149,7 @@ impl Brick {
                 }
             }
         }
-        let lod_rgb = if solid == 0 {
-            [0; 3]
-        } else {
-            [
-                (sum[0] / solid) as u8,
-                (sum[1] / solid) as u8,
-                (sum[2] / solid) as u8,
-            ]
-        };
+        let lod_rgb = sum.map(|c| c.checked_div(solid).unwrap_or(0) as u8);
         Brick {
             mask,
             local_palette: local.into_boxed_slice(),
@@ -210,7 +202,7 @@ impl Brick {
     pub fn to_dense(&self, out: &mut [u8; BRICK_VOXELS]) {
         out.fill(0);
         let bits = self.bits as usize;
-        let per_word = if bits == 0 { 1 } else { 64 / bits };
+        let per_word = 64usize.checked_div(bits).unwrap_or(1);
         let mut rank = 0usize;
         for (w, &word) in self.mask.iter().enumerate() {
             let mut m = word;

@@ -241,7 +241,7 @@ impl BrickStore {
 
     /// Fill every voxel whose centre lies within `radius` of `center`.
     pub fn fill_sphere(&mut self, center: DVec3, radius: f64, material: u8) {
-        if !(radius > 0.0) || !center.is_finite() {
+        if radius.is_nan() || radius <= 0.0 || !center.is_finite() {
             return;
         }
         self.tick += 1;

@@ -1,0 +1,279 @@
+//! The binary as a user meets it: outputs land where asked, depth follows the
+//! `.npy` convention, and bad input gets one clear line and a non-zero exit,
+//! never a panic.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_brickworld"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("brickworld-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+#[test]
+fn render_writes_png_and_depth_npy_in_the_documented_layout() {
+    let (png, npy) = (tmp("r.png"), tmp("r.npy"));
+    let out = bin()
+        .args([
+            "render", "--scene", "balls", "--size", "48x40x48", "--width", "40", "--height", "30",
+        ])
+        .args([
+            "--eye",
+            "-30,60,-30",
+            "--target",
+            "24,10,24",
+            "--fov",
+            "60",
+            "--shadows",
+            "--threads",
+            "2",
+        ])
+        .arg("--out")
+        .arg(&png)
+        .arg("--depth-out")
+        .arg(&npy)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let img = std::fs::read(&png).unwrap();
+    assert_eq!(&img[1..4], b"PNG");
+    let d = std::fs::read(&npy).unwrap();
+    assert_eq!(&d[..8], b"\x93NUMPY\x01\x00");
+    let hlen = u16::from_le_bytes([d[8], d[9]]) as usize;
+    let header = std::str::from_utf8(&d[10..10 + hlen]).unwrap();
+    assert!(
+        header.contains("'descr': '<f4'") && header.contains("'shape': (30, 40)"),
+        "{header}"
+    );
+    assert_eq!((10 + hlen) % 64, 0, "header is 64-byte aligned");
+    let vals: Vec<f32> = d[10 + hlen..]
+        .chunks(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    assert_eq!(vals.len(), 30 * 40);
+    assert!(
+        vals.iter().any(|v| v.is_infinite() && *v > 0.0),
+        "sky pixels are +inf"
+    );
+    assert!(
+        vals.iter().any(|v| v.is_finite() && *v > 0.0),
+        "some pixels hit"
+    );
+}
+
+fn expect_failure(args: &[&str], needle: &str) {
+    let out = bin().args(args).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{args:?} should fail");
+    assert!(
+        !err.contains("panicked") && !err.contains("RUST_BACKTRACE"),
+        "{args:?} panicked: {err}"
+    );
+    assert!(
+        err.contains(needle),
+        "{args:?}: '{err}' should mention '{needle}'"
+    );
+}
+
+#[test]
+fn bad_input_gets_a_clear_error_and_nonzero_exit() {
+    let o = tmp("x.png");
+    let o = o.to_str().unwrap();
+    expect_failure(&["render", "--out", o, "--size", "64x64"], "invalid --size");
+    expect_failure(&["render", "--out", o, "--size", "0x8x8"], "invalid --size");
+    expect_failure(
+        &[
+            "render", "--out", o, "--eye", "NaN,0,0", "--target", "1,1,1",
+        ],
+        "invalid --eye",
+    );
+    expect_failure(
+        &["render", "--out", o, "--eye", "1,2,3", "--target", "1,2,3"],
+        "equals --eye",
+    );
+    expect_failure(
+        &["render", "--out", o, "--eye", "0,9,0", "--target", "0,-9,0"],
+        "straight above or below",
+    );
+    expect_failure(&["render", "--out", o, "--eye", "1,2,3"], "needs --target");
+    expect_failure(&["render", "--out", o, "--width", "0"], "invalid --width");
+    expect_failure(&["render", "--out", o, "--fov", "180"], "invalid --fov");
+    expect_failure(
+        &["render", "--out", o, "--threads", "0"],
+        "invalid --threads",
+    );
+    expect_failure(
+        &["render", "--out", o, "--structure", "bvh"],
+        "unknown structure",
+    );
+    expect_failure(
+        &["render", "--out", o, "--scene", "mountains"],
+        "unknown scene",
+    );
+    expect_failure(
+        &[
+            "render",
+            "--out",
+            o,
+            "--scene",
+            "heightmap:/nonexistent/h.png",
+        ],
+        "cannot read /nonexistent/h.png",
+    );
+    expect_failure(
+        &[
+            "render",
+            "--out",
+            o,
+            "--scene",
+            "vox:/nonexistent/m.vox",
+            "--size",
+            "8x8x8",
+        ],
+        "take their size from the file",
+    );
+    expect_failure(
+        &["render", "--out", o, "--frobnicate"],
+        "unexpected argument",
+    );
+    expect_failure(
+        &[
+            "render",
+            "--size",
+            "16x16x16",
+            "--out",
+            "/nonexistent-dir/x.png",
+        ],
+        "cannot write /nonexistent-dir/x.png",
+    );
+    expect_failure(
+        &[
+            "render",
+            "--out",
+            o,
+            "--structure",
+            "dense",
+            "--size",
+            "256x64x256",
+            "--dense-limit-mib",
+            "1",
+            "--width",
+            "8",
+            "--height",
+            "8",
+        ],
+        "dense grid",
+    );
+}
+
+#[test]
+fn bench_tracers_writes_the_documented_json_keys() {
+    let json = tmp("b.json");
+    let svg = tmp("b.svg");
+    let out = bin()
+        .args([
+            "bench", "tracers", "--scene", "hairball", "--size", "64x64x64", "--width", "64",
+            "--height", "48",
+        ])
+        .arg("--json")
+        .arg(&json)
+        .arg("--chart")
+        .arg(&svg)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    for k in [
+        "scene",
+        "size",
+        "width",
+        "height",
+        "threads",
+        "views",
+        "structures",
+        "agree",
+    ] {
+        assert!(v.get(k).is_some(), "missing key {k}");
+    }
+    assert_eq!(
+        v["views"].as_array().unwrap().len(),
+        3,
+        "three default views"
+    );
+    for k in ["eye", "target", "fov"] {
+        assert!(v["views"][0].get(k).is_some());
+    }
+    let names: Vec<&str> = v["structures"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["dense", "svo", "brickmap"]);
+    for s in v["structures"].as_array().unwrap() {
+        for k in [
+            "build_s",
+            "bytes",
+            "solid_voxels",
+            "nodes_or_bricks",
+            "mrays_per_s",
+            "mrays_per_s_per_thread",
+            "fps",
+            "hit_fraction",
+        ] {
+            assert!(s.get(k).is_some(), "missing structures[].{k}");
+        }
+    }
+    assert_eq!(v["agree"]["rays"], 64 * 48 * 3);
+    assert_eq!(v["agree"]["mismatches"], 0);
+    assert!(std::fs::read_to_string(&svg).unwrap().contains("<svg"));
+}
+
+#[test]
+fn a_structure_that_does_not_fit_reports_an_error_and_the_bench_goes_on() {
+    let json = tmp("c.json");
+    let out = bin()
+        .args([
+            "bench",
+            "tracers",
+            "--size",
+            "64x32x64",
+            "--width",
+            "16",
+            "--height",
+            "12",
+            "--dense-limit-mib",
+            "0",
+        ])
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(v["structures"][0]["name"], "dense");
+    assert!(
+        v["structures"][0]["error"]
+            .as_str()
+            .unwrap()
+            .contains("over the limit")
+    );
+    assert!(v["structures"][2]["mrays_per_s"].as_f64().unwrap() > 0.0);
+}

@@ -1,0 +1,178 @@
+//! File formats: MagicaVoxel through `dot_vox` (its documented
+//! `placeholder.vox`), heightmap PNGs (exact columns, 8 and 16 bit), and
+//! clear errors for corrupt, truncated, wrong-kind and oversized files.
+
+use std::path::{Path, PathBuf};
+
+use brickworld::scene::{SceneError, SceneSpec, build_scene};
+use glam::IVec3;
+use indicatif::ProgressBar;
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("brickworld-formats-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+/// The `dot_vox` crate's source folder, found through `cargo metadata`.
+fn dot_vox_dir() -> PathBuf {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = std::process::Command::new(cargo)
+        .args(["metadata", "--format-version", "1"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("cargo metadata runs");
+    let meta: serde_json::Value = serde_json::from_slice(&out.stdout).expect("cargo metadata JSON");
+    let pkg = meta["packages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "dot_vox")
+        .expect("dot_vox is a dependency");
+    Path::new(pkg["manifest_path"].as_str().unwrap())
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+fn build(spec: SceneSpec) -> Result<brickworld::scene::SceneWorld, SceneError> {
+    build_scene(&spec, IVec3::splat(8), 0, &ProgressBar::hidden())
+}
+
+#[test]
+fn placeholder_vox_matches_the_crates_documented_voxels() {
+    let path = dot_vox_dir().join("src/resources/placeholder.vox");
+    let w = build(SceneSpec::Vox(path)).unwrap();
+    // dot_vox documents model 0 (2×2×2) as voxels (x, y, z, i):
+    // (0,0,0,225) (0,1,1,215) (1,0,1,235) (1,1,0,5), under a transform
+    // `_t = "0 0 1"`. Centre c = v + 0.5 − 1, plus t, then Z-up → Y-up
+    // (x, z, −y) and floor gives these world voxels; material = i + 1.
+    let expected = [
+        (IVec3::new(-1, 0, 0), 226u8),
+        (IVec3::new(-1, 1, -1), 216),
+        (IVec3::new(0, 1, 0), 236),
+        (IVec3::new(0, 0, -1), 6),
+    ];
+    assert_eq!(w.store.solid_voxels(), 4);
+    for (p, m) in expected {
+        assert_eq!(w.store.voxel(p), m, "voxel {p}");
+        let c = dot_vox::DEFAULT_PALETTE[m as usize - 1];
+        assert_eq!(w.store.palette().rgb(m), [c.r, c.g, c.b]);
+    }
+    assert_eq!(w.bounds, (IVec3::new(-1, 0, -1), IVec3::new(1, 2, 1)));
+}
+
+#[test]
+fn every_vox_resource_of_dot_vox_loads_or_fails_cleanly() {
+    let dir = dot_vox_dir().join("src/resources");
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let p = entry.unwrap().path();
+        if p.extension().is_some_and(|e| e == "vox") {
+            match build(SceneSpec::Vox(p.clone())) {
+                Ok(w) => assert!(w.store.solid_voxels() > 0, "{}", p.display()),
+                Err(e) => assert!(e.to_string().contains(&*p.to_string_lossy()), "{e}"),
+            }
+        }
+    }
+}
+
+fn write_gray_png(path: &Path, w: u32, h: u32, depth: png::BitDepth, data: &[u8]) {
+    let f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    let mut enc = png::Encoder::new(f, w, h);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(depth);
+    enc.write_header().unwrap().write_image_data(data).unwrap();
+}
+
+#[test]
+fn heightmap_png_gives_exactly_the_columns_it_encodes() {
+    // 8-bit, 13×9, heights 0..=37.
+    let (w, h) = (13u32, 9u32);
+    let heights: Vec<u8> = (0..w * h).map(|i| ((i * 7919) % 38) as u8).collect();
+    let path = tmp("h8.png");
+    write_gray_png(&path, w, h, png::BitDepth::Eight, &heights);
+    let world = build(SceneSpec::Heightmap(path)).unwrap();
+    for v in 0..h as i32 {
+        for u in 0..w as i32 {
+            let hv = heights[(v as u32 * w + u as u32) as usize] as i32;
+            for y in -2..45 {
+                let solid = world.store.voxel(IVec3::new(u, y, v)) != 0;
+                assert_eq!(
+                    solid,
+                    (0..hv).contains(&y),
+                    "column ({u}, {v}) height {hv} at y = {y}"
+                );
+            }
+        }
+    }
+    // 16-bit, big-endian samples above 255.
+    let vals: [u16; 4] = [300, 0, 1, 513];
+    let bytes: Vec<u8> = vals.iter().flat_map(|v| v.to_be_bytes()).collect();
+    let path = tmp("h16.png");
+    write_gray_png(&path, 2, 2, png::BitDepth::Sixteen, &bytes);
+    let world = build(SceneSpec::Heightmap(path)).unwrap();
+    for (i, &hv) in vals.iter().enumerate() {
+        let (u, v) = ((i % 2) as i32, (i / 2) as i32);
+        let top = (0..600)
+            .filter(|&y| world.store.voxel(IVec3::new(u, y, v)) != 0)
+            .count();
+        assert_eq!(top, hv as usize);
+    }
+}
+
+fn expect_error(spec: SceneSpec, needle: &str) {
+    let e = build(spec).expect_err("must fail").to_string();
+    assert!(e.contains(needle), "error '{e}' should mention '{needle}'");
+    assert!(!e.contains('\n'), "one-line error: {e}");
+}
+
+#[test]
+fn bad_files_give_clear_errors() {
+    let missing = tmp("does-not-exist.png");
+    expect_error(SceneSpec::Heightmap(missing.clone()), "cannot read");
+    expect_error(SceneSpec::Vox(missing), "cannot read");
+
+    let garbage = tmp("garbage.bin");
+    std::fs::write(&garbage, b"this is not an image at all, just text\n").unwrap();
+    expect_error(
+        SceneSpec::Heightmap(garbage.clone()),
+        "not a valid PNG heightmap",
+    );
+    expect_error(SceneSpec::Vox(garbage), "not a valid MagicaVoxel .vox");
+
+    // Truncated: a valid PNG cut in half.
+    let good = tmp("good.png");
+    write_gray_png(&good, 64, 64, png::BitDepth::Eight, &vec![9u8; 64 * 64]);
+    let bytes = std::fs::read(&good).unwrap();
+    let cut = tmp("cut.png");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    expect_error(SceneSpec::Heightmap(cut), "not a valid PNG heightmap");
+
+    // Truncated .vox: the documented placeholder cut short.
+    let vox = std::fs::read(dot_vox_dir().join("src/resources/placeholder.vox")).unwrap();
+    let cut = tmp("cut.vox");
+    std::fs::write(&cut, &vox[..vox.len() / 3]).unwrap();
+    expect_error(SceneSpec::Vox(cut), "not a valid MagicaVoxel .vox");
+
+    // Wrong kind of PNG: RGB.
+    let rgb = tmp("rgb.png");
+    brickworld::trace::write_png(&rgb, 2, 2, &[0u8; 12]).unwrap();
+    expect_error(SceneSpec::Heightmap(rgb), "grayscale");
+
+    // Oversized: too wide, and too big a file (sparse, never read).
+    let wide = tmp("wide.png");
+    write_gray_png(&wide, 16385, 1, png::BitDepth::Eight, &vec![1u8; 16385]);
+    expect_error(SceneSpec::Heightmap(wide), "over the 16384x16384 limit");
+    let huge = tmp("huge.vox");
+    std::fs::File::create(&huge)
+        .unwrap()
+        .set_len(300 << 20)
+        .unwrap();
+    expect_error(SceneSpec::Vox(huge.clone()), "too large");
+    std::fs::remove_file(huge).unwrap();
+
+    // Too tall for the world: a 16-bit value over the height limit.
+    let tall = tmp("tall.png");
+    write_gray_png(&tall, 1, 1, png::BitDepth::Sixteen, &60000u16.to_be_bytes());
+    expect_error(SceneSpec::Heightmap(tall), "taller than");
+}
