@@ -116,7 +116,7 @@ pub fn balls(size: IVec3, seed: u64) -> Vec<Prim> {
     let n = ((vol / 100f64.powi(3)) as usize).clamp(24, 20_000);
     (0..n)
         .map(|i| {
-            let r = rng.range(min / 40.0, min / 10.0).max(1.5);
+            let r = rng.range(min / 64.0, min / 16.0).max(1.5);
             let c = DVec3::new(
                 rng.range(0.0, size.x as f64),
                 rng.range(0.0, size.y as f64),

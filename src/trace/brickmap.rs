@@ -1,10 +1,13 @@
 //! The brickmap tracer: a stackless three-level DDA, occupancy layer (32³
 //! voxels) → brick grid (8³) → brick mask (1³), after van Wingerden §3.3–3.4.
 //!
-//! Each iteration re-derives its level from the current cell: no stack, no
-//! restart. Empty occupancy cells and empty bricks are skipped in one exact
-//! [`DdaRay::skip`]; inside a brick the walk steps voxel by voxel against the
-//! 512-bit mask and only touches material data at the hit.
+//! No stack and no restart: the level is re-derived from the current cell.
+//! Through empty space the walk is a coarse DDA over occupancy cells (32³
+//! voxels) or bricks (8³), whose next crossing is a function of the coarse
+//! cell alone, computed with the shared exact crossing formula; the exact
+//! voxel state is restored with [`DdaRay::advance_to`] only when the walk
+//! descends into a non-empty cell. Inside a brick the walk steps voxel by
+//! voxel against the 512-bit mask and touches material data only at the hit.
 
 use glam::IVec3;
 
@@ -45,6 +48,13 @@ impl<'w> BrickmapTracer<'w> {
             && (c[2] as u32) < self.dims[2] as u32
     }
 
+    #[inline(always)]
+    fn inside_occ(&self, o: [i32; 3]) -> bool {
+        (o[0] as u32) < (self.dims[0] >> OCC_VOXEL_SHIFT) as u32
+            && (o[1] as u32) < (self.dims[1] >> OCC_VOXEL_SHIFT) as u32
+            && (o[2] as u32) < (self.dims[2] >> OCC_VOXEL_SHIFT) as u32
+    }
+
     fn hit(&self, r: &DdaRay, st: &super::dda::DdaState, material: u8) -> Hit {
         Hit {
             t: st.t,
@@ -67,42 +77,84 @@ impl Tracer for BrickmapTracer<'_> {
     fn trace(&self, ray: &Ray, t_max: f32) -> Option<Hit> {
         let r = DdaRay::new(ray)?;
         let mut st = r.enter([0; 3], self.dims)?;
-        loop {
+        // `st` is the exact voxel state whenever a cell's content is read.
+        // Across empty space only the coarse cell is stepped: its next
+        // crossing depends on the coarse cell alone, so no voxel state is
+        // kept there, and `advance_to` restores it exactly on descent.
+        'occupancy: loop {
             if st.t > t_max {
                 return None;
             }
-            let c = IVec3::from(st.cell);
-            if !self.grid.occupied(c >> OCC_VOXEL_SHIFT) {
-                r.skip(&mut st, OCC_VOXEL_SHIFT as u32);
-            } else {
-                let brick_cell = c >> BRICK_SHIFT;
-                let p = self.grid.pointer(brick_cell);
-                if p == 0 {
-                    r.skip(&mut st, BRICK_SHIFT as u32);
-                } else if p & UNIFORM != 0 {
-                    return Some(self.hit(&r, &st, p as u8));
-                } else {
-                    let brick = self.pool.slot(p - 1)?;
-                    let mask = brick.mask();
-                    let bc = st.cell.map(|v| v >> BRICK_SHIFT);
-                    loop {
-                        let l = st.cell.map(|v| v & 7);
-                        let i = voxel_index(l[0], l[1], l[2]);
-                        if (mask[i >> 6] >> (i & 63)) & 1 != 0 {
-                            return Some(self.hit(&r, &st, brick.material_index(i)));
-                        }
-                        r.step_fine(&mut st);
-                        if st.t > t_max {
-                            return None;
-                        }
-                        if st.cell.map(|v| v >> BRICK_SHIFT) != bc {
-                            break;
-                        }
+            let mut oc = st.cell.map(|v| v >> OCC_VOXEL_SHIFT);
+            if !self.grid.occupied(IVec3::from(oc)) {
+                let shift = OCC_VOXEL_SHIFT as u32;
+                let mut ot = r.coarse_tmax(oc, shift);
+                loop {
+                    let t = r.coarse_step(&mut oc, &mut ot, shift);
+                    if t > t_max {
+                        return None;
+                    }
+                    if !self.inside_occ(oc) {
+                        return None;
+                    }
+                    if self.grid.occupied(IVec3::from(oc)) {
+                        r.advance_to(&mut st, t);
+                        break;
                     }
                 }
             }
-            if !self.inside(st.cell) {
-                return None;
+            let mut bc = st.cell.map(|v| v >> BRICK_SHIFT);
+            loop {
+                let p = self.grid.pointer(IVec3::from(bc));
+                if p == 0 {
+                    let shift = BRICK_SHIFT as u32;
+                    let mut bt = r.coarse_tmax(bc, shift);
+                    loop {
+                        let t = r.coarse_step(&mut bc, &mut bt, shift);
+                        if t > t_max {
+                            return None;
+                        }
+                        if bc.map(|v| v >> OCC_SHIFT) != oc {
+                            // Left the occupancy cell: resume one level up.
+                            r.advance_to(&mut st, t);
+                            if !self.inside(st.cell) {
+                                return None;
+                            }
+                            continue 'occupancy;
+                        }
+                        if self.grid.pointer(IVec3::from(bc)) != 0 {
+                            r.advance_to(&mut st, t);
+                            break;
+                        }
+                    }
+                    continue;
+                }
+                if p & UNIFORM != 0 {
+                    return Some(self.hit(&r, &st, p as u8));
+                }
+                let brick = self.pool.slot(p - 1)?;
+                let mask = brick.mask();
+                loop {
+                    let l = st.cell.map(|v| v & 7);
+                    let i = voxel_index(l[0], l[1], l[2]);
+                    if (mask[i >> 6] >> (i & 63)) & 1 != 0 {
+                        return Some(self.hit(&r, &st, brick.material_index(i)));
+                    }
+                    r.step_fine(&mut st);
+                    if st.t > t_max {
+                        return None;
+                    }
+                    if st.cell.map(|v| v >> BRICK_SHIFT) != bc {
+                        break;
+                    }
+                }
+                if !self.inside(st.cell) {
+                    return None;
+                }
+                if st.cell.map(|v| v >> OCC_VOXEL_SHIFT) != oc {
+                    continue 'occupancy;
+                }
+                bc = st.cell.map(|v| v >> BRICK_SHIFT);
             }
         }
     }

@@ -107,6 +107,38 @@ impl DdaRay {
         self.step
     }
 
+    /// The first voxel the ray enters on axis `a` when it leaves the aligned
+    /// coarse cell `c` of edge `1 << shift` (coarse DDAs step with it:
+    /// `crossing_into(a, coarse_exit(a, c, shift))` is the exact time).
+    #[inline(always)]
+    pub fn coarse_exit(&self, a: usize, c: i32, shift: u32) -> i32 {
+        if self.step[a] > 0 {
+            (c + 1) << shift
+        } else {
+            (c << shift) - 1
+        }
+    }
+
+    /// Next crossing time on each axis out of coarse cell `c` (edge `1 << shift`).
+    #[inline(always)]
+    pub fn coarse_tmax(&self, c: [i32; 3], shift: u32) -> [f32; 3] {
+        std::array::from_fn(|a| self.crossing_into(a, self.coarse_exit(a, c[a], shift)))
+    }
+
+    /// One step of a coarse DDA: every axis whose crossing is next steps
+    /// (ties together); returns the crossing time.
+    #[inline(always)]
+    pub fn coarse_step(&self, c: &mut [i32; 3], ct: &mut [f32; 3], shift: u32) -> f32 {
+        let t = ct[0].min(ct[1]).min(ct[2]);
+        for a in 0..3 {
+            if ct[a] == t {
+                c[a] += self.step[a];
+                ct[a] = self.crossing_into(a, self.coarse_exit(a, c[a], shift));
+            }
+        }
+        t
+    }
+
     /// Time at which the ray enters cell `c` along axis `a` (the crossing of
     /// the plane between `c − step` and `c`). `+inf` for a switched-off axis.
     #[inline(always)]
@@ -160,7 +192,7 @@ impl DdaRay {
     /// Move `st` to the state after every crossing with time ≤ `t`, walking
     /// forward from its current cell; updated in place (no struct copy).
     #[inline(always)]
-    fn advance_to(&self, st: &mut DdaState, t: f32) {
+    pub fn advance_to(&self, st: &mut DdaState, t: f32) {
         let mut axes = 0u8;
         for a in 0..3 {
             // An axis whose next crossing is later than `t` stays put: the

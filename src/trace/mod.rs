@@ -10,7 +10,7 @@
 //! All three share [`dda::DdaRay`], so they agree on every ray: same voxel,
 //! same face, same `t`.
 
-pub mod brickmap;
+mod brickmap;
 mod camera;
 pub mod dda;
 mod dense;

@@ -12,6 +12,10 @@
 //! a single material stores no per-voxel data at all. This is lossless (unlike
 //! the thesis' DXT1 colours) and usually smaller: a half-full surface brick
 //! with four materials costs 64 B of mask plus 64 B of indices.
+//!
+//! [`Brick`] is the exchange form that scene builders and edits produce; the
+//! [`super::BrickPool`] stores the same encoding compactly (masks, 8-byte
+//! metadata and a shared material arena) and hands out [`super::BrickRef`]s.
 
 use super::palette::Palette;
 
@@ -231,9 +235,19 @@ impl Brick {
         self.lod_rgb
     }
 
-    /// Bytes this brick occupies, heap included.
-    pub fn bytes(&self) -> usize {
-        std::mem::size_of::<Self>() + self.local_palette.len() + self.indices.len() * 8
+    /// Distinct materials used, sorted.
+    pub fn local_palette(&self) -> &[u8] {
+        &self.local_palette
+    }
+
+    /// Bits per packed local index (0, 1, 2, 4 or 8).
+    pub fn bits(&self) -> u8 {
+        self.bits
+    }
+
+    /// Packed local indices in rank order, little-endian within each word.
+    pub fn index_words(&self) -> &[u64] {
+        &self.indices
     }
 }
 

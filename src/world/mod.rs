@@ -10,5 +10,5 @@ mod store;
 pub use brick::{BRICK_EDGE, BRICK_SHIFT, BRICK_VOXELS, Brick, BrickContent, voxel_index};
 pub use grid::{BrickGrid, MAX_GRID_CELLS, OCC_EDGE, OCC_SHIFT, UNIFORM, WorldError};
 pub use palette::Palette;
-pub use pool::{BrickId, BrickPool};
+pub use pool::{BrickId, BrickPool, BrickRef};
 pub use store::{BrickStore, Cell, brick_of};

@@ -1,8 +1,21 @@
-//! The brick pool: dense storage for mixed bricks, addressed by small `Copy`
-//! ids with generation counters so that a stale id can never read a reused
-//! slot.
+//! The brick pool: compact storage for mixed bricks, addressed by small
+//! `Copy` ids with generation counters so that a stale id can never read a
+//! reused slot.
+//!
+//! **Layout** (structure of arrays, what tracers read):
+//! - `masks`: one 64-byte occupancy mask per slot;
+//! - `meta`: 8 bytes per slot — a `u32` that is either the single material
+//!   of a one-material brick or an offset into the material arena, the LOD
+//!   colour as RGB565, and flags;
+//! - `arena`: for multi-material bricks, `[palette_len, bits, size_class,
+//!   palette…, packed indices…]`, allocated in 16-byte size classes with a free list per
+//!   class (the thesis' colour allocator, simplified), so edits reuse holes.
+//!
+//! A one-material brick therefore costs 72 bytes in total. Generations and
+//! the free slot list are editing bookkeeping, reported by
+//! [`BrickPool::index_bytes`], not by [`BrickPool::bytes`].
 
-use super::brick::Brick;
+use super::brick::{BRICK_VOXELS, Brick};
 
 /// Handle to a brick in a [`BrickPool`]. Stale handles are detected.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -18,33 +31,210 @@ impl BrickId {
     }
 }
 
-/// Slots of bricks with a free list; freed slots are reused.
+const FLAG_LIVE: u16 = 1;
+const FLAG_MULTI: u16 = 2;
+const CLASS: usize = 16;
+/// Arena block header: palette length, bits per index, size class.
+const HEADER: usize = 3;
+
+#[derive(Clone, Copy, Debug, Default)]
+struct Meta {
+    /// Single material, or arena offset for multi-material bricks.
+    data: u32,
+    lod565: u16,
+    flags: u16,
+}
+
+fn to565(c: [u8; 3]) -> u16 {
+    ((c[0] as u16 >> 3) << 11) | ((c[1] as u16 >> 2) << 5) | (c[2] as u16 >> 3)
+}
+
+fn from565(v: u16) -> [u8; 3] {
+    let r = ((v >> 11) & 31) as u8;
+    let g = ((v >> 5) & 63) as u8;
+    let b = (v & 31) as u8;
+    [
+        (r << 3) | (r >> 2),
+        (g << 2) | (g >> 4),
+        (b << 3) | (b >> 2),
+    ]
+}
+
+/// Slots of bricks with a free list; freed slots and arena blocks are reused.
 #[derive(Debug, Default)]
 pub struct BrickPool {
-    bricks: Vec<Option<Brick>>,
+    masks: Vec<[u64; 8]>,
+    meta: Vec<Meta>,
     generations: Vec<u32>,
     free: Vec<u32>,
+    arena: Vec<u8>,
+    /// Free arena blocks per size class (class k holds blocks of 16·(k+1) bytes).
+    arena_free: Vec<Vec<u32>>,
     live: usize,
-    live_bytes: usize,
+}
+
+/// A read-only view of one brick in a pool.
+#[derive(Clone, Copy, Debug)]
+pub struct BrickRef<'p> {
+    pool: &'p BrickPool,
+    slot: usize,
+}
+
+impl BrickRef<'_> {
+    /// The 512-bit occupancy mask, word `z` holding the slice at depth `z`.
+    #[inline(always)]
+    pub fn mask(&self) -> &[u64; 8] {
+        &self.pool.masks[self.slot]
+    }
+
+    /// Material of voxel `index` (see [`super::voxel_index`]), 0 if empty.
+    #[inline]
+    pub fn material_index(&self, index: usize) -> u8 {
+        let mask = self.mask();
+        if (mask[index >> 6] >> (index & 63)) & 1 == 0 {
+            return 0;
+        }
+        let m = self.pool.meta[self.slot];
+        if m.flags & FLAG_MULTI == 0 {
+            return m.data as u8;
+        }
+        let word = index >> 6;
+        let mut rank = 0u32;
+        for w in &mask[..word] {
+            rank += w.count_ones();
+        }
+        rank += (mask[word] & ((1u64 << (index & 63)) - 1)).count_ones();
+        let block = &self.pool.arena[m.data as usize..];
+        let (pal_len, bits) = (block[0] as usize, block[1] as usize);
+        let bit = rank as usize * bits;
+        let local = (block[HEADER + pal_len + bit / 8] >> (bit % 8)) & ((1u16 << bits) - 1) as u8;
+        block[HEADER + local as usize]
+    }
+
+    /// Material at brick-local `(x, y, z)`, 0 if empty.
+    pub fn material(&self, x: i32, y: i32, z: i32) -> u8 {
+        self.material_index(super::voxel_index(x, y, z))
+    }
+
+    /// Expand into a dense material array.
+    pub fn to_dense(&self, out: &mut [u8; BRICK_VOXELS]) {
+        out.fill(0);
+        let m = self.pool.meta[self.slot];
+        let multi = m.flags & FLAG_MULTI != 0;
+        let block = if multi {
+            &self.pool.arena[m.data as usize..]
+        } else {
+            &[][..]
+        };
+        let (pal_len, bits) = if multi {
+            (block[0] as usize, block[1] as usize)
+        } else {
+            (0, 0)
+        };
+        let mut rank = 0usize;
+        for (w, &word) in self.mask().iter().enumerate() {
+            let mut bitset = word;
+            while bitset != 0 {
+                let b = bitset.trailing_zeros() as usize;
+                bitset &= bitset - 1;
+                out[(w << 6) | b] = if multi {
+                    let bit = rank * bits;
+                    let local = (block[HEADER + pal_len + bit / 8] >> (bit % 8))
+                        & ((1u16 << bits) - 1) as u8;
+                    block[HEADER + local as usize]
+                } else {
+                    m.data as u8
+                };
+                rank += 1;
+            }
+        }
+    }
+
+    /// Number of solid voxels.
+    pub fn solid_voxels(&self) -> u32 {
+        self.mask().iter().map(|w| w.count_ones()).sum()
+    }
+
+    /// Average colour of the solid voxels (stored as RGB565).
+    pub fn lod_rgb(&self) -> [u8; 3] {
+        from565(self.pool.meta[self.slot].lod565)
+    }
 }
 
 impl BrickPool {
+    /// A block of at least `bytes`; returns its offset and size class.
+    fn alloc_arena(&mut self, bytes: usize) -> (u32, usize) {
+        let class = bytes.div_ceil(CLASS) - 1;
+        if self.arena_free.len() <= class {
+            self.arena_free.resize(class + 1, Vec::new());
+        }
+        if let Some(off) = self.arena_free[class].pop() {
+            return (off, class);
+        }
+        let off = self.arena.len();
+        self.arena.resize(off + (class + 1) * CLASS, 0);
+        (
+            u32::try_from(off).expect("material arena exceeds 4 GiB"),
+            class,
+        )
+    }
+
+    fn free_arena(&mut self, m: Meta) {
+        if m.flags & FLAG_MULTI != 0 {
+            let class = self.arena[m.data as usize + 2] as usize;
+            self.arena_free[class].push(m.data);
+        }
+    }
+
+    fn encode(&mut self, brick: &Brick) -> Meta {
+        let lod565 = to565(brick.lod_rgb());
+        let palette = brick.local_palette();
+        if palette.len() <= 1 {
+            return Meta {
+                data: palette.first().copied().unwrap_or(0) as u32,
+                lod565,
+                flags: FLAG_LIVE,
+            };
+        }
+        let bits = brick.bits();
+        let solid = brick.solid_voxels() as usize;
+        let index_bytes = (solid * bits as usize).div_ceil(8);
+        let len = HEADER + palette.len() + index_bytes;
+        let (off, class) = self.alloc_arena(len);
+        let block = &mut self.arena[off as usize..off as usize + len];
+        block[0] = palette.len() as u8;
+        block[1] = bits;
+        block[2] = class as u8;
+        block[HEADER..HEADER + palette.len()].copy_from_slice(palette);
+        let idx = &mut block[HEADER + palette.len()..];
+        for (i, b) in idx.iter_mut().enumerate() {
+            *b = (brick.index_words()[i / 8] >> ((i % 8) * 8)) as u8;
+        }
+        Meta {
+            data: off,
+            lod565,
+            flags: FLAG_LIVE | FLAG_MULTI,
+        }
+    }
+
     /// Store a brick, returning its id.
     pub fn insert(&mut self, brick: Brick) -> BrickId {
         self.live += 1;
-        self.live_bytes += brick.bytes();
+        let meta = self.encode(&brick);
         if let Some(index) = self.free.pop() {
             let i = index as usize;
             self.generations[i] = self.generations[i].wrapping_add(1);
-            self.bricks[i] = Some(brick);
+            self.masks[i] = *brick.mask();
+            self.meta[i] = meta;
             BrickId {
                 index,
                 generation: self.generations[i],
             }
         } else {
-            let index = u32::try_from(self.bricks.len()).expect("brick pool exceeds 2^32 slots");
+            let index = u32::try_from(self.masks.len()).expect("brick pool exceeds 2^32 slots");
             assert!(index < (1 << 31), "brick pool exceeds 2^31 slots");
-            self.bricks.push(Some(brick));
+            self.masks.push(*brick.mask());
+            self.meta.push(meta);
             self.generations.push(0);
             BrickId {
                 index,
@@ -53,46 +243,56 @@ impl BrickPool {
         }
     }
 
+    fn valid(&self, id: BrickId) -> bool {
+        self.generations.get(id.index as usize) == Some(&id.generation)
+            && self.meta[id.index as usize].flags & FLAG_LIVE != 0
+    }
+
     /// The brick behind `id`, or `None` if the id is stale.
-    pub fn get(&self, id: BrickId) -> Option<&Brick> {
-        if self.generations.get(id.index as usize) != Some(&id.generation) {
-            return None;
-        }
-        self.bricks[id.index as usize].as_ref()
+    pub fn get(&self, id: BrickId) -> Option<BrickRef<'_>> {
+        self.valid(id).then_some(BrickRef {
+            pool: self,
+            slot: id.index as usize,
+        })
     }
 
     /// Replace the brick behind `id` in place. Returns false for a stale id.
     pub fn replace(&mut self, id: BrickId, brick: Brick) -> bool {
-        if self.generations.get(id.index as usize) != Some(&id.generation) {
+        if !self.valid(id) {
             return false;
         }
-        let slot = &mut self.bricks[id.index as usize];
-        if let Some(old) = slot.as_ref() {
-            self.live_bytes -= old.bytes();
-        }
-        self.live_bytes += brick.bytes();
-        *slot = Some(brick);
+        let i = id.index as usize;
+        let old = self.meta[i];
+        self.free_arena(old);
+        self.meta[i] = self.encode(&brick);
+        self.masks[i] = *brick.mask();
         true
     }
 
-    /// Free the slot behind `id`. Returns the brick, or `None` if stale.
-    pub fn remove(&mut self, id: BrickId) -> Option<Brick> {
-        if self.generations.get(id.index as usize) != Some(&id.generation) {
-            return None;
+    /// Free the slot behind `id`. Returns false if the id is stale.
+    pub fn remove(&mut self, id: BrickId) -> bool {
+        if !self.valid(id) {
+            return false;
         }
-        let brick = self.bricks[id.index as usize].take()?;
+        let i = id.index as usize;
+        self.free_arena(self.meta[i]);
+        self.meta[i] = Meta::default();
+        self.masks[i] = [0; 8];
         self.live -= 1;
-        self.live_bytes -= brick.bytes();
-        self.generations[id.index as usize] = self.generations[id.index as usize].wrapping_add(1);
+        self.generations[i] = self.generations[i].wrapping_add(1);
         self.free.push(id.index);
-        Some(brick)
+        true
     }
 
     /// Brick in slot `index` without a generation check: for tracers that
     /// hold slot indices in a grid kept in sync with the store.
     #[inline(always)]
-    pub fn slot(&self, index: u32) -> Option<&Brick> {
-        self.bricks.get(index as usize).and_then(|b| b.as_ref())
+    pub fn slot(&self, index: u32) -> Option<BrickRef<'_>> {
+        let i = index as usize;
+        (i < self.meta.len() && self.meta[i].flags & FLAG_LIVE != 0).then_some(BrickRef {
+            pool: self,
+            slot: i,
+        })
     }
 
     /// Number of live bricks.
@@ -105,12 +305,17 @@ impl BrickPool {
         self.live == 0
     }
 
-    /// Bytes of the live bricks, heap included, plus the slot tables.
+    /// Bytes a tracer reads: masks, metadata and the material arena
+    /// (free holes included).
     pub fn bytes(&self) -> usize {
-        self.live_bytes
-            + (self.bricks.len() - self.live) * std::mem::size_of::<Option<Brick>>()
-            + self.generations.len() * 4
+        self.masks.len() * 64 + self.meta.len() * std::mem::size_of::<Meta>() + self.arena.len()
+    }
+
+    /// Bytes of editing bookkeeping: generations and free lists.
+    pub fn index_bytes(&self) -> usize {
+        self.generations.len() * 4
             + self.free.len() * 4
+            + self.arena_free.iter().map(|v| v.len() * 4).sum::<usize>()
     }
 }
 
@@ -119,9 +324,8 @@ mod tests {
     use super::*;
     use crate::world::{BrickContent, Palette};
 
-    fn some_brick(m: u8) -> Brick {
-        let mut d = [0u8; 512];
-        d[3] = m;
+    fn brick_from(f: impl Fn(usize) -> u8) -> Brick {
+        let d: [u8; 512] = std::array::from_fn(f);
         match BrickContent::from_dense(&d, &Palette::grey_ramp()) {
             BrickContent::Mixed(b) => b,
             _ => unreachable!(),
@@ -131,16 +335,73 @@ mod tests {
     #[test]
     fn stale_ids_are_rejected_after_slot_reuse() {
         let mut pool = BrickPool::default();
-        let a = pool.insert(some_brick(1));
-        assert!(pool.remove(a).is_some());
-        let b = pool.insert(some_brick(2));
+        let a = pool.insert(brick_from(|i| (i == 3) as u8));
+        assert!(pool.remove(a));
+        let b = pool.insert(brick_from(|i| 2 * (i == 3) as u8));
         assert_eq!(a.index(), b.index(), "slot is reused");
         assert!(
             pool.get(a).is_none(),
             "stale id must not read the new brick"
         );
         assert_eq!(pool.get(b).unwrap().material_index(3), 2);
-        assert!(pool.remove(a).is_none());
+        assert!(!pool.remove(a));
         assert_eq!(pool.len(), 1);
+    }
+
+    #[test]
+    fn pooled_bricks_read_back_exactly_and_arena_blocks_are_reused() {
+        let mut pool = BrickPool::default();
+        let patterns: [fn(usize) -> u8; 4] = [
+            |i| (i % 3 != 0) as u8 * 7,
+            |i| if i % 5 == 0 { 0 } else { 1 + (i % 2) as u8 },
+            |i| if i % 7 == 0 { 0 } else { 1 + (i % 13) as u8 },
+            |i| if i % 2 == 0 { 0 } else { 1 + (i % 200) as u8 },
+        ];
+        let mut ids = Vec::new();
+        for p in patterns {
+            let b = brick_from(p);
+            let id = pool.insert(b.clone());
+            let r = pool.get(id).unwrap();
+            let mut dense = [0u8; 512];
+            r.to_dense(&mut dense);
+            for i in 0..512 {
+                assert_eq!(dense[i], p(i));
+                assert_eq!(r.material_index(i), p(i));
+            }
+            ids.push(id);
+        }
+        let arena = pool.arena.len();
+        for id in &ids {
+            assert!(pool.replace(*id, brick_from(patterns[3])));
+        }
+        assert!(
+            pool.arena.len() <= arena + 3 * 544,
+            "replacing reuses freed blocks"
+        );
+        let before = pool.arena.len();
+        let id = pool.insert(brick_from(patterns[2]));
+        let block = pool.arena.len() - before;
+        assert!(pool.remove(id));
+        for _ in 0..10 {
+            let id = pool.insert(brick_from(patterns[2]));
+            assert!(pool.remove(id));
+        }
+        assert_eq!(pool.arena.len(), before + block, "one block, then reused");
+    }
+
+    #[test]
+    fn one_material_bricks_cost_72_bytes() {
+        let mut pool = BrickPool::default();
+        pool.insert(brick_from(|i| (i % 2) as u8 * 9));
+        assert_eq!(pool.bytes(), 72);
+        assert_eq!(
+            pool.get(BrickId {
+                index: 0,
+                generation: 0
+            })
+            .unwrap()
+            .lod_rgb(),
+            [8, 8, 8]
+        );
     }
 }

@@ -97,11 +97,22 @@ pub fn random_ray(rng: &mut TestRng, ext: Vec3) -> Ray {
         0 => {
             let a = (rng.next() % 3) as usize;
             d = Vec3::ZERO;
-            d[a] = if rng.next().is_multiple_of(2) { 1.0 } else { -1.0 };
+            d[a] = if rng.next().is_multiple_of(2) {
+                1.0
+            } else {
+                -1.0
+            };
             let b = (a + 1) % 3;
             d[b] = -0.0;
         }
-        1 => d = Vec3::new(1.0, -1.0, 1.0) * if rng.next().is_multiple_of(2) { 1.0 } else { -1.0 },
+        1 => {
+            d = Vec3::new(1.0, -1.0, 1.0)
+                * if rng.next().is_multiple_of(2) {
+                    1.0
+                } else {
+                    -1.0
+                }
+        }
         2 => d.y = -0.0,
         3 => d.x = 1e-8,
         _ => {}
