@@ -66,3 +66,15 @@ fn tracers_agree_on_balls() {
 fn tracers_agree_on_hairball() {
     check("hairball", hairball(), 0x4567_89ab);
 }
+
+/// A scene big enough that some child blocks lie more than 2^15 descriptors
+/// away from their parent, so ESVO far pointers are built and traversed.
+#[test]
+fn far_pointers_are_built_and_traced_exactly() {
+    let b = Built::new("hairball", glam::IVec3::new(192, 192, 192), 9);
+    assert!(
+        b.svo.far_pointers() > 0,
+        "scene too small to need far pointers"
+    );
+    check("hairball-192", &b, 0x5678_9abc);
+}

@@ -76,7 +76,12 @@ impl Heightfield for Terrain {
         let z = z.clamp(0, self.extent.z - 1) as f64;
         let n = self.noise.fbm2(x / self.scale, z / self.scale, 5);
         // Ridged low-frequency noise raises mountain ranges with snow caps.
-        let ridge = 1.0 - (self.noise.noise2(x / (self.scale * 2.2) + 31.7, z / (self.scale * 2.2) - 7.3) * 2.2).abs();
+        let ridge = 1.0
+            - (self
+                .noise
+                .noise2(x / (self.scale * 2.2) + 31.7, z / (self.scale * 2.2) - 7.3)
+                * 2.2)
+                .abs();
         let ridge = ridge.clamp(0.0, 1.0);
         let y = self.extent.y as f64;
         ((0.26 + 0.22 * n + 0.5 * ridge * ridge * ridge) * y).clamp(1.0, y - 1.0) as i32

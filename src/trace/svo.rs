@@ -346,6 +346,24 @@ impl Svo {
         }
     }
 
+    /// Number of descriptors that reach their children through a far pointer.
+    pub fn far_pointers(&self) -> usize {
+        // Walk the tree from the root so that only descriptors are inspected
+        // (far slots and attribute words are not descriptors).
+        let mut count = 0;
+        let mut stack = vec![0usize];
+        while let Some(idx) = stack.pop() {
+            let d = self.nodes[idx];
+            count += (d & FAR_BIT != 0) as usize;
+            let inner = ((d >> VALID_SHIFT) as u8) & !((d >> LEAF_SHIFT) as u8);
+            if inner != 0 {
+                let block = self.children_block(idx, d);
+                stack.extend((0..inner.count_ones() as usize).map(|i| block + i));
+            }
+        }
+        count
+    }
+
     /// Edge of the root cube in voxels.
     pub fn root_edge(&self) -> u32 {
         1 << self.root_shift
