@@ -15,6 +15,7 @@ pub mod cli;
 pub mod config;
 pub mod progress;
 pub mod scene;
+pub mod sim;
 pub mod trace;
 pub mod world;
 

@@ -1,0 +1,82 @@
+//! Cellular simulations over the world, written as Lua (Luau) scripts and
+//! run in parallel over tiles of columns.
+//!
+//! - [`channels`]: sparse per-tile `f64` fields.
+//! - [`script`]: loading and validating scripts; sandboxed VMs.
+//! - [`step`]: the race-free parallel step: each pass reads the previous
+//!   generation with a one-cell halo and writes only its own tile; a step is
+//!   committed only if every pass of a script succeeded.
+//! - [`native`]: the Rust reference water kernel.
+//! - [`voxels`]: ground, snow and water columns written back into bricks,
+//!   which records the dirty bricks the renderer consumes.
+
+pub mod channels;
+pub mod native;
+pub mod script;
+pub mod step;
+pub mod tile;
+pub mod voxels;
+
+use thiserror::Error;
+
+pub use channels::{ChannelId, ChannelStore};
+pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm};
+pub use step::{Kernel, Simulation, StepReport};
+
+/// Errors of the simulation subsystem. Every variant names the script.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum SimError {
+    /// The script does not compile.
+    #[error("{script}.lua:{}: syntax error: {msg}", line.map_or("?".into(), |l| l.to_string()))]
+    Syntax {
+        /// Script name.
+        script: String,
+        /// Line, if known.
+        line: Option<usize>,
+        /// Compiler message.
+        msg: String,
+    },
+    /// The script's declarations are invalid.
+    #[error("{script}.lua:{}: {msg}", line.map_or("?".into(), |l| l.to_string()))]
+    Declaration {
+        /// Script name.
+        script: String,
+        /// Line, if known.
+        line: Option<usize>,
+        /// What is wrong.
+        msg: String,
+    },
+    /// A kernel failed (error, budget, memory) during a step.
+    #[error("{script}.lua:{}: pass '{pass}' on tile {tile:?}: {msg}", line.map_or("?".into(), |l| l.to_string()))]
+    Runtime {
+        /// Script name.
+        script: String,
+        /// Pass name.
+        pass: String,
+        /// Tile.
+        tile: (i32, i32),
+        /// Line, if known.
+        line: Option<usize>,
+        /// Message.
+        msg: String,
+    },
+    /// A step produced NaN, infinity or a negative value in a non-negative channel.
+    #[error("{script}.lua: step rejected as unstable: {msg}")]
+    Unstable {
+        /// Script name.
+        script: String,
+        /// What was found.
+        msg: String,
+    },
+    /// A parameter change was refused.
+    #[error("{script}.lua: {msg}")]
+    Param {
+        /// Script name.
+        script: String,
+        /// What is wrong.
+        msg: String,
+    },
+    /// Unexpected failure inside the runtime.
+    #[error("simulation runtime: {0}")]
+    Internal(String),
+}

@@ -1,0 +1,453 @@
+//! Lua (Luau) scripts: loading, validating their declarations, and the
+//! sandboxed VMs that run their kernels.
+//!
+//! A script returns a table:
+//!
+//! ```lua
+//! return {
+//!   channels = { "water", "ground" },               -- every channel it touches
+//!   nonnegative = { "water" },                      -- checked after each step
+//!   params = { gravity = { default = 9.81, min = 0, max = 100 } },
+//!   passes = {
+//!     { name = "flux", reads = { "water", "ground" }, writes = { "water" },
+//!       kernel = function(c, tx, tz) ... end },
+//!   },
+//! }
+//! ```
+//!
+//! A kernel gets `c.dt`, `c.p` (parameters), `c.r.NAME` (10×10 halo buffers
+//! of f64, read-only by convention) and `c.w.NAME` (8×8 output buffers,
+//! pre-filled with the current values), and the tile coordinate. It must be
+//! a pure function of those: the runtime runs tiles on many VMs in any order.
+//!
+//! **Sandbox.** Only `math`, `string`, `table`, `buffer`, `bit32` and `utf8`
+//! are loaded: no files, OS, processes, `debug` or native modules, and the
+//! globals `require`, `getfenv`, `setfenv`, `loadstring`, `collectgarbage`,
+//! `gcinfo`, `newproxy` and `print` are removed.
+//! Globals are read-only (Luau `sandbox`). Each VM has a memory limit, and
+//! every kernel call an instruction budget and a wall-clock deadline checked
+//! from Luau's interrupt; a script that exceeds them is stopped with an error
+//! naming the script and line.
+
+use std::cell::Cell;
+use std::rc::Rc;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use mlua::{Buffer, Function, Lua, LuaOptions, StdLib, Table, Value, VmState};
+
+use super::SimError;
+use super::tile::{HALO_CELLS, TILE_CELLS};
+
+/// A parameter a script declares.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamSpec {
+    /// Name.
+    pub name: String,
+    /// Default value.
+    pub default: f64,
+    /// Smallest allowed value.
+    pub min: f64,
+    /// Largest allowed value.
+    pub max: f64,
+}
+
+/// One pass: channels read (with halo) and written (own tile).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PassSpec {
+    /// Name.
+    pub name: String,
+    /// Channels read with a one-cell halo.
+    pub reads: Vec<String>,
+    /// Channels written.
+    pub writes: Vec<String>,
+}
+
+/// What a script declares, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScriptSpec {
+    /// Script name (file stem).
+    pub name: String,
+    /// Channels used.
+    pub channels: Vec<String>,
+    /// Channels that must stay ≥ 0.
+    pub nonnegative: Vec<String>,
+    /// Parameters.
+    pub params: Vec<ParamSpec>,
+    /// Passes, run in order each step.
+    pub passes: Vec<PassSpec>,
+}
+
+/// Source of a script.
+#[derive(Clone, Debug)]
+pub struct ScriptSource {
+    /// Script name (file stem), used in every error.
+    pub name: String,
+    /// Source text.
+    pub text: Arc<str>,
+}
+
+/// Resource limits of a VM.
+#[derive(Clone, Copy, Debug)]
+pub struct Limits {
+    /// Bytes of Lua heap per VM.
+    pub memory: usize,
+    /// Interrupt ticks (loop iterations and calls) per kernel call.
+    pub instructions: u64,
+    /// Wall-clock time per kernel call.
+    pub time: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            memory: 64 << 20,
+            instructions: 20_000_000,
+            time: Duration::from_secs(5),
+        }
+    }
+}
+
+/// The first `:LINE:` in a Lua error message.
+pub fn line_of(msg: &str) -> Option<usize> {
+    let mut rest = msg;
+    while let Some(i) = rest.find(':') {
+        let tail = &rest[i + 1..];
+        let digits: String = tail.chars().take_while(|c| c.is_ascii_digit()).collect();
+        if !digits.is_empty() && tail[digits.len()..].starts_with(':') {
+            return digits.parse().ok();
+        }
+        rest = tail;
+    }
+    None
+}
+
+/// `"name.lua:12: message"` → `"message"` (the error's own prefix names the place).
+fn strip_location(msg: &str) -> String {
+    if let Some(line) = line_of(msg) {
+        let tag = format!(":{line}: ");
+        if let Some(i) = msg.find(&tag) {
+            return msg[i + tag.len()..].to_string();
+        }
+    }
+    msg.to_string()
+}
+
+/// Line of the first occurrence of `needle` in `text` (for declaration errors).
+fn line_in(text: &str, needle: &str) -> Option<usize> {
+    text.lines().position(|l| l.contains(needle)).map(|i| i + 1)
+}
+
+struct Budget {
+    ticks: Cell<u64>,
+    limit: Cell<u64>,
+    deadline: Cell<Instant>,
+    memory_soft: usize,
+}
+
+/// A sandboxed VM with a script loaded and its buffers ready.
+pub struct ScriptVm {
+    lua: Lua,
+    budget: Rc<Budget>,
+    kernels: Vec<Function>,
+    reads: Vec<Buffer>,
+    writes: Vec<Buffer>,
+    /// Per pass: indices into `reads` / `writes` (channel order of `spec.channels`).
+    read_tables: Vec<Table>,
+    write_tables: Vec<Table>,
+    ctx: Option<Table>,
+    name: String,
+    limits: Limits,
+}
+
+fn declaration(src: &ScriptSource, needle: Option<&str>, msg: impl Into<String>) -> SimError {
+    SimError::Declaration {
+        script: src.name.clone(),
+        line: needle.and_then(|n| line_in(&src.text, n)),
+        msg: msg.into(),
+    }
+}
+
+fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<String>, SimError> {
+    let v: Value = t.get(field).map_err(|e| declaration(src, Some(field), e.to_string()))?;
+    match v {
+        Value::Nil => Ok(Vec::new()),
+        Value::Table(list) => {
+            let mut out = Vec::new();
+            for item in list.sequence_values::<Value>() {
+                match item {
+                    Ok(Value::String(s)) => out.push(s.to_str().map(|s| s.to_string()).unwrap_or_default()),
+                    Ok(other) => {
+                        return Err(declaration(src, Some(field), format!("'{field}' must list strings, found a {}", other.type_name())));
+                    }
+                    Err(e) => return Err(declaration(src, Some(field), e.to_string())),
+                }
+            }
+            Ok(out)
+        }
+        other => Err(declaration(src, Some(field), format!("'{field}' must be a list of strings, found a {}", other.type_name()))),
+    }
+}
+
+fn number(src: &ScriptSource, t: &Table, field: &str, param: &str) -> Result<f64, SimError> {
+    match t.get::<Value>(field) {
+        Ok(Value::Number(n)) => Ok(n),
+        Ok(Value::Integer(n)) => Ok(n as f64),
+        Ok(other) => Err(declaration(
+            src,
+            Some(param),
+            format!("parameter '{param}': '{field}' must be a number, found a {}", other.type_name()),
+        )),
+        Err(e) => Err(declaration(src, Some(param), e.to_string())),
+    }
+}
+
+impl ScriptVm {
+    /// A fresh sandboxed VM with `src` loaded. Returns the VM and the
+    /// validated declarations.
+    pub fn load(src: &ScriptSource, limits: Limits) -> Result<(ScriptVm, ScriptSpec), SimError> {
+        let libs = StdLib::MATH | StdLib::STRING | StdLib::TABLE | StdLib::BUFFER | StdLib::BIT | StdLib::UTF8;
+        let lua = Lua::new_with(libs, LuaOptions::default()).map_err(|e| SimError::Internal(e.to_string()))?;
+        // Globals that reach outside the script (module loading, environments,
+        // code from strings, the GC, stdout) go before the environment is frozen.
+        {
+            let g = lua.globals();
+            for name in ["require", "getfenv", "setfenv", "loadstring", "load", "dofile", "loadfile", "collectgarbage", "gcinfo", "newproxy", "print"] {
+                g.raw_remove(name).map_err(|e| SimError::Internal(e.to_string()))?;
+            }
+        }
+        lua.sandbox(true).map_err(|e| SimError::Internal(e.to_string()))?;
+        lua.set_memory_limit(limits.memory).map_err(|e| SimError::Internal(e.to_string()))?;
+        let budget = Rc::new(Budget {
+            ticks: Cell::new(0),
+            limit: Cell::new(limits.instructions),
+            deadline: Cell::new(Instant::now() + limits.time),
+            memory_soft: limits.memory / 10 * 9,
+        });
+        {
+            let b = budget.clone();
+            lua.set_interrupt(move |lua| {
+                let n = b.ticks.get() + 1;
+                b.ticks.set(n);
+                let what = if n > b.limit.get() {
+                    Some("instruction budget")
+                } else if n & 1023 == 0 && Instant::now() > b.deadline.get() {
+                    Some("time budget")
+                } else if n & 255 == 0 && lua.used_memory() > b.memory_soft {
+                    Some("memory limit")
+                } else {
+                    None
+                };
+                match what {
+                    None => Ok(VmState::Continue),
+                    Some(what) => {
+                        let line = (0..3).find_map(|lvl| lua.inspect_stack(lvl, |d| d.current_line()).flatten());
+                        Err(mlua::Error::runtime(format!(
+                            "{what} exceeded at line {}",
+                            line.map_or("?".to_string(), |l| l.to_string())
+                        )))
+                    }
+                }
+            });
+        }
+        let chunk = lua.load(&*src.text).set_name(format!("@{}.lua", src.name));
+        let def: Value = chunk.eval().map_err(|e| {
+            let msg = e.to_string();
+            match e {
+                mlua::Error::SyntaxError { .. } => SimError::Syntax {
+                    script: src.name.clone(),
+                    line: line_of(&msg),
+                    msg: strip_location(msg.lines().next().unwrap_or("")),
+                },
+                _ => SimError::Declaration {
+                    script: src.name.clone(),
+                    line: line_of(&msg),
+                    msg: strip_location(msg.lines().next().unwrap_or("").trim_start_matches("runtime error: ")),
+                },
+            }
+        })?;
+        let Value::Table(def) = def else {
+            return Err(declaration(src, None, format!("the script must return a table, it returned a {}", def.type_name())));
+        };
+        let spec = Self::parse_spec(src, &def)?;
+        let mut vm = ScriptVm {
+            lua,
+            budget,
+            kernels: Vec::new(),
+            reads: Vec::new(),
+            writes: Vec::new(),
+            read_tables: Vec::new(),
+            write_tables: Vec::new(),
+            ctx: None,
+            name: src.name.clone(),
+            limits,
+        };
+        let passes: Table = def.get("passes").map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+        for (i, _) in spec.passes.iter().enumerate() {
+            let p: Table = passes.get(i + 1).map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+            let k: Value = p.get("kernel").map_err(|e| declaration(src, Some("kernel"), e.to_string()))?;
+            match k {
+                Value::Function(f) => vm.kernels.push(f),
+                _ => return Err(declaration(src, Some(&spec.passes[i].name), format!("pass '{}' has no kernel function", spec.passes[i].name))),
+            }
+        }
+        vm.make_buffers(&spec).map_err(|e| SimError::Internal(e.to_string()))?;
+        Ok((vm, spec))
+    }
+
+    fn parse_spec(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimError> {
+        let channels = strings(src, def, "channels")?;
+        if channels.is_empty() {
+            return Err(declaration(src, Some("channels"), "the script declares no channels"));
+        }
+        for c in &channels {
+            if c.is_empty() || !c.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_') {
+                return Err(declaration(src, Some(c), format!("channel name '{c}' must be letters, digits and '_'")));
+            }
+        }
+        let nonnegative = strings(src, def, "nonnegative")?;
+        let known = |name: &str, what: &str| -> Result<(), SimError> {
+            if channels.iter().any(|c| c == name) {
+                Ok(())
+            } else {
+                Err(declaration(src, Some(&format!("\"{name}\"")), format!("{what} names unknown channel '{name}' (declared: {})", channels.join(", "))))
+            }
+        };
+        for c in &nonnegative {
+            known(c, "'nonnegative'")?;
+        }
+        let mut params = Vec::new();
+        match def.get::<Value>("params") {
+            Ok(Value::Nil) => {}
+            Ok(Value::Table(t)) => {
+                for pair in t.pairs::<String, Value>() {
+                    let (name, v) = pair.map_err(|e| declaration(src, Some("params"), format!("params: {e}")))?;
+                    let Value::Table(p) = v else {
+                        return Err(declaration(src, Some(&name), format!("parameter '{name}' must be a table {{default, min, max}}")));
+                    };
+                    let (default, min, max) = (number(src, &p, "default", &name)?, number(src, &p, "min", &name)?, number(src, &p, "max", &name)?);
+                    if !(min <= max) || !(min..=max).contains(&default) || !default.is_finite() {
+                        return Err(declaration(src, Some(&name), format!("parameter '{name}': default {default} is outside [{min}, {max}]")));
+                    }
+                    params.push(ParamSpec { name, default, min, max });
+                }
+                params.sort_by(|a, b| a.name.cmp(&b.name));
+            }
+            Ok(other) => return Err(declaration(src, Some("params"), format!("'params' must be a table, found a {}", other.type_name()))),
+            Err(e) => return Err(declaration(src, Some("params"), e.to_string())),
+        }
+        let passes_v: Value = def.get("passes").map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+        let Value::Table(passes_t) = passes_v else {
+            return Err(declaration(src, Some("passes"), "the script has no 'passes' list (each pass needs a kernel)"));
+        };
+        let mut passes = Vec::new();
+        for (i, p) in passes_t.sequence_values::<Value>().enumerate() {
+            let p = p.map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+            let Value::Table(p) = p else {
+                return Err(declaration(src, Some("passes"), format!("passes[{}] must be a table", i + 1)));
+            };
+            let name: String = match p.get::<Value>("name") {
+                Ok(Value::String(s)) => s.to_str().map(|s| s.to_string()).unwrap_or_default(),
+                _ => format!("pass{}", i + 1),
+            };
+            let reads = strings(src, &p, "reads")?;
+            let writes = strings(src, &p, "writes")?;
+            for r in &reads {
+                known(r, &format!("pass '{name}' reads"))?;
+            }
+            for w in &writes {
+                known(w, &format!("pass '{name}' writes"))?;
+            }
+            if writes.is_empty() {
+                return Err(declaration(src, Some(&name), format!("pass '{name}' writes no channel")));
+            }
+            passes.push(PassSpec { name, reads, writes });
+        }
+        if passes.is_empty() {
+            return Err(declaration(src, Some("passes"), "the script declares no passes"));
+        }
+        Ok(ScriptSpec {
+            name: src.name.clone(),
+            channels,
+            nonnegative,
+            params,
+            passes,
+        })
+    }
+
+    fn make_buffers(&mut self, spec: &ScriptSpec) -> mlua::Result<()> {
+        for _ in &spec.channels {
+            self.reads.push(self.lua.create_buffer_with_capacity(HALO_CELLS * 8)?);
+            self.writes.push(self.lua.create_buffer_with_capacity(TILE_CELLS * 8)?);
+        }
+        for pass in &spec.passes {
+            let r = self.lua.create_table()?;
+            for name in &pass.reads {
+                let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
+                r.set(name.as_str(), self.reads[i].clone())?;
+            }
+            let w = self.lua.create_table()?;
+            for name in &pass.writes {
+                let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
+                w.set(name.as_str(), self.writes[i].clone())?;
+            }
+            self.read_tables.push(r);
+            self.write_tables.push(w);
+        }
+        Ok(())
+    }
+
+    /// Prepare a step: time step and parameter values (in `spec.params` order).
+    pub fn begin_step(&mut self, dt: f64, spec: &ScriptSpec, params: &[f64]) -> Result<(), SimError> {
+        let make = || -> mlua::Result<Table> {
+            let p = self.lua.create_table()?;
+            for (s, v) in spec.params.iter().zip(params) {
+                p.set(s.name.as_str(), *v)?;
+            }
+            p.set_readonly(true);
+            let c = self.lua.create_table()?;
+            c.set("dt", dt)?;
+            c.set("p", p)?;
+            Ok(c)
+        };
+        self.ctx = Some(make().map_err(|e| SimError::Internal(e.to_string()))?);
+        Ok(())
+    }
+
+    /// Halo buffer of channel `ch` (index in the spec's channel list).
+    pub fn read_buffer(&self, ch: usize) -> &Buffer {
+        &self.reads[ch]
+    }
+
+    /// Output buffer of channel `ch`.
+    pub fn write_buffer(&self, ch: usize) -> &Buffer {
+        &self.writes[ch]
+    }
+
+    /// Run pass `pass` on tile (tx, tz). Buffers must be filled beforehand.
+    pub fn run(&mut self, pass: usize, pass_name: &str, tx: i32, tz: i32) -> Result<(), SimError> {
+        let ctx = self.ctx.as_ref().ok_or_else(|| SimError::Internal("begin_step was not called".into()))?;
+        let run = || -> mlua::Result<()> {
+            ctx.raw_set("r", self.read_tables[pass].clone())?;
+            ctx.raw_set("w", self.write_tables[pass].clone())?;
+            self.budget.ticks.set(0);
+            self.budget.deadline.set(Instant::now() + self.limits.time);
+            self.kernels[pass].call::<()>((ctx.clone(), tx, tz))
+        };
+        run().map_err(|e| {
+            let msg = match &e {
+                mlua::Error::CallbackError { cause, .. } => cause.to_string(),
+                other => other.to_string(),
+            };
+            let msg = msg.lines().next().unwrap_or("").trim_start_matches("runtime error: ").to_string();
+            let line = line_of(&msg).or_else(|| msg.rsplit("line ").next().and_then(|s| s.parse().ok()));
+            SimError::Runtime {
+                script: self.name.clone(),
+                pass: pass_name.to_string(),
+                tile: (tx, tz),
+                line,
+                msg: strip_location(&msg),
+            }
+        })
+    }
+}

@@ -1,0 +1,2 @@
+//! Writing simulation columns back into bricks (placeholder until the voxel
+//! sync lands: see the issue note).
