@@ -24,7 +24,7 @@ use rustc_hash::{FxHashMap, FxHashSet};
 use super::SimError;
 use super::channels::{ChannelId, ChannelStore};
 use super::script::{Limits, ScriptSource, ScriptSpec, ScriptVm};
-use super::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, halo, neighbourhood};
+use super::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, neighbourhood};
 
 /// Steps without change before a tile sleeps.
 pub const SLEEP_AFTER: u8 = 2;
@@ -87,59 +87,70 @@ thread_local! {
     static VMS: RefCell<FxHashMap<u64, (ScriptVm, u64)>> = RefCell::new(FxHashMap::default());
 }
 
-type Staging = FxHashMap<(TileCoord, ChannelId), [f64; TILE_CELLS]>;
-
-struct View<'a> {
-    base: &'a ChannelStore,
-    done: &'a Staging,
-    current: &'a Staging,
-    min: TileCoord,
-    max: TileCoord,
+/// The tiles a step touches: the active ones and their neighbours, densely
+/// indexed, with each active tile's 3×3 neighbourhood as indices.
+struct WorkSet {
+    tiles: Vec<TileCoord>,
+    active: Vec<u32>,
+    nbr: Vec<[u32; 9]>,
 }
 
-impl View<'_> {
-    #[inline]
-    fn tile(&self, t: TileCoord, ch: ChannelId, boundary: f64) -> Option<&[f64; TILE_CELLS]> {
-        let _ = boundary;
-        if let Some(v) = self.current.get(&(t, ch)) {
-            return Some(v);
-        }
-        if let Some(v) = self.done.get(&(t, ch)) {
-            return Some(v);
-        }
-        self.base.get(t, ch)
-    }
+const OUTSIDE: u32 = u32::MAX;
 
-    fn inside(&self, t: TileCoord) -> bool {
-        t.cmpge(self.min).all() && t.cmplt(self.max).all()
-    }
-
-    fn gather(&self, t: TileCoord, ch: ChannelId, boundary: f64, out: &mut [f64; HALO_CELLS]) {
-        for nz in -1..=1 {
-            for nx in -1..=1 {
-                let nt = t + IVec2::new(nx, nz);
-                let inside = self.inside(nt);
-                let src = if inside { self.tile(nt, ch, boundary) } else { None };
-                let x0 = if nx < 0 { TILE - 1 } else { 0 };
-                let x1 = if nx > 0 { 1 } else { TILE };
-                let z0 = if nz < 0 { TILE - 1 } else { 0 };
-                let z1 = if nz > 0 { 1 } else { TILE };
-                for lz in z0..z1 {
-                    for lx in x0..x1 {
-                        let v = match src {
-                            Some(s) => s[(lz * TILE + lx) as usize],
-                            None if inside => 0.0,
-                            None => boundary,
-                        };
-                        out[halo(lx + nx * TILE, lz + nz * TILE)] = v;
+impl WorkSet {
+    fn new(active: &[TileCoord], min: TileCoord, max: TileCoord) -> Self {
+        let inside = |t: TileCoord| t.cmpge(min).all() && t.cmplt(max).all();
+        let mut tiles: Vec<TileCoord> = active.iter().flat_map(|&t| neighbourhood(t)).filter(|&t| inside(t)).collect();
+        tiles.sort_by_key(|t| (t.y, t.x));
+        tiles.dedup();
+        let index: FxHashMap<TileCoord, u32> = tiles.iter().enumerate().map(|(i, t)| (*t, i as u32)).collect();
+        let active_idx = active.iter().map(|t| index[t]).collect();
+        let nbr = active
+            .iter()
+            .map(|&t| {
+                let mut n = [OUTSIDE; 9];
+                for (k, nt) in neighbourhood(t).enumerate() {
+                    if let Some(&i) = index.get(&nt) {
+                        n[k] = i;
                     }
                 }
-            }
-        }
+                n
+            })
+            .collect();
+        WorkSet { tiles, active: active_idx, nbr }
     }
 
-    fn own(&self, t: TileCoord, ch: ChannelId) -> [f64; TILE_CELLS] {
-        self.tile(t, ch, 0.0).copied().unwrap_or([0.0; TILE_CELLS])
+    /// Gather the halo of active tile `k` from dense `data`: rows and
+    /// columns copied as slices, outside-world neighbours filled with
+    /// `boundary`.
+    fn gather(&self, k: usize, data: &[[f64; TILE_CELLS]], boundary: f64, out: &mut [f64; HALO_CELLS]) {
+        let n = &self.nbr[k];
+        let get = |i: usize| if n[i] == OUTSIDE { None } else { Some(&data[n[i] as usize]) };
+        let t = TILE as usize;
+        // The −z row, the tile's own rows, the +z row.
+        fn row(out: &mut [f64; HALO_CELLS], hz: usize, src: Option<&[f64; TILE_CELLS]>, sz: usize, boundary: f64) {
+            let t = TILE as usize;
+            let dst = &mut out[hz * 10 + 1..hz * 10 + 1 + t];
+            match src {
+                Some(d) => dst.copy_from_slice(&d[sz * t..sz * t + t]),
+                None => dst.fill(boundary),
+            }
+        }
+        row(out, 0, get(1), t - 1, boundary);
+        for z in 0..t {
+            row(out, z + 1, get(4), z, boundary);
+        }
+        row(out, t + 1, get(7), 0, boundary);
+        // −x and +x columns, and the corners.
+        for (hz, sz, left, right) in [(0usize, t - 1, 0usize, 2usize), (t + 1, 0, 6, 8)] {
+            out[hz * 10] = get(left).map_or(boundary, |d| d[sz * t + t - 1]);
+            out[hz * 10 + 9] = get(right).map_or(boundary, |d| d[sz * t]);
+        }
+        let (l, r) = (get(3), get(5));
+        for z in 0..t {
+            out[(z + 1) * 10] = l.map_or(boundary, |d| d[z * t + t - 1]);
+            out[(z + 1) * 10 + 9] = r.map_or(boundary, |d| d[z * t]);
+        }
     }
 }
 
@@ -313,24 +324,31 @@ impl Simulation {
         let serial = STEP_SERIAL.fetch_add(1, Ordering::Relaxed);
         let mut tiles: Vec<TileCoord> = self.active.iter().copied().collect();
         tiles.sort_by_key(|t| (t.y, t.x));
-        let mut done: Staging = FxHashMap::default();
+        let ws = WorkSet::new(&tiles, self.tiles_min, self.tiles_max);
         let mut errors = Vec::new();
-        for script in &self.scripts {
-            match run_script(script, &self.channels, &done, &tiles, self.tiles_min, self.tiles_max, dt, serial) {
-                Ok(staged) => done.extend(staged),
-                Err(e) => errors.push(e),
-            }
-        }
-        // Commit in sorted order and find what changed.
-        let mut keys: Vec<(TileCoord, ChannelId)> = done.keys().copied().collect();
-        keys.sort_by_key(|(t, c)| (t.y, t.x, *c));
         let mut changed: FxHashSet<TileCoord> = FxHashSet::default();
-        for k in keys {
-            let new = &done[&k];
-            let old = self.channels.get(k.0, k.1).copied().unwrap_or([0.0; TILE_CELLS]);
-            if old.iter().zip(new.iter()).any(|(a, b)| a.to_bits() != b.to_bits()) {
-                changed.insert(k.0);
-                self.channels.set(k.0, k.1, new);
+        for script in &self.scripts {
+            match run_script(script, &self.channels, &ws, dt, serial) {
+                Ok(outputs) => {
+                    // Commit this script's channels in sorted tile order.
+                    for (i, data) in outputs {
+                        for (k, &w) in ws.active.iter().enumerate() {
+                            let t = ws.tiles[w as usize];
+                            let new = &data[w as usize];
+                            let old = self.channels.get(t, script.ids[i]);
+                            let differs = match old {
+                                Some(o) => o.iter().zip(new.iter()).any(|(a, b)| a.to_bits() != b.to_bits()),
+                                None => new.iter().any(|v| v.to_bits() != 0),
+                            };
+                            if differs {
+                                changed.insert(t);
+                                self.channels.set(t, script.ids[i], new);
+                            }
+                            let _ = k;
+                        }
+                    }
+                }
+                Err(e) => errors.push(e),
             }
         }
         let mut changed: Vec<TileCoord> = changed.into_iter().collect();
@@ -361,69 +379,78 @@ impl Simulation {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn run_script(
-    s: &Loaded,
-    base: &ChannelStore,
-    done: &Staging,
-    tiles: &[TileCoord],
-    min: TileCoord,
-    max: TileCoord,
-    dt: f64,
-    serial: u64,
-) -> Result<Staging, SimError> {
-    let mut staged: Staging = FxHashMap::default();
+/// Run one script's passes over the work set. Returns, for each channel it
+/// wrote (index in its spec), the dense data after the step.
+fn run_script(s: &Loaded, base: &ChannelStore, ws: &WorkSet, dt: f64, serial: u64) -> Result<Vec<(usize, Vec<[f64; TILE_CELLS]>)>, SimError> {
+    let n = s.spec.channels.len();
+    // Dense previous generation of every channel this script uses.
+    let mut data: Vec<Vec<[f64; TILE_CELLS]>> = s
+        .ids
+        .iter()
+        .map(|&id| ws.tiles.iter().map(|&t| base.get(t, id).copied().unwrap_or([0.0; TILE_CELLS])).collect())
+        .collect();
+    let mut written = vec![false; n];
     for (pi, pass) in s.spec.passes.iter().enumerate() {
         let read_idx: Vec<usize> = pass.reads.iter().map(|r| s.spec.channels.iter().position(|c| c == r).unwrap_or(0)).collect();
         let write_idx: Vec<usize> = pass.writes.iter().map(|w| s.spec.channels.iter().position(|c| c == w).unwrap_or(0)).collect();
-        let view = View {
-            base,
-            done,
-            current: &staged,
-            min,
-            max,
-        };
-        let results: Result<Vec<(TileCoord, Vec<[f64; TILE_CELLS]>)>, SimError> = tiles
-            .par_iter()
-            .map(|&t| {
-                let mut reads = vec![[0.0f64; HALO_CELLS]; s.spec.channels.len()];
-                for &i in &read_idx {
-                    view.gather(t, s.ids[i], s.boundary[i], &mut reads[i]);
-                }
-                let mut writes = vec![[0.0f64; TILE_CELLS]; s.spec.channels.len()];
-                for &i in &write_idx {
-                    writes[i] = view.own(t, s.ids[i]);
-                }
-                match &s.kernel {
-                    Kernel::Native(k) => k.run(pi, dt, &s.params, &reads, &mut writes),
-                    Kernel::Lua => run_lua(s, pi, t, dt, serial, &read_idx, &write_idx, &reads, &mut writes)?,
-                }
-                Ok((t, write_idx.iter().map(|&i| writes[i]).collect()))
-            })
-            .collect();
-        for (t, outs) in results? {
-            for (k, &i) in write_idx.iter().enumerate() {
-                staged.insert((t, s.ids[i]), outs[k]);
+        let data_ref = &data;
+        let nw = write_idx.len();
+        let mut outs = vec![[0.0f64; TILE_CELLS]; ws.active.len() * nw];
+        outs.par_chunks_mut(nw)
+            .enumerate()
+            .try_for_each_init(
+                || (vec![[0.0f64; HALO_CELLS]; n], vec![[0.0f64; TILE_CELLS]; n]),
+                |(reads, writes), (k, out)| -> Result<(), SimError> {
+                    for &i in &read_idx {
+                        ws.gather(k, &data_ref[i], s.boundary[i], &mut reads[i]);
+                    }
+                    let w = ws.active[k] as usize;
+                    for &i in &write_idx {
+                        writes[i] = data_ref[i][w];
+                    }
+                    let t = ws.tiles[w];
+                    match &s.kernel {
+                        Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
+                        Kernel::Lua => run_lua(s, pi, t, dt, serial, &read_idx, &write_idx, reads, writes)?,
+                    }
+                    for (j, &i) in write_idx.iter().enumerate() {
+                        out[j] = writes[i];
+                    }
+                    Ok(())
+                },
+            )?;
+        // Commit the pass into the dense generation (double buffering: every
+        // tile of this pass read the previous values).
+        for (k, out) in outs.chunks(nw).enumerate() {
+            let w = ws.active[k] as usize;
+            for (j, &i) in write_idx.iter().enumerate() {
+                data[i][w] = out[j];
             }
+        }
+        for &i in &write_idx {
+            written[i] = true;
         }
     }
     // Reject blow-ups before they reach the world.
-    for ((t, ch), v) in &staged {
-        let i = s.ids.iter().position(|c| c == ch).unwrap_or(0);
+    for i in (0..n).filter(|&i| written[i]) {
         let nonneg = s.nonneg.contains(&i);
-        if let Some((cell, x)) = v.iter().enumerate().find(|(_, x)| !x.is_finite() || (nonneg && **x < -1e-9)) {
-            return Err(SimError::Unstable {
-                script: s.spec.name.clone(),
-                msg: format!(
-                    "channel '{}' = {x} at column ({}, {}); reduce dt (or enable sub-stepping)",
-                    s.spec.channels[i],
-                    t.x * TILE + (cell as i32 % TILE),
-                    t.y * TILE + (cell as i32 / TILE)
-                ),
-            });
+        for &w in &ws.active {
+            let v = &data[i][w as usize];
+            if let Some((c, x)) = v.iter().enumerate().find(|(_, x)| !x.is_finite() || (nonneg && **x < -1e-9)) {
+                let t = ws.tiles[w as usize];
+                return Err(SimError::Unstable {
+                    script: s.spec.name.clone(),
+                    msg: format!(
+                        "channel '{}' = {x} at column ({}, {}); reduce dt (or enable sub-stepping)",
+                        s.spec.channels[i],
+                        t.x * TILE + (c as i32 % TILE),
+                        t.y * TILE + (c as i32 / TILE)
+                    ),
+                });
+            }
         }
     }
-    Ok(staged)
+    Ok(data.into_iter().enumerate().filter(|(i, _)| written[*i]).collect())
 }
 
 #[allow(clippy::too_many_arguments)]
