@@ -13,7 +13,10 @@ use glam::IVec2;
 
 fn main() {
     let n = 64;
-    for (name, kernel) in [("lua", Kernel::Lua), ("native", Kernel::Native(Arc::new(PipeWater)))] {
+    for (name, kernel) in [
+        ("lua", Kernel::Lua),
+        ("native", Kernel::Native(Arc::new(PipeWater))),
+    ] {
         let mut sim = Simulation::new(IVec2::ZERO, IVec2::splat(n));
         let src = ScriptSource {
             name: "water".into(),
@@ -46,6 +49,10 @@ fn main() {
         }
         let s = t.elapsed().as_secs_f64();
         let cells = (n * n * 64) as f64 * steps as f64;
-        println!("{name:>6}: {:.1} M cell updates/s ({} threads)", cells / s / 1e6, rayon::current_num_threads());
+        println!(
+            "{name:>6}: {:.1} M cell updates/s ({} threads)",
+            cells / s / 1e6,
+            rayon::current_num_threads()
+        );
     }
 }

@@ -16,6 +16,7 @@ use crate::trace::{Camera, RenderOptions, Structure, Tracer, render, write_npy, 
 pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
+        Command::Sim(a) => crate::sim_cmd::run(&crate::config::SimSettings::from_args(&a)?),
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }

@@ -19,9 +19,40 @@ pub struct Cli {
 pub enum Command {
     /// Build a scene and ray-trace it to a PNG (and optionally depth .npy).
     Render(RenderArgs),
+    /// Run Lua simulations on a scene headless, then render the result.
+    Sim(SimArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
+}
+
+/// `brickworld sim`.
+#[derive(Debug, Args)]
+pub struct SimArgs {
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Lua script to run (repeat for several; they run in this order each step)
+    #[arg(long = "script", required = true)]
+    pub scripts: Vec<PathBuf>,
+    /// Steps to run
+    #[arg(long, default_value = "100")]
+    pub steps: String,
+    /// Time step in seconds
+    #[arg(long, default_value = "0.05")]
+    pub dt: String,
+    /// Parameter override SCRIPT.NAME=VALUE (repeatable), e.g. water.rain=0.2
+    #[arg(long = "param")]
+    pub params: Vec<String>,
+    /// PNG of the final state
+    #[arg(long, default_value = "sim.png")]
+    pub out: PathBuf,
+    /// Trace hard shadows in the final render
+    #[arg(long)]
+    pub shadows: bool,
 }
 
 /// Benchmarks.

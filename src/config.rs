@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use glam::{DVec3, IVec3};
 use thiserror::Error;
 
-use crate::cli::{BenchTracersArgs, RenderArgs, SceneArgs, ViewArgs};
+use crate::cli::{BenchTracersArgs, RenderArgs, SceneArgs, SimArgs, ViewArgs};
 use crate::scene::{SceneSpec, View};
 use crate::trace::Structure;
 
@@ -281,6 +281,78 @@ impl BenchTracersSettings {
             chart: a.chart.clone(),
             repeat: a.repeat,
             dense_limit: a.dense_limit_mib.saturating_mul(1 << 20),
+        })
+    }
+}
+
+/// A parameter override `SCRIPT.NAME=VALUE`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamOverride {
+    /// Script name (file stem).
+    pub script: String,
+    /// Parameter name.
+    pub name: String,
+    /// Value.
+    pub value: f64,
+}
+
+/// Settings of `brickworld sim`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SimSettings {
+    /// Scene.
+    pub scene: SceneSettings,
+    /// View of the final render.
+    pub view: ViewSettings,
+    /// Script files.
+    pub scripts: Vec<PathBuf>,
+    /// Steps.
+    pub steps: u64,
+    /// Time step.
+    pub dt: f64,
+    /// Parameter overrides.
+    pub params: Vec<ParamOverride>,
+    /// Output PNG.
+    pub out: PathBuf,
+    /// Shadows in the final render.
+    pub shadows: bool,
+}
+
+/// Default size of procedural scenes for `sim`.
+pub const SIM_DEFAULT_SIZE: IVec3 = IVec3::new(256, 96, 256);
+
+impl SimSettings {
+    /// Validate `sim` arguments.
+    pub fn from_args(a: &SimArgs) -> Result<Self, ConfigError> {
+        let mut params = Vec::new();
+        for p in &a.params {
+            let (lhs, value) = p
+                .split_once('=')
+                .ok_or_else(|| bad("--param", p, "expected SCRIPT.NAME=VALUE"))?;
+            let (script, name) = lhs
+                .split_once('.')
+                .ok_or_else(|| bad("--param", p, "expected SCRIPT.NAME=VALUE"))?;
+            let value: f64 = value
+                .trim()
+                .parse()
+                .map_err(|_| bad("--param", p, format!("'{value}' is not a number")))?;
+            if !value.is_finite() {
+                return Err(bad("--param", p, "the value must be finite"));
+            }
+            params.push(ParamOverride {
+                script: script.to_string(),
+                name: name.to_string(),
+                value,
+            });
+        }
+        Ok(SimSettings {
+            scene: SceneSettings::from_args(&a.scene, SIM_DEFAULT_SIZE)?,
+            view: ViewSettings::from_args(&a.view, 960, 540)?,
+            scripts: a.scripts.clone(),
+            steps: parse_num("--steps", &a.steps, 1u64, 10_000_000)?,
+            dt: parse_num("--dt", &a.dt, 1e-9f64, 1e3)?,
+            params,
+            out: a.out.clone(),
+            shadows: a.shadows,
         })
     }
 }

@@ -16,6 +16,7 @@ pub mod config;
 pub mod progress;
 pub mod scene;
 pub mod sim;
+pub mod sim_cmd;
 pub mod trace;
 pub mod world;
 

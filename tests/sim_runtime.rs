@@ -28,7 +28,8 @@ fn src(name: &str, text: &str) -> ScriptSource {
 /// water in one corner (a dam break).
 fn dam_break(kernel: Kernel) -> Simulation {
     let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(6, 4));
-    sim.add_script(water_src(), kernel, Limits::default()).unwrap();
+    sim.add_script(water_src(), kernel, Limits::default())
+        .unwrap();
     let ch = sim.channels_mut();
     let (g, w) = (ch.channel("ground"), ch.channel("water"));
     for tz in 0..4 {
@@ -39,7 +40,9 @@ fn dam_break(kernel: Kernel) -> Simulation {
             for z in 0..8 {
                 for x in 0..8 {
                     let (gx, gz) = ((tx * 8 + x) as f64, (tz * 8 + z) as f64);
-                    ground[cell(x, z)] = 2.0 + 0.05 * gx + 1.5 * (-((gx - 30.0).powi(2) + (gz - 16.0).powi(2)) / 20.0).exp();
+                    ground[cell(x, z)] = 2.0
+                        + 0.05 * gx
+                        + 1.5 * (-((gx - 30.0).powi(2) + (gz - 16.0).powi(2)) / 20.0).exp();
                     if gx < 12.0 && gz < 20.0 {
                         water[cell(x, z)] = 6.0;
                     }
@@ -67,14 +70,20 @@ fn lua_water_matches_the_native_reference_bit_for_bit() {
     run(&mut native, 60, 0.02);
     assert_eq!(lua.channels().hash(), native.channels().hash());
     let w = lua.channels().find("water").unwrap();
-    assert!(lua.channels().allocated(w) > 6, "the water spread beyond its 6 initial tiles");
+    assert!(
+        lua.channels().allocated(w) > 6,
+        "the water spread beyond its 6 initial tiles"
+    );
 }
 
 #[test]
 fn steps_are_bit_identical_for_1_2_and_8_threads() {
     let mut hashes = Vec::new();
     for threads in [1, 2, 8] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         let h = pool.install(|| {
             let mut sim = dam_break(Kernel::Lua);
             run(&mut sim, 40, 0.02);
@@ -85,7 +94,11 @@ fn steps_are_bit_identical_for_1_2_and_8_threads() {
     assert_eq!(hashes[0], hashes[1]);
     assert_eq!(hashes[0], hashes[2]);
     // Pinned: change only on purpose (a kernel or driver change), with a note.
-    assert_eq!(hashes[0], PINNED_DAM_BREAK_HASH, "dam-break hash changed: got {:#x}", hashes[0]);
+    assert_eq!(
+        hashes[0], PINNED_DAM_BREAK_HASH,
+        "dam-break hash changed: got {:#x}",
+        hashes[0]
+    );
 }
 
 /// Hash of `dam_break` after 40 steps of dt = 0.02 (scripts/water.lua as of
@@ -107,12 +120,18 @@ fn water_is_conserved_to_round_off() {
 fn dry_tiles_sleep_and_a_wet_region_keeps_only_its_neighbourhood_awake() {
     let mut sim = dam_break(Kernel::Native(Arc::new(PipeWater)));
     let w = sim.channels().find("water").unwrap();
-    sim.channels_mut().set(IVec2::new(0, 0), w, &[0.0; TILE_CELLS]);
-    sim.channels_mut().set(IVec2::new(1, 0), w, &[0.0; TILE_CELLS]);
-    sim.channels_mut().set(IVec2::new(0, 1), w, &[0.0; TILE_CELLS]);
-    sim.channels_mut().set(IVec2::new(1, 1), w, &[0.0; TILE_CELLS]);
-    sim.channels_mut().set(IVec2::new(0, 2), w, &[0.0; TILE_CELLS]);
-    sim.channels_mut().set(IVec2::new(1, 2), w, &[0.0; TILE_CELLS]);
+    sim.channels_mut()
+        .set(IVec2::new(0, 0), w, &[0.0; TILE_CELLS]);
+    sim.channels_mut()
+        .set(IVec2::new(1, 0), w, &[0.0; TILE_CELLS]);
+    sim.channels_mut()
+        .set(IVec2::new(0, 1), w, &[0.0; TILE_CELLS]);
+    sim.channels_mut()
+        .set(IVec2::new(1, 1), w, &[0.0; TILE_CELLS]);
+    sim.channels_mut()
+        .set(IVec2::new(0, 2), w, &[0.0; TILE_CELLS]);
+    sim.channels_mut()
+        .set(IVec2::new(1, 2), w, &[0.0; TILE_CELLS]);
     run(&mut sim, 3, 0.02);
     assert_eq!(sim.active_tiles(), 0, "a dry world sleeps");
     let mut d = [0.0; TILE_CELLS];
@@ -131,9 +150,18 @@ fn parameters_change_without_restart_and_are_range_checked() {
     let before = sim.channels().total(w);
     run(&mut sim, 1, 0.1);
     let gained = sim.channels().total(w) - before;
-    assert!((gained - 0.5 * 0.1 * 48.0 * 32.0).abs() < 1e-6, "rain fell on every column: {gained}");
-    assert!(matches!(sim.set_param(0, "rain", 11.0), Err(SimError::Param { .. })));
-    assert!(matches!(sim.set_param(0, "snowfall", 1.0), Err(SimError::Param { .. })));
+    assert!(
+        (gained - 0.5 * 0.1 * 48.0 * 32.0).abs() < 1e-6,
+        "rain fell on every column: {gained}"
+    );
+    assert!(matches!(
+        sim.set_param(0, "rain", 11.0),
+        Err(SimError::Param { .. })
+    ));
+    assert!(matches!(
+        sim.set_param(0, "snowfall", 1.0),
+        Err(SimError::Param { .. })
+    ));
 }
 
 const KERNEL_TEMPLATE: &str = r#"
@@ -168,14 +196,26 @@ fn bad_scripts_are_rejected_at_load_with_name_and_line() {
     assert!(matches!(e, SimError::Syntax { line: Some(_), .. }), "{e}");
     assert!(e.to_string().starts_with("bad.lua:"), "{e}");
 
-    let e = load(&kernel_script("").replace("reads = { \"water\" }", "reads = { \"lava\" }")).unwrap_err();
+    let e = load(&kernel_script("").replace("reads = { \"water\" }", "reads = { \"lava\" }"))
+        .unwrap_err();
     assert!(e.to_string().contains("unknown channel 'lava'"), "{e}");
-    assert!(matches!(e, SimError::Declaration { line: Some(4), .. }), "{e:?}");
+    assert!(
+        matches!(e, SimError::Declaration { line: Some(4), .. }),
+        "{e:?}"
+    );
 
-    let e = load(&kernel_script("").replace("channels = { \"water\" },", "channels = { \"water\" }, params = { g = { default = \"x\", min = 0, max = 1 } },")).unwrap_err();
+    let e = load(&kernel_script("").replace(
+        "channels = { \"water\" },",
+        "channels = { \"water\" }, params = { g = { default = \"x\", min = 0, max = 1 } },",
+    ))
+    .unwrap_err();
     assert!(e.to_string().contains("must be a number"), "{e}");
 
-    let e = load(&kernel_script("").replace("channels = { \"water\" },", "channels = { \"water\" }, params = { g = { default = 5, min = 0, max = 1 } },")).unwrap_err();
+    let e = load(&kernel_script("").replace(
+        "channels = { \"water\" },",
+        "channels = { \"water\" }, params = { g = { default = 5, min = 0, max = 1 } },",
+    ))
+    .unwrap_err();
     assert!(e.to_string().contains("outside [0, 1]"), "{e}");
 
     let e = load("return { channels = { \"water\" }, passes = { { name = \"p\", writes = { \"water\" } } } }").unwrap_err();
@@ -187,11 +227,24 @@ fn bad_scripts_are_rejected_at_load_with_name_and_line() {
 
 #[test]
 fn the_sandbox_offers_no_files_os_debug_or_modules() {
-    for body in ["io.open('/etc/passwd')", "os.exit(1)", "debug.traceback()", "require('x')", "require('./x')", "collectgarbage('collect')", "print(1)", "loadstring('x')()", "getfenv(1).y = 1"] {
+    for body in [
+        "io.open('/etc/passwd')",
+        "os.exit(1)",
+        "debug.traceback()",
+        "require('x')",
+        "require('./x')",
+        "collectgarbage('collect')",
+        "print(1)",
+        "loadstring('x')()",
+        "getfenv(1).y = 1",
+    ] {
         let e = load(&kernel_script(&format!("    {body}"))).unwrap_err();
         let msg = e.to_string();
         assert!(msg.starts_with("bad.lua:"), "{body}: {msg}");
-        assert!(matches!(e, SimError::Runtime { line: Some(5), .. }), "{body}: {e:?}");
+        assert!(
+            matches!(e, SimError::Runtime { line: Some(5), .. }),
+            "{body}: {e:?}"
+        );
     }
 }
 
@@ -204,41 +257,63 @@ fn rollback_case(body: &str) -> (SimError, bool) {
     let text = kernel_script(&format!(
         "    if tx == 1 and tz == 1 then\n{body}\n    end\n    buffer.writef64(c.w.water, 0, buffer.readf64(c.r.water, 88) + 1)"
     ));
-    sim.add_script(src("bad", &text), Kernel::Lua, quick_limits()).unwrap();
+    sim.add_script(src("bad", &text), Kernel::Lua, quick_limits())
+        .unwrap();
     let before = sim.channels().hash();
     let r = sim.step(0.1);
     let unchanged = sim.channels().hash() == before;
     // The engine goes on stepping.
     let _ = sim.step(0.1);
-    (r.errors.into_iter().next().expect("the step must fail"), unchanged)
+    (
+        r.errors.into_iter().next().expect("the step must fail"),
+        unchanged,
+    )
 }
 
 #[test]
 fn runaway_loops_allocation_bombs_and_errors_are_stopped_and_rolled_back() {
     let (e, unchanged) = rollback_case("      while true do end");
     assert!(e.to_string().contains("instruction budget exceeded"), "{e}");
-    assert!(matches!(e, SimError::Runtime { line: Some(6), .. }), "{e:?}");
-    assert!(unchanged, "a failed step leaves the world at the previous generation");
+    assert!(
+        matches!(e, SimError::Runtime { line: Some(6), .. }),
+        "{e:?}"
+    );
+    assert!(
+        unchanged,
+        "a failed step leaves the world at the previous generation"
+    );
 
-    let (e, unchanged) = rollback_case("      local t = {}\n      for i = 1, 1e9 do t[i] = string.rep('x', 1000) .. i end");
+    let (e, unchanged) = rollback_case(
+        "      local t = {}\n      for i = 1, 1e9 do t[i] = string.rep('x', 1000) .. i end",
+    );
     assert!(e.to_string().contains("memory"), "{e}");
     assert!(unchanged);
 
     let (e, unchanged) = rollback_case("      error('boom')");
-    assert!(e.to_string().starts_with("bad.lua:6:") && e.to_string().contains("boom"), "{e}");
+    assert!(
+        e.to_string().starts_with("bad.lua:6:") && e.to_string().contains("boom"),
+        "{e}"
+    );
     assert!(unchanged);
 }
 
 #[test]
 fn nan_and_negative_values_are_detected_instead_of_written() {
     for value in ["0/0", "-1", "math.huge"] {
-        let text = kernel_script(&format!("    buffer.writef64(c.w.water, 8, {value})"))
-            .replace("channels = { \"water\" },", "channels = { \"water\" }, nonnegative = { \"water\" },");
+        let text = kernel_script(&format!("    buffer.writef64(c.w.water, 8, {value})")).replace(
+            "channels = { \"water\" },",
+            "channels = { \"water\" }, nonnegative = { \"water\" },",
+        );
         let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
-        sim.add_script(src("bad", &text), Kernel::Lua, quick_limits()).unwrap();
+        sim.add_script(src("bad", &text), Kernel::Lua, quick_limits())
+            .unwrap();
         let before = sim.channels().hash();
         let r = sim.step(0.1);
-        assert!(matches!(r.errors.first(), Some(SimError::Unstable { .. })), "{value}: {:?}", r.errors);
+        assert!(
+            matches!(r.errors.first(), Some(SimError::Unstable { .. })),
+            "{value}: {:?}",
+            r.errors
+        );
         assert_eq!(sim.channels().hash(), before, "{value}");
     }
 }

@@ -35,7 +35,10 @@ impl ChannelStore {
 
     /// The channel called `name`, if registered.
     pub fn find(&self, name: &str) -> Option<ChannelId> {
-        self.names.iter().position(|n| n == name).map(|i| ChannelId(i as u16))
+        self.names
+            .iter()
+            .position(|n| n == name)
+            .map(|i| ChannelId(i as u16))
     }
 
     /// Name of a channel.
@@ -45,7 +48,10 @@ impl ChannelStore {
 
     /// Registered channels.
     pub fn channels(&self) -> impl Iterator<Item = (ChannelId, &str)> {
-        self.names.iter().enumerate().map(|(i, n)| (ChannelId(i as u16), n.as_str()))
+        self.names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (ChannelId(i as u16), n.as_str()))
     }
 
     /// Values of `ch` on tile `t`, `None` where never written (all zero).
@@ -80,7 +86,10 @@ impl ChannelStore {
 
     /// Number of tiles holding `ch`.
     pub fn allocated(&self, ch: ChannelId) -> usize {
-        self.tiles.values().filter(|v| v.get(ch.0 as usize).is_some_and(|s| s.is_some())).count()
+        self.tiles
+            .values()
+            .filter(|v| v.get(ch.0 as usize).is_some_and(|s| s.is_some()))
+            .count()
     }
 
     /// Sum of `ch` over the world, in a fixed order (deterministic).
@@ -93,7 +102,11 @@ impl ChannelStore {
             if let Some(d) = self.get(*k, ch) {
                 for &v in d.iter() {
                     let t = sum + v;
-                    comp += if sum.abs() >= v.abs() { (sum - t) + v } else { (v - t) + sum };
+                    comp += if sum.abs() >= v.abs() {
+                        (sum - t) + v
+                    } else {
+                        (v - t) + sum
+                    };
                     sum = t;
                 }
             }

@@ -12,6 +12,7 @@
 
 pub mod channels;
 pub mod native;
+pub mod run;
 pub mod script;
 pub mod step;
 pub mod tile;
@@ -20,6 +21,7 @@ pub mod voxels;
 use thiserror::Error;
 
 pub use channels::{ChannelId, ChannelStore};
+pub use run::{DirtyBatch, WorldSim, read_script};
 pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm};
 pub use step::{Kernel, Simulation, StepReport};
 

@@ -26,7 +26,14 @@ const OUT_B: usize = 4;
 const OUT_T: usize = 5;
 
 impl NativeKernel for PipeWater {
-    fn run(&self, pass: usize, dt: f64, params: &[f64], r: &[[f64; HALO_CELLS]], w: &mut [[f64; TILE_CELLS]]) {
+    fn run(
+        &self,
+        pass: usize,
+        dt: f64,
+        params: &[f64],
+        r: &[[f64; HALO_CELLS]],
+        w: &mut [[f64; TILE_CELLS]],
+    ) {
         let (gravity, pipe_area, rain) = (params[0], params[1], params[2]);
         if pass == 0 {
             let k = dt * (gravity * pipe_area);

@@ -169,23 +169,38 @@ fn declaration(src: &ScriptSource, needle: Option<&str>, msg: impl Into<String>)
 }
 
 fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<String>, SimError> {
-    let v: Value = t.get(field).map_err(|e| declaration(src, Some(field), e.to_string()))?;
+    let v: Value = t
+        .get(field)
+        .map_err(|e| declaration(src, Some(field), e.to_string()))?;
     match v {
         Value::Nil => Ok(Vec::new()),
         Value::Table(list) => {
             let mut out = Vec::new();
             for item in list.sequence_values::<Value>() {
                 match item {
-                    Ok(Value::String(s)) => out.push(s.to_str().map(|s| s.to_string()).unwrap_or_default()),
+                    Ok(Value::String(s)) => {
+                        out.push(s.to_str().map(|s| s.to_string()).unwrap_or_default())
+                    }
                     Ok(other) => {
-                        return Err(declaration(src, Some(field), format!("'{field}' must list strings, found a {}", other.type_name())));
+                        return Err(declaration(
+                            src,
+                            Some(field),
+                            format!("'{field}' must list strings, found a {}", other.type_name()),
+                        ));
                     }
                     Err(e) => return Err(declaration(src, Some(field), e.to_string())),
                 }
             }
             Ok(out)
         }
-        other => Err(declaration(src, Some(field), format!("'{field}' must be a list of strings, found a {}", other.type_name()))),
+        other => Err(declaration(
+            src,
+            Some(field),
+            format!(
+                "'{field}' must be a list of strings, found a {}",
+                other.type_name()
+            ),
+        )),
     }
 }
 
@@ -196,7 +211,10 @@ fn number(src: &ScriptSource, t: &Table, field: &str, param: &str) -> Result<f64
         Ok(other) => Err(declaration(
             src,
             Some(param),
-            format!("parameter '{param}': '{field}' must be a number, found a {}", other.type_name()),
+            format!(
+                "parameter '{param}': '{field}' must be a number, found a {}",
+                other.type_name()
+            ),
         )),
         Err(e) => Err(declaration(src, Some(param), e.to_string())),
     }
@@ -206,18 +224,39 @@ impl ScriptVm {
     /// A fresh sandboxed VM with `src` loaded. Returns the VM and the
     /// validated declarations.
     pub fn load(src: &ScriptSource, limits: Limits) -> Result<(ScriptVm, ScriptSpec), SimError> {
-        let libs = StdLib::MATH | StdLib::STRING | StdLib::TABLE | StdLib::BUFFER | StdLib::BIT | StdLib::UTF8;
-        let lua = Lua::new_with(libs, LuaOptions::default()).map_err(|e| SimError::Internal(e.to_string()))?;
+        let libs = StdLib::MATH
+            | StdLib::STRING
+            | StdLib::TABLE
+            | StdLib::BUFFER
+            | StdLib::BIT
+            | StdLib::UTF8;
+        let lua = Lua::new_with(libs, LuaOptions::default())
+            .map_err(|e| SimError::Internal(e.to_string()))?;
         // Globals that reach outside the script (module loading, environments,
         // code from strings, the GC, stdout) go before the environment is frozen.
         {
             let g = lua.globals();
-            for name in ["require", "getfenv", "setfenv", "loadstring", "load", "dofile", "loadfile", "collectgarbage", "gcinfo", "newproxy", "print"] {
-                g.raw_remove(name).map_err(|e| SimError::Internal(e.to_string()))?;
+            for name in [
+                "require",
+                "getfenv",
+                "setfenv",
+                "loadstring",
+                "load",
+                "dofile",
+                "loadfile",
+                "collectgarbage",
+                "gcinfo",
+                "newproxy",
+                "print",
+            ] {
+                g.raw_remove(name)
+                    .map_err(|e| SimError::Internal(e.to_string()))?;
             }
         }
-        lua.sandbox(true).map_err(|e| SimError::Internal(e.to_string()))?;
-        lua.set_memory_limit(limits.memory).map_err(|e| SimError::Internal(e.to_string()))?;
+        lua.sandbox(true)
+            .map_err(|e| SimError::Internal(e.to_string()))?;
+        lua.set_memory_limit(limits.memory)
+            .map_err(|e| SimError::Internal(e.to_string()))?;
         let budget = Rc::new(Budget {
             ticks: Cell::new(0),
             limit: Cell::new(limits.instructions),
@@ -241,7 +280,8 @@ impl ScriptVm {
                 match what {
                     None => Ok(VmState::Continue),
                     Some(what) => {
-                        let line = (0..3).find_map(|lvl| lua.inspect_stack(lvl, |d| d.current_line()).flatten());
+                        let line = (0..3)
+                            .find_map(|lvl| lua.inspect_stack(lvl, |d| d.current_line()).flatten());
                         Err(mlua::Error::runtime(format!(
                             "{what} exceeded at line {}",
                             line.map_or("?".to_string(), |l| l.to_string())
@@ -262,12 +302,24 @@ impl ScriptVm {
                 _ => SimError::Declaration {
                     script: src.name.clone(),
                     line: line_of(&msg),
-                    msg: strip_location(msg.lines().next().unwrap_or("").trim_start_matches("runtime error: ")),
+                    msg: strip_location(
+                        msg.lines()
+                            .next()
+                            .unwrap_or("")
+                            .trim_start_matches("runtime error: "),
+                    ),
                 },
             }
         })?;
         let Value::Table(def) = def else {
-            return Err(declaration(src, None, format!("the script must return a table, it returned a {}", def.type_name())));
+            return Err(declaration(
+                src,
+                None,
+                format!(
+                    "the script must return a table, it returned a {}",
+                    def.type_name()
+                ),
+            ));
         };
         let spec = Self::parse_spec(src, &def)?;
         let mut vm = ScriptVm {
@@ -282,27 +334,48 @@ impl ScriptVm {
             name: src.name.clone(),
             limits,
         };
-        let passes: Table = def.get("passes").map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+        let passes: Table = def
+            .get("passes")
+            .map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
         for (i, _) in spec.passes.iter().enumerate() {
-            let p: Table = passes.get(i + 1).map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
-            let k: Value = p.get("kernel").map_err(|e| declaration(src, Some("kernel"), e.to_string()))?;
+            let p: Table = passes
+                .get(i + 1)
+                .map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+            let k: Value = p
+                .get("kernel")
+                .map_err(|e| declaration(src, Some("kernel"), e.to_string()))?;
             match k {
                 Value::Function(f) => vm.kernels.push(f),
-                _ => return Err(declaration(src, Some(&spec.passes[i].name), format!("pass '{}' has no kernel function", spec.passes[i].name))),
+                _ => {
+                    return Err(declaration(
+                        src,
+                        Some(&spec.passes[i].name),
+                        format!("pass '{}' has no kernel function", spec.passes[i].name),
+                    ));
+                }
             }
         }
-        vm.make_buffers(&spec).map_err(|e| SimError::Internal(e.to_string()))?;
+        vm.make_buffers(&spec)
+            .map_err(|e| SimError::Internal(e.to_string()))?;
         Ok((vm, spec))
     }
 
     fn parse_spec(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimError> {
         let channels = strings(src, def, "channels")?;
         if channels.is_empty() {
-            return Err(declaration(src, Some("channels"), "the script declares no channels"));
+            return Err(declaration(
+                src,
+                Some("channels"),
+                "the script declares no channels",
+            ));
         }
         for c in &channels {
             if c.is_empty() || !c.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_') {
-                return Err(declaration(src, Some(c), format!("channel name '{c}' must be letters, digits and '_'")));
+                return Err(declaration(
+                    src,
+                    Some(c),
+                    format!("channel name '{c}' must be letters, digits and '_'"),
+                ));
             }
         }
         let nonnegative = strings(src, def, "nonnegative")?;
@@ -310,7 +383,14 @@ impl ScriptVm {
             if channels.iter().any(|c| c == name) {
                 Ok(())
             } else {
-                Err(declaration(src, Some(&format!("\"{name}\"")), format!("{what} names unknown channel '{name}' (declared: {})", channels.join(", "))))
+                Err(declaration(
+                    src,
+                    Some(&format!("\"{name}\"")),
+                    format!(
+                        "{what} names unknown channel '{name}' (declared: {})",
+                        channels.join(", ")
+                    ),
+                ))
             }
         };
         for c in &nonnegative {
@@ -321,30 +401,71 @@ impl ScriptVm {
             Ok(Value::Nil) => {}
             Ok(Value::Table(t)) => {
                 for pair in t.pairs::<String, Value>() {
-                    let (name, v) = pair.map_err(|e| declaration(src, Some("params"), format!("params: {e}")))?;
+                    let (name, v) =
+                        pair.map_err(|e| declaration(src, Some("params"), format!("params: {e}")))?;
                     let Value::Table(p) = v else {
-                        return Err(declaration(src, Some(&name), format!("parameter '{name}' must be a table {{default, min, max}}")));
+                        return Err(declaration(
+                            src,
+                            Some(&name),
+                            format!("parameter '{name}' must be a table {{default, min, max}}"),
+                        ));
                     };
-                    let (default, min, max) = (number(src, &p, "default", &name)?, number(src, &p, "min", &name)?, number(src, &p, "max", &name)?);
-                    if !(min <= max) || !(min..=max).contains(&default) || !default.is_finite() {
-                        return Err(declaration(src, Some(&name), format!("parameter '{name}': default {default} is outside [{min}, {max}]")));
+                    let (default, min, max) = (
+                        number(src, &p, "default", &name)?,
+                        number(src, &p, "min", &name)?,
+                        number(src, &p, "max", &name)?,
+                    );
+                    if min.is_nan()
+                        || max.is_nan()
+                        || min > max
+                        || !(min..=max).contains(&default)
+                        || !default.is_finite()
+                    {
+                        return Err(declaration(
+                            src,
+                            Some(&name),
+                            format!(
+                                "parameter '{name}': default {default} is outside [{min}, {max}]"
+                            ),
+                        ));
                     }
-                    params.push(ParamSpec { name, default, min, max });
+                    params.push(ParamSpec {
+                        name,
+                        default,
+                        min,
+                        max,
+                    });
                 }
                 params.sort_by(|a, b| a.name.cmp(&b.name));
             }
-            Ok(other) => return Err(declaration(src, Some("params"), format!("'params' must be a table, found a {}", other.type_name()))),
+            Ok(other) => {
+                return Err(declaration(
+                    src,
+                    Some("params"),
+                    format!("'params' must be a table, found a {}", other.type_name()),
+                ));
+            }
             Err(e) => return Err(declaration(src, Some("params"), e.to_string())),
         }
-        let passes_v: Value = def.get("passes").map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+        let passes_v: Value = def
+            .get("passes")
+            .map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
         let Value::Table(passes_t) = passes_v else {
-            return Err(declaration(src, Some("passes"), "the script has no 'passes' list (each pass needs a kernel)"));
+            return Err(declaration(
+                src,
+                Some("passes"),
+                "the script has no 'passes' list (each pass needs a kernel)",
+            ));
         };
         let mut passes = Vec::new();
         for (i, p) in passes_t.sequence_values::<Value>().enumerate() {
             let p = p.map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
             let Value::Table(p) = p else {
-                return Err(declaration(src, Some("passes"), format!("passes[{}] must be a table", i + 1)));
+                return Err(declaration(
+                    src,
+                    Some("passes"),
+                    format!("passes[{}] must be a table", i + 1),
+                ));
             };
             let name: String = match p.get::<Value>("name") {
                 Ok(Value::String(s)) => s.to_str().map(|s| s.to_string()).unwrap_or_default(),
@@ -359,12 +480,24 @@ impl ScriptVm {
                 known(w, &format!("pass '{name}' writes"))?;
             }
             if writes.is_empty() {
-                return Err(declaration(src, Some(&name), format!("pass '{name}' writes no channel")));
+                return Err(declaration(
+                    src,
+                    Some(&name),
+                    format!("pass '{name}' writes no channel"),
+                ));
             }
-            passes.push(PassSpec { name, reads, writes });
+            passes.push(PassSpec {
+                name,
+                reads,
+                writes,
+            });
         }
         if passes.is_empty() {
-            return Err(declaration(src, Some("passes"), "the script declares no passes"));
+            return Err(declaration(
+                src,
+                Some("passes"),
+                "the script declares no passes",
+            ));
         }
         Ok(ScriptSpec {
             name: src.name.clone(),
@@ -377,8 +510,10 @@ impl ScriptVm {
 
     fn make_buffers(&mut self, spec: &ScriptSpec) -> mlua::Result<()> {
         for _ in &spec.channels {
-            self.reads.push(self.lua.create_buffer_with_capacity(HALO_CELLS * 8)?);
-            self.writes.push(self.lua.create_buffer_with_capacity(TILE_CELLS * 8)?);
+            self.reads
+                .push(self.lua.create_buffer_with_capacity(HALO_CELLS * 8)?);
+            self.writes
+                .push(self.lua.create_buffer_with_capacity(TILE_CELLS * 8)?);
         }
         for pass in &spec.passes {
             let r = self.lua.create_table()?;
@@ -398,7 +533,12 @@ impl ScriptVm {
     }
 
     /// Prepare a step: time step and parameter values (in `spec.params` order).
-    pub fn begin_step(&mut self, dt: f64, spec: &ScriptSpec, params: &[f64]) -> Result<(), SimError> {
+    pub fn begin_step(
+        &mut self,
+        dt: f64,
+        spec: &ScriptSpec,
+        params: &[f64],
+    ) -> Result<(), SimError> {
         let make = || -> mlua::Result<Table> {
             let p = self.lua.create_table()?;
             for (s, v) in spec.params.iter().zip(params) {
@@ -426,7 +566,10 @@ impl ScriptVm {
 
     /// Run pass `pass` on tile (tx, tz). Buffers must be filled beforehand.
     pub fn run(&mut self, pass: usize, pass_name: &str, tx: i32, tz: i32) -> Result<(), SimError> {
-        let ctx = self.ctx.as_ref().ok_or_else(|| SimError::Internal("begin_step was not called".into()))?;
+        let ctx = self
+            .ctx
+            .as_ref()
+            .ok_or_else(|| SimError::Internal("begin_step was not called".into()))?;
         let run = || -> mlua::Result<()> {
             ctx.raw_set("r", self.read_tables[pass].clone())?;
             ctx.raw_set("w", self.write_tables[pass].clone())?;
@@ -439,8 +582,14 @@ impl ScriptVm {
                 mlua::Error::CallbackError { cause, .. } => cause.to_string(),
                 other => other.to_string(),
             };
-            let msg = msg.lines().next().unwrap_or("").trim_start_matches("runtime error: ").to_string();
-            let line = line_of(&msg).or_else(|| msg.rsplit("line ").next().and_then(|s| s.parse().ok()));
+            let msg = msg
+                .lines()
+                .next()
+                .unwrap_or("")
+                .trim_start_matches("runtime error: ")
+                .to_string();
+            let line =
+                line_of(&msg).or_else(|| msg.rsplit("line ").next().and_then(|s| s.parse().ok()));
             SimError::Runtime {
                 script: self.name.clone(),
                 pass: pass_name.to_string(),

@@ -34,7 +34,14 @@ pub trait NativeKernel: Send + Sync {
     /// Run pass `pass` on one tile. `reads[i]` is the halo of the script's
     /// channel `i` (zeros for channels the pass does not read); `writes[i]`
     /// holds the current values of channel `i` and receives the new ones.
-    fn run(&self, pass: usize, dt: f64, params: &[f64], reads: &[[f64; HALO_CELLS]], writes: &mut [[f64; TILE_CELLS]]);
+    fn run(
+        &self,
+        pass: usize,
+        dt: f64,
+        params: &[f64],
+        reads: &[[f64; HALO_CELLS]],
+        writes: &mut [[f64; TILE_CELLS]],
+    );
 }
 
 /// How a script's passes are executed.
@@ -97,13 +104,24 @@ struct WorkSet {
 
 const OUTSIDE: u32 = u32::MAX;
 
+/// One channel over the work set, indexed like `WorkSet::tiles`.
+type DenseChannel = Vec<[f64; TILE_CELLS]>;
+
 impl WorkSet {
     fn new(active: &[TileCoord], min: TileCoord, max: TileCoord) -> Self {
         let inside = |t: TileCoord| t.cmpge(min).all() && t.cmplt(max).all();
-        let mut tiles: Vec<TileCoord> = active.iter().flat_map(|&t| neighbourhood(t)).filter(|&t| inside(t)).collect();
+        let mut tiles: Vec<TileCoord> = active
+            .iter()
+            .flat_map(|&t| neighbourhood(t))
+            .filter(|&t| inside(t))
+            .collect();
         tiles.sort_by_key(|t| (t.y, t.x));
         tiles.dedup();
-        let index: FxHashMap<TileCoord, u32> = tiles.iter().enumerate().map(|(i, t)| (*t, i as u32)).collect();
+        let index: FxHashMap<TileCoord, u32> = tiles
+            .iter()
+            .enumerate()
+            .map(|(i, t)| (*t, i as u32))
+            .collect();
         let active_idx = active.iter().map(|t| index[t]).collect();
         let nbr = active
             .iter()
@@ -117,18 +135,40 @@ impl WorkSet {
                 n
             })
             .collect();
-        WorkSet { tiles, active: active_idx, nbr }
+        WorkSet {
+            tiles,
+            active: active_idx,
+            nbr,
+        }
     }
 
     /// Gather the halo of active tile `k` from dense `data`: rows and
     /// columns copied as slices, outside-world neighbours filled with
     /// `boundary`.
-    fn gather(&self, k: usize, data: &[[f64; TILE_CELLS]], boundary: f64, out: &mut [f64; HALO_CELLS]) {
+    fn gather(
+        &self,
+        k: usize,
+        data: &[[f64; TILE_CELLS]],
+        boundary: f64,
+        out: &mut [f64; HALO_CELLS],
+    ) {
         let n = &self.nbr[k];
-        let get = |i: usize| if n[i] == OUTSIDE { None } else { Some(&data[n[i] as usize]) };
+        let get = |i: usize| {
+            if n[i] == OUTSIDE {
+                None
+            } else {
+                Some(&data[n[i] as usize])
+            }
+        };
         let t = TILE as usize;
         // The −z row, the tile's own rows, the +z row.
-        fn row(out: &mut [f64; HALO_CELLS], hz: usize, src: Option<&[f64; TILE_CELLS]>, sz: usize, boundary: f64) {
+        fn row(
+            out: &mut [f64; HALO_CELLS],
+            hz: usize,
+            src: Option<&[f64; TILE_CELLS]>,
+            sz: usize,
+            boundary: f64,
+        ) {
             let t = TILE as usize;
             let dst = &mut out[hz * 10 + 1..hz * 10 + 1 + t];
             match src {
@@ -228,7 +268,12 @@ impl Simulation {
 
     /// Load a script (validated and smoke-tested on a sample tile). Returns
     /// its index.
-    pub fn add_script(&mut self, src: ScriptSource, kernel: Kernel, limits: Limits) -> Result<usize, SimError> {
+    pub fn add_script(
+        &mut self,
+        src: ScriptSource,
+        kernel: Kernel,
+        limits: Limits,
+    ) -> Result<usize, SimError> {
         let loaded = self.prepare(src, kernel, limits)?;
         self.scripts.push(loaded);
         Ok(self.scripts.len() - 1)
@@ -237,7 +282,10 @@ impl Simulation {
     /// Replace script `index` with a new version, keeping parameter values
     /// that still exist. On error the old version stays.
     pub fn replace_script(&mut self, index: usize, src: ScriptSource) -> Result<(), SimError> {
-        let (kernel, limits) = (self.scripts[index].kernel.clone(), self.scripts[index].limits);
+        let (kernel, limits) = (
+            self.scripts[index].kernel.clone(),
+            self.scripts[index].limits,
+        );
         let mut loaded = self.prepare(src, kernel, limits)?;
         let old = &self.scripts[index];
         for (i, p) in loaded.spec.params.iter().enumerate() {
@@ -252,15 +300,28 @@ impl Simulation {
         Ok(())
     }
 
-    fn prepare(&mut self, src: ScriptSource, kernel: Kernel, limits: Limits) -> Result<Loaded, SimError> {
+    fn prepare(
+        &mut self,
+        src: ScriptSource,
+        kernel: Kernel,
+        limits: Limits,
+    ) -> Result<Loaded, SimError> {
         let (mut vm, spec) = ScriptVm::load(&src, limits)?;
-        let ids: Vec<ChannelId> = spec.channels.iter().map(|c| self.channels.channel(c)).collect();
+        let ids: Vec<ChannelId> = spec
+            .channels
+            .iter()
+            .map(|c| self.channels.channel(c))
+            .collect();
         let boundary: Vec<f64> = spec
             .channels
             .iter()
             .map(|c| if c == "ground" { 1e9 } else { 0.0 })
             .collect();
-        let nonneg = spec.nonnegative.iter().filter_map(|n| spec.channels.iter().position(|c| c == n)).collect();
+        let nonneg = spec
+            .nonnegative
+            .iter()
+            .filter_map(|n| spec.channels.iter().position(|c| c == n))
+            .collect();
         let params: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
         // Smoke test: every pass once on a dry sample tile, in this fresh VM.
         if matches!(kernel, Kernel::Lua) {
@@ -307,11 +368,17 @@ impl Simulation {
         };
         let Some(i) = s.spec.params.iter().position(|p| p.name == name) else {
             let known: Vec<&str> = s.spec.params.iter().map(|p| p.name.as_str()).collect();
-            return Err(err(format!("no parameter '{name}' (known: {})", known.join(", "))));
+            return Err(err(format!(
+                "no parameter '{name}' (known: {})",
+                known.join(", ")
+            )));
         };
         let p = &s.spec.params[i];
         if !(p.min..=p.max).contains(&value) {
-            return Err(err(format!("parameter '{name}' = {value} is outside [{}, {}]", p.min, p.max)));
+            return Err(err(format!(
+                "parameter '{name}' = {value} is outside [{}, {}]",
+                p.min, p.max
+            )));
         }
         s.params[i] = value;
         self.wake_all();
@@ -337,7 +404,10 @@ impl Simulation {
                             let new = &data[w as usize];
                             let old = self.channels.get(t, script.ids[i]);
                             let differs = match old {
-                                Some(o) => o.iter().zip(new.iter()).any(|(a, b)| a.to_bits() != b.to_bits()),
+                                Some(o) => o
+                                    .iter()
+                                    .zip(new.iter())
+                                    .any(|(a, b)| a.to_bits() != b.to_bits()),
                                 None => new.iter().any(|v| v.to_bits() != 0),
                             };
                             if differs {
@@ -381,44 +451,63 @@ impl Simulation {
 
 /// Run one script's passes over the work set. Returns, for each channel it
 /// wrote (index in its spec), the dense data after the step.
-fn run_script(s: &Loaded, base: &ChannelStore, ws: &WorkSet, dt: f64, serial: u64) -> Result<Vec<(usize, Vec<[f64; TILE_CELLS]>)>, SimError> {
+fn run_script(
+    s: &Loaded,
+    base: &ChannelStore,
+    ws: &WorkSet,
+    dt: f64,
+    serial: u64,
+) -> Result<Vec<(usize, DenseChannel)>, SimError> {
     let n = s.spec.channels.len();
     // Dense previous generation of every channel this script uses.
     let mut data: Vec<Vec<[f64; TILE_CELLS]>> = s
         .ids
         .iter()
-        .map(|&id| ws.tiles.iter().map(|&t| base.get(t, id).copied().unwrap_or([0.0; TILE_CELLS])).collect())
+        .map(|&id| {
+            ws.tiles
+                .iter()
+                .map(|&t| base.get(t, id).copied().unwrap_or([0.0; TILE_CELLS]))
+                .collect()
+        })
         .collect();
     let mut written = vec![false; n];
     for (pi, pass) in s.spec.passes.iter().enumerate() {
-        let read_idx: Vec<usize> = pass.reads.iter().map(|r| s.spec.channels.iter().position(|c| c == r).unwrap_or(0)).collect();
-        let write_idx: Vec<usize> = pass.writes.iter().map(|w| s.spec.channels.iter().position(|c| c == w).unwrap_or(0)).collect();
+        let read_idx: Vec<usize> = pass
+            .reads
+            .iter()
+            .map(|r| s.spec.channels.iter().position(|c| c == r).unwrap_or(0))
+            .collect();
+        let write_idx: Vec<usize> = pass
+            .writes
+            .iter()
+            .map(|w| s.spec.channels.iter().position(|c| c == w).unwrap_or(0))
+            .collect();
         let data_ref = &data;
         let nw = write_idx.len();
         let mut outs = vec![[0.0f64; TILE_CELLS]; ws.active.len() * nw];
-        outs.par_chunks_mut(nw)
-            .enumerate()
-            .try_for_each_init(
-                || (vec![[0.0f64; HALO_CELLS]; n], vec![[0.0f64; TILE_CELLS]; n]),
-                |(reads, writes), (k, out)| -> Result<(), SimError> {
-                    for &i in &read_idx {
-                        ws.gather(k, &data_ref[i], s.boundary[i], &mut reads[i]);
+        outs.par_chunks_mut(nw).enumerate().try_for_each_init(
+            || (vec![[0.0f64; HALO_CELLS]; n], vec![[0.0f64; TILE_CELLS]; n]),
+            |(reads, writes), (k, out)| -> Result<(), SimError> {
+                for &i in &read_idx {
+                    ws.gather(k, &data_ref[i], s.boundary[i], &mut reads[i]);
+                }
+                let w = ws.active[k] as usize;
+                for &i in &write_idx {
+                    writes[i] = data_ref[i][w];
+                }
+                let t = ws.tiles[w];
+                match &s.kernel {
+                    Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
+                    Kernel::Lua => {
+                        run_lua(s, pi, t, dt, serial, &read_idx, &write_idx, reads, writes)?
                     }
-                    let w = ws.active[k] as usize;
-                    for &i in &write_idx {
-                        writes[i] = data_ref[i][w];
-                    }
-                    let t = ws.tiles[w];
-                    match &s.kernel {
-                        Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
-                        Kernel::Lua => run_lua(s, pi, t, dt, serial, &read_idx, &write_idx, reads, writes)?,
-                    }
-                    for (j, &i) in write_idx.iter().enumerate() {
-                        out[j] = writes[i];
-                    }
-                    Ok(())
-                },
-            )?;
+                }
+                for (j, &i) in write_idx.iter().enumerate() {
+                    out[j] = writes[i];
+                }
+                Ok(())
+            },
+        )?;
         // Commit the pass into the dense generation (double buffering: every
         // tile of this pass read the previous values).
         for (k, out) in outs.chunks(nw).enumerate() {
@@ -436,7 +525,11 @@ fn run_script(s: &Loaded, base: &ChannelStore, ws: &WorkSet, dt: f64, serial: u6
         let nonneg = s.nonneg.contains(&i);
         for &w in &ws.active {
             let v = &data[i][w as usize];
-            if let Some((c, x)) = v.iter().enumerate().find(|(_, x)| !x.is_finite() || (nonneg && **x < -1e-9)) {
+            if let Some((c, x)) = v
+                .iter()
+                .enumerate()
+                .find(|(_, x)| !x.is_finite() || (nonneg && **x < -1e-9))
+            {
                 let t = ws.tiles[w as usize];
                 return Err(SimError::Unstable {
                     script: s.spec.name.clone(),
@@ -450,7 +543,11 @@ fn run_script(s: &Loaded, base: &ChannelStore, ws: &WorkSet, dt: f64, serial: u6
             }
         }
     }
-    Ok(data.into_iter().enumerate().filter(|(i, _)| written[*i]).collect())
+    Ok(data
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| written[*i])
+        .collect())
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -474,7 +571,18 @@ fn run_lua(
             let (vm, _) = ScriptVm::load(&s.src, s.limits)?;
             map.insert(s.uid, (vm, 0));
         }
-        let r = run_in_vm(map.get_mut(&s.uid).expect("inserted above"), s, pass, t, dt, serial, read_idx, write_idx, reads, writes);
+        let r = run_in_vm(
+            map.get_mut(&s.uid).expect("inserted above"),
+            s,
+            pass,
+            t,
+            dt,
+            serial,
+            read_idx,
+            write_idx,
+            reads,
+            writes,
+        );
         if r.is_err() {
             // A VM that failed mid-kernel is rebuilt next time.
             map.remove(&s.uid);

@@ -1,2 +1,177 @@
-//! Writing simulation columns back into bricks (placeholder until the voxel
-//! sync lands: see the issue note).
+//! Coupling columns and voxels.
+//!
+//! At start, the `ground` channel is read from the bricks (the height of the
+//! top solid voxel of each column). After each step, the columns of changed
+//! tiles are written back: solid below `floor(ground)` (new ground becomes
+//! sediment), snow above it for `floor(snow)` voxels, and water up to
+//! `round(ground + snow + water)`. Only voxels between the old and new
+//! surfaces are touched, through [`BrickStore::edit_brick`], so every change
+//! is recorded as a dirty brick for the renderer.
+
+use glam::{IVec2, IVec3};
+use rustc_hash::FxHashMap;
+
+use super::channels::ChannelStore;
+use super::tile::{TILE, TILE_CELLS, TileCoord, cell};
+use crate::world::{BRICK_EDGE, BrickStore, voxel_index};
+
+/// Material of water voxels written by the simulation.
+pub const WATER: u8 = 252;
+/// Material of snow voxels.
+pub const SNOW: u8 = 253;
+/// Material of ground deposited by erosion.
+pub const SEDIMENT: u8 = 254;
+
+/// Colours of the simulation materials.
+pub fn set_palette(store: &mut BrickStore) {
+    let p = store.palette_mut();
+    p.set(WATER, [64, 118, 196]);
+    p.set(SNOW, [246, 248, 252]);
+    p.set(SEDIMENT, [168, 140, 100]);
+}
+
+/// Height of the top solid voxel + 1 of every column of tile `t`, scanning
+/// down from `y_top` (0 where the column is empty).
+pub fn ground_of_tile(store: &BrickStore, t: TileCoord, y_top: i32) -> [f64; TILE_CELLS] {
+    let mut out = [0.0; TILE_CELLS];
+    let mut found = [false; TILE_CELLS];
+    let mut remaining = TILE_CELLS;
+    let mut by = (y_top - 1).div_euclid(BRICK_EDGE);
+    let mut dense = [0u8; 512];
+    while remaining > 0 && by >= 0 {
+        let b = IVec3::new(t.x, by, t.y);
+        store.read_dense(b, &mut dense);
+        for z in 0..TILE {
+            for x in 0..TILE {
+                let c = cell(x, z);
+                if found[c] {
+                    continue;
+                }
+                for ly in (0..BRICK_EDGE).rev() {
+                    if dense[voxel_index(x, ly, z)] != 0 {
+                        out[c] = (by * BRICK_EDGE + ly + 1) as f64;
+                        found[c] = true;
+                        remaining -= 1;
+                        break;
+                    }
+                }
+            }
+        }
+        by -= 1;
+    }
+    out
+}
+
+/// Surfaces last written per column: (ground top, snow top, water top), in voxels.
+#[derive(Debug, Default)]
+pub struct ColumnSync {
+    last: FxHashMap<TileCoord, [[i32; 3]; TILE_CELLS]>,
+}
+
+fn levels(g: f64, s: f64, w: f64) -> [i32; 3] {
+    let gt = g.floor() as i32;
+    let st = (g + s).floor().max(gt as f64) as i32;
+    let wt = (g + s + w + 0.5).floor().max(st as f64) as i32;
+    [gt, st, wt]
+}
+
+impl ColumnSync {
+    /// Remember the initial surfaces (the world as built) of tile `t`.
+    pub fn record(&mut self, t: TileCoord, ground: &[f64; TILE_CELLS]) {
+        let mut l = [[0; 3]; TILE_CELLS];
+        for (c, g) in ground.iter().enumerate() {
+            l[c] = levels(*g, 0.0, 0.0);
+        }
+        self.last.insert(t, l);
+    }
+
+    /// Write the columns of `tiles` into `store`. Returns how many bricks changed.
+    pub fn write(
+        &mut self,
+        channels: &ChannelStore,
+        tiles: &[TileCoord],
+        store: &mut BrickStore,
+    ) -> usize {
+        let (g_id, s_id, w_id) = (
+            channels.find("ground"),
+            channels.find("snow"),
+            channels.find("water"),
+        );
+        let get = |id: Option<super::ChannelId>, t: TileCoord| {
+            id.and_then(|id| channels.get(t, id)).copied()
+        };
+        let mut edited = 0;
+        for &t in tiles {
+            let g = get(g_id, t);
+            let s = get(s_id, t).unwrap_or([0.0; TILE_CELLS]);
+            let w = get(w_id, t).unwrap_or([0.0; TILE_CELLS]);
+            let old = self.last.get(&t).copied().unwrap_or([[0; 3]; TILE_CELLS]);
+            let mut new = old;
+            let (mut lo, mut hi) = (i32::MAX, i32::MIN);
+            for c in 0..TILE_CELLS {
+                let gv = g.map_or(old[c][0] as f64, |g| g[c]);
+                new[c] = levels(gv, s[c], w[c]);
+                if new[c] != old[c] {
+                    lo = lo.min(old[c][0].min(new[c][0]));
+                    hi = hi.max(old[c][2].max(new[c][2]));
+                }
+            }
+            if lo > hi {
+                continue;
+            }
+            for by in lo.div_euclid(BRICK_EDGE)..=(hi - 1).max(lo).div_euclid(BRICK_EDGE) {
+                let b = IVec3::new(t.x, by, t.y);
+                let y0 = by * BRICK_EDGE;
+                let changed = store.edit_brick(b, |d| {
+                    for z in 0..TILE {
+                        for x in 0..TILE {
+                            let c = cell(x, z);
+                            if new[c] == old[c] {
+                                continue;
+                            }
+                            let [gt, st, wt] = new[c];
+                            for ly in 0..BRICK_EDGE {
+                                let y = y0 + ly;
+                                let i = voxel_index(x, ly, z);
+                                let cur = d[i];
+                                d[i] = if y < gt {
+                                    if cur == 0 || cur == WATER || cur == SNOW {
+                                        SEDIMENT
+                                    } else {
+                                        cur
+                                    }
+                                } else if y < st {
+                                    SNOW
+                                } else if y < wt {
+                                    WATER
+                                } else if y < old[c][2].max(old[c][0])
+                                    || cur == WATER
+                                    || cur == SNOW
+                                    || cur == SEDIMENT
+                                {
+                                    0
+                                } else {
+                                    cur
+                                };
+                            }
+                        }
+                    }
+                });
+                edited += changed as usize;
+            }
+            self.last.insert(t, new);
+        }
+        edited
+    }
+}
+
+/// Tiles covering the voxel box `[lo, hi)` (x and z).
+pub fn tiles_of(lo: IVec3, hi: IVec3) -> (TileCoord, TileCoord) {
+    (
+        IVec2::new(lo.x.div_euclid(TILE), lo.z.div_euclid(TILE)),
+        IVec2::new(
+            (hi.x - 1).div_euclid(TILE) + 1,
+            (hi.z - 1).div_euclid(TILE) + 1,
+        ),
+    )
+}

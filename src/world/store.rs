@@ -80,6 +80,11 @@ impl BrickStore {
         &self.palette
     }
 
+    /// Mutable palette (colours only; bricks keep their material indices).
+    pub fn palette_mut(&mut self) -> &mut Palette {
+        &mut self.palette
+    }
+
     /// The pool holding mixed bricks.
     pub fn pool(&self) -> &BrickPool {
         &self.pool

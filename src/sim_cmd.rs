@@ -1,0 +1,80 @@
+//! `brickworld sim`: run Lua simulations on a scene headless, with a
+//! progress bar, then render the result with the CPU tracer.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use glam::DVec3;
+
+use crate::app::{build_world, thread_pool};
+use crate::config::SimSettings;
+use crate::progress::bar;
+use crate::sim::{Limits, WorldSim, read_script};
+use crate::trace::{Camera, RenderOptions, render, write_png};
+
+/// Run the `sim` command.
+pub fn run(s: &SimSettings) -> Result<()> {
+    let pool = thread_pool(s.view.threads)?;
+    pool.install(|| {
+        let mut world = build_world(&s.scene)?;
+        let mut ws = WorldSim::new(&mut world);
+        for path in &s.scripts {
+            let src = read_script(path)?;
+            ws.add_lua(src, Limits::default()).context("cannot load the script")?;
+        }
+        for p in &s.params {
+            let index = (0..ws.sim.script_count())
+                .find(|&i| ws.sim.spec(i).name == p.script)
+                .with_context(|| format!("--param names script '{}', which is not loaded", p.script))?;
+            ws.sim.set_param(index, &p.name, p.value)?;
+        }
+        let pb = bar("simulating", s.steps);
+        let t0 = Instant::now();
+        let (mut cells, mut bricks, mut failed) = (0u64, 0usize, Vec::new());
+        let mut last_active = 0;
+        for _ in 0..s.steps {
+            let r = ws.step(&mut world, s.dt);
+            cells += r.active_tiles as u64 * 64;
+            last_active = r.active_tiles;
+            for batch in ws.dirty.try_iter() {
+                bricks += batch.bricks.len();
+            }
+            if let Some(e) = r.errors.into_iter().next()
+                && failed.is_empty()
+            {
+                pb.suspend(|| eprintln!("warning: step {} rejected: {e}", ws.sim.tick()));
+                failed.push(e);
+            }
+            pb.inc(1);
+        }
+        pb.finish_and_clear();
+        let secs = t0.elapsed().as_secs_f64();
+        eprintln!(
+            "{} steps in {:.2} s ({:.1} steps/s, {:.1} M column updates/s); {} tiles active at the end; {} dirty bricks published",
+            s.steps,
+            secs,
+            s.steps as f64 / secs,
+            cells as f64 / secs / 1e6,
+            last_active,
+            bricks
+        );
+        for (id, name) in ws.sim.channels().channels() {
+            if !name.starts_with("out_") {
+                eprintln!("  total {name}: {:.6}", ws.sim.channels().total(id));
+            }
+        }
+        let view = s.view.view.unwrap_or_else(|| world.default_views()[1]);
+        let cam = Camera::new(DVec3::from(view.eye), DVec3::from(view.target), view.fov, s.view.width, s.view.height)?;
+        let opts = RenderOptions {
+            shadows: s.shadows,
+            ..Default::default()
+        };
+        let out = render(&world.brickmap(), &cam, world.store.palette(), &opts);
+        write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
+        eprintln!("-> {}", s.out.display());
+        if let Some(e) = failed.first() {
+            bail!("a script failed during the run (first error: {e})");
+        }
+        Ok(())
+    })
+}
