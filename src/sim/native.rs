@@ -15,7 +15,7 @@ fn lmax(a: f64, b: f64) -> f64 {
 
 /// The virtual pipe water model (Mei, Decaudin & Hu 2007) of
 /// `scripts/water.lua`: channels `ground, water, out_l, out_r, out_b, out_t`;
-/// parameters (sorted) `gravity, pipe_area, rain`.
+/// parameters (sorted) `dx, gravity, rain`.
 pub struct PipeWater;
 
 const GROUND: usize = 0;
@@ -34,22 +34,25 @@ impl NativeKernel for PipeWater {
         r: &[[f64; HALO_CELLS]],
         w: &mut [[f64; TILE_CELLS]],
     ) {
-        let (gravity, pipe_area, rain) = (params[0], params[1], params[2]);
+        let (dx, gravity, rain) = (params[0], params[1], params[2]);
         if pass == 0 {
-            let k = dt * (gravity * pipe_area);
+            let k = dt * gravity;
             let (b, d) = (&r[GROUND], &r[WATER]);
             for z in 0..8 {
                 for x in 0..8 {
                     let i = halo(x, z);
                     let di = d[i];
-                    let h = b[i] + di;
-                    let mut fl = lmax(0.0, r[OUT_L][i] + k * (h - (b[i - 1] + d[i - 1])));
-                    let mut fr = lmax(0.0, r[OUT_R][i] + k * (h - (b[i + 1] + d[i + 1])));
-                    let mut fb = lmax(0.0, r[OUT_B][i] + k * (h - (b[i - 10] + d[i - 10])));
-                    let mut ft = lmax(0.0, r[OUT_T][i] + k * (h - (b[i + 10] + d[i + 10])));
+                    let bi = b[i];
+                    let h = bi + di;
+                    let (bl, br, bb, bt) = (b[i - 1], b[i + 1], b[i - 10], b[i + 10]);
+                    let (hl, hr, hb, ht) = (bl + d[i - 1], br + d[i + 1], bb + d[i - 10], bt + d[i + 10]);
+                    let mut fl = lmax(0.0, r[OUT_L][i] + k * (lmax(h, hl) - lmax(bi, bl)) * (h - hl));
+                    let mut fr = lmax(0.0, r[OUT_R][i] + k * (lmax(h, hr) - lmax(bi, br)) * (h - hr));
+                    let mut fb = lmax(0.0, r[OUT_B][i] + k * (lmax(h, hb) - lmax(bi, bb)) * (h - hb));
+                    let mut ft = lmax(0.0, r[OUT_T][i] + k * (lmax(h, ht) - lmax(bi, bt)) * (h - ht));
                     let sum = fl + fr + fb + ft;
                     if sum > 0.0 {
-                        let s = di / (sum * dt);
+                        let s = di * (dx * dx) / (sum * dt);
                         if s < 1.0 {
                             fl *= s;
                             fr *= s;
@@ -72,7 +75,7 @@ impl NativeKernel for PipeWater {
                     let i = halo(x, z);
                     let out = l[i] + rr[i] + bo[i] + t[i];
                     let inflow = rr[i - 1] + l[i + 1] + t[i - 10] + bo[i + 10];
-                    w[WATER][cell(x, z)] = d[i] + dt * (inflow - out) + rain * dt;
+                    w[WATER][cell(x, z)] = d[i] + dt * (inflow - out) / (dx * dx) + rain * dt;
                 }
             }
         }
