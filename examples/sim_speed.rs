@@ -6,7 +6,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use brickworld::sim::native::PipeWater;
+use brickworld::sim::native::ShallowWater;
 use brickworld::sim::tile::{TILE_CELLS, cell};
 use brickworld::sim::{Kernel, Limits, ScriptSource, Simulation};
 use glam::IVec2;
@@ -15,7 +15,7 @@ fn main() {
     let n = 64;
     for (name, kernel) in [
         ("lua", Kernel::Lua),
-        ("native", Kernel::Native(Arc::new(PipeWater))),
+        ("native", Kernel::Native(Arc::new(ShallowWater))),
     ] {
         let mut sim = Simulation::new(IVec2::ZERO, IVec2::splat(n));
         let src = ScriptSource {

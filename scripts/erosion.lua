@@ -1,6 +1,7 @@
 -- Erosion: hydraulic erosion with sediment transport in flux form, plus
 -- thermal erosion to a talus slope. Runs after water.lua and reads its
--- depths and outflow pipes.
+-- depths, face velocities (u, v) and face discharges (qx, qz); set `dx` to
+-- the same cell size as water.lua's.
 --
 -- Conservation: every pass that moves material first writes, per column,
 -- the amount leaving through each of its four faces (channels ero_*), then
@@ -29,7 +30,7 @@ local function moves_apply(c, src, dst)
 end
 
 return {
-  channels = { "ground", "water", "sediment", "out_l", "out_r", "out_b", "out_t", "ero_l", "ero_r", "ero_b", "ero_t" },
+  channels = { "ground", "water", "sediment", "u", "v", "qx", "qz", "ero_l", "ero_r", "ero_b", "ero_t" },
   nonnegative = { "sediment", "ero_l", "ero_r", "ero_b", "ero_t" },
   params = {
     capacity = { default = 0.05, min = 0, max = 10 },
@@ -37,29 +38,30 @@ return {
     deposit = { default = 0.3, min = 0, max = 10 },
     talus = { default = 1.2, min = 0.05, max = 10 },
     thermal_rate = { default = 0.2, min = 0, max = 0.49 },
+    dx = { default = 1, min = 0.001, max = 1000 },
   },
   passes = {
     {
       -- Local exchange between ground and suspended sediment.
       name = "erode",
-      reads = { "ground", "water", "sediment", "out_l", "out_r", "out_b", "out_t" },
+      reads = { "ground", "water", "sediment", "u", "v" },
       writes = { "ground", "sediment" },
       kernel = function(c)
         local dt, p = c.dt, c.p
         local r = c.r
-        local G, D, S = r.ground, r.water, r.sediment
-        local L, R, Bo, T = r.out_l, r.out_r, r.out_b, r.out_t
+        local G, D, S, U, V = r.ground, r.water, r.sediment, r.u, r.v
         local wg, ws = c.w.ground, c.w.sediment
+        local inv2dx = 0.5 / p.dx
         for z = 0, 7 do
           for x = 0, 7 do
             local i = ((z + 1) * 10 + x + 1) * 8
             local o = (z * 8 + x) * 8
             local g, s, d = readf64(G, i), readf64(S, i), readf64(D, i)
             if d > 1e-4 then
-              local vx = (readf64(R, i - 8) - readf64(L, i) + readf64(R, i) - readf64(L, i + 8)) * 0.5 / d
-              local vz = (readf64(T, i - 80) - readf64(Bo, i) + readf64(T, i) - readf64(Bo, i + 80)) * 0.5 / d
-              local gx = (readf64(G, i + 8) - readf64(G, i - 8)) * 0.5
-              local gz = (readf64(G, i + 80) - readf64(G, i - 80)) * 0.5
+              local vx = (readf64(U, i) + readf64(U, i - 8)) * 0.5
+              local vz = (readf64(V, i) + readf64(V, i - 80)) * 0.5
+              local gx = (readf64(G, i + 8) - readf64(G, i - 8)) * inv2dx
+              local gz = (readf64(G, i + 80) - readf64(G, i - 80)) * inv2dx
               local slope = sqrt(gx * gx + gz * gz)
               local sin = slope / sqrt(1 + slope * slope)
               local cap = p.capacity * sqrt(vx * vx + vz * vz) * max(sin, 0.05)
@@ -77,27 +79,33 @@ return {
       end,
     },
     {
-      -- Sediment leaves with the water: through each pipe, the fraction of
-      -- the column's water that the pipe carried.
+      -- Sediment leaves with the water: through each face, the share of the
+      -- column's water (before this step's move) that the face carried out.
       name = "transport_flux",
-      reads = { "water", "sediment", "out_l", "out_r", "out_b", "out_t" },
+      reads = { "water", "sediment", "qx", "qz" },
       writes = { "ero_l", "ero_r", "ero_b", "ero_t" },
       kernel = function(c)
-        local dt = c.dt
+        local a = c.dt / c.p.dx
         local r = c.r
-        local D, S = r.water, r.sediment
-        local L, R, Bo, T = r.out_l, r.out_r, r.out_b, r.out_t
+        local D, S, QX, QZ = r.water, r.sediment, r.qx, r.qz
         local wl, wr, wb, wt = c.w.ero_l, c.w.ero_r, c.w.ero_b, c.w.ero_t
         for z = 0, 7 do
           for x = 0, 7 do
             local i = ((z + 1) * 10 + x + 1) * 8
             local o = (z * 8 + x) * 8
-            local fl, fr, fb, ft = readf64(L, i) * dt, readf64(R, i) * dt, readf64(Bo, i) * dt, readf64(T, i) * dt
-            local before = readf64(D, i) + fl + fr + fb + ft
+            local qr, ql = readf64(QX, i), readf64(QX, i - 8)
+            local qt, qb = readf64(QZ, i), readf64(QZ, i - 80)
+            local fr, fl, ft, fb = a * max(0, qr), a * max(0, -ql), a * max(0, qt), a * max(0, -qb)
+            local out = fr + fl + ft + fb
+            local inflow = a * (max(0, ql) + max(0, -qr) + max(0, qb) + max(0, -qt))
+            local before = readf64(D, i) + out - inflow
             local s = readf64(S, i)
             local k = 0
-            if before > 1e-9 then
+            if out > 0 and before > 1e-9 then
               k = s / before
+              if out * k > s then
+                k = s / out
+              end
             end
             writef64(wl, o, fl * k)
             writef64(wr, o, fr * k)

@@ -1,18 +1,28 @@
--- Water: the virtual pipe model (Mei, Decaudin & Hu 2007) over columns.
+-- Water: shallow-water flow on a staggered grid of columns (after Stelling &
+-- Duinmeijer 2003), carrying momentum, conserving mass to round-off.
 --
--- Each column (side dx) holds a water depth and four outflow pipes (to -x,
--- +x, -z, +z) that carry momentum from step to step. Pass "flux" accelerates
--- each pipe by g * A * (surface drop) / dx, with the pipe's cross-section
--- A = h_face * dx and h_face = max(eta_i, eta_j) - max(b_i, b_j) (the
--- hydrostatic face depth): gravity waves then travel at sqrt(g h) as in the
--- shallow-water equations, a lake at rest stays exactly at rest, and a dry
--- column never sends water. The column's outflow is then scaled so that it
--- never sends more water than it holds (depth stays non-negative). Pass
--- "apply" moves water: what a column sends through a pipe is exactly what its
--- neighbour receives, so water is conserved to round-off.
+-- Each column of side dx holds a depth h. Velocities live on faces: u on a
+-- column's +x face, v on its +z face; they carry momentum from step to step.
 --
--- Stable while dt <= C * dx / sqrt(g * h) (gravity-wave CFL); the runtime
--- rejects a step that produces NaN or negative water.
+--   1. "momentum": u += -dt * ADV - g dt d(eta)/dx, eta = ground + h, with
+--      the momentum-conservative upwind advection of Stelling & Duinmeijer:
+--      ADV = [(qc_r u*_r - qc_l u*_l) - u (qc_r - qc_l)] / (dx hbar), where
+--      qc are cell-centred discharges (mean of the two faces' q from the last
+--      step) and u* the upwind face velocities; this carries momentum across
+--      wet/dry fronts, which the plain u du/dx form does not. A face whose
+--      hydrostatic depth
+--      max(eta_i, eta_j) - max(b_i, b_j) is zero is dry and stops (u = 0), so
+--      a lake at rest stays exactly at rest (well-balanced) and dry ground
+--      never moves water.
+--   2. "flux": the discharge through each face, q = u * h_upwind * K, is
+--      computed once, by the face's owner. K = min(1, dx / (dt * sum of the
+--      upwind column's outflow speeds)) keeps every column from sending more
+--      water than it holds, so depth never goes negative.
+--   3. "continuity": h += dt/dx * (q_in - q_out) + rain * dt, using the same q
+--      on both sides of every face: water is conserved to round-off.
+--
+-- Stable while dt * (|u| + sqrt(g h)) / dx stays below about 1 (CFL); the
+-- runtime rejects a step that writes NaN or negative depth.
 --
 -- The native reference (src/sim/native.rs) performs the same arithmetic in
 -- the same order; keep them in step.
@@ -21,8 +31,8 @@ local readf64, writef64 = buffer.readf64, buffer.writef64
 local max = math.max
 
 return {
-  channels = { "ground", "water", "out_l", "out_r", "out_b", "out_t" },
-  nonnegative = { "water", "out_l", "out_r", "out_b", "out_t" },
+  channels = { "ground", "water", "u", "v", "qx", "qz" },
+  nonnegative = { "water" },
   params = {
     gravity = { default = 9.81, min = 0, max = 100 },
     dx = { default = 1, min = 0.001, max = 1000 },
@@ -30,65 +40,128 @@ return {
   },
   passes = {
     {
-      name = "flux",
-      reads = { "ground", "water", "out_l", "out_r", "out_b", "out_t" },
-      writes = { "out_l", "out_r", "out_b", "out_t" },
+      name = "momentum",
+      reads = { "ground", "water", "u", "v", "qx", "qz" },
+      writes = { "u", "v" },
       kernel = function(c)
-        local dt = c.dt
-        local k = dt * c.p.gravity
-        local r, w = c.r, c.w
-        local B, D = r.ground, r.water
-        local L, R, Bo, T = r.out_l, r.out_r, r.out_b, r.out_t
-        local wl, wr, wb, wt = w.out_l, w.out_r, w.out_b, w.out_t
+        local dt, g, dx = c.dt, c.p.gravity, c.p.dx
+        local r = c.r
+        local B, H, U, V, QX, QZ = r.ground, r.water, r.u, r.v, r.qx, r.qz
+        local wu, wv = c.w.u, c.w.v
+        local k = g * dt / dx
+        -- Advection of the face velocity f at offset i along a step of s bytes
+        -- (8 for x, 80 for z), from face velocities F and discharges Q.
+        local function adv(F, Q, i, s, f, hbar)
+          local ql = (readf64(Q, i - s) + readf64(Q, i)) * 0.5
+          local qr = (readf64(Q, i) + readf64(Q, i + s)) * 0.5
+          local ul = f
+          if ql >= 0 then
+            ul = readf64(F, i - s)
+          end
+          local ur = readf64(F, i + s)
+          if qr >= 0 then
+            ur = f
+          end
+          return ((qr * ur - ql * ul) - f * (qr - ql)) / (dx * hbar)
+        end
         for z = 0, 7 do
           for x = 0, 7 do
             local i = ((z + 1) * 10 + x + 1) * 8
-            local d = readf64(D, i)
-            local b = readf64(B, i)
-            local h = b + d
-            local bl, br, bb, bt = readf64(B, i - 8), readf64(B, i + 8), readf64(B, i - 80), readf64(B, i + 80)
-            local hl, hr, hb, ht = bl + readf64(D, i - 8), br + readf64(D, i + 8), bb + readf64(D, i - 80), bt + readf64(D, i + 80)
-            local fl = max(0, readf64(L, i) + k * (max(h, hl) - max(b, bl)) * (h - hl))
-            local fr = max(0, readf64(R, i) + k * (max(h, hr) - max(b, br)) * (h - hr))
-            local fb = max(0, readf64(Bo, i) + k * (max(h, hb) - max(b, bb)) * (h - hb))
-            local ft = max(0, readf64(T, i) + k * (max(h, ht) - max(b, bt)) * (h - ht))
-            local sum = fl + fr + fb + ft
-            if sum > 0 then
-              local s = d * (c.p.dx * c.p.dx) / (sum * dt)
-              if s < 1 then
-                fl = fl * s
-                fr = fr * s
-                fb = fb * s
-                ft = ft * s
-              end
-            end
             local o = (z * 8 + x) * 8
-            writef64(wl, o, fl)
-            writef64(wr, o, fr)
-            writef64(wb, o, fb)
-            writef64(wt, o, ft)
+            local b = readf64(B, i)
+            local h = readf64(H, i)
+            local e = b + h
+            -- +x face
+            local br = readf64(B, i + 8)
+            local hr = readf64(H, i + 8)
+            local er = br + hr
+            local nu = 0
+            if max(e, er) - max(b, br) > 1e-9 then
+              local u = readf64(U, i)
+              local hbar = (h + hr) * 0.5
+              local a = 0
+              if hbar > 1e-9 then
+                a = adv(U, QX, i, 8, u, hbar)
+              end
+              nu = u - dt * a - k * (er - e)
+            end
+            writef64(wu, o, nu)
+            -- +z face
+            local bt = readf64(B, i + 80)
+            local ht = readf64(H, i + 80)
+            local et = bt + ht
+            local nv = 0
+            if max(e, et) - max(b, bt) > 1e-9 then
+              local v = readf64(V, i)
+              local hbar = (h + ht) * 0.5
+              local a = 0
+              if hbar > 1e-9 then
+                a = adv(V, QZ, i, 80, v, hbar)
+              end
+              nv = v - dt * a - k * (et - e)
+            end
+            writef64(wv, o, nv)
           end
         end
       end,
     },
     {
-      name = "apply",
-      reads = { "water", "out_l", "out_r", "out_b", "out_t" },
-      writes = { "water" },
+      name = "flux",
+      reads = { "water", "u", "v" },
+      writes = { "qx", "qz" },
       kernel = function(c)
-        local dt = c.dt
-        local rain = c.p.rain
+        local dt, dx = c.dt, c.p.dx
         local r = c.r
-        local D = r.water
-        local L, R, Bo, T = r.out_l, r.out_r, r.out_b, r.out_t
-        local wd = c.w.water
-        local area = c.p.dx * c.p.dx
+        local H, U, V = r.water, r.u, r.v
+        local wx, wz = c.w.qx, c.w.qz
+        -- Outflow limiter of the column at halo offset j.
+        local function lim(j)
+          local s = max(0, readf64(U, j)) + max(0, -readf64(U, j - 8)) + max(0, readf64(V, j)) + max(0, -readf64(V, j - 80))
+          local t = s * dt
+          if t > dx then
+            return dx / t
+          end
+          return 1
+        end
         for z = 0, 7 do
           for x = 0, 7 do
             local i = ((z + 1) * 10 + x + 1) * 8
-            local out = readf64(L, i) + readf64(R, i) + readf64(Bo, i) + readf64(T, i)
-            local inflow = readf64(R, i - 8) + readf64(L, i + 8) + readf64(T, i - 80) + readf64(Bo, i + 80)
-            writef64(wd, (z * 8 + x) * 8, readf64(D, i) + dt * (inflow - out) / area + rain * dt)
+            local o = (z * 8 + x) * 8
+            local u = readf64(U, i)
+            local qx = 0
+            if u > 0 then
+              qx = u * readf64(H, i) * lim(i)
+            elseif u < 0 then
+              qx = u * readf64(H, i + 8) * lim(i + 8)
+            end
+            writef64(wx, o, qx)
+            local v = readf64(V, i)
+            local qz = 0
+            if v > 0 then
+              qz = v * readf64(H, i) * lim(i)
+            elseif v < 0 then
+              qz = v * readf64(H, i + 80) * lim(i + 80)
+            end
+            writef64(wz, o, qz)
+          end
+        end
+      end,
+    },
+    {
+      name = "continuity",
+      reads = { "water", "qx", "qz" },
+      writes = { "water" },
+      kernel = function(c)
+        local a = c.dt / c.p.dx
+        local rain = c.p.rain * c.dt
+        local r = c.r
+        local H, QX, QZ = r.water, r.qx, r.qz
+        local w = c.w.water
+        for z = 0, 7 do
+          for x = 0, 7 do
+            local i = ((z + 1) * 10 + x + 1) * 8
+            local net = (readf64(QX, i - 8) - readf64(QX, i)) + (readf64(QZ, i - 80) - readf64(QZ, i))
+            writef64(w, (z * 8 + x) * 8, readf64(H, i) + a * net + rain)
           end
         end
       end,

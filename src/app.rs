@@ -6,7 +6,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use glam::DVec3;
 
-use crate::cli::{BenchCommand, Cli, Command};
+use crate::cli::{BenchCommand, Cli, Command, VerifyCommand};
 use crate::config::{BenchTracersSettings, RenderSettings, SceneSettings};
 use crate::progress::bar;
 use crate::scene::{SceneWorld, build_scene};
@@ -17,6 +17,11 @@ pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
         Command::Sim(a) => crate::sim_cmd::run(&crate::config::SimSettings::from_args(&a)?),
+        Command::Verify(VerifyCommand::Sims(a)) => crate::verify::run_sims(
+            &a.json,
+            a.chart.as_deref(),
+            a.conservation_steps.clamp(1, 10_000_000),
+        ),
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }

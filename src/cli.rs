@@ -24,6 +24,31 @@ pub enum Command {
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Accuracy checks against analytic solutions and invariants.
+    #[command(subcommand)]
+    Verify(VerifyCommand),
+}
+
+/// Verification suites.
+#[derive(Debug, Subcommand)]
+pub enum VerifyCommand {
+    /// The simulation scripts: Ritter dam break, lake at rest, conservation,
+    /// talus angle, stability sweep, determinism.
+    Sims(VerifySimsArgs),
+}
+
+/// `brickworld verify sims`.
+#[derive(Debug, Args)]
+pub struct VerifySimsArgs {
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Also draw charts into this directory
+    #[arg(long)]
+    pub chart: Option<PathBuf>,
+    /// Steps of the conservation run (10000 for the full check)
+    #[arg(long, default_value_t = 10_000)]
+    pub conservation_steps: u64,
 }
 
 /// `brickworld sim`.

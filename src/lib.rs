@@ -18,6 +18,7 @@ pub mod scene;
 pub mod sim;
 pub mod sim_cmd;
 pub mod trace;
+pub mod verify;
 pub mod world;
 
 /// Replace Rust's panic message with a one-line report (no backtrace unless

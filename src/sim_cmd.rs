@@ -58,8 +58,9 @@ pub fn run(s: &SimSettings) -> Result<()> {
             last_active,
             bricks
         );
-        for (id, name) in ws.sim.channels().channels() {
-            if !name.starts_with("out_") {
+        // Conserved quantities (sources such as rain and snowfall add to them).
+        for name in ["water", "ground", "sediment", "snow"] {
+            if let Some(id) = ws.sim.channels().find(name) {
                 eprintln!("  total {name}: {:.6}", ws.sim.channels().total(id));
             }
         }

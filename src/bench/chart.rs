@@ -89,3 +89,85 @@ fn draw(path: &Path, reports: &[&BenchReport]) -> Result<(), Box<dyn std::error:
     root.present()?;
     Ok(())
 }
+
+/// A named series of points for [`xy_chart`].
+pub struct Series<'a> {
+    /// Legend label.
+    pub name: &'a str,
+    /// Colour.
+    pub color: RGBColor,
+    /// Points (non-finite or non-positive values are skipped on log axes).
+    pub points: Vec<(f64, f64)>,
+}
+
+/// A log–log chart of one or more series, with markers and lines.
+pub fn xy_chart(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[Series],
+) -> Result<(), ChartError> {
+    draw_xy(path, title, x_desc, y_desc, series).map_err(|e| ChartError(e.to_string()))
+}
+
+fn draw_xy(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[Series],
+) -> Result<(), Box<dyn std::error::Error>> {
+    let pts = || {
+        series
+            .iter()
+            .flat_map(|s| s.points.iter())
+            .filter(|p| p.0 > 0.0 && p.1 > 0.0 && p.0.is_finite() && p.1.is_finite())
+    };
+    if pts().next().is_none() {
+        return Err("nothing to plot".into());
+    }
+    let (x0, x1) = pts().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+        (a.min(p.0), b.max(p.0))
+    });
+    let (y0, y1) = pts().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+        (a.min(p.1), b.max(p.1))
+    });
+    let root = SVGBackend::new(path, (800, 520)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(16)
+        .x_label_area_size(40)
+        .y_label_area_size(64)
+        .build_cartesian_2d(
+            (x0 / 1.5..x1 * 1.5).log_scale(),
+            (y0 / 2.0..y1 * 2.0).log_scale(),
+        )?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .draw()?;
+    for s in series {
+        let p: Vec<(f64, f64)> = s
+            .points
+            .iter()
+            .copied()
+            .filter(|p| p.0 > 0.0 && p.1 > 0.0 && p.0.is_finite() && p.1.is_finite())
+            .collect();
+        let c = s.color;
+        chart
+            .draw_series(LineSeries::new(p.clone(), c.stroke_width(2)))?
+            .label(s.name)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+        chart.draw_series(p.into_iter().map(|q| Circle::new(q, 4, c.filled())))?;
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()?;
+    root.present()?;
+    Ok(())
+}

@@ -13,19 +13,18 @@ fn lmax(a: f64, b: f64) -> f64 {
     if b > a { b } else { a }
 }
 
-/// The virtual pipe water model (Mei, Decaudin & Hu 2007) of
-/// `scripts/water.lua`: channels `ground, water, out_l, out_r, out_b, out_t`;
-/// parameters (sorted) `dx, gravity, rain`.
-pub struct PipeWater;
+/// The staggered shallow-water model of `scripts/water.lua`: channels
+/// `ground, water, u, v, qx, qz`; parameters (sorted) `dx, gravity, rain`.
+pub struct ShallowWater;
 
 const GROUND: usize = 0;
 const WATER: usize = 1;
-const OUT_L: usize = 2;
-const OUT_R: usize = 3;
-const OUT_B: usize = 4;
-const OUT_T: usize = 5;
+const U: usize = 2;
+const V: usize = 3;
+const QX: usize = 4;
+const QZ: usize = 5;
 
-impl NativeKernel for PipeWater {
+impl NativeKernel for ShallowWater {
     fn run(
         &self,
         pass: usize,
@@ -34,48 +33,104 @@ impl NativeKernel for PipeWater {
         r: &[[f64; HALO_CELLS]],
         w: &mut [[f64; TILE_CELLS]],
     ) {
-        let (dx, gravity, rain) = (params[0], params[1], params[2]);
-        if pass == 0 {
-            let k = dt * gravity;
-            let (b, d) = (&r[GROUND], &r[WATER]);
-            for z in 0..8 {
-                for x in 0..8 {
-                    let i = halo(x, z);
-                    let di = d[i];
-                    let bi = b[i];
-                    let h = bi + di;
-                    let (bl, br, bb, bt) = (b[i - 1], b[i + 1], b[i - 10], b[i + 10]);
-                    let (hl, hr, hb, ht) = (bl + d[i - 1], br + d[i + 1], bb + d[i - 10], bt + d[i + 10]);
-                    let mut fl = lmax(0.0, r[OUT_L][i] + k * (lmax(h, hl) - lmax(bi, bl)) * (h - hl));
-                    let mut fr = lmax(0.0, r[OUT_R][i] + k * (lmax(h, hr) - lmax(bi, br)) * (h - hr));
-                    let mut fb = lmax(0.0, r[OUT_B][i] + k * (lmax(h, hb) - lmax(bi, bb)) * (h - hb));
-                    let mut ft = lmax(0.0, r[OUT_T][i] + k * (lmax(h, ht) - lmax(bi, bt)) * (h - ht));
-                    let sum = fl + fr + fb + ft;
-                    if sum > 0.0 {
-                        let s = di * (dx * dx) / (sum * dt);
-                        if s < 1.0 {
-                            fl *= s;
-                            fr *= s;
-                            fb *= s;
-                            ft *= s;
+        let (dx, g, rain) = (params[0], params[1], params[2]);
+        match pass {
+            0 => {
+                let (b, h, u, v, qx, qz) = (&r[GROUND], &r[WATER], &r[U], &r[V], &r[QX], &r[QZ]);
+                let k = g * dt / dx;
+                let adv = |f_arr: &[f64; HALO_CELLS],
+                           q: &[f64; HALO_CELLS],
+                           i: usize,
+                           s: usize,
+                           f: f64,
+                           hbar: f64| {
+                    let ql = (q[i - s] + q[i]) * 0.5;
+                    let qr = (q[i] + q[i + s]) * 0.5;
+                    let ul = if ql >= 0.0 { f_arr[i - s] } else { f };
+                    let ur = if qr >= 0.0 { f } else { f_arr[i + s] };
+                    ((qr * ur - ql * ul) - f * (qr - ql)) / (dx * hbar)
+                };
+                for z in 0..8 {
+                    for x in 0..8 {
+                        let i = halo(x, z);
+                        let o = cell(x, z);
+                        let bi = b[i];
+                        let hi = h[i];
+                        let e = bi + hi;
+                        let (br, hr) = (b[i + 1], h[i + 1]);
+                        let er = br + hr;
+                        let mut nu = 0.0;
+                        if lmax(e, er) - lmax(bi, br) > 1e-9 {
+                            let ui = u[i];
+                            let hbar = (hi + hr) * 0.5;
+                            let a = if hbar > 1e-9 {
+                                adv(u, qx, i, 1, ui, hbar)
+                            } else {
+                                0.0
+                            };
+                            nu = ui - dt * a - k * (er - e);
                         }
+                        w[U][o] = nu;
+                        let (bt, ht) = (b[i + 10], h[i + 10]);
+                        let et = bt + ht;
+                        let mut nv = 0.0;
+                        if lmax(e, et) - lmax(bi, bt) > 1e-9 {
+                            let vi = v[i];
+                            let hbar = (hi + ht) * 0.5;
+                            let a = if hbar > 1e-9 {
+                                adv(v, qz, i, 10, vi, hbar)
+                            } else {
+                                0.0
+                            };
+                            nv = vi - dt * a - k * (et - e);
+                        }
+                        w[V][o] = nv;
                     }
-                    let o = cell(x, z);
-                    w[OUT_L][o] = fl;
-                    w[OUT_R][o] = fr;
-                    w[OUT_B][o] = fb;
-                    w[OUT_T][o] = ft;
                 }
             }
-        } else {
-            let d = &r[WATER];
-            let (l, rr, bo, t) = (&r[OUT_L], &r[OUT_R], &r[OUT_B], &r[OUT_T]);
-            for z in 0..8 {
-                for x in 0..8 {
-                    let i = halo(x, z);
-                    let out = l[i] + rr[i] + bo[i] + t[i];
-                    let inflow = rr[i - 1] + l[i + 1] + t[i - 10] + bo[i + 10];
-                    w[WATER][cell(x, z)] = d[i] + dt * (inflow - out) / (dx * dx) + rain * dt;
+            1 => {
+                let (h, u, v) = (&r[WATER], &r[U], &r[V]);
+                let lim = |j: usize| {
+                    let s = lmax(0.0, u[j])
+                        + lmax(0.0, -u[j - 1])
+                        + lmax(0.0, v[j])
+                        + lmax(0.0, -v[j - 10]);
+                    let t = s * dt;
+                    if t > dx { dx / t } else { 1.0 }
+                };
+                for z in 0..8 {
+                    for x in 0..8 {
+                        let i = halo(x, z);
+                        let o = cell(x, z);
+                        let ui = u[i];
+                        w[QX][o] = if ui > 0.0 {
+                            ui * h[i] * lim(i)
+                        } else if ui < 0.0 {
+                            ui * h[i + 1] * lim(i + 1)
+                        } else {
+                            0.0
+                        };
+                        let vi = v[i];
+                        w[QZ][o] = if vi > 0.0 {
+                            vi * h[i] * lim(i)
+                        } else if vi < 0.0 {
+                            vi * h[i + 10] * lim(i + 10)
+                        } else {
+                            0.0
+                        };
+                    }
+                }
+            }
+            _ => {
+                let a = dt / dx;
+                let rain = rain * dt;
+                let (h, qx, qz) = (&r[WATER], &r[QX], &r[QZ]);
+                for z in 0..8 {
+                    for x in 0..8 {
+                        let i = halo(x, z);
+                        let net = (qx[i - 1] - qx[i]) + (qz[i - 10] - qz[i]);
+                        w[WATER][cell(x, z)] = h[i] + a * net + rain;
+                    }
                 }
             }
         }
