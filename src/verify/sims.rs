@@ -138,7 +138,7 @@ fn ritter_run(n: i32, cfl: f64, substeps: u32) -> (f64, f64, f64, f64, Option<St
     )
 }
 
-/// (x, L1, steps/s) points of a sweep.
+/// (x, L1, wall-clock seconds of the run) points of a sweep.
 type Sweep = Vec<(f64, f64, f64)>;
 
 fn ritter_case() -> (Case, Sweep, Sweep) {
@@ -146,8 +146,9 @@ fn ritter_case() -> (Case, Sweep, Sweep) {
     let mut chart_res = Vec::new();
     for n in [64, 128, 256, 512] {
         let (l1, front, _, sps, fail) = ritter_run(n, 0.25, 1);
-        res.push(json!({"cells": n, "dx": 200.0 / n as f64, "l1_rel": l1, "front_error_m": front, "steps_per_s": sps, "error": fail}));
-        chart_res.push((200.0 / n as f64, l1, sps));
+        let steps = (10.0 / (0.25 * (200.0 / n as f64) / G.sqrt())).ceil();
+        res.push(json!({"cells": n, "dx": 200.0 / n as f64, "l1_rel": l1, "front_error_m": front, "steps_per_s": sps, "seconds": steps / sps, "error": fail}));
+        chart_res.push((200.0 / n as f64, l1, steps / sps));
     }
     let orders: Vec<f64> = chart_res
         .windows(2)
@@ -165,8 +166,9 @@ fn ritter_case() -> (Case, Sweep, Sweep) {
     let mut chart_dt = Vec::new();
     for cfl in [0.05, 0.1, 0.25, 0.5] {
         let (l1, front, _, sps, fail) = ritter_run(256, cfl, 1);
-        dts.push(json!({"cfl": cfl, "l1_rel": l1, "front_error_m": front, "steps_per_s": sps, "error": fail}));
-        chart_dt.push((cfl, l1, sps));
+        let steps = (10.0 / (cfl * (200.0 / 256.0) / G.sqrt())).ceil();
+        dts.push(json!({"cfl": cfl, "l1_rel": l1, "front_error_m": front, "steps_per_s": sps, "seconds": steps / sps, "error": fail}));
+        chart_dt.push((cfl, l1, steps / sps));
     }
     let finest = chart_res.last().map_or(f64::NAN, |r| r.1);
     let passed = finest < 0.1 && orders.iter().all(|o| *o > 0.0);
@@ -420,9 +422,9 @@ fn determinism() -> Case {
 /// Chart data gathered while verifying.
 #[derive(Debug, Default)]
 pub struct ChartData {
-    /// (dx, L1, steps/s) for the resolution sweep.
+    /// (dx, L1, seconds) for the resolution sweep.
     pub resolution: Vec<(f64, f64, f64)>,
-    /// (CFL, L1, steps/s) for the dt sweep.
+    /// (CFL, L1, seconds) for the dt sweep.
     pub dt: Vec<(f64, f64, f64)>,
     /// (CFL, L1 raw, blew up, L1 sub-stepped) for the stability sweep.
     pub stability: Vec<(f64, f64, bool, f64)>,
