@@ -14,6 +14,7 @@
 --      max(eta_i, eta_j) - max(b_i, b_j) is zero is dry and stops (u = 0), so
 --      a lake at rest stays exactly at rest (well-balanced) and dry ground
 --      never moves water.
+--      Bed friction (quadratic, implicit): u /= 1 + dt cf |u| / max(hbar, 0.01).
 --   2. "flux": the discharge through each face, q = u * h_upwind * K, is
 --      computed once, by the face's owner. K = min(1, dx / (dt * sum of the
 --      upwind column's outflow speeds)) keeps every column from sending more
@@ -37,6 +38,7 @@ return {
     gravity = { default = 9.81, min = 0, max = 100 },
     dx = { default = 1, min = 0.001, max = 1000 },
     rain = { default = 0, min = 0, max = 10 },
+    friction = { default = 0.02, min = 0, max = 10 },
   },
   passes = {
     {
@@ -49,6 +51,8 @@ return {
         local B, H, U, V, QX, QZ = r.ground, r.water, r.u, r.v, r.qx, r.qz
         local wu, wv = c.w.u, c.w.v
         local k = g * dt / dx
+        local cf = c.p.friction * dt
+        local abs = math.abs
         -- Advection of the face velocity f at offset i along a step of s bytes
         -- (8 for x, 80 for z), from face velocities F and discharges Q.
         local function adv(F, Q, i, s, f, hbar)
@@ -84,6 +88,7 @@ return {
                 a = adv(U, QX, i, 8, u, hbar)
               end
               nu = u - dt * a - k * (er - e)
+              nu = nu / (1 + cf * abs(nu) / max(hbar, 0.01))
             end
             writef64(wu, o, nu)
             -- +z face
@@ -99,6 +104,7 @@ return {
                 a = adv(V, QZ, i, 80, v, hbar)
               end
               nv = v - dt * a - k * (et - e)
+              nv = nv / (1 + cf * abs(nv) / max(hbar, 0.01))
             end
             writef64(wv, o, nv)
           end

@@ -78,6 +78,12 @@ pub struct SimArgs {
     /// Trace hard shadows in the final render
     #[arg(long)]
     pub shadows: bool,
+    /// Watch the scripts' directories and hot-reload edited scripts between steps
+    #[arg(long)]
+    pub watch: bool,
+    /// Split steps to keep water within this CFL number (0 disables sub-stepping)
+    #[arg(long, default_value = "0.5")]
+    pub cfl: String,
 }
 
 /// Benchmarks.

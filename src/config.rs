@@ -315,6 +315,10 @@ pub struct SimSettings {
     pub out: PathBuf,
     /// Shadows in the final render.
     pub shadows: bool,
+    /// Hot reload.
+    pub watch: bool,
+    /// CFL target for sub-stepping (0: off).
+    pub cfl: f64,
 }
 
 /// Default size of procedural scenes for `sim`.
@@ -353,6 +357,8 @@ impl SimSettings {
             params,
             out: a.out.clone(),
             shadows: a.shadows,
+            watch: a.watch,
+            cfl: parse_num("--cfl", &a.cfl, 0.0f64, 1.0)?,
         })
     }
 }

@@ -9,7 +9,7 @@ use glam::DVec3;
 use crate::app::{build_world, thread_pool};
 use crate::config::SimSettings;
 use crate::progress::bar;
-use crate::sim::{Limits, WorldSim, read_script};
+use crate::sim::{Limits, ScriptWatcher, WorldSim, read_script};
 use crate::trace::{Camera, RenderOptions, render, write_png};
 
 /// Run the `sim` command.
@@ -28,13 +28,33 @@ pub fn run(s: &SimSettings) -> Result<()> {
                 .with_context(|| format!("--param names script '{}', which is not loaded", p.script))?;
             ws.sim.set_param(index, &p.name, p.value)?;
         }
+        let mut watchers = Vec::new();
+        if s.watch {
+            let mut dirs: Vec<std::path::PathBuf> = s.scripts.iter().map(|p| p.parent().map_or(".".into(), |d| if d.as_os_str().is_empty() { ".".into() } else { d.to_path_buf() })).collect();
+            dirs.sort();
+            dirs.dedup();
+            for d in dirs {
+                watchers.push(ScriptWatcher::new(&d, std::time::Duration::from_millis(200))?);
+            }
+        }
         let pb = bar("simulating", s.steps);
         let t0 = Instant::now();
         let (mut cells, mut bricks, mut failed) = (0u64, 0usize, Vec::new());
         let mut last_active = 0;
+        let mut max_sub = 1;
         for _ in 0..s.steps {
-            let r = ws.step(&mut world, s.dt);
-            cells += r.active_tiles as u64 * 64;
+            for w in &mut watchers {
+                for path in w.poll() {
+                    match ws.reload(&path) {
+                        Ok(Some(_)) => pb.suspend(|| eprintln!("reloaded {}", path.display())),
+                        Ok(None) => {}
+                        Err(e) => pb.suspend(|| eprintln!("warning: kept the last good version: {e}")),
+                    }
+                }
+            }
+            let (r, n) = if s.cfl > 0.0 { ws.step_within_cfl(&mut world, s.dt, s.cfl) } else { (ws.step(&mut world, s.dt), 1) };
+            max_sub = max_sub.max(n);
+            cells += r.active_tiles as u64 * 64 * n as u64;
             last_active = r.active_tiles;
             for batch in ws.dirty.try_iter() {
                 bricks += batch.bricks.len();
@@ -50,7 +70,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
         pb.finish_and_clear();
         let secs = t0.elapsed().as_secs_f64();
         eprintln!(
-            "{} steps in {:.2} s ({:.1} steps/s, {:.1} M column updates/s); {} tiles active at the end; {} dirty bricks published",
+            "{} steps in {:.2} s ({:.1} steps/s, {:.1} M column updates/s, up to {max_sub} sub-steps); {} tiles active at the end; {} dirty bricks published",
             s.steps,
             secs,
             s.steps as f64 / secs,

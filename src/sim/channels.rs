@@ -114,6 +114,15 @@ impl ChannelStore {
         sum + comp
     }
 
+    /// Largest absolute value of `ch` (0 where nothing is stored).
+    pub fn max_abs(&self, ch: ChannelId) -> f64 {
+        self.tiles
+            .values()
+            .filter_map(|v| v.get(ch.0 as usize).and_then(|s| s.as_deref()))
+            .flat_map(|d| d.iter())
+            .fold(0.0f64, |m, v| m.max(v.abs()))
+    }
+
     /// Hash of every channel's bits, in a fixed order.
     pub fn hash(&self) -> u64 {
         let mut keys: Vec<&TileCoord> = self.tiles.keys().collect();

@@ -12,6 +12,7 @@
 
 pub mod channels;
 pub mod native;
+pub mod reload;
 pub mod run;
 pub mod script;
 pub mod step;
@@ -21,6 +22,7 @@ pub mod voxels;
 use thiserror::Error;
 
 pub use channels::{ChannelId, ChannelStore};
+pub use reload::ScriptWatcher;
 pub use run::{DirtyBatch, WorldSim, read_script};
 pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm};
 pub use step::{Kernel, Simulation, StepReport};

@@ -14,7 +14,8 @@ fn lmax(a: f64, b: f64) -> f64 {
 }
 
 /// The staggered shallow-water model of `scripts/water.lua`: channels
-/// `ground, water, u, v, qx, qz`; parameters (sorted) `dx, gravity, rain`.
+/// `ground, water, u, v, qx, qz`; parameters (sorted) `dx, friction,
+/// gravity, rain`.
 pub struct ShallowWater;
 
 const GROUND: usize = 0;
@@ -33,11 +34,12 @@ impl NativeKernel for ShallowWater {
         r: &[[f64; HALO_CELLS]],
         w: &mut [[f64; TILE_CELLS]],
     ) {
-        let (dx, g, rain) = (params[0], params[1], params[2]);
+        let (dx, friction, g, rain) = (params[0], params[1], params[2], params[3]);
         match pass {
             0 => {
                 let (b, h, u, v, qx, qz) = (&r[GROUND], &r[WATER], &r[U], &r[V], &r[QX], &r[QZ]);
                 let k = g * dt / dx;
+                let cf = friction * dt;
                 let adv = |f_arr: &[f64; HALO_CELLS],
                            q: &[f64; HALO_CELLS],
                            i: usize,
@@ -69,6 +71,7 @@ impl NativeKernel for ShallowWater {
                                 0.0
                             };
                             nu = ui - dt * a - k * (er - e);
+                            nu /= 1.0 + cf * nu.abs() / lmax(hbar, 0.01);
                         }
                         w[U][o] = nu;
                         let (bt, ht) = (b[i + 10], h[i + 10]);
@@ -83,6 +86,7 @@ impl NativeKernel for ShallowWater {
                                 0.0
                             };
                             nv = vi - dt * a - k * (et - e);
+                            nv /= 1.0 + cf * nv.abs() / lmax(hbar, 0.01);
                         }
                         w[V][o] = nv;
                     }

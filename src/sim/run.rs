@@ -78,6 +78,62 @@ impl WorldSim {
         self.sim.add_script(src, Kernel::Lua, limits)
     }
 
+    /// Reload the script at `path` (matched by file stem). On error the old
+    /// version keeps running and the error (with file and line) is returned.
+    pub fn reload(&mut self, path: &Path) -> Result<Option<usize>, SimError> {
+        let src = read_script(path)?;
+        let Some(index) = (0..self.sim.script_count()).find(|&i| self.sim.spec(i).name == src.name)
+        else {
+            return Ok(None);
+        };
+        self.sim.replace_script(index, src)?;
+        Ok(Some(index))
+    }
+
+    /// Sub-steps needed to keep one step of `dt` within the gravity-wave CFL
+    /// limit `dt · (|u| + sqrt(g h)) / dx ≤ cfl` of the `water` script, if one
+    /// is loaded (1 otherwise; at most 256).
+    pub fn substeps_for(&self, dt: f64, cfl: f64) -> u32 {
+        let Some(w) = (0..self.sim.script_count()).find(|&i| self.sim.spec(i).name == "water")
+        else {
+            return 1;
+        };
+        let spec = self.sim.spec(w);
+        let param = |n: &str| {
+            spec.params
+                .iter()
+                .position(|p| p.name == n)
+                .map(|i| self.sim.params(w)[i])
+        };
+        let (Some(g), Some(dx)) = (param("gravity"), param("dx")) else {
+            return 1;
+        };
+        let ch = self.sim.channels();
+        let m = |n: &str| ch.find(n).map_or(0.0, |id| ch.max_abs(id));
+        let speed = m("u").max(m("v")) + (g * m("water")).sqrt();
+        ((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, 256)
+    }
+
+    /// One step of `dt`, split into sub-steps that respect the water CFL limit.
+    pub fn step_within_cfl(
+        &mut self,
+        world: &mut SceneWorld,
+        dt: f64,
+        cfl: f64,
+    ) -> (StepReport, u32) {
+        let n = self.substeps_for(dt, cfl);
+        let mut report = StepReport::default();
+        for _ in 0..n {
+            let r = self.step(world, dt / n as f64);
+            report.active_tiles = report.active_tiles.max(r.active_tiles);
+            report.changed_tiles.extend(r.changed_tiles);
+            report.errors.extend(r.errors);
+        }
+        report.changed_tiles.sort_by_key(|t| (t.y, t.x));
+        report.changed_tiles.dedup();
+        (report, n)
+    }
+
     /// One step: simulate, write changed columns into bricks, patch the grid,
     /// and publish the changed bricks on the editing queue.
     pub fn step(&mut self, world: &mut SceneWorld, dt: f64) -> StepReport {

@@ -1,0 +1,85 @@
+//! Hot reload: a script saved the way editors save it (write a temp file,
+//! rename it over the original) is picked up within the debounce, swapped in
+//! at a step boundary with its parameters kept; a broken save keeps the old
+//! version running and reports the file and line.
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use brickworld::sim::tile::TILE_CELLS;
+use brickworld::sim::{Kernel, Limits, ScriptWatcher, SimError, Simulation, read_script};
+use glam::IVec2;
+
+const V1: &str = r#"
+return {
+  channels = { "heat" },
+  params = { rate = { default = 1, min = 0, max = 10 } },
+  passes = { { name = "warm", reads = {}, writes = { "heat" }, kernel = function(c)
+    buffer.writef64(c.w.heat, 0, buffer.readf64(c.w.heat, 0) + c.p.rate)
+  end } },
+}
+"#;
+
+fn save_like_an_editor(path: &Path, text: &str) {
+    let tmp = path.with_extension("lua.swp");
+    std::fs::write(&tmp, text).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
+fn heat(sim: &Simulation) -> f64 {
+    let ch = sim.channels().find("heat").unwrap();
+    sim.channels().get(IVec2::ZERO, ch).map_or(0.0, |d| d[0])
+}
+
+fn wait_for_change(w: &mut ScriptWatcher) -> Vec<std::path::PathBuf> {
+    let t = Instant::now();
+    loop {
+        let r = w.poll();
+        if !r.is_empty() || t.elapsed() > Duration::from_secs(10) {
+            return r;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn edited_scripts_reload_and_broken_saves_keep_the_last_good_version() {
+    let dir = std::env::temp_dir().join(format!("brickworld-reload-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("heater.lua");
+    std::fs::write(&path, V1).unwrap();
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::ONE);
+    sim.add_script(read_script(&path).unwrap(), Kernel::Lua, Limits::default())
+        .unwrap();
+    sim.set_param(0, "rate", 2.0).unwrap();
+    let mut watcher = ScriptWatcher::new(&dir, Duration::from_millis(150)).unwrap();
+    sim.step(1.0);
+    assert_eq!(heat(&sim), 2.0);
+
+    // A real edit: the kernel now adds 10 × rate. The parameter value (2) survives.
+    let t0 = Instant::now();
+    save_like_an_editor(&path, &V1.replace("+ c.p.rate", "+ 10 * c.p.rate"));
+    let changed = wait_for_change(&mut watcher);
+    assert_eq!(changed, vec![path.clone()]);
+    assert!(
+        t0.elapsed() < Duration::from_secs(1),
+        "reloaded within a second: {:?}",
+        t0.elapsed()
+    );
+    sim.replace_script(0, read_script(&path).unwrap()).unwrap();
+    sim.step(1.0);
+    assert_eq!(heat(&sim), 22.0);
+
+    // A broken save: rejected with file and line; the last good version runs on.
+    save_like_an_editor(&path, &V1.replace("end } },", "end } ,,"));
+    assert_eq!(wait_for_change(&mut watcher), vec![path.clone()]);
+    let e = sim
+        .replace_script(0, read_script(&path).unwrap())
+        .unwrap_err();
+    assert!(matches!(e, SimError::Syntax { line: Some(_), .. }), "{e:?}");
+    assert!(e.to_string().starts_with("heater.lua:"), "{e}");
+    sim.step(1.0);
+    assert_eq!(heat(&sim), 42.0, "the last good version keeps running");
+    let _ = std::fs::remove_dir_all(&dir);
+    let _ = TILE_CELLS;
+}
