@@ -22,10 +22,55 @@ pub fn run(cli: Cli) -> Result<()> {
             a.chart.as_deref(),
             a.conservation_steps.clamp(1, 10_000_000),
         ),
+        Command::Bench(BenchCommand::Sim(a)) => run_bench_sim(&a),
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }
     }
+}
+
+fn run_bench_sim(a: &crate::cli::BenchSimArgs) -> Result<()> {
+    if a.sizes.is_empty() || a.sizes.iter().any(|s| *s < 8 || *s % 8 != 0 || *s > 8192) {
+        anyhow::bail!(
+            "invalid --sizes {:?}: each must be a multiple of 8 in 8..=8192",
+            a.sizes
+        );
+    }
+    if a.steps == 0 || a.steps > 10_000 {
+        anyhow::bail!("invalid --steps {}: must be in 1..=10000", a.steps);
+    }
+    if a.threads == Some(0) {
+        anyhow::bail!("invalid --threads 0: must be at least 1");
+    }
+    let pool = thread_pool(a.threads)?;
+    pool.install(|| {
+        let pb = bar("bench sim", 0);
+        let r = crate::bench::sim::run(&a.json, &a.sizes, a.steps, &pb)?;
+        pb.finish_and_clear();
+        println!(
+            "{:<8} {:>6} {:>14} {:>14} {:>8} {:>7}",
+            "script", "size", "lua cells/s", "native cells/s", "ratio", "active"
+        );
+        for s in &r.scripts {
+            println!(
+                "{:<8} {:>6} {:>14.3e} {:>14} {:>8} {:>7}",
+                s.name,
+                s.size,
+                s.lua_cells_per_s,
+                s.native_cells_per_s
+                    .map_or("-".into(), |n| format!("{n:.3e}")),
+                s.lua_over_native.map_or("-".into(), |r| format!("{r:.2}")),
+                s.active_bricks
+            );
+        }
+        for p in &r.scaling {
+            println!(
+                "wet {:>6.4}: {:>6} active tiles, {:.2} ms/step",
+                p.wet_fraction, p.active_bricks, p.step_ms
+            );
+        }
+        Ok(())
+    })
 }
 
 /// A rayon pool of `threads` workers (all cores when `None`).

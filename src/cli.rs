@@ -91,6 +91,25 @@ pub struct SimArgs {
 pub enum BenchCommand {
     /// Compare the dense, svo and brickmap tracers on one scene.
     Tracers(BenchTracersArgs),
+    /// Column updates per second of each simulation script, Lua and native.
+    Sim(BenchSimArgs),
+}
+
+/// `brickworld bench sim`.
+#[derive(Debug, Args)]
+pub struct BenchSimArgs {
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// World sizes in columns per side (multiples of 8)
+    #[arg(long, value_delimiter = ',', default_value = "512,1024")]
+    pub sizes: Vec<i32>,
+    /// Timed steps per measurement
+    #[arg(long, default_value_t = 10)]
+    pub steps: u32,
+    /// Worker threads (default: all cores)
+    #[arg(long)]
+    pub threads: Option<usize>,
 }
 
 /// Scene selection shared by every command.

@@ -2,4 +2,5 @@
 //! JSON that other tools read, and SVG charts.
 
 pub mod chart;
+pub mod sim;
 pub mod tracers;

@@ -290,6 +290,8 @@ impl ScriptVm {
                 }
             });
         }
+        // Optimisation level 2 inlines small local functions and unrolls loops.
+        lua.set_compiler(mlua::chunk::Compiler::new().set_optimization_level(2));
         let chunk = lua.load(&*src.text).set_name(format!("@{}.lua", src.name));
         let def: Value = chunk.eval().map_err(|e| {
             let msg = e.to_string();
