@@ -1,0 +1,32 @@
+---@meta
+-- LuaLS definitions for brickworld simulation scripts (see docs/lua-api.md).
+
+---A 10x10 halo (reads) or 8x8 (writes) array of f64 values; use
+---buffer.readf64 / buffer.writef64 with byte offsets:
+---halo (x, z) in -1..8: ((z + 1) * 10 + (x + 1)) * 8; own (x, z) in 0..7: (z * 8 + x) * 8.
+---@alias brickworld.Field buffer
+
+---@class brickworld.Context
+---@field dt number               Time step in seconds.
+---@field p table<string, number> Parameter values (read-only).
+---@field r table<string, brickworld.Field> Halo buffers of the channels the pass reads (previous generation).
+---@field w table<string, brickworld.Field> Output buffers of the channels the pass writes (pre-filled with current values).
+
+---@alias brickworld.Kernel fun(c: brickworld.Context, tx: integer, tz: integer)
+
+---@class brickworld.Pass
+---@field name string
+---@field reads string[]   Channels read with a one-column halo.
+---@field writes string[]  Channels written (own tile only).
+---@field kernel brickworld.Kernel
+
+---@class brickworld.Param
+---@field default number
+---@field min number
+---@field max number
+
+---@class brickworld.Script
+---@field channels string[]                          Every channel the script touches.
+---@field nonnegative? string[]                      Channels a step may not drive below zero.
+---@field params? table<string, brickworld.Param>    Parameters with defaults and ranges.
+---@field passes brickworld.Pass[]                   Run in order each step.
