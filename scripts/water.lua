@@ -134,17 +134,22 @@ return {
             local i = ((z + 1) * 10 + x + 1) * 8
             local o = (z * 8 + x) * 8
             local u = readf64(U, i)
+            local v = readf64(V, i)
+            -- The own column's limiter, computed once if either face needs it.
+            local own = 1
+            if u > 0 or v > 0 then
+              own = lim(i)
+            end
             local qx = 0
             if u > 0 then
-              qx = u * readf64(H, i) * lim(i)
+              qx = u * readf64(H, i) * own
             elseif u < 0 then
               qx = u * readf64(H, i + 8) * lim(i + 8)
             end
             writef64(wx, o, qx)
-            local v = readf64(V, i)
             local qz = 0
             if v > 0 then
-              qz = v * readf64(H, i) * lim(i)
+              qz = v * readf64(H, i) * own
             elseif v < 0 then
               qz = v * readf64(H, i + 80) * lim(i + 80)
             end

@@ -324,3 +324,24 @@ fn nan_and_negative_values_are_detected_instead_of_written() {
         assert_eq!(sim.channels().hash(), before, "{value}");
     }
 }
+
+/// Regression: the interrupt budget is per thread; after a kernel tripped it,
+/// loading the next script on the same thread ran its chunk under the stale,
+/// exhausted budget and was wrongly "stopped" at load.
+#[test]
+fn a_tripped_budget_does_not_stop_the_next_script_load() {
+    let (e, _) = rollback_case("      while true do end");
+    assert!(e.to_string().contains("instruction budget"), "{e}");
+    // Same thread: loading (and smoke-testing) a good script must work.
+    for _ in 0..3 {
+        load(&kernel_script("    local x = 1"))
+            .expect("a good script loads after a tripped budget");
+    }
+}
+
+#[test]
+fn a_script_that_loops_while_loading_is_stopped_with_its_line() {
+    let e = load("local n = 0\nwhile true do n = n + 1 end\nreturn {}").unwrap_err();
+    assert!(e.to_string().contains("instruction budget exceeded"), "{e}");
+    assert!(e.to_string().starts_with("bad.lua:2:"), "{e}");
+}

@@ -11,6 +11,7 @@
 //!   which records the dirty bricks the renderer consumes.
 
 pub mod channels;
+mod interrupt;
 pub mod native;
 pub mod reload;
 pub mod run;

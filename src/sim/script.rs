@@ -29,12 +29,10 @@
 //! from Luau's interrupt; a script that exceeds them is stopped with an error
 //! naming the script and line.
 
-use std::cell::Cell;
-use std::rc::Rc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use mlua::{Buffer, Function, Lua, LuaOptions, StdLib, Table, Value, VmState};
+use mlua::{Buffer, Function, Lua, LuaOptions, StdLib, Table, Value};
 
 use super::SimError;
 use super::tile::{HALO_CELLS, TILE_CELLS};
@@ -138,24 +136,20 @@ fn line_in(text: &str, needle: &str) -> Option<usize> {
     text.lines().position(|l| l.contains(needle)).map(|i| i + 1)
 }
 
-struct Budget {
-    ticks: Cell<u64>,
-    limit: Cell<u64>,
-    deadline: Cell<Instant>,
-    memory_soft: usize,
-}
-
 /// A sandboxed VM with a script loaded and its buffers ready.
 pub struct ScriptVm {
     lua: Lua,
-    budget: Rc<Budget>,
+    /// Lua heap size at which kernels are stopped with a line number (90 %
+    /// of the hard limit, which the allocator enforces).
+    memory_soft: usize,
     kernels: Vec<Function>,
     reads: Vec<Buffer>,
     writes: Vec<Buffer>,
     /// Per pass: indices into `reads` / `writes` (channel order of `spec.channels`).
     read_tables: Vec<Table>,
     write_tables: Vec<Table>,
-    ctx: Option<Table>,
+    /// One context table per pass (`dt`, `p`, `r`, `w`), rebuilt each step.
+    ctx: Vec<Table>,
     name: String,
     limits: Limits,
 }
@@ -257,42 +251,16 @@ impl ScriptVm {
             .map_err(|e| SimError::Internal(e.to_string()))?;
         lua.set_memory_limit(limits.memory)
             .map_err(|e| SimError::Internal(e.to_string()))?;
-        let budget = Rc::new(Budget {
-            ticks: Cell::new(0),
-            limit: Cell::new(limits.instructions),
-            deadline: Cell::new(Instant::now() + limits.time),
-            memory_soft: limits.memory / 10 * 9,
-        });
-        {
-            let b = budget.clone();
-            lua.set_interrupt(move |lua| {
-                let n = b.ticks.get() + 1;
-                b.ticks.set(n);
-                let what = if n > b.limit.get() {
-                    Some("instruction budget")
-                } else if n & 1023 == 0 && Instant::now() > b.deadline.get() {
-                    Some("time budget")
-                } else if n & 255 == 0 && lua.used_memory() > b.memory_soft {
-                    Some("memory limit")
-                } else {
-                    None
-                };
-                match what {
-                    None => Ok(VmState::Continue),
-                    Some(what) => {
-                        let line = (0..3)
-                            .find_map(|lvl| lua.inspect_stack(lvl, |d| d.current_line()).flatten());
-                        Err(mlua::Error::runtime(format!(
-                            "{what} exceeded at line {}",
-                            line.map_or("?".to_string(), |l| l.to_string())
-                        )))
-                    }
-                }
-            });
-        }
+        super::interrupt::install(&lua);
         // Optimisation level 2 inlines small local functions and unrolls loops.
         lua.set_compiler(mlua::chunk::Compiler::new().set_optimization_level(2));
         let chunk = lua.load(&*src.text).set_name(format!("@{}.lua", src.name));
+        // The chunk itself runs under the budget too (a script can loop at load).
+        super::interrupt::arm(
+            limits.instructions,
+            Instant::now() + limits.time,
+            limits.memory / 10 * 9,
+        );
         let def: Value = chunk.eval().map_err(|e| {
             let msg = e.to_string();
             match e {
@@ -326,13 +294,13 @@ impl ScriptVm {
         let spec = Self::parse_spec(src, &def)?;
         let mut vm = ScriptVm {
             lua,
-            budget,
+            memory_soft: limits.memory / 10 * 9,
             kernels: Vec::new(),
             reads: Vec::new(),
             writes: Vec::new(),
             read_tables: Vec::new(),
             write_tables: Vec::new(),
-            ctx: None,
+            ctx: Vec::new(),
             name: src.name.clone(),
             limits,
         };
@@ -541,18 +509,24 @@ impl ScriptVm {
         spec: &ScriptSpec,
         params: &[f64],
     ) -> Result<(), SimError> {
-        let make = || -> mlua::Result<Table> {
+        let make = || -> mlua::Result<Vec<Table>> {
             let p = self.lua.create_table()?;
             for (s, v) in spec.params.iter().zip(params) {
                 p.set(s.name.as_str(), *v)?;
             }
             p.set_readonly(true);
-            let c = self.lua.create_table()?;
-            c.set("dt", dt)?;
-            c.set("p", p)?;
-            Ok(c)
+            let mut out = Vec::with_capacity(self.read_tables.len());
+            for (r, w) in self.read_tables.iter().zip(&self.write_tables) {
+                let c = self.lua.create_table()?;
+                c.set("dt", dt)?;
+                c.set("p", p.clone())?;
+                c.set("r", r.clone())?;
+                c.set("w", w.clone())?;
+                out.push(c);
+            }
+            Ok(out)
         };
-        self.ctx = Some(make().map_err(|e| SimError::Internal(e.to_string()))?);
+        self.ctx = make().map_err(|e| SimError::Internal(e.to_string()))?;
         Ok(())
     }
 
@@ -570,13 +544,14 @@ impl ScriptVm {
     pub fn run(&mut self, pass: usize, pass_name: &str, tx: i32, tz: i32) -> Result<(), SimError> {
         let ctx = self
             .ctx
-            .as_ref()
+            .get(pass)
             .ok_or_else(|| SimError::Internal("begin_step was not called".into()))?;
         let run = || -> mlua::Result<()> {
-            ctx.raw_set("r", self.read_tables[pass].clone())?;
-            ctx.raw_set("w", self.write_tables[pass].clone())?;
-            self.budget.ticks.set(0);
-            self.budget.deadline.set(Instant::now() + self.limits.time);
+            super::interrupt::arm(
+                self.limits.instructions,
+                Instant::now() + self.limits.time,
+                self.memory_soft,
+            );
             self.kernels[pass].call::<()>((ctx.clone(), tx, tz))
         };
         run().map_err(|e| {
