@@ -64,10 +64,10 @@ pub struct SimArgs {
     #[arg(long = "script", required = true)]
     pub scripts: Vec<PathBuf>,
     /// Steps to run
-    #[arg(long, default_value = "100")]
+    #[arg(long, default_value = "100", allow_hyphen_values = true)]
     pub steps: String,
     /// Time step in seconds
-    #[arg(long, default_value = "0.05")]
+    #[arg(long, default_value = "0.05", allow_hyphen_values = true)]
     pub dt: String,
     /// Parameter override SCRIPT.NAME=VALUE (repeatable), e.g. water.rain=0.2
     #[arg(long = "param")]
@@ -81,8 +81,11 @@ pub struct SimArgs {
     /// Watch the scripts' directories and hot-reload edited scripts between steps
     #[arg(long)]
     pub watch: bool,
+    /// Keep the world's edges closed (by default water drains over them)
+    #[arg(long)]
+    pub closed_edges: bool,
     /// Split steps to keep water within this CFL number (0 disables sub-stepping)
-    #[arg(long, default_value = "0.5")]
+    #[arg(long, default_value = "0.5", allow_hyphen_values = true)]
     pub cfl: String,
 }
 

@@ -319,6 +319,8 @@ pub struct SimSettings {
     pub watch: bool,
     /// CFL target for sub-stepping (0: off).
     pub cfl: f64,
+    /// Water drains over the world's edges.
+    pub drain: bool,
 }
 
 /// Default size of procedural scenes for `sim`.
@@ -359,6 +361,7 @@ impl SimSettings {
             shadows: a.shadows,
             watch: a.watch,
             cfl: parse_num("--cfl", &a.cfl, 0.0f64, 1.0)?,
+            drain: !a.closed_edges,
         })
     }
 }

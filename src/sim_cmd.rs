@@ -17,7 +17,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
     let pool = thread_pool(s.view.threads)?;
     pool.install(|| {
         let mut world = build_world(&s.scene)?;
-        let mut ws = WorldSim::new(&mut world);
+        let mut ws = WorldSim::with_edges(&mut world, s.drain);
         for path in &s.scripts {
             let src = read_script(path)?;
             ws.add_lua(src, Limits::default()).context("cannot load the script")?;
@@ -83,6 +83,9 @@ pub fn run(s: &SimSettings) -> Result<()> {
             if let Some(id) = ws.sim.channels().find(name) {
                 eprintln!("  total {name}: {:.6}", ws.sim.channels().total(id));
             }
+        }
+        if s.drain {
+            eprintln!("  water drained over the edges: {:.6}", ws.drained);
         }
         let view = s.view.view.unwrap_or_else(|| world.default_views()[1]);
         let cam = Camera::new(DVec3::from(view.eye), DVec3::from(view.target), view.fov, s.view.width, s.view.height)?;

@@ -25,6 +25,13 @@ pub struct WorldSim {
     /// The column simulation.
     pub sim: Simulation,
     sync: ColumnSync,
+    /// Voxel-world tiles `[min, max)`; with drained edges the simulation
+    /// also covers a one-tile moat around them.
+    world_tiles: (glam::IVec2, glam::IVec2),
+    drain: bool,
+    /// Water that left the world over its edges (rain falling on the moat
+    /// itself is counted here too).
+    pub drained: f64,
     queue: Sender<DirtyBatch>,
     /// The editing queue's receiving end (the renderer's).
     pub dirty: Receiver<DirtyBatch>,
@@ -48,19 +55,46 @@ pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
 }
 
 impl WorldSim {
-    /// Set up a simulation over `world`'s columns, reading the ground from its voxels.
+    /// Set up a simulation over `world`'s columns, reading the ground from
+    /// its voxels, with closed edges.
     pub fn new(world: &mut SceneWorld) -> Self {
+        Self::with_edges(world, false)
+    }
+
+    /// As [`new`](Self::new); with `drain`, water flows over the world's
+    /// edges into a one-tile moat two units below the lowest ground and is
+    /// removed there each step (counted in [`drained`](Self::drained), so
+    /// world water + drained water is conserved).
+    pub fn with_edges(world: &mut SceneWorld, drain: bool) -> Self {
         let (lo, hi) = world.bounds;
         let (tmin, tmax) = tiles_of(lo, hi);
-        let mut sim = Simulation::new(tmin, tmax);
+        let (smin, smax) = if drain {
+            (tmin - 1, tmax + 1)
+        } else {
+            (tmin, tmax)
+        };
+        let mut sim = Simulation::new(smin, smax);
         let mut sync = ColumnSync::default();
         let g = sim.channels_mut().channel("ground");
+        let mut lowest = f64::INFINITY;
         for tz in tmin.y..tmax.y {
             for tx in tmin.x..tmax.x {
                 let t = glam::IVec2::new(tx, tz);
                 let ground = ground_of_tile(&world.store, t, hi.y);
+                lowest = ground.iter().fold(lowest, |m, v| m.min(*v));
                 sim.channels_mut().set(t, g, &ground);
                 sync.record(t, &ground);
+            }
+        }
+        if drain {
+            let moat = [lowest - 2.0; super::tile::TILE_CELLS];
+            for tz in smin.y..smax.y {
+                for tx in smin.x..smax.x {
+                    let t = glam::IVec2::new(tx, tz);
+                    if !(t.cmpge(tmin).all() && t.cmplt(tmax).all()) {
+                        sim.channels_mut().set(t, g, &moat);
+                    }
+                }
             }
         }
         set_palette(&mut world.store);
@@ -68,6 +102,9 @@ impl WorldSim {
         WorldSim {
             sim,
             sync,
+            world_tiles: (tmin, tmax),
+            drain,
+            drained: 0.0,
             queue,
             dirty,
         }
@@ -138,8 +175,29 @@ impl WorldSim {
     /// and publish the changed bricks on the editing queue.
     pub fn step(&mut self, world: &mut SceneWorld, dt: f64) -> StepReport {
         let report = self.sim.step(dt);
+        let (tmin, tmax) = self.world_tiles;
+        let inside = |t: &glam::IVec2| t.cmpge(tmin).all() && t.cmplt(tmax).all();
+        if self.drain
+            && let Some(w) = self.sim.channels().find("water")
+        {
+            // Empty the moat: what flowed over the edge has left the world.
+            for t in report.changed_tiles.iter().filter(|t| !inside(t)) {
+                if let Some(d) = self.sim.channels().get(*t, w) {
+                    self.drained += d.iter().sum::<f64>();
+                    self.sim
+                        .channels_mut()
+                        .set(*t, w, &[0.0; super::tile::TILE_CELLS]);
+                }
+            }
+        }
+        let changed: Vec<glam::IVec2> = report
+            .changed_tiles
+            .iter()
+            .copied()
+            .filter(inside)
+            .collect();
         self.sync
-            .write(self.sim.channels(), &report.changed_tiles, &mut world.store);
+            .write(self.sim.channels(), &changed, &mut world.store);
         let bricks = world.apply_edits();
         // The receiver lives in `self`, so sending cannot fail.
         let _ = self.queue.send(DirtyBatch {

@@ -1,0 +1,207 @@
+//! Simulations on real scenes: water drains over every edge of the world and
+//! is accounted for; the `sim`, `verify sims` and `bench sim` commands.
+
+use std::process::Command;
+
+use brickworld::scene::{SceneSpec, build_scene};
+use brickworld::sim::{Limits, ScriptSource, WorldSim};
+use glam::{IVec2, IVec3};
+use indicatif::ProgressBar;
+
+#[test]
+fn water_drains_over_every_edge_and_world_plus_drained_is_conserved() {
+    let mut world = build_scene(
+        &SceneSpec::Terrain { caves: false },
+        IVec3::new(32, 32, 32),
+        2,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    let src = ScriptSource {
+        name: "water".into(),
+        text: include_str!("../scripts/water.lua").into(),
+    };
+    ws.add_lua(src, Limits::default()).unwrap();
+    let w = ws.sim.channels_mut().channel("water");
+    // A uniform sheet of water 3 deep over the whole world, nothing else.
+    for tz in 0..4 {
+        for tx in 0..4 {
+            ws.sim.channels_mut().set(IVec2::new(tx, tz), w, &[3.0; 64]);
+        }
+    }
+    let start = ws.sim.channels().total(w);
+    for _ in 0..400 {
+        let (r, _) = ws.step_within_cfl(&mut world, 0.05, 0.5);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+    }
+    let now = ws.sim.channels().total(w);
+    assert!(
+        ws.drained > 0.1 * start,
+        "water left the world: {} of {start}",
+        ws.drained
+    );
+    assert!(
+        ((now + ws.drained) - start).abs() < 1e-9 * start,
+        "world {now} + drained {} != {start}",
+        ws.drained
+    );
+}
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_brickworld"))
+}
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("brickworld-simcli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+#[test]
+fn sim_command_runs_all_scripts_and_renders() {
+    let png = tmp("s.png");
+    let root = env!("CARGO_MANIFEST_DIR");
+    let out = bin()
+        .args([
+            "sim", "--scene", "terrain", "--size", "32x32x32", "--steps", "5", "--width", "32",
+            "--height", "24",
+        ])
+        .args([
+            "--script",
+            &format!("{root}/scripts/water.lua"),
+            "--script",
+            &format!("{root}/scripts/erosion.lua"),
+        ])
+        .args([
+            "--script",
+            &format!("{root}/scripts/snow.lua"),
+            "--param",
+            "water.rain=0.5",
+            "--param",
+            "snow.snowfall=0.5",
+        ])
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("total water"), "{err}");
+    assert!(std::fs::metadata(&png).unwrap().len() > 100);
+}
+
+#[test]
+fn sim_command_rejects_bad_input_clearly() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let water = format!("{root}/scripts/water.lua");
+    let bad = tmp("broken.lua");
+    std::fs::write(&bad, "return {\n  channels = { \"water\" \n").unwrap();
+    for (args, needle) in [
+        (
+            vec!["sim", "--script", "/nonexistent/x.lua"],
+            "cannot read /nonexistent/x.lua",
+        ),
+        (
+            vec!["sim", "--script", bad.to_str().unwrap()],
+            "broken.lua:",
+        ),
+        (
+            vec!["sim", "--script", &water, "--param", "water.rain=99"],
+            "outside [0, 10]",
+        ),
+        (
+            vec!["sim", "--script", &water, "--param", "lava.heat=1"],
+            "not loaded",
+        ),
+        (
+            vec!["sim", "--script", &water, "--param", "water.rain"],
+            "invalid --param",
+        ),
+        (
+            vec!["sim", "--script", &water, "--steps", "0"],
+            "invalid --steps",
+        ),
+        (
+            vec!["sim", "--script", &water, "--dt", "-1"],
+            "invalid --dt",
+        ),
+        (vec!["sim"], "--script"),
+        (
+            vec!["bench", "sim", "--json", "/tmp/x.json", "--sizes", "12"],
+            "invalid --sizes",
+        ),
+    ] {
+        let out = bin()
+            .args(&args)
+            .args(["--size", "16x16x16"].iter().filter(|_| args[0] == "sim"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} should fail");
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+        assert!(
+            err.contains(needle),
+            "{args:?}: '{err}' should mention '{needle}'"
+        );
+    }
+}
+
+#[test]
+fn verify_and_bench_sim_write_the_documented_json() {
+    let json = tmp("v.json");
+    let out = bin()
+        .args(["verify", "sims", "--conservation-steps", "50", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let names: Vec<&str> = v["cases"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    for n in [
+        "ritter_dam_break",
+        "lake_at_rest",
+        "mass_conservation",
+        "talus_angle",
+        "stability_sweep",
+        "determinism",
+    ] {
+        assert!(names.contains(&n), "missing case {n}");
+    }
+    for c in v["cases"].as_array().unwrap() {
+        assert_eq!(c["passed"], true, "{c}");
+        assert!(c["script"].is_string() && c["metrics"].is_object());
+    }
+    let json = tmp("b.json");
+    let out = bin()
+        .args(["bench", "sim", "--sizes", "32", "--steps", "2", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    for s in v["scripts"].as_array().unwrap() {
+        for k in [
+            "name",
+            "lua_cells_per_s",
+            "native_cells_per_s",
+            "threads",
+            "active_bricks",
+        ] {
+            assert!(s.get(k).is_some(), "missing scripts[].{k}");
+        }
+    }
+}
