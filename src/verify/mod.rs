@@ -64,6 +64,24 @@ pub fn run_sims(json: &Path, chart_dir: Option<&Path>, conservation_steps: u64) 
             ],
         )?;
         xy_chart(
+            &dir.join("error_vs_steps_per_s.svg"),
+            "Ritter dam break: error against steps per second",
+            "steps per second (log)",
+            "relative L1 error of depth (log)",
+            &[
+                Series {
+                    name: "resolution sweep (64..512 cells)",
+                    color: blue,
+                    points: charts.steps_per_s.0.clone(),
+                },
+                Series {
+                    name: "dt sweep (CFL 0.05..0.5, 256 cells)",
+                    color: green,
+                    points: charts.steps_per_s.1.clone(),
+                },
+            ],
+        )?;
+        xy_chart(
             &dir.join("stability.svg"),
             "Stability sweep: error against CFL number (128 cells)",
             "CFL number dt * sqrt(g h0) / dx (log)",

@@ -428,6 +428,8 @@ pub struct ChartData {
     pub resolution: Vec<(f64, f64, f64)>,
     /// (CFL, L1, seconds) for the dt sweep.
     pub dt: Vec<(f64, f64, f64)>,
+    /// (steps per second, L1) for the resolution sweep and the dt sweep.
+    pub steps_per_s: (Vec<(f64, f64)>, Vec<(f64, f64)>),
     /// (CFL, L1 raw, blew up, L1 sub-stepped) for the stability sweep.
     pub stability: Vec<(f64, f64, bool, f64)>,
 }
