@@ -452,11 +452,28 @@ pub fn run_all(
     progress.inc(1);
     let det = determinism();
     progress.inc(1);
+    let sps = |c: &Case, key: &str| -> Vec<(f64, f64)> {
+        c.metrics[key]
+            .as_array()
+            .map(|a| {
+                a.iter()
+                    .map(|r| {
+                        (
+                            r["steps_per_s"].as_f64().unwrap_or(0.0),
+                            r["l1_rel"].as_f64().unwrap_or(0.0),
+                        )
+                    })
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let steps_per_s = (sps(&ritter, "resolutions"), sps(&ritter, "dt_sweep_256"));
     (
         vec![ritter, lake, mass, talus, stab, det],
         ChartData {
             resolution,
             dt,
+            steps_per_s,
             stability,
         },
     )
