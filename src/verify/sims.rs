@@ -421,6 +421,9 @@ fn determinism() -> Case {
     }
 }
 
+/// (x, y) points of a chart series.
+pub type Points = Vec<(f64, f64)>;
+
 /// Chart data gathered while verifying.
 #[derive(Debug, Default)]
 pub struct ChartData {
@@ -429,7 +432,7 @@ pub struct ChartData {
     /// (CFL, L1, seconds) for the dt sweep.
     pub dt: Vec<(f64, f64, f64)>,
     /// (steps per second, L1) for the resolution sweep and the dt sweep.
-    pub steps_per_s: (Vec<(f64, f64)>, Vec<(f64, f64)>),
+    pub steps_per_s: (Points, Points),
     /// (CFL, L1 raw, blew up, L1 sub-stepped) for the stability sweep.
     pub stability: Vec<(f64, f64, bool, f64)>,
 }
