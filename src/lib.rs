@@ -12,6 +12,7 @@
 pub mod app;
 pub mod bench;
 pub mod cli;
+pub mod gpu;
 pub mod config;
 pub mod progress;
 pub mod scene;

@@ -154,6 +154,16 @@ impl BrickGrid {
         (self.occ[i >> 6] >> (i & 63)) & 1 != 0
     }
 
+    /// The pointer array (x fastest, then y, then z).
+    pub fn pointers(&self) -> &[u32] {
+        &self.cells
+    }
+
+    /// The occupancy bits as 64-bit words (bit i = occupancy cell i, x fastest).
+    pub fn occupancy_words(&self) -> &[u64] {
+        &self.occ
+    }
+
     /// Bytes of the pointer array and the occupancy layer.
     pub fn bytes(&self) -> usize {
         self.cells.len() * 4 + self.occ.len() * 8

@@ -295,6 +295,13 @@ impl BrickPool {
         })
     }
 
+    /// Raw arrays for uploading to a GPU: masks (one per slot), metadata as
+    /// `(data, flags)` per slot (see the module docs), and the material arena.
+    pub fn raw(&self) -> (&[[u64; 8]], Vec<[u32; 2]>, &[u8]) {
+        let meta = self.meta.iter().map(|m| [m.data, m.flags as u32]).collect();
+        (&self.masks, meta, &self.arena)
+    }
+
     /// Number of live bricks.
     pub fn len(&self) -> usize {
         self.live

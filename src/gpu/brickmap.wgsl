@@ -1,0 +1,348 @@
+// The GPU brickmap tracer: the same exact hierarchical DDA as the CPU
+// (src/trace/dda.rs, src/trace/brickmap.rs), ported to WGSL.
+//
+// One invocation per pixel: build the DESIGN §3 camera ray, enter the grid,
+// walk occupancy cells (32³ voxels) and bricks (8³) as coarse DDAs through
+// empty space, restore the exact voxel state on descent, step voxels against
+// the 512-bit mask, shade with Lambert (+ an optional shadow ray).
+//
+// WGSL implementations may treat infinities as indeterminate, so switched-off
+// axes use a large finite crossing time (BIG) instead of +inf.
+
+struct Params {
+    eye: vec3<f32>, tan_half: f32,
+    f: vec3<f32>, aspect: f32,
+    r: vec3<f32>, ambient: f32,
+    u: vec3<f32>, shadows: u32,
+    light: vec3<f32>, width: u32,
+    dims: vec3<i32>, height: u32,   // grid size in voxels
+    anchor: vec3<i32>, _pad: u32,   // world voxel of local (0, 0, 0)
+};
+
+struct PixelOut {
+    rgba: u32,
+    depth: f32,
+    vx: i32,
+    vy: i32,
+    vz: i32,
+    normal: u32, // 0: miss; else 1 + axis*2 + (sign > 0); 7: started inside
+};
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> grid: array<u32>;
+@group(0) @binding(2) var<storage, read> occ: array<u32>;
+@group(0) @binding(3) var<storage, read> masks: array<u32>;   // 16 words per slot
+@group(0) @binding(4) var<storage, read> bmeta: array<u32>;   // 2 words per slot: data, flags
+@group(0) @binding(5) var<storage, read> arena: array<u32>;   // material arena bytes
+@group(0) @binding(6) var<storage, read> palette: array<u32>; // 256 x 0x00BBGGRR
+@group(0) @binding(7) var<storage, read_write> out: array<PixelOut>;
+
+const BIG: f32 = 1e30;
+const UNIFORM: u32 = 0x80000000u;
+const FLAG_MULTI: u32 = 2u;
+
+struct Ray {
+    o: vec3<f32>,
+    d: vec3<f32>,
+    inv: vec3<f32>,
+    step: vec3<i32>,
+    plane: vec3<i32>,
+    act: vec3<bool>,
+};
+
+struct State {
+    cell: vec3<i32>,
+    tmax: vec3<f32>,
+    t: f32,
+    axes: u32,
+};
+
+fn make_ray(o: vec3<f32>, d: vec3<f32>) -> Ray {
+    var r: Ray;
+    r.o = o;
+    r.d = d;
+    for (var a = 0; a < 3; a++) {
+        let act = abs(d[a]) > 1e-30;
+        r.act[a] = act;
+        r.inv[a] = select(0.0, 1.0 / d[a], act);
+        r.step[a] = select(0, select(-1, 1, d[a] > 0.0), act);
+        r.plane[a] = select(0, 1, d[a] < 0.0);
+    }
+    return r;
+}
+
+fn crossing(r: Ray, a: i32, c: i32) -> f32 {
+    return select(BIG, (f32(c + r.plane[a]) - r.o[a]) * r.inv[a], r.act[a]);
+}
+
+// (cell, next crossing, stepped exactly at t) on axis a after all crossings <= t.
+struct AxisAfter { c: i32, next: f32, at: bool };
+
+fn axis_after(r: Ray, a: i32, t: f32, start: i32) -> AxisAfter {
+    var res: AxisAfter;
+    if (!r.act[a]) {
+        res.c = start; res.next = BIG; res.at = false;
+        return res;
+    }
+    let s = r.step[a];
+    let est = i32(floor(clamp(r.o[a] + t * r.d[a], -3.0e7, 3.0e7)));
+    var c = select(min(est, start), max(est, start), s > 0);
+    var next = crossing(r, a, c + s);
+    var guard = 0;
+    while (next <= t && guard < 4096) {
+        c += s;
+        next = crossing(r, a, c + s);
+        guard++;
+    }
+    var at = false;
+    while (c != start && guard < 8192) {
+        let cur = crossing(r, a, c);
+        if (cur > t) {
+            next = cur;
+            c -= s;
+            guard++;
+        } else {
+            at = cur == t;
+            break;
+        }
+    }
+    res.c = c; res.next = next; res.at = at;
+    return res;
+}
+
+fn advance_to(r: Ray, st: ptr<function, State>, t: f32) {
+    var axes = 0u;
+    for (var a = 0; a < 3; a++) {
+        if ((*st).tmax[a] > t) { continue; }
+        let x = axis_after(r, a, t, (*st).cell[a]);
+        (*st).cell[a] = x.c;
+        (*st).tmax[a] = x.next;
+        if (x.at) { axes |= 1u << u32(a); }
+    }
+    (*st).t = t;
+    (*st).axes = axes;
+}
+
+fn floor_i(x: f32) -> i32 { return i32(floor(x)); }
+
+// Enter [0, hi); returns false if the ray never spends length inside.
+fn enter(r: Ray, hi: vec3<i32>, st: ptr<function, State>) -> bool {
+    let start = vec3<i32>(floor_i(r.o.x), floor_i(r.o.y), floor_i(r.o.z));
+    var t_enter = 0.0;
+    var outside = false;
+    for (var a = 0; a < 3; a++) {
+        if (start[a] < 0 || start[a] >= hi[a]) {
+            outside = true;
+            let first = select(hi[a] - 1, 0, start[a] < 0);
+            let moving_in = (start[a] < 0 && r.step[a] > 0) || (start[a] >= hi[a] && r.step[a] < 0);
+            if (!moving_in) { return false; }
+            t_enter = max(t_enter, crossing(r, a, first));
+        }
+    }
+    (*st).cell = start;
+    (*st).t = 0.0;
+    (*st).axes = 0u;
+    for (var a = 0; a < 3; a++) {
+        (*st).tmax[a] = crossing(r, a, start[a] + r.step[a]);
+    }
+    if (!outside) { return true; }
+    advance_to(r, st, t_enter);
+    for (var a = 0; a < 3; a++) {
+        if ((*st).cell[a] < 0 || (*st).cell[a] >= hi[a]) { return false; }
+    }
+    return true;
+}
+
+fn step_fine(r: Ray, st: ptr<function, State>) {
+    let t = min((*st).tmax.x, min((*st).tmax.y, (*st).tmax.z));
+    var axes = 0u;
+    for (var a = 0; a < 3; a++) {
+        if ((*st).tmax[a] == t) {
+            (*st).cell[a] += r.step[a];
+            (*st).tmax[a] = crossing(r, a, (*st).cell[a] + r.step[a]);
+            axes |= 1u << u32(a);
+        }
+    }
+    (*st).t = t;
+    (*st).axes = axes;
+}
+
+fn coarse_exit(r: Ray, a: i32, c: i32, shift: u32) -> i32 {
+    return select((c << shift) - 1, (c + 1) << shift, r.step[a] > 0);
+}
+
+fn inside(c: vec3<i32>, hi: vec3<i32>) -> bool {
+    return all(c >= vec3<i32>(0)) && all(c < hi);
+}
+
+fn occupied(o: vec3<i32>) -> bool {
+    let od = P.dims >> vec3<u32>(5u);
+    let i = u32(o.x + od.x * (o.y + od.y * o.z));
+    return ((occ[i >> 5u] >> (i & 31u)) & 1u) != 0u;
+}
+
+fn pointer(b: vec3<i32>) -> u32 {
+    let bd = P.dims >> vec3<u32>(3u);
+    return grid[u32(b.x + bd.x * (b.y + bd.y * b.z))];
+}
+
+fn arena_byte(k: u32) -> u32 {
+    return (arena[k >> 2u] >> (8u * (k & 3u))) & 0xffu;
+}
+
+fn brick_material(slot: u32, idx: u32) -> u32 {
+    let data = bmeta[slot * 2u];
+    let flags = bmeta[slot * 2u + 1u];
+    if ((flags & FLAG_MULTI) == 0u) { return data & 0xffu; }
+    let word = idx >> 5u;
+    var rank = 0u;
+    for (var w = 0u; w < word; w++) { rank += countOneBits(masks[slot * 16u + w]); }
+    rank += countOneBits(masks[slot * 16u + word] & ((1u << (idx & 31u)) - 1u));
+    let pal_len = arena_byte(data);
+    let bits = arena_byte(data + 1u);
+    let bit = rank * bits;
+    let local = (arena_byte(data + 3u + pal_len + (bit >> 3u)) >> (bit & 7u)) & ((1u << bits) - 1u);
+    return arena_byte(data + 3u + local);
+}
+
+struct Hit { found: bool, t: f32, cell: vec3<i32>, normal: vec3<i32>, material: u32 };
+
+fn hit_of(r: Ray, st: State, m: u32) -> Hit {
+    var h: Hit;
+    h.found = true;
+    h.t = st.t;
+    h.cell = st.cell;
+    h.material = m;
+    h.normal = vec3<i32>(0);
+    if (st.axes != 0u) {
+        let a = i32(firstTrailingBit(st.axes));
+        h.normal[a] = -r.step[a];
+    }
+    return h;
+}
+
+fn trace(o: vec3<f32>, d: vec3<f32>) -> Hit {
+    var miss: Hit;
+    miss.found = false;
+    let r = make_ray(o, d);
+    if (!any(r.act)) { return miss; }
+    var st: State;
+    if (!enter(r, P.dims, &st)) { return miss; }
+    let od = P.dims >> vec3<u32>(5u);
+    for (var guard = 0; guard < 1000000; guard++) {
+        var oc = st.cell >> vec3<u32>(5u);
+        if (!occupied(oc)) {
+            var ot: vec3<f32>;
+            for (var a = 0; a < 3; a++) { ot[a] = crossing(r, a, coarse_exit(r, a, oc[a], 5u)); }
+            loop {
+                let t = min(ot.x, min(ot.y, ot.z));
+                for (var a = 0; a < 3; a++) {
+                    if (ot[a] == t) {
+                        oc[a] += r.step[a];
+                        ot[a] = crossing(r, a, coarse_exit(r, a, oc[a], 5u));
+                    }
+                }
+                if (!inside(oc, od)) { return miss; }
+                if (occupied(oc)) { advance_to(r, &st, t); break; }
+            }
+        }
+        var bc = st.cell >> vec3<u32>(3u);
+        var leave = false;
+        loop {
+            let p = pointer(bc);
+            if (p == 0u) {
+                var bt: vec3<f32>;
+                for (var a = 0; a < 3; a++) { bt[a] = crossing(r, a, coarse_exit(r, a, bc[a], 3u)); }
+                var up = false;
+                loop {
+                    let t = min(bt.x, min(bt.y, bt.z));
+                    for (var a = 0; a < 3; a++) {
+                        if (bt[a] == t) {
+                            bc[a] += r.step[a];
+                            bt[a] = crossing(r, a, coarse_exit(r, a, bc[a], 3u));
+                        }
+                    }
+                    if (any((bc >> vec3<u32>(2u)) != oc)) {
+                        advance_to(r, &st, t);
+                        if (!inside(st.cell, P.dims)) { return miss; }
+                        up = true;
+                        break;
+                    }
+                    if (pointer(bc) != 0u) { advance_to(r, &st, t); break; }
+                }
+                if (up) { leave = true; break; }
+                continue;
+            }
+            if ((p & UNIFORM) != 0u) { return hit_of(r, st, p & 0xffu); }
+            let slot = p - 1u;
+            loop {
+                let l = st.cell & vec3<i32>(7);
+                let i = u32(l.x | (l.y << 3u) | (l.z << 6u));
+                if (((masks[slot * 16u + (i >> 5u)] >> (i & 31u)) & 1u) != 0u) {
+                    return hit_of(r, st, brick_material(slot, i));
+                }
+                step_fine(r, &st);
+                if (any((st.cell >> vec3<u32>(3u)) != bc)) { break; }
+            }
+            if (!inside(st.cell, P.dims)) { return miss; }
+            if (any((st.cell >> vec3<u32>(5u)) != oc)) { leave = true; break; }
+            bc = st.cell >> vec3<u32>(3u);
+        }
+        if (leave) { continue; }
+    }
+    return miss;
+}
+
+fn unpack_rgb(c: u32) -> vec3<f32> {
+    return vec3<f32>(f32(c & 0xffu), f32((c >> 8u) & 0xffu), f32((c >> 16u) & 0xffu)) / 255.0;
+}
+
+fn sky(d: vec3<f32>) -> vec3<f32> {
+    let k = clamp(d.y, 0.0, 1.0);
+    return mix(vec3<f32>(0.78, 0.86, 0.95), vec3<f32>(0.33, 0.52, 0.84), k);
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= P.width || gid.y >= P.height) { return; }
+    let w = f32(P.width);
+    let h = f32(P.height);
+    let a = ((f32(gid.x) + 0.5) / w * 2.0 - 1.0) * P.tan_half * P.aspect;
+    let b = (1.0 - (f32(gid.y) + 0.5) / h * 2.0) * P.tan_half;
+    let d = normalize(P.f + a * P.r + b * P.u);
+    let hit = trace(P.eye, d);
+    var o: PixelOut;
+    var color: vec3<f32>;
+    if (hit.found) {
+        let n = vec3<f32>(hit.normal);
+        var lambert = max(dot(n, P.light), 0.0);
+        if (P.shadows != 0u && lambert > 0.0) {
+            let cell = hit.cell + hit.normal;
+            let p = P.eye + d * hit.t;
+            let lo = vec3<f32>(cell);
+            let hi = vec3<f32>(cell + vec3<i32>(1));
+            // Largest f32 below hi: one ulp down (the cells' bounds are exact).
+            let below = bitcast<vec3<f32>>(bitcast<vec3<u32>>(hi) - vec3<u32>(select(vec3<u32>(0u), vec3<u32>(1u), hi > vec3<f32>(0.0)))) ;
+            let hi2 = select(below, -bitcast<vec3<f32>>(bitcast<vec3<u32>>(-hi) + vec3<u32>(1u)), hi <= vec3<f32>(0.0));
+            let q = clamp(p, lo, hi2);
+            if (trace(q, P.light).found) { lambert = 0.0; }
+        }
+        let k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
+        color = unpack_rgb(palette[hit.material]) * k;
+        o.depth = hit.t;
+        let world = hit.cell + P.anchor;
+        o.vx = world.x; o.vy = world.y; o.vz = world.z;
+        var code = 7u;
+        for (var ax = 0; ax < 3; ax++) {
+            if (hit.normal[ax] != 0) { code = 1u + u32(ax) * 2u + select(0u, 1u, hit.normal[ax] > 0); }
+        }
+        o.normal = code;
+    } else {
+        color = sky(d);
+        o.depth = -1.0;
+        o.normal = 0u;
+    }
+    let c = vec3<u32>(clamp(color, vec3<f32>(0.0), vec3<f32>(1.0)) * 255.0 + 0.5);
+    o.rgba = c.x | (c.y << 8u) | (c.z << 16u) | (255u << 24u);
+    out[gid.y * P.width + gid.x] = o;
+}
