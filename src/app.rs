@@ -115,6 +115,34 @@ fn run_render(s: RenderSettings) -> Result<()> {
             ..Default::default()
         };
         let built = t0.elapsed();
+        if s.gpu {
+            if s.structure != Structure::Brickmap {
+                anyhow::bail!("--tracer gpu renders the brickmap only; drop --structure {}", s.structure);
+            }
+            match crate::gpu::GpuContext::new() {
+                Ok(ctx) => {
+                    let t1 = Instant::now();
+                    let gpu = crate::gpu::GpuBrickmap::new(&ctx, &world.grid, world.store.pool(), world.store.palette())?;
+                    let out = gpu.render(&ctx, &camera, &opts)?;
+                    let traced = t1.elapsed();
+                    write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
+                    if let Some(d) = &s.depth_out {
+                        write_npy(d, out.width, out.height, &out.depth).with_context(|| format!("cannot write {}", d.display()))?;
+                    }
+                    eprintln!(
+                        "rendered {}x{} on the GPU ({}) in {:.3} s, upload included (scene built in {:.2} s) -> {}",
+                        out.width,
+                        out.height,
+                        ctx.describe(),
+                        traced.as_secs_f64(),
+                        built.as_secs_f64(),
+                        s.out.display()
+                    );
+                    return Ok(());
+                }
+                Err(e) => eprintln!("warning: {e}; rendering on the CPU instead"),
+            }
+        }
         let t1 = Instant::now();
         let out = match s.structure {
             Structure::Brickmap => render(&world.brickmap(), &camera, world.store.palette(), &opts),

@@ -164,6 +164,9 @@ pub struct RenderArgs {
     /// Tracer: dense, svo or brickmap
     #[arg(long, default_value = "brickmap")]
     pub structure: String,
+    /// Where to trace: cpu, or gpu (the brickmap on wgpu; falls back to the CPU with one line if no adapter)
+    #[arg(long, default_value = "cpu")]
+    pub tracer: String,
     /// Trace hard shadows towards the light
     #[arg(long)]
     pub shadows: bool,

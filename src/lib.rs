@@ -12,8 +12,8 @@
 pub mod app;
 pub mod bench;
 pub mod cli;
-pub mod gpu;
 pub mod config;
+pub mod gpu;
 pub mod progress;
 pub mod scene;
 pub mod sim;

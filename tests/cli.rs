@@ -277,3 +277,62 @@ fn a_structure_that_does_not_fit_reports_an_error_and_the_bench_goes_on() {
     );
     assert!(v["structures"][2]["mrays_per_s"].as_f64().unwrap() > 0.0);
 }
+
+#[test]
+fn gpu_tracer_renders_or_falls_back_to_the_cpu_with_one_line() {
+    let png = tmp("g.png");
+    let npy = tmp("g.npy");
+    let run = |envs: &[(&str, &str)]| {
+        let mut c = bin();
+        c.args([
+            "render", "--tracer", "gpu", "--size", "48x32x48", "--width", "40", "--height", "30",
+            "--out",
+        ])
+        .arg(&png)
+        .arg("--depth-out")
+        .arg(&npy);
+        for (k, v) in envs {
+            c.env(k, v);
+        }
+        c.output().unwrap()
+    };
+    // Whatever the machine has, the command succeeds and writes both files.
+    let out = run(&[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(std::fs::metadata(&npy).unwrap().len() > 0);
+    // With no Vulkan driver at all: one warning line, then the CPU renders.
+    let out = run(&[
+        ("VK_ICD_FILENAMES", "/nonexistent"),
+        ("VK_DRIVER_FILES", "/nonexistent"),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("warning: no GPU adapter found")
+            && err.contains("rendering on the CPU instead"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"));
+    expect_failure(
+        &["render", "--tracer", "tpu", "--out", png.to_str().unwrap()],
+        "invalid --tracer",
+    );
+    expect_failure(
+        &[
+            "render",
+            "--tracer",
+            "gpu",
+            "--structure",
+            "svo",
+            "--size",
+            "16x16x16",
+            "--out",
+            png.to_str().unwrap(),
+        ],
+        "brickmap only",
+    );
+}

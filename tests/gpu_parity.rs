@@ -19,7 +19,9 @@ const COLOUR_TOLERANCE: u8 = 2;
 fn context() -> Option<GpuContext> {
     match GpuContext::new() {
         Ok(c) => Some(c),
-        Err(GpuError::NoAdapter) if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() != Ok("1") => {
+        Err(GpuError::NoAdapter)
+            if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() != Ok("1") =>
+        {
             eprintln!("no GPU adapter: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
             None
         }
@@ -28,7 +30,13 @@ fn context() -> Option<GpuContext> {
 }
 
 fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
-    let gpu = GpuBrickmap::new(ctx, &b.world.grid, b.world.store.pool(), b.world.store.palette()).unwrap();
+    let gpu = GpuBrickmap::new(
+        ctx,
+        &b.world.grid,
+        b.world.store.pool(),
+        b.world.store.palette(),
+    )
+    .unwrap();
     let opts = RenderOptions {
         shadows,
         ..Default::default()
@@ -47,17 +55,33 @@ fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
                 if let Some(h) = cpu.hits[i] {
                     let rel = (g.depth[i] - h.t).abs() / h.t.max(1.0);
                     depth_bad += (rel > 1e-3) as usize;
-                    let d = (0..3).map(|k| cpu.rgb[i * 3 + k].abs_diff(g.rgb[i * 3 + k])).max().unwrap();
+                    let d = (0..3)
+                        .map(|k| cpu.rgb[i * 3 + k].abs_diff(g.rgb[i * 3 + k]))
+                        .max()
+                        .unwrap();
                     colour_bad += (d > COLOUR_TOLERANCE) as usize;
                 }
             }
         }
         let frac = same as f64 / n as f64;
-        eprintln!("{name} view {vi}: same voxel {:.4} %, depth off {depth_bad}, colour off {colour_bad}", frac * 100.0);
-        assert!(frac >= 0.999, "{name} view {vi}: only {:.3} % of pixels hit the same voxel", frac * 100.0);
-        assert_eq!(depth_bad, 0, "{name} view {vi}: depths differ by more than 1e-3 relative");
+        eprintln!(
+            "{name} view {vi}: same voxel {:.4} %, depth off {depth_bad}, colour off {colour_bad}",
+            frac * 100.0
+        );
+        assert!(
+            frac >= 0.999,
+            "{name} view {vi}: only {:.3} % of pixels hit the same voxel",
+            frac * 100.0
+        );
+        assert_eq!(
+            depth_bad, 0,
+            "{name} view {vi}: depths differ by more than 1e-3 relative"
+        );
         // Shadow rays may resolve near-ties differently: allow 0.5 % of pixels.
-        assert!(colour_bad as f64 <= 0.005 * n as f64, "{name} view {vi}: {colour_bad} pixels differ in colour");
+        assert!(
+            colour_bad as f64 <= 0.005 * n as f64,
+            "{name} view {vi}: {colour_bad} pixels differ in colour"
+        );
     }
 }
 

@@ -74,12 +74,20 @@ impl GpuContext {
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(e.to_string()))?;
-        Ok(GpuContext { device, queue, info, limits })
+        Ok(GpuContext {
+            device,
+            queue,
+            info,
+            limits,
+        })
     }
 
     /// One line describing the adapter.
     pub fn describe(&self) -> String {
-        format!("{} ({:?}, {:?})", self.info.name, self.info.backend, self.info.device_type)
+        format!(
+            "{} ({:?}, {:?})",
+            self.info.name, self.info.backend, self.info.device_type
+        )
     }
 }
 
@@ -138,22 +146,43 @@ pub struct GpuBrickmap {
 }
 
 fn words_of(bytes: &[u8]) -> Vec<u32> {
-    bytes.chunks(4).map(|c| c.iter().enumerate().fold(0u32, |w, (i, b)| w | (*b as u32) << (8 * i))).collect()
+    bytes
+        .chunks(4)
+        .map(|c| {
+            c.iter()
+                .enumerate()
+                .fold(0u32, |w, (i, b)| w | (*b as u32) << (8 * i))
+        })
+        .collect()
 }
 
 impl GpuBrickmap {
     /// Upload `grid` (with `pool`'s bricks) and `palette`, and build the pipeline.
-    pub fn new(ctx: &GpuContext, grid: &BrickGrid, pool: &BrickPool, palette: &Palette) -> Result<Self, GpuError> {
+    pub fn new(
+        ctx: &GpuContext,
+        grid: &BrickGrid,
+        pool: &BrickPool,
+        palette: &Palette,
+    ) -> Result<Self, GpuError> {
         let dev = &ctx.device;
         let (masks, meta, arena) = pool.raw();
-        let occ: Vec<u32> = grid.occupancy_words().iter().flat_map(|w| [*w as u32, (*w >> 32) as u32]).collect();
-        let mask_words: Vec<u32> = masks.iter().flat_map(|m| m.iter().flat_map(|w| [*w as u32, (*w >> 32) as u32])).collect();
+        let occ: Vec<u32> = grid
+            .occupancy_words()
+            .iter()
+            .flat_map(|w| [*w as u32, (*w >> 32) as u32])
+            .collect();
+        let mask_words: Vec<u32> = masks
+            .iter()
+            .flat_map(|m| m.iter().flat_map(|w| [*w as u32, (*w >> 32) as u32]))
+            .collect();
         let meta_words: Vec<u32> = meta.iter().flat_map(|m| *m).collect();
         let arena_words = words_of(arena);
-        let pal: Vec<u32> = (0..=255u8).map(|m| {
-            let c = palette.rgb(m);
-            c[0] as u32 | (c[1] as u32) << 8 | (c[2] as u32) << 16
-        }).collect();
+        let pal: Vec<u32> = (0..=255u8)
+            .map(|m| {
+                let c = palette.rgb(m);
+                c[0] as u32 | (c[1] as u32) << 8 | (c[2] as u32) << 16
+            })
+            .collect();
         let limit = ctx.limits.max_storage_buffer_binding_size;
         let pad = |v: Vec<u32>| if v.is_empty() { vec![0u32] } else { v };
         let contents: [(&'static str, Vec<u32>); 6] = [
@@ -166,8 +195,12 @@ impl GpuBrickmap {
         ];
         for (what, v) in &contents {
             let needed = v.len() as u64 * 4;
-            if needed > limit as u64 {
-                return Err(GpuError::TooLarge { what, needed, limit: limit as u64 });
+            if needed > limit {
+                return Err(GpuError::TooLarge {
+                    what,
+                    needed,
+                    limit,
+                });
             }
         }
         let buffers = contents.map(|(what, v)| {
@@ -236,7 +269,12 @@ impl GpuBrickmap {
     }
 
     /// Render `camera`'s view.
-    pub fn render(&self, ctx: &GpuContext, camera: &Camera, opts: &RenderOptions) -> Result<GpuFrame, GpuError> {
+    pub fn render(
+        &self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        opts: &RenderOptions,
+    ) -> Result<GpuFrame, GpuError> {
         let dev = &ctx.device;
         let (w, h) = (camera.width, camera.height);
         let f = (camera.target - camera.eye).normalize();
@@ -296,7 +334,9 @@ impl GpuBrickmap {
             layout: &self.layout,
             entries: &entries,
         });
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("frame"),
+        });
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("trace"),
@@ -313,11 +353,14 @@ impl GpuBrickmap {
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
-        dev.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError::Runtime(e.to_string()))?;
+        dev.poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Runtime(e.to_string()))?;
         rx.recv()
             .map_err(|e| GpuError::Runtime(e.to_string()))?
             .map_err(|e| GpuError::Runtime(e.to_string()))?;
-        let data = slice.get_mapped_range().map_err(|e| GpuError::Runtime(e.to_string()))?;
+        let data = slice
+            .get_mapped_range()
+            .map_err(|e| GpuError::Runtime(e.to_string()))?;
         let px: &[PixelOut] = bytemuck::cast_slice(&data);
         let mut frame = GpuFrame {
             width: w,
@@ -327,7 +370,9 @@ impl GpuBrickmap {
             hits: Vec::with_capacity(pixels as usize),
         };
         for p in px {
-            frame.rgb.extend_from_slice(&[p.rgba as u8, (p.rgba >> 8) as u8, (p.rgba >> 16) as u8]);
+            frame
+                .rgb
+                .extend_from_slice(&[p.rgba as u8, (p.rgba >> 8) as u8, (p.rgba >> 16) as u8]);
             if p.normal == 0 {
                 frame.depth.push(f32::INFINITY);
                 frame.hits.push(None);
