@@ -122,8 +122,8 @@ fn run_render(s: RenderSettings) -> Result<()> {
             match crate::gpu::GpuContext::new() {
                 Ok(ctx) => {
                     let t1 = Instant::now();
-                    let gpu = crate::gpu::GpuBrickmap::new(&ctx, &world.grid, world.store.pool(), world.store.palette())?;
-                    let out = gpu.render(&ctx, &camera, &opts)?;
+                    let mut gpu = crate::gpu::GpuBrickmap::preloaded(&ctx, &world.grid, world.store.pool(), world.store.palette())?;
+                    let (out, _) = gpu.render(&ctx, &camera, &opts, &world.grid, world.store.pool())?;
                     let traced = t1.elapsed();
                     write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
                     if let Some(d) = &s.depth_out {

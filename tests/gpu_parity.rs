@@ -30,7 +30,7 @@ fn context() -> Option<GpuContext> {
 }
 
 fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
-    let gpu = GpuBrickmap::new(
+    let mut gpu = GpuBrickmap::preloaded(
         ctx,
         &b.world.grid,
         b.world.store.pool(),
@@ -45,7 +45,9 @@ fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
     for (vi, v) in b.world.default_views().iter().enumerate() {
         let cam = Camera::new(DVec3::from(v.eye), DVec3::from(v.target), v.fov, 160, 120).unwrap();
         let cpu = render(&bm, &cam, b.world.store.palette(), &opts);
-        let g = gpu.render(ctx, &cam, &opts).unwrap();
+        let (g, _) = gpu
+            .render(ctx, &cam, &opts, &b.world.grid, b.world.store.pool())
+            .unwrap();
         let n = cpu.hits.len();
         let (mut same, mut depth_bad, mut colour_bad) = (0usize, 0usize, 0usize);
         for i in 0..n {

@@ -8,6 +8,20 @@
 //
 // WGSL implementations may treat infinities as indeterminate, so switched-off
 // axes use a large finite crossing time (BIG) instead of +inf.
+//
+// Streaming (van Wingerden §4.1): a grid pointer's top two bits give its state.
+//   0x00000000          empty
+//   0b01 << 30 | lod565 unloaded: shade the whole brick with its LOD colour and
+//                       request it (once: compare-exchange to "requested", then
+//                       append to the bounded feedback buffer; on overflow the
+//                       pointer goes back to unloaded, so the request is simply
+//                       made again next frame). The ray then walks on through
+//                       the brick, for requests only (up to 8 LOD bricks), so a
+//                       frame asks for everything up to the real surface and
+//                       bricks revealed by an edit arrive with it.
+//   0b10 << 30 | lod565 requested: LOD colour, no new request
+//   0b11 << 30 | m      uniform brick of material m
+//   otherwise           loaded: GPU pool slot + 1 (its last-seen frame is stamped)
 
 struct Params {
     eye: vec3<f32>, tan_half: f32,
@@ -16,7 +30,8 @@ struct Params {
     u: vec3<f32>, shadows: u32,
     light: vec3<f32>, width: u32,
     dims: vec3<i32>, height: u32,   // grid size in voxels
-    anchor: vec3<i32>, _pad: u32,   // world voxel of local (0, 0, 0)
+    anchor: vec3<i32>, frame: u32,  // world voxel of local (0, 0, 0); frame number
+    feedback_capacity: u32, _p0: u32, _p1: u32, _p2: u32,
 };
 
 struct PixelOut {
@@ -25,20 +40,25 @@ struct PixelOut {
     vx: i32,
     vy: i32,
     vz: i32,
-    normal: u32, // 0: miss; else 1 + axis*2 + (sign > 0); 7: started inside
+    normal: u32, // 0: miss; else 1 + axis*2 + (sign > 0); 7: started inside; +8: LOD (brick not loaded)
 };
 
 @group(0) @binding(0) var<uniform> P: Params;
-@group(0) @binding(1) var<storage, read> grid: array<u32>;
+@group(0) @binding(1) var<storage, read_write> grid: array<atomic<u32>>;
 @group(0) @binding(2) var<storage, read> occ: array<u32>;
 @group(0) @binding(3) var<storage, read> masks: array<u32>;   // 16 words per slot
 @group(0) @binding(4) var<storage, read> bmeta: array<u32>;   // 2 words per slot: data, flags
 @group(0) @binding(5) var<storage, read> arena: array<u32>;   // material arena bytes
 @group(0) @binding(6) var<storage, read> palette: array<u32>; // 256 x 0x00BBGGRR
 @group(0) @binding(7) var<storage, read_write> out: array<PixelOut>;
+@group(0) @binding(8) var<storage, read_write> feedback: array<atomic<u32>>; // [0] = count, then brick indices
+@group(0) @binding(9) var<storage, read_write> last_seen: array<u32>;        // per pool slot
 
 const BIG: f32 = 1e30;
-const UNIFORM: u32 = 0x80000000u;
+const STATE_MASK: u32 = 0xC0000000u;
+const UNLOADED: u32 = 0x40000000u;
+const REQUESTED: u32 = 0x80000000u;
+const UNIFORM: u32 = 0xC0000000u;
 const FLAG_MULTI: u32 = 2u;
 
 struct Ray {
@@ -181,9 +201,35 @@ fn occupied(o: vec3<i32>) -> bool {
     return ((occ[i >> 5u] >> (i & 31u)) & 1u) != 0u;
 }
 
-fn pointer(b: vec3<i32>) -> u32 {
+fn brick_index(b: vec3<i32>) -> u32 {
     let bd = P.dims >> vec3<u32>(3u);
-    return grid[u32(b.x + bd.x * (b.y + bd.y * b.z))];
+    return u32(b.x + bd.x * (b.y + bd.y * b.z));
+}
+
+fn pointer(b: vec3<i32>) -> u32 {
+    return atomicLoad(&grid[brick_index(b)]);
+}
+
+// Ask for an unloaded brick, once per brick however many rays reach it.
+fn request(b: vec3<i32>, p: u32) {
+    let i = brick_index(b);
+    let claimed = atomicCompareExchangeWeak(&grid[i], p, (p & ~STATE_MASK) | REQUESTED);
+    if (claimed.exchanged) {
+        let n = atomicAdd(&feedback[0], 1u);
+        if (n < P.feedback_capacity) {
+            atomicStore(&feedback[n + 1u], i);
+        } else {
+            // Overflow: undo the claim so that a later frame asks again.
+            atomicStore(&grid[i], p);
+        }
+    }
+}
+
+fn unpack565(v: u32) -> u32 {
+    let r = (v >> 11u) & 31u;
+    let g = (v >> 5u) & 63u;
+    let b = v & 31u;
+    return ((r << 3u) | (r >> 2u)) | (((g << 2u) | (g >> 4u)) << 8u) | (((b << 3u) | (b >> 2u)) << 16u);
 }
 
 fn arena_byte(k: u32) -> u32 {
@@ -205,7 +251,7 @@ fn brick_material(slot: u32, idx: u32) -> u32 {
     return arena_byte(data + 3u + local);
 }
 
-struct Hit { found: bool, t: f32, cell: vec3<i32>, normal: vec3<i32>, material: u32 };
+struct Hit { found: bool, t: f32, cell: vec3<i32>, normal: vec3<i32>, material: u32, lod: bool, rgb: u32 };
 
 fn hit_of(r: Ray, st: State, m: u32) -> Hit {
     var h: Hit;
@@ -213,12 +259,19 @@ fn hit_of(r: Ray, st: State, m: u32) -> Hit {
     h.t = st.t;
     h.cell = st.cell;
     h.material = m;
+    h.lod = false;
+    h.rgb = palette[m];
     h.normal = vec3<i32>(0);
     if (st.axes != 0u) {
         let a = i32(firstTrailingBit(st.axes));
         h.normal[a] = -r.step[a];
     }
     return h;
+}
+
+fn select_lod(lod: Hit, other: Hit) -> Hit {
+    if (lod.found) { return lod; }
+    return other;
 }
 
 fn trace(o: vec3<f32>, d: vec3<f32>) -> Hit {
@@ -229,6 +282,9 @@ fn trace(o: vec3<f32>, d: vec3<f32>) -> Hit {
     var st: State;
     if (!enter(r, P.dims, &st)) { return miss; }
     let od = P.dims >> vec3<u32>(5u);
+    var lod_hit: Hit;
+    lod_hit.found = false;
+    var lod_count = 0;
     for (var guard = 0; guard < 1000000; guard++) {
         var oc = st.cell >> vec3<u32>(5u);
         if (!occupied(oc)) {
@@ -242,14 +298,27 @@ fn trace(o: vec3<f32>, d: vec3<f32>) -> Hit {
                         ot[a] = crossing(r, a, coarse_exit(r, a, oc[a], 5u));
                     }
                 }
-                if (!inside(oc, od)) { return miss; }
+                if (!inside(oc, od)) { return select_lod(lod_hit, miss); }
                 if (occupied(oc)) { advance_to(r, &st, t); break; }
             }
         }
         var bc = st.cell >> vec3<u32>(3u);
         var leave = false;
         loop {
-            let p = pointer(bc);
+            var p = pointer(bc);
+            let state = p & STATE_MASK;
+            if (p != 0u && (state == UNLOADED || state == REQUESTED)) {
+                if (state == UNLOADED) { request(bc, p); }
+                if (!lod_hit.found) {
+                    lod_hit = hit_of(r, st, 0u);
+                    lod_hit.lod = true;
+                    lod_hit.rgb = unpack565(p & 0xffffu);
+                }
+                lod_count++;
+                if (lod_count >= 8) { return lod_hit; }
+                // Walk on through it, for requests only.
+                p = 0u;
+            }
             if (p == 0u) {
                 var bt: vec3<f32>;
                 for (var a = 0; a < 3; a++) { bt[a] = crossing(r, a, coarse_exit(r, a, bc[a], 3u)); }
@@ -264,7 +333,7 @@ fn trace(o: vec3<f32>, d: vec3<f32>) -> Hit {
                     }
                     if (any((bc >> vec3<u32>(2u)) != oc)) {
                         advance_to(r, &st, t);
-                        if (!inside(st.cell, P.dims)) { return miss; }
+                        if (!inside(st.cell, P.dims)) { return select_lod(lod_hit, miss); }
                         up = true;
                         break;
                     }
@@ -273,24 +342,27 @@ fn trace(o: vec3<f32>, d: vec3<f32>) -> Hit {
                 if (up) { leave = true; break; }
                 continue;
             }
-            if ((p & UNIFORM) != 0u) { return hit_of(r, st, p & 0xffu); }
+            if (lod_hit.found) { return lod_hit; }
+            if (state == UNIFORM) { return hit_of(r, st, p & 0xffu); }
             let slot = p - 1u;
+            last_seen[slot] = P.frame;
             loop {
                 let l = st.cell & vec3<i32>(7);
                 let i = u32(l.x | (l.y << 3u) | (l.z << 6u));
                 if (((masks[slot * 16u + (i >> 5u)] >> (i & 31u)) & 1u) != 0u) {
+                    if (lod_hit.found) { return lod_hit; }
                     return hit_of(r, st, brick_material(slot, i));
                 }
                 step_fine(r, &st);
                 if (any((st.cell >> vec3<u32>(3u)) != bc)) { break; }
             }
-            if (!inside(st.cell, P.dims)) { return miss; }
+            if (!inside(st.cell, P.dims)) { return select_lod(lod_hit, miss); }
             if (any((st.cell >> vec3<u32>(5u)) != oc)) { leave = true; break; }
             bc = st.cell >> vec3<u32>(3u);
         }
         if (leave) { continue; }
     }
-    return miss;
+    return select_lod(lod_hit, miss);
 }
 
 fn unpack_rgb(c: u32) -> vec3<f32> {
@@ -328,7 +400,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (trace(q, P.light).found) { lambert = 0.0; }
         }
         let k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
-        color = unpack_rgb(palette[hit.material]) * k;
+        color = unpack_rgb(hit.rgb) * k;
         o.depth = hit.t;
         let world = hit.cell + P.anchor;
         o.vx = world.x; o.vy = world.y; o.vz = world.z;
@@ -336,7 +408,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         for (var ax = 0; ax < 3; ax++) {
             if (hit.normal[ax] != 0) { code = 1u + u32(ax) * 2u + select(0u, 1u, hit.normal[ax] > 0); }
         }
-        o.normal = code;
+        o.normal = code + select(0u, 8u, hit.lod);
     } else {
         color = sky(d);
         o.depth = -1.0;

@@ -302,6 +302,27 @@ impl BrickPool {
         (&self.masks, meta, &self.arena)
     }
 
+    /// Byte range `(offset, len)` of slot `index`'s material block in the
+    /// arena, `None` for a one-material brick (or a free slot).
+    pub fn arena_block(&self, index: u32) -> Option<(usize, usize)> {
+        let m = self.meta.get(index as usize)?;
+        if m.flags & FLAG_LIVE == 0 || m.flags & FLAG_MULTI == 0 {
+            return None;
+        }
+        let off = m.data as usize;
+        Some((off, (self.arena[off + 2] as usize + 1) * CLASS))
+    }
+
+    /// Bytes of material arena allocated so far (its high-water mark).
+    pub fn arena_len(&self) -> usize {
+        self.arena.len()
+    }
+
+    /// Slot capacity in use (live and free slots).
+    pub fn slots(&self) -> usize {
+        self.masks.len()
+    }
+
     /// Number of live bricks.
     pub fn len(&self) -> usize {
         self.live

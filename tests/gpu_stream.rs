@@ -1,0 +1,301 @@
+//! Ray-guided streaming on the GPU: convergence to the fully loaded image,
+//! edits visible within two frames, graceful exhaustion, and a running
+//! simulation driving re-streaming.
+
+mod common;
+
+use brickworld::gpu::{GpuBrickmap, GpuContext, GpuError, GpuFrame, StreamConfig};
+use brickworld::scene::{SceneSpec, SceneWorld, build_scene};
+use brickworld::sim::{Limits, ScriptSource, WorldSim};
+use brickworld::trace::{Camera, RenderOptions, render};
+use glam::{DVec3, IVec3};
+use indicatif::ProgressBar;
+
+fn context() -> Option<GpuContext> {
+    match GpuContext::new() {
+        Ok(c) => Some(c),
+        Err(GpuError::NoAdapter)
+            if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() != Ok("1") =>
+        {
+            eprintln!("no GPU adapter: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
+            None
+        }
+        Err(e) => panic!("GPU required but unavailable: {e}"),
+    }
+}
+
+fn camera(w: &SceneWorld, view: usize) -> Camera {
+    let v = w.default_views()[view];
+    Camera::new(DVec3::from(v.eye), DVec3::from(v.target), v.fov, 128, 96).unwrap()
+}
+
+/// Fraction of pixels where the GPU frame hits the same voxel as the CPU.
+fn agreement(w: &SceneWorld, cam: &Camera, g: &GpuFrame) -> f64 {
+    let cpu = render(
+        &w.brickmap(),
+        cam,
+        w.store.palette(),
+        &RenderOptions::default(),
+    );
+    let same = cpu
+        .hits
+        .iter()
+        .zip(&g.hits)
+        .filter(|(c, gh)| c.map(|h| h.voxel) == gh.map(|x| x.0))
+        .count();
+    same as f64 / cpu.hits.len() as f64
+}
+
+fn terrain() -> SceneWorld {
+    build_scene(
+        &SceneSpec::Terrain { caves: false },
+        IVec3::new(96, 48, 96),
+        3,
+        &ProgressBar::hidden(),
+    )
+    .unwrap()
+}
+
+/// Frames until a static view stops requesting bricks.
+fn converge(
+    ctx: &GpuContext,
+    gpu: &mut GpuBrickmap,
+    w: &SceneWorld,
+    cam: &Camera,
+) -> (usize, GpuFrame) {
+    for n in 1..=64 {
+        let (f, s) = gpu
+            .render(ctx, cam, &RenderOptions::default(), &w.grid, w.store.pool())
+            .unwrap();
+        if s.requests == 0 && f.lod_pixels == 0 {
+            return (n, f);
+        }
+    }
+    panic!("streaming did not converge in 64 frames");
+}
+
+#[test]
+fn streaming_converges_to_the_fully_loaded_image() {
+    let Some(ctx) = context() else { return };
+    let w = terrain();
+    let cam = camera(&w, 1);
+    let mut gpu = GpuBrickmap::streaming(
+        &ctx,
+        &w.grid,
+        w.store.pool(),
+        w.store.palette(),
+        StreamConfig::default(),
+    )
+    .unwrap();
+    let (first, _) = gpu
+        .render(
+            &ctx,
+            &cam,
+            &RenderOptions::default(),
+            &w.grid,
+            w.store.pool(),
+        )
+        .unwrap();
+    assert!(
+        first.lod_pixels > 0,
+        "nothing is loaded at first: LOD colours show"
+    );
+    let (frames, last) = converge(&ctx, &mut gpu, &w, &cam);
+    eprintln!(
+        "converged after {} frames, {} bricks resident",
+        frames + 1,
+        gpu.resident()
+    );
+    let mut full =
+        GpuBrickmap::preloaded(&ctx, &w.grid, w.store.pool(), w.store.palette()).unwrap();
+    let (reference, _) = full
+        .render(
+            &ctx,
+            &cam,
+            &RenderOptions::default(),
+            &w.grid,
+            w.store.pool(),
+        )
+        .unwrap();
+    assert_eq!(
+        last.hits, reference.hits,
+        "converged frame hits the same voxels as the fully loaded one"
+    );
+    assert_eq!(last.rgb, reference.rgb, "and looks the same");
+    assert!(
+        gpu.resident() < w.store.pool().len() as u32,
+        "only what rays reached was streamed"
+    );
+}
+
+#[test]
+fn an_edit_through_the_editing_queue_is_visible_within_two_frames() {
+    let Some(ctx) = context() else { return };
+    let mut w = terrain();
+    let cam = camera(&w, 1);
+    let mut gpu = GpuBrickmap::streaming(
+        &ctx,
+        &w.grid,
+        w.store.pool(),
+        w.store.palette(),
+        StreamConfig::default(),
+    )
+    .unwrap();
+    converge(&ctx, &mut gpu, &w, &cam);
+    // Carve a visible crater, and raise a tower, through the store.
+    let c = (w.bounds.0 + w.bounds.1).as_dvec3() * 0.5;
+    w.store.fill_sphere(DVec3::new(c.x, 30.0, c.z), 9.0, 0);
+    w.store
+        .fill_box(IVec3::new(20, 0, 60), IVec3::new(26, 47, 66), 3);
+    let changed = w.apply_edits();
+    assert!(!changed.is_empty());
+    gpu.apply_edits(&ctx, &w.grid, w.store.pool(), &changed);
+    // Within two frames every pixel that shows an edited brick is exact.
+    // (Unchanged bricks newly revealed behind the edit stream one frame
+    // later: occlusion feedback only requests what rays reach.)
+    let edited: std::collections::HashSet<IVec3> = changed.iter().copied().collect();
+    let cpu = render(
+        &w.brickmap(),
+        &cam,
+        w.store.palette(),
+        &RenderOptions::default(),
+    );
+    let mut visible = None;
+    for frame in 1..=2 {
+        let (f, s) = gpu
+            .render(
+                &ctx,
+                &cam,
+                &RenderOptions::default(),
+                &w.grid,
+                w.store.pool(),
+            )
+            .unwrap();
+        let wrong = (0..f.hits.len())
+            .filter(|&i| {
+                cpu.hits[i].is_some_and(|h| edited.contains(&brickworld::world::brick_of(h.voxel)))
+            })
+            .filter(|&i| f.lod[i] || f.hits[i].map(|x| x.0) != cpu.hits[i].map(|h| h.voxel))
+            .count();
+        eprintln!(
+            "frame {frame}: {wrong} edited-brick pixels not yet exact, {} LOD pixels, {s:?}",
+            f.lod_pixels
+        );
+        if wrong == 0 {
+            visible = Some(frame);
+            break;
+        }
+    }
+    assert!(visible.is_some(), "the edit is visible within 2 frames");
+    let (frames, last) = converge(&ctx, &mut gpu, &w, &cam);
+    eprintln!("fully converged {frames} frame(s) later");
+    assert!(agreement(&w, &cam, &last) >= 0.999);
+}
+
+#[test]
+fn exhausted_pool_and_feedback_degrade_to_lod_colours() {
+    let Some(ctx) = context() else { return };
+    let w = terrain();
+    let cam = camera(&w, 0);
+    let cfg = StreamConfig {
+        pool_slots: 24,
+        arena_bytes: 24 * 96,
+        feedback_capacity: 8,
+        uploads_per_frame: 4,
+    };
+    let mut gpu =
+        GpuBrickmap::streaming(&ctx, &w.grid, w.store.pool(), w.store.palette(), cfg).unwrap();
+    let cpu = render(
+        &w.brickmap(),
+        &cam,
+        w.store.palette(),
+        &RenderOptions::default(),
+    );
+    let mut overflowed = 0;
+    for _ in 0..20 {
+        let (f, s) = gpu
+            .render(
+                &ctx,
+                &cam,
+                &RenderOptions::default(),
+                &w.grid,
+                w.store.pool(),
+            )
+            .unwrap();
+        overflowed += s.overflowed;
+        assert!(s.resident <= 24 && s.uploads <= 4);
+        for i in 0..f.hits.len() {
+            // Every pixel is either exact or a brick's LOD colour: never garbage.
+            if !f.lod[i] {
+                assert_eq!(
+                    f.hits[i].map(|h| h.0),
+                    cpu.hits[i].map(|h| h.voxel),
+                    "pixel {i}"
+                );
+            } else {
+                // An LOD pixel shows a whole brick; it must be a non-empty one.
+                let v = f.hits[i].expect("an LOD pixel is a hit").0;
+                let b = brickworld::world::brick_of(v);
+                assert_ne!(
+                    w.store.cell(b),
+                    brickworld::world::Cell::Empty,
+                    "LOD pixel {i} on an empty brick"
+                );
+            }
+        }
+        assert!(
+            f.lod_pixels > 0,
+            "the pool is far too small to hold the view"
+        );
+    }
+    assert!(
+        overflowed > 0,
+        "the feedback buffer overflowed, and nothing broke"
+    );
+}
+
+#[test]
+fn a_running_snow_simulation_drives_re_streaming() {
+    let Some(ctx) = context() else { return };
+    let mut w = terrain();
+    let cam = camera(&w, 1);
+    let mut ws = WorldSim::new(&mut w);
+    let src = ScriptSource {
+        name: "snow".into(),
+        text: include_str!("../scripts/snow.lua").into(),
+    };
+    ws.add_lua(src, Limits::default()).unwrap();
+    ws.sim.set_param(0, "snowfall", 2.0).unwrap();
+    let mut gpu = GpuBrickmap::streaming(
+        &ctx,
+        &w.grid,
+        w.store.pool(),
+        w.store.palette(),
+        StreamConfig::default(),
+    )
+    .unwrap();
+    let mut uploads = 0;
+    for _ in 0..12 {
+        let r = ws.step(&mut w, 0.2);
+        assert!(r.errors.is_empty());
+        for batch in ws.dirty.try_iter() {
+            gpu.apply_edits(&ctx, &w.grid, w.store.pool(), &batch.bricks);
+        }
+        let (_, s) = gpu
+            .render(
+                &ctx,
+                &cam,
+                &RenderOptions::default(),
+                &w.grid,
+                w.store.pool(),
+            )
+            .unwrap();
+        uploads += s.uploads;
+    }
+    let (_, last) = converge(&ctx, &mut gpu, &w, &cam);
+    assert!(
+        agreement(&w, &cam, &last) >= 0.999,
+        "after the snow settles the GPU shows the snowy world"
+    );
+    assert!(uploads > 0);
+}
