@@ -23,10 +23,84 @@ pub fn run(cli: Cli) -> Result<()> {
             a.conservation_steps.clamp(1, 10_000_000),
         ),
         Command::Bench(BenchCommand::Sim(a)) => run_bench_sim(&a),
+        Command::Bench(BenchCommand::Stream(a)) => run_bench_stream(&a),
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }
     }
+}
+
+fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
+    let scene = SceneSettings::from_args(&a.scene, glam::IVec3::new(512, 128, 512))?;
+    if a.view > 2 {
+        anyhow::bail!("invalid --view {}: must be 0, 1 or 2", a.view);
+    }
+    if a.width == 0 || a.height == 0 || a.width > 8192 || a.height > 8192 {
+        anyhow::bail!(
+            "invalid image size {}x{}: each side must be in 1..=8192",
+            a.width,
+            a.height
+        );
+    }
+    if a.uploads == 0 {
+        anyhow::bail!("invalid --uploads 0: at least one brick per frame");
+    }
+    if a.pool == 0 || a.pool > 1 << 24 {
+        anyhow::bail!("invalid --pool {}: must be in 1..=16777216 slots", a.pool);
+    }
+    let mut world = build_world(&scene)?;
+    let pb = bar("bench stream", 0);
+    let r = crate::bench::stream::run(
+        &mut world, a.view, a.width, a.height, a.uploads, a.pool, &pb,
+    )?;
+    pb.finish_and_clear();
+    std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
+        .with_context(|| format!("cannot write {}", a.json.display()))?;
+    if let Some(path) = &a.chart {
+        let pts: Vec<(f64, f64)> = r
+            .uploads_per_frame
+            .iter()
+            .enumerate()
+            .map(|(i, u)| ((i + 1) as f64, (*u).max(1) as f64))
+            .collect();
+        crate::bench::chart::xy_chart(
+            path,
+            "Bricks uploaded per frame from a cold pool",
+            "frame (log)",
+            "bricks uploaded (log; 1 = none)",
+            &[crate::bench::chart::Series {
+                name: "uploads",
+                color: plotters::style::RGBColor(60, 110, 200),
+                points: pts,
+            }],
+        )?;
+    }
+    println!("adapter: {}", r.adapter);
+    println!(
+        "converged after {} frames; uploads per frame {:?}",
+        r.frames_to_converge, r.uploads_per_frame
+    );
+    println!(
+        "frame ms: static {:.1}, streaming {:.1} ({:+.0} %), editing {:.1} ({:+.0} %)",
+        r.frame_ms.r#static,
+        r.frame_ms.streaming,
+        (r.frame_ms.streaming / r.frame_ms.r#static - 1.0) * 100.0,
+        r.frame_ms.editing,
+        (r.frame_ms.editing / r.frame_ms.r#static - 1.0) * 100.0
+    );
+    println!(
+        "GPU memory {} B = {:.1} % of the world's {} B; {} of {} bricks resident",
+        r.gpu_bytes,
+        r.gpu_bytes as f64 / r.world_brick_bytes as f64 * 100.0,
+        r.world_brick_bytes,
+        r.resident_bricks,
+        r.world_bricks
+    );
+    println!(
+        "edit visible after {} frame(s); GPU {:.2} Mrays/s, CPU {:.2} Mrays/s; upload {:.1} MB/s",
+        r.edit_to_visible_frames, r.gpu_mrays_per_s, r.cpu_mrays_per_s, r.upload_mb_per_s
+    );
+    Ok(())
 }
 
 fn run_bench_sim(a: &crate::cli::BenchSimArgs) -> Result<()> {

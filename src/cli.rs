@@ -96,6 +96,37 @@ pub enum BenchCommand {
     Tracers(BenchTracersArgs),
     /// Column updates per second of each simulation script, Lua and native.
     Sim(BenchSimArgs),
+    /// Ray-guided streaming of bricks to the GPU tracer.
+    Stream(BenchStreamArgs),
+}
+
+/// `brickworld bench stream`.
+#[derive(Debug, Args)]
+pub struct BenchStreamArgs {
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    /// Image width
+    #[arg(long, default_value_t = 512)]
+    pub width: u32,
+    /// Image height
+    #[arg(long, default_value_t = 384)]
+    pub height: u32,
+    /// Which default view: 0 overview, 1 medium, 2 close-up
+    #[arg(long, default_value_t = 1)]
+    pub view: usize,
+    /// Most bricks uploaded per frame
+    #[arg(long, default_value_t = 256)]
+    pub uploads: u32,
+    /// Brick slots in the GPU pool
+    #[arg(long, default_value_t = 65_536)]
+    pub pool: u32,
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Also chart uploads per frame as SVG
+    #[arg(long)]
+    pub chart: Option<PathBuf>,
 }
 
 /// `brickworld bench sim`.

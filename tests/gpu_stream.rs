@@ -299,3 +299,58 @@ fn a_running_snow_simulation_drives_re_streaming() {
     );
     assert!(uploads > 0);
 }
+
+#[test]
+fn bench_stream_writes_the_documented_json_keys() {
+    if context().is_none() {
+        return;
+    }
+    let json = std::env::temp_dir().join(format!("brickworld-stream-{}.json", std::process::id()));
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args([
+            "bench", "stream", "--size", "64x32x64", "--width", "48", "--height", "36", "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    for k in [
+        "adapter",
+        "frames_to_converge",
+        "uploads_per_frame",
+        "frame_ms",
+        "gpu_bytes",
+        "world_brick_bytes",
+        "edit_to_visible_frames",
+        "gpu_mrays_per_s",
+        "cpu_mrays_per_s",
+    ] {
+        assert!(v.get(k).is_some(), "missing key {k}");
+    }
+    for k in ["static", "streaming", "editing"] {
+        assert!(v["frame_ms"].get(k).is_some(), "missing frame_ms.{k}");
+    }
+    assert!(v["edit_to_visible_frames"].as_u64().unwrap() <= 2);
+}
+
+/// Regression: an oversized pool was allocated on the CPU before the device
+/// limits were checked, and aborted instead of returning the error.
+#[test]
+fn a_pool_beyond_the_device_limits_is_a_clear_error_naming_the_limit() {
+    let Some(ctx) = context() else { return };
+    let w = terrain();
+    let cfg = StreamConfig {
+        pool_slots: 1 << 30,
+        ..Default::default()
+    };
+    let e = GpuBrickmap::streaming(&ctx, &w.grid, w.store.pool(), w.store.palette(), cfg)
+        .err()
+        .expect("too large");
+    assert!(matches!(e, GpuError::TooLarge { .. }), "{e}");
+    assert!(e.to_string().contains("brick masks"), "{e}");
+}

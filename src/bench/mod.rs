@@ -3,4 +3,5 @@
 
 pub mod chart;
 pub mod sim;
+pub mod stream;
 pub mod tracers;

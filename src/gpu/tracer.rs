@@ -208,6 +208,23 @@ impl GpuBrickmap {
                     .into(),
             ));
         }
+        // Check against the device before allocating anything of that size.
+        let limit = ctx.limits.max_storage_buffer_binding_size;
+        for (what, needed) in [
+            ("brick grid", grid.pointers().len() as u64 * 4),
+            ("brick masks", cfg.pool_slots as u64 * 64),
+            ("brick metadata", cfg.pool_slots as u64 * 8),
+            ("material arena", cfg.arena_bytes as u64),
+            ("feedback", (cfg.feedback_capacity as u64 + 1) * 4),
+        ] {
+            if needed > limit {
+                return Err(GpuError::TooLarge {
+                    what,
+                    needed,
+                    limit,
+                });
+            }
+        }
         let shadow: Vec<u32> = grid
             .pointers()
             .iter()
@@ -380,6 +397,24 @@ impl GpuBrickmap {
         .iter()
         .map(|b| b.size())
         .sum()
+    }
+
+    /// Bytes of GPU memory in use: the grid and occupancy layer, plus the
+    /// resident bricks (64-byte mask, 8-byte metadata, material block).
+    pub fn gpu_bytes_used(&self) -> u64 {
+        let fixed = self.grid.size() + self.occ.size() + self.palette.size();
+        match &self.residency {
+            Some(r) => {
+                let arena: u64 = r
+                    .owner
+                    .keys()
+                    .filter_map(|s| r.mirror.arena_block(*s))
+                    .map(|(_, len)| len as u64)
+                    .sum();
+                fixed + r.mirror.len() as u64 * 72 + arena
+            }
+            None => self.gpu_bytes(),
+        }
     }
 
     /// Bricks currently resident (streaming) or uploaded (preloaded).
