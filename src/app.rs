@@ -100,6 +100,10 @@ fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
         "edit visible after {} frame(s); GPU {:.2} Mrays/s, CPU {:.2} Mrays/s; upload {:.1} MB/s",
         r.edit_to_visible_frames, r.gpu_mrays_per_s, r.cpu_mrays_per_s, r.upload_mb_per_s
     );
+    println!(
+        "material bytes uploaded: {} with hidden voxels culled, {} without, {} as DXT1",
+        r.material_bytes_culled, r.material_bytes_unculled, r.material_bytes_dxt1
+    );
     Ok(())
 }
 

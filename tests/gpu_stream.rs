@@ -354,3 +354,54 @@ fn a_pool_beyond_the_device_limits_is_a_clear_error_naming_the_limit() {
     assert!(matches!(e, GpuError::TooLarge { .. }), "{e}");
     assert!(e.to_string().contains("brick masks"), "{e}");
 }
+
+/// Regression: an evicted brick went back to "unloaded" with a LOD colour
+/// computed from the GPU pool's internal (grey) palette instead of the
+/// world's colours.
+#[test]
+fn evicted_bricks_keep_the_worlds_lod_colour() {
+    let Some(ctx) = context() else { return };
+    let w = terrain();
+    let cfg = StreamConfig {
+        pool_slots: 16,
+        arena_bytes: 16 * 96,
+        feedback_capacity: 64,
+        uploads_per_frame: 16,
+    };
+    let mut gpu =
+        GpuBrickmap::streaming(&ctx, &w.grid, w.store.pool(), w.store.palette(), cfg).unwrap();
+    let mut evictions = 0;
+    for view in [0, 1, 2, 0, 1, 2] {
+        let (_, s) = gpu
+            .render(
+                &ctx,
+                &camera(&w, view),
+                &RenderOptions::default(),
+                &w.grid,
+                w.store.pool(),
+            )
+            .unwrap();
+        evictions += s.evictions;
+    }
+    assert!(evictions > 0, "the tiny pool must have evicted");
+    let dims = w.grid.dims();
+    for (i, &p) in gpu.pointers().iter().enumerate() {
+        let state = p >> 30;
+        if state == 1 || state == 2 {
+            let l = IVec3::new(
+                i as i32 % dims.x,
+                (i as i32 / dims.x) % dims.y,
+                i as i32 / (dims.x * dims.y),
+            );
+            let wp = w.grid.pointer(l);
+            let c = w.store.pool().slot(wp - 1).unwrap().lod_rgb();
+            let expect =
+                ((c[0] as u32 >> 3) << 11) | ((c[1] as u32 >> 2) << 5) | (c[2] as u32 >> 3);
+            assert_eq!(
+                p & 0xffff,
+                expect,
+                "brick {i}: LOD colour of an unloaded brick"
+            );
+        }
+    }
+}

@@ -64,6 +64,11 @@ pub struct FrameStats {
     pub resident: u32,
     /// Bytes uploaded after the frame.
     pub upload_bytes: u64,
+    /// Material bytes the uploads would have needed without culling the
+    /// materials of voxels hidden on all six sides.
+    pub unculled_material_bytes: u64,
+    /// Material bytes actually uploaded.
+    pub material_bytes: u64,
 }
 
 #[repr(C)]
@@ -105,6 +110,8 @@ struct Residency {
     owner: FxHashMap<u32, u32>,
     /// GPU slot (as a mirror id) of each resident grid index.
     slot_of: FxHashMap<u32, crate::world::BrickId>,
+    /// LOD colour (RGB565, from the world's palette) of each resident grid index.
+    lod_of: FxHashMap<u32, u32>,
     last_seen: Vec<u32>,
     cfg: StreamConfig,
 }
@@ -144,6 +151,60 @@ fn words_of(bytes: &[u8]) -> Vec<u32> {
 
 fn lod565(c: [u8; 3]) -> u32 {
     ((c[0] as u32 >> 3) << 11) | ((c[1] as u32 >> 2) << 5) | (c[2] as u32 >> 3)
+}
+
+/// Bytes of per-voxel material data a brick needs in the pool's arena
+/// (header, local palette and packed indices, rounded to the 16-byte class).
+fn material_bytes(b: &crate::world::Brick) -> u64 {
+    if b.local_palette().len() <= 1 {
+        return 0;
+    }
+    let len =
+        3 + b.local_palette().len() + (b.solid_voxels() as usize * b.bits() as usize).div_ceil(8);
+    len.div_ceil(16) as u64 * 16
+}
+
+/// Give voxels hidden on all six sides (within the brick) the brick's most
+/// common visible material: rays from outside never see them, and fewer
+/// distinct materials mean a smaller palette and fewer index bits (the
+/// thesis culls hidden voxels' colours the same way, §4.2). The mask is
+/// untouched, so traversal is exact. Neighbours in other bricks count as
+/// open, so no visible voxel is ever changed.
+fn cull_hidden_materials(dense: &mut [u8; BRICK_VOXELS]) {
+    let at = |d: &[u8; BRICK_VOXELS], x: i32, y: i32, z: i32| -> bool {
+        (0..8).contains(&x)
+            && (0..8).contains(&y)
+            && (0..8).contains(&z)
+            && d[(x | (y << 3) | (z << 6)) as usize] != 0
+    };
+    let mut hidden = [false; BRICK_VOXELS];
+    let mut counts = [0u32; 256];
+    for i in 0..BRICK_VOXELS {
+        if dense[i] == 0 {
+            continue;
+        }
+        let (x, y, z) = ((i & 7) as i32, ((i >> 3) & 7) as i32, (i >> 6) as i32);
+        hidden[i] = at(dense, x - 1, y, z)
+            && at(dense, x + 1, y, z)
+            && at(dense, x, y - 1, z)
+            && at(dense, x, y + 1, z)
+            && at(dense, x, y, z - 1)
+            && at(dense, x, y, z + 1);
+        if !hidden[i] {
+            counts[dense[i] as usize] += 1;
+        }
+    }
+    let Some(common) = (1..256)
+        .max_by_key(|&m| (counts[m], std::cmp::Reverse(m)))
+        .filter(|&m| counts[m] > 0)
+    else {
+        return;
+    };
+    for i in 0..BRICK_VOXELS {
+        if hidden[i] {
+            dense[i] = common as u8;
+        }
+    }
 }
 
 fn occupancy_words(grid: &BrickGrid) -> Vec<u32> {
@@ -234,6 +295,7 @@ impl GpuBrickmap {
             mirror: BrickPool::default(),
             owner: FxHashMap::default(),
             slot_of: FxHashMap::default(),
+            lod_of: FxHashMap::default(),
             last_seen: vec![0; cfg.pool_slots as usize],
             cfg,
         };
@@ -415,6 +477,12 @@ impl GpuBrickmap {
             }
             None => self.gpu_bytes(),
         }
+    }
+
+    /// The grid pointers as the GPU holds them (see the shader for the
+    /// encoding): for inspection and tests.
+    pub fn pointers(&self) -> &[u32] {
+        &self.shadow
     }
 
     /// Bricks currently resident (streaming) or uploaded (preloaded).
@@ -639,11 +707,25 @@ impl GpuBrickmap {
                 continue;
             };
             brick.to_dense(&mut dense);
+            let lod = lod565(brick.lod_rgb());
+            if let BrickContent::Mixed(full) =
+                BrickContent::from_dense(&dense, &Palette::grey_ramp())
+            {
+                stats.unculled_material_bytes += material_bytes(&full);
+            }
+            cull_hidden_materials(&mut dense);
             let BrickContent::Mixed(b) = BrickContent::from_dense(&dense, &Palette::grey_ramp())
             else {
                 continue;
             };
+            stats.material_bytes += material_bytes(&b);
+            if let Some(res) = self.residency.as_mut() {
+                res.lod_of.insert(i, lod);
+            }
             let Some(slot) = self.admit(ctx, i, b, stats)? else {
+                if let Some(res) = self.residency.as_mut() {
+                    res.lod_of.remove(&i);
+                }
                 self.set_pointer(ctx, i, unloaded);
                 continue;
             };
@@ -726,7 +808,7 @@ impl GpuBrickmap {
             return;
         };
         if let Some(id) = res.slot_of.remove(&i) {
-            let lod = res.mirror.get(id).map_or(0, |b| lod565(b.lod_rgb()));
+            let lod = res.lod_of.remove(&i).unwrap_or(0);
             res.owner.remove(&id.index());
             res.mirror.remove(id);
             self.set_pointer(ctx, i, UNLOADED | lod);
@@ -755,6 +837,7 @@ impl GpuBrickmap {
             if let Some(res) = self.residency.as_mut()
                 && let Some(id) = res.slot_of.remove(&i)
             {
+                res.lod_of.remove(&i);
                 res.owner.remove(&id.index());
                 res.mirror.remove(id);
             }
