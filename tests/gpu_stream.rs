@@ -405,3 +405,17 @@ fn evicted_bricks_keep_the_worlds_lod_colour() {
         }
     }
 }
+
+#[test]
+fn a_shader_that_fails_validation_is_an_error_not_a_crash() {
+    let Some(ctx) = context() else { return };
+    let broken =
+        include_str!("../src/gpu/brickmap.wgsl").replace("fn trace(", "fn trace(oops: i32, ");
+    let e = ctx
+        .validate_shader("broken.wgsl", &broken)
+        .expect_err("must fail validation");
+    assert!(matches!(e, GpuError::Shader(_)), "{e}");
+    assert!(e.to_string().contains("broken.wgsl"), "{e}");
+    ctx.validate_shader("brickmap.wgsl", include_str!("../src/gpu/brickmap.wgsl"))
+        .expect("the real shader validates");
+}

@@ -81,6 +81,22 @@ impl GpuContext {
         })
     }
 
+    /// Compile WGSL `source` on this device, returning validation errors as
+    /// [`GpuError::Shader`] (with the compiler's message and location).
+    pub fn validate_shader(&self, label: &str, source: &str) -> Result<(), GpuError> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let _module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+        match pollster::block_on(scope.pop()) {
+            Some(e) => Err(GpuError::Shader(e.to_string())),
+            None => Ok(()),
+        }
+    }
+
     /// One line describing the adapter.
     pub fn describe(&self) -> String {
         format!(
