@@ -13,6 +13,7 @@ pub mod app;
 pub mod bench;
 pub mod cli;
 pub mod config;
+pub mod engine;
 pub mod gpu;
 pub mod progress;
 pub mod scene;

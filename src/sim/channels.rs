@@ -13,6 +13,13 @@ use super::tile::{TILE_CELLS, TileCoord};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ChannelId(pub(crate) u16);
 
+impl ChannelId {
+    /// Position in the store's channel list.
+    pub fn index(self) -> usize {
+        self.0 as usize
+    }
+}
+
 /// One tile's values of one channel.
 pub type TileData = Box<[f64; TILE_CELLS]>;
 
@@ -112,6 +119,13 @@ impl ChannelStore {
             }
         }
         sum + comp
+    }
+
+    /// Tiles holding any channel, sorted (z, then x).
+    pub fn tiles(&self) -> Vec<TileCoord> {
+        let mut keys: Vec<TileCoord> = self.tiles.keys().copied().collect();
+        keys.sort_by_key(|k| (k.y, k.x));
+        keys
     }
 
     /// Largest absolute value of `ch` (0 where nothing is stored).

@@ -1,0 +1,118 @@
+//! Checkpoints: a world (bricks, channels, tick, parameters) survives a round
+//! trip with the same hash; only the last two are kept; a corrupt or
+//! truncated newest checkpoint is reported and the previous one is used;
+//! a write that fails leaves the previous checkpoints untouched.
+
+use brickworld::engine::checkpoint::{self, CheckpointError, WorldState};
+use brickworld::scene::{SceneSpec, build_scene};
+use brickworld::sim::ChannelStore;
+use glam::{IVec2, IVec3};
+use indicatif::ProgressBar;
+
+fn state(tick: u64, seed: u64) -> WorldState {
+    let w = build_scene(
+        &SceneSpec::Terrain { caves: false },
+        IVec3::new(32, 24, 32),
+        seed,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut channels = ChannelStore::default();
+    let water = channels.channel("water");
+    let mut d = [0.0; 64];
+    d[7] = 1.25 + seed as f64;
+    channels.set(IVec2::new(1, 2), water, &d);
+    WorldState {
+        tick,
+        store: w.store,
+        bounds: w.bounds,
+        channels,
+        params: vec![("water".into(), vec![("rain".into(), 0.5)])],
+    }
+}
+
+fn dir(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("brickworld-ckpt-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+#[test]
+fn a_world_round_trips_with_the_same_hash() {
+    let d = dir("roundtrip");
+    let s = state(42, 1);
+    let hash = checkpoint::world_hash(&s.store, &s.channels);
+    let (path, written) = checkpoint::write(&d, &s).unwrap();
+    assert_eq!(written, hash);
+    let back = checkpoint::read(&path).unwrap();
+    assert_eq!(back.tick, 42);
+    assert_eq!(checkpoint::world_hash(&back.store, &back.channels), hash);
+    assert_eq!(back.bounds, s.bounds);
+    assert_eq!(back.params, s.params);
+    assert_eq!(back.store.palette(), s.store.palette());
+}
+
+#[test]
+fn only_the_last_two_are_kept_and_a_corrupt_newest_falls_back() {
+    let d = dir("keep");
+    for t in 1..=4 {
+        checkpoint::write(&d, &state(t * 10, t)).unwrap();
+    }
+    let files = checkpoint::list(&d).unwrap();
+    assert_eq!(files.len(), 2);
+    // Damage the newest one's payload.
+    let mut bytes = std::fs::read(&files[0]).unwrap();
+    let n = bytes.len();
+    bytes[n - 5] ^= 0x5a;
+    std::fs::write(&files[0], &bytes).unwrap();
+    let (found, skipped) = checkpoint::latest(&d).unwrap();
+    let (_, s) = found.expect("the previous checkpoint loads");
+    assert_eq!(s.tick, 30);
+    assert_eq!(skipped.len(), 1);
+    assert!(
+        matches!(skipped[0], CheckpointError::Corrupt { .. }),
+        "{}",
+        skipped[0]
+    );
+}
+
+#[test]
+fn truncated_or_foreign_files_are_reported_not_loaded() {
+    let d = dir("trunc");
+    let (path, _) = checkpoint::write(&d, &state(5, 2)).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    for cut in [0, 10, 39, 40, bytes.len() / 2, bytes.len() - 1] {
+        std::fs::write(&path, &bytes[..cut]).unwrap();
+        let e = checkpoint::read(&path).unwrap_err();
+        assert!(
+            matches!(e, CheckpointError::Corrupt { .. }),
+            "cut at {cut}: {e}"
+        );
+    }
+    std::fs::write(
+        &path,
+        b"PK\x03\x04 definitely a zip file, not a checkpoint, padded to forty bytes",
+    )
+    .unwrap();
+    assert!(
+        checkpoint::read(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("bad magic")
+    );
+    let (found, skipped) = checkpoint::latest(&d).unwrap();
+    assert!(found.is_none() && skipped.len() == 1);
+}
+
+#[test]
+fn a_failed_write_leaves_the_previous_checkpoints_untouched() {
+    let d = dir("fail");
+    checkpoint::write(&d, &state(1, 3)).unwrap();
+    // A directory squatting on the temp file's name makes the write fail,
+    // like a full disk would, before anything is renamed.
+    std::fs::create_dir_all(d.join(".ckpt-0000000000000002.bwc.tmp")).unwrap();
+    let e = checkpoint::write(&d, &state(2, 4)).unwrap_err();
+    assert!(matches!(e, CheckpointError::Io { .. }), "{e}");
+    let (found, _) = checkpoint::latest(&d).unwrap();
+    assert_eq!(found.unwrap().1.tick, 1);
+}
