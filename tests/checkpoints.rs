@@ -65,7 +65,7 @@ fn only_the_last_two_are_kept_and_a_corrupt_newest_falls_back() {
     let n = bytes.len();
     bytes[n - 5] ^= 0x5a;
     std::fs::write(&files[0], &bytes).unwrap();
-    let (found, skipped) = checkpoint::latest(&d).unwrap();
+    let checkpoint::Latest { found, skipped } = checkpoint::latest(&d).unwrap();
     let (_, s) = found.expect("the previous checkpoint loads");
     assert_eq!(s.tick, 30);
     assert_eq!(skipped.len(), 1);
@@ -100,7 +100,7 @@ fn truncated_or_foreign_files_are_reported_not_loaded() {
             .to_string()
             .contains("bad magic")
     );
-    let (found, skipped) = checkpoint::latest(&d).unwrap();
+    let checkpoint::Latest { found, skipped } = checkpoint::latest(&d).unwrap();
     assert!(found.is_none() && skipped.len() == 1);
 }
 
@@ -113,6 +113,6 @@ fn a_failed_write_leaves_the_previous_checkpoints_untouched() {
     std::fs::create_dir_all(d.join(".ckpt-0000000000000002.bwc.tmp")).unwrap();
     let e = checkpoint::write(&d, &state(2, 4)).unwrap_err();
     assert!(matches!(e, CheckpointError::Io { .. }), "{e}");
-    let (found, _) = checkpoint::latest(&d).unwrap();
+    let found = checkpoint::latest(&d).unwrap().found;
     assert_eq!(found.unwrap().1.tick, 1);
 }

@@ -395,17 +395,32 @@ pub fn read(path: &Path) -> Result<WorldState, CheckpointError> {
     Ok(state)
 }
 
+/// What [`latest`] found.
+#[derive(Debug)]
+pub struct Latest {
+    /// The newest checkpoint that verified, and its state.
+    pub found: Option<(PathBuf, WorldState)>,
+    /// Newer checkpoints that failed to verify (to report).
+    pub skipped: Vec<CheckpointError>,
+}
+
 /// The newest checkpoint in `dir` that verifies, with the problems of any
-/// newer ones skipped on the way (to report). `None` when there is none.
-pub fn latest(
-    dir: &Path,
-) -> Result<(Option<(PathBuf, WorldState)>, Vec<CheckpointError>), CheckpointError> {
+/// newer ones skipped on the way.
+pub fn latest(dir: &Path) -> Result<Latest, CheckpointError> {
     let mut skipped = Vec::new();
     for path in list(dir)? {
         match read(&path) {
-            Ok(s) => return Ok((Some((path, s)), skipped)),
+            Ok(s) => {
+                return Ok(Latest {
+                    found: Some((path, s)),
+                    skipped,
+                });
+            }
             Err(e) => skipped.push(e),
         }
     }
-    Ok((None, skipped))
+    Ok(Latest {
+        found: None,
+        skipped,
+    })
 }
