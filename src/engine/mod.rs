@@ -2,3 +2,4 @@
 //! daemon that runs them lands with issue 5).
 
 pub mod checkpoint;
+pub mod world_config;

@@ -1,0 +1,435 @@
+//! World configs (`worlds/*.toml`), in two stages: plain serde structs that
+//! reject unknown fields, then validation into typed settings whose errors
+//! name the file, the field and the reason.
+//!
+//! ```toml
+//! [world]
+//! source = "terrain"          # terrain, terrain:caves, balls, hairball, heightmap:FILE.png, vox:FILE.vox
+//! size = [256, 96, 256]       # procedural sources only
+//! seed = 1
+//!
+//! [sim]
+//! dt = 0.05
+//! scripts_dir = "scripts"
+//!
+//! [[scripts]]
+//! file = "water.lua"
+//! every = 1                   # run every N ticks
+//! params = { rain = 0.05 }
+//!
+//! [camera]
+//! mode = "orbit"              # fixed or orbit
+//! eye = [-100.0, 200.0, -100.0]
+//! target = [128.0, 40.0, 128.0]
+//! fov = 50.0
+//! orbit_period_s = 60.0
+//!
+//! [render]
+//! width = 640
+//! height = 360
+//! tracer = "gpu"              # gpu (falls back to cpu) or cpu
+//! shadows = true
+//!
+//! [frames]
+//! dir = "frames"              # relative to the state directory
+//! every = 10                  # ticks
+//!
+//! [checkpoint]
+//! every = 500                 # ticks
+//!
+//! [control]
+//! addr = "127.0.0.1:7878"
+//! ```
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use glam::{DVec3, IVec3};
+use serde::Deserialize;
+use thiserror::Error;
+
+use crate::scene::SceneSpec;
+
+/// The embedded default world (`worlds/default.toml`).
+pub const DEFAULT_WORLD: &str = include_str!("../../worlds/default.toml");
+
+/// A config that could not be read or is invalid.
+#[derive(Debug, Error, PartialEq)]
+#[error("{file}: {field}: {reason}")]
+pub struct WorldConfigError {
+    /// The config file (or `<embedded default>`).
+    pub file: String,
+    /// The field at fault, dotted (e.g. `camera.fov`), or the line and column
+    /// of a syntax error.
+    pub field: String,
+    /// What is wrong.
+    pub reason: String,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawConfig {
+    world: RawWorld,
+    #[serde(default)]
+    sim: RawSim,
+    #[serde(default)]
+    scripts: Vec<RawScript>,
+    camera: Option<RawCamera>,
+    #[serde(default)]
+    render: RawRender,
+    #[serde(default)]
+    frames: RawFrames,
+    #[serde(default)]
+    checkpoint: RawCheckpoint,
+    #[serde(default)]
+    control: RawControl,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawWorld {
+    source: String,
+    size: Option<[i64; 3]>,
+    #[serde(default)]
+    seed: u64,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSim {
+    dt: Option<f64>,
+    scripts_dir: Option<String>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawScript {
+    file: String,
+    every: Option<i64>,
+    #[serde(default)]
+    params: BTreeMap<String, f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCamera {
+    mode: Option<String>,
+    eye: Option<[f64; 3]>,
+    target: Option<[f64; 3]>,
+    fov: Option<f64>,
+    orbit_period_s: Option<f64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawRender {
+    width: Option<i64>,
+    height: Option<i64>,
+    tracer: Option<String>,
+    shadows: Option<bool>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFrames {
+    dir: Option<String>,
+    every: Option<i64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCheckpoint {
+    every: Option<i64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawControl {
+    addr: Option<String>,
+}
+
+/// A script to run and how.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScriptSettings {
+    /// File name inside the scripts directory.
+    pub file: String,
+    /// Run every this many ticks.
+    pub every: u64,
+    /// Parameter values to set (validated against the script when it loads).
+    pub params: BTreeMap<String, f64>,
+}
+
+/// How the camera moves.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CameraMode {
+    /// Stays put.
+    Fixed,
+    /// Circles the target once per period (seconds).
+    Orbit {
+        /// Seconds per turn.
+        period_s: f64,
+    },
+}
+
+/// The camera: `None` eye/target means the scene's medium default view.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraSettings {
+    /// Movement.
+    pub mode: CameraMode,
+    /// Eye, if given.
+    pub eye: Option<DVec3>,
+    /// Target, if given.
+    pub target: Option<DVec3>,
+    /// Vertical field of view, degrees.
+    pub fov: f64,
+}
+
+/// A validated world config.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WorldConfig {
+    /// Where the voxels come from.
+    pub source: SceneSpec,
+    /// Size of procedural sources.
+    pub size: IVec3,
+    /// Seed.
+    pub seed: u64,
+    /// Simulation time step.
+    pub dt: f64,
+    /// Scripts directory (relative paths resolve against the config's directory).
+    pub scripts_dir: PathBuf,
+    /// Scripts in run order.
+    pub scripts: Vec<ScriptSettings>,
+    /// Camera.
+    pub camera: CameraSettings,
+    /// Frame size.
+    pub width: u32,
+    /// Frame size.
+    pub height: u32,
+    /// Trace on the GPU (falling back to the CPU).
+    pub gpu: bool,
+    /// Hard shadows.
+    pub shadows: bool,
+    /// Frame directory, relative to the state directory.
+    pub frames_dir: PathBuf,
+    /// Write a frame every this many ticks.
+    pub frames_every: u64,
+    /// Checkpoint every this many ticks.
+    pub checkpoint_every: u64,
+    /// Control server address.
+    pub addr: SocketAddr,
+}
+
+impl WorldConfig {
+    /// Read and validate a config file.
+    pub fn load(path: &Path) -> Result<Self, WorldConfigError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| WorldConfigError {
+            file: file.clone(),
+            field: "(file)".into(),
+            reason: format!("cannot read: {e}"),
+        })?;
+        Self::parse(&file, &text, path.parent().unwrap_or(Path::new(".")))
+    }
+
+    /// The embedded default world, with paths relative to `base`.
+    pub fn default_world(base: &Path) -> Self {
+        Self::parse("<embedded default>", DEFAULT_WORLD, base)
+            .expect("the embedded default world is valid")
+    }
+
+    /// Parse and validate config text; relative paths resolve against `base`.
+    pub fn parse(file: &str, text: &str, base: &Path) -> Result<Self, WorldConfigError> {
+        let err = |field: &str, reason: String| WorldConfigError {
+            file: file.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        let raw: RawConfig = toml::from_str(text).map_err(|e| {
+            let at = e.span().map(|s| {
+                let line = text[..s.start].matches('\n').count() + 1;
+                let col = s.start - text[..s.start].rfind('\n').map_or(0, |i| i + 1) + 1;
+                format!("line {line}, column {col}")
+            });
+            err(
+                &at.unwrap_or_else(|| "(syntax)".into()),
+                e.message().to_string(),
+            )
+        })?;
+        let source: SceneSpec = raw
+            .world
+            .source
+            .parse()
+            .map_err(|e: crate::scene::SceneError| err("world.source", e.to_string()))?;
+        let source = match source {
+            SceneSpec::Heightmap(p) if p.is_relative() => SceneSpec::Heightmap(base.join(p)),
+            SceneSpec::Vox(p) if p.is_relative() => SceneSpec::Vox(base.join(p)),
+            s => s,
+        };
+        let size = match raw.world.size {
+            Some(s) => {
+                if !source.is_procedural() {
+                    return Err(err(
+                        "world.size",
+                        "heightmap and vox sources take their size from the file".into(),
+                    ));
+                }
+                if s.iter().any(|v| *v < 8) || s[0] > 65536 || s[2] > 65536 || s[1] > 4096 {
+                    return Err(err(
+                        "world.size",
+                        format!("{s:?} is outside 8..=65536 x 8..=4096 x 8..=65536"),
+                    ));
+                }
+                IVec3::new(s[0] as i32, s[1] as i32, s[2] as i32)
+            }
+            None => IVec3::new(256, 96, 256),
+        };
+        let dt = raw.sim.dt.unwrap_or(0.05);
+        if !(dt > 0.0 && dt <= 10.0) {
+            return Err(err("sim.dt", format!("{dt} is outside (0, 10]")));
+        }
+        let scripts_dir = base.join(raw.sim.scripts_dir.unwrap_or_else(|| "scripts".into()));
+        let mut scripts = Vec::new();
+        for (i, s) in raw.scripts.into_iter().enumerate() {
+            let field = |f: &str| format!("scripts[{i}].{f}");
+            if s.file.is_empty()
+                || !s.file.ends_with(".lua")
+                || s.file.contains('/')
+                || s.file.contains('\\')
+            {
+                return Err(err(
+                    &field("file"),
+                    format!(
+                        "'{}' must be a .lua file name inside the scripts directory",
+                        s.file
+                    ),
+                ));
+            }
+            let every = s.every.unwrap_or(1);
+            if !(1..=1_000_000).contains(&every) {
+                return Err(err(
+                    &field("every"),
+                    format!("{every} is outside 1..=1000000"),
+                ));
+            }
+            if let Some((k, v)) = s.params.iter().find(|(_, v)| !v.is_finite()) {
+                return Err(err(
+                    &field(&format!("params.{k}")),
+                    format!("{v} is not a finite number"),
+                ));
+            }
+            scripts.push(ScriptSettings {
+                file: s.file,
+                every: every as u64,
+                params: s.params,
+            });
+        }
+        let cam = raw.camera.unwrap_or(RawCamera {
+            mode: None,
+            eye: None,
+            target: None,
+            fov: None,
+            orbit_period_s: None,
+        });
+        let fov = cam.fov.unwrap_or(50.0);
+        if !(fov > 0.0 && fov < 180.0) {
+            return Err(err("camera.fov", format!("{fov} is outside (0, 180)")));
+        }
+        let mode = match cam.mode.as_deref().unwrap_or("fixed") {
+            "fixed" => CameraMode::Fixed,
+            "orbit" => {
+                let p = cam.orbit_period_s.unwrap_or(60.0);
+                if !(p > 0.0 && p.is_finite()) {
+                    return Err(err(
+                        "camera.orbit_period_s",
+                        format!("{p} must be a positive number of seconds"),
+                    ));
+                }
+                CameraMode::Orbit { period_s: p }
+            }
+            other => {
+                return Err(err(
+                    "camera.mode",
+                    format!("'{other}' is not fixed or orbit"),
+                ));
+            }
+        };
+        let vec = |v: Option<[f64; 3]>, f: &str| -> Result<Option<DVec3>, WorldConfigError> {
+            match v {
+                Some(a) if a.iter().all(|x| x.is_finite()) => Ok(Some(DVec3::from(a))),
+                Some(a) => Err(err(f, format!("{a:?} has a NaN or infinite coordinate"))),
+                None => Ok(None),
+            }
+        };
+        let (eye, target) = (
+            vec(cam.eye, "camera.eye")?,
+            vec(cam.target, "camera.target")?,
+        );
+        match (eye, target) {
+            (Some(e), Some(t)) if e == t => {
+                return Err(err("camera.target", "equals camera.eye".into()));
+            }
+            (Some(e), Some(t)) if (t - e).normalize().cross(DVec3::Y).length() < 1e-9 => {
+                return Err(err(
+                    "camera.target",
+                    "is straight above or below camera.eye".into(),
+                ));
+            }
+            (Some(_), None) => {
+                return Err(err("camera.target", "is needed with camera.eye".into()));
+            }
+            (None, Some(_)) => {
+                return Err(err("camera.eye", "is needed with camera.target".into()));
+            }
+            _ => {}
+        }
+        let dim = |v: Option<i64>, d: i64, f: &str| -> Result<u32, WorldConfigError> {
+            let v = v.unwrap_or(d);
+            if !(1..=8192).contains(&v) {
+                return Err(err(f, format!("{v} is outside 1..=8192")));
+            }
+            Ok(v as u32)
+        };
+        let gpu = match raw.render.tracer.as_deref().unwrap_or("gpu") {
+            "gpu" => true,
+            "cpu" => false,
+            other => return Err(err("render.tracer", format!("'{other}' is not gpu or cpu"))),
+        };
+        let every = |v: Option<i64>, d: i64, f: &str| -> Result<u64, WorldConfigError> {
+            let v = v.unwrap_or(d);
+            if !(1..=100_000_000).contains(&v) {
+                return Err(err(f, format!("{v} is outside 1..=100000000 ticks")));
+            }
+            Ok(v as u64)
+        };
+        let addr_text = raw.control.addr.unwrap_or_else(|| "127.0.0.1:7878".into());
+        let addr: SocketAddr = addr_text.parse().map_err(|_| {
+            err(
+                "control.addr",
+                format!("'{addr_text}' is not HOST:PORT (an IP address and a port)"),
+            )
+        })?;
+        Ok(WorldConfig {
+            source,
+            size,
+            seed: raw.world.seed,
+            dt,
+            scripts_dir,
+            scripts,
+            camera: CameraSettings {
+                mode,
+                eye,
+                target,
+                fov,
+            },
+            width: dim(raw.render.width, 640, "render.width")?,
+            height: dim(raw.render.height, 360, "render.height")?,
+            gpu,
+            shadows: raw.render.shadows.unwrap_or(true),
+            frames_dir: PathBuf::from(raw.frames.dir.unwrap_or_else(|| "frames".into())),
+            frames_every: every(raw.frames.every, 10, "frames.every")?,
+            checkpoint_every: every(raw.checkpoint.every, 500, "checkpoint.every")?,
+            addr,
+        })
+    }
+}

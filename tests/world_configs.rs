@@ -1,0 +1,117 @@
+//! World configs: the shipped worlds load; bad configs give errors that name
+//! the file, the field and the reason.
+
+use std::path::Path;
+
+use brickworld::engine::world_config::{CameraMode, WorldConfig};
+use brickworld::scene::{SceneSpec, build_scene};
+use indicatif::ProgressBar;
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+#[test]
+fn the_shipped_worlds_load_and_build() {
+    for name in ["default", "snowy_mountain", "valley"] {
+        let path = Path::new(ROOT).join("worlds").join(format!("{name}.toml"));
+        let cfg = WorldConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        for s in &cfg.scripts {
+            assert!(
+                cfg.scripts_dir.join(&s.file).exists(),
+                "{name}: {} missing",
+                s.file
+            );
+        }
+        if let SceneSpec::Heightmap(_) = cfg.source {
+            build_scene(&cfg.source, cfg.size, cfg.seed, &ProgressBar::hidden()).unwrap();
+        }
+    }
+    let d = WorldConfig::default_world(&Path::new(ROOT).join("worlds"));
+    assert_eq!(d.scripts.len(), 3);
+    assert!(matches!(d.camera.mode, CameraMode::Orbit { .. }));
+}
+
+fn error(text: &str) -> String {
+    WorldConfig::parse("bad.toml", text, Path::new("."))
+        .unwrap_err()
+        .to_string()
+}
+
+#[test]
+fn bad_configs_name_the_file_field_and_reason() {
+    let ok = "[world]\nsource = \"terrain\"\n";
+    assert!(WorldConfig::parse("ok.toml", ok, Path::new(".")).is_ok());
+    let cases = [
+        (
+            "[world]\nsource = \"terrain\"\ncolour = 3\n",
+            "unknown field `colour`",
+        ),
+        ("[world]\nsource = \"lava\"\n", "world.source"),
+        (
+            "[world]\nsource = \"terrain\"\nsize = [4, 8, 8]\n",
+            "world.size",
+        ),
+        ("[world]\nsource = \"terrain\"\nsize = \"big\"\n", "line 3"),
+        (
+            "[world]\nsource = \"terrain\"\n[sim]\ndt = -1.0\n",
+            "sim.dt",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[[scripts]]\nfile = \"../evil.lua\"\n",
+            "scripts[0].file",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[[scripts]]\nfile = \"w.lua\"\nevery = 0\n",
+            "scripts[0].every",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nfov = 200.0\n",
+            "camera.fov",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nmode = \"spin\"\n",
+            "camera.mode",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\neye = [1.0, 2.0, 3.0]\ntarget = [1.0, 2.0, 3.0]\n",
+            "camera.target",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\neye = [1.0, 2.0, 3.0]\n",
+            "camera.target",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[render]\nwidth = 0\n",
+            "render.width",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[render]\ntracer = \"tpu\"\n",
+            "render.tracer",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[checkpoint]\nevery = 0\n",
+            "checkpoint.every",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[control]\naddr = \"localhost\"\n",
+            "control.addr",
+        ),
+        (
+            "[world]\nsource = \"vox:m.vox\"\nsize = [8, 8, 8]\n",
+            "world.size",
+        ),
+        ("this is = not [ toml", "line 1"),
+        ("", "missing field `world`"),
+    ];
+    for (text, needle) in cases {
+        let e = error(text);
+        assert!(e.starts_with("bad.toml: "), "{e}");
+        assert!(e.contains(needle), "'{e}' should mention '{needle}'");
+    }
+    let missing = WorldConfig::load(Path::new("/nonexistent/world.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        missing.contains("/nonexistent/world.toml") && missing.contains("cannot read"),
+        "{missing}"
+    );
+}
