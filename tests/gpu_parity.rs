@@ -8,7 +8,7 @@
 
 mod common;
 
-use brickworld::gpu::{GpuBrickmap, GpuContext, GpuError};
+use brickworld::gpu::{GpuBrickmap, GpuContext};
 use brickworld::trace::{Camera, RenderOptions, render};
 use glam::DVec3;
 
@@ -17,16 +17,7 @@ use glam::DVec3;
 const COLOUR_TOLERANCE: u8 = 2;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::new() {
-        Ok(c) => Some(c),
-        Err(GpuError::NoAdapter)
-            if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() != Ok("1") =>
-        {
-            eprintln!("no GPU adapter: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
-            None
-        }
-        Err(e) => panic!("GPU required but unavailable: {e}"),
-    }
+    common::gpu_context()
 }
 
 fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {

@@ -12,16 +12,7 @@ use glam::{DVec3, IVec3};
 use indicatif::ProgressBar;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::new() {
-        Ok(c) => Some(c),
-        Err(GpuError::NoAdapter)
-            if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() != Ok("1") =>
-        {
-            eprintln!("no GPU adapter: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
-            None
-        }
-        Err(e) => panic!("GPU required but unavailable: {e}"),
-    }
+    common::gpu_context()
 }
 
 fn camera(w: &SceneWorld, view: usize) -> Camera {

@@ -6,12 +6,14 @@
 //! Vulkan). With no adapter at all, [`GpuContext::new`] returns
 //! [`GpuError::NoAdapter`] and callers fall back to the CPU tracer.
 
+mod stream;
 mod tracer;
 
 use glam::IVec3;
 use thiserror::Error;
 
-pub use tracer::{FrameStats, GpuBrickmap, StreamConfig};
+pub use stream::{FrameStats, StreamConfig};
+pub use tracer::GpuBrickmap;
 
 /// Errors of the GPU subsystem.
 #[derive(Debug, Error)]

@@ -119,3 +119,19 @@ pub fn random_ray(rng: &mut TestRng, ext: Vec3) -> Ray {
     }
     Ray::new(o, d.normalize_or(Vec3::X))
 }
+
+/// The GPU context, or `None` (reported) when the machine has no adapter and
+/// `BRICKWORLD_REQUIRE_GPU` is not `1`; with it set, no adapter is a failure.
+pub fn gpu_context() -> Option<brickworld::gpu::GpuContext> {
+    use brickworld::gpu::{GpuContext, GpuError};
+    match GpuContext::new() {
+        Ok(c) => Some(c),
+        Err(GpuError::NoAdapter)
+            if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() != Ok("1") =>
+        {
+            eprintln!("no GPU adapter: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
+            None
+        }
+        Err(e) => panic!("GPU required but unavailable: {e}"),
+    }
+}
