@@ -16,6 +16,8 @@ use crate::trace::{Camera, RenderOptions, Structure, Tracer, render, write_npy, 
 pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
+        Command::Run(a) => run_daemon(&a),
+        Command::Ctl(a) => crate::engine::ctl::run(&a),
         Command::Sim(a) => crate::sim_cmd::run(&crate::config::SimSettings::from_args(&a)?),
         Command::Verify(VerifyCommand::Sims(a)) => crate::verify::run_sims(
             &a.json,
@@ -28,6 +30,30 @@ pub fn run(cli: Cli) -> Result<()> {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }
     }
+}
+
+fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
+    use crate::engine::world_config::WorldConfig;
+    let mut world = match &a.world {
+        Some(p) => WorldConfig::load(p)?,
+        None => WorldConfig::default_world(std::path::Path::new("worlds")),
+    };
+    if let Some(addr) = &a.addr {
+        world.addr = addr.parse().map_err(|_| {
+            anyhow::anyhow!("invalid --addr '{addr}': expected HOST:PORT, e.g. 127.0.0.1:7878")
+        })?;
+    }
+    if let Some(dir) = &a.scripts {
+        world.scripts_dir = dir.clone();
+    }
+    if a.ticks == Some(0) {
+        anyhow::bail!("invalid --ticks 0: at least one tick");
+    }
+    crate::engine::daemon::run(crate::engine::daemon::DaemonOptions {
+        world,
+        state: a.state.clone(),
+        max_ticks: a.ticks,
+    })
 }
 
 fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {

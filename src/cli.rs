@@ -19,6 +19,10 @@ pub struct Cli {
 pub enum Command {
     /// Build a scene and ray-trace it to a PNG (and optionally depth .npy).
     Render(RenderArgs),
+    /// Run the engine: simulation, rendering, checkpoints and the control server.
+    Run(RunArgs),
+    /// Talk to a running engine: status, pause, resume, step [N], checkpoint, param SCRIPT NAME VALUE.
+    Ctl(CtlArgs),
     /// Run Lua simulations on a scene headless, then render the result.
     Sim(SimArgs),
     /// Benchmarks.
@@ -49,6 +53,39 @@ pub struct VerifySimsArgs {
     /// Steps of the conservation run (10000 for the full check)
     #[arg(long, default_value_t = 10_000)]
     pub conservation_steps: u64,
+}
+
+/// `brickworld run`.
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// World config (TOML); without one, the embedded default world
+    pub world: Option<PathBuf>,
+    /// State directory: checkpoints, frames, control token
+    #[arg(long, default_value = "state")]
+    pub state: PathBuf,
+    /// Control server address HOST:PORT (overrides the config)
+    #[arg(long)]
+    pub addr: Option<String>,
+    /// Scripts directory (overrides the config)
+    #[arg(long)]
+    pub scripts: Option<PathBuf>,
+    /// Stop with a checkpoint after this many ticks
+    #[arg(long)]
+    pub ticks: Option<u64>,
+}
+
+/// `brickworld ctl`.
+#[derive(Debug, Args)]
+pub struct CtlArgs {
+    /// Engine address HOST:PORT
+    #[arg(long, default_value = "127.0.0.1:7878")]
+    pub addr: String,
+    /// State directory holding control.token
+    #[arg(long, default_value = "state")]
+    pub state: PathBuf,
+    /// status | pause | resume | step [N] | checkpoint | param SCRIPT NAME VALUE
+    #[arg(required = true, num_args = 1.., allow_hyphen_values = true)]
+    pub command: Vec<String>,
 }
 
 /// `brickworld sim`.

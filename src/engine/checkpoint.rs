@@ -158,7 +158,22 @@ impl Reader<'_> {
     }
 }
 
-fn encode(state: &WorldState) -> Vec<u8> {
+/// A world to checkpoint, borrowed from a running engine.
+#[derive(Clone, Copy, Debug)]
+pub struct WorldRef<'a> {
+    /// Simulation tick.
+    pub tick: u64,
+    /// The voxels.
+    pub store: &'a BrickStore,
+    /// Voxel bounds `[min, max)`.
+    pub bounds: (IVec3, IVec3),
+    /// Simulation channels.
+    pub channels: &'a ChannelStore,
+    /// Script parameters.
+    pub params: &'a [(String, Vec<(String, f64)>)],
+}
+
+fn encode(state: WorldRef<'_>) -> Vec<u8> {
     let mut w = Writer(Vec::new());
     for m in 0..=255u8 {
         w.0.extend_from_slice(&state.store.palette().rgb(m));
@@ -206,7 +221,7 @@ fn encode(state: &WorldState) -> Vec<u8> {
         }
     }
     w.u32(state.params.len() as u32);
-    for (script, ps) in &state.params {
+    for (script, ps) in state.params {
         w.str(script);
         w.u32(ps.len() as u32);
         for (n, v) in ps {
@@ -311,8 +326,22 @@ pub fn list(dir: &Path) -> Result<Vec<PathBuf>, CheckpointError> {
 /// [`KEEP`]. Returns its path and world hash. On any error (a full disk, say)
 /// the previous checkpoints are untouched.
 pub fn write(dir: &Path, state: &WorldState) -> Result<(PathBuf, u64), CheckpointError> {
+    write_ref(
+        dir,
+        WorldRef {
+            tick: state.tick,
+            store: &state.store,
+            bounds: state.bounds,
+            channels: &state.channels,
+            params: &state.params,
+        },
+    )
+}
+
+/// [`write`] for a world borrowed from a running engine.
+pub fn write_ref(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), CheckpointError> {
     fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
-    let hash = world_hash(&state.store, &state.channels);
+    let hash = world_hash(state.store, state.channels);
     let payload = lz4_flex::compress_prepend_size(&encode(state));
     let mut header = Vec::with_capacity(HEADER);
     header.extend_from_slice(MAGIC);

@@ -1,5 +1,8 @@
-//! The long-running engine: world configs and crash-safe checkpoints (the
-//! daemon that runs them lands with issue 5).
+//! The long-running engine: world configs, crash-safe checkpoints, the
+//! control server, the daemon loop and its command-line client.
 
 pub mod checkpoint;
+pub mod control;
+pub mod ctl;
+pub mod daemon;
 pub mod world_config;

@@ -151,7 +151,9 @@ impl WorldSim {
         ((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, 256)
     }
 
-    /// One step of `dt`, split into sub-steps that respect the water CFL limit.
+    /// One step of `dt`, split into sub-steps that respect the water CFL
+    /// limit. The step counts as one tick, whatever its sub-steps (they all
+    /// run at the step's tick, so per-script rates see whole steps).
     pub fn step_within_cfl(
         &mut self,
         world: &mut SceneWorld,
@@ -159,13 +161,16 @@ impl WorldSim {
         cfl: f64,
     ) -> (StepReport, u32) {
         let n = self.substeps_for(dt, cfl);
+        let tick = self.sim.tick();
         let mut report = StepReport::default();
         for _ in 0..n {
+            self.sim.set_tick(tick);
             let r = self.step(world, dt / n as f64);
             report.active_tiles = report.active_tiles.max(r.active_tiles);
             report.changed_tiles.extend(r.changed_tiles);
             report.errors.extend(r.errors);
         }
+        self.sim.set_tick(tick + 1);
         report.changed_tiles.sort_by_key(|t| (t.y, t.x));
         report.changed_tiles.dedup();
         (report, n)

@@ -66,6 +66,8 @@ struct Loaded {
     nonneg: Vec<usize>,
     kernel: Kernel,
     limits: Limits,
+    /// Run on ticks that are multiples of this.
+    every: u64,
 }
 
 /// What one step did.
@@ -288,6 +290,7 @@ impl Simulation {
         );
         let mut loaded = self.prepare(src, kernel, limits)?;
         let old = &self.scripts[index];
+        loaded.every = old.every;
         for (i, p) in loaded.spec.params.iter().enumerate() {
             if let Some(j) = old.spec.params.iter().position(|q| q.name == p.name)
                 && (p.min..=p.max).contains(&old.params[j])
@@ -340,7 +343,18 @@ impl Simulation {
             nonneg,
             kernel,
             limits,
+            every: 1,
         })
+    }
+
+    /// Run script `index` only on ticks that are multiples of `every` (≥ 1).
+    pub fn set_every(&mut self, index: usize, every: u64) {
+        self.scripts[index].every = every.max(1);
+    }
+
+    /// Continue counting ticks from `tick` (after a resume).
+    pub fn set_tick(&mut self, tick: u64) {
+        self.tick = tick;
     }
 
     /// Declarations of script `index`.
@@ -395,6 +409,9 @@ impl Simulation {
         let mut errors = Vec::new();
         let mut changed: FxHashSet<TileCoord> = FxHashSet::default();
         for script in &self.scripts {
+            if !self.tick.is_multiple_of(script.every) {
+                continue;
+            }
             match run_script(script, &self.channels, &ws, dt, serial) {
                 Ok(outputs) => {
                     // Commit this script's channels in sorted tile order.
