@@ -213,8 +213,14 @@ fn kill_dash_nine_then_restart_resumes_with_the_checkpoints_hash() {
 
 #[test]
 fn a_port_in_use_and_a_bad_config_are_clear_errors() {
-    let (cfg, state, addr) = setup("port");
-    let _holder = std::net::TcpListener::bind(&addr).unwrap();
+    let (cfg, state, old_addr) = setup("port");
+    // Hold a port we own for the whole test rather than re-binding the one
+    // `setup` probed: a parallel test could have been handed that port since
+    // (regression: flaky `AddrInUse` panic at the holder's bind).
+    let _holder = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = _holder.local_addr().unwrap().to_string();
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    std::fs::write(&cfg, text.replace(&old_addr, &addr)).unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_brickworld"))
         .arg("run")
         .arg(&cfg)
