@@ -18,6 +18,41 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
         Command::Run(a) => run_daemon(&a),
         Command::Ctl(a) => crate::engine::ctl::run(&a),
+        Command::Soak {
+            minutes,
+            json,
+            world,
+            state,
+        } => {
+            if !(minutes > 0.0 && minutes <= 24.0 * 60.0) {
+                anyhow::bail!("invalid --minutes {minutes}: must be in (0, 1440]");
+            }
+            let pb = bar("soak (s)", 0);
+            let r = crate::bench::soak::run(world.as_deref(), minutes, &state, &pb)?;
+            pb.finish_and_clear();
+            std::fs::write(&json, serde_json::to_string_pretty(&r)? + "\n")
+                .with_context(|| format!("cannot write {}", json.display()))?;
+            println!(
+                "{:.1} min, {} ticks ({:.1}/s); RSS growth after warm-up {:+.2} %; max dirty queue {}; /status p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; frame {:.1} ms; ground+sediment drift {:.2e}",
+                r.minutes,
+                r.ticks,
+                r.ticks_per_s,
+                r.rss_growth_after_warmup_pct,
+                r.max_dirty_queue,
+                r.status_ms_p50,
+                r.status_ms_p99,
+                r.status_ms_max,
+                r.frame_ms_mean,
+                r.ground_plus_sediment_drift
+            );
+            Ok(())
+        }
+        Command::Chart { state } => {
+            for p in crate::engine::timeline::chart(&state)? {
+                println!("{}", p.display());
+            }
+            Ok(())
+        }
         Command::Sim(a) => crate::sim_cmd::run(&crate::config::SimSettings::from_args(&a)?),
         Command::Verify(VerifyCommand::Sims(a)) => crate::verify::run_sims(
             &a.json,

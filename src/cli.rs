@@ -23,6 +23,26 @@ pub enum Command {
     Run(RunArgs),
     /// Talk to a running engine: status, pause, resume, step [N], checkpoint, param SCRIPT NAME VALUE.
     Ctl(CtlArgs),
+    /// Run the daemon for M minutes and report memory, queues, latency and drift.
+    Soak {
+        /// Minutes to run (the README's figures: 20)
+        #[arg(long, default_value_t = 20.0)]
+        minutes: f64,
+        /// Write the results as JSON here
+        #[arg(long)]
+        json: PathBuf,
+        /// World config (default: the embedded default world)
+        #[arg(long)]
+        world: Option<PathBuf>,
+        /// State directory for the run (wiped first)
+        #[arg(long, default_value = "soak-state")]
+        state: PathBuf,
+    },
+    /// Draw a state directory's timeline as SVG charts (into STATE/charts).
+    Chart {
+        /// State directory of a `brickworld run`
+        state: PathBuf,
+    },
     /// Run Lua simulations on a scene headless, then render the result.
     Sim(SimArgs),
     /// Benchmarks.

@@ -3,5 +3,6 @@
 
 pub mod chart;
 pub mod sim;
+pub mod soak;
 pub mod stream;
 pub mod tracers;

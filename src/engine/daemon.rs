@@ -79,6 +79,13 @@ fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
     out
 }
 
+fn total(ws: &WorldSim, name: &str) -> f64 {
+    ws.sim
+        .channels()
+        .find(name)
+        .map_or(0.0, |c| ws.sim.channels().total(c))
+}
+
 /// Run the engine until stopped.
 pub fn run(opts: DaemonOptions) -> Result<()> {
     let cfg = &opts.world;
@@ -226,9 +233,46 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             .map_err(|e| e.to_string())
     };
     let mut last_errors: Vec<Option<String>> = vec![None; ws.sim.script_count()];
+    // Hot reload: the scripts directory is watched; a changed script is
+    // compiled and smoke-tested in a fresh VM and swapped in here, between
+    // steps; a broken one keeps the last good version running.
+    let mut watcher = match crate::sim::ScriptWatcher::new(
+        &cfg.scripts_dir,
+        std::time::Duration::from_millis(150),
+    ) {
+        Ok(w) => Some(w),
+        Err(e) => {
+            eprintln!("warning: hot reload is off: {e}");
+            None
+        }
+    };
+    let timeline_path = opts.state.join("timeline.csv");
+    let mut timeline = super::timeline::Timeline::open(&timeline_path)?;
     loop {
         if shared.shutdown.load(Ordering::Relaxed) {
             break;
+        }
+        if let Some(w) = watcher.as_mut() {
+            for path in w.poll() {
+                let name = path
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().to_string())
+                    .unwrap_or_default();
+                let index = (0..ws.sim.script_count()).find(|&i| ws.sim.spec(i).name == name);
+                match ws.reload(&path) {
+                    Ok(Some(i)) => {
+                        eprintln!("reloaded {}", path.display());
+                        last_errors[i] = None;
+                    }
+                    Ok(None) => {}
+                    Err(e) => {
+                        eprintln!("warning: kept the last good version: {e}");
+                        if let Some(i) = index {
+                            last_errors[i] = Some(e.to_string());
+                        }
+                    }
+                }
+            }
         }
         let commands: Vec<Command> =
             std::mem::take(&mut *shared.commands.lock().expect("command lock"));
@@ -345,6 +389,21 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                         checkpoint_error = Some(e);
                     }
                 }
+            }
+            if tick.is_multiple_of(cfg.frames_every) {
+                timeline.record(&super::timeline::Row {
+                    tick,
+                    steps_per_s,
+                    active_bricks: r.active_tiles,
+                    dirty_bricks: dirty,
+                    frame_ms,
+                    bricks_streamed,
+                    rss_kb: super::timeline::rss_kb(),
+                    water: total(&ws, "water"),
+                    ground_plus_sediment: total(&ws, "ground") + total(&ws, "sediment"),
+                    snow: total(&ws, "snow"),
+                    drained: ws.drained,
+                });
             }
             let mut st = shared.status.lock().expect("status lock");
             st.active_bricks = r.active_tiles;

@@ -5,4 +5,5 @@ pub mod checkpoint;
 pub mod control;
 pub mod ctl;
 pub mod daemon;
+pub mod timeline;
 pub mod world_config;

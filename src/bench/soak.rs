@@ -1,0 +1,157 @@
+//! `brickworld soak`: run the real daemon for M minutes and watch it: resident
+//! memory over time (it must stay flat), queue lengths (bounded), `/status`
+//! latency, ticks per second, frame time, and the drift of conserved totals.
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use serde::Serialize;
+
+use crate::engine::ctl::request;
+
+/// The soak report.
+#[derive(Debug, Serialize)]
+pub struct SoakReport {
+    /// Minutes run.
+    pub minutes: f64,
+    /// (seconds, resident KiB) samples.
+    pub rss_kb: Vec<(f64, u64)>,
+    /// Resident memory growth from the end of warm-up (first fifth) to the end, percent.
+    pub rss_growth_after_warmup_pct: f64,
+    /// Largest dirty-brick queue seen.
+    pub max_dirty_queue: u64,
+    /// `/status` latency percentiles, milliseconds.
+    pub status_ms_p50: f64,
+    /// 99th percentile.
+    pub status_ms_p99: f64,
+    /// Worst.
+    pub status_ms_max: f64,
+    /// Ticks per second over the run.
+    pub ticks_per_s: f64,
+    /// Mean frame time from the timeline.
+    pub frame_ms_mean: f64,
+    /// Relative drift of ground + sediment (conserved exactly) over the run.
+    pub ground_plus_sediment_drift: f64,
+    /// Ticks run.
+    pub ticks: u64,
+}
+
+fn rss_of(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmRSS:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse().ok())
+        })
+        .unwrap_or(0)
+}
+
+/// Run the soak.
+pub fn run(
+    world: Option<&Path>,
+    minutes: f64,
+    state: &Path,
+    progress: &indicatif::ProgressBar,
+) -> Result<SoakReport> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let addr = format!("127.0.0.1:{port}");
+    let _ = std::fs::remove_dir_all(state);
+    let exe = std::env::current_exe().context("cannot find the brickworld executable")?;
+    let mut cmd = Command::new(exe);
+    cmd.arg("run");
+    if let Some(w) = world {
+        cmd.arg(w);
+    }
+    let mut child = cmd
+        .arg("--state")
+        .arg(state)
+        .arg("--addr")
+        .arg(&addr)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("cannot start the daemon")?;
+    let start = Instant::now();
+    while request(&addr, "GET", "/status", None, "").is_err() {
+        if start.elapsed() > Duration::from_secs(120) {
+            let _ = child.kill();
+            bail!("the daemon did not start within two minutes");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let total = Duration::from_secs_f64(minutes * 60.0);
+    progress.set_length(total.as_secs());
+    let t0 = Instant::now();
+    let (mut rss, mut lat, mut max_q, mut first_tick, mut last_tick) =
+        (Vec::new(), Vec::new(), 0u64, None, 0u64);
+    while t0.elapsed() < total {
+        let t = Instant::now();
+        let r = request(&addr, "GET", "/status", None, "");
+        lat.push(t.elapsed().as_secs_f64() * 1e3);
+        if let Ok((200, body)) = r
+            && let Ok(s) = serde_json::from_str::<serde_json::Value>(&body)
+        {
+            let tick = s["tick"].as_u64().unwrap_or(0);
+            first_tick.get_or_insert(tick);
+            last_tick = tick;
+            max_q = max_q.max(s["dirty_queue"].as_u64().unwrap_or(0));
+        }
+        rss.push((t0.elapsed().as_secs_f64(), rss_of(child.id())));
+        if let Some(status) = child.try_wait()? {
+            bail!("the daemon exited early ({status})");
+        }
+        progress.set_position(t0.elapsed().as_secs());
+        std::thread::sleep(Duration::from_millis(1000).saturating_sub(t.elapsed()));
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    let _ = Command::new("kill")
+        .arg("-TERM")
+        .arg(child.id().to_string())
+        .status();
+    let _ = child.wait();
+    lat.sort_by(|a, b| a.total_cmp(b));
+    let pct = |p: f64| {
+        lat.get(((lat.len() as f64 - 1.0) * p) as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
+    let warm = rss.len() / 5;
+    let base = rss.get(warm).map_or(0, |r| r.1).max(1) as f64;
+    let end = rss.last().map_or(0, |r| r.1) as f64;
+    let rows = crate::engine::timeline::read(&state.join("timeline.csv")).unwrap_or_default();
+    let col = |n: &str| {
+        crate::engine::timeline::COLUMNS
+            .iter()
+            .position(|c| *c == n)
+            .expect("column")
+    };
+    let gs = |r: &Vec<f64>| r[col("ground_plus_sediment")];
+    let drift = match (rows.first(), rows.last()) {
+        (Some(a), Some(b)) if gs(a) != 0.0 => ((gs(b) - gs(a)) / gs(a)).abs(),
+        _ => f64::NAN,
+    };
+    let frame = rows
+        .iter()
+        .map(|r| r[col("frame_ms")])
+        .filter(|v| *v > 0.0)
+        .collect::<Vec<_>>();
+    Ok(SoakReport {
+        minutes: secs / 60.0,
+        rss_growth_after_warmup_pct: (end - base) / base * 100.0,
+        rss_kb: rss,
+        max_dirty_queue: max_q,
+        status_ms_p50: pct(0.5),
+        status_ms_p99: pct(0.99),
+        status_ms_max: lat.last().copied().unwrap_or(0.0),
+        ticks_per_s: (last_tick - first_tick.unwrap_or(0)) as f64 / secs,
+        frame_ms_mean: frame.iter().sum::<f64>() / frame.len().max(1) as f64,
+        ground_plus_sediment_drift: drift,
+        ticks: last_tick,
+    })
+}
