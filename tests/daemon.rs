@@ -1,8 +1,9 @@
 //! The engine daemon as a user runs it: the real binary on a free loopback
 //! port. Status, pause and step; checkpoints on demand and on SIGTERM;
 //! token rejection (401) and malformed requests (400, 404, 413); kill -9 then
-//! a restart that resumes with the checkpoint's hash; a port already in use;
-//! a bad world config.
+//! a restart that resumes with the checkpoint's hash, repeated at random
+//! moments and once in the middle of a checkpoint write; hot reload of a
+//! changed and of a broken script; a port already in use; a bad world config.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -247,4 +248,222 @@ fn a_port_in_use_and_a_bad_config_are_clear_errors() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains("render.width"), "{err}");
+}
+
+fn save_like_an_editor(path: &Path, text: &str) {
+    let tmp = path.with_extension("lua.swp");
+    std::fs::write(&tmp, text).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
+/// Polls `/status` until `pred` holds for the water script's status; returns
+/// how long it took (the wait is a generous cap, not a timing assertion).
+fn wait_for_script(addr: &str, pred: impl Fn(&serde_json::Value) -> bool) -> Duration {
+    let t = Instant::now();
+    while t.elapsed() < Duration::from_secs(20) {
+        let s = status(addr);
+        if pred(&s["scripts"][0]) {
+            return t.elapsed();
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    panic!("the script status never changed: {}", status(addr));
+}
+
+#[test]
+fn hot_reload_of_a_changed_and_a_broken_script() {
+    let (cfg, state, addr) = setup("reload");
+    let scripts = cfg.parent().unwrap().join("scripts");
+    std::fs::create_dir_all(&scripts).unwrap();
+    let original =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua")).unwrap();
+    let water = scripts.join("water.lua");
+    std::fs::write(&water, &original).unwrap();
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    let text = text.replace(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
+        scripts.to_str().unwrap(),
+    );
+    std::fs::write(&cfg, text).unwrap();
+    let child = start(&cfg, &state);
+    wait_ready(&addr);
+    assert!(status(&addr)["scripts"][0]["error"].is_null());
+
+    // A broken save: the old version keeps running, the error names the file
+    // and line.
+    save_like_an_editor(&water, "return {\n  channels = { \"water\" \n}\n");
+    let broken = wait_for_script(&addr, |s| {
+        s["error"].as_str().is_some_and(|e| e.contains("water.lua"))
+    });
+    let err = status(&addr)["scripts"][0]["error"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert!(
+        err.contains("water.lua:4:") && err.contains("syntax error"),
+        "{err}"
+    );
+    let tick = status(&addr)["tick"].as_u64().unwrap();
+    let t = Instant::now();
+    while status(&addr)["tick"].as_u64().unwrap() <= tick + 2 {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "the old version stopped running"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+
+    // A changed script takes effect: this version fails in its first kernel,
+    // which only the new code can do (the step is rolled back).
+    let v2 = original.replacen(
+        "kernel = function(c)\n",
+        "kernel = function(c)\n        error(\"v2 is running\")\n",
+        1,
+    );
+    assert_ne!(v2, original);
+    save_like_an_editor(&water, &v2);
+    let changed = wait_for_script(&addr, |s| {
+        s["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("v2 is running"))
+    });
+
+    // And the original back: the error clears.
+    save_like_an_editor(&water, &original);
+    wait_for_script(&addr, |s| s["error"].is_null());
+    eprintln!("hot reload seen in /status after: broken {broken:?}, changed {changed:?}");
+    let out = stop(child);
+    assert!(out.status.success());
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(log.contains("reloaded"), "{log}");
+    assert!(!log.contains("panicked"), "{log}");
+}
+
+fn set_checkpoint_every(cfg: &Path, every: u64) {
+    let text = std::fs::read_to_string(cfg).unwrap();
+    std::fs::write(
+        cfg,
+        text.replace(
+            "[checkpoint]\nevery = 40",
+            &format!("[checkpoint]\nevery = {every}"),
+        ),
+    )
+    .unwrap();
+}
+
+/// Checks the state after a kill -9: every checkpoint file verifies, and a
+/// restart resumes from the newest with its hash. Returns that tick.
+fn restart_resumes_from_newest(cfg: &Path, state: &Path, addr: &str) -> u64 {
+    let latest = checkpoint::latest(state).unwrap();
+    assert!(
+        latest.skipped.is_empty(),
+        "a corrupt checkpoint: {:?}",
+        latest.skipped
+    );
+    let newest = latest.found.expect("a checkpoint survived kill -9");
+    let hash = format!(
+        "{:#018x}",
+        checkpoint::world_hash(&newest.1.store, &newest.1.channels)
+    );
+    let child = start(cfg, state);
+    wait_ready(addr);
+    let s = status(addr);
+    assert_eq!(s["loaded_from"]["hash"], hash.as_str(), "{s}");
+    assert_eq!(s["loaded_from"]["tick"], newest.1.tick);
+    assert!(stop(child).status.success());
+    newest.1.tick
+}
+
+/// `BRICKWORLD_KILL_TRIALS` sets the number of trials (4 by default; the
+/// README's figure comes from 20).
+#[test]
+fn kill_9_at_random_moments_never_loses_or_corrupts_a_checkpoint() {
+    let trials: u64 = std::env::var("BRICKWORLD_KILL_TRIALS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(4);
+    let (cfg, state, addr) = setup("killtrials");
+    set_checkpoint_every(&cfg, 10);
+    let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+    let mut last_tick = 0;
+    for trial in 0..trials {
+        let mut child = start(&cfg, &state);
+        wait_ready(&addr);
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let delay = 50 + (rng >> 33) % 1500;
+        std::thread::sleep(Duration::from_millis(delay));
+        if trial % 2 == 1 {
+            // Land some kills right after an on-demand checkpoint starts.
+            let _ = post(&addr, &state, "/checkpoint", "");
+        }
+        child.kill().unwrap();
+        child.wait().unwrap();
+        let tick = restart_resumes_from_newest(&cfg, &state, &addr);
+        assert!(
+            tick >= last_tick,
+            "trial {trial}: went back from {last_tick} to {tick}"
+        );
+        last_tick = tick;
+        eprintln!("kill -9 trial {trial}: killed after {delay} ms, resumed at tick {tick}");
+    }
+}
+
+#[test]
+fn kill_9_during_a_checkpoint_write_loads_the_previous_one() {
+    let (cfg, state, addr) = setup("killmidwrite");
+    set_checkpoint_every(&cfg, 10);
+    // A first run leaves good checkpoints (SIGTERM writes one too).
+    let child = start(&cfg, &state);
+    wait_ready(&addr);
+    let t = Instant::now();
+    while status(&addr)["last_checkpoint"].is_null() {
+        assert!(t.elapsed() < Duration::from_secs(30));
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(stop(child).status.success());
+    let before = checkpoint::list(&state).unwrap();
+    assert!(!before.is_empty());
+
+    // The second run stalls half-way through every checkpoint write.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .arg("run")
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&state)
+        .env("BRICKWORLD_TEST_CHECKPOINT_STALL_MS", "60000")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    let partial = loop {
+        let tmp = std::fs::read_dir(&state)
+            .unwrap()
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .find(|p| p.extension().is_some_and(|e| e == "tmp"));
+        if let Some(p) = tmp
+            && std::fs::metadata(&p).is_ok_and(|m| m.len() > 0)
+        {
+            break p;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "no checkpoint write started"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(
+        partial.exists(),
+        "the half-written temp file is left as it was"
+    );
+    assert_eq!(
+        checkpoint::list(&state).unwrap(),
+        before,
+        "no checkpoint was touched"
+    );
+    restart_resumes_from_newest(&cfg, &state, &addr);
 }

@@ -357,7 +357,18 @@ pub fn write_ref(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Chec
     let result = (|| -> std::io::Result<()> {
         let mut f = File::create(&tmp)?;
         f.write_all(&header)?;
-        f.write_all(&payload)?;
+        match write_stall() {
+            // Test hook: stop half-way through the payload so a test can
+            // kill -9 the process in the middle of a write.
+            Some(stall) => {
+                let half = payload.len() / 2;
+                f.write_all(&payload[..half])?;
+                f.sync_all()?;
+                std::thread::sleep(stall);
+                f.write_all(&payload[half..])?;
+            }
+            None => f.write_all(&payload)?,
+        }
         f.sync_all()?;
         fs::rename(&tmp, &path)?;
         File::open(dir)?.sync_all()
@@ -369,7 +380,27 @@ pub fn write_ref(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Chec
     for old in list(dir)?.into_iter().skip(KEEP) {
         let _ = fs::remove_file(old);
     }
+    // Temp files left by a process killed mid-write never load; drop them.
+    if let Ok(rd) = fs::read_dir(dir) {
+        for e in rd.flatten() {
+            let n = e.file_name();
+            let n = n.to_string_lossy();
+            if n.starts_with(".ckpt-") && n.ends_with(".tmp") {
+                let _ = fs::remove_file(e.path());
+            }
+        }
+    }
     Ok((path, hash))
+}
+
+/// `BRICKWORLD_TEST_CHECKPOINT_STALL_MS`: a pause half-way through writing
+/// each checkpoint's temp file, so the crash tests can kill the process
+/// mid-write. Unset in normal use.
+fn write_stall() -> Option<std::time::Duration> {
+    std::env::var("BRICKWORLD_TEST_CHECKPOINT_STALL_MS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .map(std::time::Duration::from_millis)
 }
 
 /// Read and verify one checkpoint file.
