@@ -39,16 +39,44 @@ fn setup(name: &str) -> (PathBuf, PathBuf, String) {
     (cfg, dir.join("state"), addr)
 }
 
-fn start(cfg: &Path, state: &Path) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .arg("run")
-        .arg(cfg)
-        .arg("--state")
-        .arg(state)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+/// A daemon that is killed if the test panics before stopping it
+/// (regression: failed tests left daemons running and eating the CPU).
+struct Daemon(Option<Child>);
+
+impl std::ops::Deref for Daemon {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        self.0.as_ref().expect("running")
+    }
+}
+
+impl std::ops::DerefMut for Daemon {
+    fn deref_mut(&mut self) -> &mut Child {
+        self.0.as_mut().expect("running")
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Some(mut c) = self.0.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+fn start(cfg: &Path, state: &Path) -> Daemon {
+    Daemon(Some(
+        Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .arg("run")
+            .arg(cfg)
+            .arg("--state")
+            .arg(state)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    ))
 }
 
 fn status(addr: &str) -> serde_json::Value {
@@ -80,20 +108,21 @@ fn post(addr: &str, state: &Path, path: &str, body: &str) -> (u16, String) {
     request(addr, "POST", path, Some(&token(state)), body).unwrap()
 }
 
-fn stop(mut child: Child) -> std::process::Output {
+fn stop(mut daemon: Daemon) -> std::process::Output {
     // SIGTERM: the daemon checkpoints and exits cleanly.
     let _ = Command::new("kill")
         .arg("-TERM")
-        .arg(child.id().to_string())
+        .arg(daemon.id().to_string())
         .status();
     let t = Instant::now();
     while t.elapsed() < Duration::from_secs(30) {
-        if child.try_wait().unwrap().is_some() {
+        if daemon.try_wait().unwrap().is_some() {
+            let child = daemon.0.take().expect("running");
             return child.wait_with_output().unwrap();
         }
         std::thread::sleep(Duration::from_millis(50));
     }
-    child.kill().unwrap();
+    // Dropping `daemon` kills it.
     panic!("the daemon did not stop on SIGTERM");
 }
 
@@ -427,16 +456,18 @@ fn kill_9_during_a_checkpoint_write_loads_the_previous_one() {
     assert!(!before.is_empty());
 
     // The second run stalls half-way through every checkpoint write.
-    let mut child = Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .arg("run")
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
-        .env("BRICKWORLD_TEST_CHECKPOINT_STALL_MS", "60000")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut child = Daemon(Some(
+        Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .arg("run")
+            .arg(&cfg)
+            .arg("--state")
+            .arg(&state)
+            .env("BRICKWORLD_TEST_CHECKPOINT_STALL_MS", "60000")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    ));
     let t = Instant::now();
     let partial = loop {
         let tmp = std::fs::read_dir(&state)
@@ -466,4 +497,40 @@ fn kill_9_during_a_checkpoint_write_loads_the_previous_one() {
         "no checkpoint was touched"
     );
     restart_resumes_from_newest(&cfg, &state, &addr);
+}
+
+#[test]
+fn a_slow_renderer_skips_frames_and_never_holds_up_the_simulation() {
+    let (cfg, state, addr) = setup("slowrender");
+    // A frame every tick, far larger than the 48x32x48 world needs: each
+    // frame takes many steps' time.
+    let text = std::fs::read_to_string(&cfg)
+        .unwrap()
+        .replace(
+            "width = 32\nheight = 24",
+            "width = 1024\nheight = 768\nshadows = true",
+        )
+        .replace("[frames]\nevery = 5", "[frames]\nevery = 1");
+    std::fs::write(&cfg, text).unwrap();
+    let child = start(&cfg, &state);
+    wait_ready(&addr);
+    let t = Instant::now();
+    let s = loop {
+        let s = status(&addr);
+        if s["frames"].as_u64().unwrap() >= 2 || t.elapsed() > Duration::from_secs(60) {
+            break s;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let (tick, frames, skipped) = (
+        s["tick"].as_u64().unwrap(),
+        s["frames"].as_u64().unwrap(),
+        s["frames_skipped"].as_u64().unwrap(),
+    );
+    assert!(frames >= 2, "{s}");
+    assert!(skipped > 0, "the renderer kept up with every tick: {s}");
+    assert!(tick > frames + skipped / 2, "{s}");
+    // Coalesced: at most every brick of the world once (6 x 4 x 6).
+    assert!(s["dirty_queue"].as_u64().unwrap() <= 144, "{s}");
+    assert!(stop(child).status.success());
 }

@@ -36,6 +36,10 @@ pub struct SoakReport {
     pub ground_plus_sediment_drift: f64,
     /// Ticks run.
     pub ticks: u64,
+    /// Frames the render thread drew.
+    pub frames: u64,
+    /// Frames skipped because the renderer was busy (the simulation went on).
+    pub frames_skipped: u64,
 }
 
 fn rss_of(pid: u32) -> u64 {
@@ -90,6 +94,7 @@ pub fn run(
     let t0 = Instant::now();
     let (mut rss, mut lat, mut max_q, mut first_tick, mut last_tick) =
         (Vec::new(), Vec::new(), 0u64, None, 0u64);
+    let mut frames = (0u64, 0u64);
     while t0.elapsed() < total {
         let t = Instant::now();
         let r = request(&addr, "GET", "/status", None, "");
@@ -101,6 +106,10 @@ pub fn run(
             first_tick.get_or_insert(tick);
             last_tick = tick;
             max_q = max_q.max(s["dirty_queue"].as_u64().unwrap_or(0));
+            frames = (
+                s["frames"].as_u64().unwrap_or(0),
+                s["frames_skipped"].as_u64().unwrap_or(0),
+            );
         }
         rss.push((t0.elapsed().as_secs_f64(), rss_of(child.id())));
         if let Some(status) = child.try_wait()? {
@@ -153,5 +162,7 @@ pub fn run(
         frame_ms_mean: frame.iter().sum::<f64>() / frame.len().max(1) as f64,
         ground_plus_sediment_drift: drift,
         ticks: last_tick,
+        frames: frames.0,
+        frames_skipped: frames.1,
     })
 }

@@ -54,6 +54,10 @@ pub struct Status {
     pub frame_ms: f64,
     /// Bricks streamed to the GPU so far.
     pub bricks_streamed: u64,
+    /// Frames drawn by the render thread so far.
+    pub frames: u64,
+    /// Frames skipped because the renderer was still busy with the last.
+    pub frames_skipped: u64,
     /// The last checkpoint written.
     pub last_checkpoint: Option<CheckpointRef>,
     /// The checkpoint this run resumed from.

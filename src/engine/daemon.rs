@@ -8,9 +8,11 @@
 //! and on SIGINT/SIGTERM, and obeys the control server's commands at step
 //! boundaries.
 //!
-//! Known limitation of this first version: simulation and rendering share
-//! one thread, so a slow frame delays the next step (the brief wants the
-//! simulation never to wait for the renderer).
+//! Rendering runs on its own thread ([`super::render_thread`]): the loop
+//! offers it a snapshot every `frames.every` ticks only when it is idle, and
+//! otherwise skips the frame, so the simulation never waits for it. The
+//! dirty brick ids between frames are coalesced in a set (bounded by the
+//! world's brick count).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -18,16 +20,17 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use glam::DVec3;
+use glam::{DVec3, IVec3};
+use rustc_hash::FxHashSet;
 
 use super::checkpoint::{self, WorldRef};
 use super::control::{self, CheckpointRef, Command, ScriptStatus, Shared, Status};
+use super::render_thread::{FrameJob, RenderSettings, RenderThread};
 use super::world_config::{CameraMode, WorldConfig};
-use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
 use crate::progress::bar;
 use crate::scene::{SceneWorld, build_scene};
 use crate::sim::{Limits, WorldSim, read_script};
-use crate::trace::{Camera, RenderOptions, render};
+use crate::trace::Camera;
 
 /// Options of `brickworld run`.
 #[derive(Clone, Debug)]
@@ -64,19 +67,6 @@ fn write_token(state: &Path, token: &str) -> Result<PathBuf> {
             .with_context(|| format!("cannot restrict {}", path.display()))?;
     }
     Ok(path)
-}
-
-fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut out, w, h);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        if let Ok(mut wr) = enc.write_header() {
-            let _ = wr.write_image_data(rgb);
-        }
-    }
-    out
 }
 
 fn total(ws: &WorldSim, name: &str) -> f64 {
@@ -162,34 +152,20 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             hash: format!("{hash:#018x}"),
         });
     }
-    // Rendering: GPU streaming if asked and available, else the CPU.
-    let gpu = if cfg.gpu {
-        match GpuContext::new() {
-            Ok(ctx) => match GpuBrickmap::streaming(
-                &ctx,
-                &world.grid,
-                world.store.pool(),
-                world.store.palette(),
-                StreamConfig::default(),
-            ) {
-                Ok(g) => Some((ctx, g)),
-                Err(e) => {
-                    eprintln!("warning: {e}; rendering on the CPU");
-                    None
-                }
-            },
-            Err(e) => {
-                eprintln!("warning: {e}; rendering on the CPU");
-                None
-            }
-        }
-    } else {
-        None
-    };
-    let mut gpu = gpu;
     let frames_dir = opts.state.join(&cfg.frames_dir);
     std::fs::create_dir_all(&frames_dir)
         .with_context(|| format!("cannot create {}", frames_dir.display()))?;
+    let renderer = RenderThread::spawn(
+        RenderSettings {
+            gpu: cfg.gpu,
+            shadows: cfg.shadows,
+            frames_dir,
+        },
+        shared.clone(),
+    )
+    .context("cannot start the render thread")?;
+    // Dirty bricks not yet handed to the renderer, each once.
+    let mut dirty_pending: FxHashSet<IVec3> = FxHashSet::default();
     println!(
         "brickworld is running: viewer http://{}/  (control token in {}: {token})",
         cfg.addr,
@@ -197,10 +173,8 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
     );
     let mut camera = cfg.camera;
     let (mut paused, mut steps_left) = (false, 0u64);
-    let mut bricks_streamed = 0u64;
     let mut last_checkpoint = None;
     let mut checkpoint_error = None;
-    let mut frame_ms = 0.0;
     let mut rate_window = (Instant::now(), 0u64);
     let mut steps_per_s = 0.0;
     let start_tick = ws.sim.tick();
@@ -330,53 +304,36 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             let mut dirty = 0;
             for batch in ws.dirty.try_iter() {
                 dirty += batch.bricks.len();
-                if let Some((ctx, g)) = gpu.as_mut() {
-                    g.apply_edits(ctx, &world.grid, world.store.pool(), &batch.bricks);
-                }
+                dirty_pending.extend(batch.bricks);
             }
             let tick = ws.sim.tick();
             if tick.is_multiple_of(cfg.frames_every) {
-                let t = Instant::now();
-                let views = world.default_views();
-                let (mut eye, target) = match (camera.eye, camera.target) {
-                    (Some(e), Some(t)) => (e, t),
-                    _ => (DVec3::from(views[1].eye), DVec3::from(views[1].target)),
-                };
-                if let CameraMode::Orbit { period_s } = camera.mode {
-                    let angle = (tick as f64 * cfg.dt / period_s) * std::f64::consts::TAU;
-                    let d = eye - target;
-                    let (s, c) = angle.sin_cos();
-                    eye = target + DVec3::new(d.x * c - d.z * s, d.y, d.x * s + d.z * c);
-                }
-                if let Ok(cam) = Camera::new(eye, target, camera.fov, cfg.width, cfg.height) {
-                    let opts_r = RenderOptions {
-                        shadows: cfg.shadows,
-                        ..Default::default()
+                if renderer.ready() {
+                    let views = world.default_views();
+                    let (mut eye, target) = match (camera.eye, camera.target) {
+                        (Some(e), Some(t)) => (e, t),
+                        _ => (DVec3::from(views[1].eye), DVec3::from(views[1].target)),
                     };
-                    let rgb = match gpu.as_mut() {
-                        Some((ctx, g)) => {
-                            match g.render(ctx, &cam, &opts_r, &world.grid, world.store.pool()) {
-                                Ok((f, s)) => {
-                                    bricks_streamed += s.uploads as u64;
-                                    f.rgb
-                                }
-                                Err(e) => {
-                                    eprintln!(
-                                        "warning: GPU frame failed ({e}); rendering on the CPU from now on"
-                                    );
-                                    gpu = None;
-                                    render(&world.brickmap(), &cam, world.store.palette(), &opts_r)
-                                        .rgb
-                                }
-                            }
+                    if let CameraMode::Orbit { period_s } = camera.mode {
+                        let angle = (tick as f64 * cfg.dt / period_s) * std::f64::consts::TAU;
+                        let d = eye - target;
+                        let (s, c) = angle.sin_cos();
+                        eye = target + DVec3::new(d.x * c - d.z * s, d.y, d.x * s + d.z * c);
+                    }
+                    if let Ok(cam) = Camera::new(eye, target, camera.fov, cfg.width, cfg.height) {
+                        let job = FrameJob {
+                            tick,
+                            world: world.clone(),
+                            dirty: dirty_pending.drain().collect(),
+                            camera: cam,
+                        };
+                        if let Err(back) = renderer.offer(job) {
+                            dirty_pending.extend(back);
                         }
-                        None => render(&world.brickmap(), &cam, world.store.palette(), &opts_r).rgb,
-                    };
-                    let png = png_bytes(cfg.width, cfg.height, &rgb);
-                    let _ = std::fs::write(frames_dir.join(format!("frame-{tick:08}.png")), &png);
-                    *shared.frame.lock().expect("frame lock") = Some(png);
+                    }
+                } else {
+                    renderer.skip();
                 }
-                frame_ms = t.elapsed().as_secs_f64() * 1e3;
             }
             if tick.is_multiple_of(cfg.checkpoint_every) {
                 match write_checkpoint(&ws, &world) {
@@ -396,8 +353,8 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                     steps_per_s,
                     active_bricks: r.active_tiles,
                     dirty_bricks: dirty,
-                    frame_ms,
-                    bricks_streamed,
+                    frame_ms: renderer.stats.frame_ms(),
+                    bricks_streamed: renderer.stats.bricks_streamed(),
                     rss_kb: super::timeline::rss_kb(),
                     water: total(&ws, "water"),
                     ground_plus_sediment: total(&ws, "ground") + total(&ws, "sediment"),
@@ -407,7 +364,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             }
             let mut st = shared.status.lock().expect("status lock");
             st.active_bricks = r.active_tiles;
-            st.dirty_queue = dirty;
+            st.dirty_queue = dirty_pending.len();
         } else {
             std::thread::sleep(std::time::Duration::from_millis(5));
         }
@@ -415,8 +372,10 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             let mut st = shared.status.lock().expect("status lock");
             st.tick = ws.sim.tick();
             st.paused = paused;
-            st.frame_ms = frame_ms;
-            st.bricks_streamed = bricks_streamed;
+            st.frame_ms = renderer.stats.frame_ms();
+            st.bricks_streamed = renderer.stats.bricks_streamed();
+            st.frames = renderer.stats.frames();
+            st.frames_skipped = renderer.stats.skipped();
             st.last_checkpoint = last_checkpoint.clone();
             st.loaded_from = loaded_from.clone();
             st.checkpoint_error = checkpoint_error.clone();
@@ -435,7 +394,8 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             break;
         }
     }
-    // Stop: a final checkpoint, then the server.
+    // Stop: finish the frame in flight, a final checkpoint, then the server.
+    renderer.finish();
     let result = write_checkpoint(&ws, &world);
     shared.shutdown.store(true, Ordering::Relaxed);
     let _ = server.join();

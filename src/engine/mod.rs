@@ -5,5 +5,6 @@ pub mod checkpoint;
 pub mod control;
 pub mod ctl;
 pub mod daemon;
+pub mod render_thread;
 pub mod timeline;
 pub mod world_config;

@@ -142,7 +142,7 @@ pub struct View {
 }
 
 /// A scene ready to trace: its store, bounds and brick grid.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct SceneWorld {
     /// The voxels.
     pub store: BrickStore,

@@ -61,7 +61,7 @@ fn from565(v: u16) -> [u8; 3] {
 }
 
 /// Slots of bricks with a free list; freed slots and arena blocks are reused.
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub struct BrickPool {
     masks: Vec<[u64; 8]>,
     meta: Vec<Meta>,

@@ -52,7 +52,7 @@ pub fn brick_of(p: IVec3) -> IVec3 {
 /// // The edit was recorded: brick (-1, 0, 1) is in the modified list.
 /// assert_eq!(store.take_modified(), vec![IVec3::new(-1, 0, 1)]);
 /// ```
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct BrickStore {
     entries: FxHashMap<IVec3, Entry>,
     pool: BrickPool,

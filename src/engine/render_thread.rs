@@ -1,0 +1,230 @@
+//! The daemon's render thread: it owns the GPU (or falls back to the CPU),
+//! turns frame jobs into PNG frames, and streams the bricks each job names as
+//! changed.
+//!
+//! The simulation never waits for it. The hand-over is a crossbeam channel
+//! of capacity one: the engine loop offers a job only when the slot is free,
+//! and otherwise skips that frame and keeps coalescing the dirty brick ids
+//! (a set, so it is bounded by the world's brick count) for the next job.
+//! A job carries a snapshot of the world taken at a step boundary, so the
+//! renderer never sees a half-applied step.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use crossbeam_channel::{Sender, TrySendError, bounded};
+use glam::IVec3;
+
+use super::control::Shared;
+use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
+use crate::scene::SceneWorld;
+use crate::trace::{Camera, RenderOptions, render};
+
+/// One frame to draw.
+#[derive(Debug)]
+pub struct FrameJob {
+    /// The tick the snapshot was taken at (names the PNG).
+    pub tick: u64,
+    /// The world at that tick.
+    pub world: SceneWorld,
+    /// Bricks changed since the last job the renderer took.
+    pub dirty: Vec<IVec3>,
+    /// Where to look from.
+    pub camera: Camera,
+}
+
+/// Counters the render thread publishes (read by `/status` and the timeline).
+#[derive(Debug, Default)]
+pub struct RenderStats {
+    frame_ms_bits: AtomicU64,
+    streamed: AtomicU64,
+    frames: AtomicU64,
+    skipped: AtomicU64,
+}
+
+impl RenderStats {
+    /// The last frame's render time in milliseconds.
+    pub fn frame_ms(&self) -> f64 {
+        f64::from_bits(self.frame_ms_bits.load(Ordering::Relaxed))
+    }
+    /// Bricks uploaded to the GPU so far.
+    pub fn bricks_streamed(&self) -> u64 {
+        self.streamed.load(Ordering::Relaxed)
+    }
+    /// Frames drawn so far.
+    pub fn frames(&self) -> u64 {
+        self.frames.load(Ordering::Relaxed)
+    }
+    /// Frames skipped because the renderer was still busy.
+    pub fn skipped(&self) -> u64 {
+        self.skipped.load(Ordering::Relaxed)
+    }
+}
+
+/// Settings the render thread keeps for its whole life.
+#[derive(Clone, Debug)]
+pub struct RenderSettings {
+    /// Try the GPU tracer first.
+    pub gpu: bool,
+    /// Shadow rays.
+    pub shadows: bool,
+    /// Where frame PNGs go.
+    pub frames_dir: PathBuf,
+}
+
+/// The running render thread.
+#[derive(Debug)]
+pub struct RenderThread {
+    tx: Option<Sender<FrameJob>>,
+    handle: Option<JoinHandle<()>>,
+    /// Its counters.
+    pub stats: Arc<RenderStats>,
+}
+
+impl RenderThread {
+    /// Start the thread; frames also go to `shared.frame` for `/frame.png`.
+    pub fn spawn(settings: RenderSettings, shared: Arc<Shared>) -> std::io::Result<Self> {
+        let (tx, rx) = bounded::<FrameJob>(1);
+        let stats = Arc::new(RenderStats::default());
+        let st = stats.clone();
+        let handle = std::thread::Builder::new()
+            .name("render".into())
+            .spawn(move || {
+                let mut gpu: Option<(GpuContext, GpuBrickmap)> = None;
+                let mut gpu_tried = !settings.gpu;
+                for job in rx.iter() {
+                    let t = Instant::now();
+                    if !gpu_tried {
+                        gpu_tried = true;
+                        gpu = start_gpu(&job.world);
+                    } else if let Some((ctx, g)) = gpu.as_mut() {
+                        g.apply_edits(ctx, &job.world.grid, job.world.store.pool(), &job.dirty);
+                    }
+                    let rgb = draw(&mut gpu, &job, settings.shadows, &st);
+                    let png = png_bytes(job.camera.width, job.camera.height, &rgb);
+                    let _ = std::fs::write(
+                        settings
+                            .frames_dir
+                            .join(format!("frame-{:08}.png", job.tick)),
+                        &png,
+                    );
+                    if let Ok(mut f) = shared.frame.lock() {
+                        *f = Some(png);
+                    }
+                    st.frame_ms_bits.store(
+                        (t.elapsed().as_secs_f64() * 1e3).to_bits(),
+                        Ordering::Relaxed,
+                    );
+                    st.frames.fetch_add(1, Ordering::Relaxed);
+                }
+            })?;
+        Ok(RenderThread {
+            tx: Some(tx),
+            handle: Some(handle),
+            stats,
+        })
+    }
+
+    /// Whether a job offered now would be taken. The engine loop checks this
+    /// before it spends time on a snapshot.
+    pub fn ready(&self) -> bool {
+        self.tx.as_ref().is_some_and(|tx| !tx.is_full())
+    }
+
+    /// Offer a job without waiting. If the renderer is busy the frame is
+    /// counted as skipped and the job's dirty bricks come back, to go into
+    /// the next job.
+    pub fn offer(&self, job: FrameJob) -> Result<(), Vec<IVec3>> {
+        let Some(tx) = self.tx.as_ref() else {
+            return Err(job.dirty);
+        };
+        match tx.try_send(job) {
+            Ok(()) => Ok(()),
+            Err(TrySendError::Full(j) | TrySendError::Disconnected(j)) => {
+                self.skip();
+                Err(j.dirty)
+            }
+        }
+    }
+
+    /// Count a frame skipped because the renderer was busy.
+    pub fn skip(&self) {
+        self.stats.skipped.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Finish the frame in flight and stop the thread.
+    pub fn finish(mut self) {
+        self.tx = None;
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+fn start_gpu(world: &SceneWorld) -> Option<(GpuContext, GpuBrickmap)> {
+    let ctx = match GpuContext::new() {
+        Ok(ctx) => ctx,
+        Err(e) => {
+            eprintln!("warning: {e}; rendering on the CPU");
+            return None;
+        }
+    };
+    match GpuBrickmap::streaming(
+        &ctx,
+        &world.grid,
+        world.store.pool(),
+        world.store.palette(),
+        StreamConfig::default(),
+    ) {
+        Ok(g) => Some((ctx, g)),
+        Err(e) => {
+            eprintln!("warning: {e}; rendering on the CPU");
+            None
+        }
+    }
+}
+
+fn draw(
+    gpu: &mut Option<(GpuContext, GpuBrickmap)>,
+    job: &FrameJob,
+    shadows: bool,
+    stats: &RenderStats,
+) -> Vec<u8> {
+    let opts = RenderOptions {
+        shadows,
+        ..Default::default()
+    };
+    let world = &job.world;
+    if let Some((ctx, g)) = gpu.as_mut() {
+        match g.render(ctx, &job.camera, &opts, &world.grid, world.store.pool()) {
+            Ok((f, s)) => {
+                stats
+                    .streamed
+                    .fetch_add(s.uploads as u64, Ordering::Relaxed);
+                return f.rgb;
+            }
+            Err(e) => {
+                eprintln!("warning: GPU frame failed ({e}); rendering on the CPU from now on");
+                *gpu = None;
+            }
+        }
+    }
+    render(&world.brickmap(), &job.camera, world.store.palette(), &opts).rgb
+}
+
+/// Encode an RGB8 image as PNG bytes.
+pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, w, h);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        if let Ok(mut wr) = enc.write_header() {
+            let _ = wr.write_image_data(rgb);
+        }
+    }
+    out
+}
