@@ -28,6 +28,8 @@ fn the_shipped_worlds_load_and_build() {
     let d = WorldConfig::default_world(&Path::new(ROOT).join("worlds"));
     assert_eq!(d.scripts.len(), 3);
     assert!(matches!(d.camera.mode, CameraMode::Orbit { .. }));
+    let snowy = WorldConfig::load(&Path::new(ROOT).join("worlds/snowy_mountain.toml")).unwrap();
+    assert!(matches!(snowy.camera.mode, CameraMode::Fly { period_s, .. } if period_s == 120.0));
 }
 
 fn error(text: &str) -> String {
@@ -78,6 +80,14 @@ fn bad_configs_name_the_file_field_and_reason() {
         (
             "[world]\nsource = \"terrain\"\n[camera]\neye = [1.0, 2.0, 3.0]\n",
             "camera.target",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nmode = \"fly\"\neye = [1.0, 2.0, 3.0]\ntarget = [4.0, 2.0, 3.0]\n",
+            "camera.fly_to",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nmode = \"fly\"\nfly_to = [1.0, 2.0, 3.0]\nfly_period_s = -1.0\n",
+            "camera.fly_period_s",
         ),
         (
             "[world]\nsource = \"terrain\"\n[render]\nwidth = 0\n",

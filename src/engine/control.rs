@@ -139,9 +139,14 @@ fn error(code: u16, msg: &str) -> Response<std::io::Cursor<Vec<u8>>> {
 pub fn start(
     addr: std::net::SocketAddr,
     shared: Arc<Shared>,
-) -> Result<std::thread::JoinHandle<()>, String> {
+) -> Result<(std::thread::JoinHandle<()>, String), String> {
     let server = Server::http(addr).map_err(|e| format!("cannot listen on {addr}: {e}"))?;
-    Ok(std::thread::spawn(move || {
+    // The address actually bound (port 0 picks a free one).
+    let bound = server
+        .server_addr()
+        .to_ip()
+        .map_or_else(|| addr.to_string(), |a| a.to_string());
+    let handle = std::thread::spawn(move || {
         while !shared.shutdown.load(Ordering::Relaxed) {
             match server.recv_timeout(Duration::from_millis(100)) {
                 Ok(Some(req)) => handle(req, &shared),
@@ -149,7 +154,8 @@ pub fn start(
                 Err(_) => std::thread::sleep(Duration::from_millis(10)),
             }
         }
-    }))
+    });
+    Ok((handle, bound))
 }
 
 fn handle(mut req: Request, shared: &Shared) {

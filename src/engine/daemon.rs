@@ -90,7 +90,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
         shutdown: Default::default(),
     });
     // Listen first: a taken port is a clear error before any work.
-    let server = control::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
+    let (server, bound) = control::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
     let token_path = write_token(&opts.state, &token)?;
     {
         let s = shared.clone();
@@ -167,8 +167,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
     // Dirty bricks not yet handed to the renderer, each once.
     let mut dirty_pending: FxHashSet<IVec3> = FxHashSet::default();
     println!(
-        "brickworld is running: viewer http://{}/  (control token in {}: {token})",
-        cfg.addr,
+        "brickworld is running: viewer http://{bound}/  (control token in {}: {token})",
         token_path.display()
     );
     let mut camera = cfg.camera;
@@ -314,11 +313,23 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                         (Some(e), Some(t)) => (e, t),
                         _ => (DVec3::from(views[1].eye), DVec3::from(views[1].target)),
                     };
-                    if let CameraMode::Orbit { period_s } = camera.mode {
-                        let angle = (tick as f64 * cfg.dt / period_s) * std::f64::consts::TAU;
-                        let d = eye - target;
-                        let (s, c) = angle.sin_cos();
-                        eye = target + DVec3::new(d.x * c - d.z * s, d.y, d.x * s + d.z * c);
+                    let mut target = target;
+                    let phase = |period_s: f64| tick as f64 * cfg.dt / period_s;
+                    match camera.mode {
+                        CameraMode::Fixed => {}
+                        CameraMode::Orbit { period_s } => {
+                            let angle = phase(period_s) * std::f64::consts::TAU;
+                            let d = eye - target;
+                            let (s, c) = angle.sin_cos();
+                            eye = target + DVec3::new(d.x * c - d.z * s, d.y, d.x * s + d.z * c);
+                        }
+                        CameraMode::Fly { to, period_s } => {
+                            // 0 → 1 → 0 over one period.
+                            let f = 1.0 - (phase(period_s).fract() * 2.0 - 1.0).abs();
+                            let step = (to - eye) * f;
+                            eye += step;
+                            target += step;
+                        }
                     }
                     if let Ok(cam) = Camera::new(eye, target, camera.fov, cfg.width, cfg.height) {
                         let job = FrameJob {

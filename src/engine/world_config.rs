@@ -18,11 +18,12 @@
 //! params = { rain = 0.05 }
 //!
 //! [camera]
-//! mode = "orbit"              # fixed or orbit
+//! mode = "orbit"              # fixed, orbit, or fly (eye to fly_to and back)
 //! eye = [-100.0, 200.0, -100.0]
 //! target = [128.0, 40.0, 128.0]
 //! fov = 50.0
 //! orbit_period_s = 60.0
+//! # fly_to = [300.0, 150.0, 20.0]; fly_period_s = 60.0  (mode = "fly")
 //!
 //! [render]
 //! width = 640
@@ -119,6 +120,8 @@ struct RawCamera {
     target: Option<[f64; 3]>,
     fov: Option<f64>,
     orbit_period_s: Option<f64>,
+    fly_to: Option<[f64; 3]>,
+    fly_period_s: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -168,6 +171,14 @@ pub enum CameraMode {
     /// Circles the target once per period (seconds).
     Orbit {
         /// Seconds per turn.
+        period_s: f64,
+    },
+    /// Flies from `eye` to `to` and back once per period, looking the same
+    /// way (the target moves with the eye).
+    Fly {
+        /// Where the flight turns round.
+        to: DVec3,
+        /// Seconds per round trip.
         period_s: f64,
     },
 }
@@ -330,6 +341,8 @@ impl WorldConfig {
             target: None,
             fov: None,
             orbit_period_s: None,
+            fly_to: None,
+            fly_period_s: None,
         });
         let fov = cam.fov.unwrap_or(50.0);
         if !(fov > 0.0 && fov < 180.0) {
@@ -347,10 +360,35 @@ impl WorldConfig {
                 }
                 CameraMode::Orbit { period_s: p }
             }
+            "fly" => {
+                let p = cam.fly_period_s.unwrap_or(60.0);
+                if !(p > 0.0 && p.is_finite()) {
+                    return Err(err(
+                        "camera.fly_period_s",
+                        format!("{p} must be a positive number of seconds"),
+                    ));
+                }
+                let to = match cam.fly_to {
+                    Some(a) if a.iter().all(|x| x.is_finite()) => DVec3::from(a),
+                    Some(a) => {
+                        return Err(err(
+                            "camera.fly_to",
+                            format!("{a:?} has a NaN or infinite coordinate"),
+                        ));
+                    }
+                    None => {
+                        return Err(err("camera.fly_to", "is needed with mode = \"fly\"".into()));
+                    }
+                };
+                if cam.eye.is_none() {
+                    return Err(err("camera.eye", "is needed with mode = \"fly\"".into()));
+                }
+                CameraMode::Fly { to, period_s: p }
+            }
             other => {
                 return Err(err(
                     "camera.mode",
-                    format!("'{other}' is not fixed or orbit"),
+                    format!("'{other}' is not fixed, orbit or fly"),
                 ));
             }
         };
