@@ -33,12 +33,16 @@ pub fn run(cli: Cli) -> Result<()> {
             std::fs::write(&json, serde_json::to_string_pretty(&r)? + "\n")
                 .with_context(|| format!("cannot write {}", json.display()))?;
             println!(
-                "{:.1} min, {} ticks ({:.1}/s); RSS growth after warm-up {:+.2} %; max dirty queue {}; /status p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; frame {:.1} ms; ground+sediment drift {:.2e}",
+                "{:.1} min, {} ticks ({:.1}/s); RSS growth after warm-up {:+.2} % (end points), {:+.2} % (peak), {:+.2} % (median); max dirty queue {}; frames {} ({} skipped); /status p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; frame {:.1} ms; ground+sediment drift {:.2e}",
                 r.minutes,
                 r.ticks,
                 r.ticks_per_s,
                 r.rss_growth_after_warmup_pct,
+                r.rss_peak_growth_pct,
+                r.rss_median_growth_pct,
                 r.max_dirty_queue,
+                r.frames,
+                r.frames_skipped,
                 r.status_ms_p50,
                 r.status_ms_p99,
                 r.status_ms_max,

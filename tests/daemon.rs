@@ -180,6 +180,20 @@ fn status_pause_step_and_control_errors() {
     );
     assert_eq!(post(&addr, &state, "/step", "lots").0, 400);
     assert_eq!(post(&addr, &state, "/camera", "{\"eye\": [1, 2]}").0, 400);
+    let cam = "{\"eye\": [-20, 60, -20], \"target\": [24, 10, 24], \"fov\": 45}";
+    assert_eq!(post(&addr, &state, "/camera", cam).0, 200);
+    let (code, page) = request(&addr, "GET", "/", None, "").unwrap();
+    assert_eq!(code, 200);
+    for control in [
+        "frame.png",
+        "pause",
+        "resume",
+        "step",
+        "set camera",
+        "/status",
+    ] {
+        assert!(page.contains(control), "the viewer lacks {control}");
+    }
     assert_eq!(post(&addr, &state, "/nowhere", "").0, 404);
     assert_eq!(request(&addr, "GET", "/nowhere", None, "").unwrap().0, 404);
     assert_eq!(post(&addr, &state, "/step", &"9".repeat(70_000)).0, 413);

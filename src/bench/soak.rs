@@ -19,7 +19,12 @@ pub struct SoakReport {
     /// (seconds, resident KiB) samples.
     pub rss_kb: Vec<(f64, u64)>,
     /// Resident memory growth from the end of warm-up (first fifth) to the end, percent.
+    /// Two single samples: sensitive to the per-frame snapshot's sawtooth.
     pub rss_growth_after_warmup_pct: f64,
+    /// Growth of the peak resident memory, second fifth of the run against the last fifth, percent.
+    pub rss_peak_growth_pct: f64,
+    /// Growth of the median resident memory, second fifth against the last fifth, percent.
+    pub rss_median_growth_pct: f64,
     /// Largest dirty-brick queue seen.
     pub max_dirty_queue: u64,
     /// `/status` latency percentiles, milliseconds.
@@ -150,7 +155,28 @@ pub fn run(
         .map(|r| r[col("frame_ms")])
         .filter(|v| *v > 0.0)
         .collect::<Vec<_>>();
+    let fifth = (rss.len() / 5).max(1);
+    let window = |from: usize, to: usize| -> Vec<u64> {
+        let mut v: Vec<u64> = rss[from.min(rss.len())..to.min(rss.len())]
+            .iter()
+            .map(|r| r.1)
+            .collect();
+        v.sort_unstable();
+        v
+    };
+    let (early, late) = (
+        window(fifth, 2 * fifth),
+        window(rss.len().saturating_sub(fifth), rss.len()),
+    );
+    let growth = |a: Option<&u64>, b: Option<&u64>| match (a, b) {
+        (Some(&a), Some(&b)) if a > 0 => (b as f64 - a as f64) / a as f64 * 100.0,
+        _ => f64::NAN,
+    };
+    let rss_peak_growth_pct = growth(early.last(), late.last());
+    let rss_median_growth_pct = growth(early.get(early.len() / 2), late.get(late.len() / 2));
     Ok(SoakReport {
+        rss_peak_growth_pct,
+        rss_median_growth_pct,
         minutes: secs / 60.0,
         rss_growth_after_warmup_pct: (end - base) / base * 100.0,
         rss_kb: rss,

@@ -114,10 +114,14 @@ const VIEWER: &str = r#"<!doctype html><meta charset="utf-8"><title>brickworld</
 <h1>brickworld</h1><img id="f" src="/frame.png"><p>
 <button onclick="post('pause')">pause</button> <button onclick="post('resume')">resume</button>
 <button onclick="post('step','1')">step</button> <button onclick="post('checkpoint')">checkpoint</button>
-token <input id="t" size="34" placeholder="from STATE/control.token"></p><pre id="s"></pre>
+token <input id="t" size="34" placeholder="from STATE/control.token"></p>
+<p>camera: eye <input id="ce" size="16" placeholder="x,y,z"> target <input id="ct" size="16" placeholder="x,y,z">
+fov <input id="cf" size="4" value="50"> <button onclick="cam()">set camera</button></p><pre id="s"></pre>
 <script>
 const t=document.getElementById('t');t.value=localStorage.getItem('bw-token')||'';
 t.onchange=()=>localStorage.setItem('bw-token',t.value);
+function v3(id){return document.getElementById(id).value.split(',').map(Number)}
+function cam(){post('camera',JSON.stringify({eye:v3('ce'),target:v3('ct'),fov:Number(document.getElementById('cf').value)}))}
 function post(p,b){fetch('/'+p,{method:'POST',headers:{Authorization:'Bearer '+t.value},body:b||''}).then(r=>r.text()).then(x=>document.getElementById('s').textContent=x)}
 setInterval(()=>{fetch('/status').then(r=>r.json()).then(s=>document.getElementById('s').textContent=JSON.stringify(s,null,1));
 document.getElementById('f').src='/frame.png?'+Date.now()},1000);
