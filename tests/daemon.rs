@@ -140,6 +140,9 @@ fn status_pause_step_and_control_errors() {
         "dirty_queue",
         "frame_ms",
         "bricks_streamed",
+        "frames",
+        "frames_skipped",
+        "snapshot_ms",
         "last_checkpoint",
         "loaded_from",
     ] {

@@ -58,6 +58,8 @@ pub struct Status {
     pub frames: u64,
     /// Frames skipped because the renderer was still busy with the last.
     pub frames_skipped: u64,
+    /// Time the engine loop spent copying the world for the last frame job.
+    pub snapshot_ms: f64,
     /// The last checkpoint written.
     pub last_checkpoint: Option<CheckpointRef>,
     /// The checkpoint this run resumed from.

@@ -166,6 +166,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
     .context("cannot start the render thread")?;
     // Dirty bricks not yet handed to the renderer, each once.
     let mut dirty_pending: FxHashSet<IVec3> = FxHashSet::default();
+    let mut snapshot_ms = 0.0;
     println!(
         "brickworld is running: viewer http://{bound}/  (control token in {}: {token})",
         token_path.display()
@@ -332,9 +333,12 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                         }
                     }
                     if let Ok(cam) = Camera::new(eye, target, camera.fov, cfg.width, cfg.height) {
+                        let copy = Instant::now();
+                        let snapshot = world.clone();
+                        snapshot_ms = copy.elapsed().as_secs_f64() * 1e3;
                         let job = FrameJob {
                             tick,
-                            world: world.clone(),
+                            world: snapshot,
                             dirty: dirty_pending.drain().collect(),
                             camera: cam,
                         };
@@ -387,6 +391,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             st.bricks_streamed = renderer.stats.bricks_streamed();
             st.frames = renderer.stats.frames();
             st.frames_skipped = renderer.stats.skipped();
+            st.snapshot_ms = snapshot_ms;
             st.last_checkpoint = last_checkpoint.clone();
             st.loaded_from = loaded_from.clone();
             st.checkpoint_error = checkpoint_error.clone();
