@@ -65,13 +65,23 @@ impl Drop for Daemon {
     }
 }
 
+/// `brickworld run CFG --state STATE`, not yet started.
+fn run_cmd(cfg: &Path, state: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_brickworld"));
+    c.arg("run").arg(cfg).arg("--state").arg(state);
+    c
+}
+
+/// Replace `from` (which must be there) by `to` in the world config.
+fn edit_config(cfg: &Path, from: &str, to: &str) {
+    let text = std::fs::read_to_string(cfg).unwrap();
+    assert!(text.contains(from), "{from:?} is not in {text}");
+    std::fs::write(cfg, text.replace(from, to)).unwrap();
+}
+
 fn start(cfg: &Path, state: &Path) -> Daemon {
     Daemon(Some(
-        Command::new(env!("CARGO_BIN_EXE_brickworld"))
-            .arg("run")
-            .arg(cfg)
-            .arg("--state")
-            .arg(state)
+        run_cmd(cfg, state)
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()
@@ -266,15 +276,8 @@ fn a_port_in_use_and_a_bad_config_are_clear_errors() {
     // (regression: flaky `AddrInUse` panic at the holder's bind).
     let _holder = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = _holder.local_addr().unwrap().to_string();
-    let text = std::fs::read_to_string(&cfg).unwrap();
-    std::fs::write(&cfg, text.replace(&old_addr, &addr)).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .arg("run")
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
-        .output()
-        .unwrap();
+    edit_config(&cfg, &old_addr, &addr);
+    let out = run_cmd(&cfg, &state).output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains(&format!("cannot listen on {addr}")), "{err}");
@@ -284,13 +287,7 @@ fn a_port_in_use_and_a_bad_config_are_clear_errors() {
         "[world]\nsource = \"terrain\"\n[render]\nwidth = -4\n",
     )
     .unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .arg("run")
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
-        .output()
-        .unwrap();
+    let out = run_cmd(&cfg, &state).output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains("render.width"), "{err}");
@@ -325,12 +322,11 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
         std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua")).unwrap();
     let water = scripts.join("water.lua");
     std::fs::write(&water, &original).unwrap();
-    let text = std::fs::read_to_string(&cfg).unwrap();
-    let text = text.replace(
+    edit_config(
+        &cfg,
         concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
         scripts.to_str().unwrap(),
     );
-    std::fs::write(&cfg, text).unwrap();
     let child = start(&cfg, &state);
     wait_ready(&addr);
     assert!(status(&addr)["scripts"][0]["error"].is_null());
@@ -386,15 +382,11 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
 }
 
 fn set_checkpoint_every(cfg: &Path, every: u64) {
-    let text = std::fs::read_to_string(cfg).unwrap();
-    std::fs::write(
+    edit_config(
         cfg,
-        text.replace(
-            "[checkpoint]\nevery = 40",
-            &format!("[checkpoint]\nevery = {every}"),
-        ),
-    )
-    .unwrap();
+        "[checkpoint]\nevery = 40",
+        &format!("[checkpoint]\nevery = {every}"),
+    );
 }
 
 /// Checks the state after a kill -9: every checkpoint file verifies, and a
@@ -474,11 +466,7 @@ fn kill_9_during_a_checkpoint_write_loads_the_previous_one() {
 
     // The second run stalls half-way through every checkpoint write.
     let mut child = Daemon(Some(
-        Command::new(env!("CARGO_BIN_EXE_brickworld"))
-            .arg("run")
-            .arg(&cfg)
-            .arg("--state")
-            .arg(&state)
+        run_cmd(&cfg, &state)
             .env("BRICKWORLD_TEST_CHECKPOINT_STALL_MS", "60000")
             .stdout(Stdio::null())
             .stderr(Stdio::null())
@@ -521,14 +509,12 @@ fn a_slow_renderer_skips_frames_and_never_holds_up_the_simulation() {
     let (cfg, state, addr) = setup("slowrender");
     // A frame every tick, far larger than the 48x32x48 world needs: each
     // frame takes many steps' time.
-    let text = std::fs::read_to_string(&cfg)
-        .unwrap()
-        .replace(
-            "width = 32\nheight = 24",
-            "width = 1024\nheight = 768\nshadows = true",
-        )
-        .replace("[frames]\nevery = 5", "[frames]\nevery = 1");
-    std::fs::write(&cfg, text).unwrap();
+    edit_config(
+        &cfg,
+        "width = 32\nheight = 24",
+        "width = 1024\nheight = 768\nshadows = true",
+    );
+    edit_config(&cfg, "[frames]\nevery = 5", "[frames]\nevery = 1");
     let child = start(&cfg, &state);
     wait_ready(&addr);
     let t = Instant::now();

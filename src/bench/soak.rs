@@ -47,18 +47,6 @@ pub struct SoakReport {
     pub frames_skipped: u64,
 }
 
-fn rss_of(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmRSS:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse().ok())
-        })
-        .unwrap_or(0)
-}
-
 /// Run the soak.
 pub fn run(
     world: Option<&Path>,
@@ -116,7 +104,10 @@ pub fn run(
                 s["frames_skipped"].as_u64().unwrap_or(0),
             );
         }
-        rss.push((t0.elapsed().as_secs_f64(), rss_of(child.id())));
+        rss.push((
+            t0.elapsed().as_secs_f64(),
+            crate::engine::timeline::rss_kb_of(child.id()),
+        ));
         if let Some(status) = child.try_wait()? {
             bail!("the daemon exited early ({status})");
         }

@@ -56,7 +56,12 @@ pub struct Timeline {
 
 /// Resident memory of this process in KiB (Linux), 0 if unknown.
 pub fn rss_kb() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
+    rss_kb_of(std::process::id())
+}
+
+/// Resident memory of process `pid` in KiB (Linux), 0 if unknown.
+pub fn rss_kb_of(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
         .ok()
         .and_then(|s| {
             s.lines()
