@@ -4,7 +4,7 @@
 
 mod common;
 
-use brickworld::gpu::{GpuBrickmap, GpuContext, GpuError, GpuFrame, StreamConfig};
+use brickworld::gpu::{FrameStats, GpuBrickmap, GpuContext, GpuError, GpuFrame, StreamConfig};
 use brickworld::scene::{SceneSpec, SceneWorld, build_scene};
 use brickworld::sim::{Limits, ScriptSource, WorldSim};
 use brickworld::trace::{Camera, RenderOptions, render};
@@ -48,6 +48,17 @@ fn terrain() -> SceneWorld {
 }
 
 /// Frames until a static view stops requesting bricks.
+/// Draws one frame with default options.
+fn draw(
+    ctx: &GpuContext,
+    gpu: &mut GpuBrickmap,
+    w: &SceneWorld,
+    cam: &Camera,
+) -> (GpuFrame, FrameStats) {
+    gpu.render(ctx, cam, &RenderOptions::default(), &w.grid, w.store.pool())
+        .unwrap()
+}
+
 fn converge(
     ctx: &GpuContext,
     gpu: &mut GpuBrickmap,
@@ -55,9 +66,7 @@ fn converge(
     cam: &Camera,
 ) -> (usize, GpuFrame) {
     for n in 1..=64 {
-        let (f, s) = gpu
-            .render(ctx, cam, &RenderOptions::default(), &w.grid, w.store.pool())
-            .unwrap();
+        let (f, s) = draw(ctx, gpu, w, cam);
         if s.requests == 0 && f.lod_pixels == 0 {
             return (n, f);
         }
@@ -78,15 +87,7 @@ fn streaming_converges_to_the_fully_loaded_image() {
         StreamConfig::default(),
     )
     .unwrap();
-    let (first, _) = gpu
-        .render(
-            &ctx,
-            &cam,
-            &RenderOptions::default(),
-            &w.grid,
-            w.store.pool(),
-        )
-        .unwrap();
+    let (first, _) = draw(&ctx, &mut gpu, &w, &cam);
     assert!(
         first.lod_pixels > 0,
         "nothing is loaded at first: LOD colours show"
@@ -99,15 +100,7 @@ fn streaming_converges_to_the_fully_loaded_image() {
     );
     let mut full =
         GpuBrickmap::preloaded(&ctx, &w.grid, w.store.pool(), w.store.palette()).unwrap();
-    let (reference, _) = full
-        .render(
-            &ctx,
-            &cam,
-            &RenderOptions::default(),
-            &w.grid,
-            w.store.pool(),
-        )
-        .unwrap();
+    let (reference, _) = draw(&ctx, &mut full, &w, &cam);
     assert_eq!(
         last.hits, reference.hits,
         "converged frame hits the same voxels as the fully loaded one"
@@ -153,15 +146,7 @@ fn an_edit_through_the_editing_queue_is_visible_within_two_frames() {
     );
     let mut visible = None;
     for frame in 1..=2 {
-        let (f, s) = gpu
-            .render(
-                &ctx,
-                &cam,
-                &RenderOptions::default(),
-                &w.grid,
-                w.store.pool(),
-            )
-            .unwrap();
+        let (f, s) = draw(&ctx, &mut gpu, &w, &cam);
         let wrong = (0..f.hits.len())
             .filter(|&i| {
                 cpu.hits[i].is_some_and(|h| edited.contains(&brickworld::world::brick_of(h.voxel)))
@@ -204,15 +189,7 @@ fn exhausted_pool_and_feedback_degrade_to_lod_colours() {
     );
     let mut overflowed = 0;
     for _ in 0..20 {
-        let (f, s) = gpu
-            .render(
-                &ctx,
-                &cam,
-                &RenderOptions::default(),
-                &w.grid,
-                w.store.pool(),
-            )
-            .unwrap();
+        let (f, s) = draw(&ctx, &mut gpu, &w, &cam);
         overflowed += s.overflowed;
         assert!(s.resident <= 24 && s.uploads <= 4);
         for i in 0..f.hits.len() {
@@ -272,15 +249,7 @@ fn a_running_snow_simulation_drives_re_streaming() {
         for batch in ws.dirty.try_iter() {
             gpu.apply_edits(&ctx, &w.grid, w.store.pool(), &batch.bricks);
         }
-        let (_, s) = gpu
-            .render(
-                &ctx,
-                &cam,
-                &RenderOptions::default(),
-                &w.grid,
-                w.store.pool(),
-            )
-            .unwrap();
+        let (_, s) = draw(&ctx, &mut gpu, &w, &cam);
         uploads += s.uploads;
     }
     let (_, last) = converge(&ctx, &mut gpu, &w, &cam);
@@ -363,15 +332,7 @@ fn evicted_bricks_keep_the_worlds_lod_colour() {
         GpuBrickmap::streaming(&ctx, &w.grid, w.store.pool(), w.store.palette(), cfg).unwrap();
     let mut evictions = 0;
     for view in [0, 1, 2, 0, 1, 2] {
-        let (_, s) = gpu
-            .render(
-                &ctx,
-                &camera(&w, view),
-                &RenderOptions::default(),
-                &w.grid,
-                w.store.pool(),
-            )
-            .unwrap();
+        let (_, s) = draw(&ctx, &mut gpu, &w, &camera(&w, view));
         evictions += s.evictions;
     }
     assert!(evictions > 0, "the tiny pool must have evicted");
