@@ -3,16 +3,12 @@
 //! never a panic.
 
 use std::path::PathBuf;
-use std::process::Command;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_brickworld"))
-}
+mod common;
+use common::cli::{assert_clear_failure, assert_success, bin, read_json};
 
 fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("brickworld-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    common::cli::tmp("cli", name)
 }
 
 #[test]
@@ -39,11 +35,7 @@ fn render_writes_png_and_depth_npy_in_the_documented_layout() {
         .arg(&npy)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_success(&out);
     let img = std::fs::read(&png).unwrap();
     assert_eq!(&img[1..4], b"PNG");
     let d = std::fs::read(&npy).unwrap();
@@ -72,16 +64,7 @@ fn render_writes_png_and_depth_npy_in_the_documented_layout() {
 
 fn expect_failure(args: &[&str], needle: &str) {
     let out = bin().args(args).output().unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{args:?} should fail");
-    assert!(
-        !err.contains("panicked") && !err.contains("RUST_BACKTRACE"),
-        "{args:?} panicked: {err}"
-    );
-    assert!(
-        err.contains(needle),
-        "{args:?}: '{err}' should mention '{needle}'"
-    );
+    assert_clear_failure(&out, &format!("{args:?}"), needle);
 }
 
 #[test]
@@ -190,12 +173,8 @@ fn bench_tracers_writes_the_documented_json_keys() {
         .arg(&svg)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_success(&out);
+    let v: serde_json::Value = read_json(&json);
     for k in [
         "scene",
         "size",
@@ -262,12 +241,8 @@ fn a_structure_that_does_not_fit_reports_an_error_and_the_bench_goes_on() {
         .arg(&json)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_success(&out);
+    let v: serde_json::Value = read_json(&json);
     assert_eq!(v["structures"][0]["name"], "dense");
     assert!(
         v["structures"][0]["error"]
@@ -298,11 +273,7 @@ fn gpu_tracer_renders_or_falls_back_to_the_cpu_with_one_line() {
     };
     // Whatever the machine has, the command succeeds and writes both files.
     let out = run(&[]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_success(&out);
     assert!(std::fs::metadata(&npy).unwrap().len() > 0);
     // With no Vulkan driver at all: one warning line, then the CPU renders.
     let out = run(&[

@@ -12,6 +12,9 @@ use std::time::{Duration, Instant};
 use brickworld::engine::checkpoint;
 use brickworld::engine::ctl::request;
 
+mod common;
+use common::cli::assert_success;
+
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -233,11 +236,7 @@ fn status_pause_step_and_control_errors() {
     std::thread::sleep(Duration::from_millis(500));
     assert!(status(&addr)["last_checkpoint"]["hash"].is_string());
     let out = stop(child);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_success(&out);
 }
 
 #[test]

@@ -3,6 +3,7 @@
 //! simulation driving re-streaming.
 
 mod common;
+use common::cli::{assert_success, read_json};
 
 use brickworld::gpu::{FrameStats, GpuBrickmap, GpuContext, GpuError, GpuFrame, StreamConfig};
 use brickworld::scene::{SceneSpec, SceneWorld, build_scene};
@@ -273,12 +274,8 @@ fn bench_stream_writes_the_documented_json_keys() {
         .arg(&json)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_success(&out);
+    let v: serde_json::Value = read_json(&json);
     for k in [
         "adapter",
         "frames_to_converge",

@@ -1,8 +1,6 @@
 //! Simulations on real scenes: water drains over every edge of the world and
 //! is accounted for; the `sim`, `verify sims` and `bench sim` commands.
 
-use std::process::Command;
-
 use brickworld::scene::{SceneSpec, build_scene};
 use brickworld::sim::{Limits, ScriptSource, WorldSim};
 use glam::{IVec2, IVec3};
@@ -48,14 +46,11 @@ fn water_drains_over_every_edge_and_world_plus_drained_is_conserved() {
     );
 }
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_brickworld"))
-}
+mod common;
+use common::cli::{assert_clear_failure, assert_success, bin, read_json};
 
 fn tmp(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("brickworld-simcli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    common::cli::tmp("simcli", name)
 }
 
 #[test]
@@ -137,13 +132,7 @@ fn sim_command_rejects_bad_input_clearly() {
             .args(["--size", "16x16x16"].iter().filter(|_| args[0] == "sim"))
             .output()
             .unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "{args:?} should fail");
-        assert!(!err.contains("panicked"), "{args:?}: {err}");
-        assert!(
-            err.contains(needle),
-            "{args:?}: '{err}' should mention '{needle}'"
-        );
+        assert_clear_failure(&out, &format!("{args:?}"), needle);
     }
 }
 
@@ -155,12 +144,8 @@ fn verify_and_bench_sim_write_the_documented_json() {
         .arg(&json)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_success(&out);
+    let v: serde_json::Value = read_json(&json);
     let names: Vec<&str> = v["cases"]
         .as_array()
         .unwrap()
@@ -187,12 +172,8 @@ fn verify_and_bench_sim_write_the_documented_json() {
         .arg(&json)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_success(&out);
+    let v: serde_json::Value = read_json(&json);
     for s in v["scripts"].as_array().unwrap() {
         for k in [
             "name",

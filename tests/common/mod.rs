@@ -2,6 +2,8 @@
 //! binary, and ray generators.
 #![allow(dead_code)]
 
+pub mod cli;
+
 use std::sync::OnceLock;
 
 use brickworld::scene::{SceneSpec, SceneWorld, build_scene};

@@ -1,0 +1,45 @@
+//! Helpers for tests that run the `brickworld` binary as a user would.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// The binary under test.
+pub fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_brickworld"))
+}
+
+/// A path in this test binary's own temp folder `brickworld-TAG-PID`.
+pub fn tmp(tag: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("brickworld-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+/// Require a run to have succeeded, showing its stderr otherwise.
+pub fn assert_success(out: &Output) {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// Read a JSON file the binary wrote.
+pub fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+/// A failed run must exit non-zero with one clear line mentioning `needle`,
+/// never a panic or a backtrace.
+pub fn assert_clear_failure(out: &Output, what: &str, needle: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{what} should fail");
+    assert!(
+        !err.contains("panicked") && !err.contains("RUST_BACKTRACE"),
+        "{what} panicked: {err}"
+    );
+    assert!(
+        err.contains(needle),
+        "{what}: '{err}' should mention '{needle}'"
+    );
+}
