@@ -49,6 +49,18 @@ fn terrain() -> SceneWorld {
 }
 
 /// Frames until a static view stops requesting bricks.
+/// A streaming tracer over `w` with the default pool and budgets.
+fn streaming(ctx: &GpuContext, w: &SceneWorld) -> GpuBrickmap {
+    GpuBrickmap::streaming(
+        ctx,
+        &w.grid,
+        w.store.pool(),
+        w.store.palette(),
+        StreamConfig::default(),
+    )
+    .unwrap()
+}
+
 /// Draws one frame with default options.
 fn draw(
     ctx: &GpuContext,
@@ -80,14 +92,7 @@ fn streaming_converges_to_the_fully_loaded_image() {
     let Some(ctx) = context() else { return };
     let w = terrain();
     let cam = camera(&w, 1);
-    let mut gpu = GpuBrickmap::streaming(
-        &ctx,
-        &w.grid,
-        w.store.pool(),
-        w.store.palette(),
-        StreamConfig::default(),
-    )
-    .unwrap();
+    let mut gpu = streaming(&ctx, &w);
     let (first, _) = draw(&ctx, &mut gpu, &w, &cam);
     assert!(
         first.lod_pixels > 0,
@@ -118,14 +123,7 @@ fn an_edit_through_the_editing_queue_is_visible_within_two_frames() {
     let Some(ctx) = context() else { return };
     let mut w = terrain();
     let cam = camera(&w, 1);
-    let mut gpu = GpuBrickmap::streaming(
-        &ctx,
-        &w.grid,
-        w.store.pool(),
-        w.store.palette(),
-        StreamConfig::default(),
-    )
-    .unwrap();
+    let mut gpu = streaming(&ctx, &w);
     converge(&ctx, &mut gpu, &w, &cam);
     // Carve a visible crater, and raise a tower, through the store.
     let c = (w.bounds.0 + w.bounds.1).as_dvec3() * 0.5;
@@ -235,14 +233,7 @@ fn a_running_snow_simulation_drives_re_streaming() {
     };
     ws.add_lua(src, Limits::default()).unwrap();
     ws.sim.set_param(0, "snowfall", 2.0).unwrap();
-    let mut gpu = GpuBrickmap::streaming(
-        &ctx,
-        &w.grid,
-        w.store.pool(),
-        w.store.palette(),
-        StreamConfig::default(),
-    )
-    .unwrap();
+    let mut gpu = streaming(&ctx, &w);
     let mut uploads = 0;
     for _ in 0..12 {
         let r = ws.step(&mut w, 0.2);
