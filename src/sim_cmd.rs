@@ -23,8 +23,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
             ws.add_lua(src, Limits::default()).context("cannot load the script")?;
         }
         for p in &s.params {
-            let index = (0..ws.sim.script_count())
-                .find(|&i| ws.sim.spec(i).name == p.script)
+            let index = ws.sim.script_index(&p.script)
                 .with_context(|| format!("--param names script '{}', which is not loaded", p.script))?;
             ws.sim.set_param(index, &p.name, p.value)?;
         }

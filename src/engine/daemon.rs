@@ -128,19 +128,13 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                 .with_context(|| format!("in the world config's scripts[{i}].params"))?;
         }
     }
-    shared.status.lock().expect("status lock").scripts = (0..ws.sim.script_count())
-        .map(|i| ScriptStatus {
-            name: ws.sim.spec(i).name.clone(),
-            ..Default::default()
-        })
-        .collect();
     let mut loaded_from = None;
     if let Some((tick, channels, params)) = resumed {
         *ws.sim.channels_mut() = channels;
         ws.sim.set_tick(tick);
         ws.sim.wake_all();
         for (script, values) in params {
-            if let Some(i) = (0..ws.sim.script_count()).find(|&i| ws.sim.spec(i).name == script) {
+            if let Some(i) = ws.sim.script_index(&script) {
                 for (k, v) in values {
                     let _ = ws.sim.set_param(i, &k, v);
                 }
@@ -151,6 +145,20 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             tick,
             hash: format!("{hash:#018x}"),
         });
+    }
+    // Publish the loaded world in one go: a client that sees the scripts
+    // also sees the tick and where it was resumed from (regression: a restart
+    // test read `loaded_from: null` in between).
+    {
+        let mut st = shared.status.lock().expect("status lock");
+        st.tick = ws.sim.tick();
+        st.loaded_from = loaded_from.clone();
+        st.scripts = (0..ws.sim.script_count())
+            .map(|i| ScriptStatus {
+                name: ws.sim.spec(i).name.clone(),
+                ..Default::default()
+            })
+            .collect();
     }
     let frames_dir = opts.state.join(&cfg.frames_dir);
     std::fs::create_dir_all(&frames_dir)
@@ -167,6 +175,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
     // Dirty bricks not yet handed to the renderer, each once.
     let mut dirty_pending: FxHashSet<IVec3> = FxHashSet::default();
     let mut snapshot_ms = 0.0;
+    let mut active_bricks = 0;
     println!(
         "brickworld is running: viewer http://{bound}/  (control token in {}: {token})",
         token_path.display()
@@ -232,7 +241,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                     .file_stem()
                     .map(|s| s.to_string_lossy().to_string())
                     .unwrap_or_default();
-                let index = (0..ws.sim.script_count()).find(|&i| ws.sim.spec(i).name == name);
+                let index = ws.sim.script_index(&name);
                 match ws.reload(&path) {
                     Ok(Some(i)) => {
                         eprintln!("reloaded {}", path.display());
@@ -266,9 +275,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                     camera.fov = fov;
                 }
                 Command::Params { script, values } => {
-                    let Some(i) =
-                        (0..ws.sim.script_count()).find(|&i| ws.sim.spec(i).name == script)
-                    else {
+                    let Some(i) = ws.sim.script_index(&script) else {
                         last_errors.push(Some(format!("no script named '{script}'")));
                         continue;
                     };
@@ -292,7 +299,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                     | crate::sim::SimError::Unstable { script, .. } => script.clone(),
                     _ => String::new(),
                 };
-                if let Some(i) = (0..ws.sim.script_count()).find(|&i| ws.sim.spec(i).name == name) {
+                if let Some(i) = ws.sim.script_index(&name) {
                     last_errors[i] = Some(e.to_string());
                 }
             }
@@ -377,9 +384,7 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
                     drained: ws.drained,
                 });
             }
-            let mut st = shared.status.lock().expect("status lock");
-            st.active_bricks = r.active_tiles;
-            st.dirty_queue = dirty_pending.len();
+            active_bricks = r.active_tiles;
         } else {
             std::thread::sleep(std::time::Duration::from_millis(5));
         }
@@ -387,6 +392,8 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
             let mut st = shared.status.lock().expect("status lock");
             st.tick = ws.sim.tick();
             st.paused = paused;
+            st.active_bricks = active_bricks;
+            st.dirty_queue = dirty_pending.len();
             st.frame_ms = renderer.stats.frame_ms();
             st.bricks_streamed = renderer.stats.bricks_streamed();
             st.frames = renderer.stats.frames();

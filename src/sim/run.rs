@@ -119,8 +119,7 @@ impl WorldSim {
     /// version keeps running and the error (with file and line) is returned.
     pub fn reload(&mut self, path: &Path) -> Result<Option<usize>, SimError> {
         let src = read_script(path)?;
-        let Some(index) = (0..self.sim.script_count()).find(|&i| self.sim.spec(i).name == src.name)
-        else {
+        let Some(index) = self.sim.script_index(&src.name) else {
             return Ok(None);
         };
         self.sim.replace_script(index, src)?;
@@ -131,8 +130,7 @@ impl WorldSim {
     /// limit `dt · (|u| + sqrt(g h)) / dx ≤ cfl` of the `water` script, if one
     /// is loaded (1 otherwise; at most 256).
     pub fn substeps_for(&self, dt: f64, cfl: f64) -> u32 {
-        let Some(w) = (0..self.sim.script_count()).find(|&i| self.sim.spec(i).name == "water")
-        else {
+        let Some(w) = self.sim.script_index("water") else {
             return 1;
         };
         let spec = self.sim.spec(w);

@@ -367,6 +367,11 @@ impl Simulation {
         self.scripts.len()
     }
 
+    /// The index of the script called `name`, if one is loaded.
+    pub fn script_index(&self, name: &str) -> Option<usize> {
+        (0..self.scripts.len()).find(|&i| self.spec(i).name == name)
+    }
+
     /// Current parameter values of script `index` (spec order).
     pub fn params(&self, index: usize) -> &[f64] {
         &self.scripts[index].params
