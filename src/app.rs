@@ -18,6 +18,16 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
         Command::Run(a) => run_daemon(&a),
         Command::Ctl(a) => crate::engine::ctl::run(&a),
+        Command::Init { dir } => {
+            for p in crate::engine::daemon::init(&dir)? {
+                println!("wrote {}", p.display());
+            }
+            println!(
+                "run it with: brickworld run {} (scripts reload when saved)",
+                dir.join("world.toml").display()
+            );
+            Ok(())
+        }
         Command::Soak {
             minutes,
             json,
@@ -75,7 +85,7 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
     use crate::engine::world_config::WorldConfig;
     let mut world = match &a.world {
         Some(p) => WorldConfig::load(p)?,
-        None => WorldConfig::default_world(std::path::Path::new("worlds")),
+        None => WorldConfig::default_world(),
     };
     if let Some(addr) = &a.addr {
         world.addr = addr.parse().map_err(|_| {
@@ -84,6 +94,7 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
     }
     if let Some(dir) = &a.scripts {
         world.scripts_dir = dir.clone();
+        world.scripts_embedded = false;
     }
     if a.ticks == Some(0) {
         anyhow::bail!("invalid --ticks 0: at least one tick");

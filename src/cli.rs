@@ -21,6 +21,12 @@ pub enum Command {
     Render(RenderArgs),
     /// Run the engine: simulation, rendering, checkpoints and the control server.
     Run(RunArgs),
+    /// Write the default world and its scripts into DIR for editing
+    /// (DIR/world.toml, DIR/scripts/*.lua); never overwrites a file.
+    Init {
+        /// Directory to create or fill
+        dir: PathBuf,
+    },
     /// Talk to a running engine: status, pause, resume, step [N], checkpoint, param SCRIPT NAME VALUE.
     Ctl(CtlArgs),
     /// Run the daemon for M minutes and report memory, queues, latency and drift.

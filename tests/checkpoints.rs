@@ -28,6 +28,8 @@ fn state(tick: u64, seed: u64) -> WorldState {
         bounds: w.bounds,
         channels,
         params: vec![("water".into(), vec![("rain".into(), 0.5)])],
+        identity: None,
+        extras: Default::default(),
     }
 }
 

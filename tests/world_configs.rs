@@ -25,8 +25,13 @@ fn the_shipped_worlds_load_and_build() {
             build_scene(&cfg.source, cfg.size, cfg.seed, &ProgressBar::hidden()).unwrap();
         }
     }
-    let d = WorldConfig::default_world(&Path::new(ROOT).join("worlds"));
+    let d = WorldConfig::default_world();
     assert_eq!(d.scripts.len(), 3);
+    // The default world runs from any directory: its scripts are built in.
+    assert!(d.scripts_embedded);
+    for s in &d.scripts {
+        assert!(brickworld::sim::embedded::script(&s.file).is_some(), "{} not embedded", s.file);
+    }
     assert!(matches!(d.camera.mode, CameraMode::Orbit { .. }));
     let snowy = WorldConfig::load(&Path::new(ROOT).join("worlds/snowy_mountain.toml")).unwrap();
     assert!(matches!(snowy.camera.mode, CameraMode::Fly { period_s, .. } if period_s == 120.0));

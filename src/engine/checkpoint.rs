@@ -1,26 +1,36 @@
 //! Crash-safe checkpoints of a whole world: bricks, simulation channels,
-//! tick and script parameters.
+//! tick, script parameters, and everything else that defines the world's
+//! future (the drained total, which tiles sleep), under the identity of the
+//! world they belong to.
 //!
 //! **File format** (`ckpt-<tick>.bwc`, little-endian):
 //!
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `BWCK` |
-//! | 4 | format version (1) |
+//! | 4 | format version (2; version 1 files are still read) |
 //! | 8 | tick |
 //! | 8 | world hash (bricks + channels), checked on load |
 //! | 8 | compressed payload length |
 //! | 4 | CRC-32 of the payload |
 //! | 4 | CRC-32 of the 36 bytes above |
+//! | 4 + n + 4 | (v2) identity: length, JSON [`WorldIdentity`], CRC-32 |
 //! | … | payload: LZ4 (`lz4_flex`, size-prepended) of the state |
 //!
 //! **Writing** is atomic: a temp file is written and fsynced, renamed over
 //! the final name, and the directory is fsynced. A `kill -9` at any moment
 //! leaves either the old set of checkpoints or the new one, never a torn
-//! file under a final name. The last two checkpoints are kept.
+//! file under a final name.
 //!
-//! **Loading** takes the newest checkpoint whose header, checksums and world
-//! hash all verify; a corrupt one is reported and the previous one is used.
+//! **Retention** ([`Checkpoints`]) keeps the newest [`KEEP`] checkpoints of
+//! *this* world that verified (written by this process, or checked when it
+//! started); the file just written is always one of them. A corrupt file is
+//! renamed `*.corrupt` (kept for inspection, never counted), and a foreign
+//! world's checkpoint is left alone: neither can take a slot.
+//!
+//! **Loading** takes the newest checkpoint of this world whose header,
+//! checksums and world hash all verify; a corrupt one is reported and the
+//! previous one is used; another world's is skipped with a warning.
 
 use std::fs::{self, File};
 use std::io::Write;
@@ -34,7 +44,10 @@ use crate::sim::tile::TILE_CELLS;
 use crate::world::{BRICK_VOXELS, BrickContent, BrickStore, Palette};
 
 const MAGIC: &[u8; 4] = b"BWCK";
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
+/// Largest LZ4 expansion (LZ4's worst-case ratio is about 255:1): a size
+/// prefix claiming more is corrupt, refused before anything is allocated.
+const MAX_LZ4_RATIO: usize = 255;
 const HEADER: usize = 40;
 /// Checkpoints kept on disk.
 pub const KEEP: usize = 2;
@@ -67,6 +80,48 @@ fn io(path: &Path, error: std::io::Error) -> CheckpointError {
     }
 }
 
+/// Which world a checkpoint belongs to.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WorldIdentity {
+    /// The world's source, as the config writes it (`terrain`, `vox:…`).
+    pub source: String,
+    /// The world's size.
+    pub size: [i32; 3],
+    /// The world's seed.
+    pub seed: u64,
+    /// A hash of the config text: a change is reported, not refused (a
+    /// world may be given new scripts or frame settings).
+    pub config_hash: u64,
+}
+
+impl WorldIdentity {
+    /// Whether `other` is the same world (source, size and seed).
+    pub fn same_world(&self, other: &WorldIdentity) -> bool {
+        self.source == other.source && self.size == other.size && self.seed == other.seed
+    }
+}
+
+impl std::fmt::Display for WorldIdentity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} {}x{}x{} seed {}",
+            self.source, self.size[0], self.size[1], self.size[2], self.seed
+        )
+    }
+}
+
+/// Simulation state beyond the channels that a resume needs to continue
+/// exactly as if it had not stopped.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SimExtras {
+    /// Water drained over the world's edges so far.
+    pub drained: f64,
+    /// Which tiles sleep (None in version-1 files: everything wakes).
+    pub sleep: Option<crate::sim::step::SleepState>,
+}
+
 /// Everything a checkpoint holds.
 #[derive(Debug)]
 pub struct WorldState {
@@ -80,6 +135,10 @@ pub struct WorldState {
     pub channels: ChannelStore,
     /// Script parameters: (script, [(name, value)]).
     pub params: Vec<(String, Vec<(String, f64)>)>,
+    /// The world it belongs to (None in version-1 files).
+    pub identity: Option<WorldIdentity>,
+    /// The rest of the simulation state.
+    pub extras: SimExtras,
 }
 
 /// Hash of the bricks (sorted by coordinate) and the channels.
@@ -171,6 +230,10 @@ pub struct WorldRef<'a> {
     pub channels: &'a ChannelStore,
     /// Script parameters.
     pub params: &'a [(String, Vec<(String, f64)>)],
+    /// The world it belongs to.
+    pub identity: Option<&'a WorldIdentity>,
+    /// The rest of the simulation state.
+    pub extras: &'a SimExtras,
 }
 
 fn encode(state: WorldRef<'_>) -> Vec<u8> {
@@ -229,10 +292,31 @@ fn encode(state: WorldRef<'_>) -> Vec<u8> {
             w.f64(*v);
         }
     }
+    // Version 2: the rest of the simulation state.
+    w.f64(state.extras.drained);
+    match &state.extras.sleep {
+        None => w.u32(0),
+        Some(sl) => {
+            w.u32(1);
+            w.u32(sl.active.len() as u32);
+            for t in &sl.active {
+                w.i32(t.x);
+                w.i32(t.y);
+            }
+            w.u32(sl.quiet.len() as u32);
+            for (t, q) in &sl.quiet {
+                w.i32(t.x);
+                w.i32(t.y);
+                w.0.push(*q);
+            }
+        }
+    }
     w.0
 }
 
-fn decode(tick: u64, payload: &[u8]) -> Result<WorldState, String> {
+/// Decode a decompressed payload of format `version` (1 or 2). Never
+/// panics, whatever the bytes: every count is checked against what is left.
+pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, String> {
     let mut r = Reader {
         data: payload,
         at: 0,
@@ -284,6 +368,24 @@ fn decode(tick: u64, payload: &[u8]) -> Result<WorldState, String> {
         }
         params.push((name, ps));
     }
+    let mut extras = SimExtras::default();
+    if version >= 2 {
+        extras.drained = r.f64()?;
+        if r.u32()? == 1 {
+            let left = |r: &Reader, per: usize| (r.data.len() - r.at) / per;
+            let n = r.count(left(&r, 8), "awake tile")?;
+            let mut active = Vec::with_capacity(n);
+            for _ in 0..n {
+                active.push(IVec2::new(r.i32()?, r.i32()?));
+            }
+            let n = r.count(left(&r, 9), "quiet tile")?;
+            let mut quiet = Vec::with_capacity(n);
+            for _ in 0..n {
+                quiet.push((IVec2::new(r.i32()?, r.i32()?), r.take(1)?[0]));
+            }
+            extras.sleep = Some(crate::sim::step::SleepState { active, quiet });
+        }
+    }
     if r.at != payload.len() {
         return Err(format!(
             "{} unexpected bytes after the state",
@@ -296,6 +398,8 @@ fn decode(tick: u64, payload: &[u8]) -> Result<WorldState, String> {
         bounds: (lo, hi),
         channels,
         params,
+        identity: None,
+        extras,
     })
 }
 
@@ -322,24 +426,155 @@ pub fn list(dir: &Path) -> Result<Vec<PathBuf>, CheckpointError> {
     Ok(out)
 }
 
-/// Write a checkpoint of `state` into `dir` atomically and keep the newest
-/// [`KEEP`]. Returns its path and world hash. On any error (a full disk, say)
-/// the previous checkpoints are untouched.
+/// Write a checkpoint of `state` into `dir` atomically, keeping the newest
+/// [`KEEP`] that verify (see [`Checkpoints`]). Returns its path and world
+/// hash. On any error (a full disk, say) the previous checkpoints are
+/// untouched.
 pub fn write(dir: &Path, state: &WorldState) -> Result<(PathBuf, u64), CheckpointError> {
-    write_ref(
-        dir,
-        WorldRef {
-            tick: state.tick,
-            store: &state.store,
-            bounds: state.bounds,
-            channels: &state.channels,
-            params: &state.params,
-        },
-    )
+    let mut set = Checkpoints::scan(dir, state.identity.clone())?;
+    set.write(WorldRef {
+        tick: state.tick,
+        store: &state.store,
+        bounds: state.bounds,
+        channels: &state.channels,
+        params: &state.params,
+        identity: state.identity.as_ref(),
+        extras: &state.extras,
+    })
 }
 
-/// [`write`] for a world borrowed from a running engine.
-pub fn write_ref(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), CheckpointError> {
+/// A state directory's checkpoints, as one engine sees them: which files
+/// verified as this world's, so retention never counts a corrupt, foreign
+/// or stray file, and never deletes the file it just wrote.
+#[derive(Debug)]
+pub struct Checkpoints {
+    dir: PathBuf,
+    identity: Option<WorldIdentity>,
+    /// This world's verified checkpoints, oldest first.
+    good: Vec<PathBuf>,
+}
+
+impl Checkpoints {
+    /// Scan `dir`: files whose header, identity and payload checksum verify
+    /// (and belong to `identity`, when given) count for retention; corrupt
+    /// files are renamed `*.corrupt`; foreign ones are left alone.
+    pub fn scan(dir: &Path, identity: Option<WorldIdentity>) -> Result<Self, CheckpointError> {
+        let mut good = Vec::new();
+        for path in list(dir)?.into_iter().rev() {
+            match read_checked(&path, false) {
+                Ok((_, id)) if matches_world(identity.as_ref(), id.as_ref()) => good.push(path),
+                Ok(_) => {}
+                Err(CheckpointError::Corrupt { .. }) => quarantine(&path),
+                Err(_) => {}
+            }
+        }
+        Ok(Checkpoints {
+            dir: dir.to_path_buf(),
+            identity,
+            good,
+        })
+    }
+
+    /// The newest checkpoint of this world that fully verifies, with the
+    /// problems met on the way (newer corrupt files, renamed `*.corrupt`,
+    /// and other worlds' checkpoints, skipped). Files found good count for
+    /// retention.
+    pub fn open(
+        dir: &Path,
+        identity: WorldIdentity,
+    ) -> Result<(Self, Option<(PathBuf, WorldState)>, Vec<String>), CheckpointError> {
+        let mut warnings = Vec::new();
+        let mut found = None;
+        let mut good = Vec::new();
+        for path in list(dir)? {
+            if found.is_some() {
+                // Older files: a cheap check is enough to count them.
+                if let Ok((_, id)) = read_checked(&path, false)
+                    && matches_world(Some(&identity), id.as_ref())
+                {
+                    good.push(path);
+                }
+                continue;
+            }
+            match read(&path) {
+                Ok(st) => match &st.identity {
+                    Some(id) if !id.same_world(&identity) => warnings.push(format!(
+                        "{} belongs to another world ({id}, this is {identity}); skipped and left alone",
+                        path.display()
+                    )),
+                    id => {
+                        match id {
+                            None => warnings.push(format!(
+                                "{} predates world identities (format 1); assuming it is this world",
+                                path.display()
+                            )),
+                            Some(id) if id.config_hash != identity.config_hash => warnings.push(format!(
+                                "the world config changed since {} was written; resuming with the new config",
+                                path.display()
+                            )),
+                            Some(_) => {}
+                        }
+                        good.push(path.clone());
+                        found = Some((path, st));
+                    }
+                },
+                Err(e @ CheckpointError::Corrupt { .. }) => {
+                    warnings.push(format!("{e}; renamed to *.corrupt and skipped"));
+                    quarantine(&path);
+                }
+                Err(e) => warnings.push(format!("{e}; skipped")),
+            }
+        }
+        good.reverse();
+        Ok((
+            Checkpoints {
+                dir: dir.to_path_buf(),
+                identity: Some(identity),
+                good,
+            },
+            found,
+            warnings,
+        ))
+    }
+
+    /// The verified checkpoints retention counts, oldest first.
+    pub fn good(&self) -> &[PathBuf] {
+        &self.good
+    }
+
+    /// Write a checkpoint atomically, then delete this world's verified
+    /// checkpoints beyond the newest [`KEEP`] (never the one just written).
+    pub fn write(&mut self, state: WorldRef<'_>) -> Result<(PathBuf, u64), CheckpointError> {
+        let state = WorldRef {
+            identity: state.identity.or(self.identity.as_ref()),
+            ..state
+        };
+        let (path, hash) = write_file(&self.dir, state)?;
+        self.good.retain(|p| p != &path);
+        self.good.push(path.clone());
+        while self.good.len() > KEEP {
+            let old = self.good.remove(0);
+            let _ = fs::remove_file(old);
+        }
+        Ok((path, hash))
+    }
+}
+
+fn matches_world(want: Option<&WorldIdentity>, got: Option<&WorldIdentity>) -> bool {
+    match (want, got) {
+        (Some(w), Some(g)) => w.same_world(g),
+        _ => true,
+    }
+}
+
+/// Rename a corrupt checkpoint out of the way (kept for inspection).
+fn quarantine(path: &Path) {
+    let mut to = path.as_os_str().to_owned();
+    to.push(".corrupt");
+    let _ = fs::rename(path, PathBuf::from(to));
+}
+
+fn write_file(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), CheckpointError> {
     fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
     let hash = world_hash(state.store, state.channels);
     let payload = lz4_flex::compress_prepend_size(&encode(state));
@@ -352,6 +587,10 @@ pub fn write_ref(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Chec
     header.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
     let hcrc = crc32fast::hash(&header);
     header.extend_from_slice(&hcrc.to_le_bytes());
+    let id = serde_json::to_vec(&state.identity).unwrap_or_else(|_| b"null".to_vec());
+    header.extend_from_slice(&(id.len() as u32).to_le_bytes());
+    header.extend_from_slice(&id);
+    header.extend_from_slice(&crc32fast::hash(&id).to_le_bytes());
     let path = dir.join(file_name(state.tick));
     let tmp = dir.join(format!(".{}.tmp", file_name(state.tick)));
     let result = (|| -> std::io::Result<()> {
@@ -377,9 +616,6 @@ pub fn write_ref(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Chec
         let _ = fs::remove_file(&tmp);
         return Err(io(&path, e));
     }
-    for old in list(dir)?.into_iter().skip(KEEP) {
-        let _ = fs::remove_file(old);
-    }
     // Temp files left by a process killed mid-write never load; drop them.
     if let Ok(rd) = fs::read_dir(dir) {
         for e in rd.flatten() {
@@ -403,56 +639,125 @@ fn write_stall() -> Option<std::time::Duration> {
         .map(std::time::Duration::from_millis)
 }
 
-/// Read and verify one checkpoint file.
-pub fn read(path: &Path) -> Result<WorldState, CheckpointError> {
-    let corrupt = |msg: String| CheckpointError::Corrupt {
+/// Largest checkpoint file read (a larger one is reported, not loaded).
+pub const MAX_FILE: u64 = 64 << 30;
+
+/// Read one checkpoint file's bytes, refusing what is not a regular file
+/// or is larger than [`MAX_FILE`].
+fn read_bytes(path: &Path) -> Result<Vec<u8>, CheckpointError> {
+    let meta = fs::metadata(path).map_err(|e| io(path, e))?;
+    if !meta.is_file() {
+        return Err(CheckpointError::Corrupt {
+            path: path.to_path_buf(),
+            msg: "not a regular file".into(),
+        });
+    }
+    if meta.len() > MAX_FILE {
+        return Err(CheckpointError::Corrupt {
+            path: path.to_path_buf(),
+            msg: format!("{} bytes is over the {MAX_FILE}-byte limit", meta.len()),
+        });
+    }
+    fs::read(path).map_err(|e| io(path, e))
+}
+
+/// Header, identity and payload checksum; with `full`, also decode and the
+/// world hash. Returns the state (when `full`) and the identity.
+fn read_checked(
+    path: &Path,
+    full: bool,
+) -> Result<(Option<WorldState>, Option<WorldIdentity>), CheckpointError> {
+    let bytes = read_bytes(path)?;
+    parse(&bytes, full).map_err(|msg| CheckpointError::Corrupt {
         path: path.to_path_buf(),
         msg,
-    };
-    let bytes = fs::read(path).map_err(|e| io(path, e))?;
+    })
+}
+
+/// Parse a whole checkpoint file from bytes (the fuzz target): never panics
+/// and never allocates more than the bytes justify.
+pub fn parse(
+    bytes: &[u8],
+    full: bool,
+) -> Result<(Option<WorldState>, Option<WorldIdentity>), String> {
     if bytes.len() < HEADER {
-        return Err(corrupt(format!(
-            "{} bytes is shorter than the header",
-            bytes.len()
-        )));
+        return Err(format!("{} bytes is shorter than the header", bytes.len()));
     }
     let h = &bytes[..HEADER];
     if &h[0..4] != MAGIC {
-        return Err(corrupt("not a brickworld checkpoint (bad magic)".into()));
+        return Err("not a brickworld checkpoint (bad magic)".into());
     }
     if crc32fast::hash(&h[..36]) != u32::from_le_bytes(h[36..40].try_into().expect("4")) {
-        return Err(corrupt("header checksum mismatch".into()));
+        return Err("header checksum mismatch".into());
     }
     let version = u32::from_le_bytes(h[4..8].try_into().expect("4"));
-    if version != VERSION {
-        return Err(corrupt(format!(
-            "format version {version}, this build reads {VERSION}"
-        )));
+    if !(1..=VERSION).contains(&version) {
+        return Err(format!(
+            "format version {version}, this build reads 1 to {VERSION}"
+        ));
     }
     let tick = u64::from_le_bytes(h[8..16].try_into().expect("8"));
     let hash = u64::from_le_bytes(h[16..24].try_into().expect("8"));
-    let len = u64::from_le_bytes(h[24..32].try_into().expect("8")) as usize;
+    let len = u64::from_le_bytes(h[24..32].try_into().expect("8"));
     let crc = u32::from_le_bytes(h[32..36].try_into().expect("4"));
-    let payload = &bytes[HEADER..];
-    if payload.len() != len {
-        return Err(corrupt(format!(
+    let mut rest = &bytes[HEADER..];
+    let mut identity = None;
+    if version >= 2 {
+        let n = rest
+            .get(..4)
+            .map(|b| u32::from_le_bytes(b.try_into().expect("4")) as usize)
+            .ok_or("the identity block is missing")?;
+        if n > 64 << 10 || rest.len() < 8 + n {
+            return Err(format!("identity block of {n} bytes does not fit"));
+        }
+        let id = &rest[4..4 + n];
+        let icrc = u32::from_le_bytes(rest[4 + n..8 + n].try_into().expect("4"));
+        if crc32fast::hash(id) != icrc {
+            return Err("identity checksum mismatch".into());
+        }
+        identity = serde_json::from_slice::<Option<WorldIdentity>>(id)
+            .map_err(|e| format!("identity: {e}"))?;
+        rest = &rest[8 + n..];
+    }
+    let payload = rest;
+    if payload.len() as u64 != len {
+        return Err(format!(
             "payload is {} bytes, the header says {len}",
             payload.len()
-        )));
+        ));
     }
     if crc32fast::hash(payload) != crc {
-        return Err(corrupt("payload checksum mismatch".into()));
+        return Err("payload checksum mismatch".into());
     }
-    let raw =
-        lz4_flex::decompress_size_prepended(payload).map_err(|e| corrupt(format!("LZ4: {e}")))?;
-    let state = decode(tick, &raw).map_err(corrupt)?;
+    if !full {
+        return Ok((None, identity));
+    }
+    let claimed = payload
+        .get(..4)
+        .map(|b| u32::from_le_bytes(b.try_into().expect("4")) as usize)
+        .ok_or("the payload has no size prefix")?;
+    if claimed > payload.len().saturating_mul(MAX_LZ4_RATIO) + 64 {
+        return Err(format!(
+            "the payload claims {claimed} bytes uncompressed, more than {} compressed bytes can hold",
+            payload.len()
+        ));
+    }
+    let raw = lz4_flex::decompress_size_prepended(payload).map_err(|e| format!("LZ4: {e}"))?;
+    let mut state = decode(tick, version, &raw)?;
     let got = world_hash(&state.store, &state.channels);
     if got != hash {
-        return Err(corrupt(format!(
+        return Err(format!(
             "world hash {got:#x} differs from the recorded {hash:#x}"
-        )));
+        ));
     }
-    Ok(state)
+    state.identity = identity.clone();
+    Ok((Some(state), identity))
+}
+
+/// Read and verify one checkpoint file.
+pub fn read(path: &Path) -> Result<WorldState, CheckpointError> {
+    let (state, _) = read_checked(path, true)?;
+    Ok(state.expect("full read returns the state"))
 }
 
 /// What [`latest`] found.
@@ -464,8 +769,9 @@ pub struct Latest {
     pub skipped: Vec<CheckpointError>,
 }
 
-/// The newest checkpoint in `dir` that verifies, with the problems of any
-/// newer ones skipped on the way.
+/// The newest checkpoint in `dir` that verifies, whatever its world, with
+/// the problems of any newer ones skipped on the way (files are not
+/// renamed: this only reads).
 pub fn latest(dir: &Path) -> Result<Latest, CheckpointError> {
     let mut skipped = Vec::new();
     for path in list(dir)? {

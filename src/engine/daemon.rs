@@ -1,12 +1,17 @@
-//! `brickworld run`: the long-running engine.
+//! `brickworld run`: the long-running engine, a type whose loop calls named
+//! stages (like a physics pipeline's `step`):
 //!
-//! Start-up resumes from the newest checkpoint in the state directory that
-//! verifies (reporting any corrupt newer one), or builds the world from its
-//! config. The engine loop then steps the scripts, hands each step's dirty
-//! bricks to the renderer, renders a frame every `frames.every` ticks
-//! (GPU with streaming, or CPU), writes checkpoints periodically, on request
-//! and on SIGINT/SIGTERM, and obeys the control server's commands at step
-//! boundaries.
+//! 1. [`Engine::start`]: lock the state directory, listen, write the token,
+//!    resume from this world's newest checkpoint that verifies (or build the
+//!    world), load the scripts, start the render thread.
+//! 2. Each turn of [`Engine::run`]: [`hot_reload`](Engine::hot_reload),
+//!    [`apply_commands`](Engine::apply_commands), [`step`](Engine::step),
+//!    [`offer_frame`](Engine::offer_frame),
+//!    [`periodic_checkpoint`](Engine::periodic_checkpoint),
+//!    [`record_timeline`](Engine::record_timeline),
+//!    [`publish_status`](Engine::publish_status).
+//! 3. [`Engine::finish`]: the frame in flight, a final checkpoint, then the
+//!    control server (which waits for no client).
 //!
 //! Rendering runs on its own thread ([`super::render_thread`]): the loop
 //! offers it a snapshot every `frames.every` ticks only when it is idle, and
@@ -23,13 +28,17 @@ use anyhow::{Context, Result, bail};
 use glam::{DVec3, IVec3};
 use rustc_hash::FxHashSet;
 
-use super::checkpoint::{self, WorldRef};
-use super::control::{self, CheckpointRef, Command, ScriptStatus, Shared, Status};
+use super::checkpoint::{self, Checkpoints, SimExtras, WorldIdentity, WorldRef};
+use super::control::{
+    CheckpointRef, Command, ControlServer, ParamStatus, ScriptStatus, Shared, Status,
+};
 use super::render_thread::{FrameJob, RenderSettings, RenderThread};
-use super::world_config::{CameraMode, WorldConfig};
+use super::state_dir::{self, StateLock};
+use super::timeline::{Row, Timeline};
+use super::world_config::{CameraMode, CameraSettings, WorldConfig};
 use crate::progress::bar;
 use crate::scene::{SceneWorld, build_scene};
-use crate::sim::{Limits, WorldSim, read_script};
+use crate::sim::{Limits, ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, read_script};
 use crate::trace::Camera;
 
 /// Options of `brickworld run`.
@@ -43,30 +52,9 @@ pub struct DaemonOptions {
     pub max_ticks: Option<u64>,
 }
 
-fn token() -> String {
-    let mut bytes = [0u8; 16];
-    if let Ok(mut f) = std::fs::File::open("/dev/urandom") {
-        use std::io::Read;
-        let _ = f.read_exact(&mut bytes);
-    }
-    let salt = Instant::now().elapsed().as_nanos() as u64 ^ std::process::id() as u64;
-    bytes
-        .iter()
-        .enumerate()
-        .map(|(i, b)| format!("{:02x}", b ^ (salt >> ((i % 8) * 8)) as u8))
-        .collect()
-}
-
-fn write_token(state: &Path, token: &str) -> Result<PathBuf> {
-    let path = state.join("control.token");
-    std::fs::write(&path, token).with_context(|| format!("cannot write {}", path.display()))?;
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600))
-            .with_context(|| format!("cannot restrict {}", path.display()))?;
-    }
-    Ok(path)
+/// Run the engine until stopped.
+pub fn run(opts: DaemonOptions) -> Result<()> {
+    Engine::start(opts)?.run()
 }
 
 fn total(ws: &WorldSim, name: &str) -> f64 {
@@ -76,357 +64,582 @@ fn total(ws: &WorldSim, name: &str) -> f64 {
         .map_or(0.0, |c| ws.sim.channels().total(c))
 }
 
-/// Run the engine until stopped.
-pub fn run(opts: DaemonOptions) -> Result<()> {
-    let cfg = &opts.world;
-    std::fs::create_dir_all(&opts.state)
-        .with_context(|| format!("cannot create the state directory {}", opts.state.display()))?;
-    let token = token();
-    let shared = Arc::new(Shared {
-        status: Mutex::new(Status::default()),
-        commands: Mutex::new(Vec::new()),
-        frame: Mutex::new(None),
-        token: token.clone(),
-        shutdown: Default::default(),
-    });
-    // Listen first: a taken port is a clear error before any work.
-    let (server, bound) = control::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
-    let token_path = write_token(&opts.state, &token)?;
-    {
-        let s = shared.clone();
-        ctrlc::set_handler(move || s.shutdown.store(true, Ordering::Relaxed))
-            .context("cannot install the SIGINT/SIGTERM handler")?;
+/// The script called `file`, from the scripts directory or the binary.
+fn load_source(cfg: &WorldConfig, file: &str) -> Result<ScriptSource> {
+    if cfg.scripts_embedded {
+        crate::sim::embedded::script(file)
+            .with_context(|| format!("no built-in script named {file}"))
+    } else {
+        Ok(read_script(&cfg.scripts_dir.join(file))?)
     }
-    // Resume or build.
-    let latest = checkpoint::latest(&opts.state)?;
-    for e in &latest.skipped {
-        eprintln!("warning: {e}; trying the previous checkpoint");
+}
+
+/// Per-script messages shown in `/status`.
+#[derive(Clone, Debug, Default)]
+struct ScriptNotes {
+    /// The last step's error (cleared by a step that succeeds).
+    step_error: Option<String>,
+    /// The last failed reload (cleared by a successful one).
+    reload_error: Option<String>,
+    warning: Option<String>,
+}
+
+/// The running engine.
+pub struct Engine {
+    cfg: WorldConfig,
+    max_ticks: Option<u64>,
+    _lock: StateLock,
+    shared: Arc<Shared>,
+    server: Option<ControlServer>,
+    world: SceneWorld,
+    ws: WorldSim,
+    renderer: RenderThread,
+    checkpoints: Checkpoints,
+    identity: WorldIdentity,
+    watcher: Option<ScriptWatcher>,
+    timeline: Timeline,
+    camera: CameraSettings,
+    /// Dirty bricks not yet handed to the renderer, each once.
+    dirty_pending: FxHashSet<IVec3>,
+    paused: bool,
+    steps_left: u64,
+    notes: Vec<ScriptNotes>,
+    last_checkpoint: Option<CheckpointRef>,
+    loaded_from: Option<CheckpointRef>,
+    checkpoint_error: Option<String>,
+    snapshot_ms: f64,
+    active_bricks: usize,
+    rate_window: (Instant, u64),
+    steps_per_s: f64,
+    start_tick: u64,
+}
+
+impl Engine {
+    /// Lock, listen, resume or build, load the scripts, start rendering.
+    pub fn start(opts: DaemonOptions) -> Result<Engine> {
+        let cfg = opts.world;
+        // The lock comes first: a second engine on this directory must not
+        // touch its token or checkpoints.
+        let lock = state_dir::lock(&opts.state)?;
+        let token = state_dir::new_token()?;
+        let shared = Arc::new(Shared {
+            status: Mutex::new(Status::default()),
+            commands: Mutex::new(Vec::new()),
+            frame: Mutex::new(None),
+            token: token.clone(),
+            shutdown: Default::default(),
+        });
+        // Listen before any work: a taken port is a clear error at once.
+        let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
+        let token_path = state_dir::write_token(&opts.state, &token)?;
+        {
+            let s = shared.clone();
+            ctrlc::set_handler(move || s.shutdown.store(true, Ordering::Relaxed))
+                .context("cannot install the SIGINT/SIGTERM handler")?;
+        }
+        let identity = cfg.identity();
+        let (checkpoints, found, warnings) = Checkpoints::open(&opts.state, identity.clone())?;
+        for w in &warnings {
+            eprintln!("warning: {w}");
+        }
+        let (mut world, resumed) = match found {
+            Some((path, st)) => {
+                eprintln!("resuming from {} (tick {})", path.display(), st.tick);
+                let w = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)?;
+                (w, Some((st.tick, st.channels, st.params, st.extras)))
+            }
+            None => {
+                let pb = bar("scene", 0);
+                let w = build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
+                    .context("cannot build the world")?;
+                pb.finish_and_clear();
+                (w, None)
+            }
+        };
+        let mut ws = WorldSim::with_edges(&mut world, true);
+        ws.sim.set_seed(cfg.seed);
+        for (i, s) in cfg.scripts.iter().enumerate() {
+            ws.add_lua(load_source(&cfg, &s.file)?, Limits::default())
+                .with_context(|| format!("cannot load script {}", s.file))?;
+            ws.sim.set_every(i, s.every);
+            for (k, v) in &s.params {
+                ws.sim
+                    .set_param(i, k, *v)
+                    .with_context(|| format!("in the world config's scripts[{i}].params"))?;
+            }
+        }
+        let mut loaded_from = None;
+        if let Some((tick, channels, params, extras)) = resumed {
+            ws.sim.set_channels(channels);
+            ws.resync_columns();
+            ws.sim.set_tick(tick);
+            ws.drained = extras.drained;
+            match &extras.sleep {
+                Some(s) => ws.sim.restore_sleep_state(s),
+                None => ws.sim.wake_all(),
+            }
+            for (script, values) in params {
+                if let Some(i) = ws.sim.script_index(&script) {
+                    for (k, v) in values {
+                        if let Err(e) = ws.sim.set_param(i, &k, v) {
+                            eprintln!("warning: the checkpoint's {script}.{k} = {v} is not kept: {e}");
+                        }
+                    }
+                }
+            }
+            let hash = checkpoint::world_hash(&world.store, ws.sim.channels());
+            loaded_from = Some(CheckpointRef {
+                tick,
+                hash: format!("{hash:#018x}"),
+            });
+        }
+        let frames_dir = opts.state.join(&cfg.frames_dir);
+        std::fs::create_dir_all(&frames_dir)
+            .with_context(|| format!("cannot create {}", frames_dir.display()))?;
+        let renderer = RenderThread::spawn(
+            RenderSettings {
+                gpu: cfg.gpu,
+                shadows: cfg.shadows,
+                frames_dir,
+            },
+            shared.clone(),
+        )
+        .context("cannot start the render thread")?;
+        // Hot reload: the scripts directory is watched; a changed script is
+        // compiled and smoke-tested in a fresh VM and swapped in between
+        // steps; a broken one keeps the last good version running.
+        let watcher = if cfg.scripts_embedded {
+            eprintln!(
+                "note: the default world's scripts are built in; `brickworld init DIR` writes editable copies (hot reload watches them)"
+            );
+            None
+        } else {
+            match ScriptWatcher::new(&cfg.scripts_dir, std::time::Duration::from_millis(150)) {
+                Ok(w) => Some(w),
+                Err(e) => {
+                    eprintln!("warning: hot reload is off: {e}");
+                    None
+                }
+            }
+        };
+        let timeline = Timeline::open(&opts.state.join("timeline.csv"))?;
+        println!(
+            "brickworld is running: viewer http://{}/  (control token in {}: {token})",
+            server.addr,
+            token_path.display()
+        );
+        let n = ws.sim.script_count();
+        let mut engine = Engine {
+            camera: cfg.camera,
+            start_tick: ws.sim.tick(),
+            cfg,
+            max_ticks: opts.max_ticks,
+            _lock: lock,
+            shared,
+            server: Some(server),
+            world,
+            ws,
+            renderer,
+            checkpoints,
+            identity,
+            watcher,
+            timeline,
+            dirty_pending: FxHashSet::default(),
+            paused: false,
+            steps_left: 0,
+            notes: vec![ScriptNotes::default(); n],
+            last_checkpoint: None,
+            loaded_from,
+            checkpoint_error: None,
+            snapshot_ms: 0.0,
+            active_bricks: 0,
+            rate_window: (Instant::now(), 0),
+            steps_per_s: 0.0,
+        };
+        // Publish the loaded world in one go: a client that sees the scripts
+        // also sees the tick and where it was resumed from (regression: a
+        // restart test read `loaded_from: null` in between).
+        engine.publish_status();
+        Ok(engine)
     }
-    let (mut world, resumed) = match latest.found {
-        Some((path, st)) => {
-            eprintln!("resuming from {} (tick {})", path.display(), st.tick);
-            let w = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)?;
-            (w, Some((st.tick, st.channels, st.params)))
+
+    /// The loop: stages in order until stopped, then [`finish`](Self::finish).
+    pub fn run(mut self) -> Result<()> {
+        loop {
+            if self.shared.shutdown.load(Ordering::Relaxed) {
+                break;
+            }
+            self.hot_reload();
+            self.apply_commands();
+            if self.should_step() {
+                let report = self.step();
+                self.offer_frame();
+                self.periodic_checkpoint();
+                self.record_timeline(&report);
+            } else {
+                std::thread::sleep(std::time::Duration::from_millis(5));
+            }
+            self.publish_status();
+            if self
+                .max_ticks
+                .is_some_and(|m| self.ws.sim.tick() - self.start_tick >= m)
+            {
+                break;
+            }
         }
-        None => {
-            let pb = bar("scene", 0);
-            let w = build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
-                .context("cannot build the world")?;
-            pb.finish_and_clear();
-            (w, None)
-        }
-    };
-    let mut ws = WorldSim::with_edges(&mut world, true);
-    for (i, s) in cfg.scripts.iter().enumerate() {
-        let src = read_script(&cfg.scripts_dir.join(&s.file))?;
-        ws.add_lua(src, Limits::default())
-            .with_context(|| format!("cannot load script {}", s.file))?;
-        ws.sim.set_every(i, s.every);
-        for (k, v) in &s.params {
-            ws.sim
-                .set_param(i, k, *v)
-                .with_context(|| format!("in the world config's scripts[{i}].params"))?;
-        }
+        self.finish()
     }
-    let mut loaded_from = None;
-    if let Some((tick, channels, params)) = resumed {
-        *ws.sim.channels_mut() = channels;
-        ws.sim.set_tick(tick);
-        ws.sim.wake_all();
-        for (script, values) in params {
-            if let Some(i) = ws.sim.script_index(&script) {
-                for (k, v) in values {
-                    let _ = ws.sim.set_param(i, &k, v);
+
+    /// Swap in scripts changed on disk (a broken one keeps the old version).
+    fn hot_reload(&mut self) {
+        let Some(w) = self.watcher.as_mut() else { return };
+        for path in w.poll() {
+            let name = path
+                .file_stem()
+                .map(|s| s.to_string_lossy().to_string())
+                .unwrap_or_default();
+            let index = self.ws.sim.script_index(&name);
+            match self.ws.reload(&path) {
+                Ok(Some((i, warnings))) => {
+                    eprintln!("reloaded {}", path.display());
+                    for w in &warnings {
+                        eprintln!("warning: {w}");
+                    }
+                    self.notes[i] = ScriptNotes {
+                        warning: warnings.last().cloned(),
+                        ..Default::default()
+                    };
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    eprintln!("warning: kept the last good version: {e}");
+                    if let Some(i) = index {
+                        self.notes[i].reload_error = Some(e.to_string());
+                    }
                 }
             }
         }
-        let hash = checkpoint::world_hash(&world.store, ws.sim.channels());
-        loaded_from = Some(CheckpointRef {
+    }
+
+    /// Apply the control server's commands, in order.
+    fn apply_commands(&mut self) {
+        let commands: Vec<Command> =
+            std::mem::take(&mut *self.shared.commands.lock().expect("command lock"));
+        for c in commands {
+            match c {
+                Command::Pause => {
+                    self.paused = true;
+                    // Queued single steps are cancelled too: paused means still.
+                    self.steps_left = 0;
+                }
+                Command::Resume => {
+                    self.paused = false;
+                    self.steps_left = 0;
+                }
+                Command::Step(n) => {
+                    self.paused = true;
+                    self.steps_left = (self.steps_left + n).min(100_000);
+                }
+                Command::Checkpoint => match self.write_checkpoint() {
+                    Ok(r) => self.last_checkpoint = Some(r),
+                    Err(e) => self.checkpoint_error = Some(e),
+                },
+                Command::Camera { eye, target, fov } => {
+                    self.camera.mode = CameraMode::Fixed;
+                    self.camera.eye = Some(DVec3::from(eye));
+                    self.camera.target = Some(DVec3::from(target));
+                    self.camera.fov = fov;
+                }
+                Command::Params { script, values } => {
+                    // The server validated against /status; a reload in
+                    // between may still refuse, which is shown per script.
+                    let Some(i) = self.ws.sim.script_index(&script) else {
+                        continue;
+                    };
+                    for (k, v) in values {
+                        if let Err(e) = self.ws.sim.set_param(i, &k, v) {
+                            self.notes[i].warning = Some(format!("refused: {e}"));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn should_step(&self) -> bool {
+        !self.paused || self.steps_left > 0
+    }
+
+    /// One tick of every script (CFL sub-stepped), with errors noted per script.
+    fn step(&mut self) -> StepReport {
+        if self.paused {
+            self.steps_left -= 1;
+        }
+        let (r, _) = self.ws.step_within_cfl(&mut self.world, self.cfg.dt, 0.5);
+        for (i, n) in self.notes.iter_mut().enumerate() {
+            if self.ws.sim.failures(i) == 0 && self.ws.sim.suspended(i).is_none() {
+                n.step_error = None;
+            }
+        }
+        for e in &r.errors {
+            let name = match e {
+                SimError::Runtime { script, .. }
+                | SimError::Unstable { script, .. }
+                | SimError::OutOfBounds { script, .. } => script.as_str(),
+                _ => "",
+            };
+            if let Some(i) = self.ws.sim.script_index(name) {
+                self.notes[i].step_error = Some(e.to_string());
+            }
+        }
+        self.rate_window.1 += 1;
+        let elapsed = self.rate_window.0.elapsed().as_secs_f64();
+        if elapsed >= 1.0 {
+            self.steps_per_s = self.rate_window.1 as f64 / elapsed;
+            self.rate_window = (Instant::now(), 0);
+        }
+        self.active_bricks = r.active_tiles;
+        r
+    }
+
+    /// Every `frames.every` ticks: hand the renderer a snapshot if it is
+    /// idle, else count a skipped frame.
+    fn offer_frame(&mut self) {
+        for batch in self.ws.dirty.try_iter() {
+            self.dirty_pending.extend(batch.bricks);
+        }
+        let tick = self.ws.sim.tick();
+        if !tick.is_multiple_of(self.cfg.frames_every) {
+            return;
+        }
+        if !self.renderer.ready() {
+            self.renderer.skip();
+            return;
+        }
+        let Ok(cam) = self.camera_at(tick) else { return };
+        let copy = Instant::now();
+        let snapshot = self.world.clone();
+        self.snapshot_ms = copy.elapsed().as_secs_f64() * 1e3;
+        let job = FrameJob {
             tick,
-            hash: format!("{hash:#018x}"),
-        });
+            world: snapshot,
+            dirty: self.dirty_pending.drain().collect(),
+            camera: cam,
+        };
+        if let Err(back) = self.renderer.offer(job) {
+            self.dirty_pending.extend(back);
+        }
     }
-    // Publish the loaded world in one go: a client that sees the scripts
-    // also sees the tick and where it was resumed from (regression: a restart
-    // test read `loaded_from: null` in between).
-    {
-        let mut st = shared.status.lock().expect("status lock");
-        st.tick = ws.sim.tick();
-        st.loaded_from = loaded_from.clone();
-        st.scripts = (0..ws.sim.script_count())
-            .map(|i| ScriptStatus {
-                name: ws.sim.spec(i).name.clone(),
-                ..Default::default()
-            })
-            .collect();
+
+    fn camera_at(&self, tick: u64) -> Result<Camera, crate::trace::CameraError> {
+        let views = self.world.default_views();
+        let c = &self.camera;
+        let (mut eye, mut target) = match (c.eye, c.target) {
+            (Some(e), Some(t)) => (e, t),
+            _ => (DVec3::from(views[1].eye), DVec3::from(views[1].target)),
+        };
+        let phase = |period_s: f64| tick as f64 * self.cfg.dt / period_s;
+        match c.mode {
+            CameraMode::Fixed => {}
+            CameraMode::Orbit { period_s } => {
+                let angle = phase(period_s) * std::f64::consts::TAU;
+                let d = eye - target;
+                let (s, co) = angle.sin_cos();
+                eye = target + DVec3::new(d.x * co - d.z * s, d.y, d.x * s + d.z * co);
+            }
+            CameraMode::Fly { to, period_s } => {
+                // 0 → 1 → 0 over one period.
+                let f = 1.0 - (phase(period_s).fract() * 2.0 - 1.0).abs();
+                let step = (to - eye) * f;
+                eye += step;
+                target += step;
+            }
+        }
+        Camera::new(eye, target, c.fov, self.cfg.width, self.cfg.height)
     }
-    let frames_dir = opts.state.join(&cfg.frames_dir);
-    std::fs::create_dir_all(&frames_dir)
-        .with_context(|| format!("cannot create {}", frames_dir.display()))?;
-    let renderer = RenderThread::spawn(
-        RenderSettings {
-            gpu: cfg.gpu,
-            shadows: cfg.shadows,
-            frames_dir,
-        },
-        shared.clone(),
-    )
-    .context("cannot start the render thread")?;
-    // Dirty bricks not yet handed to the renderer, each once.
-    let mut dirty_pending: FxHashSet<IVec3> = FxHashSet::default();
-    let mut snapshot_ms = 0.0;
-    let mut active_bricks = 0;
-    println!(
-        "brickworld is running: viewer http://{bound}/  (control token in {}: {token})",
-        token_path.display()
-    );
-    let mut camera = cfg.camera;
-    let (mut paused, mut steps_left) = (false, 0u64);
-    let mut last_checkpoint = None;
-    let mut checkpoint_error = None;
-    let mut rate_window = (Instant::now(), 0u64);
-    let mut steps_per_s = 0.0;
-    let start_tick = ws.sim.tick();
-    let write_checkpoint = |ws: &WorldSim, world: &SceneWorld| -> Result<CheckpointRef, String> {
-        let params: Vec<(String, Vec<(String, f64)>)> = (0..ws.sim.script_count())
+
+    fn periodic_checkpoint(&mut self) {
+        if !self.ws.sim.tick().is_multiple_of(self.cfg.checkpoint_every) {
+            return;
+        }
+        match self.write_checkpoint() {
+            Ok(r) => {
+                self.last_checkpoint = Some(r);
+                self.checkpoint_error = None;
+            }
+            Err(e) => {
+                eprintln!("warning: checkpoint failed, the last good one is kept: {e}");
+                self.checkpoint_error = Some(e);
+            }
+        }
+    }
+
+    fn write_checkpoint(&mut self) -> Result<CheckpointRef, String> {
+        let sim = &self.ws.sim;
+        let params: Vec<(String, Vec<(String, f64)>)> = (0..sim.script_count())
             .map(|i| {
-                let spec = ws.sim.spec(i);
+                let spec = sim.spec(i);
                 (
                     spec.name.clone(),
                     spec.params
                         .iter()
-                        .zip(ws.sim.params(i))
+                        .zip(sim.params(i))
                         .map(|(p, v)| (p.name.clone(), *v))
                         .collect(),
                 )
             })
             .collect();
-        let r = WorldRef {
-            tick: ws.sim.tick(),
-            store: &world.store,
-            bounds: world.bounds,
-            channels: ws.sim.channels(),
-            params: &params,
+        let extras = SimExtras {
+            drained: self.ws.drained,
+            sleep: Some(sim.sleep_state()),
         };
-        checkpoint::write_ref(&opts.state, r)
+        let r = WorldRef {
+            tick: sim.tick(),
+            store: &self.world.store,
+            bounds: self.world.bounds,
+            channels: sim.channels(),
+            params: &params,
+            identity: Some(&self.identity),
+            extras: &extras,
+        };
+        let tick = sim.tick();
+        self.checkpoints
+            .write(r)
             .map(|(_, hash)| CheckpointRef {
-                tick: ws.sim.tick(),
+                tick,
                 hash: format!("{hash:#018x}"),
             })
             .map_err(|e| e.to_string())
-    };
-    let mut last_errors: Vec<Option<String>> = vec![None; ws.sim.script_count()];
-    // Hot reload: the scripts directory is watched; a changed script is
-    // compiled and smoke-tested in a fresh VM and swapped in here, between
-    // steps; a broken one keeps the last good version running.
-    let mut watcher = match crate::sim::ScriptWatcher::new(
-        &cfg.scripts_dir,
-        std::time::Duration::from_millis(150),
-    ) {
-        Ok(w) => Some(w),
-        Err(e) => {
-            eprintln!("warning: hot reload is off: {e}");
-            None
+    }
+
+    fn record_timeline(&mut self, r: &StepReport) {
+        let tick = self.ws.sim.tick();
+        if !tick.is_multiple_of(self.cfg.frames_every) {
+            return;
         }
-    };
-    let timeline_path = opts.state.join("timeline.csv");
-    let mut timeline = super::timeline::Timeline::open(&timeline_path)?;
-    loop {
-        if shared.shutdown.load(Ordering::Relaxed) {
-            break;
-        }
-        if let Some(w) = watcher.as_mut() {
-            for path in w.poll() {
-                let name = path
-                    .file_stem()
-                    .map(|s| s.to_string_lossy().to_string())
-                    .unwrap_or_default();
-                let index = ws.sim.script_index(&name);
-                match ws.reload(&path) {
-                    Ok(Some(i)) => {
-                        eprintln!("reloaded {}", path.display());
-                        last_errors[i] = None;
-                    }
-                    Ok(None) => {}
-                    Err(e) => {
-                        eprintln!("warning: kept the last good version: {e}");
-                        if let Some(i) = index {
-                            last_errors[i] = Some(e.to_string());
-                        }
-                    }
-                }
+        let stats = &self.renderer.stats;
+        self.timeline.record(&Row {
+            tick,
+            steps_per_s: self.steps_per_s,
+            active_bricks: r.active_tiles,
+            dirty_bricks: self.dirty_pending.len(),
+            frame_ms: stats.frame_ms(),
+            bricks_streamed: stats.bricks_streamed(),
+            rss_kb: super::timeline::rss_kb(),
+            water: total(&self.ws, "water"),
+            ground_plus_sediment: total(&self.ws, "ground") + total(&self.ws, "sediment"),
+            snow: total(&self.ws, "snow"),
+            drained: self.ws.drained,
+        });
+    }
+
+    fn script_status(&self, i: usize) -> ScriptStatus {
+        let sim = &self.ws.sim;
+        let spec = sim.spec(i);
+        let note = self.notes.get(i).cloned().unwrap_or_default();
+        let (state, error) = match sim.suspended(i) {
+            Some(e) => (
+                "suspended",
+                Some(format!(
+                    "suspended after {} failed steps in a row (fix or reload it): {e}",
+                    sim.failures(i)
+                )),
+            ),
+            None if sim.failures(i) > 0 && note.step_error.is_some() => {
+                ("failing", note.step_error)
             }
-        }
-        let commands: Vec<Command> =
-            std::mem::take(&mut *shared.commands.lock().expect("command lock"));
-        for c in commands {
-            match c {
-                Command::Pause => paused = true,
-                Command::Resume => paused = false,
-                Command::Step(n) => steps_left += n,
-                Command::Checkpoint => match write_checkpoint(&ws, &world) {
-                    Ok(r) => last_checkpoint = Some(r),
-                    Err(e) => checkpoint_error = Some(e),
-                },
-                Command::Camera { eye, target, fov } => {
-                    camera.mode = CameraMode::Fixed;
-                    camera.eye = Some(DVec3::from(eye));
-                    camera.target = Some(DVec3::from(target));
-                    camera.fov = fov;
-                }
-                Command::Params { script, values } => {
-                    let Some(i) = ws.sim.script_index(&script) else {
-                        last_errors.push(Some(format!("no script named '{script}'")));
-                        continue;
-                    };
-                    for (k, v) in values {
-                        if let Err(e) = ws.sim.set_param(i, &k, v) {
-                            last_errors[i] = Some(e.to_string());
-                        }
-                    }
-                }
-            }
-        }
-        let run_step = !paused || steps_left > 0;
-        if run_step {
-            if paused {
-                steps_left -= 1;
-            }
-            let (r, _) = ws.step_within_cfl(&mut world, cfg.dt, 0.5);
-            for e in &r.errors {
-                let name = match e {
-                    crate::sim::SimError::Runtime { script, .. }
-                    | crate::sim::SimError::Unstable { script, .. } => script.clone(),
-                    _ => String::new(),
-                };
-                if let Some(i) = ws.sim.script_index(&name) {
-                    last_errors[i] = Some(e.to_string());
-                }
-            }
-            rate_window.1 += 1;
-            if rate_window.0.elapsed().as_secs_f64() >= 1.0 {
-                steps_per_s = rate_window.1 as f64 / rate_window.0.elapsed().as_secs_f64();
-                rate_window = (Instant::now(), 0);
-            }
-            let mut dirty = 0;
-            for batch in ws.dirty.try_iter() {
-                dirty += batch.bricks.len();
-                dirty_pending.extend(batch.bricks);
-            }
-            let tick = ws.sim.tick();
-            if tick.is_multiple_of(cfg.frames_every) {
-                if renderer.ready() {
-                    let views = world.default_views();
-                    let (mut eye, target) = match (camera.eye, camera.target) {
-                        (Some(e), Some(t)) => (e, t),
-                        _ => (DVec3::from(views[1].eye), DVec3::from(views[1].target)),
-                    };
-                    let mut target = target;
-                    let phase = |period_s: f64| tick as f64 * cfg.dt / period_s;
-                    match camera.mode {
-                        CameraMode::Fixed => {}
-                        CameraMode::Orbit { period_s } => {
-                            let angle = phase(period_s) * std::f64::consts::TAU;
-                            let d = eye - target;
-                            let (s, c) = angle.sin_cos();
-                            eye = target + DVec3::new(d.x * c - d.z * s, d.y, d.x * s + d.z * c);
-                        }
-                        CameraMode::Fly { to, period_s } => {
-                            // 0 → 1 → 0 over one period.
-                            let f = 1.0 - (phase(period_s).fract() * 2.0 - 1.0).abs();
-                            let step = (to - eye) * f;
-                            eye += step;
-                            target += step;
-                        }
-                    }
-                    if let Ok(cam) = Camera::new(eye, target, camera.fov, cfg.width, cfg.height) {
-                        let copy = Instant::now();
-                        let snapshot = world.clone();
-                        snapshot_ms = copy.elapsed().as_secs_f64() * 1e3;
-                        let job = FrameJob {
-                            tick,
-                            world: snapshot,
-                            dirty: dirty_pending.drain().collect(),
-                            camera: cam,
-                        };
-                        if let Err(back) = renderer.offer(job) {
-                            dirty_pending.extend(back);
-                        }
-                    }
-                } else {
-                    renderer.skip();
-                }
-            }
-            if tick.is_multiple_of(cfg.checkpoint_every) {
-                match write_checkpoint(&ws, &world) {
-                    Ok(r) => {
-                        last_checkpoint = Some(r);
-                        checkpoint_error = None;
-                    }
-                    Err(e) => {
-                        eprintln!("warning: checkpoint failed, the last good one is kept: {e}");
-                        checkpoint_error = Some(e);
-                    }
-                }
-            }
-            if tick.is_multiple_of(cfg.frames_every) {
-                timeline.record(&super::timeline::Row {
-                    tick,
-                    steps_per_s,
-                    active_bricks: r.active_tiles,
-                    dirty_bricks: dirty,
-                    frame_ms: renderer.stats.frame_ms(),
-                    bricks_streamed: renderer.stats.bricks_streamed(),
-                    rss_kb: super::timeline::rss_kb(),
-                    water: total(&ws, "water"),
-                    ground_plus_sediment: total(&ws, "ground") + total(&ws, "sediment"),
-                    snow: total(&ws, "snow"),
-                    drained: ws.drained,
-                });
-            }
-            active_bricks = r.active_tiles;
-        } else {
-            std::thread::sleep(std::time::Duration::from_millis(5));
-        }
-        {
-            let mut st = shared.status.lock().expect("status lock");
-            st.tick = ws.sim.tick();
-            st.paused = paused;
-            st.active_bricks = active_bricks;
-            st.dirty_queue = dirty_pending.len();
-            st.frame_ms = renderer.stats.frame_ms();
-            st.bricks_streamed = renderer.stats.bricks_streamed();
-            st.frames = renderer.stats.frames();
-            st.frames_skipped = renderer.stats.skipped();
-            st.snapshot_ms = snapshot_ms;
-            st.last_checkpoint = last_checkpoint.clone();
-            st.loaded_from = loaded_from.clone();
-            st.checkpoint_error = checkpoint_error.clone();
-            st.scripts = (0..ws.sim.script_count())
-                .map(|i| ScriptStatus {
-                    name: ws.sim.spec(i).name.clone(),
-                    steps_per_s,
-                    error: last_errors.get(i).cloned().flatten(),
+            // A broken save: the last good version runs; its error is shown.
+            None => ("running", note.reload_error),
+        };
+        ScriptStatus {
+            name: spec.name.clone(),
+            steps_per_s: self.steps_per_s,
+            state: state.into(),
+            error,
+            failures_in_a_row: sim.failures(i),
+            params: spec
+                .params
+                .iter()
+                .zip(sim.params(i))
+                .map(|(p, v)| ParamStatus {
+                    name: p.name.clone(),
+                    value: *v,
+                    default: p.default,
+                    min: p.min,
+                    max: p.max,
                 })
-                .collect();
-        }
-        if opts
-            .max_ticks
-            .is_some_and(|m| ws.sim.tick() - start_tick >= m)
-        {
-            break;
+                .collect(),
+            warning: note.warning,
         }
     }
-    // Stop: finish the frame in flight, a final checkpoint, then the server.
-    renderer.finish();
-    let result = write_checkpoint(&ws, &world);
-    shared.shutdown.store(true, Ordering::Relaxed);
-    let _ = server.join();
-    match result {
-        Ok(r) => {
-            println!("stopped at tick {} (checkpoint {})", r.tick, r.hash);
-            Ok(())
-        }
-        Err(e) => bail!("the final checkpoint failed (the previous one is kept): {e}"),
+
+    /// Publish `/status` (one lock, everything at once).
+    fn publish_status(&mut self) {
+        let scripts = (0..self.ws.sim.script_count())
+            .map(|i| self.script_status(i))
+            .collect();
+        let stats = &self.renderer.stats;
+        let mut st = self.shared.status.lock().expect("status lock");
+        *st = Status {
+            tick: self.ws.sim.tick(),
+            paused: self.paused,
+            steps_pending: self.steps_left,
+            scripts,
+            active_bricks: self.active_bricks,
+            dirty_queue: self.dirty_pending.len(),
+            frame_ms: stats.frame_ms(),
+            bricks_streamed: stats.bricks_streamed(),
+            frames: stats.frames(),
+            frames_skipped: stats.skipped(),
+            snapshot_ms: self.snapshot_ms,
+            last_checkpoint: self.last_checkpoint.clone(),
+            loaded_from: self.loaded_from.clone(),
+            checkpoint_error: self.checkpoint_error.clone(),
+        };
     }
+
+    /// Stop: a final checkpoint, the frame in flight, then the server.
+    fn finish(mut self) -> Result<()> {
+        let result = self.write_checkpoint();
+        self.renderer.finish();
+        self.shared.shutdown.store(true, Ordering::Relaxed);
+        if let Some(s) = self.server.take() {
+            s.stop();
+        }
+        match result {
+            Ok(r) => {
+                println!("stopped at tick {} (checkpoint {})", r.tick, r.hash);
+                Ok(())
+            }
+            Err(e) => bail!("the final checkpoint failed (the previous one is kept): {e}"),
+        }
+    }
+}
+
+/// Write the default world and its scripts into `dir` for a modder to edit:
+/// `dir/world.toml` and `dir/scripts/*.lua`. Existing files are never
+/// overwritten.
+pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
+    let scripts = dir.join("scripts");
+    let mut files: Vec<(PathBuf, String)> = crate::sim::embedded::SCRIPTS
+        .iter()
+        .map(|(f, text)| (scripts.join(f), text.to_string()))
+        .collect();
+    let world = super::world_config::DEFAULT_WORLD.replace(
+        "scripts_dir = \"../scripts\"",
+        "scripts_dir = \"scripts\"",
+    );
+    files.push((dir.join("world.toml"), world));
+    if let Some((p, _)) = files.iter().find(|(p, _)| p.exists()) {
+        bail!(
+            "{} already exists; brickworld init never overwrites files (choose an empty directory)",
+            p.display()
+        );
+    }
+    std::fs::create_dir_all(&scripts)
+        .with_context(|| format!("cannot create {}", scripts.display()))?;
+    for (p, text) in &files {
+        std::fs::write(p, text).with_context(|| format!("cannot write {}", p.display()))?;
+    }
+    Ok(files.into_iter().map(|(p, _)| p).collect())
 }

@@ -6,5 +6,6 @@ pub mod control;
 pub mod ctl;
 pub mod daemon;
 pub mod render_thread;
+pub mod state_dir;
 pub mod timeline;
 pub mod world_config;

@@ -209,6 +209,14 @@ pub struct WorldConfig {
     pub dt: f64,
     /// Scripts directory (relative paths resolve against the config's directory).
     pub scripts_dir: PathBuf,
+    /// Take the scripts from the binary ([`crate::sim::embedded`]) instead
+    /// of `scripts_dir`: true for the embedded default world, so it runs
+    /// from any directory.
+    pub scripts_embedded: bool,
+    /// `world.source` as written (part of the world's identity).
+    pub source_text: String,
+    /// A hash of the config text (checkpoints record it).
+    pub config_hash: u64,
     /// Scripts in run order.
     pub scripts: Vec<ScriptSettings>,
     /// Camera.
@@ -243,10 +251,22 @@ impl WorldConfig {
         Self::parse(&file, &text, path.parent().unwrap_or(Path::new(".")))
     }
 
-    /// The embedded default world, with paths relative to `base`.
-    pub fn default_world(base: &Path) -> Self {
-        Self::parse("<embedded default>", DEFAULT_WORLD, base)
-            .expect("the embedded default world is valid")
+    /// The embedded default world, with its scripts embedded too.
+    pub fn default_world() -> Self {
+        let mut w = Self::parse("<embedded default>", DEFAULT_WORLD, Path::new("worlds"))
+            .expect("the embedded default world is valid");
+        w.scripts_embedded = true;
+        w
+    }
+
+    /// The identity checkpoints record for this world.
+    pub fn identity(&self) -> crate::engine::checkpoint::WorldIdentity {
+        crate::engine::checkpoint::WorldIdentity {
+            source: self.source_text.clone(),
+            size: self.size.to_array(),
+            seed: self.seed,
+            config_hash: self.config_hash,
+        }
     }
 
     /// Parse and validate config text; relative paths resolve against `base`.
@@ -447,7 +467,13 @@ impl WorldConfig {
                 format!("'{addr_text}' is not HOST:PORT (an IP address and a port)"),
             )
         })?;
+        let config_hash = text
+            .bytes()
+            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3));
         Ok(WorldConfig {
+            source_text: raw.world.source.clone(),
+            config_hash,
+            scripts_embedded: false,
             source,
             size,
             seed: raw.world.seed,

@@ -12,6 +12,12 @@
 //! A VM is only ever used on the thread that created it (VMs live in a
 //! thread-local cache), so a thread-local budget is the budget of the VM that
 //! is running.
+//!
+//! **A budget cannot be caught.** Once a limit trips, every later interrupt
+//! of the same call raises the error again, so a script that wraps its loop
+//! in `pcall` (or loops in an `xpcall` handler) is stopped at its next loop
+//! back-edge or call; and [`tripped`] tells the caller, after the kernel
+//! returns, that its budget ran out even if the script swallowed every error.
 
 use std::cell::Cell;
 use std::ffi::c_int;
@@ -21,9 +27,9 @@ use mlua::{Lua, ffi};
 
 #[derive(Clone, Copy)]
 struct Budget {
-    /// Set once the error has been raised, so that interrupts during the
-    /// unwinding do not raise again; cleared by [`arm`].
-    tripped: bool,
+    /// The limit that tripped, if one did; it stays set (and is raised again
+    /// at every interrupt) until [`arm`] starts the next call.
+    tripped: Option<&'static str>,
     ticks: u64,
     limit: u64,
     deadline: Instant,
@@ -32,7 +38,7 @@ struct Budget {
 
 thread_local! {
     static BUDGET: Cell<Budget> = Cell::new(Budget {
-        tripped: false,
+        tripped: None,
         ticks: 0,
         limit: u64::MAX,
         deadline: Instant::now() + std::time::Duration::from_secs(3600),
@@ -44,7 +50,7 @@ thread_local! {
 pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
     BUDGET.with(|b| {
         b.set(Budget {
-            tripped: false,
+            tripped: None,
             ticks: 0,
             limit: instructions,
             deadline,
@@ -57,8 +63,9 @@ pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
 fn exceeded(l: *mut ffi::lua_State) -> Option<&'static str> {
     BUDGET.with(|cell| {
         let mut b = cell.get();
-        if b.tripped {
-            return None;
+        if b.tripped.is_some() {
+            // Sticky: a caught budget error is raised again.
+            return b.tripped;
         }
         b.ticks += 1;
         let mut what = None;
@@ -74,10 +81,17 @@ fn exceeded(l: *mut ffi::lua_State) -> Option<&'static str> {
                 what = Some("memory limit");
             }
         }
-        b.tripped = what.is_some();
+        b.tripped = what;
         cell.set(b);
         what
     })
+}
+
+/// The limit that tripped during the current (or last) call on this thread,
+/// if any: a kernel that returned normally after catching its budget error
+/// has still failed.
+pub fn tripped() -> Option<&'static str> {
+    BUDGET.with(|cell| cell.get().tripped)
 }
 
 unsafe extern "C-unwind" fn interrupt(l: *mut ffi::lua_State, gc: c_int) {

@@ -11,6 +11,7 @@
 //!   which records the dirty bricks the renderer consumes.
 
 pub mod channels;
+pub mod embedded;
 mod interrupt;
 pub mod native;
 pub mod reload;
@@ -25,7 +26,7 @@ use thiserror::Error;
 pub use channels::{ChannelId, ChannelStore};
 pub use reload::ScriptWatcher;
 pub use run::{DirtyBatch, WorldSim, read_script};
-pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm};
+pub use script::{Limits, ParamSpec, StepKey, PassSpec, ScriptSource, ScriptSpec, ScriptVm};
 pub use step::{Kernel, Simulation, StepReport};
 
 /// Errors of the simulation subsystem. Every variant names the script.
@@ -72,6 +73,23 @@ pub enum SimError {
         script: String,
         /// What was found.
         msg: String,
+    },
+    /// A step wrote a channel value outside its bound (the script's declared
+    /// range, or by default ± [`step::DEFAULT_BOUND_HEIGHTS`] world heights).
+    #[error("{script}.lua: step rejected: channel '{channel}' = {value} at column ({}, {}) is outside its bound [{}, {}] ({why})", column.0, column.1, bound.0, bound.1)]
+    OutOfBounds {
+        /// Script name.
+        script: String,
+        /// Channel.
+        channel: String,
+        /// Column (x, z).
+        column: (i32, i32),
+        /// The value written.
+        value: f64,
+        /// The bound.
+        bound: (f64, f64),
+        /// Where the bound comes from.
+        why: String,
     },
     /// A parameter change was refused.
     #[error("{script}.lua: {msg}")]

@@ -74,7 +74,8 @@ impl WorldSim {
             (tmin, tmax)
         };
         let mut sim = Simulation::new(smin, smax);
-        let mut sync = ColumnSync::default();
+        sim.set_world_height((hi.y - lo.y) as f64);
+        let mut sync = ColumnSync::new(hi.y);
         let g = sim.channels_mut().channel("ground");
         let mut lowest = f64::INFINITY;
         for tz in tmin.y..tmax.y {
@@ -117,13 +118,27 @@ impl WorldSim {
 
     /// Reload the script at `path` (matched by file stem). On error the old
     /// version keeps running and the error (with file and line) is returned.
-    pub fn reload(&mut self, path: &Path) -> Result<Option<usize>, SimError> {
+    /// On success: the script's index and any warnings (parameters clamped
+    /// into a narrowed range).
+    pub fn reload(&mut self, path: &Path) -> Result<Option<(usize, Vec<String>)>, SimError> {
         let src = read_script(path)?;
         let Some(index) = self.sim.script_index(&src.name) else {
             return Ok(None);
         };
-        self.sim.replace_script(index, src)?;
-        Ok(Some(index))
+        let warnings = self.sim.replace_script(index, src)?;
+        Ok(Some((index, warnings)))
+    }
+
+    /// After the channels were replaced (a resume), make the record of the
+    /// surfaces last written agree with them, as it does after every step.
+    pub fn resync_columns(&mut self) {
+        let (tmin, tmax) = self.world_tiles;
+        for tz in tmin.y..tmax.y {
+            for tx in tmin.x..tmax.x {
+                self.sync
+                    .resync(self.sim.channels(), glam::IVec2::new(tx, tz));
+            }
+        }
     }
 
     /// Sub-steps needed to keep one step of `dt` within the gravity-wave CFL

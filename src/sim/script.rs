@@ -15,7 +15,7 @@
 //! }
 //! ```
 //!
-//! A kernel gets `c.dt`, `c.p` (parameters), `c.r.NAME` (10×10 halo buffers
+//! A kernel gets `c.dt`, `c.tick`, `c.random`, `c.p` (parameters), `c.r.NAME` (10×10 halo buffers
 //! of f64, read-only by convention) and `c.w.NAME` (8×8 output buffers,
 //! pre-filled with the current values), and the tile coordinate. It must be
 //! a pure function of those: the runtime runs tiles on many VMs in any order.
@@ -24,7 +24,9 @@
 //! are loaded: no files, OS, processes, `debug` or native modules, and the
 //! globals `require`, `getfenv`, `setfenv`, `loadstring`, `collectgarbage`,
 //! `gcinfo`, `newproxy` and `print` are removed.
-//! Globals are read-only (Luau `sandbox`). Each VM has a memory limit, and
+//! Globals are read-only (Luau `sandbox`, with the per-thread proxy frozen
+//! too), and `math.random` is gone: `c.random(x, y, z, k)` gives numbers
+//! that are a pure function of (world seed, tick, script, x, y, z, k). Each VM has a memory limit, and
 //! every kernel call an instruction budget and a wall-clock deadline checked
 //! from Luau's interrupt; a script that exceeds them is stopped with an error
 //! naming the script and line.
@@ -72,6 +74,9 @@ pub struct ScriptSpec {
     pub nonnegative: Vec<String>,
     /// Parameters.
     pub params: Vec<ParamSpec>,
+    /// Declared value ranges: (channel, min, max). A step that writes a
+    /// value outside is rejected; undeclared channels get a default bound.
+    pub ranges: Vec<(String, f64, f64)>,
     /// Passes, run in order each step.
     pub passes: Vec<PassSpec>,
 }
@@ -83,6 +88,46 @@ pub struct ScriptSource {
     pub name: String,
     /// Source text.
     pub text: Arc<str>,
+}
+
+/// What keys a step's random numbers: `c.random(x, y, z, k)` is a pure
+/// function of (world seed, tick, script, x, y, z, k), so a world is
+/// reproducible whatever the thread count, and across a stop and resume.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct StepKey {
+    /// The world's seed.
+    pub seed: u64,
+    /// The tick being computed.
+    pub tick: u64,
+    /// A hash of the script's name.
+    pub script: u64,
+}
+
+fn mix64(mut z: u64) -> u64 {
+    // SplitMix64's finaliser: a bijection with full avalanche.
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+impl StepKey {
+    /// The key of `script` at `tick` in a world of `seed`.
+    pub fn new(seed: u64, tick: u64, script: &str) -> Self {
+        let script = script
+            .bytes()
+            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3));
+        StepKey { seed, tick, script }
+    }
+
+    /// A uniform number in [0, 1) for the position (x, y, z) and counter k
+    /// (each truncated to a whole number).
+    pub fn random(&self, x: f64, y: f64, z: f64, k: f64) -> f64 {
+        let mut h = mix64(self.seed ^ 0x9e37_79b9_7f4a_7c15);
+        for v in [self.tick, self.script, x as i64 as u64, y as i64 as u64, z as i64 as u64, k as i64 as u64] {
+            h = mix64(h ^ v);
+        }
+        (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
 }
 
 /// Resource limits of a VM.
@@ -230,6 +275,14 @@ impl ScriptVm {
         // code from strings, the GC, stdout) go before the environment is frozen.
         {
             let g = lua.globals();
+            // Unseeded, per-VM randomness would make worlds irreproducible;
+            // kernels get `c.random(...)` (deterministic) instead.
+            if let Ok(math) = g.raw_get::<Table>("math") {
+                for name in ["random", "randomseed"] {
+                    math.raw_remove(name)
+                        .map_err(|e| SimError::Internal(e.to_string()))?;
+                }
+            }
             for name in [
                 "require",
                 "getfenv",
@@ -249,6 +302,10 @@ impl ScriptVm {
         }
         lua.sandbox(true)
             .map_err(|e| SimError::Internal(e.to_string()))?;
+        // Luau's sandbox gives each thread a writable proxy of the frozen
+        // globals; freeze the proxy too, so `counter = counter + 1` is an
+        // error instead of state that depends on which VM ran which tile.
+        lua.globals().set_readonly(true);
         lua.set_memory_limit(limits.memory)
             .map_err(|e| SimError::Internal(e.to_string()))?;
         super::interrupt::install(&lua);
@@ -417,6 +474,42 @@ impl ScriptVm {
             }
             Err(e) => return Err(declaration(src, Some("params"), e.to_string())),
         }
+        let mut ranges = Vec::new();
+        match def.get::<Value>("ranges") {
+            Ok(Value::Nil) => {}
+            Ok(Value::Table(t)) => {
+                for pair in t.pairs::<String, Value>() {
+                    let (name, v) =
+                        pair.map_err(|e| declaration(src, Some("ranges"), format!("ranges: {e}")))?;
+                    known(&name, "'ranges'")?;
+                    let bad = || {
+                        declaration(
+                            src,
+                            Some("ranges"),
+                            format!("ranges.{name} must be {{min, max}} with min <= max, finite"),
+                        )
+                    };
+                    let Value::Table(r) = v else { return Err(bad()) };
+                    let (lo, hi): (f64, f64) = (
+                        r.get(1).map_err(|_| bad())?,
+                        r.get(2).map_err(|_| bad())?,
+                    );
+                    if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                        return Err(bad());
+                    }
+                    ranges.push((name, lo, hi));
+                }
+                ranges.sort_by(|a, b| a.0.cmp(&b.0));
+            }
+            Ok(other) => {
+                return Err(declaration(
+                    src,
+                    Some("ranges"),
+                    format!("'ranges' must be a table, found a {}", other.type_name()),
+                ));
+            }
+            Err(e) => return Err(declaration(src, Some("ranges"), e.to_string())),
+        }
         let passes_v: Value = def
             .get("passes")
             .map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
@@ -474,6 +567,7 @@ impl ScriptVm {
             channels,
             nonnegative,
             params,
+            ranges,
             passes,
         })
     }
@@ -502,14 +596,21 @@ impl ScriptVm {
         Ok(())
     }
 
-    /// Prepare a step: time step and parameter values (in `spec.params` order).
+    /// Prepare a step: time step, parameter values (in `spec.params`
+    /// order), and the key of the step's random numbers.
     pub fn begin_step(
         &mut self,
         dt: f64,
         spec: &ScriptSpec,
         params: &[f64],
+        key: StepKey,
     ) -> Result<(), SimError> {
         let make = || -> mlua::Result<Vec<Table>> {
+            let random = self.lua.create_function(
+                move |_, (x, y, z, k): (f64, Option<f64>, Option<f64>, Option<f64>)| {
+                    Ok(key.random(x, y.unwrap_or(0.0), z.unwrap_or(0.0), k.unwrap_or(0.0)))
+                },
+            )?;
             let p = self.lua.create_table()?;
             for (s, v) in spec.params.iter().zip(params) {
                 p.set(s.name.as_str(), *v)?;
@@ -519,6 +620,8 @@ impl ScriptVm {
             for (r, w) in self.read_tables.iter().zip(&self.write_tables) {
                 let c = self.lua.create_table()?;
                 c.set("dt", dt)?;
+                c.set("tick", key.tick)?;
+                c.set("random", random.clone())?;
                 c.set("p", p.clone())?;
                 c.set("r", r.clone())?;
                 c.set("w", w.clone())?;
@@ -552,7 +655,14 @@ impl ScriptVm {
                 Instant::now() + self.limits.time,
                 self.memory_soft,
             );
-            self.kernels[pass].call::<()>((ctx.clone(), tx, tz))
+            self.kernels[pass].call::<()>((ctx.clone(), tx, tz))?;
+            // A script that caught its own budget error still failed.
+            match super::interrupt::tripped() {
+                Some(what) => Err(mlua::Error::runtime(format!(
+                    "{what} exceeded (the script caught the error, but a budget cannot be caught)"
+                ))),
+                None => Ok(()),
+            }
         };
         run().map_err(|e| {
             let msg = match &e {

@@ -23,11 +23,18 @@ use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::SimError;
 use super::channels::{ChannelId, ChannelStore};
-use super::script::{Limits, ScriptSource, ScriptSpec, ScriptVm};
+use super::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
 use super::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, neighbourhood};
 
 /// Steps without change before a tile sleeps.
 pub const SLEEP_AFTER: u8 = 2;
+/// Failed steps in a row after which a script is suspended until it is
+/// reloaded: a broken script must not cost every step its whole budget.
+pub const SUSPEND_AFTER: u32 = 3;
+/// Channels without a declared range are bounded by ± this many world
+/// heights (a script that copies the halo's wall value into `ground`, say,
+/// is stopped before the write-back allocates bricks up to it).
+pub const DEFAULT_BOUND_HEIGHTS: f64 = 4.0;
 
 /// A kernel implemented in Rust, with the same contract as a Lua pass.
 pub trait NativeKernel: Send + Sync {
@@ -68,6 +75,10 @@ struct Loaded {
     limits: Limits,
     /// Run on ticks that are multiples of this.
     every: u64,
+    /// Failed steps in a row.
+    failures: u32,
+    /// Why the script is suspended, if it is.
+    suspended: Option<SimError>,
 }
 
 /// What one step did.
@@ -90,6 +101,19 @@ pub struct Simulation {
     active: FxHashSet<TileCoord>,
     quiet: FxHashMap<TileCoord, u8>,
     tick: u64,
+    seed: u64,
+    /// Bound of channels without a declared range.
+    default_bound: f64,
+}
+
+/// Which tiles sleep and how close the awake ones are to sleeping: part of
+/// what defines a world's future, so checkpoints save it.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct SleepState {
+    /// Awake tiles, sorted.
+    pub active: Vec<TileCoord>,
+    /// Awake tiles' quiet-step counters, sorted by tile.
+    pub quiet: Vec<(TileCoord, u8)>,
 }
 
 thread_local! {
@@ -220,12 +244,67 @@ impl Simulation {
             active,
             quiet: FxHashMap::default(),
             tick: 0,
+            seed: 0,
+            default_bound: f64::MAX,
         }
+    }
+
+    /// The world's seed, which keys every script's random numbers.
+    pub fn set_seed(&mut self, seed: u64) {
+        self.seed = seed;
+    }
+
+    /// Bound channels without a declared range to ±`height` ×
+    /// [`DEFAULT_BOUND_HEIGHTS`].
+    pub fn set_world_height(&mut self, height: f64) {
+        self.default_bound = height.abs().max(1.0) * DEFAULT_BOUND_HEIGHTS;
+    }
+
+    /// The active set and quiet counters (sorted, for checkpoints).
+    pub fn sleep_state(&self) -> SleepState {
+        let mut active: Vec<TileCoord> = self.active.iter().copied().collect();
+        active.sort_by_key(|t| (t.y, t.x));
+        let mut quiet: Vec<(TileCoord, u8)> = self.quiet.iter().map(|(t, q)| (*t, *q)).collect();
+        quiet.sort_by_key(|(t, _)| (t.y, t.x));
+        SleepState { active, quiet }
+    }
+
+    /// Restore what [`sleep_state`](Self::sleep_state) saved (tiles outside
+    /// the world are dropped).
+    pub fn restore_sleep_state(&mut self, s: &SleepState) {
+        let inside = |t: &TileCoord| t.cmpge(self.tiles_min).all() && t.cmplt(self.tiles_max).all();
+        self.active = s.active.iter().copied().filter(inside).collect();
+        self.quiet = s.quiet.iter().copied().filter(|(t, _)| inside(t)).collect();
+    }
+
+    /// Why script `index` is suspended, if it is (it failed
+    /// [`SUSPEND_AFTER`] steps in a row; a reload resumes it).
+    pub fn suspended(&self, index: usize) -> Option<&SimError> {
+        self.scripts[index].suspended.as_ref()
+    }
+
+    /// Failed steps in a row of script `index`.
+    pub fn failures(&self, index: usize) -> u32 {
+        self.scripts[index].failures
     }
 
     /// The channels.
     pub fn channels(&self) -> &ChannelStore {
         &self.channels
+    }
+
+    /// Replace every channel (a resume): each script's channels are found
+    /// again by name, so the store's own id order does not matter.
+    pub fn set_channels(&mut self, channels: ChannelStore) {
+        self.channels = channels;
+        for s in &mut self.scripts {
+            s.ids = s
+                .spec
+                .channels
+                .iter()
+                .map(|c| self.channels.channel(c))
+                .collect();
+        }
     }
 
     /// Mutable channels (initial conditions); wakes nothing by itself.
@@ -282,8 +361,14 @@ impl Simulation {
     }
 
     /// Replace script `index` with a new version, keeping parameter values
-    /// that still exist. On error the old version stays.
-    pub fn replace_script(&mut self, index: usize, src: ScriptSource) -> Result<(), SimError> {
+    /// that still exist (clamped into a narrowed range, with a warning in the
+    /// returned list). On error the old version stays. A suspended script
+    /// runs again.
+    pub fn replace_script(
+        &mut self,
+        index: usize,
+        src: ScriptSource,
+    ) -> Result<Vec<String>, SimError> {
         let (kernel, limits) = (
             self.scripts[index].kernel.clone(),
             self.scripts[index].limits,
@@ -291,16 +376,23 @@ impl Simulation {
         let mut loaded = self.prepare(src, kernel, limits)?;
         let old = &self.scripts[index];
         loaded.every = old.every;
+        let mut warnings = Vec::new();
         for (i, p) in loaded.spec.params.iter().enumerate() {
-            if let Some(j) = old.spec.params.iter().position(|q| q.name == p.name)
-                && (p.min..=p.max).contains(&old.params[j])
-            {
-                loaded.params[i] = old.params[j];
+            if let Some(j) = old.spec.params.iter().position(|q| q.name == p.name) {
+                let v = old.params[j];
+                let kept = v.clamp(p.min, p.max);
+                if kept != v {
+                    warnings.push(format!(
+                        "{}.lua: parameter '{}' = {v} is outside its new range [{}, {}]; clamped to {kept}",
+                        loaded.spec.name, p.name, p.min, p.max
+                    ));
+                }
+                loaded.params[i] = kept;
             }
         }
         self.scripts[index] = loaded;
         self.wake_all();
-        Ok(())
+        Ok(warnings)
     }
 
     fn prepare(
@@ -328,7 +420,7 @@ impl Simulation {
         let params: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
         // Smoke test: every pass once on a dry sample tile, in this fresh VM.
         if matches!(kernel, Kernel::Lua) {
-            vm.begin_step(0.01, &spec, &params)?;
+            vm.begin_step(0.01, &spec, &params, StepKey::new(self.seed, 0, &spec.name))?;
             for (pi, pass) in spec.passes.iter().enumerate() {
                 vm.run(pi, &pass.name, 0, 0)?;
             }
@@ -344,6 +436,8 @@ impl Simulation {
             kernel,
             limits,
             every: 1,
+            failures: 0,
+            suspended: None,
         })
     }
 
@@ -413,12 +507,20 @@ impl Simulation {
         let ws = WorkSet::new(&tiles, self.tiles_min, self.tiles_max);
         let mut errors = Vec::new();
         let mut changed: FxHashSet<TileCoord> = FxHashSet::default();
-        for script in &self.scripts {
-            if !self.tick.is_multiple_of(script.every) {
+        let ctx = StepContext {
+            dt,
+            serial,
+            seed: self.seed,
+            tick: self.tick,
+            default_bound: self.default_bound,
+        };
+        for script in &mut self.scripts {
+            if !self.tick.is_multiple_of(script.every) || script.suspended.is_some() {
                 continue;
             }
-            match run_script(script, &self.channels, &ws, dt, serial) {
+            match run_script(script, &self.channels, &ws, &ctx) {
                 Ok(outputs) => {
+                    script.failures = 0;
                     // Commit this script's channels in sorted tile order.
                     for (i, data) in outputs {
                         for (k, &w) in ws.active.iter().enumerate() {
@@ -440,7 +542,13 @@ impl Simulation {
                         }
                     }
                 }
-                Err(e) => errors.push(e),
+                Err(e) => {
+                    script.failures += 1;
+                    if script.failures >= SUSPEND_AFTER {
+                        script.suspended = Some(e.clone());
+                    }
+                    errors.push(e);
+                }
             }
         }
         let mut changed: Vec<TileCoord> = changed.into_iter().collect();
@@ -471,15 +579,26 @@ impl Simulation {
     }
 }
 
+/// What every tile of a step shares.
+struct StepContext {
+    dt: f64,
+    /// Identifies the step to the per-thread VMs (prepared once per step).
+    serial: u64,
+    seed: u64,
+    tick: u64,
+    default_bound: f64,
+}
+
 /// Run one script's passes over the work set. Returns, for each channel it
 /// wrote (index in its spec), the dense data after the step.
 fn run_script(
     s: &Loaded,
     base: &ChannelStore,
     ws: &WorkSet,
-    dt: f64,
-    serial: u64,
+    ctx: &StepContext,
 ) -> Result<Vec<(usize, DenseChannel)>, SimError> {
+    let (dt, serial) = (ctx.dt, ctx.serial);
+    let key = StepKey::new(ctx.seed, ctx.tick, &s.spec.name);
     let n = s.spec.channels.len();
     // Dense previous generation of every channel this script uses.
     let mut data: Vec<Vec<[f64; TILE_CELLS]>> = s
@@ -520,9 +639,9 @@ fn run_script(
                 let t = ws.tiles[w];
                 match &s.kernel {
                     Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
-                    Kernel::Lua => {
-                        run_lua(s, pi, t, dt, serial, &read_idx, &write_idx, reads, writes)?
-                    }
+                    Kernel::Lua => run_lua(
+                        s, pi, t, dt, serial, key, &read_idx, &write_idx, reads, writes,
+                    )?,
                 }
                 for (j, &i) in write_idx.iter().enumerate() {
                     out[j] = writes[i];
@@ -542,9 +661,34 @@ fn run_script(
             written[i] = true;
         }
     }
-    // Reject blow-ups before they reach the world.
+    // Reject blow-ups and out-of-bound values before they reach the world.
     for i in (0..n).filter(|&i| written[i]) {
         let nonneg = s.nonneg.contains(&i);
+        let name = &s.spec.channels[i];
+        let (lo, hi, why) = match s.spec.ranges.iter().find(|r| &r.0 == name) {
+            Some(r) => (r.1, r.2, "its declared range".to_string()),
+            None => (
+                -ctx.default_bound,
+                ctx.default_bound,
+                format!("{DEFAULT_BOUND_HEIGHTS} world heights; declare `ranges` to change it"),
+            ),
+        };
+        for &w in &ws.active {
+            let v = &data[i][w as usize];
+            if let Some((c, x)) = v.iter().enumerate().find(|(_, x)| **x < lo || **x > hi) {
+                let t = ws.tiles[w as usize];
+                if x.is_finite() {
+                    return Err(SimError::OutOfBounds {
+                        script: s.spec.name.clone(),
+                        channel: name.clone(),
+                        column: (t.x * TILE + (c as i32 % TILE), t.y * TILE + (c as i32 / TILE)),
+                        value: *x,
+                        bound: (lo, hi),
+                        why,
+                    });
+                }
+            }
+        }
         for &w in &ws.active {
             let v = &data[i][w as usize];
             if let Some((c, x)) = v
@@ -579,6 +723,7 @@ fn run_lua(
     t: TileCoord,
     dt: f64,
     serial: u64,
+    key: StepKey,
     read_idx: &[usize],
     write_idx: &[usize],
     reads: &[[f64; HALO_CELLS]],
@@ -600,6 +745,7 @@ fn run_lua(
             t,
             dt,
             serial,
+            key,
             read_idx,
             write_idx,
             reads,
@@ -621,6 +767,7 @@ fn run_in_vm(
     t: TileCoord,
     dt: f64,
     serial: u64,
+    key: StepKey,
     read_idx: &[usize],
     write_idx: &[usize],
     reads: &[[f64; HALO_CELLS]],
@@ -629,7 +776,7 @@ fn run_in_vm(
     {
         let (vm, prepared) = entry;
         if *prepared != serial {
-            vm.begin_step(dt, &s.spec, &s.params)?;
+            vm.begin_step(dt, &s.spec, &s.params, key)?;
             *prepared = serial;
         }
         let mut rb = [0u8; HALO_CELLS * 8];

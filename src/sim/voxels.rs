@@ -4,7 +4,10 @@
 //! top solid voxel of each column). After each step, the columns of changed
 //! tiles are written back: solid below `floor(ground)` (new ground becomes
 //! sediment), snow above it for `floor(snow)` voxels, and water up to
-//! `round(ground + snow + water)`. Only voxels between the old and new
+//! `round(ground + snow + water)` where the water is at least half a voxel
+//! deep (a dry column never shows water, whatever its ground's fraction).
+//! Every surface is clamped into the world's height, so no channel value
+//! can make the write-back allocate bricks outside the world. Only voxels between the old and new
 //! surfaces are touched, through [`BrickStore::edit_brick`], so every change
 //! is recorded as a dirty brick for the renderer.
 
@@ -66,21 +69,60 @@ pub fn ground_of_tile(store: &BrickStore, t: TileCoord, y_top: i32) -> [f64; TIL
 #[derive(Debug, Default)]
 pub struct ColumnSync {
     last: FxHashMap<TileCoord, [[i32; 3]; TILE_CELLS]>,
+    /// The world's top (voxels); surfaces are clamped into `[0, top]`.
+    top: i32,
 }
 
-fn levels(g: f64, s: f64, w: f64) -> [i32; 3] {
-    let gt = g.floor() as i32;
-    let st = (g + s).floor().max(gt as f64) as i32;
-    let wt = (g + s + w + 0.5).floor().max(st as f64) as i32;
+/// Water shallower than this many voxels is not drawn.
+pub const MIN_WATER_DRAWN: f64 = 0.5;
+
+/// The surfaces (ground top, snow top, water top) of a column with ground
+/// `g`, snow `s` and water `w`, each clamped into `[0, top]`.
+pub fn levels(g: f64, s: f64, w: f64, top: i32) -> [i32; 3] {
+    let clamp = |v: f64| v.clamp(0.0, top as f64) as i32;
+    let gt = clamp(g.floor());
+    let st = clamp((g + s).floor()).max(gt);
+    let wt = if w >= MIN_WATER_DRAWN {
+        clamp((g + s + w + 0.5).floor()).max(st)
+    } else {
+        st
+    };
     [gt, st, wt]
 }
 
 impl ColumnSync {
+    /// A record for a world whose voxels end below `top`.
+    pub fn new(top: i32) -> Self {
+        ColumnSync {
+            last: FxHashMap::default(),
+            top,
+        }
+    }
+
     /// Remember the initial surfaces (the world as built) of tile `t`.
     pub fn record(&mut self, t: TileCoord, ground: &[f64; TILE_CELLS]) {
         let mut l = [[0; 3]; TILE_CELLS];
         for (c, g) in ground.iter().enumerate() {
-            l[c] = levels(*g, 0.0, 0.0);
+            l[c] = levels(*g, 0.0, 0.0, self.top);
+        }
+        self.last.insert(t, l);
+    }
+
+    /// Set tile `t`'s record from the channels, as a step's write-back
+    /// leaves it (used after a resume replaced the channels).
+    pub fn resync(&mut self, channels: &ChannelStore, t: TileCoord) {
+        let get = |n: &str| {
+            channels
+                .find(n)
+                .and_then(|id| channels.get(t, id))
+                .copied()
+        };
+        let Some(g) = get("ground") else { return };
+        let s = get("snow").unwrap_or([0.0; TILE_CELLS]);
+        let w = get("water").unwrap_or([0.0; TILE_CELLS]);
+        let mut l = [[0; 3]; TILE_CELLS];
+        for c in 0..TILE_CELLS {
+            l[c] = levels(g[c], s[c], w[c], self.top);
         }
         self.last.insert(t, l);
     }
@@ -110,7 +152,7 @@ impl ColumnSync {
             let (mut lo, mut hi) = (i32::MAX, i32::MIN);
             for c in 0..TILE_CELLS {
                 let gv = g.map_or(old[c][0] as f64, |g| g[c]);
-                new[c] = levels(gv, s[c], w[c]);
+                new[c] = levels(gv, s[c], w[c], self.top);
                 if new[c] != old[c] {
                     lo = lo.min(old[c][0].min(new[c][0]));
                     hi = hi.max(old[c][2].max(new[c][2]));

@@ -1,0 +1,214 @@
+//! The control API's routes: what each request means, the token rule, and
+//! the validation that turns a request into a [`Command`] or a 4xx.
+//!
+//! `GET /status`, `GET /frame.png` and `GET /` (the viewer) are open; every
+//! `POST` needs `Authorization: Bearer TOKEN` (compared in constant time).
+//! Unknown routes get 404, malformed requests or refused values 400, a
+//! wrong token 401, a body over [`MAX_BODY`] 413 (decided from the declared
+//! length, before the body is read), a body too slow 408, and a full command
+//! queue 503.
+
+use bytes::Bytes;
+use http_body_util::{BodyExt, Full, Limited};
+use hyper::body::Incoming;
+use hyper::header::{AUTHORIZATION, CONTENT_LENGTH, CONTENT_TYPE};
+use hyper::{Method, Request, Response, StatusCode};
+use serde::Serialize;
+
+use super::server::BODY_TIMEOUT;
+use super::{Command, MAX_BODY, MAX_QUEUED_COMMANDS, Shared, Status};
+
+type Reply = Response<Full<Bytes>>;
+
+fn reply(code: u16, content_type: &'static str, body: impl Into<Bytes>) -> Reply {
+    let mut r = Response::new(Full::new(body.into()));
+    *r.status_mut() = StatusCode::from_u16(code).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
+    r.headers_mut().insert(
+        CONTENT_TYPE,
+        hyper::header::HeaderValue::from_static(content_type),
+    );
+    r
+}
+
+fn json<T: Serialize>(code: u16, v: &T) -> Reply {
+    let body = serde_json::to_string_pretty(v).unwrap_or_else(|_| "{}".into());
+    reply(code, "application/json", body)
+}
+
+fn error(code: u16, msg: &str) -> Reply {
+    json(code, &serde_json::json!({ "error": msg }))
+}
+
+/// Equal in constant time (for equal lengths): the token check must not
+/// leak how many leading bytes matched.
+pub fn same_secret(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// A name from a request, shortened for an error message.
+fn shown(name: &str) -> String {
+    if name.chars().count() > 64 {
+        format!("{}…", name.chars().take(64).collect::<String>())
+    } else {
+        name.to_string()
+    }
+}
+
+/// Answer one request.
+pub async fn handle(req: Request<Incoming>, shared: &Shared) -> Reply {
+    let path = req.uri().path().to_string();
+    let method = req.method().clone();
+    match (&method, path.as_str()) {
+        (&Method::GET, "/status") => json(200, &*shared.status.lock().expect("status lock")),
+        (&Method::GET, "/frame.png") => match shared.frame.lock().expect("frame lock").clone() {
+            Some(png) => reply(200, "image/png", png),
+            None => error(404, "no frame rendered yet"),
+        },
+        (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
+        (&Method::POST, _) => post(req, &path, shared).await,
+        _ => error(404, &format!("no route {method} {}", shown(&path))),
+    }
+}
+
+async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
+    let expected = format!("Bearer {}", shared.token);
+    let authorized = req
+        .headers()
+        .get(AUTHORIZATION)
+        .is_some_and(|v| same_secret(v.as_bytes(), expected.as_bytes()));
+    if !authorized {
+        return error(
+            401,
+            "missing or wrong token (send Authorization: Bearer TOKEN, from STATE/control.token)",
+        );
+    }
+    // Refuse an oversized body from its declared length, before reading it.
+    if let Some(len) = req.headers().get(CONTENT_LENGTH) {
+        match len.to_str().ok().and_then(|s| s.trim().parse::<u64>().ok()) {
+            Some(n) if n > MAX_BODY as u64 => {
+                return error(413, &format!("request body of {n} bytes is over the {MAX_BODY}-byte limit"));
+            }
+            Some(_) => {}
+            None => return error(400, "Content-Length is not a number"),
+        }
+    }
+    let body = Limited::new(req.into_body(), MAX_BODY);
+    let bytes = match tokio::time::timeout(BODY_TIMEOUT, body.collect()).await {
+        Err(_) => {
+            return error(
+                408,
+                &format!("the body did not arrive within {} s", BODY_TIMEOUT.as_secs()),
+            );
+        }
+        Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => {
+            return error(413, &format!("request body is over the {MAX_BODY}-byte limit"));
+        }
+        Ok(Err(e)) => return error(400, &format!("cannot read the body: {e}")),
+        Ok(Ok(c)) => c.to_bytes(),
+    };
+    let Ok(body) = std::str::from_utf8(&bytes) else {
+        return error(400, "the body is not UTF-8 text");
+    };
+    let cmd = {
+        let status = shared.status.lock().expect("status lock");
+        parse_command(path, body, &status)
+    };
+    match cmd {
+        Ok(cmd) => {
+            let mut q = shared.commands.lock().expect("command lock");
+            if q.len() >= MAX_QUEUED_COMMANDS {
+                return error(
+                    503,
+                    &format!("{MAX_QUEUED_COMMANDS} commands are already waiting for the engine; try again"),
+                );
+            }
+            q.push(cmd);
+            json(200, &serde_json::json!({ "ok": true }))
+        }
+        Err((code, msg)) => error(code, &msg),
+    }
+}
+
+/// Turn a `POST` into a command, validated against what `/status` shows
+/// (scripts and their parameter ranges). The engine checks again when it
+/// applies the command, in case a hot reload changed the ranges meanwhile.
+pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command, (u16, String)> {
+    let bad = |m: String| (400u16, m);
+    match path {
+        "/pause" => Ok(Command::Pause),
+        "/resume" => Ok(Command::Resume),
+        "/checkpoint" => Ok(Command::Checkpoint),
+        "/step" => {
+            let t = body.trim();
+            let n = if t.is_empty() {
+                1
+            } else {
+                t.parse::<u64>()
+                    .map_err(|_| bad(format!("step count '{}' is not a whole number", shown(t))))?
+            };
+            if !(1..=100_000).contains(&n) {
+                return Err(bad(format!("step count {n} is outside 1..=100000")));
+            }
+            Ok(Command::Step(n))
+        }
+        "/camera" => {
+            #[derive(serde::Deserialize)]
+            #[serde(deny_unknown_fields)]
+            struct Cam {
+                eye: [f64; 3],
+                target: [f64; 3],
+                fov: Option<f64>,
+            }
+            let c: Cam =
+                serde_json::from_str(body).map_err(|e| bad(format!("camera JSON: {e}")))?;
+            let fov = c.fov.unwrap_or(50.0);
+            crate::trace::Camera::new(c.eye.into(), c.target.into(), fov, 8, 8)
+                .map_err(|e| bad(e.to_string()))?;
+            Ok(Command::Camera {
+                eye: c.eye,
+                target: c.target,
+                fov,
+            })
+        }
+        p if p.starts_with("/scripts/") && p.ends_with("/params") && p.len() > "/scripts//params".len() - 1 => {
+            let script = &p["/scripts/".len()..p.len() - "/params".len()];
+            if script.is_empty() || script.contains('/') {
+                return Err((404, format!("no route POST {}", shown(p))));
+            }
+            let Some(s) = status.scripts.iter().find(|s| s.name == script) else {
+                let loaded: Vec<&str> = status.scripts.iter().map(|s| s.name.as_str()).collect();
+                return Err(bad(format!(
+                    "no script named '{}' (loaded: {})",
+                    shown(script),
+                    loaded.join(", ")
+                )));
+            };
+            let map: std::collections::BTreeMap<String, f64> = serde_json::from_str(body)
+                .map_err(|e| bad(format!("params JSON (an object of numbers): {e}")))?;
+            if map.is_empty() {
+                return Err(bad("params JSON names no parameter".into()));
+            }
+            for (k, v) in &map {
+                let Some(p) = s.params.iter().find(|p| &p.name == k) else {
+                    let known: Vec<&str> = s.params.iter().map(|p| p.name.as_str()).collect();
+                    return Err(bad(format!(
+                        "script '{script}' has no parameter '{}' (known: {})",
+                        shown(k),
+                        known.join(", ")
+                    )));
+                };
+                if !v.is_finite() || !(p.min..=p.max).contains(v) {
+                    return Err(bad(format!(
+                        "parameter '{k}' = {v} is outside [{}, {}]",
+                        p.min, p.max
+                    )));
+                }
+            }
+            Ok(Command::Params {
+                script: script.to_string(),
+                values: map.into_iter().collect(),
+            })
+        }
+        other => Err((404, format!("no route POST {}", shown(other)))),
+    }
+}

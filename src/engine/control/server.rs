@@ -1,0 +1,159 @@
+//! The control server's transport: hyper (HTTP/1.1) on a single-threaded
+//! tokio runtime of its own, built for hostile clients.
+//!
+//! What no request can do, and the limit that stops it:
+//! - **Exhaust memory with a body**: a declared `Content-Length` over
+//!   [`MAX_BODY`](super::MAX_BODY) is refused with 413 before a byte of it is
+//!   read; a chunked body is read through a cap ([`http_body_util::Limited`]).
+//! - **Exhaust memory with headers**: hyper's read buffer is capped at
+//!   [`MAX_HEADER_BYTES`]; larger headers get 431.
+//! - **Block others by being slow**: every connection is its own task, headers
+//!   must arrive within [`HEADER_TIMEOUT`], a body within [`BODY_TIMEOUT`]
+//!   (else 408), and no connection lives longer than [`CONNECTION_LIFETIME`].
+//! - **Exhaust descriptors**: at most [`MAX_CONNECTIONS`] are served at once
+//!   (more are closed at once); an accept error (EMFILE, ENFILE…) pauses the
+//!   accept loop briefly and never ends it, so the listener survives.
+//! - **Hold up shutdown**: [`ControlServer::stop`] drops every connection
+//!   task without waiting for its client.
+
+use std::convert::Infallible;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use hyper::server::conn::http1;
+use hyper::service::service_fn;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use tokio::sync::{Semaphore, oneshot};
+
+use super::Shared;
+
+/// Largest request head (request line plus headers), in bytes.
+pub const MAX_HEADER_BYTES: usize = 16 << 10;
+/// Time a client has to send its request head.
+pub const HEADER_TIMEOUT: Duration = Duration::from_secs(5);
+/// Time a client has to send its body once the head has arrived.
+pub const BODY_TIMEOUT: Duration = Duration::from_secs(5);
+/// Longest a connection is kept, keep-alive included.
+pub const CONNECTION_LIFETIME: Duration = Duration::from_secs(60);
+/// Connections served at once; more are closed as soon as they are accepted.
+pub const MAX_CONNECTIONS: usize = 512;
+/// Pause of the accept loop after an accept error (out of descriptors…).
+const ACCEPT_BACKOFF: Duration = Duration::from_millis(50);
+
+/// A running control server.
+pub struct ControlServer {
+    stop: Option<oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    /// The address actually bound (port 0 picks a free one).
+    pub addr: SocketAddr,
+}
+
+impl ControlServer {
+    /// Bind `addr` (a taken port is a clear error) and serve on a thread of
+    /// its own until [`stop`](Self::stop).
+    pub fn start(addr: SocketAddr, shared: Arc<Shared>) -> Result<Self, String> {
+        let listener =
+            std::net::TcpListener::bind(addr).map_err(|e| format!("cannot listen on {addr}: {e}"))?;
+        let bound = listener
+            .local_addr()
+            .map_err(|e| format!("cannot listen on {addr}: {e}"))?;
+        listener
+            .set_nonblocking(true)
+            .map_err(|e| format!("cannot listen on {addr}: {e}"))?;
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| format!("cannot start the control server: {e}"))?;
+        let (stop, stopped) = oneshot::channel();
+        let thread = std::thread::Builder::new()
+            .name("control".into())
+            .spawn(move || {
+                rt.block_on(accept_loop(listener, shared, stopped));
+                // Drop every connection task now: no client is waited for.
+                rt.shutdown_timeout(Duration::ZERO);
+            })
+            .map_err(|e| format!("cannot start the control server thread: {e}"))?;
+        Ok(ControlServer {
+            stop: Some(stop),
+            thread: Some(thread),
+            addr: bound,
+        })
+    }
+
+    /// Stop serving: closes the listener and every connection at once.
+    pub fn stop(mut self) {
+        self.shutdown();
+    }
+
+    fn shutdown(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for ControlServer {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+async fn accept_loop(
+    listener: std::net::TcpListener,
+    shared: Arc<Shared>,
+    mut stopped: oneshot::Receiver<()>,
+) {
+    let listener = match tokio::net::TcpListener::from_std(listener) {
+        Ok(l) => l,
+        Err(e) => {
+            eprintln!("error: the control server cannot use its socket: {e}");
+            return;
+        }
+    };
+    let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    let mut reported = false;
+    loop {
+        tokio::select! {
+            _ = &mut stopped => break,
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => {
+                    reported = false;
+                    // Over the limit: close at once, freeing the descriptor.
+                    let Ok(slot) = slots.clone().try_acquire_owned() else { continue };
+                    let shared = shared.clone();
+                    tokio::spawn(async move {
+                        serve(stream, shared).await;
+                        drop(slot);
+                    });
+                }
+                Err(e) => {
+                    // Out of descriptors (or a connection reset before accept):
+                    // wait for clients to leave; the listener stays.
+                    if !reported {
+                        eprintln!("warning: the control server cannot accept a connection ({e}); retrying");
+                        reported = true;
+                    }
+                    tokio::time::sleep(ACCEPT_BACKOFF).await;
+                }
+            }
+        }
+    }
+}
+
+async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>) {
+    let _ = stream.set_nodelay(true);
+    let service = service_fn(move |req| {
+        let shared = shared.clone();
+        async move { Ok::<_, Infallible>(super::routes::handle(req, &shared).await) }
+    });
+    let conn = http1::Builder::new()
+        .timer(TokioTimer::new())
+        .header_read_timeout(HEADER_TIMEOUT)
+        .max_buf_size(MAX_HEADER_BYTES)
+        .serve_connection(TokioIo::new(stream), service);
+    let _ = tokio::time::timeout(CONNECTION_LIFETIME, conn).await;
+}

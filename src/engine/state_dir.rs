@@ -1,0 +1,109 @@
+//! The state directory's guards: an exclusive lock held for the engine's
+//! lifetime (two daemons on one directory would overwrite each other's token
+//! and delete each other's checkpoints), and the control token, drawn from
+//! the OS's random source and written to a file that is private (0600) from
+//! the moment it exists.
+
+use std::fs::{File, OpenOptions};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+/// Errors of the state directory.
+#[derive(Debug, Error)]
+pub enum StateDirError {
+    /// Another engine holds the directory.
+    #[error(
+        "the state directory {} is in use by another brickworld engine (it holds {}); stop it or choose another --state",
+        dir.display(), lock.display()
+    )]
+    InUse {
+        /// The directory.
+        dir: PathBuf,
+        /// Its lock file.
+        lock: PathBuf,
+    },
+    /// The OS random source failed: no token can be made safely.
+    #[error("cannot draw a control token from the OS random source: {0}")]
+    Random(String),
+    /// Creating, locking or writing a file failed.
+    #[error("{}: {error}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The error.
+        error: std::io::Error,
+    },
+}
+
+/// An exclusive lock on a state directory, released when dropped (and by
+/// the OS if the process dies, `kill -9` included).
+#[derive(Debug)]
+pub struct StateLock {
+    _file: File,
+}
+
+/// Create `dir` if needed and lock it (`flock`, non-blocking).
+pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
+    let ioe = |path: &Path| {
+        let path = path.to_path_buf();
+        move |error| StateDirError::Io { path, error }
+    };
+    std::fs::create_dir_all(dir).map_err(ioe(dir))?;
+    let path = dir.join("engine.lock");
+    let file = OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(ioe(&path))?;
+    match file.try_lock() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => {
+            return Err(StateDirError::InUse {
+                dir: dir.to_path_buf(),
+                lock: path,
+            });
+        }
+        Err(std::fs::TryLockError::Error(e)) => return Err(ioe(&path)(e)),
+    }
+    // The holder's PID, for people (the lock itself is what counts).
+    let _ = file.set_len(0);
+    let _ = writeln!(&file, "{}", std::process::id());
+    Ok(StateLock { _file: file })
+}
+
+/// A fresh control token: 32 hex digits from the OS's random source.
+pub fn new_token() -> Result<String, StateDirError> {
+    let mut bytes = [0u8; 16];
+    getrandom::fill(&mut bytes).map_err(|e| StateDirError::Random(e.to_string()))?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// Write `token` to `dir/control.token`, created 0600 (owner-only) before
+/// a byte is written; an existing file is replaced, never reused.
+pub fn write_token(dir: &Path, token: &str) -> Result<PathBuf, StateDirError> {
+    let path = dir.join("control.token");
+    let ioe = |error| StateDirError::Io {
+        path: path.clone(),
+        error,
+    };
+    // A fresh file: an old one (perhaps with looser permissions) goes first.
+    match std::fs::remove_file(&path) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(ioe(e)),
+    }
+    let mut opts = OpenOptions::new();
+    opts.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        opts.mode(0o600);
+    }
+    let mut f = opts.open(&path).map_err(ioe)?;
+    f.write_all(token.as_bytes()).map_err(ioe)?;
+    f.sync_all().map_err(ioe)?;
+    Ok(path)
+}

@@ -1,0 +1,252 @@
+//! The Lua sandbox's limits hold against a hostile or careless script
+//! (issue 8, faults 7–12): budgets cannot be caught, globals are read-only,
+//! randomness is deterministic, channel values are bounded, a failing script
+//! is suspended without slowing the others, and a narrowed range clamps.
+
+use std::time::Duration;
+
+use brickworld::sim::tile::TILE_CELLS;
+use brickworld::sim::{Kernel, Limits, ScriptSource, SimError, Simulation, StepKey};
+use glam::IVec2;
+
+fn src(name: &str, text: &str) -> ScriptSource {
+    ScriptSource {
+        name: name.into(),
+        text: text.into(),
+    }
+}
+
+/// Small budgets so a looping kernel is stopped in milliseconds.
+fn small() -> Limits {
+    Limits {
+        memory: 16 << 20,
+        instructions: 200_000,
+        time: Duration::from_secs(2),
+    }
+}
+
+/// A script whose kernel body is `body` (it may use `c`, `tx`, `tz`) and
+/// that only runs after the load-time smoke test (tick > 0), so loading
+/// succeeds and the fault shows in a step.
+fn script(name: &str, body: &str) -> ScriptSource {
+    src(
+        name,
+        &format!(
+            "return {{ channels = {{ \"{name}_v\" }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"{name}_v\" }},\n\
+             kernel = function(c, tx, tz)\n if c.tick == 0 then return end\n{body}\n end }} }} }}"
+        ),
+    )
+}
+
+fn sim_with(scripts: &[ScriptSource]) -> Simulation {
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
+    sim.set_world_height(64.0);
+    for s in scripts {
+        sim.add_script(s.clone(), Kernel::Lua, small()).unwrap();
+    }
+    sim.step(0.1); // tick 0: every kernel returns at once
+    sim
+}
+
+fn runtime_error(sim: &mut Simulation) -> String {
+    let r = sim.step(0.1);
+    assert_eq!(r.errors.len(), 1, "expected one failed script: {:?}", r.errors);
+    r.errors[0].to_string()
+}
+
+#[test]
+fn fault_07_pcall_cannot_catch_the_budget() {
+    let mut sim = sim_with(&[script("looper", "pcall(function() while true do end end)\nwhile true do end")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("instruction budget exceeded"), "{e}");
+}
+
+#[test]
+fn fault_07_a_script_that_swallows_its_budget_error_and_returns_still_fails() {
+    // Either the next safepoint raises the error again, or the runtime
+    // reports the tripped budget after the kernel returns: a failure both ways.
+    let mut sim = sim_with(&[script("swallow", "pcall(function() while true do end end)")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("instruction budget exceeded"), "{e}");
+    let mut sim = sim_with(&[script("swallow2", "local ok = pcall(function() while true do end end)
+return")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("instruction budget exceeded"), "{e}");
+}
+
+#[test]
+fn fault_07_an_xpcall_handler_that_loops_is_stopped() {
+    let mut sim = sim_with(&[script(
+        "xloop",
+        "for i = 1, 3 do xpcall(function() while true do end end, function(e) while true do end end) end",
+    )]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("budget"), "{e}");
+}
+
+#[test]
+fn fault_07_a_script_that_retries_after_catching_is_stopped() {
+    let mut sim = sim_with(&[script(
+        "retry",
+        "while true do pcall(function() while true do end end) end",
+    )]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("budget"), "{e}");
+}
+
+#[test]
+fn fault_08_globals_are_read_only() {
+    // In a kernel.
+    let mut sim = sim_with(&[script("counter", "counter = (counter or 0) + 1")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("readonly"), "{e}");
+    // At load time.
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    let e = sim
+        .add_script(
+            src("top", "x = 1\nreturn { channels = {\"a\"}, passes = {} }"),
+            Kernel::Lua,
+            small(),
+        )
+        .unwrap_err();
+    assert!(e.to_string().contains("readonly"), "{e}");
+    // Library tables too.
+    let mut sim = sim_with(&[script("patch", "math.floor = nil")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("readonly"), "{e}");
+}
+
+#[test]
+fn fault_09_math_random_is_gone_and_c_random_is_deterministic() {
+    let mut sim = sim_with(&[script("rnd", "local x = math.random()")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("call a nil value"), "{e}");
+
+    // c.random: a pure function of (seed, tick, script, position): the same
+    // world for 1 and 4 threads, and a different one for another seed.
+    let text = "return { channels = { \"r\" }, passes = { { name = \"p\", reads = {}, writes = { \"r\" },\n\
+        kernel = function(c, tx, tz) for i = 0, 63 do buffer.writef64(c.w.r, i * 8, c.random(tx * 8 + i % 8, 0, tz * 8 + i // 8)) end end } } }";
+    let run = |threads: usize, seed: u64| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| {
+            let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(4, 4));
+            sim.set_seed(seed);
+            sim.add_script(src("r", text), Kernel::Lua, Limits::default()).unwrap();
+            for _ in 0..3 {
+                assert!(sim.step(0.1).errors.is_empty());
+                sim.wake_all();
+            }
+            sim.channels().hash()
+        })
+    };
+    assert_eq!(run(1, 7), run(4, 7));
+    assert_ne!(run(1, 7), run(1, 8));
+    // The generator itself: uniform in [0, 1), keyed by every input.
+    let k = StepKey::new(1, 2, "s");
+    let v: Vec<f64> = (0..10_000).map(|i| k.random(i as f64, 0.0, 0.0, 0.0)).collect();
+    assert!(v.iter().all(|x| (0.0..1.0).contains(x)));
+    let mean = v.iter().sum::<f64>() / v.len() as f64;
+    assert!((mean - 0.5).abs() < 0.02, "mean {mean}");
+    assert_ne!(k.random(1.0, 0.0, 0.0, 0.0), StepKey::new(1, 3, "s").random(1.0, 0.0, 0.0, 0.0));
+    assert_ne!(k.random(1.0, 0.0, 0.0, 0.0), StepKey::new(1, 2, "t").random(1.0, 0.0, 0.0, 0.0));
+}
+
+#[test]
+fn fault_10_huge_channel_values_are_refused_with_script_channel_and_column() {
+    let mut sim = sim_with(&[script("wall", "buffer.writef64(c.w.wall_v, 8 * 9, 1e9)")]);
+    let r = sim.step(0.1);
+    assert_eq!(r.errors.len(), 1);
+    match &r.errors[0] {
+        SimError::OutOfBounds {
+            script,
+            channel,
+            column,
+            value,
+            ..
+        } => {
+            assert_eq!(script, "wall");
+            assert_eq!(channel, "wall_v");
+            assert_eq!(*value, 1e9);
+            assert_eq!(column.0 % 8, 1);
+            assert_eq!(column.1 % 8, 1);
+        }
+        other => panic!("{other}"),
+    }
+    // Nothing was committed.
+    let id = sim.channels().find("wall_v").unwrap();
+    assert_eq!(sim.channels().max_abs(id), 0.0);
+    // A declared range is honoured too.
+    let text = "return { channels = { \"h\" }, ranges = { h = { 0, 5 } }, passes = { { name = \"p\", reads = {}, writes = { \"h\" },\n\
+        kernel = function(c) buffer.writef64(c.w.h, 0, c.tick * 3) end } } }";
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(src("h", text), Kernel::Lua, small()).unwrap();
+    assert!(sim.step(0.1).errors.is_empty()); // 0
+    assert!(sim.step(0.1).errors.is_empty()); // 3
+    let e = sim.step(0.1).errors[0].to_string(); // 6
+    assert!(e.contains("outside its bound [0, 5]") && e.contains("declared range"), "{e}");
+}
+
+#[test]
+fn fault_11_a_failing_script_is_suspended_and_the_others_run_on() {
+    let ok = script("fine", "buffer.writef64(c.w.fine_v, 0, c.tick)");
+    let bad = script("stuck", "while true do end");
+    let mut sim = sim_with(&[ok, bad]);
+    for i in 1..=brickworld::sim::step::SUSPEND_AFTER {
+        let r = sim.step(0.1);
+        assert_eq!(r.errors.len(), 1, "step {i}");
+        assert_eq!(sim.failures(1), i);
+    }
+    let why = sim.suspended(1).expect("suspended").to_string();
+    assert!(why.contains("budget"), "{why}");
+    // Suspended: it is no longer run (no error, no budget spent), and the
+    // healthy script keeps stepping.
+    for _ in 0..5 {
+        sim.wake_all();
+        let r = sim.step(0.1);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+    }
+    let fine = sim.channels().find("fine_v").unwrap();
+    assert_eq!(sim.channels().max_abs(fine), (sim.tick() - 1) as f64);
+    // A reload (here: the same script fixed) resumes it.
+    sim.replace_script(1, script("stuck", "buffer.writef64(c.w.stuck_v, 0, 1)"))
+        .unwrap();
+    assert!(sim.suspended(1).is_none());
+    assert!(sim.step(0.1).errors.is_empty());
+}
+
+#[test]
+fn fault_12_a_narrowed_range_clamps_the_value_with_a_warning() {
+    let with_max = |max: f64| {
+        src(
+            "knob",
+            &format!(
+                "return {{ channels = {{ \"k\" }}, params = {{ rate = {{ default = 1, min = 0, max = {max} }} }},\n\
+                 passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"k\" }}, kernel = function(c) end }} }} }}"
+            ),
+        )
+    };
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(with_max(10.0), Kernel::Lua, small()).unwrap();
+    sim.set_param(0, "rate", 8.0).unwrap();
+    let warnings = sim.replace_script(0, with_max(5.0)).unwrap();
+    assert_eq!(sim.params(0), &[5.0], "clamped, not reset to the default 1");
+    assert_eq!(warnings.len(), 1);
+    assert!(warnings[0].contains("clamped to 5"), "{}", warnings[0]);
+    // Widening keeps the value without a warning.
+    assert!(sim.replace_script(0, with_max(20.0)).unwrap().is_empty());
+    assert_eq!(sim.params(0), &[5.0]);
+}
+
+#[test]
+fn a_resume_restores_the_sleep_state() {
+    let mut sim = sim_with(&[script("fine", "buffer.writef64(c.w.fine_v, 0, 1)")]);
+    for _ in 0..4 {
+        sim.step(0.1);
+    }
+    let saved = sim.sleep_state();
+    let mut other = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
+    other.restore_sleep_state(&saved);
+    assert_eq!(other.sleep_state(), saved);
+    assert_eq!(other.active_tiles(), saved.active.len());
+    let _ = TILE_CELLS;
+}
