@@ -5,8 +5,8 @@
 //! moments and once in the middle of a checkpoint write; hot reload of a
 //! changed and of a broken script; a port already in use; a bad world config.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use brickworld::engine::checkpoint;
@@ -15,129 +15,7 @@ use brickworld::engine::ctl::request;
 mod common;
 use common::cli::assert_success;
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn setup(name: &str) -> (PathBuf, PathBuf, String) {
-    let dir = std::env::temp_dir().join(format!("brickworld-daemon-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let addr = format!("127.0.0.1:{}", free_port());
-    let cfg = dir.join("world.toml");
-    std::fs::write(
-        &cfg,
-        format!(
-            "[world]\nsource = \"terrain\"\nsize = [48, 32, 48]\nseed = 3\n[sim]\ndt = 0.05\nscripts_dir = \"{}/scripts\"\n\
-             [[scripts]]\nfile = \"water.lua\"\nparams = {{ rain = 0.2 }}\n[render]\nwidth = 32\nheight = 24\ntracer = \"cpu\"\n\
-             [frames]\nevery = 5\n[checkpoint]\nevery = 40\n[control]\naddr = \"{addr}\"\n",
-            env!("CARGO_MANIFEST_DIR")
-        ),
-    )
-    .unwrap();
-    (cfg, dir.join("state"), addr)
-}
-
-/// A daemon that is killed if the test panics before stopping it
-/// (regression: failed tests left daemons running and eating the CPU).
-struct Daemon(Option<Child>);
-
-impl std::ops::Deref for Daemon {
-    type Target = Child;
-    fn deref(&self) -> &Child {
-        self.0.as_ref().expect("running")
-    }
-}
-
-impl std::ops::DerefMut for Daemon {
-    fn deref_mut(&mut self) -> &mut Child {
-        self.0.as_mut().expect("running")
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        if let Some(mut c) = self.0.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-}
-
-/// `brickworld run CFG --state STATE`, not yet started.
-fn run_cmd(cfg: &Path, state: &Path) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_brickworld"));
-    c.arg("run").arg(cfg).arg("--state").arg(state);
-    c
-}
-
-/// Replace `from` (which must be there) by `to` in the world config.
-fn edit_config(cfg: &Path, from: &str, to: &str) {
-    let text = std::fs::read_to_string(cfg).unwrap();
-    assert!(text.contains(from), "{from:?} is not in {text}");
-    std::fs::write(cfg, text.replace(from, to)).unwrap();
-}
-
-fn start(cfg: &Path, state: &Path) -> Daemon {
-    Daemon(Some(
-        run_cmd(cfg, state)
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    ))
-}
-
-fn status(addr: &str) -> serde_json::Value {
-    let (code, body) = request(addr, "GET", "/status", None, "").unwrap();
-    assert_eq!(code, 200, "{body}");
-    serde_json::from_str(&body).unwrap()
-}
-
-fn wait_ready(addr: &str) {
-    let t = Instant::now();
-    while t.elapsed() < Duration::from_secs(30) {
-        // Ready once the engine reports its scripts (the server starts first).
-        if let Ok((200, body)) = request(addr, "GET", "/status", None, "")
-            && serde_json::from_str::<serde_json::Value>(&body)
-                .is_ok_and(|s| s["scripts"].as_array().is_some_and(|a| !a.is_empty()))
-        {
-            return;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    panic!("the daemon did not answer within 30 s");
-}
-
-fn token(state: &Path) -> String {
-    std::fs::read_to_string(state.join("control.token")).unwrap()
-}
-
-fn post(addr: &str, state: &Path, path: &str, body: &str) -> (u16, String) {
-    request(addr, "POST", path, Some(&token(state)), body).unwrap()
-}
-
-fn stop(mut daemon: Daemon) -> std::process::Output {
-    // SIGTERM: the daemon checkpoints and exits cleanly.
-    let _ = Command::new("kill")
-        .arg("-TERM")
-        .arg(daemon.id().to_string())
-        .status();
-    let t = Instant::now();
-    while t.elapsed() < Duration::from_secs(30) {
-        if daemon.try_wait().unwrap().is_some() {
-            let child = daemon.0.take().expect("running");
-            return child.wait_with_output().unwrap();
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    // Dropping `daemon` kills it.
-    panic!("the daemon did not stop on SIGTERM");
-}
+use common::daemon::*;
 
 #[test]
 fn status_pause_step_and_control_errors() {

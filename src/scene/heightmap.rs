@@ -34,19 +34,27 @@ pub struct Heightmap {
 impl Heightmap {
     /// Load and validate a PNG.
     pub fn load(path: &Path) -> Result<Self, SceneError> {
-        let meta = std::fs::metadata(path).map_err(|e| SceneError::io(path, e))?;
-        if meta.len() > MAX_FILE_BYTES {
-            return Err(SceneError::too_large(
-                path,
-                format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len()),
-            ));
+        let bytes = super::budget::read_file(path, MAX_FILE_BYTES)?;
+        // Check the world the image asks for from its header, before the
+        // pixels are decoded.
+        if let Some((w, h)) = Self::dims(&bytes) {
+            super::budget::check_world(
+                &path.display().to_string(),
+                glam::IVec3::new(w as i32, 1, h as i32),
+            )?;
         }
-        let bytes = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
         Self::decode(&bytes).map_err(|msg| SceneError::Format {
             path: path.to_path_buf(),
             kind: "PNG heightmap",
             msg,
         })
+    }
+
+    /// The image's width and height from its header, if it has one.
+    pub fn dims(bytes: &[u8]) -> Option<(u32, u32)> {
+        let decoder = png::Decoder::new(Cursor::new(bytes));
+        let reader = decoder.read_info().ok()?;
+        Some((reader.info().width, reader.info().height))
     }
 
     /// Decode PNG bytes.

@@ -5,6 +5,7 @@
 //! A [`SceneWorld`] holds the store, the brick grid over the scene's bounds
 //! and builds the three tracers over the same local frame.
 
+pub mod budget;
 mod heightfield;
 mod heightmap;
 mod noise;
@@ -57,6 +58,14 @@ pub enum SceneError {
         /// The file.
         path: PathBuf,
         /// Details.
+        msg: String,
+    },
+    /// The world would not fit in memory.
+    #[error("{what}: not enough memory: {msg}")]
+    OutOfMemory {
+        /// The source.
+        what: String,
+        /// Need and availability.
         msg: String,
     },
     /// The scene name is not known.
@@ -232,6 +241,9 @@ pub fn build_scene(
     seed: u64,
     progress: &ProgressBar,
 ) -> Result<SceneWorld, SceneError> {
+    if spec.is_procedural() {
+        budget::check_world("world.size", size)?;
+    }
     let (store, lo, hi) = match spec {
         SceneSpec::Terrain { caves } => {
             let t = Terrain::new(size, seed, *caves);
@@ -260,6 +272,7 @@ pub fn build_scene(
         SceneSpec::Heightmap(path) => {
             let hm = Heightmap::load(path)?;
             let ext = hm.extent();
+            budget::check_world(&path.display().to_string(), ext)?;
             (
                 voxelize(&hm, Heightmap::palette(), progress),
                 IVec3::ZERO,

@@ -25,6 +25,9 @@ use crate::world::{
 pub const MAX_FILE_BYTES: u64 = 256 << 20;
 /// Deepest scene graph followed.
 const MAX_DEPTH: u32 = 64;
+/// Most voxels a file may place (instances × model voxels), counted before
+/// anything is expanded: 64 M voxels is about 1 GiB while building.
+pub const MAX_PLACED_VOXELS: u64 = 64 << 20;
 
 /// A signed permutation matrix plus translation.
 #[derive(Clone, Copy, Debug)]
@@ -103,6 +106,16 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
     if data.scenes.is_empty() {
         placed.extend((0..data.models.len() as u32).map(|m| (m, Xform::IDENTITY)));
     } else {
+        // Count first (memoised per node, so a graph that shares nodes is
+        // counted in time linear in its size), then expand.
+        let mut memo = vec![None; data.scenes.len()];
+        let n = count(data, 0, 0, &mut memo)?;
+        if n > MAX_PLACED_VOXELS {
+            return Err(format!(
+                "the scene graph places {n} voxels (about {} while building); the limit is {MAX_PLACED_VOXELS}",
+                super::budget::human(n.saturating_mul(16))
+            ));
+        }
         walk(data, 0, Xform::IDENTITY, 0, &mut placed)?;
     }
     for (model_id, xf) in placed {
@@ -129,6 +142,49 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
         palette.set(i as u8 + 1, [c.r, c.g, c.b]);
     }
     Ok((out, palette))
+}
+
+/// Voxels placed under `node` (saturating), memoised per node.
+fn count(
+    data: &dot_vox::DotVoxData,
+    node: u32,
+    depth: u32,
+    memo: &mut Vec<Option<u64>>,
+) -> Result<u64, String> {
+    if depth > MAX_DEPTH {
+        return Err(format!(
+            "scene graph deeper than {MAX_DEPTH} levels (a cycle?)"
+        ));
+    }
+    if let Some(Some(n)) = memo.get(node as usize) {
+        return Ok(*n);
+    }
+    let n = data.scenes.get(node as usize).ok_or_else(|| {
+        format!(
+            "scene graph names node {node}, but the file has {}",
+            data.scenes.len()
+        )
+    })?;
+    let total = match n {
+        dot_vox::SceneNode::Transform { child, .. } => count(data, *child, depth + 1, memo)?,
+        dot_vox::SceneNode::Group { children, .. } => {
+            let mut t = 0u64;
+            for c in children {
+                t = t.saturating_add(count(data, *c, depth + 1, memo)?);
+            }
+            t
+        }
+        dot_vox::SceneNode::Shape { models, .. } => models
+            .iter()
+            .map(|m| {
+                data.models
+                    .get(m.model_id as usize)
+                    .map_or(0, |m| m.voxels.len() as u64)
+            })
+            .fold(0u64, u64::saturating_add),
+    };
+    memo[node as usize] = Some(total);
+    Ok(total)
 }
 
 fn walk(
@@ -186,14 +242,7 @@ pub fn parse(bytes: &[u8]) -> Result<dot_vox::DotVoxData, String> {
 
 /// Load a `.vox` file into a store; returns it with its voxel bounds `[min, max)`.
 pub fn load(path: &Path) -> Result<(BrickStore, IVec3, IVec3), SceneError> {
-    let meta = std::fs::metadata(path).map_err(|e| SceneError::io(path, e))?;
-    if meta.len() > MAX_FILE_BYTES {
-        return Err(SceneError::too_large(
-            path,
-            format!("{} bytes, over the {MAX_FILE_BYTES}-byte limit", meta.len()),
-        ));
-    }
-    let bytes = std::fs::read(path).map_err(|e| SceneError::io(path, e))?;
+    let bytes = super::budget::read_file(path, MAX_FILE_BYTES)?;
     let fmt_err = |msg: String| SceneError::Format {
         path: path.to_path_buf(),
         kind: "MagicaVoxel .vox",
