@@ -68,16 +68,21 @@ fn check(name: &str, spec: &str, size: IVec3, shadows: bool) {
             "{name}: depth differs"
         );
     }
+    compare_golden(name, &frames[0].rgb);
+}
+
+/// Compare a 96×72 frame with its golden PNG (or write it when blessing).
+fn compare_golden(name: &str, rgb: &[u8]) {
     let path = golden_path(name);
     if std::env::var_os("BRICKWORLD_BLESS").is_some() {
-        write_png(&path, 96, 72, &frames[0].rgb).unwrap();
+        write_png(&path, 96, 72, rgb).unwrap();
         return;
     }
     let (w, h, gold) = read_png(&path);
     assert_eq!((w, h), (96, 72));
     let diffs: Vec<u8> = gold
         .iter()
-        .zip(&frames[0].rgb)
+        .zip(rgb)
         .map(|(a, b)| a.abs_diff(*b))
         .collect();
     let max = *diffs.iter().max().unwrap();
@@ -117,4 +122,68 @@ fn hairball_matches_golden() {
         IVec3::new(64, 64, 64),
         false,
     );
+}
+
+/// Regression (issue 8, fault 21): a dry column whose surface height ends in
+/// .5 or more showed one voxel of water, so a snow-only world turned blue.
+/// Here the terrain is lifted by 0.6 and snows for 30 steps with no water
+/// script: not one voxel may be water, and the frame matches its golden.
+#[test]
+fn fault_21_a_snow_only_world_shows_no_water() {
+    use brickworld::sim::tile::TILE_CELLS;
+    use brickworld::sim::voxels::WATER;
+    use brickworld::sim::{Limits, ScriptSource, WorldSim};
+    let mut world = build_scene(
+        &SceneSpec::Terrain { caves: false },
+        IVec3::new(96, 48, 96),
+        3,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut ws = WorldSim::new(&mut world);
+    let g = ws.sim.channels().find("ground").unwrap();
+    let tiles = ws.sim.channels().tiles();
+    for t in tiles {
+        let mut v: [f64; TILE_CELLS] = *ws.sim.channels().get(t, g).unwrap();
+        v.iter_mut().for_each(|x| *x += 0.6);
+        ws.sim.channels_mut().set(t, g, &v);
+    }
+    ws.add_lua(
+        ScriptSource {
+            name: "snow".into(),
+            text: include_str!("../scripts/snow.lua").into(),
+        },
+        Limits::default(),
+    )
+    .unwrap();
+    ws.sim.set_param(0, "snowfall", 0.2).unwrap();
+    for _ in 0..30 {
+        assert!(ws.step(&mut world, 0.05).errors.is_empty());
+    }
+    let water = world
+        .store
+        .iter()
+        .map(|(b, _)| {
+            let mut d = [0u8; 512];
+            world.store.read_dense(b, &mut d);
+            d.iter().filter(|&&m| m == WATER).count()
+        })
+        .sum::<usize>();
+    assert_eq!(water, 0, "water voxels in a world without water");
+    let view = world.default_views()[1];
+    let cam = Camera::new(DVec3::from(view.eye), DVec3::from(view.target), view.fov, 96, 72).unwrap();
+    let frame = render(&world.brickmap(), &cam, world.store.palette(), &RenderOptions::default());
+    compare_golden("snow_only_96x72.png", &frame.rgb);
+}
+
+#[test]
+fn water_is_drawn_only_where_it_is_at_least_half_a_voxel_deep() {
+    use brickworld::sim::voxels::levels;
+    assert_eq!(levels(10.6, 0.0, 0.0, 96), [10, 10, 10]);
+    assert_eq!(levels(10.6, 0.0, 0.3, 96), [10, 10, 10]);
+    assert_eq!(levels(10.6, 0.0, 0.6, 96), [10, 10, 11]);
+    assert_eq!(levels(10.0, 2.5, 0.0, 96), [10, 12, 12]);
+    // Surfaces are clamped into the world: no bricks above it or below 0.
+    assert_eq!(levels(1e9, 0.0, 0.0, 96), [96, 96, 96]);
+    assert_eq!(levels(-5.0, 0.0, 0.0, 96), [0, 0, 0]);
 }
