@@ -80,11 +80,7 @@ fn compare_golden(name: &str, rgb: &[u8]) {
     }
     let (w, h, gold) = read_png(&path);
     assert_eq!((w, h), (96, 72));
-    let diffs: Vec<u8> = gold
-        .iter()
-        .zip(rgb)
-        .map(|(a, b)| a.abs_diff(*b))
-        .collect();
+    let diffs: Vec<u8> = gold.iter().zip(rgb).map(|(a, b)| a.abs_diff(*b)).collect();
     let max = *diffs.iter().max().unwrap();
     let frac = diffs.iter().filter(|&&d| d > 0).count() as f64 / diffs.len() as f64;
     assert!(
@@ -171,8 +167,20 @@ fn fault_21_a_snow_only_world_shows_no_water() {
         .sum::<usize>();
     assert_eq!(water, 0, "water voxels in a world without water");
     let view = world.default_views()[1];
-    let cam = Camera::new(DVec3::from(view.eye), DVec3::from(view.target), view.fov, 96, 72).unwrap();
-    let frame = render(&world.brickmap(), &cam, world.store.palette(), &RenderOptions::default());
+    let cam = Camera::new(
+        DVec3::from(view.eye),
+        DVec3::from(view.target),
+        view.fov,
+        96,
+        72,
+    )
+    .unwrap();
+    let frame = render(
+        &world.brickmap(),
+        &cam,
+        world.store.palette(),
+        &RenderOptions::default(),
+    );
     compare_golden("snow_only_96x72.png", &frame.rgb);
 }
 

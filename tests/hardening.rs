@@ -44,9 +44,16 @@ fn fault_01_a_huge_content_length_is_refused_before_reading() {
     let mut d = start(&cfg, &state);
     wait_ready(&addr);
     let tok = token(&state);
-    for len in ["1099511627776", "18446744073709551615", "99999999999999999999999"] {
+    for len in [
+        "1099511627776",
+        "18446744073709551615",
+        "99999999999999999999999",
+    ] {
         // Without the token: 401, the body is never read.
-        let line = raw(&addr, format!("POST /step HTTP/1.1\r\nHost: x\r\nContent-Length: {len}\r\n\r\n").as_bytes());
+        let line = raw(
+            &addr,
+            format!("POST /step HTTP/1.1\r\nHost: x\r\nContent-Length: {len}\r\n\r\n").as_bytes(),
+        );
         assert!(line.starts_with("HTTP/1.1 4"), "{len}: {line}");
         // With it: 413 (or 400 for a length that is not a number).
         let line = raw(
@@ -74,7 +81,10 @@ fn fault_02_an_idle_body_blocks_no_one_and_sigterm_still_stops() {
     for _ in 0..20 {
         let t = Instant::now();
         status(&addr);
-        assert!(t.elapsed() < Duration::from_secs(2), "/status waited on the idle client");
+        assert!(
+            t.elapsed() < Duration::from_secs(2),
+            "/status waited on the idle client"
+        );
     }
     // SIGTERM ends the process while the idle socket is still open.
     let out = stop(d);
@@ -103,7 +113,9 @@ fn fault_03_running_out_of_descriptors_is_survived() {
     wait_ready(&addr);
     let mut socks = Vec::new();
     for _ in 0..400 {
-        if let Ok(s) = TcpStream::connect_timeout(&addr.parse().unwrap(), Duration::from_millis(500)) {
+        if let Ok(s) =
+            TcpStream::connect_timeout(&addr.parse().unwrap(), Duration::from_millis(500))
+        {
             socks.push(s);
         }
     }
@@ -116,7 +128,10 @@ fn fault_03_running_out_of_descriptors_is_survived() {
         if let Ok((200, _)) = request(&addr, "GET", "/status", None, "") {
             break;
         }
-        assert!(t.elapsed() < Duration::from_secs(20), "the listener never recovered");
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "the listener never recovered"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
     assert_success(&stop(d));
@@ -140,8 +155,15 @@ fn fault_04_huge_headers_are_refused_and_cost_no_memory() {
         }
         let mut buf = Vec::new();
         let _ = s.read_to_end(&mut buf);
-        let line = String::from_utf8_lossy(&buf).lines().next().unwrap_or("").to_string();
-        assert!(sent < 100 || line.contains("431"), "sent {sent} MB, reply '{line}'");
+        let line = String::from_utf8_lossy(&buf)
+            .lines()
+            .next()
+            .unwrap_or("")
+            .to_string();
+        assert!(
+            sent < 100 || line.contains("431"),
+            "sent {sent} MB, reply '{line}'"
+        );
     }
     let grown = rss_kb(d.id()).saturating_sub(before);
     assert!(grown < 32 * 1024, "RSS grew by {grown} KiB");
@@ -166,17 +188,36 @@ fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothin
     let before = rss_kb(d.id());
     let long = "x".repeat(8_000);
     for _ in 0..2000 {
-        let (code, _) = post(&addr, &state, &format!("/scripts/{long}/params"), "{\"a\": 1}");
+        let (code, _) = post(
+            &addr,
+            &state,
+            &format!("/scripts/{long}/params"),
+            "{\"a\": 1}",
+        );
         assert_eq!(code, 400);
     }
     // A name longer than the head limit: 431, before anything is stored.
-    let line = raw(&addr, format!("POST /scripts/{}/params HTTP/1.1\r\nHost: x\r\n\r\n", "y".repeat(40_000)).as_bytes());
-    assert!(line.is_empty() || line.contains("431") || line.contains("414"), "{line}");
+    let line = raw(
+        &addr,
+        format!(
+            "POST /scripts/{}/params HTTP/1.1\r\nHost: x\r\n\r\n",
+            "y".repeat(40_000)
+        )
+        .as_bytes(),
+    );
+    assert!(
+        line.is_empty() || line.contains("431") || line.contains("414"),
+        "{line}"
+    );
     let grown = rss_kb(d.id()).saturating_sub(before);
     assert!(grown < 16 * 1024, "RSS grew by {grown} KiB");
     let s = status(&addr);
     assert_eq!(s["scripts"].as_array().unwrap().len(), 1, "{s}");
-    assert_eq!(s["scripts"][0]["params"].as_array().unwrap().len(), 4, "{s}");
+    assert_eq!(
+        s["scripts"][0]["params"].as_array().unwrap().len(),
+        4,
+        "{s}"
+    );
     assert_success(&stop(d));
 }
 
@@ -193,7 +234,11 @@ fn fault_06_pause_cancels_queued_steps() {
     assert_eq!(t0["paused"], true);
     assert_eq!(t0["steps_pending"], 0, "{t0}");
     std::thread::sleep(Duration::from_millis(500));
-    assert_eq!(status(&addr)["tick"], t0["tick"], "paused, yet the tick moved");
+    assert_eq!(
+        status(&addr)["tick"],
+        t0["tick"],
+        "paused, yet the tick moved"
+    );
     assert_success(&stop(d));
 }
 
@@ -202,15 +247,27 @@ fn fault_07_a_script_that_catches_its_budget_error_is_suspended_and_the_daemon_s
     let (cfg, state, addr) = setup("f07");
     let scripts = cfg.parent().unwrap().join("scripts");
     std::fs::create_dir_all(&scripts).unwrap();
-    std::fs::copy(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"), scripts.join("water.lua")).unwrap();
+    std::fs::copy(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
+        scripts.join("water.lua"),
+    )
+    .unwrap();
     std::fs::write(
         scripts.join("evil.lua"),
         "return { channels = { \"e\" }, passes = { { name = \"p\", reads = {}, writes = { \"e\" },\n\
          kernel = function(c) if c.tick > 3 then pcall(function() while true do end end) while true do end end end } } }",
     )
     .unwrap();
-    edit_config(&cfg, concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"), scripts.to_str().unwrap());
-    edit_config(&cfg, "[render]", "[[scripts]]\nfile = \"evil.lua\"\n[render]");
+    edit_config(
+        &cfg,
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
+        scripts.to_str().unwrap(),
+    );
+    edit_config(
+        &cfg,
+        "[render]",
+        "[[scripts]]\nfile = \"evil.lua\"\n[render]",
+    );
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let t = Instant::now();
@@ -219,10 +276,16 @@ fn fault_07_a_script_that_catches_its_budget_error_is_suspended_and_the_daemon_s
         if s["scripts"][1]["state"] == "suspended" {
             break s["scripts"][1].clone();
         }
-        assert!(t.elapsed() < Duration::from_secs(60), "never suspended: {s}");
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "never suspended: {s}"
+        );
         std::thread::sleep(Duration::from_millis(100));
     };
-    assert!(evil["error"].as_str().unwrap().contains("budget exceeded"), "{evil}");
+    assert!(
+        evil["error"].as_str().unwrap().contains("budget exceeded"),
+        "{evil}"
+    );
     // The world goes on, and pause, checkpoint and SIGTERM work.
     let tick = status(&addr)["tick"].as_u64().unwrap();
     std::thread::sleep(Duration::from_millis(500));
@@ -242,21 +305,36 @@ fn fault_13_retention_counts_only_checkpoints_that_verify() {
     let (cfg, state, addr) = setup("f13");
     std::fs::create_dir_all(&state).unwrap();
     // Two corrupt checkpoints with the highest numbers, and a stray file.
-    for name in ["ckpt-9999999999999999.bwc", "ckpt-9999999999999998.bwc", "ckpt-zzzz.bwc"] {
+    for name in [
+        "ckpt-9999999999999999.bwc",
+        "ckpt-9999999999999998.bwc",
+        "ckpt-zzzz.bwc",
+    ] {
         std::fs::write(state.join(name), b"garbage").unwrap();
     }
     edit_config(&cfg, "every = 40", "every = 10");
-    let out = run_cmd(&cfg, &state).arg("--ticks").arg("45").output().unwrap();
+    let out = run_cmd(&cfg, &state)
+        .arg("--ticks")
+        .arg("45")
+        .output()
+        .unwrap();
     assert_success(&out);
     let said = String::from_utf8_lossy(&out.stdout);
     let files = checkpoint::list(&state).unwrap();
     assert_eq!(files.len(), 2, "{files:?}");
     // The checkpoint the daemon says it stopped at is on disk.
     let last = checkpoint::read(&files[0]).unwrap();
-    assert!(said.contains(&format!("stopped at tick {}", last.tick)), "{said}");
+    assert!(
+        said.contains(&format!("stopped at tick {}", last.tick)),
+        "{said}"
+    );
     assert_eq!(last.tick, 45);
     // The corrupt files were kept aside, never deleted.
-    for name in ["ckpt-9999999999999999.bwc", "ckpt-9999999999999998.bwc", "ckpt-zzzz.bwc"] {
+    for name in [
+        "ckpt-9999999999999999.bwc",
+        "ckpt-9999999999999998.bwc",
+        "ckpt-zzzz.bwc",
+    ] {
         assert!(state.join(format!("{name}.corrupt")).exists(), "{name}");
     }
     let _ = addr;
@@ -265,12 +343,22 @@ fn fault_13_retention_counts_only_checkpoints_that_verify() {
 #[test]
 fn fault_14_another_worlds_checkpoint_is_skipped_with_a_warning() {
     let (cfg, state, _) = setup("f14");
-    assert_success(&run_cmd(&cfg, &state).arg("--ticks").arg("5").output().unwrap());
+    assert_success(
+        &run_cmd(&cfg, &state)
+            .arg("--ticks")
+            .arg("5")
+            .output()
+            .unwrap(),
+    );
     // The same state directory, another world (seed 4): the checkpoint is
     // not loaded, and not deleted.
     edit_config(&cfg, "seed = 3", "seed = 4");
     let foreign = checkpoint::list(&state).unwrap();
-    let out = run_cmd(&cfg, &state).arg("--ticks").arg("2").output().unwrap();
+    let out = run_cmd(&cfg, &state)
+        .arg("--ticks")
+        .arg("2")
+        .output()
+        .unwrap();
     assert_success(&out);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("belongs to another world"), "{err}");
@@ -291,7 +379,11 @@ fn fault_15_a_second_daemon_on_one_state_directory_exits_clearly() {
         .arg(format!("127.0.0.1:{}", free_port()))
         .output()
         .unwrap();
-    common::cli::assert_clear_failure(&out, "a second daemon", "in use by another brickworld engine");
+    common::cli::assert_clear_failure(
+        &out,
+        "a second daemon",
+        "in use by another brickworld engine",
+    );
     assert!(String::from_utf8_lossy(&out.stderr).contains(&state.display().to_string()));
     assert_eq!(token(&state), tok, "the second daemon touched the token");
     assert_success(&stop(d));
@@ -307,12 +399,23 @@ fn fault_16_resuming_is_bit_identical_to_not_stopping() {
         let (cfg, state, _) = setup(name);
         let mut said = String::new();
         for n in legs {
-            let out = run_cmd(&cfg, &state).arg("--ticks").arg(n.to_string()).output().unwrap();
+            let out = run_cmd(&cfg, &state)
+                .arg("--ticks")
+                .arg(n.to_string())
+                .output()
+                .unwrap();
             assert_success(&out);
             said = String::from_utf8_lossy(&out.stdout).to_string();
         }
-        let line = said.lines().find(|l| l.starts_with("stopped at tick 100")).unwrap_or_else(|| panic!("{said}"));
-        line.split("checkpoint ").nth(1).unwrap().trim_end_matches(')').to_string()
+        let line = said
+            .lines()
+            .find(|l| l.starts_with("stopped at tick 100"))
+            .unwrap_or_else(|| panic!("{said}"));
+        line.split("checkpoint ")
+            .nth(1)
+            .unwrap()
+            .trim_end_matches(')')
+            .to_string()
     };
     let straight = final_hash("f16a", &[100]);
     let resumed = final_hash("f16b", &[50, 50]);
@@ -327,12 +430,21 @@ fn fault_17_the_token_is_random_private_and_fresh() {
     let (cfg, state, _) = setup("f17");
     let mut tokens = Vec::new();
     for _ in 0..2 {
-        assert_success(&run_cmd(&cfg, &state).arg("--ticks").arg("1").output().unwrap());
+        assert_success(
+            &run_cmd(&cfg, &state)
+                .arg("--ticks")
+                .arg("1")
+                .output()
+                .unwrap(),
+        );
         let t = token(&state);
         assert_eq!(t.len(), 32);
         assert!(t.chars().all(|c| c.is_ascii_hexdigit()));
         use std::os::unix::fs::PermissionsExt;
-        let mode = std::fs::metadata(state.join("control.token")).unwrap().permissions().mode();
+        let mode = std::fs::metadata(state.join("control.token"))
+            .unwrap()
+            .permissions()
+            .mode();
         assert_eq!(mode & 0o777, 0o600);
         tokens.push(t);
     }
@@ -350,18 +462,37 @@ fn fault_22_the_default_world_runs_from_any_directory_and_init_writes_it_out() {
     std::fs::create_dir_all(&dir).unwrap();
     let out = common::cli::bin()
         .current_dir(&dir)
-        .args(["run", "--ticks", "2", "--addr", &format!("127.0.0.1:{}", free_port())])
+        .args([
+            "run",
+            "--ticks",
+            "2",
+            "--addr",
+            &format!("127.0.0.1:{}", free_port()),
+        ])
         .output()
         .unwrap();
     assert_success(&out);
-    let out = common::cli::bin().current_dir(&dir).args(["init", "mod"]).output().unwrap();
+    let out = common::cli::bin()
+        .current_dir(&dir)
+        .args(["init", "mod"])
+        .output()
+        .unwrap();
     assert_success(&out);
-    for f in ["mod/world.toml", "mod/scripts/water.lua", "mod/scripts/erosion.lua", "mod/scripts/snow.lua"] {
+    for f in [
+        "mod/world.toml",
+        "mod/scripts/water.lua",
+        "mod/scripts/erosion.lua",
+        "mod/scripts/snow.lua",
+    ] {
         assert!(dir.join(f).exists(), "{f}");
     }
     // The written world loads, and init never overwrites.
     brickworld::engine::world_config::WorldConfig::load(&dir.join("mod/world.toml")).unwrap();
-    let again = common::cli::bin().current_dir(&dir).args(["init", "mod"]).output().unwrap();
+    let again = common::cli::bin()
+        .current_dir(&dir)
+        .args(["init", "mod"])
+        .output()
+        .unwrap();
     common::cli::assert_clear_failure(&again, "init over an existing world", "already exists");
     let _ = Path::new("");
 }

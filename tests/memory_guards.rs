@@ -33,7 +33,9 @@ fn write_gray_png(path: &Path, w: u32, h: u32) {
     enc.set_compression(png::Compression::Fast);
     let mut w8 = enc.write_header().unwrap();
     // Small on disk, huge when decoded: a gentle ramp compresses well.
-    let data: Vec<u8> = (0..(w as usize * h as usize)).map(|i| ((i / 4096) % 64) as u8 + 1).collect();
+    let data: Vec<u8> = (0..(w as usize * h as usize))
+        .map(|i| ((i / 4096) % 64) as u8 + 1)
+        .collect();
     w8.write_image_data(&data).unwrap();
 }
 
@@ -75,7 +77,12 @@ fn exploding_vox(fan: u32, levels: u32) -> PathBuf {
         index_map: Vec::new(),
         models: vec![Model {
             size: Size { x: 1, y: 1, z: 1 },
-            voxels: vec![Voxel { x: 0, y: 0, z: 0, i: 1 }],
+            voxels: vec![Voxel {
+                x: 0,
+                y: 0,
+                z: 0,
+                i: 1,
+            }],
         }],
         palette: dot_vox::DEFAULT_PALETTE.to_vec(),
         materials: Vec::new(),

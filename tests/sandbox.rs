@@ -50,13 +50,21 @@ fn sim_with(scripts: &[ScriptSource]) -> Simulation {
 
 fn runtime_error(sim: &mut Simulation) -> String {
     let r = sim.step(0.1);
-    assert_eq!(r.errors.len(), 1, "expected one failed script: {:?}", r.errors);
+    assert_eq!(
+        r.errors.len(),
+        1,
+        "expected one failed script: {:?}",
+        r.errors
+    );
     r.errors[0].to_string()
 }
 
 #[test]
 fn fault_07_pcall_cannot_catch_the_budget() {
-    let mut sim = sim_with(&[script("looper", "pcall(function() while true do end end)\nwhile true do end")]);
+    let mut sim = sim_with(&[script(
+        "looper",
+        "pcall(function() while true do end end)\nwhile true do end",
+    )]);
     let e = runtime_error(&mut sim);
     assert!(e.contains("instruction budget exceeded"), "{e}");
 }
@@ -68,8 +76,11 @@ fn fault_07_a_script_that_swallows_its_budget_error_and_returns_still_fails() {
     let mut sim = sim_with(&[script("swallow", "pcall(function() while true do end end)")]);
     let e = runtime_error(&mut sim);
     assert!(e.contains("instruction budget exceeded"), "{e}");
-    let mut sim = sim_with(&[script("swallow2", "local ok = pcall(function() while true do end end)
-return")]);
+    let mut sim = sim_with(&[script(
+        "swallow2",
+        "local ok = pcall(function() while true do end end)
+return",
+    )]);
     let e = runtime_error(&mut sim);
     assert!(e.contains("instruction budget exceeded"), "{e}");
 }
@@ -127,11 +138,15 @@ fn fault_09_math_random_is_gone_and_c_random_is_deterministic() {
     let text = "return { channels = { \"r\" }, passes = { { name = \"p\", reads = {}, writes = { \"r\" },\n\
         kernel = function(c, tx, tz) for i = 0, 63 do buffer.writef64(c.w.r, i * 8, c.random(tx * 8 + i % 8, 0, tz * 8 + i // 8)) end end } } }";
     let run = |threads: usize, seed: u64| {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         pool.install(|| {
             let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(4, 4));
             sim.set_seed(seed);
-            sim.add_script(src("r", text), Kernel::Lua, Limits::default()).unwrap();
+            sim.add_script(src("r", text), Kernel::Lua, Limits::default())
+                .unwrap();
             for _ in 0..3 {
                 assert!(sim.step(0.1).errors.is_empty());
                 sim.wake_all();
@@ -143,12 +158,20 @@ fn fault_09_math_random_is_gone_and_c_random_is_deterministic() {
     assert_ne!(run(1, 7), run(1, 8));
     // The generator itself: uniform in [0, 1), keyed by every input.
     let k = StepKey::new(1, 2, "s");
-    let v: Vec<f64> = (0..10_000).map(|i| k.random(i as f64, 0.0, 0.0, 0.0)).collect();
+    let v: Vec<f64> = (0..10_000)
+        .map(|i| k.random(i as f64, 0.0, 0.0, 0.0))
+        .collect();
     assert!(v.iter().all(|x| (0.0..1.0).contains(x)));
     let mean = v.iter().sum::<f64>() / v.len() as f64;
     assert!((mean - 0.5).abs() < 0.02, "mean {mean}");
-    assert_ne!(k.random(1.0, 0.0, 0.0, 0.0), StepKey::new(1, 3, "s").random(1.0, 0.0, 0.0, 0.0));
-    assert_ne!(k.random(1.0, 0.0, 0.0, 0.0), StepKey::new(1, 2, "t").random(1.0, 0.0, 0.0, 0.0));
+    assert_ne!(
+        k.random(1.0, 0.0, 0.0, 0.0),
+        StepKey::new(1, 3, "s").random(1.0, 0.0, 0.0, 0.0)
+    );
+    assert_ne!(
+        k.random(1.0, 0.0, 0.0, 0.0),
+        StepKey::new(1, 2, "t").random(1.0, 0.0, 0.0, 0.0)
+    );
 }
 
 #[test]
@@ -179,11 +202,15 @@ fn fault_10_huge_channel_values_are_refused_with_script_channel_and_column() {
     let text = "return { channels = { \"h\" }, ranges = { h = { 0, 5 } }, passes = { { name = \"p\", reads = {}, writes = { \"h\" },\n\
         kernel = function(c) buffer.writef64(c.w.h, 0, c.tick * 3) end } } }";
     let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
-    sim.add_script(src("h", text), Kernel::Lua, small()).unwrap();
+    sim.add_script(src("h", text), Kernel::Lua, small())
+        .unwrap();
     assert!(sim.step(0.1).errors.is_empty()); // 0
     assert!(sim.step(0.1).errors.is_empty()); // 3
     let e = sim.step(0.1).errors[0].to_string(); // 6
-    assert!(e.contains("outside its bound [0, 5]") && e.contains("declared range"), "{e}");
+    assert!(
+        e.contains("outside its bound [0, 5]") && e.contains("declared range"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -226,7 +253,8 @@ fn fault_12_a_narrowed_range_clamps_the_value_with_a_warning() {
         )
     };
     let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
-    sim.add_script(with_max(10.0), Kernel::Lua, small()).unwrap();
+    sim.add_script(with_max(10.0), Kernel::Lua, small())
+        .unwrap();
     sim.set_param(0, "rate", 8.0).unwrap();
     let warnings = sim.replace_script(0, with_max(5.0)).unwrap();
     assert_eq!(sim.params(0), &[5.0], "clamped, not reset to the default 1");

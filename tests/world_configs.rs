@@ -30,7 +30,11 @@ fn the_shipped_worlds_load_and_build() {
     // The default world runs from any directory: its scripts are built in.
     assert!(d.scripts_embedded);
     for s in &d.scripts {
-        assert!(brickworld::sim::embedded::script(&s.file).is_some(), "{} not embedded", s.file);
+        assert!(
+            brickworld::sim::embedded::script(&s.file).is_some(),
+            "{} not embedded",
+            s.file
+        );
     }
     assert!(matches!(d.camera.mode, CameraMode::Orbit { .. }));
     let snowy = WorldConfig::load(&Path::new(ROOT).join("worlds/snowy_mountain.toml")).unwrap();

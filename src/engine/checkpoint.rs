@@ -443,6 +443,10 @@ pub fn write(dir: &Path, state: &WorldState) -> Result<(PathBuf, u64), Checkpoin
     })
 }
 
+/// What [`Checkpoints::open`] returns: the set, the newest of this world's
+/// checkpoints that verified (with its path), and warnings to show.
+pub type Opened = (Checkpoints, Option<(PathBuf, WorldState)>, Vec<String>);
+
 /// A state directory's checkpoints, as one engine sees them: which files
 /// verified as this world's, so retention never counts a corrupt, foreign
 /// or stray file, and never deletes the file it just wrote.
@@ -482,7 +486,7 @@ impl Checkpoints {
     pub fn open(
         dir: &Path,
         identity: WorldIdentity,
-    ) -> Result<(Self, Option<(PathBuf, WorldState)>, Vec<String>), CheckpointError> {
+    ) -> Result<Opened, CheckpointError> {
         let mut warnings = Vec::new();
         let mut found = None;
         let mut good = Vec::new();

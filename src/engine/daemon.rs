@@ -38,7 +38,9 @@ use super::timeline::{Row, Timeline};
 use super::world_config::{CameraMode, CameraSettings, WorldConfig};
 use crate::progress::bar;
 use crate::scene::{SceneWorld, build_scene};
-use crate::sim::{Limits, ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, read_script};
+use crate::sim::{
+    Limits, ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, read_script,
+};
 use crate::trace::Camera;
 
 /// Options of `brickworld run`.
@@ -182,7 +184,9 @@ impl Engine {
                 if let Some(i) = ws.sim.script_index(&script) {
                     for (k, v) in values {
                         if let Err(e) = ws.sim.set_param(i, &k, v) {
-                            eprintln!("warning: the checkpoint's {script}.{k} = {v} is not kept: {e}");
+                            eprintln!(
+                                "warning: the checkpoint's {script}.{k} = {v} is not kept: {e}"
+                            );
                         }
                     }
                 }
@@ -292,7 +296,9 @@ impl Engine {
 
     /// Swap in scripts changed on disk (a broken one keeps the old version).
     fn hot_reload(&mut self) {
-        let Some(w) = self.watcher.as_mut() else { return };
+        let Some(w) = self.watcher.as_mut() else {
+            return;
+        };
         for path in w.poll() {
             let name = path
                 .file_stem()
@@ -416,7 +422,9 @@ impl Engine {
             self.renderer.skip();
             return;
         }
-        let Ok(cam) = self.camera_at(tick) else { return };
+        let Ok(cam) = self.camera_at(tick) else {
+            return;
+        };
         let copy = Instant::now();
         let snapshot = self.world.clone();
         self.snapshot_ms = copy.elapsed().as_secs_f64() * 1e3;
@@ -625,10 +633,8 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
         .iter()
         .map(|(f, text)| (scripts.join(f), text.to_string()))
         .collect();
-    let world = super::world_config::DEFAULT_WORLD.replace(
-        "scripts_dir = \"../scripts\"",
-        "scripts_dir = \"scripts\"",
-    );
+    let world = super::world_config::DEFAULT_WORLD
+        .replace("scripts_dir = \"../scripts\"", "scripts_dir = \"scripts\"");
     files.push((dir.join("world.toml"), world));
     if let Some((p, _)) = files.iter().find(|(p, _)| p.exists()) {
         bail!(

@@ -234,6 +234,21 @@ impl SceneWorld {
     }
 }
 
+/// Parse `.vox` bytes and place their voxels, as `vox:FILE` does (the
+/// fuzz target for the .vox loader): an error, never a panic. Returns the
+/// number of voxels placed.
+pub fn vox_voxels_from_bytes(bytes: &[u8]) -> Result<usize, String> {
+    let data = vox::parse(bytes)?;
+    vox::voxels(&data).map(|(v, _)| v.len())
+}
+
+/// Decode heightmap PNG bytes, as `heightmap:FILE` does (the fuzz target
+/// for the PNG loader): an error, never a panic. Returns the world's extent.
+pub fn heightmap_from_bytes(bytes: &[u8]) -> Result<IVec3, String> {
+    use heightfield::Heightfield;
+    heightmap::Heightmap::decode(bytes).map(|h| h.extent())
+}
+
 /// Build `spec` at `size` voxels (procedural scenes only) from `seed`.
 pub fn build_scene(
     spec: &SceneSpec,

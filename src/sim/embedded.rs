@@ -13,8 +13,11 @@ pub const SCRIPTS: &[(&str, &str)] = &[
 
 /// The shipped script called `file` (e.g. `water.lua`), if there is one.
 pub fn script(file: &str) -> Option<ScriptSource> {
-    SCRIPTS.iter().find(|(f, _)| *f == file).map(|(f, text)| ScriptSource {
-        name: f.trim_end_matches(".lua").to_string(),
-        text: (*text).into(),
-    })
+    SCRIPTS
+        .iter()
+        .find(|(f, _)| *f == file)
+        .map(|(f, text)| ScriptSource {
+            name: f.trim_end_matches(".lua").to_string(),
+            text: (*text).into(),
+        })
 }

@@ -113,9 +113,9 @@ fn mix64(mut z: u64) -> u64 {
 impl StepKey {
     /// The key of `script` at `tick` in a world of `seed`.
     pub fn new(seed: u64, tick: u64, script: &str) -> Self {
-        let script = script
-            .bytes()
-            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3));
+        let script = script.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+        });
         StepKey { seed, tick, script }
     }
 
@@ -123,7 +123,14 @@ impl StepKey {
     /// (each truncated to a whole number).
     pub fn random(&self, x: f64, y: f64, z: f64, k: f64) -> f64 {
         let mut h = mix64(self.seed ^ 0x9e37_79b9_7f4a_7c15);
-        for v in [self.tick, self.script, x as i64 as u64, y as i64 as u64, z as i64 as u64, k as i64 as u64] {
+        for v in [
+            self.tick,
+            self.script,
+            x as i64 as u64,
+            y as i64 as u64,
+            z as i64 as u64,
+            k as i64 as u64,
+        ] {
             h = mix64(h ^ v);
         }
         (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
@@ -489,11 +496,11 @@ impl ScriptVm {
                             format!("ranges.{name} must be {{min, max}} with min <= max, finite"),
                         )
                     };
-                    let Value::Table(r) = v else { return Err(bad()) };
-                    let (lo, hi): (f64, f64) = (
-                        r.get(1).map_err(|_| bad())?,
-                        r.get(2).map_err(|_| bad())?,
-                    );
+                    let Value::Table(r) = v else {
+                        return Err(bad());
+                    };
+                    let (lo, hi): (f64, f64) =
+                        (r.get(1).map_err(|_| bad())?, r.get(2).map_err(|_| bad())?);
                     if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
                         return Err(bad());
                     }

@@ -681,7 +681,10 @@ fn run_script(
                     return Err(SimError::OutOfBounds {
                         script: s.spec.name.clone(),
                         channel: name.clone(),
-                        column: (t.x * TILE + (c as i32 % TILE), t.y * TILE + (c as i32 / TILE)),
+                        column: (
+                            t.x * TILE + (c as i32 % TILE),
+                            t.y * TILE + (c as i32 / TILE),
+                        ),
                         value: *x,
                         bound: (lo, hi),
                         why,

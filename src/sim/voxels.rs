@@ -111,12 +111,7 @@ impl ColumnSync {
     /// Set tile `t`'s record from the channels, as a step's write-back
     /// leaves it (used after a resume replaced the channels).
     pub fn resync(&mut self, channels: &ChannelStore, t: TileCoord) {
-        let get = |n: &str| {
-            channels
-                .find(n)
-                .and_then(|id| channels.get(t, id))
-                .copied()
-        };
+        let get = |n: &str| channels.find(n).and_then(|id| channels.get(t, id)).copied();
         let Some(g) = get("ground") else { return };
         let s = get("snow").unwrap_or([0.0; TILE_CELLS]);
         let w = get("water").unwrap_or([0.0; TILE_CELLS]);

@@ -131,4 +131,3 @@ pub fn stop(mut daemon: Daemon) -> std::process::Output {
     // Dropping `daemon` kills it.
     panic!("the daemon did not stop on SIGTERM");
 }
-

@@ -161,4 +161,3 @@ function post(p,b){fetch('/'+p,{method:'POST',headers:{Authorization:'Bearer '+t
 setInterval(()=>{fetch('/status').then(r=>r.json()).then(s=>document.getElementById('s').textContent=JSON.stringify(s,null,1));
 document.getElementById('f').src='/frame.png?'+Date.now()},1000);
 </script>"#;
-

@@ -86,7 +86,10 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
     if let Some(len) = req.headers().get(CONTENT_LENGTH) {
         match len.to_str().ok().and_then(|s| s.trim().parse::<u64>().ok()) {
             Some(n) if n > MAX_BODY as u64 => {
-                return error(413, &format!("request body of {n} bytes is over the {MAX_BODY}-byte limit"));
+                return error(
+                    413,
+                    &format!("request body of {n} bytes is over the {MAX_BODY}-byte limit"),
+                );
             }
             Some(_) => {}
             None => return error(400, "Content-Length is not a number"),
@@ -97,11 +100,17 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
         Err(_) => {
             return error(
                 408,
-                &format!("the body did not arrive within {} s", BODY_TIMEOUT.as_secs()),
+                &format!(
+                    "the body did not arrive within {} s",
+                    BODY_TIMEOUT.as_secs()
+                ),
             );
         }
         Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => {
-            return error(413, &format!("request body is over the {MAX_BODY}-byte limit"));
+            return error(
+                413,
+                &format!("request body is over the {MAX_BODY}-byte limit"),
+            );
         }
         Ok(Err(e)) => return error(400, &format!("cannot read the body: {e}")),
         Ok(Ok(c)) => c.to_bytes(),
@@ -119,7 +128,9 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
             if q.len() >= MAX_QUEUED_COMMANDS {
                 return error(
                     503,
-                    &format!("{MAX_QUEUED_COMMANDS} commands are already waiting for the engine; try again"),
+                    &format!(
+                        "{MAX_QUEUED_COMMANDS} commands are already waiting for the engine; try again"
+                    ),
                 );
             }
             q.push(cmd);
@@ -170,7 +181,10 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
                 fov,
             })
         }
-        p if p.starts_with("/scripts/") && p.ends_with("/params") && p.len() > "/scripts//params".len() - 1 => {
+        p if p.starts_with("/scripts/")
+            && p.ends_with("/params")
+            && p.len() > "/scripts//params".len() - 1 =>
+        {
             let script = &p["/scripts/".len()..p.len() - "/params".len()];
             if script.is_empty() || script.contains('/') {
                 return Err((404, format!("no route POST {}", shown(p))));

@@ -53,8 +53,8 @@ impl ControlServer {
     /// Bind `addr` (a taken port is a clear error) and serve on a thread of
     /// its own until [`stop`](Self::stop).
     pub fn start(addr: SocketAddr, shared: Arc<Shared>) -> Result<Self, String> {
-        let listener =
-            std::net::TcpListener::bind(addr).map_err(|e| format!("cannot listen on {addr}: {e}"))?;
+        let listener = std::net::TcpListener::bind(addr)
+            .map_err(|e| format!("cannot listen on {addr}: {e}"))?;
         let bound = listener
             .local_addr()
             .map_err(|e| format!("cannot listen on {addr}: {e}"))?;
