@@ -483,10 +483,7 @@ impl Checkpoints {
     /// problems met on the way (newer corrupt files, renamed `*.corrupt`,
     /// and other worlds' checkpoints, skipped). Files found good count for
     /// retention.
-    pub fn open(
-        dir: &Path,
-        identity: WorldIdentity,
-    ) -> Result<Opened, CheckpointError> {
+    pub fn open(dir: &Path, identity: WorldIdentity) -> Result<Opened, CheckpointError> {
         let mut warnings = Vec::new();
         let mut found = None;
         let mut good = Vec::new();
