@@ -278,3 +278,52 @@ fn a_resume_restores_the_sleep_state() {
     assert_eq!(other.active_tiles(), saved.active.len());
     let _ = TILE_CELLS;
 }
+
+#[test]
+fn pathological_patterns_and_huge_strings_are_stopped() {
+    // Exponential backtracking inside a C library function: Luau still
+    // reaches the interrupt, so the budget stops it.
+    let mut sim = sim_with(&[script(
+        "pat",
+        "local s = string.rep(\"a\", 30) local p = string.rep(\"a*\", 30) .. \"b\" local r = string.find(s, p)",
+    )]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("budget exceeded"), "{e}");
+    // A string larger than the VM's memory limit.
+    let mut sim = sim_with(&[script("big", "local s = string.rep(\"x\", 1e9)")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("memory") || e.contains("not enough"), "{e}");
+}
+
+#[test]
+fn fault_08_state_kept_in_upvalues_is_refused() {
+    // A counter in a local of the chunk, changed directly or by a helper.
+    let direct = src(
+        "up",
+        "local counter = 0\nreturn { channels = { \"u\" }, passes = { { name = \"p\", reads = {}, writes = { \"u\" },\n\
+         kernel = function(c) if c.tick > 0 then counter = counter + 1 end end } } }",
+    );
+    let helper = src(
+        "uph",
+        "local n = 0\nlocal function bump() n = n + 1 end\nreturn { channels = { \"u\" }, passes = { { name = \"p\", reads = {}, writes = { \"u\" },\n\
+         kernel = function(c) if c.tick > 0 then bump() end end } } }",
+    );
+    for s in [direct, helper] {
+        let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+        sim.add_script(s, Kernel::Lua, small()).unwrap();
+        sim.step(0.1);
+        let e = runtime_error(&mut sim);
+        assert!(e.contains("keep no state between calls"), "{e}");
+    }
+    // Reading constants and calling pure helpers is fine.
+    let pure = src(
+        "pure",
+        "local K = 3\nlocal function f(x) return x * K end\nreturn { channels = { \"u\" }, passes = { { name = \"p\", reads = {}, writes = { \"u\" },\n\
+         kernel = function(c) buffer.writef64(c.w.u, 0, f(c.tick)) end } } }",
+    );
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(pure, Kernel::Lua, small()).unwrap();
+    for _ in 0..3 {
+        assert!(sim.step(0.1).errors.is_empty());
+    }
+}

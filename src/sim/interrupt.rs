@@ -1,5 +1,7 @@
-//! The per-call budget of Luau kernels (instructions, wall-clock time,
-//! memory), enforced from Luau's interrupt hook through the raw C API.
+//! The raw Luau C API, in one place: the per-call budget of kernels
+//! (instructions, wall-clock time, memory), enforced from Luau's interrupt
+//! hook, and [`upvalue_fingerprint`], which lets the runtime see a kernel
+//! keep state between calls in its upvalues.
 //!
 //! This is the crate's only `unsafe` code. It exists because a benchmark
 //! demanded it: mlua's safe `set_interrupt` wraps every Luau safepoint (each
@@ -139,5 +141,99 @@ pub fn install(lua: &Lua) {
         let _: mlua::Result<()> = lua.exec_raw((), |state| {
             (*ffi::lua_callbacks(state)).interrupt = Some(interrupt);
         });
+    }
+}
+
+/// Most function levels followed through upvalues.
+const MAX_UPVALUE_DEPTH: u32 = 8;
+
+/// A fingerprint of the state `f` can reach through its upvalues, following
+/// function upvalues (helpers) recursively: numbers, booleans, strings and
+/// vectors by value, every other object by identity. A kernel that assigns
+/// to a local of its chunk (`counter = counter + 1`) changes it; one that
+/// only reads constants and calls helpers does not. Table *contents* are not
+/// covered (a scratch table may be reused; its contents must not carry state).
+pub fn upvalue_fingerprint(lua: &Lua, f: &mlua::Function) -> u64 {
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    let mut seen: Vec<*const std::ffi::c_void> = Vec::new();
+    // SAFETY: exec_raw pushes `f` on the VM's stack and runs the closure in
+    // a protected call while holding the VM's lock; the walk only reads
+    // values, checks the stack before each push and pops what it pushed.
+    let _: mlua::Result<()> = unsafe {
+        lua.exec_raw(f.clone(), |state| {
+            let top = ffi::lua_gettop(state);
+            walk_upvalues(state, top, 0, &mut h, &mut seen);
+        })
+    };
+    h
+}
+
+/// Mix the upvalues of the function at absolute stack index `idx` into `h`.
+///
+/// # Safety
+/// `state` must be a live Luau state with a function at `idx`.
+unsafe fn walk_upvalues(
+    state: *mut ffi::lua_State,
+    idx: c_int,
+    depth: u32,
+    h: &mut u64,
+    seen: &mut Vec<*const std::ffi::c_void>,
+) {
+    fn mix(h: &mut u64, v: u64) {
+        *h ^= v;
+        *h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    // SAFETY (whole body): `idx` holds a function (caller's contract); every
+    // push is preceded by lua_checkstack and matched by a pop.
+    unsafe {
+        let p = ffi::lua_topointer(state, idx);
+        if depth > MAX_UPVALUE_DEPTH || seen.contains(&p) {
+            return;
+        }
+        seen.push(p);
+        let mut n = 1;
+        loop {
+            if ffi::lua_checkstack(state, 2) == 0 {
+                return;
+            }
+            if ffi::lua_getupvalue(state, idx, n).is_null() {
+                break;
+            }
+            let t = ffi::lua_type(state, -1);
+            mix(h, t as u64);
+            match t {
+                ffi::LUA_TNUMBER => mix(h, ffi::lua_tonumber(state, -1).to_bits()),
+                ffi::LUA_TBOOLEAN => mix(h, ffi::lua_toboolean(state, -1) as u64),
+                ffi::LUA_TSTRING => {
+                    let mut len = 0usize;
+                    let s = ffi::lua_tolstring(state, -1, &mut len);
+                    if !s.is_null() {
+                        for b in std::slice::from_raw_parts(s.cast::<u8>(), len) {
+                            mix(h, *b as u64);
+                        }
+                    }
+                }
+                ffi::LUA_TVECTOR => {
+                    let v = ffi::lua_tovector(state, -1);
+                    if !v.is_null() {
+                        for k in 0..3 {
+                            mix(h, (*v.add(k)).to_bits() as u64);
+                        }
+                    }
+                }
+                ffi::LUA_TFUNCTION => {
+                    mix(h, ffi::lua_topointer(state, -1) as u64);
+                    // C functions (math.max, buffer.readf64…) hold no
+                    // script state: only Lua helpers are followed.
+                    if ffi::lua_iscfunction(state, -1) == 0 {
+                        let at = ffi::lua_gettop(state);
+                        walk_upvalues(state, at, depth + 1, h, seen);
+                    }
+                }
+                _ => mix(h, ffi::lua_topointer(state, -1) as u64),
+            }
+            ffi::lua_pop(state, 1);
+            n += 1;
+        }
     }
 }

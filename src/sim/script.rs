@@ -195,6 +195,9 @@ pub struct ScriptVm {
     /// of the hard limit, which the allocator enforces).
     memory_soft: usize,
     kernels: Vec<Function>,
+    /// Each kernel's [`super::interrupt::upvalue_fingerprint`] after loading:
+    /// a call that changes it kept state between calls.
+    prints: Vec<u64>,
     reads: Vec<Buffer>,
     writes: Vec<Buffer>,
     /// Per pass: indices into `reads` / `writes` (channel order of `spec.channels`).
@@ -360,6 +363,7 @@ impl ScriptVm {
             lua,
             memory_soft: limits.memory / 10 * 9,
             kernels: Vec::new(),
+            prints: Vec::new(),
             reads: Vec::new(),
             writes: Vec::new(),
             read_tables: Vec::new(),
@@ -379,7 +383,11 @@ impl ScriptVm {
                 .get("kernel")
                 .map_err(|e| declaration(src, Some("kernel"), e.to_string()))?;
             match k {
-                Value::Function(f) => vm.kernels.push(f),
+                Value::Function(f) => {
+                    vm.prints
+                        .push(super::interrupt::upvalue_fingerprint(&vm.lua, &f));
+                    vm.kernels.push(f);
+                }
                 _ => {
                     return Err(declaration(
                         src,
@@ -664,12 +672,20 @@ impl ScriptVm {
             );
             self.kernels[pass].call::<()>((ctx.clone(), tx, tz))?;
             // A script that caught its own budget error still failed.
-            match super::interrupt::tripped() {
-                Some(what) => Err(mlua::Error::runtime(format!(
+            if let Some(what) = super::interrupt::tripped() {
+                return Err(mlua::Error::runtime(format!(
                     "{what} exceeded (the script caught the error, but a budget cannot be caught)"
-                ))),
-                None => Ok(()),
+                )));
             }
+            // State kept between calls would depend on which VM ran which tile.
+            if super::interrupt::upvalue_fingerprint(&self.lua, &self.kernels[pass])
+                != self.prints[pass]
+            {
+                return Err(mlua::Error::runtime(
+                    "the kernel changed a variable outside itself (a local of the script, or one a helper function captures); kernels must keep no state between calls: use a channel",
+                ));
+            }
+            Ok(())
         };
         run().map_err(|e| {
             let msg = match &e {
