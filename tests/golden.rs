@@ -127,7 +127,7 @@ fn hairball_matches_golden() {
 #[test]
 fn fault_21_a_snow_only_world_shows_no_water() {
     use brickworld::sim::tile::TILE_CELLS;
-    use brickworld::sim::voxels::WATER;
+    use brickworld::sim::writeback::WATER;
     use brickworld::sim::{Limits, ScriptSource, WorldSim};
     let mut world = build_scene(
         &SceneSpec::Terrain { caves: false },
@@ -186,7 +186,7 @@ fn fault_21_a_snow_only_world_shows_no_water() {
 
 #[test]
 fn water_is_drawn_only_where_it_is_at_least_half_a_voxel_deep() {
-    use brickworld::sim::voxels::levels;
+    use brickworld::sim::writeback::levels;
     assert_eq!(levels(10.6, 0.0, 0.0, 96), [10, 10, 10]);
     assert_eq!(levels(10.6, 0.0, 0.3, 96), [10, 10, 10]);
     assert_eq!(levels(10.6, 0.0, 0.6, 96), [10, 10, 11]);

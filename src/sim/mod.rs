@@ -1,25 +1,22 @@
 //! Cellular simulations over the world, written as Lua (Luau) scripts and
-//! run in parallel over tiles of columns.
+//! run in parallel: two grids on one runtime.
 //!
-//! - [`channels`]: sparse per-tile `f64` fields.
-//! - [`script`]: loading and validating scripts; sandboxed VMs.
-//! - [`step`]: the race-free parallel step: each pass reads the previous
-//!   generation with a one-cell halo and writes only its own tile; a step is
-//!   committed only if every pass of a script succeeded.
-//! - [`native`]: the Rust reference water kernel.
-//! - [`voxels`]: ground, snow and water columns written back into bricks,
-//!   which records the dirty bricks the renderer consumes.
+//! - [`runtime`]: sandboxed Luau VMs, declarations, uncatchable budgets,
+//!   deterministic randomness, hot reload, the built-in scripts.
+//! - [`columns`]: the 2.5D grid of 8×8 column tiles: [`channels`] (sparse
+//!   per-tile `f64` fields), [`step`] (the race-free parallel step: each
+//!   pass reads the previous generation with a one-cell halo and writes only
+//!   its own tile; a step is committed only if every pass of a script
+//!   succeeded), [`native`] (the Rust reference water kernel), [`run`] (a
+//!   simulation coupled to a scene) and [`writeback`] (ground, snow and
+//!   water surfaces written into bricks, recording dirty bricks).
 
-pub mod channels;
-pub mod embedded;
-mod interrupt;
-pub mod native;
-pub mod reload;
-pub mod run;
-pub mod script;
-pub mod step;
-pub mod tile;
-pub mod voxels;
+pub mod columns;
+pub mod runtime;
+
+pub use columns::{channels, native, run, step, tile, writeback};
+pub(crate) use runtime::interrupt;
+pub use runtime::{embedded, reload, script};
 
 use thiserror::Error;
 

@@ -21,10 +21,10 @@ use glam::IVec2;
 use rayon::prelude::*;
 use rustc_hash::{FxHashMap, FxHashSet};
 
-use super::SimError;
-use super::channels::{ChannelId, ChannelStore};
-use super::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
-use super::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, neighbourhood};
+use crate::sim::SimError;
+use crate::sim::channels::{ChannelId, ChannelStore};
+use crate::sim::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
+use crate::sim::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, neighbourhood};
 
 /// Steps without change before a tile sleeps.
 pub const SLEEP_AFTER: u8 = 2;

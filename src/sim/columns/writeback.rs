@@ -14,8 +14,8 @@
 use glam::{IVec2, IVec3};
 use rustc_hash::FxHashMap;
 
-use super::channels::ChannelStore;
-use super::tile::{TILE, TILE_CELLS, TileCoord, cell};
+use crate::sim::channels::ChannelStore;
+use crate::sim::tile::{TILE, TILE_CELLS, TileCoord, cell};
 use crate::world::{BRICK_EDGE, BrickStore, voxel_index};
 
 /// Material of water voxels written by the simulation.
@@ -134,7 +134,7 @@ impl ColumnSync {
             channels.find("snow"),
             channels.find("water"),
         );
-        let get = |id: Option<super::ChannelId>, t: TileCoord| {
+        let get = |id: Option<crate::sim::ChannelId>, t: TileCoord| {
             id.and_then(|id| channels.get(t, id)).copied()
         };
         let mut edited = 0;

@@ -7,7 +7,7 @@
 
 use rustc_hash::FxHashMap;
 
-use super::tile::{TILE_CELLS, TileCoord};
+use crate::sim::tile::{TILE_CELLS, TileCoord};
 
 /// Small `Copy` handle to a channel in a [`ChannelStore`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -164,6 +164,7 @@ impl ChannelStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sim::tile::TILE_CELLS;
     use glam::IVec2;
 
     #[test]

@@ -2,13 +2,13 @@
 //! runs from any directory (after `cargo install`, say), and
 //! `brickworld init DIR` writes them out for a modder to edit.
 
-use super::ScriptSource;
+use crate::sim::ScriptSource;
 
 /// `(file name, source)` of every shipped script.
 pub const SCRIPTS: &[(&str, &str)] = &[
-    ("water.lua", include_str!("../../scripts/water.lua")),
-    ("erosion.lua", include_str!("../../scripts/erosion.lua")),
-    ("snow.lua", include_str!("../../scripts/snow.lua")),
+    ("water.lua", include_str!("../../../scripts/water.lua")),
+    ("erosion.lua", include_str!("../../../scripts/erosion.lua")),
+    ("snow.lua", include_str!("../../../scripts/snow.lua")),
 ];
 
 /// The shipped script called `file` (e.g. `water.lua`), if there is one.

@@ -3,8 +3,8 @@
 //! native run of the same world are bit-identical: the reference for both
 //! accuracy and speed.
 
-use super::step::NativeKernel;
-use super::tile::{HALO_CELLS, TILE_CELLS, cell, halo};
+use crate::sim::step::NativeKernel;
+use crate::sim::tile::{HALO_CELLS, TILE_CELLS, cell, halo};
 
 /// `math.max(a, b)` as Luau computes it (the first argument wins ties and
 /// −0.0/0.0 comparisons), so results match the Lua script bit for bit.

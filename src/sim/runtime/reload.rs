@@ -3,7 +3,7 @@
 //! the events, and report each `.lua` file once its changes have settled.
 //!
 //! The caller then reloads the script with
-//! [`Simulation::replace_script`](super::Simulation::replace_script), which
+//! [`Simulation::replace_script`](crate::sim::Simulation::replace_script), which
 //! compiles it in a fresh VM and smoke-tests it before swapping it in at a
 //! step boundary; a broken save leaves the last good version running.
 
@@ -14,7 +14,7 @@ use crossbeam_channel::{Receiver, unbounded};
 use notify::{EventKind, RecursiveMode, Watcher};
 use rustc_hash::FxHashMap;
 
-use super::SimError;
+use crate::sim::SimError;
 
 /// A debounced watcher of one directory's `.lua` files.
 pub struct ScriptWatcher {

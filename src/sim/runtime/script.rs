@@ -36,8 +36,8 @@ use std::time::{Duration, Instant};
 
 use mlua::{Buffer, Function, Lua, LuaOptions, StdLib, Table, Value};
 
-use super::SimError;
-use super::tile::{HALO_CELLS, TILE_CELLS};
+use crate::sim::SimError;
+use crate::sim::tile::{HALO_CELLS, TILE_CELLS};
 
 /// A parameter a script declares.
 #[derive(Clone, Debug, PartialEq)]
@@ -195,7 +195,7 @@ pub struct ScriptVm {
     /// of the hard limit, which the allocator enforces).
     memory_soft: usize,
     kernels: Vec<Function>,
-    /// Each kernel's [`super::interrupt::upvalue_fingerprint`] after loading:
+    /// Each kernel's [`crate::sim::interrupt::upvalue_fingerprint`] after loading:
     /// a call that changes it kept state between calls.
     prints: Vec<u64>,
     reads: Vec<Buffer>,
@@ -318,12 +318,12 @@ impl ScriptVm {
         lua.globals().set_readonly(true);
         lua.set_memory_limit(limits.memory)
             .map_err(|e| SimError::Internal(e.to_string()))?;
-        super::interrupt::install(&lua);
+        crate::sim::interrupt::install(&lua);
         // Optimisation level 2 inlines small local functions and unrolls loops.
         lua.set_compiler(mlua::chunk::Compiler::new().set_optimization_level(2));
         let chunk = lua.load(&*src.text).set_name(format!("@{}.lua", src.name));
         // The chunk itself runs under the budget too (a script can loop at load).
-        super::interrupt::arm(
+        crate::sim::interrupt::arm(
             limits.instructions,
             Instant::now() + limits.time,
             limits.memory / 10 * 9,
@@ -385,7 +385,7 @@ impl ScriptVm {
             match k {
                 Value::Function(f) => {
                     vm.prints
-                        .push(super::interrupt::upvalue_fingerprint(&vm.lua, &f));
+                        .push(crate::sim::interrupt::upvalue_fingerprint(&vm.lua, &f));
                     vm.kernels.push(f);
                 }
                 _ => {
@@ -665,20 +665,20 @@ impl ScriptVm {
             .get(pass)
             .ok_or_else(|| SimError::Internal("begin_step was not called".into()))?;
         let run = || -> mlua::Result<()> {
-            super::interrupt::arm(
+            crate::sim::interrupt::arm(
                 self.limits.instructions,
                 Instant::now() + self.limits.time,
                 self.memory_soft,
             );
             self.kernels[pass].call::<()>((ctx.clone(), tx, tz))?;
             // A script that caught its own budget error still failed.
-            if let Some(what) = super::interrupt::tripped() {
+            if let Some(what) = crate::sim::interrupt::tripped() {
                 return Err(mlua::Error::runtime(format!(
                     "{what} exceeded (the script caught the error, but a budget cannot be caught)"
                 )));
             }
             // State kept between calls would depend on which VM ran which tile.
-            if super::interrupt::upvalue_fingerprint(&self.lua, &self.kernels[pass])
+            if crate::sim::interrupt::upvalue_fingerprint(&self.lua, &self.kernels[pass])
                 != self.prints[pass]
             {
                 return Err(mlua::Error::runtime(

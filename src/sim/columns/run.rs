@@ -6,10 +6,10 @@ use std::path::Path;
 use crossbeam_channel::{Receiver, Sender, unbounded};
 use glam::IVec3;
 
-use super::step::{Kernel, Simulation, StepReport};
-use super::voxels::{ColumnSync, ground_of_tile, set_palette, tiles_of};
-use super::{Limits, ScriptSource, SimError};
 use crate::scene::SceneWorld;
+use crate::sim::step::{Kernel, Simulation, StepReport};
+use crate::sim::writeback::{ColumnSync, ground_of_tile, set_palette, tiles_of};
+use crate::sim::{Limits, ScriptSource, SimError};
 
 /// One step's dirty bricks, each listed once.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -88,7 +88,7 @@ impl WorldSim {
             }
         }
         if drain {
-            let moat = [lowest - 2.0; super::tile::TILE_CELLS];
+            let moat = [lowest - 2.0; crate::sim::tile::TILE_CELLS];
             for tz in smin.y..smax.y {
                 for tx in smin.x..smax.x {
                     let t = glam::IVec2::new(tx, tz);
@@ -204,7 +204,7 @@ impl WorldSim {
                     self.drained += d.iter().sum::<f64>();
                     self.sim
                         .channels_mut()
-                        .set(*t, w, &[0.0; super::tile::TILE_CELLS]);
+                        .set(*t, w, &[0.0; crate::sim::tile::TILE_CELLS]);
                 }
             }
         }
