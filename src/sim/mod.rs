@@ -13,6 +13,7 @@
 
 pub mod columns;
 pub mod runtime;
+pub mod voxels;
 
 pub use columns::{channels, native, run, step, tile, writeback};
 pub(crate) use runtime::interrupt;

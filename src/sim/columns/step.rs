@@ -13,7 +13,6 @@
 //! sleeps; a change wakes its neighbourhood; edits wake tiles explicitly.
 //! Cost therefore grows with the active tiles, not the world.
 
-use std::cell::RefCell;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -114,10 +113,6 @@ pub struct SleepState {
     pub active: Vec<TileCoord>,
     /// Awake tiles' quiet-step counters, sorted by tile.
     pub quiet: Vec<(TileCoord, u8)>,
-}
-
-thread_local! {
-    static VMS: RefCell<FxHashMap<u64, (ScriptVm, u64)>> = RefCell::new(FxHashMap::default());
 }
 
 /// The tiles a step touches: the active ones and their neighbours, densely
@@ -402,6 +397,13 @@ impl Simulation {
         limits: Limits,
     ) -> Result<Loaded, SimError> {
         let (mut vm, spec) = ScriptVm::load(&src, limits)?;
+        if spec.grid != crate::sim::script::Grid::Columns {
+            return Err(SimError::Declaration {
+                script: spec.name.clone(),
+                line: None,
+                msg: "a voxel script (grid = \"voxels\") cannot run on the column grid".into(),
+            });
+        }
         let ids: Vec<ChannelId> = spec
             .channels
             .iter()
@@ -420,7 +422,13 @@ impl Simulation {
         let params: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
         // Smoke test: every pass once on a dry sample tile, in this fresh VM.
         if matches!(kernel, Kernel::Lua) {
-            vm.begin_step(0.01, &spec, &params, StepKey::new(self.seed, 0, &spec.name))?;
+            vm.begin_step(
+                0.01,
+                &spec,
+                &params,
+                StepKey::new(self.seed, 0, &spec.name),
+                &[],
+            )?;
             for (pi, pass) in spec.passes.iter().enumerate() {
                 vm.run(pi, &pass.name, 0, 0)?;
             }
@@ -732,39 +740,17 @@ fn run_lua(
     reads: &[[f64; HALO_CELLS]],
     writes: &mut [[f64; TILE_CELLS]],
 ) -> Result<(), SimError> {
-    VMS.with(|cell| {
-        let mut map = cell.borrow_mut();
-        if !map.contains_key(&s.uid) {
-            if map.len() > 32 {
-                map.clear();
-            }
-            let (vm, _) = ScriptVm::load(&s.src, s.limits)?;
-            map.insert(s.uid, (vm, 0));
-        }
-        let r = run_in_vm(
-            map.get_mut(&s.uid).expect("inserted above"),
-            s,
-            pass,
-            t,
-            dt,
-            serial,
-            key,
-            read_idx,
-            write_idx,
-            reads,
-            writes,
-        );
-        if r.is_err() {
-            // A VM that failed mid-kernel is rebuilt next time.
-            map.remove(&s.uid);
-        }
-        r
+    crate::sim::runtime::vms::with_vm(s.uid, &s.src, s.limits, |vm, prepared| {
+        run_in_vm(
+            vm, prepared, s, pass, t, dt, serial, key, read_idx, write_idx, reads, writes,
+        )
     })
 }
 
 #[allow(clippy::too_many_arguments)]
 fn run_in_vm(
-    entry: &mut (ScriptVm, u64),
+    vm: &mut ScriptVm,
+    prepared: &mut u64,
     s: &Loaded,
     pass: usize,
     t: TileCoord,
@@ -777,9 +763,8 @@ fn run_in_vm(
     writes: &mut [[f64; TILE_CELLS]],
 ) -> Result<(), SimError> {
     {
-        let (vm, prepared) = entry;
         if *prepared != serial {
-            vm.begin_step(dt, &s.spec, &s.params, key)?;
+            vm.begin_step(dt, &s.spec, &s.params, key, &[])?;
             *prepared = serial;
         }
         let mut rb = [0u8; HALO_CELLS * 8];

@@ -6,3 +6,4 @@ pub mod embedded;
 pub(crate) mod interrupt;
 pub mod reload;
 pub mod script;
+pub mod vms;

@@ -63,11 +63,41 @@ pub struct PassSpec {
     pub writes: Vec<String>,
 }
 
+/// Which grid a script runs over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Grid {
+    /// 8×8 column tiles of `f64` channels (`grid = "columns"`, the default).
+    #[default]
+    Columns,
+    /// 8³ bricks of materials and `f32` per-voxel channels (`grid = "voxels"`).
+    Voxels,
+}
+
+/// The material buffer's name in a voxel kernel's `c.r` / `c.w`.
+pub const MAT: &str = "mat";
+
+/// Voxels in a brick with its one-voxel halo (10³).
+pub const VOXEL_HALO: usize = 1000;
+/// Voxels in a brick.
+pub const VOXEL_CELLS: usize = 512;
+
 /// What a script declares, validated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ScriptSpec {
     /// Script name (file stem).
     pub name: String,
+    /// The grid it runs over.
+    pub grid: Grid,
+    /// Materials it names (`c.m.NAME` holds each id), voxel scripts only.
+    pub materials: Vec<String>,
+    /// Run only on bricks that hold one of these materials (empty: all
+    /// active bricks), voxel scripts only.
+    pub only: Vec<String>,
+    /// Bricks holding one of these materials never sleep (a lava source).
+    pub keep_awake: Vec<String>,
+    /// Channels whose total the runtime reports and checks stays constant
+    /// (to round-off) across the script's step.
+    pub conserved: Vec<String>,
     /// Channels used.
     pub channels: Vec<String>,
     /// Channels that must stay ≥ 0.
@@ -195,6 +225,8 @@ pub struct ScriptVm {
     /// of the hard limit, which the allocator enforces).
     memory_soft: usize,
     kernels: Vec<Function>,
+    /// Voxel scripts: the material halo (10³ bytes) and output (8³ bytes).
+    mat: Option<(Buffer, Buffer)>,
     /// Each kernel's [`crate::sim::interrupt::upvalue_fingerprint`] after loading:
     /// a call that changes it kept state between calls.
     prints: Vec<u64>,
@@ -363,6 +395,7 @@ impl ScriptVm {
             lua,
             memory_soft: limits.memory / 10 * 9,
             kernels: Vec::new(),
+            mat: None,
             prints: Vec::new(),
             reads: Vec::new(),
             writes: Vec::new(),
@@ -404,14 +437,62 @@ impl ScriptVm {
 
     fn parse_spec(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimError> {
         let channels = strings(src, def, "channels")?;
-        if channels.is_empty() {
+        let voxel_grid = matches!(def.get::<Value>("grid"), Ok(Value::String(ref g)) if g.to_str().is_ok_and(|g| g == "voxels"));
+        if channels.is_empty() && !voxel_grid {
             return Err(declaration(
                 src,
                 Some("channels"),
                 "the script declares no channels",
             ));
         }
+        let grid = match def.get::<Value>("grid") {
+            Ok(Value::Nil) => Grid::Columns,
+            Ok(Value::String(g)) if g.to_str().is_ok_and(|g| g == "columns") => Grid::Columns,
+            Ok(Value::String(g)) if g.to_str().is_ok_and(|g| g == "voxels") => Grid::Voxels,
+            _ => {
+                return Err(declaration(
+                    src,
+                    Some("grid"),
+                    "'grid' must be \"columns\" or \"voxels\"",
+                ));
+            }
+        };
+        let materials = strings(src, def, "materials")?;
+        let only = strings(src, def, "only")?;
+        let keep_awake = strings(src, def, "keep_awake")?;
+        let conserved = strings(src, def, "conserved")?;
+        if grid == Grid::Columns {
+            for (field, list) in [
+                ("materials", &materials),
+                ("only", &only),
+                ("keep_awake", &keep_awake),
+            ] {
+                if !list.is_empty() {
+                    return Err(declaration(
+                        src,
+                        Some(field),
+                        format!("'{field}' is for voxel scripts (grid = \"voxels\")"),
+                    ));
+                }
+            }
+        }
+        for m in only.iter().chain(&keep_awake) {
+            if !materials.contains(m) {
+                return Err(declaration(
+                    src,
+                    Some(m),
+                    format!("material '{m}' must also be listed in 'materials'"),
+                ));
+            }
+        }
         for c in &channels {
+            if c == MAT && grid == Grid::Voxels {
+                return Err(declaration(
+                    src,
+                    Some(c),
+                    "'mat' is the material buffer; name the channel otherwise",
+                ));
+            }
             if c.is_empty() || !c.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_') {
                 return Err(declaration(
                     src,
@@ -437,6 +518,9 @@ impl ScriptVm {
         };
         for c in &nonnegative {
             known(c, "'nonnegative'")?;
+        }
+        for c in &conserved {
+            known(c, "'conserved'")?;
         }
         let mut params = Vec::new();
         match def.get::<Value>("params") {
@@ -551,10 +635,11 @@ impl ScriptVm {
             };
             let reads = strings(src, &p, "reads")?;
             let writes = strings(src, &p, "writes")?;
-            for r in &reads {
+            let is_mat = |c: &str| grid == Grid::Voxels && c == MAT;
+            for r in reads.iter().filter(|r| !is_mat(r)) {
                 known(r, &format!("pass '{name}' reads"))?;
             }
-            for w in &writes {
+            for w in writes.iter().filter(|w| !is_mat(w)) {
                 known(w, &format!("pass '{name}' writes"))?;
             }
             if writes.is_empty() {
@@ -579,6 +664,11 @@ impl ScriptVm {
         }
         Ok(ScriptSpec {
             name: src.name.clone(),
+            grid,
+            materials,
+            only,
+            keep_awake,
+            conserved,
             channels,
             nonnegative,
             params,
@@ -588,20 +678,45 @@ impl ScriptVm {
     }
 
     fn make_buffers(&mut self, spec: &ScriptSpec) -> mlua::Result<()> {
+        let (halo, own) = match spec.grid {
+            Grid::Columns => (HALO_CELLS * 8, TILE_CELLS * 8),
+            Grid::Voxels => (VOXEL_HALO * 4, VOXEL_CELLS * 4),
+        };
         for _ in &spec.channels {
-            self.reads
-                .push(self.lua.create_buffer_with_capacity(HALO_CELLS * 8)?);
-            self.writes
-                .push(self.lua.create_buffer_with_capacity(TILE_CELLS * 8)?);
+            self.reads.push(self.lua.create_buffer_with_capacity(halo)?);
+            self.writes.push(self.lua.create_buffer_with_capacity(own)?);
+        }
+        if spec.grid == Grid::Voxels {
+            self.mat = Some((
+                self.lua.create_buffer_with_capacity(VOXEL_HALO)?,
+                self.lua.create_buffer_with_capacity(VOXEL_CELLS)?,
+            ));
         }
         for pass in &spec.passes {
             let r = self.lua.create_table()?;
-            for name in &pass.reads {
+            if let Some((mr, _)) = &self.mat {
+                // Materials are always readable, with the halo.
+                r.set(MAT, mr.clone())?;
+            }
+            for name in pass
+                .reads
+                .iter()
+                .filter(|n| spec.grid == Grid::Columns || *n != MAT)
+            {
                 let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
                 r.set(name.as_str(), self.reads[i].clone())?;
             }
             let w = self.lua.create_table()?;
-            for name in &pass.writes {
+            if let Some((_, mw)) = &self.mat
+                && pass.writes.iter().any(|w| w == MAT)
+            {
+                w.set(MAT, mw.clone())?;
+            }
+            for name in pass
+                .writes
+                .iter()
+                .filter(|n| spec.grid == Grid::Columns || *n != MAT)
+            {
                 let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
                 w.set(name.as_str(), self.writes[i].clone())?;
             }
@@ -619,8 +734,15 @@ impl ScriptVm {
         spec: &ScriptSpec,
         params: &[f64],
         key: StepKey,
+        material_ids: &[u8],
     ) -> Result<(), SimError> {
         let make = || -> mlua::Result<Vec<Table>> {
+            let m = self.lua.create_table()?;
+            m.set("air", 0)?;
+            for (name, id) in spec.materials.iter().zip(material_ids) {
+                m.set(name.as_str(), *id)?;
+            }
+            m.set_readonly(true);
             let random = self.lua.create_function(
                 move |_, (x, y, z, k): (f64, Option<f64>, Option<f64>, Option<f64>)| {
                     Ok(key.random(x, y.unwrap_or(0.0), z.unwrap_or(0.0), k.unwrap_or(0.0)))
@@ -638,6 +760,7 @@ impl ScriptVm {
                 c.set("tick", key.tick)?;
                 c.set("random", random.clone())?;
                 c.set("p", p.clone())?;
+                c.set("m", m.clone())?;
                 c.set("r", r.clone())?;
                 c.set("w", w.clone())?;
                 out.push(c);
@@ -658,8 +781,45 @@ impl ScriptVm {
         &self.writes[ch]
     }
 
+    /// The material halo (10³ bytes, x fastest, then y, then z) and output
+    /// (8³ bytes) buffers of a voxel script.
+    pub fn material_buffers(&self) -> Option<&(Buffer, Buffer)> {
+        self.mat.as_ref()
+    }
+
+    /// Run pass `pass` of a voxel script on brick `b`. Buffers must be
+    /// filled beforehand.
+    pub fn run_voxel(&mut self, pass: usize, pass_name: &str, b: [i32; 3]) -> Result<(), SimError> {
+        self.call(pass, pass_name, (b[0], b[1], Some(b[2])))
+            .map_err(|e| match e {
+                SimError::Runtime {
+                    script,
+                    pass,
+                    line,
+                    msg,
+                    ..
+                } => SimError::Runtime {
+                    script,
+                    pass,
+                    tile: (b[0], b[2]),
+                    line,
+                    msg: format!("brick ({}, {}, {}): {msg}", b[0], b[1], b[2]),
+                },
+                other => other,
+            })
+    }
+
     /// Run pass `pass` on tile (tx, tz). Buffers must be filled beforehand.
     pub fn run(&mut self, pass: usize, pass_name: &str, tx: i32, tz: i32) -> Result<(), SimError> {
+        self.call(pass, pass_name, (tx, tz, None))
+    }
+
+    fn call(
+        &mut self,
+        pass: usize,
+        pass_name: &str,
+        (tx, tz, third): (i32, i32, Option<i32>),
+    ) -> Result<(), SimError> {
         let ctx = self
             .ctx
             .get(pass)
@@ -670,7 +830,10 @@ impl ScriptVm {
                 Instant::now() + self.limits.time,
                 self.memory_soft,
             );
-            self.kernels[pass].call::<()>((ctx.clone(), tx, tz))?;
+            match third {
+                None => self.kernels[pass].call::<()>((ctx.clone(), tx, tz))?,
+                Some(z) => self.kernels[pass].call::<()>((ctx.clone(), tx, tz, z))?,
+            }
             // A script that caught its own budget error still failed.
             if let Some(what) = crate::sim::interrupt::tripped() {
                 return Err(mlua::Error::runtime(format!(

@@ -1,0 +1,93 @@
+//! Per-voxel `f32` channels, stored sparsely per brick: a brick with no
+//! water holds no water array, and writing all zeros frees it.
+//!
+//! `f32` is enough for fill levels, temperatures and the like (7 digits),
+//! halves the memory and the data crossing into Lua of `f64`, and Luau's
+//! `buffer.readf32`/`writef32` read it directly.
+
+use glam::IVec3;
+use rustc_hash::FxHashMap;
+
+use crate::sim::script::VOXEL_CELLS;
+
+/// A channel id (index into [`VoxelChannels`]).
+pub type VoxelChannelId = usize;
+
+/// Named per-voxel channels.
+#[derive(Clone, Debug, Default)]
+pub struct VoxelChannels {
+    names: Vec<String>,
+    data: Vec<FxHashMap<IVec3, Box<[f32; VOXEL_CELLS]>>>,
+}
+
+impl VoxelChannels {
+    /// The id of channel `name`, created empty if new.
+    pub fn channel(&mut self, name: &str) -> VoxelChannelId {
+        if let Some(i) = self.find(name) {
+            return i;
+        }
+        self.names.push(name.to_string());
+        self.data.push(FxHashMap::default());
+        self.names.len() - 1
+    }
+
+    /// The id of `name`, if it exists.
+    pub fn find(&self, name: &str) -> Option<VoxelChannelId> {
+        self.names.iter().position(|n| n == name)
+    }
+
+    /// Every channel's name, by id.
+    pub fn names(&self) -> &[String] {
+        &self.names
+    }
+
+    /// Brick `b`'s values (None: all zero).
+    pub fn get(&self, id: VoxelChannelId, b: IVec3) -> Option<&[f32; VOXEL_CELLS]> {
+        self.data[id].get(&b).map(|d| &**d)
+    }
+
+    /// Set brick `b`'s values; all zeros frees the array.
+    pub fn set(&mut self, id: VoxelChannelId, b: IVec3, v: &[f32; VOXEL_CELLS]) {
+        if v.iter().all(|x| x.to_bits() == 0) {
+            self.data[id].remove(&b);
+        } else {
+            self.data[id].insert(b, Box::new(*v));
+        }
+    }
+
+    /// Bricks holding an array of channel `id`.
+    pub fn bricks(&self, id: VoxelChannelId) -> usize {
+        self.data[id].len()
+    }
+
+    /// Sum of channel `id` over the world, in f64.
+    pub fn total(&self, id: VoxelChannelId) -> f64 {
+        let mut keys: Vec<&IVec3> = self.data[id].keys().collect();
+        keys.sort_by_key(|k| (k.z, k.y, k.x));
+        keys.iter()
+            .map(|k| self.data[id][*k].iter().map(|&v| v as f64).sum::<f64>())
+            .sum()
+    }
+
+    /// A hash of every channel (sorted), for determinism checks.
+    pub fn hash(&self) -> u64 {
+        let mut h = 0xcbf2_9ce4_8422_2325u64;
+        let mut mix = |v: u64| {
+            h ^= v;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        };
+        for (name, d) in self.names.iter().zip(&self.data) {
+            name.bytes().for_each(|b| mix(b as u64));
+            let mut keys: Vec<&IVec3> = d.keys().collect();
+            keys.sort_by_key(|k| (k.z, k.y, k.x));
+            for k in keys {
+                mix(((k.x as u32 as u64) << 32) | k.y as u32 as u64);
+                mix(k.z as u32 as u64);
+                for v in d[k].iter() {
+                    mix(v.to_bits() as u64);
+                }
+            }
+        }
+        h
+    }
+}

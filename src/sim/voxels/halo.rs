@@ -1,0 +1,93 @@
+//! Gathering a brick's one-voxel halo (10³ cells) from its 27-brick
+//! neighbourhood, through a table built once: cell `h` of the halo comes
+//! from neighbour `NBR[h]` at local index `LOCAL[h]`.
+//!
+//! Halo index: `(x + 1) + (y + 1)·10 + (z + 1)·100` for x, y, z in −1..=8
+//! (x fastest, as in a brick). Neighbour index: `(dx + 1) + (dy + 1)·3 +
+//! (dz + 1)·9`, so 13 is the brick itself.
+
+use std::sync::OnceLock;
+
+use glam::IVec3;
+
+use crate::sim::script::{VOXEL_CELLS, VOXEL_HALO};
+use crate::world::voxel_index;
+
+/// The brick itself in a neighbourhood.
+pub const SELF: usize = 13;
+
+/// Halo index of local voxel (x, y, z) (each −1..=8).
+#[inline(always)]
+pub fn halo_index(x: i32, y: i32, z: i32) -> usize {
+    ((x + 1) + (y + 1) * 10 + (z + 1) * 100) as usize
+}
+
+/// Offset of neighbour `n` (0..27).
+pub fn neighbour_offset(n: usize) -> IVec3 {
+    IVec3::new(n as i32 % 3 - 1, (n as i32 / 3) % 3 - 1, n as i32 / 9 - 1)
+}
+
+fn table() -> &'static [(u8, u16); VOXEL_HALO] {
+    static T: OnceLock<[(u8, u16); VOXEL_HALO]> = OnceLock::new();
+    T.get_or_init(|| {
+        let mut t = [(0u8, 0u16); VOXEL_HALO];
+        for z in -1i32..9 {
+            for y in -1i32..9 {
+                for x in -1i32..9 {
+                    let (bx, lx) = (x.div_euclid(8), x.rem_euclid(8));
+                    let (by, ly) = (y.div_euclid(8), y.rem_euclid(8));
+                    let (bz, lz) = (z.div_euclid(8), z.rem_euclid(8));
+                    let n = (bx + 1) + (by + 1) * 3 + (bz + 1) * 9;
+                    t[halo_index(x, y, z)] = (n as u8, voxel_index(lx, ly, lz) as u16);
+                }
+            }
+        }
+        t
+    })
+}
+
+/// Fill `out` from the neighbourhood `nbr` (None: use `missing`).
+pub fn gather<T: Copy>(
+    nbr: &[Option<&[T; VOXEL_CELLS]>; 27],
+    missing: T,
+    out: &mut [T; VOXEL_HALO],
+) {
+    for (o, &(n, l)) in out.iter_mut().zip(table().iter()) {
+        *o = match nbr[n as usize] {
+            Some(d) => d[l as usize],
+            None => missing,
+        };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_halo_comes_from_the_right_neighbours() {
+        // Neighbour n holds the value n everywhere; the brick itself holds
+        // its local index.
+        let bricks: Vec<[u16; VOXEL_CELLS]> = (0..27)
+            .map(|n| {
+                if n == SELF {
+                    std::array::from_fn(|i| 1000 + i as u16)
+                } else {
+                    [n as u16; VOXEL_CELLS]
+                }
+            })
+            .collect();
+        let nbr: [Option<&[u16; VOXEL_CELLS]>; 27] = std::array::from_fn(|n| Some(&bricks[n]));
+        let mut out = [0u16; VOXEL_HALO];
+        gather(&nbr, 0, &mut out);
+        assert_eq!(out[halo_index(0, 0, 0)], 1000);
+        assert_eq!(out[halo_index(7, 7, 7)], 1000 + voxel_index(7, 7, 7) as u16);
+        assert_eq!(out[halo_index(-1, 3, 3)], 12); // −x neighbour
+        assert_eq!(out[halo_index(3, 8, 3)], 16); // +y
+        assert_eq!(out[halo_index(3, 3, -1)], 4); // −z
+        assert_eq!(out[halo_index(-1, -1, -1)], 0);
+        assert_eq!(out[halo_index(8, 8, 8)], 26);
+        assert_eq!(neighbour_offset(SELF), IVec3::ZERO);
+        assert_eq!(neighbour_offset(0), IVec3::splat(-1));
+    }
+}

@@ -1,0 +1,17 @@
+//! The voxel grid: scripts with `grid = "voxels"` run over the world's raw
+//! bricks. A kernel sees its brick's materials and declared per-voxel
+//! channels with a one-voxel halo (10³) and writes its own 8³ cells;
+//! materials it changes go through the store's recorded edit path, so they
+//! reach the editing queue and the renderer like any edit.
+//!
+//! - [`halo`]: gathering a brick's halo from its 27-brick neighbourhood.
+//! - [`channels`]: sparse per-brick `f32` channels.
+//! - [`step`]: scheduling (material filters, rates, sleep), the parallel
+//!   double-buffered step, validation and commit.
+
+pub mod channels;
+pub mod halo;
+pub mod step;
+
+pub use channels::{VoxelChannelId, VoxelChannels};
+pub use step::{BOUNDARY, VoxelSim, VoxelStepReport};

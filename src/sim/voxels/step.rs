@@ -1,0 +1,688 @@
+//! The voxel grid's step: scripts with `grid = "voxels"` run once per
+//! candidate brick and pass, reading the previous generation of the
+//! brick's materials and channels with a one-voxel halo (10³) and writing
+//! only its own 8³ cells. Outputs are committed in sorted brick order after
+//! each pass (double buffering), so the result is bit-identical for any
+//! thread count; a script whose step fails is rolled back alone.
+//!
+//! **Scheduling.** The candidates of a step are the active bricks, or with
+//! `only = {…}` the active bricks holding one of those materials (found from
+//! a per-brick presence bitset, never by scanning), dilated by one brick so
+//! that anything can move into a neighbour. A brick unchanged for
+//! [`SLEEP_AFTER`] steps sleeps; a change wakes its 26 neighbours; bricks
+//! holding a `keep_awake` material never sleep. `every = N` runs a script
+//! on every Nth tick.
+//!
+//! **Validation.** Written materials must be registered (or air), channel
+//! values finite and within their declared `ranges`, and `conserved`
+//! channels' totals unchanged beyond round-off; otherwise the script's step
+//! is rejected with the script, brick and value named.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use glam::IVec3;
+use rayon::prelude::*;
+use rustc_hash::{FxHashMap, FxHashSet};
+
+use super::channels::{VoxelChannelId, VoxelChannels};
+use super::halo::{SELF, gather, neighbour_offset};
+use crate::sim::script::{Grid, MAT, VOXEL_CELLS, VOXEL_HALO};
+use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
+use crate::world::{BRICK_EDGE, BrickStore, MaterialRegistry};
+
+/// Steps without change before a brick sleeps.
+pub const SLEEP_AFTER: u8 = 2;
+/// Failed steps in a row before a voxel script is suspended.
+pub const SUSPEND_AFTER: u32 = 3;
+/// The material kernels see outside the world's bounds (a wall).
+pub const BOUNDARY: u8 = 255;
+
+static NEXT_UID: AtomicU64 = AtomicU64::new(1 << 40);
+static STEP_SERIAL: AtomicU64 = AtomicU64::new(1 << 40);
+
+/// A 256-bit set of material ids.
+type MatSet = [u64; 4];
+
+fn set_of(ids: impl IntoIterator<Item = u8>) -> MatSet {
+    let mut s = [0u64; 4];
+    for i in ids {
+        s[i as usize >> 6] |= 1 << (i & 63);
+    }
+    s
+}
+
+fn presence_of(d: &[u8; VOXEL_CELLS]) -> MatSet {
+    set_of(d.iter().copied())
+}
+
+fn meets(a: &MatSet, b: &MatSet) -> bool {
+    a.iter().zip(b).any(|(x, y)| x & y != 0)
+}
+
+struct Loaded {
+    uid: u64,
+    src: ScriptSource,
+    spec: ScriptSpec,
+    params: Vec<f64>,
+    channel_ids: Vec<VoxelChannelId>,
+    material_ids: Vec<u8>,
+    only: Option<MatSet>,
+    keep_awake: MatSet,
+    limits: Limits,
+    every: u64,
+    failures: u32,
+    suspended: Option<SimError>,
+}
+
+/// What one voxel step did.
+#[derive(Clone, Debug, Default)]
+pub struct VoxelStepReport {
+    /// Bricks whose kernels ran (the largest count over scripts).
+    pub candidates: usize,
+    /// Bricks whose materials changed (sorted), already recorded in the store.
+    pub changed: Vec<IVec3>,
+    /// Scripts whose step was rejected.
+    pub errors: Vec<SimError>,
+    /// Milliseconds each script took (script order; 0 if it did not run).
+    pub script_ms: Vec<f64>,
+}
+
+/// The voxel simulation: per-voxel channels, voxel scripts, the active set.
+pub struct VoxelSim {
+    channels: VoxelChannels,
+    scripts: Vec<Loaded>,
+    /// Brick bounds `[min, max)`.
+    lo: IVec3,
+    hi: IVec3,
+    active: FxHashSet<IVec3>,
+    quiet: FxHashMap<IVec3, u8>,
+    presence: FxHashMap<IVec3, MatSet>,
+    tick: u64,
+    seed: u64,
+}
+
+/// Brick coordinates covering the voxel box `[lo, hi)`.
+fn brick_bounds(lo: IVec3, hi: IVec3) -> (IVec3, IVec3) {
+    (
+        lo.div_euclid(IVec3::splat(BRICK_EDGE)),
+        (hi - 1).div_euclid(IVec3::splat(BRICK_EDGE)) + 1,
+    )
+}
+
+impl VoxelSim {
+    /// A voxel simulation over the voxel box `[lo, hi)`; every non-empty
+    /// brick starts awake.
+    pub fn new(store: &BrickStore, lo: IVec3, hi: IVec3, seed: u64) -> Self {
+        let (blo, bhi) = brick_bounds(lo, hi);
+        let inside = |b: IVec3| b.cmpge(blo).all() && b.cmplt(bhi).all();
+        let active = store
+            .iter()
+            .map(|(b, _)| b)
+            .filter(|b| inside(*b))
+            .collect();
+        VoxelSim {
+            channels: VoxelChannels::default(),
+            scripts: Vec::new(),
+            lo: blo,
+            hi: bhi,
+            active,
+            quiet: FxHashMap::default(),
+            presence: FxHashMap::default(),
+            tick: 0,
+            seed,
+        }
+    }
+
+    fn inside(&self, b: IVec3) -> bool {
+        b.cmpge(self.lo).all() && b.cmplt(self.hi).all()
+    }
+
+    /// The channels.
+    pub fn channels(&self) -> &VoxelChannels {
+        &self.channels
+    }
+
+    /// Mutable channels (initial conditions); wakes nothing by itself.
+    pub fn channels_mut(&mut self) -> &mut VoxelChannels {
+        &mut self.channels
+    }
+
+    /// Bricks awake.
+    pub fn active_bricks(&self) -> usize {
+        self.active.len()
+    }
+
+    /// Ticks taken.
+    pub fn tick(&self) -> u64 {
+        self.tick
+    }
+
+    /// Continue from `tick` (after a resume).
+    pub fn set_tick(&mut self, tick: u64) {
+        self.tick = tick;
+    }
+
+    /// Number of scripts.
+    pub fn script_count(&self) -> usize {
+        self.scripts.len()
+    }
+
+    /// Declarations of script `i`.
+    pub fn spec(&self, i: usize) -> &ScriptSpec {
+        &self.scripts[i].spec
+    }
+
+    /// Why script `i` is suspended, if it is.
+    pub fn suspended(&self, i: usize) -> Option<&SimError> {
+        self.scripts[i].suspended.as_ref()
+    }
+
+    /// Run script `i` on ticks that are multiples of `every`.
+    pub fn set_every(&mut self, i: usize, every: u64) {
+        self.scripts[i].every = every.max(1);
+    }
+
+    /// Set a parameter (refused outside its declared range).
+    pub fn set_param(&mut self, i: usize, name: &str, value: f64) -> Result<(), SimError> {
+        let s = &mut self.scripts[i];
+        let Some(k) = s.spec.params.iter().position(|p| p.name == name) else {
+            return Err(SimError::Param {
+                script: s.spec.name.clone(),
+                msg: format!("no parameter '{name}'"),
+            });
+        };
+        let p = &s.spec.params[k];
+        if !(p.min..=p.max).contains(&value) {
+            return Err(SimError::Param {
+                script: s.spec.name.clone(),
+                msg: format!(
+                    "parameter '{name}' = {value} is outside [{}, {}]",
+                    p.min, p.max
+                ),
+            });
+        }
+        s.params[k] = value;
+        self.wake_all_known();
+        Ok(())
+    }
+
+    fn wake_all_known(&mut self) {
+        let known: Vec<IVec3> = self.presence.keys().copied().collect();
+        self.active.extend(known);
+        self.quiet.clear();
+    }
+
+    /// Wake `bricks` and their neighbours, and forget their material
+    /// presence (an edit from outside: the column write-back, a user).
+    pub fn notify_edited(&mut self, bricks: &[IVec3]) {
+        for &b in bricks {
+            self.presence.remove(&b);
+            self.wake(b);
+        }
+    }
+
+    fn wake(&mut self, b: IVec3) {
+        for n in 0..27 {
+            let nb = b + neighbour_offset(n);
+            if self.inside(nb) {
+                self.active.insert(nb);
+                self.quiet.remove(&nb);
+            }
+        }
+    }
+
+    /// Load a voxel script. Its materials must be registered.
+    pub fn add_script(
+        &mut self,
+        src: ScriptSource,
+        limits: Limits,
+        registry: &MaterialRegistry,
+    ) -> Result<usize, SimError> {
+        let (_, spec) = ScriptVm::load(&src, limits)?;
+        if spec.grid != Grid::Voxels {
+            return Err(SimError::Declaration {
+                script: spec.name.clone(),
+                line: None,
+                msg: "a column script cannot run on the voxel grid".into(),
+            });
+        }
+        let material_ids = spec
+            .materials
+            .iter()
+            .map(|m| {
+                registry.id(m).ok_or_else(|| SimError::Declaration {
+                    script: spec.name.clone(),
+                    line: src
+                        .text
+                        .lines()
+                        .position(|l| l.contains(m.as_str()))
+                        .map(|i| i + 1),
+                    msg: format!("unknown material '{m}' (declare it in materials.lua)"),
+                })
+            })
+            .collect::<Result<Vec<u8>, SimError>>()?;
+        let id_of = |names: &[String]| {
+            set_of(names.iter().filter_map(|n| {
+                spec.materials
+                    .iter()
+                    .position(|m| m == n)
+                    .map(|i| material_ids[i])
+            }))
+        };
+        let only = (!spec.only.is_empty()).then(|| id_of(&spec.only));
+        let keep_awake = id_of(&spec.keep_awake);
+        let channel_ids = spec
+            .channels
+            .iter()
+            .map(|c| self.channels.channel(c))
+            .collect();
+        let params = spec.params.iter().map(|p| p.default).collect();
+        self.scripts.push(Loaded {
+            uid: NEXT_UID.fetch_add(1, Ordering::Relaxed),
+            src,
+            spec,
+            params,
+            channel_ids,
+            material_ids,
+            only,
+            keep_awake,
+            limits,
+            every: 1,
+            failures: 0,
+            suspended: None,
+        });
+        Ok(self.scripts.len() - 1)
+    }
+
+    fn presence(&mut self, store: &BrickStore, b: IVec3) -> MatSet {
+        if let Some(p) = self.presence.get(&b) {
+            return *p;
+        }
+        let mut d = [0u8; VOXEL_CELLS];
+        store.read_dense(b, &mut d);
+        let p = presence_of(&d);
+        self.presence.insert(b, p);
+        p
+    }
+
+    /// The bricks script `s` runs on this step, sorted.
+    fn candidates(&mut self, store: &BrickStore, only: Option<MatSet>) -> Vec<IVec3> {
+        let mut active: Vec<IVec3> = self.active.iter().copied().collect();
+        active.sort_by_key(|b| (b.z, b.y, b.x));
+        let mut out = FxHashSet::default();
+        for b in active {
+            if let Some(o) = only
+                && !meets(&self.presence(store, b), &o)
+            {
+                continue;
+            }
+            for n in 0..27 {
+                let nb = b + neighbour_offset(n);
+                if self.inside(nb) {
+                    out.insert(nb);
+                }
+            }
+        }
+        let mut out: Vec<IVec3> = out.into_iter().collect();
+        out.sort_by_key(|b| (b.z, b.y, b.x));
+        out
+    }
+
+    /// Advance every voxel script by `dt`; changed materials go through
+    /// `store`'s recorded edit path. A failed script is rolled back alone.
+    pub fn step(
+        &mut self,
+        store: &mut BrickStore,
+        registry: &MaterialRegistry,
+        dt: f64,
+    ) -> VoxelStepReport {
+        let serial = STEP_SERIAL.fetch_add(1, Ordering::Relaxed);
+        let mut report = VoxelStepReport {
+            script_ms: vec![0.0; self.scripts.len()],
+            ..Default::default()
+        };
+        let valid =
+            set_of((0..=255u8).filter(|&m| m == 0 || (m != BOUNDARY && registry.get(m).is_some())));
+        let mut changed: FxHashSet<IVec3> = FxHashSet::default();
+        for si in 0..self.scripts.len() {
+            let (every, suspended, only) = {
+                let s = &self.scripts[si];
+                (s.every, s.suspended.is_some(), s.only)
+            };
+            if suspended || !self.tick.is_multiple_of(every) {
+                continue;
+            }
+            let t0 = Instant::now();
+            let cands = self.candidates(store, only);
+            report.candidates = report.candidates.max(cands.len());
+            let key = StepKey::new(self.seed, self.tick, &self.scripts[si].spec.name);
+            let result = run_script(
+                &self.scripts[si],
+                store,
+                &self.channels,
+                &cands,
+                (self.lo, self.hi),
+                &valid,
+                dt,
+                serial,
+                key,
+            );
+            let s = &mut self.scripts[si];
+            match result {
+                Ok(out) => {
+                    s.failures = 0;
+                    for (b, mats) in out.mats {
+                        let done = store.edit_brick(b, |d| *d = *mats);
+                        if done {
+                            changed.insert(b);
+                            self.presence.insert(b, presence_of(&mats));
+                        }
+                    }
+                    for (ch, b, v) in out.channels {
+                        let before = self
+                            .channels
+                            .get(ch, b)
+                            .copied()
+                            .unwrap_or([0.0; VOXEL_CELLS]);
+                        if before
+                            .iter()
+                            .zip(v.iter())
+                            .any(|(a, c)| a.to_bits() != c.to_bits())
+                        {
+                            changed.insert(b);
+                            self.channels.set(ch, b, &v);
+                        }
+                    }
+                }
+                Err(e) => {
+                    s.failures += 1;
+                    if s.failures >= SUSPEND_AFTER {
+                        s.suspended = Some(e.clone());
+                    }
+                    report.errors.push(e);
+                }
+            }
+            report.script_ms[si] = t0.elapsed().as_secs_f64() * 1e3;
+        }
+        // Sleep and wake.
+        let keep = self.scripts.iter().fold([0u64; 4], |a, s| {
+            std::array::from_fn(|i| a[i] | s.keep_awake[i])
+        });
+        // Every awake brick that nothing changed this tick (whether or not a
+        // script visited it) moves towards sleep.
+        let mut awake: Vec<IVec3> = self.active.iter().copied().collect();
+        awake.sort_by_key(|b| (b.z, b.y, b.x));
+        for b in awake {
+            if changed.contains(&b) {
+                continue;
+            }
+            if keep != [0; 4] && meets(&self.presence(store, b), &keep) {
+                continue;
+            }
+            let q = self.quiet.entry(b).or_insert(0);
+            *q += 1;
+            if *q >= SLEEP_AFTER {
+                self.active.remove(&b);
+                self.quiet.remove(&b);
+            }
+        }
+        let mut changed: Vec<IVec3> = changed.into_iter().collect();
+        changed.sort_by_key(|b| (b.z, b.y, b.x));
+        for &b in &changed {
+            self.wake(b);
+        }
+        self.tick += 1;
+        report.changed = changed;
+        report
+    }
+}
+
+/// A script's committed outputs: materials of bricks that a pass wrote, and
+/// channel values of bricks written.
+struct Outputs {
+    mats: Vec<(IVec3, Box<[u8; VOXEL_CELLS]>)>,
+    channels: Vec<(VoxelChannelId, IVec3, Box<[f32; VOXEL_CELLS]>)>,
+}
+
+const ZERO_U8: [u8; VOXEL_CELLS] = [0; VOXEL_CELLS];
+const ZERO_F32: [f32; VOXEL_CELLS] = [0.0; VOXEL_CELLS];
+
+#[allow(clippy::too_many_arguments)]
+fn run_script(
+    s: &Loaded,
+    store: &BrickStore,
+    channels: &VoxelChannels,
+    cands: &[IVec3],
+    (lo, hi): (IVec3, IVec3),
+    valid: &MatSet,
+    dt: f64,
+    serial: u64,
+    key: StepKey,
+) -> Result<Outputs, SimError> {
+    let inside = |b: IVec3| b.cmpge(lo).all() && b.cmplt(hi).all();
+    // The previous generation of every brick the candidates can see.
+    let mut needed: FxHashSet<IVec3> = FxHashSet::default();
+    for &b in cands {
+        for n in 0..27 {
+            let nb = b + neighbour_offset(n);
+            if inside(nb) {
+                needed.insert(nb);
+            }
+        }
+    }
+    let mut mats: FxHashMap<IVec3, Box<[u8; VOXEL_CELLS]>> = FxHashMap::default();
+    for &b in &needed {
+        if store.cell(b) != crate::world::Cell::Empty {
+            let mut d = Box::new([0u8; VOXEL_CELLS]);
+            store.read_dense(b, &mut d);
+            mats.insert(b, d);
+        }
+    }
+    let original: FxHashMap<IVec3, Box<[u8; VOXEL_CELLS]>> = cands
+        .iter()
+        .filter_map(|b| mats.get(b).map(|d| (*b, d.clone())))
+        .collect();
+    let nch = s.channel_ids.len();
+    let mut chans: Vec<FxHashMap<IVec3, Box<[f32; VOXEL_CELLS]>>> = s
+        .channel_ids
+        .iter()
+        .map(|&id| {
+            needed
+                .iter()
+                .filter_map(|&b| channels.get(id, b).map(|d| (b, Box::new(*d))))
+                .collect()
+        })
+        .collect();
+    let conserved: Vec<usize> = s
+        .spec
+        .conserved
+        .iter()
+        .filter_map(|c| s.spec.channels.iter().position(|x| x == c))
+        .collect();
+    let sum = |chans: &Vec<FxHashMap<IVec3, Box<[f32; VOXEL_CELLS]>>>, i: usize| -> (f64, f64) {
+        cands
+            .iter()
+            .fold((0.0, 0.0), |(t, a), b| match chans[i].get(b) {
+                Some(d) => (
+                    t + d.iter().map(|&v| v as f64).sum::<f64>(),
+                    a + d.iter().map(|&v| (v as f64).abs()).sum::<f64>(),
+                ),
+                None => (t, a),
+            })
+    };
+    let before: Vec<(f64, f64)> = conserved.iter().map(|&i| sum(&chans, i)).collect();
+    let mut wrote_mat = false;
+    let mut written = vec![false; nch];
+    for (pi, pass) in s.spec.passes.iter().enumerate() {
+        let writes_mat = pass.writes.iter().any(|w| w == MAT);
+        let ridx: Vec<usize> = pass
+            .reads
+            .iter()
+            .filter_map(|r| s.spec.channels.iter().position(|c| c == r))
+            .collect();
+        let widx: Vec<usize> = pass
+            .writes
+            .iter()
+            .filter_map(|w| s.spec.channels.iter().position(|c| c == w))
+            .collect();
+        type Out = (Option<Box<[u8; VOXEL_CELLS]>>, Vec<Box<[f32; VOXEL_CELLS]>>);
+        let outs: Vec<Out> = cands
+            .par_iter()
+            .map_init(
+                || {
+                    (
+                        Box::new([0u8; VOXEL_HALO]),
+                        vec![Box::new([0f32; VOXEL_HALO]); nch],
+                    )
+                },
+                |(mhalo, chalo), &b| -> Result<Out, SimError> {
+                    let nbr_m: [Option<&[u8; VOXEL_CELLS]>; 27] = std::array::from_fn(|n| {
+                        let nb = b + neighbour_offset(n);
+                        if !inside(nb) {
+                            None
+                        } else {
+                            Some(mats.get(&nb).map_or(&ZERO_U8, |d| &**d))
+                        }
+                    });
+                    gather(&nbr_m, BOUNDARY, mhalo);
+                    for &i in &ridx {
+                        let nbr: [Option<&[f32; VOXEL_CELLS]>; 27] = std::array::from_fn(|n| {
+                            let nb = b + neighbour_offset(n);
+                            Some(chans[i].get(&nb).map_or(&ZERO_F32, |d| &**d))
+                        });
+                        gather(&nbr, 0.0, &mut chalo[i]);
+                    }
+                    let own_m = nbr_m[SELF].copied().unwrap_or(ZERO_U8);
+                    crate::sim::runtime::vms::with_vm(s.uid, &s.src, s.limits, |vm, prepared| {
+                        if *prepared != serial {
+                            vm.begin_step(dt, &s.spec, &s.params, key, &s.material_ids)?;
+                            *prepared = serial;
+                        }
+                        let (mr, mw) = vm
+                            .material_buffers()
+                            .expect("a voxel VM has material buffers");
+                        mr.write_bytes(0, &mhalo[..]);
+                        mw.write_bytes(0, &own_m);
+                        let mut bytes = vec![0u8; VOXEL_HALO * 4];
+                        for &i in &ridx {
+                            for (k, v) in chalo[i].iter().enumerate() {
+                                bytes[k * 4..k * 4 + 4].copy_from_slice(&v.to_le_bytes());
+                            }
+                            vm.read_buffer(i).write_bytes(0, &bytes);
+                        }
+                        for &i in &widx {
+                            let cur = chans[i].get(&b).map_or(&ZERO_F32, |d| &**d);
+                            for (k, v) in cur.iter().enumerate() {
+                                bytes[k * 4..k * 4 + 4].copy_from_slice(&v.to_le_bytes());
+                            }
+                            vm.write_buffer(i).write_bytes(0, &bytes[..VOXEL_CELLS * 4]);
+                        }
+                        vm.run_voxel(pi, &pass.name, b.to_array())?;
+                        let m_out = writes_mat.then(|| {
+                            let (_, mw) = vm.material_buffers().expect("voxel VM");
+                            Box::new(mw.read_bytes::<VOXEL_CELLS>(0))
+                        });
+                        let c_out = widx
+                            .iter()
+                            .map(|&i| {
+                                let raw: [u8; VOXEL_CELLS * 4] = vm.write_buffer(i).read_bytes(0);
+                                Box::new(std::array::from_fn(|k| {
+                                    f32::from_le_bytes(raw[k * 4..k * 4 + 4].try_into().expect("4"))
+                                }))
+                            })
+                            .collect();
+                        Ok((m_out, c_out))
+                    })
+                },
+            )
+            .collect::<Result<_, _>>()?;
+        // Commit the pass (every brick of it read the previous generation).
+        for (&b, (m, cs)) in cands.iter().zip(outs) {
+            if let Some(m) = m {
+                if let Some(bad) = m
+                    .iter()
+                    .find(|&&v| valid[v as usize >> 6] & (1 << (v & 63)) == 0)
+                {
+                    return Err(SimError::Runtime {
+                        script: s.spec.name.clone(),
+                        pass: pass.name.clone(),
+                        tile: (b.x, b.z),
+                        line: None,
+                        msg: format!(
+                            "brick ({}, {}, {}): wrote material id {bad}, which is not registered",
+                            b.x, b.y, b.z
+                        ),
+                    });
+                }
+                mats.insert(b, m);
+                wrote_mat = true;
+            }
+            for (j, &i) in widx.iter().enumerate() {
+                let v = &cs[j];
+                if let Some((c, x)) = v.iter().enumerate().find(|(_, x)| !x.is_finite()) {
+                    return Err(SimError::Unstable {
+                        script: s.spec.name.clone(),
+                        msg: format!(
+                            "channel '{}' = {x} at voxel {} of brick ({}, {}, {})",
+                            s.spec.channels[i], c, b.x, b.y, b.z
+                        ),
+                    });
+                }
+                if let Some(r) = s.spec.ranges.iter().find(|r| r.0 == s.spec.channels[i])
+                    && let Some(x) = v.iter().find(|&&x| (x as f64) < r.1 || (x as f64) > r.2)
+                {
+                    return Err(SimError::OutOfBounds {
+                        script: s.spec.name.clone(),
+                        channel: r.0.clone(),
+                        column: (b.x * BRICK_EDGE, b.z * BRICK_EDGE),
+                        value: *x as f64,
+                        bound: (r.1, r.2),
+                        why: format!("its declared range, in brick ({}, {}, {})", b.x, b.y, b.z),
+                    });
+                }
+                chans[i].insert(b, cs[j].clone());
+                written[i] = true;
+            }
+        }
+    }
+    for (k, &i) in conserved.iter().enumerate() {
+        let (after, abs_after) = sum(&chans, i);
+        let (was, abs_was) = before[k];
+        let tol = 1e-5 * (abs_was.max(abs_after) + 1.0);
+        if (after - was).abs() > tol {
+            return Err(SimError::Unstable {
+                script: s.spec.name.clone(),
+                msg: format!(
+                    "conserved channel '{}' drifted from {was} to {after} in one step (tolerance {tol:.3e})",
+                    s.spec.channels[i]
+                ),
+            });
+        }
+    }
+    let mats = if wrote_mat {
+        cands
+            .iter()
+            .filter_map(|b| {
+                let new = mats.get(b)?;
+                let old = original.get(b).map_or(&ZERO_U8, |d| &**d);
+                (**new != *old).then(|| (*b, new.clone()))
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let mut chan_out = Vec::new();
+    for i in (0..nch).filter(|&i| written[i]) {
+        for &b in cands {
+            let v = chans[i]
+                .get(&b)
+                .map_or_else(|| Box::new(ZERO_F32), |d| d.clone());
+            chan_out.push((s.channel_ids[i], b, v));
+        }
+    }
+    Ok(Outputs {
+        mats,
+        channels: chan_out,
+    })
+}

@@ -1,0 +1,247 @@
+//! The material registry: named materials (colour, kind, density) with
+//! stable 8-bit ids, shared by scenes, scripts, checkpoints and the tracers.
+//!
+//! - Id 0 is air and cannot be redefined.
+//! - Scenes register their materials by name when they are built (the
+//!   terrain's `grass`, `rock`…, the simulation's `water`, `snow`,
+//!   `sediment`); scripts' `materials.lua` adds more.
+//! - A name keeps its id for the life of a world: re-registering it (a hot
+//!   reload) may change its colour or properties, never its id. New names
+//!   take the highest free id, counting down from 251, so they do not collide
+//!   with scene palettes that count up from 1.
+//! - Checkpoints save the name of every id (see [`MaterialRegistry::names`]),
+//!   so ids survive a restart whatever order materials are declared in.
+//!
+//! ```
+//! use brickworld::world::{MaterialDef, MaterialKind, MaterialRegistry};
+//! let mut reg = MaterialRegistry::new();
+//! let lava = reg.register("lava", MaterialDef { color: [255, 90, 20], kind: MaterialKind::Liquid, density: 3.1 }).unwrap();
+//! assert_eq!(reg.id("lava"), Some(lava));
+//! // A reload keeps the id.
+//! let again = reg.register("lava", MaterialDef { color: [250, 80, 10], kind: MaterialKind::Liquid, density: 3.1 }).unwrap();
+//! assert_eq!(again, lava);
+//! ```
+
+use rustc_hash::FxHashMap;
+use thiserror::Error;
+
+use super::Palette;
+
+/// How a material behaves (rules read it; the engine does not).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MaterialKind {
+    /// Stays put unless a rule moves it.
+    Solid,
+    /// Flows (water, lava).
+    Liquid,
+    /// Falls and piles (sand).
+    Granular,
+    /// Rises or spreads (steam).
+    Gas,
+}
+
+impl std::str::FromStr for MaterialKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Ok(match s {
+            "solid" => MaterialKind::Solid,
+            "liquid" => MaterialKind::Liquid,
+            "granular" => MaterialKind::Granular,
+            "gas" => MaterialKind::Gas,
+            other => {
+                return Err(format!(
+                    "kind '{other}' is not solid, liquid, granular or gas"
+                ));
+            }
+        })
+    }
+}
+
+/// A material's properties.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MaterialDef {
+    /// Colour (sRGB).
+    pub color: [u8; 3],
+    /// Behaviour.
+    pub kind: MaterialKind,
+    /// Density relative to water.
+    pub density: f32,
+}
+
+/// A material id (0 is air).
+pub type MaterialId = u8;
+
+/// Errors of the registry.
+#[derive(Clone, Debug, Error, PartialEq)]
+pub enum MaterialError {
+    /// A name that is not letters, digits and `_`, or `air`.
+    #[error("material name '{0}' must be letters, digits and '_' (and not 'air')")]
+    BadName(String),
+    /// Every id is taken.
+    #[error("no free material id for '{0}' (all 255 are taken)")]
+    Full(String),
+    /// A property out of range.
+    #[error("material '{name}': {msg}")]
+    Bad {
+        /// The material.
+        name: String,
+        /// What is wrong.
+        msg: String,
+    },
+}
+
+/// Named materials with stable ids.
+#[derive(Clone, Debug)]
+pub struct MaterialRegistry {
+    defs: Vec<Option<(String, MaterialDef)>>,
+    by_name: FxHashMap<String, MaterialId>,
+}
+
+impl Default for MaterialRegistry {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl MaterialRegistry {
+    /// A registry with only air.
+    pub fn new() -> Self {
+        MaterialRegistry {
+            defs: vec![None; 256],
+            by_name: FxHashMap::default(),
+        }
+    }
+
+    /// Register `name` at a given id (scenes, whose voxels already carry
+    /// ids). An id that holds another name is renamed; the old name is gone.
+    pub fn register_at(
+        &mut self,
+        id: MaterialId,
+        name: &str,
+        def: MaterialDef,
+    ) -> Result<MaterialId, MaterialError> {
+        Self::check(name, &def)?;
+        if id == 0 {
+            return Err(MaterialError::BadName(name.into()));
+        }
+        if let Some(Some((old, _))) = self.defs.get(id as usize) {
+            let old = old.clone();
+            self.by_name.remove(&old);
+        }
+        if let Some(prev) = self.by_name.insert(name.to_string(), id)
+            && prev != id
+        {
+            self.defs[prev as usize] = None;
+        }
+        self.defs[id as usize] = Some((name.to_string(), def));
+        Ok(id)
+    }
+
+    /// Register `name`: an existing name keeps its id (its properties are
+    /// updated); a new one takes the highest free id.
+    pub fn register(&mut self, name: &str, def: MaterialDef) -> Result<MaterialId, MaterialError> {
+        Self::check(name, &def)?;
+        if let Some(&id) = self.by_name.get(name) {
+            self.defs[id as usize] = Some((name.to_string(), def));
+            return Ok(id);
+        }
+        let id = (1..=251u8)
+            .rev()
+            .find(|&i| self.defs[i as usize].is_none())
+            .ok_or_else(|| MaterialError::Full(name.into()))?;
+        self.register_at(id, name, def)
+    }
+
+    fn check(name: &str, def: &MaterialDef) -> Result<(), MaterialError> {
+        if name.is_empty()
+            || name == "air"
+            || name.len() > 64
+            || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+        {
+            return Err(MaterialError::BadName(name.into()));
+        }
+        if !(def.density.is_finite() && def.density >= 0.0) {
+            return Err(MaterialError::Bad {
+                name: name.into(),
+                msg: format!("density {} must be a finite number >= 0", def.density),
+            });
+        }
+        Ok(())
+    }
+
+    /// The id of `name` (`air` is 0).
+    pub fn id(&self, name: &str) -> Option<MaterialId> {
+        if name == "air" {
+            return Some(0);
+        }
+        self.by_name.get(name).copied()
+    }
+
+    /// The material at `id`, if one is registered.
+    pub fn get(&self, id: MaterialId) -> Option<(&str, &MaterialDef)> {
+        self.defs[id as usize]
+            .as_ref()
+            .map(|(n, d)| (n.as_str(), d))
+    }
+
+    /// Every registered (id, name), by id.
+    pub fn names(&self) -> Vec<(MaterialId, String)> {
+        self.defs
+            .iter()
+            .enumerate()
+            .filter_map(|(i, d)| d.as_ref().map(|(n, _)| (i as u8, n.clone())))
+            .collect()
+    }
+
+    /// Write every registered colour into `palette`.
+    pub fn apply(&self, palette: &mut Palette) {
+        for (i, d) in self.defs.iter().enumerate() {
+            if let Some((_, def)) = d {
+                palette.set(i as u8, def.color);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn def(c: u8) -> MaterialDef {
+        MaterialDef {
+            color: [c, c, c],
+            kind: MaterialKind::Solid,
+            density: 1.0,
+        }
+    }
+
+    #[test]
+    fn names_keep_their_ids_and_new_ones_count_down() {
+        let mut r = MaterialRegistry::new();
+        r.register_at(1, "grass", def(1)).unwrap();
+        let a = r.register("lava", def(2)).unwrap();
+        let b = r.register("steam", def(3)).unwrap();
+        assert_eq!((a, b), (251, 250));
+        assert_eq!(r.register("lava", def(9)).unwrap(), 251);
+        assert_eq!(r.get(251).unwrap().1.color, [9, 9, 9]);
+        assert_eq!(r.id("air"), Some(0));
+        assert!(r.register("air", def(1)).is_err());
+        assert!(r.register("no spaces", def(1)).is_err());
+        let mut p = Palette::grey_ramp();
+        r.apply(&mut p);
+        assert_eq!(p.rgb(251), [9, 9, 9]);
+    }
+
+    #[test]
+    fn the_registry_fills_up_with_a_clear_error() {
+        let mut r = MaterialRegistry::new();
+        for i in 0..251 {
+            r.register(&format!("m{i}"), def(1)).unwrap();
+        }
+        assert!(matches!(
+            r.register("one_more", def(1)),
+            Err(MaterialError::Full(_))
+        ));
+    }
+}
