@@ -148,6 +148,44 @@ impl VoxelSim {
         &mut self.channels
     }
 
+    /// Set channel `name` to `value` in every voxel of material `id` (and
+    /// wake those bricks): initial conditions from a built world, e.g. full
+    /// water where the world has water voxels.
+    pub fn fill_channel_from_material(
+        &mut self,
+        store: &BrickStore,
+        name: &str,
+        id: u8,
+        value: f32,
+    ) {
+        let ch = self.channels.channel(name);
+        let mut bricks: Vec<IVec3> = store
+            .iter()
+            .map(|(b, _)| b)
+            .filter(|b| self.inside(*b))
+            .collect();
+        bricks.sort_by_key(|b| (b.z, b.y, b.x));
+        for b in bricks {
+            let mut d = [0u8; VOXEL_CELLS];
+            store.read_dense(b, &mut d);
+            if !d.contains(&id) {
+                continue;
+            }
+            let mut v = self
+                .channels
+                .get(ch, b)
+                .copied()
+                .unwrap_or([0.0; VOXEL_CELLS]);
+            for (x, m) in v.iter_mut().zip(d.iter()) {
+                if *m == id {
+                    *x = value;
+                }
+            }
+            self.channels.set(ch, b, &v);
+            self.wake(b);
+        }
+    }
+
     /// Bricks awake.
     pub fn active_bricks(&self) -> usize {
         self.active.len()
@@ -306,14 +344,21 @@ impl VoxelSim {
         p
     }
 
-    /// The bricks script `s` runs on this step, sorted.
-    fn candidates(&mut self, store: &BrickStore, only: Option<MatSet>) -> Vec<IVec3> {
+    /// The bricks script `si` runs on this step, sorted: its seeds (active
+    /// bricks that hold one of its `only` materials, or any value of its
+    /// channels: water too shallow to be drawn still flows) and their
+    /// neighbours, so that whatever moves out of a seed has a kernel on the
+    /// other side to receive it.
+    fn candidates(&mut self, store: &BrickStore, si: usize) -> Vec<IVec3> {
+        let only = self.scripts[si].only;
+        let chans = self.scripts[si].channel_ids.clone();
         let mut active: Vec<IVec3> = self.active.iter().copied().collect();
         active.sort_by_key(|b| (b.z, b.y, b.x));
         let mut out = FxHashSet::default();
         for b in active {
             if let Some(o) = only
                 && !meets(&self.presence(store, b), &o)
+                && !chans.iter().any(|&c| self.channels.get(c, b).is_some())
             {
                 continue;
             }
@@ -346,15 +391,15 @@ impl VoxelSim {
             set_of((0..=255u8).filter(|&m| m == 0 || (m != BOUNDARY && registry.get(m).is_some())));
         let mut changed: FxHashSet<IVec3> = FxHashSet::default();
         for si in 0..self.scripts.len() {
-            let (every, suspended, only) = {
+            let (every, suspended) = {
                 let s = &self.scripts[si];
-                (s.every, s.suspended.is_some(), s.only)
+                (s.every, s.suspended.is_some())
             };
             if suspended || !self.tick.is_multiple_of(every) {
                 continue;
             }
             let t0 = Instant::now();
-            let cands = self.candidates(store, only);
+            let cands = self.candidates(store, si);
             report.candidates = report.candidates.max(cands.len());
             let key = StepKey::new(self.seed, self.tick, &self.scripts[si].spec.name);
             let result = run_script(
