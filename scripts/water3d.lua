@@ -38,6 +38,8 @@ return {
   conserved = { "water" },
   materials = { "water" },
   only = { "water" },
+  -- A freshly built world's water voxels start full.
+  fills = { water = "water" },
   params = {
     compress = { default = 0.02, min = 0.0, max = 0.2 },
     fall = { default = 0.5, min = 0.0, max = 1.0 },

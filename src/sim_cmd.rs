@@ -44,7 +44,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
         for _ in 0..s.steps {
             for w in &mut watchers {
                 for path in w.poll() {
-                    match ws.reload(&path) {
+                    match ws.reload(&world, &path) {
                         Ok(Some(_)) => pb.suspend(|| eprintln!("reloaded {}", path.display())),
                         Ok(None) => {}
                         Err(e) => pb.suspend(|| eprintln!("warning: kept the last good version: {e}")),

@@ -8,7 +8,7 @@
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `BWCK` |
-//! | 4 | format version (2; version 1 files are still read) |
+//! | 4 | format version (3; versions 1 and 2 are still read) |
 //! | 8 | tick |
 //! | 8 | world hash (bricks + channels), checked on load |
 //! | 8 | compressed payload length |
@@ -44,7 +44,7 @@ use crate::sim::tile::TILE_CELLS;
 use crate::world::{BRICK_VOXELS, BrickContent, BrickStore, Palette};
 
 const MAGIC: &[u8; 4] = b"BWCK";
-const VERSION: u32 = 2;
+const VERSION: u32 = 3;
 /// Largest LZ4 expansion (LZ4's worst-case ratio is about 255:1): a size
 /// prefix claiming more is corrupt, refused before anything is allocated.
 const MAX_LZ4_RATIO: usize = 255;
@@ -120,6 +120,8 @@ pub struct SimExtras {
     pub drained: f64,
     /// Which tiles sleep (None in version-1 files: everything wakes).
     pub sleep: Option<crate::sim::step::SleepState>,
+    /// The voxel scripts' per-voxel channels (empty before version 3).
+    pub voxel_channels: crate::sim::voxels::VoxelChannels,
 }
 
 /// Everything a checkpoint holds.
@@ -311,6 +313,22 @@ fn encode(state: WorldRef<'_>) -> Vec<u8> {
             }
         }
     }
+    // Version 3: the voxel scripts' channels.
+    let vc = &state.extras.voxel_channels;
+    w.u32(vc.names().len() as u32);
+    for (id, name) in vc.names().iter().enumerate() {
+        w.str(name);
+        let bricks = vc.sorted_bricks(id);
+        w.u32(bricks.len() as u32);
+        for b in bricks {
+            w.i32(b.x);
+            w.i32(b.y);
+            w.i32(b.z);
+            for v in vc.get(id, b).expect("listed").iter() {
+                w.0.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
     w.0
 }
 
@@ -384,6 +402,23 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
                 quiet.push((IVec2::new(r.i32()?, r.i32()?), r.take(1)?[0]));
             }
             extras.sleep = Some(crate::sim::step::SleepState { active, quiet });
+        }
+    }
+    if version >= 3 {
+        let n = r.count(4096, "voxel channel")?;
+        for _ in 0..n {
+            let name = r.str()?;
+            let id = extras.voxel_channels.channel(&name);
+            let left = (r.data.len() - r.at) / (12 + 2048);
+            let k = r.count(left, "voxel channel brick")?;
+            for _ in 0..k {
+                let b = IVec3::new(r.i32()?, r.i32()?, r.i32()?);
+                let raw = r.take(2048)?;
+                let v: [f32; 512] = std::array::from_fn(|i| {
+                    f32::from_le_bytes(raw[i * 4..i * 4 + 4].try_into().expect("4"))
+                });
+                extras.voxel_channels.set(id, b, &v);
+            }
         }
     }
     if r.at != payload.len() {

@@ -76,6 +76,19 @@ fn load_source(cfg: &WorldConfig, file: &str) -> Result<ScriptSource> {
     }
 }
 
+/// `materials.lua`, from the scripts directory or the binary, if there is one.
+fn materials_source(cfg: &WorldConfig) -> Result<Option<ScriptSource>> {
+    if cfg.scripts_embedded {
+        return Ok(crate::sim::embedded::script("materials.lua"));
+    }
+    let path = cfg.scripts_dir.join("materials.lua");
+    if path.is_file() {
+        Ok(Some(read_script(&path)?))
+    } else {
+        Ok(None)
+    }
+}
+
 /// Per-script messages shown in `/status`.
 #[derive(Clone, Debug, Default)]
 struct ScriptNotes {
@@ -159,20 +172,29 @@ impl Engine {
             }
         };
         let mut ws = WorldSim::with_edges(&mut world, true);
-        ws.sim.set_seed(cfg.seed);
+        ws.set_seed(cfg.seed);
+        // materials.lua (optional) names the materials voxel scripts use.
+        if let Some(src) = materials_source(&cfg)? {
+            ws.load_materials(&mut world, &src)
+                .context("cannot load materials.lua")?;
+        }
         for (i, s) in cfg.scripts.iter().enumerate() {
-            ws.add_lua(load_source(&cfg, &s.file)?, Limits::default())
+            let id = ws
+                .add_script(&world, load_source(&cfg, &s.file)?, Limits::default())
                 .with_context(|| format!("cannot load script {}", s.file))?;
-            ws.sim.set_every(i, s.every);
+            ws.set_every(id, s.every);
             for (k, v) in &s.params {
-                ws.sim
-                    .set_param(i, k, *v)
+                ws.set_param(id, k, *v)
                     .with_context(|| format!("in the world config's scripts[{i}].params"))?;
             }
         }
         let mut loaded_from = None;
+        if resumed.is_none() {
+            ws.vox.apply_fills(&world.store, &world.materials);
+        }
         if let Some((tick, channels, params, extras)) = resumed {
             ws.sim.set_channels(channels);
+            ws.vox.set_channels(extras.voxel_channels.clone());
             ws.resync_columns();
             ws.sim.set_tick(tick);
             ws.drained = extras.drained;
@@ -181,9 +203,9 @@ impl Engine {
                 None => ws.sim.wake_all(),
             }
             for (script, values) in params {
-                if let Some(i) = ws.sim.script_index(&script) {
+                if let Some(i) = ws.script_index(&script) {
                     for (k, v) in values {
-                        if let Err(e) = ws.sim.set_param(i, &k, v) {
+                        if let Err(e) = ws.set_param(i, &k, v) {
                             eprintln!(
                                 "warning: the checkpoint's {script}.{k} = {v} is not kept: {e}"
                             );
@@ -232,7 +254,7 @@ impl Engine {
             server.addr,
             token_path.display()
         );
-        let n = ws.sim.script_count();
+        let n = ws.script_count();
         let mut engine = Engine {
             camera: cfg.camera,
             start_tick: ws.sim.tick(),
@@ -304,8 +326,8 @@ impl Engine {
                 .file_stem()
                 .map(|s| s.to_string_lossy().to_string())
                 .unwrap_or_default();
-            let index = self.ws.sim.script_index(&name);
-            match self.ws.reload(&path) {
+            let index = self.ws.script_index(&name);
+            match self.ws.reload(&self.world, &path) {
                 Ok(Some((i, warnings))) => {
                     eprintln!("reloaded {}", path.display());
                     for w in &warnings {
@@ -359,11 +381,11 @@ impl Engine {
                 Command::Params { script, values } => {
                     // The server validated against /status; a reload in
                     // between may still refuse, which is shown per script.
-                    let Some(i) = self.ws.sim.script_index(&script) else {
+                    let Some(i) = self.ws.script_index(&script) else {
                         continue;
                     };
                     for (k, v) in values {
-                        if let Err(e) = self.ws.sim.set_param(i, &k, v) {
+                        if let Err(e) = self.ws.set_param(i, &k, v) {
                             self.notes[i].warning = Some(format!("refused: {e}"));
                         }
                     }
@@ -383,7 +405,7 @@ impl Engine {
         }
         let (r, _) = self.ws.step_within_cfl(&mut self.world, self.cfg.dt, 0.5);
         for (i, n) in self.notes.iter_mut().enumerate() {
-            if self.ws.sim.failures(i) == 0 && self.ws.sim.suspended(i).is_none() {
+            if self.ws.failures(i) == 0 && self.ws.suspended(i).is_none() {
                 n.step_error = None;
             }
         }
@@ -394,7 +416,7 @@ impl Engine {
                 | SimError::OutOfBounds { script, .. } => script.as_str(),
                 _ => "",
             };
-            if let Some(i) = self.ws.sim.script_index(name) {
+            if let Some(i) = self.ws.script_index(name) {
                 self.notes[i].step_error = Some(e.to_string());
             }
         }
@@ -483,15 +505,16 @@ impl Engine {
     }
 
     fn write_checkpoint(&mut self) -> Result<CheckpointRef, String> {
+        let ws = &self.ws;
         let sim = &self.ws.sim;
-        let params: Vec<(String, Vec<(String, f64)>)> = (0..sim.script_count())
+        let params: Vec<(String, Vec<(String, f64)>)> = (0..ws.script_count())
             .map(|i| {
-                let spec = sim.spec(i);
+                let spec = ws.spec(i);
                 (
                     spec.name.clone(),
                     spec.params
                         .iter()
-                        .zip(sim.params(i))
+                        .zip(ws.params(i))
                         .map(|(p, v)| (p.name.clone(), *v))
                         .collect(),
                 )
@@ -500,6 +523,7 @@ impl Engine {
         let extras = SimExtras {
             drained: self.ws.drained,
             sleep: Some(sim.sleep_state()),
+            voxel_channels: self.ws.vox.channels().clone(),
         };
         let r = WorldRef {
             tick: sim.tick(),
@@ -542,7 +566,7 @@ impl Engine {
     }
 
     fn script_status(&self, i: usize) -> ScriptStatus {
-        let sim = &self.ws.sim;
+        let sim = &self.ws;
         let spec = sim.spec(i);
         let note = self.notes.get(i).cloned().unwrap_or_default();
         let (state, error) = match sim.suspended(i) {
@@ -583,7 +607,7 @@ impl Engine {
 
     /// Publish `/status` (one lock, everything at once).
     fn publish_status(&mut self) {
-        let scripts = (0..self.ws.sim.script_count())
+        let scripts = (0..self.ws.script_count())
             .map(|i| self.script_status(i))
             .collect();
         let stats = &self.renderer.stats;

@@ -29,6 +29,7 @@ pub use vox::{parse as parse_vox, store_from_voxels, voxels as vox_voxels};
 
 use crate::trace::{BrickmapTracer, DenseGrid, Frame, Svo, TraceError};
 use crate::world::{BRICK_SHIFT, BrickGrid, BrickStore, WorldError, brick_of};
+use crate::world::{MaterialDef, MaterialKind, MaterialRegistry};
 
 /// Errors loading or building a scene.
 #[derive(Debug, Error)]
@@ -159,6 +160,9 @@ pub struct SceneWorld {
     pub grid: BrickGrid,
     /// Voxel bounds `[min, max)`.
     pub bounds: (IVec3, IVec3),
+    /// The world's named materials (scene materials, the simulation's,
+    /// then `materials.lua`'s); their colours are the store's palette.
+    pub materials: MaterialRegistry,
 }
 
 impl SceneWorld {
@@ -167,10 +171,12 @@ impl SceneWorld {
         let b0 = brick_of(lo);
         let b1 = brick_of(hi - IVec3::ONE);
         let grid = BrickGrid::build(&store, b0, b1 - b0 + IVec3::ONE)?;
+        let materials = materials_present(&store);
         Ok(SceneWorld {
             store,
             grid,
             bounds: (lo, hi),
+            materials,
         })
     }
 
@@ -232,6 +238,32 @@ impl SceneWorld {
             },
         ]
     }
+}
+
+/// A registry naming every material id present in `store` `mN` (solid, in
+/// its palette colour); scene builders then give the ones they know their
+/// names.
+fn materials_present(store: &crate::world::BrickStore) -> MaterialRegistry {
+    let mut seen = [false; 256];
+    let mut d = [0u8; crate::world::BRICK_VOXELS];
+    for (b, _) in store.iter() {
+        store.read_dense(b, &mut d);
+        for &m in d.iter() {
+            seen[m as usize] = true;
+        }
+    }
+    let mut r = MaterialRegistry::new();
+    for m in 1..=255u8 {
+        if seen[m as usize] {
+            let def = MaterialDef {
+                color: store.palette().rgb(m),
+                kind: MaterialKind::Solid,
+                density: 2.5,
+            };
+            let _ = r.register_at(m, &format!("m{m}"), def);
+        }
+    }
+    r
 }
 
 /// Parse `.vox` bytes and place their voxels, as `vox:FILE` does (the
@@ -297,6 +329,16 @@ pub fn build_scene(
         SceneSpec::Vox(path) => vox::load(path)?,
     };
     let mut world = SceneWorld::new(store, lo, hi)?;
+    if let SceneSpec::Terrain { .. } = spec {
+        for (id, name) in terrain::NAMES {
+            let def = MaterialDef {
+                color: world.store.palette().rgb(*id),
+                kind: MaterialKind::Solid,
+                density: 2.5,
+            };
+            let _ = world.materials.register_at(*id, name, def);
+        }
+    }
     world.store.take_modified();
     Ok(world)
 }

@@ -17,6 +17,22 @@ mod mat {
     pub const DEEP: u8 = 12;
 }
 
+/// The terrain's material names (the variants of a material are shades).
+pub const NAMES: &[(u8, &str)] = &[
+    (1, "grass"),
+    (2, "grass_2"),
+    (3, "grass_3"),
+    (4, "dirt"),
+    (5, "dirt_2"),
+    (6, "rock"),
+    (7, "rock_2"),
+    (8, "rock_3"),
+    (9, "snowcap"),
+    (10, "snowcap_2"),
+    (11, "sand"),
+    (12, "bedrock"),
+];
+
 /// The terrain palette.
 pub fn palette() -> Palette {
     let mut p = Palette::grey_ramp();

@@ -7,9 +7,14 @@ use crossbeam_channel::{Receiver, Sender, unbounded};
 use glam::IVec3;
 
 use crate::scene::SceneWorld;
+use crate::sim::script::Grid;
 use crate::sim::step::{Kernel, Simulation, StepReport};
-use crate::sim::writeback::{ColumnSync, ground_of_tile, set_palette, tiles_of};
+use crate::sim::voxels::VoxelSim;
+use crate::sim::writeback::{
+    ColumnSync, SEDIMENT, SNOW, WATER, ground_of_tile, set_palette, tiles_of,
+};
 use crate::sim::{Limits, ScriptSource, SimError};
+use crate::sim::{ScriptSpec, ScriptVm};
 
 /// One step's dirty bricks, each listed once.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -24,6 +29,8 @@ pub struct DirtyBatch {
 pub struct WorldSim {
     /// The column simulation.
     pub sim: Simulation,
+    /// The voxel simulation.
+    pub vox: VoxelSim,
     sync: ColumnSync,
     /// Voxel-world tiles `[min, max)`; with drained edges the simulation
     /// also covers a one-tile moat around them.
@@ -99,9 +106,23 @@ impl WorldSim {
             }
         }
         set_palette(&mut world.store);
+        for (id, name) in [(WATER, "water"), (SNOW, "snow"), (SEDIMENT, "sediment")] {
+            let def = crate::world::MaterialDef {
+                color: world.store.palette().rgb(id),
+                kind: if id == WATER {
+                    crate::world::MaterialKind::Liquid
+                } else {
+                    crate::world::MaterialKind::Granular
+                },
+                density: if id == WATER { 1.0 } else { 0.4 },
+            };
+            let _ = world.materials.register_at(id, name, def);
+        }
+        let vox = VoxelSim::new(&world.store, lo, hi, 0);
         let (queue, dirty) = unbounded();
         WorldSim {
             sim,
+            vox,
             sync,
             world_tiles: (tmin, tmax),
             drain,
@@ -111,21 +132,131 @@ impl WorldSim {
         }
     }
 
-    /// Load a Lua script.
+    /// Load a column Lua script (see [`add_script`](Self::add_script) for
+    /// either grid).
     pub fn add_lua(&mut self, src: ScriptSource, limits: Limits) -> Result<usize, SimError> {
         self.sim.add_script(src, Kernel::Lua, limits)
+    }
+
+    /// Load a script on the grid it declares; returns its id (column
+    /// scripts first, then voxel scripts, each in load order).
+    pub fn add_script(
+        &mut self,
+        world: &SceneWorld,
+        src: ScriptSource,
+        limits: Limits,
+    ) -> Result<usize, SimError> {
+        let (_, spec) = ScriptVm::load(&src, limits)?;
+        match spec.grid {
+            Grid::Columns => {
+                // Voxel scripts' ids shift up by one.
+                self.sim.add_script(src, Kernel::Lua, limits)
+            }
+            Grid::Voxels => {
+                let i = self.vox.add_script(src, limits, &world.materials)?;
+                Ok(self.sim.script_count() + i)
+            }
+        }
+    }
+
+    /// Register the materials of a `materials.lua` and colour them in the
+    /// palette (ids are stable: a name keeps its id).
+    pub fn load_materials(
+        &mut self,
+        world: &mut SceneWorld,
+        src: &ScriptSource,
+    ) -> Result<Vec<String>, SimError> {
+        let names = crate::sim::runtime::materials::load_materials(src, &mut world.materials)?;
+        world.materials.apply(world.store.palette_mut());
+        Ok(names)
+    }
+
+    /// Key every script's random numbers with the world's seed.
+    pub fn set_seed(&mut self, seed: u64) {
+        self.sim.set_seed(seed);
+        self.vox.set_seed(seed);
+    }
+
+    fn route(&self, i: usize) -> Result<usize, usize> {
+        let n = self.sim.script_count();
+        if i < n { Ok(i) } else { Err(i - n) }
+    }
+
+    /// Scripts on both grids.
+    pub fn script_count(&self) -> usize {
+        self.sim.script_count() + self.vox.script_count()
+    }
+
+    /// Declarations of script `i`.
+    pub fn spec(&self, i: usize) -> &ScriptSpec {
+        match self.route(i) {
+            Ok(c) => self.sim.spec(c),
+            Err(v) => self.vox.spec(v),
+        }
+    }
+
+    /// The id of the script called `name`.
+    pub fn script_index(&self, name: &str) -> Option<usize> {
+        (0..self.script_count()).find(|&i| self.spec(i).name == name)
+    }
+
+    /// Current parameter values of script `i`.
+    pub fn params(&self, i: usize) -> &[f64] {
+        match self.route(i) {
+            Ok(c) => self.sim.params(c),
+            Err(v) => self.vox.params(v),
+        }
+    }
+
+    /// Set a parameter of script `i` (refused outside its range).
+    pub fn set_param(&mut self, i: usize, name: &str, value: f64) -> Result<(), SimError> {
+        match self.route(i) {
+            Ok(c) => self.sim.set_param(c, name, value),
+            Err(v) => self.vox.set_param(v, name, value),
+        }
+    }
+
+    /// Run script `i` every `every` ticks.
+    pub fn set_every(&mut self, i: usize, every: u64) {
+        match self.route(i) {
+            Ok(c) => self.sim.set_every(c, every),
+            Err(v) => self.vox.set_every(v, every),
+        }
+    }
+
+    /// Failed steps in a row of script `i`.
+    pub fn failures(&self, i: usize) -> u32 {
+        match self.route(i) {
+            Ok(c) => self.sim.failures(c),
+            Err(v) => self.vox.failures(v),
+        }
+    }
+
+    /// Why script `i` is suspended, if it is.
+    pub fn suspended(&self, i: usize) -> Option<&SimError> {
+        match self.route(i) {
+            Ok(c) => self.sim.suspended(c),
+            Err(v) => self.vox.suspended(v),
+        }
     }
 
     /// Reload the script at `path` (matched by file stem). On error the old
     /// version keeps running and the error (with file and line) is returned.
     /// On success: the script's index and any warnings (parameters clamped
     /// into a narrowed range).
-    pub fn reload(&mut self, path: &Path) -> Result<Option<(usize, Vec<String>)>, SimError> {
+    pub fn reload(
+        &mut self,
+        world: &SceneWorld,
+        path: &Path,
+    ) -> Result<Option<(usize, Vec<String>)>, SimError> {
         let src = read_script(path)?;
-        let Some(index) = self.sim.script_index(&src.name) else {
+        let Some(index) = self.script_index(&src.name) else {
             return Ok(None);
         };
-        let warnings = self.sim.replace_script(index, src)?;
+        let warnings = match self.route(index) {
+            Ok(c) => self.sim.replace_script(c, src)?,
+            Err(v) => self.vox.replace_script(v, src, &world.materials)?,
+        };
         Ok(Some((index, warnings)))
     }
 
@@ -164,9 +295,11 @@ impl WorldSim {
         ((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, 256)
     }
 
-    /// One step of `dt`, split into sub-steps that respect the water CFL
-    /// limit. The step counts as one tick, whatever its sub-steps (they all
-    /// run at the step's tick, so per-script rates see whole steps).
+    /// One step of `dt`, split into column sub-steps that respect the
+    /// water CFL limit, then one voxel step. The step counts as one tick,
+    /// whatever its sub-steps (they all run at the step's tick, so
+    /// per-script rates see whole steps), and publishes one batch of dirty
+    /// bricks.
     pub fn step_within_cfl(
         &mut self,
         world: &mut SceneWorld,
@@ -176,9 +309,10 @@ impl WorldSim {
         let n = self.substeps_for(dt, cfl);
         let tick = self.sim.tick();
         let mut report = StepReport::default();
+        let mut bricks = Vec::new();
         for _ in 0..n {
             self.sim.set_tick(tick);
-            let r = self.step(world, dt / n as f64);
+            let r = self.column_step(world, dt / n as f64, &mut bricks);
             report.active_tiles = report.active_tiles.max(r.active_tiles);
             report.changed_tiles.extend(r.changed_tiles);
             report.errors.extend(r.errors);
@@ -186,12 +320,61 @@ impl WorldSim {
         self.sim.set_tick(tick + 1);
         report.changed_tiles.sort_by_key(|t| (t.y, t.x));
         report.changed_tiles.dedup();
+        self.voxel_step(world, dt, tick, &mut bricks, &mut report);
+        self.publish(bricks);
         (report, n)
     }
 
-    /// One step: simulate, write changed columns into bricks, patch the grid,
-    /// and publish the changed bricks on the editing queue.
+    /// One step: the columns (written back into bricks), then the voxel
+    /// scripts; the changed bricks go to the grid and the editing queue.
     pub fn step(&mut self, world: &mut SceneWorld, dt: f64) -> StepReport {
+        let tick = self.sim.tick();
+        let mut bricks = Vec::new();
+        let mut report = self.column_step(world, dt, &mut bricks);
+        self.voxel_step(world, dt, tick, &mut bricks, &mut report);
+        self.publish(bricks);
+        report
+    }
+
+    fn publish(&mut self, mut bricks: Vec<glam::IVec3>) {
+        bricks.sort_by_key(|b| (b.z, b.y, b.x));
+        bricks.dedup();
+        // The receiver lives in `self`, so sending cannot fail.
+        let _ = self.queue.send(DirtyBatch {
+            tick: self.sim.tick(),
+            bricks,
+        });
+    }
+
+    /// The voxel scripts at `tick`, after telling them which bricks the
+    /// columns changed.
+    fn voxel_step(
+        &mut self,
+        world: &mut SceneWorld,
+        dt: f64,
+        tick: u64,
+        bricks: &mut Vec<glam::IVec3>,
+        report: &mut StepReport,
+    ) {
+        if self.vox.script_count() == 0 {
+            return;
+        }
+        self.vox.notify_edited(bricks);
+        self.vox.set_tick(tick);
+        let r = self.vox.step(&mut world.store, &world.materials, dt);
+        bricks.extend(world.apply_edits());
+        report.errors.extend(r.errors.iter().cloned());
+        report.voxel = r;
+    }
+
+    /// The column scripts for `dt`, written back into bricks; the bricks
+    /// changed are appended to `bricks` (and patched into the grid).
+    fn column_step(
+        &mut self,
+        world: &mut SceneWorld,
+        dt: f64,
+        bricks: &mut Vec<glam::IVec3>,
+    ) -> StepReport {
         let report = self.sim.step(dt);
         let (tmin, tmax) = self.world_tiles;
         let inside = |t: &glam::IVec2| t.cmpge(tmin).all() && t.cmplt(tmax).all();
@@ -216,12 +399,7 @@ impl WorldSim {
             .collect();
         self.sync
             .write(self.sim.channels(), &changed, &mut world.store);
-        let bricks = world.apply_edits();
-        // The receiver lives in `self`, so sending cannot fail.
-        let _ = self.queue.send(DirtyBatch {
-            tick: self.sim.tick(),
-            bricks,
-        });
+        bricks.extend(world.apply_edits());
         report
     }
 }

@@ -89,6 +89,8 @@ pub struct StepReport {
     pub changed_tiles: Vec<TileCoord>,
     /// Scripts whose step was rejected, with why.
     pub errors: Vec<SimError>,
+    /// What the voxel scripts did in the same tick.
+    pub voxel: crate::sim::voxels::VoxelStepReport,
 }
 
 /// The simulation state: channels, scripts, active set.
@@ -583,6 +585,7 @@ impl Simulation {
             active_tiles: active_n,
             changed_tiles: changed,
             errors,
+            ..Default::default()
         }
     }
 }

@@ -9,6 +9,12 @@ pub const SCRIPTS: &[(&str, &str)] = &[
     ("water.lua", include_str!("../../../scripts/water.lua")),
     ("erosion.lua", include_str!("../../../scripts/erosion.lua")),
     ("snow.lua", include_str!("../../../scripts/snow.lua")),
+    (
+        "materials.lua",
+        include_str!("../../../scripts/materials.lua"),
+    ),
+    ("water3d.lua", include_str!("../../../scripts/water3d.lua")),
+    ("sand.lua", include_str!("../../../scripts/sand.lua")),
 ];
 
 /// The shipped script called `file` (e.g. `water.lua`), if there is one.

@@ -4,6 +4,7 @@
 
 pub mod embedded;
 pub(crate) mod interrupt;
+pub mod materials;
 pub mod reload;
 pub mod script;
 pub mod vms;

@@ -98,6 +98,9 @@ pub struct ScriptSpec {
     /// Channels whose total the runtime reports and checks stays constant
     /// (to round-off) across the script's step.
     pub conserved: Vec<String>,
+    /// Initial conditions of a freshly built world: (channel, material):
+    /// the channel is set to 1 in every voxel of the material.
+    pub fills: Vec<(String, String)>,
     /// Channels used.
     pub channels: Vec<String>,
     /// Channels that must stay ≥ 0.
@@ -301,58 +304,64 @@ fn number(src: &ScriptSource, t: &Table, field: &str, param: &str) -> Result<f64
     }
 }
 
+/// A fresh Luau VM with the sandbox every script runs in: only `math`,
+/// `string`, `table`, `buffer`, `bit32` and `utf8`; no module loading,
+/// environments, code from strings, GC control or stdout; no unseeded
+/// randomness; read-only globals and libraries; the memory limit and the
+/// uncatchable budget hook installed.
+pub fn sandboxed(limits: Limits) -> Result<Lua, SimError> {
+    let libs =
+        StdLib::MATH | StdLib::STRING | StdLib::TABLE | StdLib::BUFFER | StdLib::BIT | StdLib::UTF8;
+    let lua = Lua::new_with(libs, LuaOptions::default())
+        .map_err(|e| SimError::Internal(e.to_string()))?;
+    // Globals that reach outside the script (module loading, environments,
+    // code from strings, the GC, stdout) go before the environment is frozen.
+    {
+        let g = lua.globals();
+        // Unseeded, per-VM randomness would make worlds irreproducible;
+        // kernels get `c.random(...)` (deterministic) instead.
+        if let Ok(math) = g.raw_get::<Table>("math") {
+            for name in ["random", "randomseed"] {
+                math.raw_remove(name)
+                    .map_err(|e| SimError::Internal(e.to_string()))?;
+            }
+        }
+        for name in [
+            "require",
+            "getfenv",
+            "setfenv",
+            "loadstring",
+            "load",
+            "dofile",
+            "loadfile",
+            "collectgarbage",
+            "gcinfo",
+            "newproxy",
+            "print",
+        ] {
+            g.raw_remove(name)
+                .map_err(|e| SimError::Internal(e.to_string()))?;
+        }
+    }
+    lua.sandbox(true)
+        .map_err(|e| SimError::Internal(e.to_string()))?;
+    // Luau's sandbox gives each thread a writable proxy of the frozen
+    // globals; freeze the proxy too, so `counter = counter + 1` is an
+    // error instead of state that depends on which VM ran which tile.
+    lua.globals().set_readonly(true);
+    lua.set_memory_limit(limits.memory)
+        .map_err(|e| SimError::Internal(e.to_string()))?;
+    crate::sim::interrupt::install(&lua);
+    // Optimisation level 2 inlines small local functions and unrolls loops.
+    lua.set_compiler(mlua::chunk::Compiler::new().set_optimization_level(2));
+    Ok(lua)
+}
+
 impl ScriptVm {
     /// A fresh sandboxed VM with `src` loaded. Returns the VM and the
     /// validated declarations.
     pub fn load(src: &ScriptSource, limits: Limits) -> Result<(ScriptVm, ScriptSpec), SimError> {
-        let libs = StdLib::MATH
-            | StdLib::STRING
-            | StdLib::TABLE
-            | StdLib::BUFFER
-            | StdLib::BIT
-            | StdLib::UTF8;
-        let lua = Lua::new_with(libs, LuaOptions::default())
-            .map_err(|e| SimError::Internal(e.to_string()))?;
-        // Globals that reach outside the script (module loading, environments,
-        // code from strings, the GC, stdout) go before the environment is frozen.
-        {
-            let g = lua.globals();
-            // Unseeded, per-VM randomness would make worlds irreproducible;
-            // kernels get `c.random(...)` (deterministic) instead.
-            if let Ok(math) = g.raw_get::<Table>("math") {
-                for name in ["random", "randomseed"] {
-                    math.raw_remove(name)
-                        .map_err(|e| SimError::Internal(e.to_string()))?;
-                }
-            }
-            for name in [
-                "require",
-                "getfenv",
-                "setfenv",
-                "loadstring",
-                "load",
-                "dofile",
-                "loadfile",
-                "collectgarbage",
-                "gcinfo",
-                "newproxy",
-                "print",
-            ] {
-                g.raw_remove(name)
-                    .map_err(|e| SimError::Internal(e.to_string()))?;
-            }
-        }
-        lua.sandbox(true)
-            .map_err(|e| SimError::Internal(e.to_string()))?;
-        // Luau's sandbox gives each thread a writable proxy of the frozen
-        // globals; freeze the proxy too, so `counter = counter + 1` is an
-        // error instead of state that depends on which VM ran which tile.
-        lua.globals().set_readonly(true);
-        lua.set_memory_limit(limits.memory)
-            .map_err(|e| SimError::Internal(e.to_string()))?;
-        crate::sim::interrupt::install(&lua);
-        // Optimisation level 2 inlines small local functions and unrolls loops.
-        lua.set_compiler(mlua::chunk::Compiler::new().set_optimization_level(2));
+        let lua = sandboxed(limits)?;
         let chunk = lua.load(&*src.text).set_name(format!("@{}.lua", src.name));
         // The chunk itself runs under the budget too (a script can loop at load).
         crate::sim::interrupt::arm(
@@ -461,6 +470,33 @@ impl ScriptVm {
         let only = strings(src, def, "only")?;
         let keep_awake = strings(src, def, "keep_awake")?;
         let conserved = strings(src, def, "conserved")?;
+        let mut fills = Vec::new();
+        match def.get::<Value>("fills") {
+            Ok(Value::Nil) => {}
+            Ok(Value::Table(t)) => {
+                for pair in t.pairs::<String, String>() {
+                    let (ch, m) = pair.map_err(|e| {
+                        declaration(
+                            src,
+                            Some("fills"),
+                            format!("'fills' maps channel names to material names: {e}"),
+                        )
+                    })?;
+                    if !channels.contains(&ch) || !materials.contains(&m) {
+                        return Err(declaration(
+                            src,
+                            Some("fills"),
+                            format!(
+                                "fills.{ch} = \"{m}\": the channel must be in 'channels' and the material in 'materials'"
+                            ),
+                        ));
+                    }
+                    fills.push((ch, m));
+                }
+                fills.sort();
+            }
+            _ => return Err(declaration(src, Some("fills"), "'fills' must be a table")),
+        }
         if grid == Grid::Columns {
             for (field, list) in [
                 ("materials", &materials),
@@ -669,6 +705,7 @@ impl ScriptVm {
             only,
             keep_awake,
             conserved,
+            fills,
             channels,
             nonnegative,
             params,

@@ -14,7 +14,7 @@ use crate::sim::script::VOXEL_CELLS;
 pub type VoxelChannelId = usize;
 
 /// Named per-voxel channels.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct VoxelChannels {
     names: Vec<String>,
     data: Vec<FxHashMap<IVec3, Box<[f32; VOXEL_CELLS]>>>,
@@ -53,6 +53,13 @@ impl VoxelChannels {
         } else {
             self.data[id].insert(b, Box::new(*v));
         }
+    }
+
+    /// The bricks holding an array of channel `id`, sorted.
+    pub fn sorted_bricks(&self, id: VoxelChannelId) -> Vec<IVec3> {
+        let mut k: Vec<IVec3> = self.data[id].keys().copied().collect();
+        k.sort_by_key(|b| (b.z, b.y, b.x));
+        k
     }
 
     /// Bricks holding an array of channel `id`.

@@ -216,6 +216,106 @@ impl VoxelSim {
         self.scripts[i].suspended.as_ref()
     }
 
+    /// Replace every channel (a resume); scripts find theirs again by name.
+    pub fn set_channels(&mut self, channels: VoxelChannels) {
+        self.channels = channels;
+        for s in &mut self.scripts {
+            s.channel_ids = s
+                .spec
+                .channels
+                .iter()
+                .map(|c| self.channels.channel(c))
+                .collect();
+        }
+    }
+
+    /// Key the scripts' random numbers with the world's seed.
+    pub fn set_seed(&mut self, seed: u64) {
+        self.seed = seed;
+    }
+
+    /// Apply every script's `fills` (a freshly built world's initial
+    /// conditions).
+    pub fn apply_fills(&mut self, store: &BrickStore, registry: &MaterialRegistry) {
+        let fills: Vec<(String, String)> = self
+            .scripts
+            .iter()
+            .flat_map(|s| s.spec.fills.clone())
+            .collect();
+        for (ch, m) in fills {
+            if let Some(id) = registry.id(&m) {
+                self.fill_channel_from_material(store, &ch, id, 1.0);
+            }
+        }
+    }
+
+    /// Current parameter values of script `i` (spec order).
+    pub fn params(&self, i: usize) -> &[f64] {
+        &self.scripts[i].params
+    }
+
+    /// Failed steps in a row of script `i`.
+    pub fn failures(&self, i: usize) -> u32 {
+        self.scripts[i].failures
+    }
+
+    /// Replace script `i` with a new version (its materials must be
+    /// registered), keeping parameter values, clamped into narrowed ranges
+    /// with a warning. A suspended script runs again.
+    pub fn replace_script(
+        &mut self,
+        i: usize,
+        src: ScriptSource,
+        registry: &MaterialRegistry,
+    ) -> Result<Vec<String>, SimError> {
+        let mut trial = VoxelSim {
+            channels: self.channels.clone(),
+            scripts: Vec::new(),
+            lo: self.lo,
+            hi: self.hi,
+            active: FxHashSet::default(),
+            quiet: FxHashMap::default(),
+            presence: FxHashMap::default(),
+            tick: self.tick,
+            seed: self.seed,
+        };
+        trial.add_script(src, self.scripts[i].limits, registry)?;
+        let mut new = trial.scripts.pop().expect("added");
+        for name in trial
+            .channels
+            .names()
+            .iter()
+            .skip(self.channels.names().len())
+        {
+            self.channels.channel(name);
+        }
+        new.channel_ids = new
+            .spec
+            .channels
+            .iter()
+            .map(|c| self.channels.channel(c))
+            .collect();
+        let old = &self.scripts[i];
+        new.every = old.every;
+        let mut warnings = Vec::new();
+        for (k, p) in new.spec.params.iter().enumerate() {
+            if let Some(j) = old.spec.params.iter().position(|q| q.name == p.name) {
+                let v = old.params[j];
+                let kept = v.clamp(p.min, p.max);
+                if kept != v {
+                    warnings.push(format!(
+                        "{}.lua: parameter '{}' = {v} is outside its new range [{}, {}]; clamped to {kept}",
+                        new.spec.name, p.name, p.min, p.max
+                    ));
+                }
+                new.params[k] = kept;
+            }
+        }
+        self.scripts[i] = new;
+        self.wake_all_known();
+        Ok(warnings)
+    }
+
     /// Run script `i` on ticks that are multiples of `every`.
     pub fn set_every(&mut self, i: usize, every: u64) {
         self.scripts[i].every = every.max(1);

@@ -1,0 +1,10 @@
+-- materials.lua: the materials the shipped voxel scripts use. Add your own
+-- here: a name, a colour, a kind (solid, liquid, granular or gas) and a
+-- density relative to water. Ids are given by the engine and stay the same
+-- for a world's whole life, across hot reloads and restarts.
+return {
+  sand = { color = { 218, 196, 140 }, kind = "granular", density = 1.6 },
+  lava = { color = { 255, 96, 24 }, kind = "liquid", density = 3.1 },
+  basalt = { color = { 58, 54, 56 }, kind = "solid", density = 2.9 },
+  steam = { color = { 226, 232, 240 }, kind = "gas", density = 0.0006 },
+}

@@ -1,0 +1,118 @@
+//! `materials.lua`: the modder's material declarations, read in the same
+//! sandbox as scripts and registered by name (ids stay stable across hot
+//! reloads: see [`MaterialRegistry`]).
+//!
+//! ```lua
+//! return {
+//!   lava = { color = { 255, 96, 24 }, kind = "liquid", density = 3.1 },
+//!   sand = { color = { 218, 196, 140 }, kind = "granular", density = 1.6 },
+//! }
+//! ```
+
+use std::time::Instant;
+
+use mlua::{Table, Value};
+
+use crate::sim::script::sandboxed;
+use crate::sim::{Limits, ScriptSource, SimError};
+use crate::world::{MaterialDef, MaterialKind, MaterialRegistry};
+
+fn err(src: &ScriptSource, name: Option<&str>, msg: String) -> SimError {
+    SimError::Declaration {
+        script: src.name.clone(),
+        line: name.and_then(|n| src.text.lines().position(|l| l.contains(n)).map(|i| i + 1)),
+        msg,
+    }
+}
+
+/// Register every material `src` declares. On error nothing is registered.
+pub fn load_materials(
+    src: &ScriptSource,
+    registry: &mut MaterialRegistry,
+) -> Result<Vec<String>, SimError> {
+    let limits = Limits::default();
+    let lua = sandboxed(limits)?;
+    crate::sim::interrupt::arm(
+        limits.instructions,
+        Instant::now() + limits.time,
+        limits.memory / 10 * 9,
+    );
+    let v: Value = lua
+        .load(&*src.text)
+        .set_name(format!("@{}.lua", src.name))
+        .eval()
+        .map_err(|e| {
+            let msg = e.to_string();
+            SimError::Declaration {
+                script: src.name.clone(),
+                line: crate::sim::script::line_of(&msg),
+                msg: msg.lines().next().unwrap_or("").to_string(),
+            }
+        })?;
+    let Value::Table(t) = v else {
+        return Err(err(
+            src,
+            None,
+            "materials.lua must return a table of materials".into(),
+        ));
+    };
+    let mut defs: Vec<(String, MaterialDef)> = Vec::new();
+    for pair in t.pairs::<String, Value>() {
+        let (name, v) =
+            pair.map_err(|e| err(src, None, format!("material names must be strings: {e}")))?;
+        let Value::Table(d) = v else {
+            return Err(err(
+                src,
+                Some(&name),
+                format!("material '{name}' must be a table {{color, kind, density}}"),
+            ));
+        };
+        defs.push((name.clone(), parse_def(src, &name, &d)?));
+    }
+    defs.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut trial = registry.clone();
+    for (name, def) in &defs {
+        trial
+            .register(name, *def)
+            .map_err(|e| err(src, Some(name), e.to_string()))?;
+    }
+    *registry = trial;
+    Ok(defs.into_iter().map(|(n, _)| n).collect())
+}
+
+fn parse_def(src: &ScriptSource, name: &str, d: &Table) -> Result<MaterialDef, SimError> {
+    let bad = |m: String| err(src, Some(name), format!("material '{name}': {m}"));
+    let color: Table = d
+        .get("color")
+        .map_err(|_| bad("color must be {r, g, b}".into()))?;
+    let mut rgb = [0u8; 3];
+    for (k, c) in rgb.iter_mut().enumerate() {
+        let v: f64 = color
+            .get(k + 1)
+            .map_err(|_| bad("color must be {r, g, b}".into()))?;
+        if !(0.0..=255.0).contains(&v) {
+            return Err(bad(format!("colour component {v} is outside 0..=255")));
+        }
+        *c = v as u8;
+    }
+    let kind = match d.get::<Value>("kind") {
+        Ok(Value::Nil) => MaterialKind::Solid,
+        Ok(Value::String(s)) => s
+            .to_str()
+            .map_err(|_| bad("kind must be text".into()))?
+            .parse()
+            .map_err(bad)?,
+        _ => return Err(bad("kind must be solid, liquid, granular or gas".into())),
+    };
+    let density = match d.get::<Value>("density") {
+        Ok(Value::Nil) => 1.0,
+        Ok(Value::Number(n)) => n,
+        Ok(Value::Integer(n)) => n as f64,
+        _ => return Err(bad("density must be a number".into())),
+    };
+    Ok(MaterialDef {
+        color: rgb,
+        kind,
+        density: density as f32,
+    })
+}
