@@ -327,3 +327,61 @@ fn fault_08_state_kept_in_upvalues_is_refused() {
         assert!(sim.step(0.1).errors.is_empty());
     }
 }
+
+/// Regression (hostile probe): state kept in a table's contents, or in a
+/// captured buffer, escaped the upvalue fingerprint.
+#[test]
+fn fault_08_state_kept_in_upvalue_tables_or_buffers_is_refused() {
+    let table = src(
+        "tbl",
+        "local st = { n = 0, inner = { 1 } }\nreturn { channels = { \"u\" }, passes = { { name = \"p\", reads = {}, writes = { \"u\" },\n\
+         kernel = function(c) if c.tick > 0 then st.n = st.n + 1 end end } } }",
+    );
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(table, Kernel::Lua, small()).unwrap();
+    sim.step(0.1);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("readonly"), "{e}");
+    let nested = src(
+        "nested",
+        "local st = { inner = { 1 } }\nreturn { channels = { \"u\" }, passes = { { name = \"p\", reads = {}, writes = { \"u\" },\n\
+         kernel = function(c) if c.tick > 0 then st.inner[1] = c.tick end end } } }",
+    );
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(nested, Kernel::Lua, small()).unwrap();
+    sim.step(0.1);
+    assert!(runtime_error(&mut sim).contains("readonly"));
+    let buf = src(
+        "buf",
+        "local b = buffer.create(8)\nreturn { channels = { \"u\" }, passes = { { name = \"p\", reads = {}, writes = { \"u\" },\n\
+         kernel = function(c) buffer.writef64(b, 0, c.tick) end } } }",
+    );
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    let e = sim
+        .add_script(buf, Kernel::Lua, small())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("captures a buffer") && e.contains("buf.lua"),
+        "{e}"
+    );
+}
+
+/// Regression (hostile probe): a script that was the only thing changing
+/// its world let every tile fall asleep while it failed; the next step ran
+/// on no tile, counted as a success and hid the error for good.
+#[test]
+fn a_failing_script_alone_in_its_world_is_suspended_not_forgotten() {
+    let boom = src(
+        "boom",
+        "return { channels = { \"b\" }, passes = { { name = \"p\", reads = {}, writes = { \"b\" },\n\
+         kernel = function(c) if c.tick >= 1 then error(\"boom\") end end } } }",
+    );
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
+    sim.add_script(boom, Kernel::Lua, small()).unwrap();
+    for _ in 0..20 {
+        sim.step(0.1);
+    }
+    let why = sim.suspended(0).expect("suspended").to_string();
+    assert!(why.contains("boom"), "{why}");
+}

@@ -675,51 +675,91 @@ fn write_stall() -> Option<std::time::Duration> {
         .map(std::time::Duration::from_millis)
 }
 
-/// Largest checkpoint file read (a larger one is reported, not loaded).
-pub const MAX_FILE: u64 = 64 << 30;
-
-/// Read one checkpoint file's bytes, refusing what is not a regular file
-/// or is larger than [`MAX_FILE`].
-fn read_bytes(path: &Path) -> Result<Vec<u8>, CheckpointError> {
-    let meta = fs::metadata(path).map_err(|e| io(path, e))?;
-    if !meta.is_file() {
-        return Err(CheckpointError::Corrupt {
-            path: path.to_path_buf(),
-            msg: "not a regular file".into(),
-        });
-    }
-    if meta.len() > MAX_FILE {
-        return Err(CheckpointError::Corrupt {
-            path: path.to_path_buf(),
-            msg: format!("{} bytes is over the {MAX_FILE}-byte limit", meta.len()),
-        });
-    }
-    fs::read(path).map_err(|e| io(path, e))
-}
-
 /// Header, identity and payload checksum; with `full`, also decode and the
 /// world hash. Returns the state (when `full`) and the identity.
+///
+/// Nothing is allocated for the payload before the header has verified and
+/// the file's size agrees with it; the payload checksum of a cheap check is
+/// streamed; a full read needs the payload and its claimed decompressed
+/// size to fit in the memory the OS says is available.
 fn read_checked(
     path: &Path,
     full: bool,
 ) -> Result<(Option<WorldState>, Option<WorldIdentity>), CheckpointError> {
-    let bytes = read_bytes(path)?;
-    parse(&bytes, full).map_err(|msg| CheckpointError::Corrupt {
+    use std::io::Read;
+    let corrupt = |msg: String| CheckpointError::Corrupt {
         path: path.to_path_buf(),
         msg,
-    })
+    };
+    let meta = fs::metadata(path).map_err(|e| io(path, e))?;
+    if !meta.is_file() {
+        return Err(corrupt("not a regular file".into()));
+    }
+    let mut f = File::open(path).map_err(|e| io(path, e))?;
+    // The header and the identity block (at most 64 KiB) first.
+    let mut head = Vec::with_capacity(HEADER + 8);
+    (&mut f)
+        .take(HEADER as u64 + 4)
+        .read_to_end(&mut head)
+        .map_err(|e| io(path, e))?;
+    let (version, payload_len) = check_header(&head).map_err(corrupt)?;
+    let mut id_block = Vec::new();
+    if version >= 2 {
+        let n = u32::from_le_bytes(head[HEADER..HEADER + 4].try_into().expect("4")) as u64;
+        if n > 64 << 10 {
+            return Err(corrupt(format!("identity block of {n} bytes is too large")));
+        }
+        (&mut f)
+            .take(n + 4)
+            .read_to_end(&mut id_block)
+            .map_err(|e| io(path, e))?;
+    } else {
+        head.truncate(HEADER);
+    }
+    let prefix = head.len() as u64 + id_block.len() as u64;
+    if meta.len() != prefix + payload_len {
+        return Err(corrupt(format!(
+            "the file is {} bytes, its header says {}",
+            meta.len(),
+            prefix + payload_len
+        )));
+    }
+    if !full {
+        let mut head_and_id = head.clone();
+        head_and_id.extend_from_slice(&id_block);
+        let (_, identity) = parse_prefix(&head_and_id).map_err(corrupt)?;
+        let want = u32::from_le_bytes(head[32..36].try_into().expect("4"));
+        let mut crc = crc32fast::Hasher::new();
+        let mut buf = vec![0u8; 1 << 20];
+        loop {
+            let n = f.read(&mut buf).map_err(|e| io(path, e))?;
+            if n == 0 {
+                break;
+            }
+            crc.update(&buf[..n]);
+        }
+        if crc.finalize() != want {
+            return Err(corrupt("payload checksum mismatch".into()));
+        }
+        return Ok((None, identity));
+    }
+    let have = crate::scene::budget::available_bytes();
+    if payload_len > have / 2 {
+        return Err(corrupt(format!(
+            "a {payload_len}-byte payload does not fit in the {have} bytes available"
+        )));
+    }
+    let mut bytes = head;
+    bytes.extend_from_slice(&id_block);
+    f.read_to_end(&mut bytes).map_err(|e| io(path, e))?;
+    parse(&bytes, true).map_err(corrupt)
 }
 
-/// Parse a whole checkpoint file from bytes (the fuzz target): never panics
-/// and never allocates more than the bytes justify.
-pub fn parse(
-    bytes: &[u8],
-    full: bool,
-) -> Result<(Option<WorldState>, Option<WorldIdentity>), String> {
-    if bytes.len() < HEADER {
-        return Err(format!("{} bytes is shorter than the header", bytes.len()));
+/// Verify the fixed header; returns (version, payload length).
+fn check_header(h: &[u8]) -> Result<(u32, u64), String> {
+    if h.len() < HEADER {
+        return Err(format!("{} bytes is shorter than the header", h.len()));
     }
-    let h = &bytes[..HEADER];
     if &h[0..4] != MAGIC {
         return Err("not a brickworld checkpoint (bad magic)".into());
     }
@@ -732,30 +772,50 @@ pub fn parse(
             "format version {version}, this build reads 1 to {VERSION}"
         ));
     }
+    if version >= 2 && h.len() < HEADER + 4 {
+        return Err("the identity block is missing".into());
+    }
+    Ok((
+        version,
+        u64::from_le_bytes(h[24..32].try_into().expect("8")),
+    ))
+}
+
+/// The header and identity block at the start of `bytes`: returns the
+/// prefix length and the identity.
+fn parse_prefix(bytes: &[u8]) -> Result<(usize, Option<WorldIdentity>), String> {
+    let (version, _) = check_header(bytes)?;
+    if version < 2 {
+        return Ok((HEADER, None));
+    }
+    let rest = &bytes[HEADER..];
+    let n = u32::from_le_bytes(rest[..4].try_into().expect("4")) as usize;
+    if n > 64 << 10 || rest.len() < 8 + n {
+        return Err(format!("identity block of {n} bytes does not fit"));
+    }
+    let id = &rest[4..4 + n];
+    let icrc = u32::from_le_bytes(rest[4 + n..8 + n].try_into().expect("4"));
+    if crc32fast::hash(id) != icrc {
+        return Err("identity checksum mismatch".into());
+    }
+    let identity = serde_json::from_slice::<Option<WorldIdentity>>(id)
+        .map_err(|e| format!("identity: {e}"))?;
+    Ok((HEADER + 8 + n, identity))
+}
+
+/// Parse a whole checkpoint file from bytes (the fuzz target): never panics
+/// and never allocates more than the bytes justify.
+pub fn parse(
+    bytes: &[u8],
+    full: bool,
+) -> Result<(Option<WorldState>, Option<WorldIdentity>), String> {
+    let (version, len) = check_header(bytes)?;
+    let h = &bytes[..HEADER];
     let tick = u64::from_le_bytes(h[8..16].try_into().expect("8"));
     let hash = u64::from_le_bytes(h[16..24].try_into().expect("8"));
-    let len = u64::from_le_bytes(h[24..32].try_into().expect("8"));
     let crc = u32::from_le_bytes(h[32..36].try_into().expect("4"));
-    let mut rest = &bytes[HEADER..];
-    let mut identity = None;
-    if version >= 2 {
-        let n = rest
-            .get(..4)
-            .map(|b| u32::from_le_bytes(b.try_into().expect("4")) as usize)
-            .ok_or("the identity block is missing")?;
-        if n > 64 << 10 || rest.len() < 8 + n {
-            return Err(format!("identity block of {n} bytes does not fit"));
-        }
-        let id = &rest[4..4 + n];
-        let icrc = u32::from_le_bytes(rest[4 + n..8 + n].try_into().expect("4"));
-        if crc32fast::hash(id) != icrc {
-            return Err("identity checksum mismatch".into());
-        }
-        identity = serde_json::from_slice::<Option<WorldIdentity>>(id)
-            .map_err(|e| format!("identity: {e}"))?;
-        rest = &rest[8 + n..];
-    }
-    let payload = rest;
+    let (prefix, identity) = parse_prefix(bytes)?;
+    let payload = &bytes[prefix..];
     if payload.len() as u64 != len {
         return Err(format!(
             "payload is {} bytes, the header says {len}",
@@ -776,6 +836,12 @@ pub fn parse(
         return Err(format!(
             "the payload claims {claimed} bytes uncompressed, more than {} compressed bytes can hold",
             payload.len()
+        ));
+    }
+    let have = crate::scene::budget::available_bytes();
+    if claimed as u64 > have / 2 {
+        return Err(format!(
+            "the payload claims {claimed} bytes uncompressed; only {have} bytes are available"
         ));
     }
     let raw = lz4_flex::decompress_size_prepended(payload).map_err(|e| format!("LZ4: {e}"))?;

@@ -26,10 +26,9 @@ pub const BYTES_PER_COLUMN: u64 = 4 << 10;
 pub fn read_file(path: &Path, max: u64) -> Result<Vec<u8>, SceneError> {
     let meta = std::fs::metadata(path).map_err(|e| SceneError::io(path, e))?;
     if !meta.is_file() {
-        return Err(SceneError::too_large(
-            path,
-            "is not a regular file (a device, pipe or directory cannot be a world source)".into(),
-        ));
+        return Err(SceneError::NotAFile {
+            path: path.to_path_buf(),
+        });
     }
     if meta.len() > max {
         return Err(SceneError::too_large(
@@ -54,8 +53,11 @@ pub fn read_file(path: &Path, max: u64) -> Result<Vec<u8>, SceneError> {
 /// Estimated bytes to build a world of `size` voxels.
 pub fn world_bytes(size: IVec3) -> u64 {
     let s = size.max(IVec3::ONE).as_u64vec3();
-    let bricks = s.x.div_ceil(8) * s.y.div_ceil(8) * s.z.div_ceil(8);
-    let columns = s.x.div_ceil(8) * s.z.div_ceil(8);
+    let bricks =
+        s.x.div_ceil(8)
+            .saturating_mul(s.y.div_ceil(8))
+            .saturating_mul(s.z.div_ceil(8));
+    let columns = s.x.div_ceil(8).saturating_mul(s.z.div_ceil(8));
     bricks.saturating_mul(4) + columns.saturating_mul(BYTES_PER_COLUMN)
 }
 

@@ -61,6 +61,12 @@ pub enum SceneError {
         /// Details.
         msg: String,
     },
+    /// A world source that is a device, pipe or directory.
+    #[error("{} is not a regular file (a device, pipe or directory cannot be a world source)", path.display())]
+    NotAFile {
+        /// The path.
+        path: PathBuf,
+    },
     /// The world would not fit in memory.
     #[error("{what}: not enough memory: {msg}")]
     OutOfMemory {

@@ -253,6 +253,15 @@ pub fn load(path: &Path) -> Result<(BrickStore, IVec3, IVec3), SceneError> {
     if vox.is_empty() {
         return Err(fmt_err("the file holds no voxels".into()));
     }
+    // The world spans the voxels' bounding box: check it fits in memory
+    // before the bricks and the grid over it are allocated.
+    let (lo, hi) = vox
+        .iter()
+        .fold((IVec3::MAX, IVec3::MIN), |(lo, hi), (p, _)| {
+            (lo.min(*p), hi.max(*p))
+        });
+    let extent = (hi.as_i64vec3() - lo.as_i64vec3() + 1).min(glam::I64Vec3::splat(i32::MAX as i64));
+    super::budget::check_world(&path.display().to_string(), extent.as_ivec3())?;
     let (store, lo, hi) = store_from_voxels(&vox, palette);
     Ok((store, lo, hi))
 }

@@ -530,7 +530,12 @@ impl Simulation {
             }
             match run_script(script, &self.channels, &ws, &ctx) {
                 Ok(outputs) => {
-                    script.failures = 0;
+                    // A step that ran on no tile proves nothing: a failing
+                    // script stays failing (regression: its world fell asleep
+                    // and the streak reset).
+                    if !ws.active.is_empty() {
+                        script.failures = 0;
+                    }
                     // Commit this script's channels in sorted tile order.
                     for (i, data) in outputs {
                         for (k, &w) in ws.active.iter().enumerate() {
@@ -565,6 +570,10 @@ impl Simulation {
         changed.sort_by_key(|t| (t.y, t.x));
         let changed_set: FxHashSet<TileCoord> = changed.iter().copied().collect();
         let active_n = tiles.len();
+        // A failed script did not get its say: nothing moves towards sleep
+        // in a step that rejected one (regression: a failing script's tiles
+        // fell asleep before it was suspended, hiding its error).
+        let tiles = if errors.is_empty() { tiles } else { Vec::new() };
         for t in tiles {
             if changed_set.contains(&t) {
                 self.quiet.remove(&t);

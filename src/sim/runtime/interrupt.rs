@@ -237,3 +237,97 @@ unsafe fn walk_upvalues(
         }
     }
 }
+
+/// Freeze every table a kernel can reach through its upvalues (and through
+/// those tables and its Lua helpers' upvalues), so that a kernel cannot keep
+/// state in a table's contents either. A captured buffer is refused: it is
+/// mutable state by nature (create scratch buffers inside the kernel).
+pub fn freeze_upvalues(lua: &Lua, f: &mlua::Function) -> Result<(), String> {
+    let mut refused = None;
+    let mut seen: Vec<*const std::ffi::c_void> = Vec::new();
+    // SAFETY: as in `upvalue_fingerprint`: exec_raw pushes `f` and runs the
+    // walk in a protected call holding the VM's lock; the walk checks the
+    // stack before each push and pops what it pushes.
+    let _: mlua::Result<()> = unsafe {
+        lua.exec_raw(f.clone(), |state| {
+            let top = ffi::lua_gettop(state);
+            freeze_at(state, top, 0, &mut seen, &mut refused);
+        })
+    };
+    match refused {
+        Some(_) => Err(
+            "the kernel captures a buffer from outside itself; buffers are mutable state: create scratch buffers inside the kernel"
+                .to_string(),
+        ),
+        None => Ok(()),
+    }
+}
+
+/// Freeze what the value at absolute index `idx` (a function or a table)
+/// reaches.
+///
+/// # Safety
+/// `state` must be a live Luau state with a function or table at `idx`.
+unsafe fn freeze_at(
+    state: *mut ffi::lua_State,
+    idx: c_int,
+    depth: u32,
+    seen: &mut Vec<*const std::ffi::c_void>,
+    refused: &mut Option<String>,
+) {
+    // SAFETY (whole body): the caller's contract; every push is preceded
+    // by lua_checkstack and matched by a pop.
+    unsafe {
+        let p = ffi::lua_topointer(state, idx);
+        if depth > MAX_UPVALUE_DEPTH || seen.contains(&p) || refused.is_some() {
+            return;
+        }
+        seen.push(p);
+        match ffi::lua_type(state, idx) {
+            ffi::LUA_TFUNCTION => {
+                if ffi::lua_iscfunction(state, idx) != 0 {
+                    return;
+                }
+                let mut n = 1;
+                loop {
+                    if ffi::lua_checkstack(state, 2) == 0 {
+                        return;
+                    }
+                    let name = ffi::lua_getupvalue(state, idx, n);
+                    if name.is_null() {
+                        break;
+                    }
+                    let t = ffi::lua_type(state, -1);
+                    if t == ffi::LUA_TBUFFER {
+                        *refused = Some(
+                            std::ffi::CStr::from_ptr(name)
+                                .to_string_lossy()
+                                .into_owned(),
+                        );
+                    } else if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
+                        let at = ffi::lua_gettop(state);
+                        freeze_at(state, at, depth + 1, seen, refused);
+                    }
+                    ffi::lua_pop(state, 1);
+                    n += 1;
+                }
+            }
+            ffi::LUA_TTABLE => {
+                ffi::lua_setreadonly(state, idx, 1);
+                if ffi::lua_checkstack(state, 3) == 0 {
+                    return;
+                }
+                ffi::lua_pushnil(state);
+                while ffi::lua_next(state, idx) != 0 {
+                    let t = ffi::lua_type(state, -1);
+                    if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
+                        let at = ffi::lua_gettop(state);
+                        freeze_at(state, at, depth + 1, seen, refused);
+                    }
+                    ffi::lua_pop(state, 1);
+                }
+            }
+            _ => {}
+        }
+    }
+}

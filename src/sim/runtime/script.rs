@@ -426,6 +426,13 @@ impl ScriptVm {
                 .map_err(|e| declaration(src, Some("kernel"), e.to_string()))?;
             match k {
                 Value::Function(f) => {
+                    crate::sim::interrupt::freeze_upvalues(&vm.lua, &f).map_err(|m| {
+                        declaration(
+                            src,
+                            Some("kernel"),
+                            format!("pass '{}': {m}", spec.passes[i].name),
+                        )
+                    })?;
                     vm.prints
                         .push(crate::sim::interrupt::upvalue_fingerprint(&vm.lua, &f));
                     vm.kernels.push(f);

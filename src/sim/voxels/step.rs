@@ -516,7 +516,9 @@ impl VoxelSim {
             let s = &mut self.scripts[si];
             match result {
                 Ok(out) => {
-                    s.failures = 0;
+                    if !cands.is_empty() {
+                        s.failures = 0;
+                    }
                     for (b, mats) in out.mats {
                         let done = store.edit_brick(b, |d| *d = *mats);
                         if done {
@@ -556,7 +558,12 @@ impl VoxelSim {
         });
         // Every awake brick that nothing changed this tick (whether or not a
         // script visited it) moves towards sleep.
-        let mut awake: Vec<IVec3> = self.active.iter().copied().collect();
+        // A step that rejected a script moves nothing towards sleep.
+        let mut awake: Vec<IVec3> = if report.errors.is_empty() {
+            self.active.iter().copied().collect()
+        } else {
+            Vec::new()
+        };
         awake.sort_by_key(|b| (b.z, b.y, b.x));
         for b in awake {
             if changed.contains(&b) {
