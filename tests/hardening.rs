@@ -496,3 +496,127 @@ fn fault_22_the_default_world_runs_from_any_directory_and_init_writes_it_out() {
     common::cli::assert_clear_failure(&again, "init over an existing world", "already exists");
     let _ = Path::new("");
 }
+
+#[test]
+fn frames_are_pruned_to_frames_keep() {
+    let (cfg, state, _) = setup("frames");
+    edit_config(&cfg, "[frames]\nevery = 5", "[frames]\nevery = 1\nkeep = 5");
+    assert_success(
+        &run_cmd(&cfg, &state)
+            .arg("--ticks")
+            .arg("30")
+            .output()
+            .unwrap(),
+    );
+    let frames: Vec<_> = std::fs::read_dir(state.join("frames"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .collect();
+    assert!(!frames.is_empty() && frames.len() <= 5, "{frames:?}");
+    assert!(
+        frames
+            .iter()
+            .all(|f| f.starts_with("frame-") && f.ends_with(".png")),
+        "{frames:?}"
+    );
+}
+
+#[test]
+fn a_second_signal_exits_at_once() {
+    let (cfg, state, addr) = setup("twice");
+    // The final checkpoint stalls for 30 s (test hook): only a second
+    // signal can end the process quickly.
+    let mut d = Daemon(Some(
+        run_cmd(&cfg, &state)
+            .env("BRICKWORLD_TEST_CHECKPOINT_STALL_MS", "30000")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    ));
+    wait_ready(&addr);
+    let pid = d.id().to_string();
+    let _ = std::process::Command::new("kill")
+        .args(["-TERM", &pid])
+        .status();
+    std::thread::sleep(Duration::from_millis(500));
+    let t = Instant::now();
+    let _ = std::process::Command::new("kill")
+        .args(["-TERM", &pid])
+        .status();
+    let status = loop {
+        if let Some(s) = d.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "the second signal did not end it"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert_eq!(status.code(), Some(130));
+    // Whatever was on disk before is still good.
+    for f in checkpoint::list(&state).unwrap() {
+        checkpoint::read(&f).unwrap();
+    }
+}
+
+/// Regression (hostile probe): a checkpoint whose valid checksums cover an
+/// LZ4 payload claiming gigabytes aborted the engine on every start.
+#[test]
+fn a_checkpoint_claiming_more_memory_than_there_is_is_set_aside() {
+    let (cfg, state, _) = setup("bomb");
+    std::fs::create_dir_all(&state).unwrap();
+    let claimed: u32 = 2_000_000_000;
+    let mut payload = claimed.to_le_bytes().to_vec();
+    payload.resize(8 << 20, 0xff); // 8 MB: 255× covers the claim
+    let mut header = Vec::new();
+    header.extend_from_slice(b"BWCK");
+    header.extend_from_slice(&3u32.to_le_bytes());
+    header.extend_from_slice(&99u64.to_le_bytes());
+    header.extend_from_slice(&0u64.to_le_bytes());
+    header.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+    header.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+    let hcrc = crc32fast::hash(&header);
+    header.extend_from_slice(&hcrc.to_le_bytes());
+    header.extend_from_slice(&4u32.to_le_bytes());
+    header.extend_from_slice(b"null");
+    header.extend_from_slice(&crc32fast::hash(b"null").to_le_bytes());
+    header.extend_from_slice(&payload);
+    let bomb = state.join("ckpt-0000000000000099.bwc");
+    std::fs::write(&bomb, &header).unwrap();
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 3000000 && exec '{}' run '{}' --state '{}' --ticks 2",
+            env!("CARGO_BIN_EXE_brickworld"),
+            cfg.display(),
+            state.display()
+        ))
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("bytes are available") && err.contains("corrupt"),
+        "{err}"
+    );
+    assert!(state.join("ckpt-0000000000000099.bwc.corrupt").exists());
+}
+
+#[test]
+fn camera_requests_are_bounded_like_the_command_line() {
+    let (cfg, state, addr) = setup("cam");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    for body in [
+        r#"{"eye":[1e308,0,0],"target":[0,0,1]}"#,
+        r#"{"eye":[0,10,0],"target":[5,0,5],"fov":1e-300}"#,
+        r#"{"eye":[0,10,0],"target":[5,0,5],"fov":180}"#,
+    ] {
+        let (code, msg) = post(&addr, &state, "/camera", body);
+        assert_eq!(code, 400, "{body}: {msg}");
+    }
+    assert_success(&stop(d));
+}

@@ -645,12 +645,20 @@ fn write_file(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Checkpo
             None => f.write_all(&payload)?,
         }
         f.sync_all()?;
-        fs::rename(&tmp, &path)?;
-        File::open(dir)?.sync_all()
+        fs::rename(&tmp, &path)
     })();
     if let Err(e) = result {
         let _ = fs::remove_file(&tmp);
         return Err(io(&path, e));
+    }
+    // The file has landed under its final name: it is this checkpoint, and
+    // retention must count it even if the directory's fsync fails (out of
+    // descriptors, say; regression: such files were orphaned for ever).
+    if let Err(e) = File::open(dir).and_then(|d| d.sync_all()) {
+        eprintln!(
+            "warning: checkpoint {} written, but syncing its directory failed: {e}",
+            path.display()
+        );
     }
     // Temp files left by a process killed mid-write never load; drop them.
     if let Ok(rd) = fs::read_dir(dir) {

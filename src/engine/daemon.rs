@@ -148,9 +148,17 @@ impl Engine {
         let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
         let token_path = state_dir::write_token(&opts.state, &token)?;
         {
+            // The first SIGINT/SIGTERM stops after the step in flight, with
+            // a final checkpoint; a second one exits at once (the last
+            // checkpoint on disk stays good).
             let s = shared.clone();
-            ctrlc::set_handler(move || s.shutdown.store(true, Ordering::Relaxed))
-                .context("cannot install the SIGINT/SIGTERM handler")?;
+            ctrlc::set_handler(move || {
+                if s.shutdown.swap(true, Ordering::Relaxed) {
+                    eprintln!("second signal: exiting now, without a final checkpoint");
+                    std::process::exit(130);
+                }
+            })
+            .context("cannot install the SIGINT/SIGTERM handler")?;
         }
         let identity = cfg.identity();
         let (checkpoints, found, warnings) = Checkpoints::open(&opts.state, identity.clone())?;
@@ -227,6 +235,7 @@ impl Engine {
                 gpu: cfg.gpu,
                 shadows: cfg.shadows,
                 frames_dir,
+                keep: cfg.frames_keep,
             },
             shared.clone(),
         )
@@ -633,7 +642,7 @@ impl Engine {
     /// Stop: a final checkpoint, the frame in flight, then the server.
     fn finish(mut self) -> Result<()> {
         let result = self.write_checkpoint();
-        self.renderer.finish();
+        self.renderer.finish(std::time::Duration::from_secs(3));
         self.shared.shutdown.store(true, Ordering::Relaxed);
         if let Some(s) = self.server.take() {
             s.stop();

@@ -73,6 +73,8 @@ pub struct RenderSettings {
     pub shadows: bool,
     /// Where frame PNGs go.
     pub frames_dir: PathBuf,
+    /// Frames kept on disk; older ones are deleted.
+    pub keep: usize,
 }
 
 /// The running render thread.
@@ -95,6 +97,7 @@ impl RenderThread {
             .spawn(move || {
                 let mut gpu: Option<(GpuContext, GpuBrickmap)> = None;
                 let mut gpu_tried = !settings.gpu;
+                let mut written = existing_frames(&settings.frames_dir);
                 for job in rx.iter() {
                     let t = Instant::now();
                     if !gpu_tried {
@@ -105,12 +108,28 @@ impl RenderThread {
                     }
                     let rgb = draw(&mut gpu, &job, settings.shadows, &st);
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
-                    let _ = std::fs::write(
-                        settings
-                            .frames_dir
-                            .join(format!("frame-{:08}.png", job.tick)),
-                        &png,
-                    );
+                    // Atomic (temp, rename): a full disk or a kill never leaves a
+                    // truncated frame under a final name.
+                    let path = settings
+                        .frames_dir
+                        .join(format!("frame-{:08}.png", job.tick));
+                    let tmp = settings
+                        .frames_dir
+                        .join(format!(".frame-{:08}.png.tmp", job.tick));
+                    if std::fs::write(&tmp, &png)
+                        .and_then(|_| std::fs::rename(&tmp, &path))
+                        .is_ok()
+                    {
+                        written.retain(|p| p != &path);
+                        written.push_back(path);
+                    } else {
+                        let _ = std::fs::remove_file(&tmp);
+                    }
+                    while written.len() > settings.keep {
+                        if let Some(old) = written.pop_front() {
+                            let _ = std::fs::remove_file(old);
+                        }
+                    }
                     if let Ok(mut f) = shared.frame.lock() {
                         *f = Some(png);
                     }
@@ -155,13 +174,45 @@ impl RenderThread {
         self.stats.skipped.fetch_add(1, Ordering::Relaxed);
     }
 
-    /// Finish the frame in flight and stop the thread.
-    pub fn finish(mut self) {
+    /// Finish the frame in flight and stop the thread, waiting at most
+    /// `limit`: a huge frame must not hold up shutdown (the thread is then
+    /// left to end with the process; frames are written atomically, so a
+    /// half-written one never appears under a final name).
+    pub fn finish(mut self, limit: std::time::Duration) {
         self.tx = None;
         if let Some(h) = self.handle.take() {
-            let _ = h.join();
+            let start = std::time::Instant::now();
+            while !h.is_finished() && start.elapsed() < limit {
+                std::thread::sleep(std::time::Duration::from_millis(10));
+            }
+            if h.is_finished() {
+                let _ = h.join();
+            } else {
+                eprintln!(
+                    "warning: the frame in flight is abandoned ({} s limit at shutdown)",
+                    limit.as_secs()
+                );
+            }
         }
     }
+}
+
+/// The frames already in `dir`, oldest first (by name: the tick).
+fn existing_frames(dir: &std::path::Path) -> std::collections::VecDeque<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| e.path())
+                .filter(|p| {
+                    p.file_name()
+                        .and_then(|n| n.to_str())
+                        .is_some_and(|n| n.starts_with("frame-") && n.ends_with(".png"))
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v.into()
 }
 
 fn start_gpu(world: &SceneWorld) -> Option<(GpuContext, GpuBrickmap)> {

@@ -34,6 +34,7 @@
 //! [frames]
 //! dir = "frames"              # relative to the state directory
 //! every = 10                  # ticks
+//! keep = 200                  # frames kept on disk; older ones are deleted
 //!
 //! [checkpoint]
 //! every = 500                 # ticks
@@ -138,6 +139,7 @@ struct RawRender {
 struct RawFrames {
     dir: Option<String>,
     every: Option<i64>,
+    keep: Option<i64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -233,6 +235,8 @@ pub struct WorldConfig {
     pub frames_dir: PathBuf,
     /// Write a frame every this many ticks.
     pub frames_every: u64,
+    /// Frames kept on disk (older ones are deleted).
+    pub frames_keep: usize,
     /// Checkpoint every this many ticks.
     pub checkpoint_every: u64,
     /// Control server address.
@@ -492,6 +496,10 @@ impl WorldConfig {
             shadows: raw.render.shadows.unwrap_or(true),
             frames_dir: PathBuf::from(raw.frames.dir.unwrap_or_else(|| "frames".into())),
             frames_every: every(raw.frames.every, 10, "frames.every")?,
+            frames_keep: match raw.frames.keep.unwrap_or(200) {
+                k @ 1..=1_000_000 => k as usize,
+                k => return Err(err("frames.keep", format!("{k} is outside 1..=1000000"))),
+            },
             checkpoint_every: every(raw.checkpoint.every, 500, "checkpoint.every")?,
             addr,
         })

@@ -27,6 +27,16 @@ pub use run::{DirtyBatch, WorldSim, read_script};
 pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm, StepKey};
 pub use step::{Kernel, Simulation, StepReport};
 
+/// A number for a message: plain when moderate, in scientific notation
+/// when huge or tiny (a 1e300 is not printed as 301 digits).
+pub fn fmt_num(v: f64) -> String {
+    if v != 0.0 && v.is_finite() && !(1e-6..1e9).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 /// Errors of the simulation subsystem. Every variant names the script.
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum SimError {
@@ -74,7 +84,7 @@ pub enum SimError {
     },
     /// A step wrote a channel value outside its bound (the script's declared
     /// range, or by default ± [`step::DEFAULT_BOUND_HEIGHTS`] world heights).
-    #[error("{script}.lua: step rejected: channel '{channel}' = {value} at column ({}, {}) is outside its bound [{}, {}] ({why})", column.0, column.1, bound.0, bound.1)]
+    #[error("{script}.lua: step rejected: channel '{channel}' = {} at column ({}, {}) is outside its bound [{}, {}] ({why})", fmt_num(*value), column.0, column.1, fmt_num(bound.0), fmt_num(bound.1))]
     OutOfBounds {
         /// Script name.
         script: String,

@@ -173,6 +173,12 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             let c: Cam =
                 serde_json::from_str(body).map_err(|e| bad(format!("camera JSON: {e}")))?;
             let fov = c.fov.unwrap_or(50.0);
+            if c.eye.iter().chain(&c.target).any(|v| !(v.abs() <= 1e9)) {
+                return Err(bad("camera coordinates must be within ±1e9".into()));
+            }
+            if !(0.01..=179.0).contains(&fov) {
+                return Err(bad(format!("fov {fov} is outside 0.01..=179 degrees")));
+            }
             crate::trace::Camera::new(c.eye.into(), c.target.into(), fov, 8, 8)
                 .map_err(|e| bad(e.to_string()))?;
             Ok(Command::Camera {
@@ -213,8 +219,10 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
                 };
                 if !v.is_finite() || !(p.min..=p.max).contains(v) {
                     return Err(bad(format!(
-                        "parameter '{k}' = {v} is outside [{}, {}]",
-                        p.min, p.max
+                        "parameter '{k}' = {} is outside [{}, {}]",
+                        crate::sim::fmt_num(*v),
+                        crate::sim::fmt_num(p.min),
+                        crate::sim::fmt_num(p.max)
                     )));
                 }
             }

@@ -115,13 +115,13 @@ async fn accept_loop(
         }
     };
     let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
-    let mut reported = false;
+    // Accept errors are reported at most once per ten seconds.
+    let mut last_report: Option<std::time::Instant> = None;
     loop {
         tokio::select! {
             _ = &mut stopped => break,
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
-                    reported = false;
                     // Over the limit: close at once, freeing the descriptor.
                     let Ok(slot) = slots.clone().try_acquire_owned() else { continue };
                     let shared = shared.clone();
@@ -133,9 +133,9 @@ async fn accept_loop(
                 Err(e) => {
                     // Out of descriptors (or a connection reset before accept):
                     // wait for clients to leave; the listener stays.
-                    if !reported {
+                    if last_report.is_none_or(|t| t.elapsed() >= Duration::from_secs(10)) {
                         eprintln!("warning: the control server cannot accept a connection ({e}); retrying");
-                        reported = true;
+                        last_report = Some(std::time::Instant::now());
                     }
                     tokio::time::sleep(ACCEPT_BACKOFF).await;
                 }

@@ -499,8 +499,10 @@ impl Simulation {
         let p = &s.spec.params[i];
         if !(p.min..=p.max).contains(&value) {
             return Err(err(format!(
-                "parameter '{name}' = {value} is outside [{}, {}]",
-                p.min, p.max
+                "parameter '{name}' = {} is outside [{}, {}]",
+                crate::sim::fmt_num(value),
+                crate::sim::fmt_num(p.min),
+                crate::sim::fmt_num(p.max)
             )));
         }
         s.params[i] = value;
