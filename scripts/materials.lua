@@ -5,6 +5,7 @@
 return {
   sand = { color = { 218, 196, 140 }, kind = "granular", density = 1.6 },
   lava = { color = { 255, 96, 24 }, kind = "liquid", density = 3.1 },
+  lava_source = { color = { 255, 160, 60 }, kind = "solid", density = 3.1 },
   basalt = { color = { 58, 54, 56 }, kind = "solid", density = 2.9 },
   steam = { color = { 226, 232, 240 }, kind = "gas", density = 0.0006 },
 }

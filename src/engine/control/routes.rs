@@ -173,7 +173,11 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             let c: Cam =
                 serde_json::from_str(body).map_err(|e| bad(format!("camera JSON: {e}")))?;
             let fov = c.fov.unwrap_or(50.0);
-            if c.eye.iter().chain(&c.target).any(|v| !v.is_finite() || v.abs() > 1e9) {
+            if c.eye
+                .iter()
+                .chain(&c.target)
+                .any(|v| !v.is_finite() || v.abs() > 1e9)
+            {
                 return Err(bad("camera coordinates must be within ±1e9".into()));
             }
             if !(0.01..=179.0).contains(&fov) {

@@ -15,6 +15,8 @@ pub const SCRIPTS: &[(&str, &str)] = &[
     ),
     ("water3d.lua", include_str!("../../../scripts/water3d.lua")),
     ("sand.lua", include_str!("../../../scripts/sand.lua")),
+    ("lava.lua", include_str!("../../../scripts/lava.lua")),
+    ("grass.lua", include_str!("../../../scripts/grass.lua")),
 ];
 
 /// The shipped script called `file` (e.g. `water.lua`), if there is one.
