@@ -18,15 +18,22 @@ pub fn run(s: &SimSettings) -> Result<()> {
     pool.install(|| {
         let mut world = build_world(&s.scene)?;
         let mut ws = WorldSim::with_edges(&mut world, s.drain);
+        ws.set_seed(s.scene.seed);
+        // A materials.lua beside the first script names the voxel scripts' materials.
+        if let Some(m) = s.scripts.first().and_then(|p| p.parent()).map(|d| d.join("materials.lua")).filter(|m| m.is_file()) {
+            ws.load_materials(&mut world, &read_script(&m)?).context("cannot load materials.lua")?;
+        }
         for path in &s.scripts {
             let src = read_script(path)?;
-            ws.add_lua(src, Limits::default()).context("cannot load the script")?;
+            ws.add_script(&world, src, Limits::default()).context("cannot load the script")?;
         }
+        ws.vox.apply_fills(&world.store, &world.materials);
         for p in &s.params {
-            let index = ws.sim.script_index(&p.script)
+            let index = ws.script_index(&p.script)
                 .with_context(|| format!("--param names script '{}', which is not loaded", p.script))?;
-            ws.sim.set_param(index, &p.name, p.value)?;
+            ws.set_param(index, &p.name, p.value)?;
         }
+        let mut script_ms = vec![0.0; ws.script_count()];
         let mut watchers = Vec::new();
         if s.watch {
             let mut dirs: Vec<std::path::PathBuf> = s.scripts.iter().map(|p| p.parent().map_or(".".into(), |d| if d.as_os_str().is_empty() { ".".into() } else { d.to_path_buf() })).collect();
@@ -53,6 +60,12 @@ pub fn run(s: &SimSettings) -> Result<()> {
             }
             let (r, n) = if s.cfl > 0.0 { ws.step_within_cfl(&mut world, s.dt, s.cfl) } else { (ws.step(&mut world, s.dt), 1) };
             max_sub = max_sub.max(n);
+            for (i, t) in script_ms.iter_mut().enumerate() {
+                *t += ws.script_ms(&r, i);
+            }
+            for (script, line) in crate::sim::runtime::log::take_unprinted() {
+                pb.suspend(|| eprintln!("[{script}] {line}"));
+            }
             cells += r.active_tiles as u64 * 64 * n as u64;
             last_active = r.active_tiles;
             for batch in ws.dirty.try_iter() {
@@ -77,6 +90,12 @@ pub fn run(s: &SimSettings) -> Result<()> {
             last_active,
             bricks
         );
+        for (i, t) in script_ms.iter().enumerate() {
+            eprintln!("  {}: {:.3} ms per step", ws.spec(i).name, t / s.steps.max(1) as f64);
+            for (name, total) in ws.conserved_totals(i) {
+                eprintln!("    conserved {name}: {total:.6}");
+            }
+        }
         // Conserved quantities (sources such as rain and snowfall add to them).
         for name in ["water", "ground", "sediment", "snow"] {
             if let Some(id) = ws.sim.channels().find(name) {

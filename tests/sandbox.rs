@@ -385,3 +385,30 @@ fn a_failing_script_alone_in_its_world_is_suspended_not_forgotten() {
     let why = sim.suspended(0).expect("suspended").to_string();
     assert!(why.contains("boom"), "{why}");
 }
+
+#[test]
+fn log_lines_are_kept_per_script_and_rate_limited() {
+    let mut sim = sim_with(&[script("logger", "log(\"tick\", c.tick, tx, tz, nil, true)")]);
+    sim.step(0.1);
+    let (lines, _) = brickworld::sim::runtime::log::recent("logger");
+    assert!(
+        lines.iter().any(|l| l.starts_with("tick\t1\t")),
+        "{lines:?}"
+    );
+    assert!(lines.iter().any(|l| l.ends_with("nil\ttrue")), "{lines:?}");
+    // 4 tiles a step: past 20 lines a second, lines are dropped, not kept.
+    for _ in 0..20 {
+        sim.wake_all();
+        sim.step(0.1);
+    }
+    let (lines, dropped) = brickworld::sim::runtime::log::recent("logger");
+    assert!(lines.len() <= brickworld::sim::runtime::log::KEPT);
+    assert!(dropped > 0);
+    let printed = brickworld::sim::runtime::log::take_unprinted();
+    assert!(!printed.is_empty());
+    assert!(
+        brickworld::sim::runtime::log::take_unprinted()
+            .iter()
+            .all(|(s, _)| s != "logger")
+    );
+}

@@ -127,6 +127,8 @@ pub struct Engine {
     rate_window: (Instant, u64),
     steps_per_s: f64,
     start_tick: u64,
+    /// Milliseconds each script took in the last step (script id order).
+    script_ms: Vec<f64>,
 }
 
 impl Engine {
@@ -290,6 +292,7 @@ impl Engine {
             active_bricks: 0,
             rate_window: (Instant::now(), 0),
             steps_per_s: 0.0,
+            script_ms: vec![0.0; n],
         };
         // Publish the loaded world in one go: a client that sees the scripts
         // also sees the tick and where it was resumed from (regression: a
@@ -436,6 +439,12 @@ impl Engine {
             self.rate_window = (Instant::now(), 0);
         }
         self.active_bricks = r.active_tiles;
+        self.script_ms = (0..self.ws.script_count())
+            .map(|i| self.ws.script_ms(&r, i))
+            .collect();
+        for (script, line) in crate::sim::runtime::log::take_unprinted() {
+            eprintln!("[{script}] {line}");
+        }
         r
     }
 
@@ -611,6 +620,10 @@ impl Engine {
                 })
                 .collect(),
             warning: note.warning,
+            ms_per_step: self.script_ms.get(i).copied().unwrap_or(0.0),
+            totals: sim.conserved_totals(i).into_iter().collect(),
+            log: crate::sim::runtime::log::recent(&spec.name).0,
+            log_dropped: crate::sim::runtime::log::recent(&spec.name).1,
         }
     }
 

@@ -54,6 +54,14 @@ pub struct ScriptStatus {
     pub failures_in_a_row: u32,
     /// Parameters with their ranges.
     pub params: Vec<ParamStatus>,
+    /// Milliseconds the script took in the last step.
+    pub ms_per_step: f64,
+    /// Totals of the channels it declares `conserved`.
+    pub totals: std::collections::BTreeMap<String, f64>,
+    /// Its last `log(...)` lines (rate-limited), and how many were dropped.
+    pub log: Vec<String>,
+    /// Log lines dropped by the rate limit.
+    pub log_dropped: u64,
     /// The last warning about this script (a parameter clamped on reload,
     /// a refused parameter change…).
     pub warning: Option<String>,

@@ -224,6 +224,35 @@ impl WorldSim {
         }
     }
 
+    /// Milliseconds script `i` took in the step `report` describes.
+    pub fn script_ms(&self, report: &StepReport, i: usize) -> f64 {
+        match self.route(i) {
+            Ok(c) => report.script_ms.get(c).copied().unwrap_or(0.0),
+            Err(v) => report.voxel.script_ms.get(v).copied().unwrap_or(0.0),
+        }
+    }
+
+    /// The totals of the channels script `i` declares `conserved`.
+    pub fn conserved_totals(&self, i: usize) -> Vec<(String, f64)> {
+        let spec = self.spec(i);
+        spec.conserved
+            .iter()
+            .map(|name| {
+                let total = match self.route(i) {
+                    Ok(_) => {
+                        let ch = self.sim.channels();
+                        ch.find(name).map_or(0.0, |id| ch.total(id))
+                    }
+                    Err(_) => {
+                        let ch = self.vox.channels();
+                        ch.find(name).map_or(0.0, |id| ch.total(id))
+                    }
+                };
+                (name.clone(), total)
+            })
+            .collect()
+    }
+
     /// Failed steps in a row of script `i`.
     pub fn failures(&self, i: usize) -> u32 {
         match self.route(i) {
@@ -313,6 +342,10 @@ impl WorldSim {
         for _ in 0..n {
             self.sim.set_tick(tick);
             let r = self.column_step(world, dt / n as f64, &mut bricks);
+            report.script_ms.resize(r.script_ms.len(), 0.0);
+            for (t, ms) in report.script_ms.iter_mut().zip(&r.script_ms) {
+                *t += ms;
+            }
             report.active_tiles = report.active_tiles.max(r.active_tiles);
             report.changed_tiles.extend(r.changed_tiles);
             report.errors.extend(r.errors);

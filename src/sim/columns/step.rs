@@ -91,6 +91,9 @@ pub struct StepReport {
     pub errors: Vec<SimError>,
     /// What the voxel scripts did in the same tick.
     pub voxel: crate::sim::voxels::VoxelStepReport,
+    /// Milliseconds each column script took (script order; 0 if it did not
+    /// run).
+    pub script_ms: Vec<f64>,
 }
 
 /// The simulation state: channels, scripts, active set.
@@ -526,11 +529,15 @@ impl Simulation {
             tick: self.tick,
             default_bound: self.default_bound,
         };
-        for script in &mut self.scripts {
+        let mut script_ms = vec![0.0; self.scripts.len()];
+        for (si, script) in self.scripts.iter_mut().enumerate() {
             if !self.tick.is_multiple_of(script.every) || script.suspended.is_some() {
                 continue;
             }
-            match run_script(script, &self.channels, &ws, &ctx) {
+            let t0 = std::time::Instant::now();
+            let result = run_script(script, &self.channels, &ws, &ctx);
+            script_ms[si] = t0.elapsed().as_secs_f64() * 1e3;
+            match result {
                 Ok(outputs) => {
                     // A step that ran on no tile proves nothing: a failing
                     // script stays failing (regression: its world fell asleep
@@ -596,6 +603,7 @@ impl Simulation {
             active_tiles: active_n,
             changed_tiles: changed,
             errors,
+            script_ms,
             ..Default::default()
         }
     }

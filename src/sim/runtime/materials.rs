@@ -31,7 +31,7 @@ pub fn load_materials(
     registry: &mut MaterialRegistry,
 ) -> Result<Vec<String>, SimError> {
     let limits = Limits::default();
-    let lua = sandboxed(limits)?;
+    let lua = sandboxed(limits, &src.name)?;
     crate::sim::interrupt::arm(
         limits.instructions,
         Instant::now() + limits.time,

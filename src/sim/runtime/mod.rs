@@ -4,6 +4,7 @@
 
 pub mod embedded;
 pub(crate) mod interrupt;
+pub mod log;
 pub mod materials;
 pub mod reload;
 pub mod script;

@@ -309,7 +309,7 @@ fn number(src: &ScriptSource, t: &Table, field: &str, param: &str) -> Result<f64
 /// environments, code from strings, GC control or stdout; no unseeded
 /// randomness; read-only globals and libraries; the memory limit and the
 /// uncatchable budget hook installed.
-pub fn sandboxed(limits: Limits) -> Result<Lua, SimError> {
+pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     let libs =
         StdLib::MATH | StdLib::STRING | StdLib::TABLE | StdLib::BUFFER | StdLib::BIT | StdLib::UTF8;
     let lua = Lua::new_with(libs, LuaOptions::default())
@@ -343,6 +343,28 @@ pub fn sandboxed(limits: Limits) -> Result<Lua, SimError> {
                 .map_err(|e| SimError::Internal(e.to_string()))?;
         }
     }
+    // log(...): rate-limited lines to the daemon log and /status.
+    let who = name.to_string();
+    let log = lua
+        .create_function(move |_, args: mlua::Variadic<Value>| {
+            let parts: Vec<String> = args
+                .iter()
+                .map(|v| match v {
+                    Value::Nil => "nil".into(),
+                    Value::Boolean(b) => b.to_string(),
+                    Value::Integer(i) => i.to_string(),
+                    Value::Number(n) => n.to_string(),
+                    Value::String(s) => s.to_string_lossy(),
+                    other => other.type_name().to_string(),
+                })
+                .collect();
+            crate::sim::runtime::log::push(&who, parts.join("\t"));
+            Ok(())
+        })
+        .map_err(|e| SimError::Internal(e.to_string()))?;
+    lua.globals()
+        .raw_set("log", log)
+        .map_err(|e| SimError::Internal(e.to_string()))?;
     lua.sandbox(true)
         .map_err(|e| SimError::Internal(e.to_string()))?;
     // Luau's sandbox gives each thread a writable proxy of the frozen
@@ -361,7 +383,7 @@ impl ScriptVm {
     /// A fresh sandboxed VM with `src` loaded. Returns the VM and the
     /// validated declarations.
     pub fn load(src: &ScriptSource, limits: Limits) -> Result<(ScriptVm, ScriptSpec), SimError> {
-        let lua = sandboxed(limits)?;
+        let lua = sandboxed(limits, &src.name)?;
         let chunk = lua.load(&*src.text).set_name(format!("@{}.lua", src.name));
         // The chunk itself runs under the budget too (a script can loop at load).
         crate::sim::interrupt::arm(

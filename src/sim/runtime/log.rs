@@ -1,0 +1,87 @@
+//! `log(...)` for scripts: rate-limited lines per script, kept for
+//! `/status` (the last [`KEPT`]) and handed once to whoever prints them (the
+//! daemon's log, `sim`'s output). Nothing is allocated or locked unless a
+//! script calls `log`.
+
+use std::collections::VecDeque;
+use std::sync::{Mutex, OnceLock};
+use std::time::Instant;
+
+use rustc_hash::FxHashMap;
+
+/// Lines kept per script for `/status`.
+pub const KEPT: usize = 20;
+/// Lines accepted per script per second; more are counted as dropped.
+pub const PER_SECOND: u32 = 20;
+/// Longest line kept, in characters.
+pub const MAX_LINE: usize = 200;
+
+#[derive(Default)]
+struct ScriptLog {
+    recent: VecDeque<String>,
+    unprinted: Vec<String>,
+    dropped: u64,
+    window: Option<Instant>,
+    in_window: u32,
+}
+
+fn logs() -> &'static Mutex<FxHashMap<String, ScriptLog>> {
+    static LOGS: OnceLock<Mutex<FxHashMap<String, ScriptLog>>> = OnceLock::new();
+    LOGS.get_or_init(Default::default)
+}
+
+/// Record a line from `script` (rate-limited, truncated).
+pub fn push(script: &str, mut line: String) {
+    if line.chars().count() > MAX_LINE {
+        line = line.chars().take(MAX_LINE).collect::<String>() + "…";
+    }
+    let Ok(mut map) = logs().lock() else { return };
+    let log = map.entry(script.to_string()).or_default();
+    let now = Instant::now();
+    if log
+        .window
+        .is_none_or(|w| now.duration_since(w).as_secs_f64() >= 1.0)
+    {
+        log.window = Some(now);
+        log.in_window = 0;
+    }
+    if log.in_window >= PER_SECOND {
+        log.dropped += 1;
+        return;
+    }
+    log.in_window += 1;
+    log.recent.push_back(line.clone());
+    while log.recent.len() > KEPT {
+        log.recent.pop_front();
+    }
+    if log.unprinted.len() < 1000 {
+        log.unprinted.push(line);
+    }
+}
+
+/// The last lines of `script`, and how many were dropped by the rate limit.
+pub fn recent(script: &str) -> (Vec<String>, u64) {
+    let Ok(map) = logs().lock() else {
+        return (Vec::new(), 0);
+    };
+    map.get(script)
+        .map(|l| (l.recent.iter().cloned().collect(), l.dropped))
+        .unwrap_or_default()
+}
+
+/// Lines not yet printed, as (script, line), oldest first per script.
+pub fn take_unprinted() -> Vec<(String, String)> {
+    let Ok(mut map) = logs().lock() else {
+        return Vec::new();
+    };
+    let mut names: Vec<&String> = map.keys().collect();
+    names.sort();
+    let names: Vec<String> = names.into_iter().cloned().collect();
+    let mut out = Vec::new();
+    for n in names {
+        if let Some(l) = map.get_mut(&n) {
+            out.extend(l.unprinted.drain(..).map(|line| (n.clone(), line)));
+        }
+    }
+    out
+}
