@@ -11,7 +11,7 @@ const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
 #[test]
 fn the_shipped_worlds_load_and_build() {
-    for name in ["default", "snowy_mountain", "valley"] {
+    for name in ["default", "snowy_mountain", "valley", "caves", "sandbox"] {
         let path = Path::new(ROOT).join("worlds").join(format!("{name}.toml"));
         let cfg = WorldConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
         for s in &cfg.scripts {

@@ -112,6 +112,9 @@ impl std::fmt::Display for WorldIdentity {
     }
 }
 
+/// The voxel grid's awake bricks and their quiet counters.
+pub type VoxelSleep = (Vec<IVec3>, Vec<(IVec3, u8)>);
+
 /// Simulation state beyond the channels that a resume needs to continue
 /// exactly as if it had not stopped.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -122,6 +125,12 @@ pub struct SimExtras {
     pub sleep: Option<crate::sim::step::SleepState>,
     /// The voxel scripts' per-voxel channels (empty before version 3).
     pub voxel_channels: crate::sim::voxels::VoxelChannels,
+    /// The voxel grid's awake bricks and quiet counters (None before
+    /// version 3: every brick wakes).
+    pub voxel_sleep: Option<VoxelSleep>,
+    /// The material registry: (id, name, kind, density); colours are the
+    /// palette's. Empty before version 3 (names are then derived).
+    pub materials: Vec<(u8, String, crate::world::MaterialKind, f32)>,
 }
 
 /// Everything a checkpoint holds.
@@ -329,6 +338,32 @@ fn encode(state: WorldRef<'_>) -> Vec<u8> {
             }
         }
     }
+    w.u32(state.extras.materials.len() as u32);
+    for (id, name, kind, density) in &state.extras.materials {
+        w.0.push(*id);
+        w.str(name);
+        w.0.push(*kind as u8);
+        w.0.extend_from_slice(&density.to_le_bytes());
+    }
+    match &state.extras.voxel_sleep {
+        None => w.u32(0),
+        Some((active, quiet)) => {
+            w.u32(1);
+            w.u32(active.len() as u32);
+            for b in active {
+                w.i32(b.x);
+                w.i32(b.y);
+                w.i32(b.z);
+            }
+            w.u32(quiet.len() as u32);
+            for (b, q) in quiet {
+                w.i32(b.x);
+                w.i32(b.y);
+                w.i32(b.z);
+                w.0.push(*q);
+            }
+        }
+    }
     w.0
 }
 
@@ -419,6 +454,34 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
                 });
                 extras.voxel_channels.set(id, b, &v);
             }
+        }
+        let n = r.count(256, "material")?;
+        for _ in 0..n {
+            let id = r.take(1)?[0];
+            let name = r.str()?;
+            let kind = match r.take(1)?[0] {
+                0 => crate::world::MaterialKind::Solid,
+                1 => crate::world::MaterialKind::Liquid,
+                2 => crate::world::MaterialKind::Granular,
+                3 => crate::world::MaterialKind::Gas,
+                k => return Err(format!("material kind {k} is unknown")),
+            };
+            let density = f32::from_le_bytes(r.take(4)?.try_into().expect("4"));
+            extras.materials.push((id, name, kind, density));
+        }
+        if r.u32()? == 1 {
+            let left = |r: &Reader, per: usize| (r.data.len() - r.at) / per;
+            let n = r.count(left(&r, 12), "awake brick")?;
+            let mut active = Vec::with_capacity(n);
+            for _ in 0..n {
+                active.push(IVec3::new(r.i32()?, r.i32()?, r.i32()?));
+            }
+            let n = r.count(left(&r, 13), "quiet brick")?;
+            let mut quiet = Vec::with_capacity(n);
+            for _ in 0..n {
+                quiet.push((IVec3::new(r.i32()?, r.i32()?, r.i32()?), r.take(1)?[0]));
+            }
+            extras.voxel_sleep = Some((active, quiet));
         }
     }
     if r.at != payload.len() {

@@ -170,7 +170,13 @@ impl Engine {
         let (mut world, resumed) = match found {
             Some((path, st)) => {
                 eprintln!("resuming from {} (tick {})", path.display(), st.tick);
-                let w = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)?;
+                let mut w = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)?;
+                if !st.extras.materials.is_empty() {
+                    w.materials = crate::world::MaterialRegistry::from_entries(
+                        &st.extras.materials,
+                        w.store.palette(),
+                    );
+                }
                 (w, Some((st.tick, st.channels, st.params, st.extras)))
             }
             None => {
@@ -200,11 +206,34 @@ impl Engine {
         }
         let mut loaded_from = None;
         if resumed.is_none() {
+            for (i, p) in cfg.place.iter().enumerate() {
+                let id = world.materials.id(&p.material).with_context(|| {
+                    format!(
+                        "place[{i}].material: unknown material '{}' (declare it in materials.lua)",
+                        p.material
+                    )
+                })?;
+                let (lo, hi) = world.bounds;
+                if p.at.cmplt(lo).any() || (p.at + p.size).cmpgt(hi).any() {
+                    bail!(
+                        "place[{i}]: the box at {} of size {} is outside the world [{lo}, {hi})",
+                        p.at,
+                        p.size
+                    );
+                }
+                world.store.fill_box(p.at, p.at + p.size, id);
+            }
+            let placed = world.apply_edits();
+            ws.vox.notify_edited(&placed);
             ws.vox.apply_fills(&world.store, &world.materials);
         }
         if let Some((tick, channels, params, extras)) = resumed {
             ws.sim.set_channels(channels);
             ws.vox.set_channels(extras.voxel_channels.clone());
+            if let Some((active, quiet)) = &extras.voxel_sleep {
+                ws.vox.restore_sleep_state(active, quiet);
+            }
+            ws.vox.set_tick(tick);
             ws.resync_columns();
             ws.sim.set_tick(tick);
             ws.drained = extras.drained;
@@ -542,6 +571,8 @@ impl Engine {
             drained: self.ws.drained,
             sleep: Some(sim.sleep_state()),
             voxel_channels: self.ws.vox.channels().clone(),
+            voxel_sleep: Some(self.ws.vox.sleep_state()),
+            materials: self.world.materials.entries(),
         };
         let r = WorldRef {
             tick: sim.tick(),

@@ -41,6 +41,11 @@
 //!
 //! [control]
 //! addr = "127.0.0.1:7878"
+//!
+//! [[place]]                   # boxes placed into a freshly built world
+//! material = "lava_source"    # a material name (scene, simulation or materials.lua)
+//! at = [100, 60, 100]
+//! size = [1, 1, 1]
 //! ```
 
 use std::collections::BTreeMap;
@@ -86,6 +91,27 @@ struct RawConfig {
     checkpoint: RawCheckpoint,
     #[serde(default)]
     control: RawControl,
+    #[serde(default)]
+    place: Vec<RawPlace>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPlace {
+    material: String,
+    at: [i64; 3],
+    size: Option<[i64; 3]>,
+}
+
+/// A box of one material placed into a freshly built world.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Placement {
+    /// Material name (resolved once `materials.lua` is loaded).
+    pub material: String,
+    /// Lowest corner.
+    pub at: IVec3,
+    /// Size (at least 1 on every axis).
+    pub size: IVec3,
 }
 
 #[derive(Debug, Deserialize)]
@@ -241,6 +267,8 @@ pub struct WorldConfig {
     pub checkpoint_every: u64,
     /// Control server address.
     pub addr: SocketAddr,
+    /// Boxes of material placed into a freshly built world (a lava source).
+    pub place: Vec<Placement>,
 }
 
 impl WorldConfig {
@@ -474,7 +502,28 @@ impl WorldConfig {
         let config_hash = text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
             (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
         });
+        let mut place = Vec::new();
+        for (i, p) in raw.place.iter().enumerate() {
+            let size = p.size.unwrap_or([1, 1, 1]);
+            if size.iter().any(|v| !(1..=65536).contains(v))
+                || p.at.iter().any(|v| v.abs() > 1 << 24)
+            {
+                return Err(err(
+                    &format!("place[{i}]"),
+                    format!(
+                        "at {:?} size {size:?}: sizes must be 1..=65536 and positions within ±2^24",
+                        p.at
+                    ),
+                ));
+            }
+            place.push(Placement {
+                material: p.material.clone(),
+                at: IVec3::new(p.at[0] as i32, p.at[1] as i32, p.at[2] as i32),
+                size: IVec3::new(size[0] as i32, size[1] as i32, size[2] as i32),
+            });
+        }
         Ok(WorldConfig {
+            place,
             source_text: raw.world.source.clone(),
             config_hash,
             scripts_embedded: false,

@@ -30,6 +30,7 @@ use super::Palette;
 /// How a material behaves (rules read it; the engine does not).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
+#[repr(u8)]
 pub enum MaterialKind {
     /// Stays put unless a rule moves it.
     Solid,
@@ -192,6 +193,39 @@ impl MaterialRegistry {
             .enumerate()
             .filter_map(|(i, d)| d.as_ref().map(|(n, _)| (i as u8, n.clone())))
             .collect()
+    }
+
+    /// Every registered material as (id, name, kind, density), by id (what
+    /// checkpoints save; colours live in the palette).
+    pub fn entries(&self) -> Vec<(MaterialId, String, MaterialKind, f32)> {
+        self.defs
+            .iter()
+            .enumerate()
+            .filter_map(|(i, d)| {
+                d.as_ref()
+                    .map(|(n, d)| (i as u8, n.clone(), d.kind, d.density))
+            })
+            .collect()
+    }
+
+    /// Rebuild a registry from [`entries`](Self::entries), colours from `palette`.
+    pub fn from_entries(
+        entries: &[(MaterialId, String, MaterialKind, f32)],
+        palette: &Palette,
+    ) -> Self {
+        let mut r = MaterialRegistry::new();
+        for (id, name, kind, density) in entries {
+            let _ = r.register_at(
+                *id,
+                name,
+                MaterialDef {
+                    color: palette.rgb(*id),
+                    kind: *kind,
+                    density: *density,
+                },
+            );
+        }
+        r
     }
 
     /// Write every registered colour into `palette`.

@@ -17,6 +17,7 @@ pub const SCRIPTS: &[(&str, &str)] = &[
     ("sand.lua", include_str!("../../../scripts/sand.lua")),
     ("lava.lua", include_str!("../../../scripts/lava.lua")),
     ("grass.lua", include_str!("../../../scripts/grass.lua")),
+    ("rain3d.lua", include_str!("../../../scripts/rain3d.lua")),
 ];
 
 /// The shipped script called `file` (e.g. `water.lua`), if there is one.

@@ -98,6 +98,8 @@ pub struct ScriptSpec {
     /// Channels whose total the runtime reports and checks stays constant
     /// (to round-off) across the script's step.
     pub conserved: Vec<String>,
+    /// Also run on the world's top layer of bricks, awake or not (rain).
+    pub sky: bool,
     /// Initial conditions of a freshly built world: (channel, material):
     /// the channel is set to 1 in every voxel of the material.
     pub fills: Vec<(String, String)>,
@@ -499,6 +501,17 @@ impl ScriptVm {
         let only = strings(src, def, "only")?;
         let keep_awake = strings(src, def, "keep_awake")?;
         let conserved = strings(src, def, "conserved")?;
+        let sky = match def.get::<Value>("sky") {
+            Ok(Value::Nil) => false,
+            Ok(Value::Boolean(b)) if grid == Grid::Voxels || !b => b,
+            _ => {
+                return Err(declaration(
+                    src,
+                    Some("sky"),
+                    "'sky' is true or false, for voxel scripts",
+                ));
+            }
+        };
         let mut fills = Vec::new();
         match def.get::<Value>("fills") {
             Ok(Value::Nil) => {}
@@ -734,6 +747,7 @@ impl ScriptVm {
             only,
             keep_awake,
             conserved,
+            sky,
             fills,
             channels,
             nonnegative,

@@ -469,9 +469,36 @@ impl VoxelSim {
                 }
             }
         }
+        if self.scripts[si].spec.sky {
+            for z in self.lo.z..self.hi.z {
+                for x in self.lo.x..self.hi.x {
+                    out.insert(IVec3::new(x, self.hi.y - 1, z));
+                }
+            }
+        }
         let mut out: Vec<IVec3> = out.into_iter().collect();
         out.sort_by_key(|b| (b.z, b.y, b.x));
         out
+    }
+
+    /// The active set and quiet counters, sorted (for checkpoints).
+    #[allow(clippy::type_complexity)]
+    pub fn sleep_state(&self) -> (Vec<IVec3>, Vec<(IVec3, u8)>) {
+        let mut a: Vec<IVec3> = self.active.iter().copied().collect();
+        a.sort_by_key(|b| (b.z, b.y, b.x));
+        let mut q: Vec<(IVec3, u8)> = self.quiet.iter().map(|(b, n)| (*b, *n)).collect();
+        q.sort_by_key(|(b, _)| (b.z, b.y, b.x));
+        (a, q)
+    }
+
+    /// Restore what [`sleep_state`](Self::sleep_state) saved.
+    pub fn restore_sleep_state(&mut self, active: &[IVec3], quiet: &[(IVec3, u8)]) {
+        self.active = active.iter().copied().filter(|b| self.inside(*b)).collect();
+        self.quiet = quiet
+            .iter()
+            .copied()
+            .filter(|(b, _)| self.inside(*b))
+            .collect();
     }
 
     /// Advance every voxel script by `dt`; changed materials go through
