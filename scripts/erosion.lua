@@ -32,6 +32,7 @@ end
 return {
   channels = { "ground", "water", "sediment", "u", "v", "qx", "qz", "ero_l", "ero_r", "ero_b", "ero_t" },
   nonnegative = { "sediment", "ero_l", "ero_r", "ero_b", "ero_t" },
+  boundary = { ground = 1e9 }, -- outside the world the ground is a wall
   params = {
     capacity = { default = 0.05, min = 0, max = 10 },
     dissolve = { default = 0.3, min = 0, max = 10 },

@@ -58,6 +58,7 @@ local apply_reads = { "snow", "snw_l", "snw_r", "snw_b", "snw_t" }
 return {
   channels = { "ground", "snow", "snw_l", "snw_r", "snw_b", "snw_t" },
   nonnegative = { "snow", "snw_l", "snw_r", "snw_b", "snw_t" },
+  boundary = { ground = 1e9 }, -- outside the world the ground is a wall
   params = {
     snowfall = { default = 0.0, min = 0, max = 10 },
     repose = { default = 0.8, min = 0.05, max = 10 },

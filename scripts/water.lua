@@ -34,6 +34,11 @@ local max = math.max
 return {
   channels = { "ground", "water", "u", "v", "qx", "qz" },
   nonnegative = { "water" },
+  -- Outside the world the ground is a wall; water leaves over the edges
+  -- (into the moat) and the runtime sub-steps to keep this CFL limit.
+  boundary = { ground = 1e9 },
+  drains = { "water" },
+  cfl = { depth = "water", velocities = { "u", "v" }, gravity = "gravity", dx = "dx" },
   params = {
     gravity = { default = 9.81, min = 0, max = 100 },
     dx = { default = 1, min = 0.001, max = 1000 },

@@ -301,27 +301,30 @@ impl WorldSim {
         }
     }
 
-    /// Sub-steps needed to keep one step of `dt` within the gravity-wave CFL
-    /// limit `dt · (|u| + sqrt(g h)) / dx ≤ cfl` of the `water` script, if one
-    /// is loaded (1 otherwise; at most 256).
+    /// Sub-steps needed to keep one step of `dt` within the gravity-wave
+    /// CFL limit `dt · (|u| + sqrt(g h)) / dx ≤ cfl` of every script that
+    /// declares `cfl` (1 if none does; at most 256).
     pub fn substeps_for(&self, dt: f64, cfl: f64) -> u32 {
-        let Some(w) = self.sim.script_index("water") else {
-            return 1;
-        };
-        let spec = self.sim.spec(w);
-        let param = |n: &str| {
-            spec.params
-                .iter()
-                .position(|p| p.name == n)
-                .map(|i| self.sim.params(w)[i])
-        };
-        let (Some(g), Some(dx)) = (param("gravity"), param("dx")) else {
-            return 1;
-        };
-        let ch = self.sim.channels();
-        let m = |n: &str| ch.find(n).map_or(0.0, |id| ch.max_abs(id));
-        let speed = m("u").max(m("v")) + (g * m("water")).sqrt();
-        ((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, 256)
+        let mut n = 1;
+        for i in 0..self.sim.script_count() {
+            let spec = self.sim.spec(i);
+            let Some(c) = &spec.cfl else { continue };
+            let param = |name: &str| {
+                spec.params
+                    .iter()
+                    .position(|p| p.name == name)
+                    .map(|k| self.sim.params(i)[k])
+            };
+            let (Some(g), Some(dx)) = (param(&c.gravity), param(&c.dx)) else {
+                continue;
+            };
+            let ch = self.sim.channels();
+            let m = |name: &str| ch.find(name).map_or(0.0, |id| ch.max_abs(id));
+            let speed =
+                c.velocities.iter().map(|v| m(v)).fold(0.0, f64::max) + (g * m(&c.depth)).sqrt();
+            n = n.max(((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, 256));
+        }
+        n
     }
 
     /// One step of `dt`, split into column sub-steps that respect the
@@ -411,16 +414,25 @@ impl WorldSim {
         let report = self.sim.step(dt);
         let (tmin, tmax) = self.world_tiles;
         let inside = |t: &glam::IVec2| t.cmpge(tmin).all() && t.cmplt(tmax).all();
-        if self.drain
-            && let Some(w) = self.sim.channels().find("water")
-        {
-            // Empty the moat: what flowed over the edge has left the world.
-            for t in report.changed_tiles.iter().filter(|t| !inside(t)) {
-                if let Some(d) = self.sim.channels().get(*t, w) {
-                    self.drained += d.iter().sum::<f64>();
-                    self.sim
-                        .channels_mut()
-                        .set(*t, w, &[0.0; crate::sim::tile::TILE_CELLS]);
+        if self.drain {
+            // Empty the moat of every channel a script declares in `drains`:
+            // what flowed over the edge has left the world.
+            let mut drains: Vec<String> = (0..self.sim.script_count())
+                .flat_map(|i| self.sim.spec(i).drains.clone())
+                .collect();
+            drains.sort();
+            drains.dedup();
+            for name in drains {
+                let Some(w) = self.sim.channels().find(&name) else {
+                    continue;
+                };
+                for t in report.changed_tiles.iter().filter(|t| !inside(t)) {
+                    if let Some(d) = self.sim.channels().get(*t, w) {
+                        self.drained += d.iter().sum::<f64>();
+                        self.sim
+                            .channels_mut()
+                            .set(*t, w, &[0.0; crate::sim::tile::TILE_CELLS]);
+                    }
                 }
             }
         }

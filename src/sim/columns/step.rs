@@ -417,7 +417,12 @@ impl Simulation {
         let boundary: Vec<f64> = spec
             .channels
             .iter()
-            .map(|c| if c == "ground" { 1e9 } else { 0.0 })
+            .map(|c| {
+                spec.boundary
+                    .iter()
+                    .find(|(n, _)| n == c)
+                    .map_or(0.0, |(_, v)| *v)
+            })
             .collect();
         let nonneg = spec
             .nonnegative

@@ -81,6 +81,20 @@ pub const VOXEL_HALO: usize = 1000;
 /// Voxels in a brick.
 pub const VOXEL_CELLS: usize = 512;
 
+/// A column script's CFL declaration: which channel is the depth, which
+/// are velocities, which parameters are gravity and the cell size.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CflSpec {
+    /// Depth channel.
+    pub depth: String,
+    /// Velocity channels.
+    pub velocities: Vec<String>,
+    /// Gravity parameter.
+    pub gravity: String,
+    /// Cell-size parameter.
+    pub dx: String,
+}
+
 /// What a script declares, validated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ScriptSpec {
@@ -100,6 +114,16 @@ pub struct ScriptSpec {
     pub conserved: Vec<String>,
     /// Also run on the world's top layer of bricks, awake or not (rain).
     pub sky: bool,
+    /// Halo values outside the world, per channel (default 0): a wall of
+    /// `ground` is `boundary = { ground = 1e9 }`.
+    pub boundary: Vec<(String, f64)>,
+    /// Column scripts: the gravity-wave CFL limit the runtime sub-steps
+    /// for, `cfl = { depth = "water", velocities = { "u", "v" }, gravity =
+    /// "gravity", dx = "dx" }` (channel and parameter names).
+    pub cfl: Option<CflSpec>,
+    /// Column scripts: channels drained into the moat at the world's edges
+    /// (counted, so world + drained is conserved).
+    pub drains: Vec<String>,
     /// Initial conditions of a freshly built world: (channel, material):
     /// the channel is set to 1 in every voxel of the material.
     pub fills: Vec<(String, String)>,
@@ -512,6 +536,83 @@ impl ScriptVm {
                 ));
             }
         };
+        let known = |name: &str, what: &str| -> Result<(), SimError> {
+            if channels.iter().any(|c| c == name) {
+                Ok(())
+            } else {
+                Err(declaration(
+                    src,
+                    Some(&format!("\"{name}\"")),
+                    format!(
+                        "{what} names unknown channel '{name}' (declared: {})",
+                        channels.join(", ")
+                    ),
+                ))
+            }
+        };
+        let mut boundary = Vec::new();
+        match def.get::<Value>("boundary") {
+            Ok(Value::Nil) => {}
+            Ok(Value::Table(t)) => {
+                for pair in t.pairs::<String, f64>() {
+                    let (ch, v) = pair.map_err(|e| {
+                        declaration(
+                            src,
+                            Some("boundary"),
+                            format!("'boundary' maps channel names to numbers: {e}"),
+                        )
+                    })?;
+                    known(&ch, "'boundary'")?;
+                    if !v.is_finite() {
+                        return Err(declaration(
+                            src,
+                            Some("boundary"),
+                            format!("boundary.{ch} must be finite"),
+                        ));
+                    }
+                    boundary.push((ch, v));
+                }
+                boundary.sort_by(|a, b| a.0.cmp(&b.0));
+            }
+            _ => {
+                return Err(declaration(
+                    src,
+                    Some("boundary"),
+                    "'boundary' must be a table",
+                ));
+            }
+        }
+        let drains = strings(src, def, "drains")?;
+        for d in &drains {
+            known(d, "'drains'")?;
+        }
+        let cfl = match def.get::<Value>("cfl") {
+            Ok(Value::Nil) => None,
+            Ok(Value::Table(t)) => {
+                let bad = || {
+                    declaration(
+                        src,
+                        Some("cfl"),
+                        "'cfl' is { depth = CHANNEL, velocities = { CHANNEL… }, gravity = PARAM, dx = PARAM }",
+                    )
+                };
+                let depth: String = t.get("depth").map_err(|_| bad())?;
+                let gravity: String = t.get("gravity").map_err(|_| bad())?;
+                let dx: String = t.get("dx").map_err(|_| bad())?;
+                let velocities = strings(src, &t, "velocities")?;
+                known(&depth, "'cfl.depth'")?;
+                for v in &velocities {
+                    known(v, "'cfl.velocities'")?;
+                }
+                Some(CflSpec {
+                    depth,
+                    velocities,
+                    gravity,
+                    dx,
+                })
+            }
+            _ => return Err(declaration(src, Some("cfl"), "'cfl' must be a table")),
+        };
         let mut fills = Vec::new();
         match def.get::<Value>("fills") {
             Ok(Value::Nil) => {}
@@ -740,6 +841,17 @@ impl ScriptVm {
                 "the script declares no passes",
             ));
         }
+        if let Some(c) = &cfl {
+            for p in [&c.gravity, &c.dx] {
+                if !params.iter().any(|q| &q.name == p) {
+                    return Err(declaration(
+                        src,
+                        Some("cfl"),
+                        format!("cfl names parameter '{p}', which the script does not declare"),
+                    ));
+                }
+            }
+        }
         Ok(ScriptSpec {
             name: src.name.clone(),
             grid,
@@ -748,6 +860,9 @@ impl ScriptVm {
             keep_awake,
             conserved,
             sky,
+            boundary,
+            cfl,
+            drains,
             fills,
             channels,
             nonnegative,
