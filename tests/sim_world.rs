@@ -159,6 +159,10 @@ fn verify_and_bench_sim_write_the_documented_json() {
         "talus_angle",
         "stability_sweep",
         "determinism",
+        "u_tube",
+        "sand_pile",
+        "lava_cools",
+        "voxel_determinism",
     ] {
         assert!(names.contains(&n), "missing case {n}");
     }

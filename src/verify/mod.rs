@@ -2,6 +2,7 @@
 //! invariants, written as JSON (and charts) that other tools read.
 
 pub mod sims;
+pub mod voxels;
 
 use std::path::Path;
 

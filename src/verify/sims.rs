@@ -442,7 +442,7 @@ pub fn run_all(
     conservation_steps: u64,
     progress: &indicatif::ProgressBar,
 ) -> (Vec<Case>, ChartData) {
-    progress.set_length(6);
+    progress.set_length(10);
     let (ritter, resolution, dt) = ritter_case();
     progress.inc(1);
     let lake = lake_at_rest();
@@ -454,6 +454,14 @@ pub fn run_all(
     let (stab, stability) = stability_sweep();
     progress.inc(1);
     let det = determinism();
+    progress.inc(1);
+    let u_tube = super::voxels::u_tube();
+    progress.inc(1);
+    let sand = super::voxels::sand_pile();
+    progress.inc(1);
+    let lava = super::voxels::lava_cools();
+    progress.inc(1);
+    let vdet = super::voxels::voxel_determinism();
     progress.inc(1);
     let sps = |c: &Case, key: &str| -> Vec<(f64, f64)> {
         c.metrics[key]
@@ -472,7 +480,9 @@ pub fn run_all(
     };
     let steps_per_s = (sps(&ritter, "resolutions"), sps(&ritter, "dt_sweep_256"));
     (
-        vec![ritter, lake, mass, talus, stab, det],
+        vec![
+            ritter, lake, mass, talus, stab, det, u_tube, sand, lava, vdet,
+        ],
         ChartData {
             resolution,
             dt,
