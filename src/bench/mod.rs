@@ -6,3 +6,4 @@ pub mod sim;
 pub mod soak;
 pub mod stream;
 pub mod tracers;
+pub mod voxels;

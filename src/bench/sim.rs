@@ -52,6 +52,8 @@ pub struct SimBench {
     pub scripts: Vec<ScriptFigures>,
     /// Step cost against active tiles (water, Lua, 1024² world).
     pub scaling: Vec<ScalingPoint>,
+    /// The voxel grid: water3d's update rate and what sleeping costs.
+    pub voxels: super::voxels::VoxelBench,
 }
 
 fn setup(size: i32, scripts: &[(&str, &str, Kernel)], wet: f64) -> Result<Simulation> {
@@ -211,7 +213,13 @@ pub fn run(
         });
         progress.inc(1);
     }
-    let report = SimBench { scripts, scaling };
+    let voxels = super::voxels::run(64, steps.clamp(3, 20) as usize);
+    progress.inc(1);
+    let report = SimBench {
+        scripts,
+        scaling,
+        voxels,
+    };
     std::fs::write(json, serde_json::to_string_pretty(&report)? + "\n")
         .with_context(|| format!("cannot write {}", json.display()))?;
     Ok(report)
