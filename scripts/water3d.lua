@@ -28,6 +28,19 @@ local min, max = math.min, math.max
 
 -- Halo strides (x fastest, then y, then z, 10 per axis).
 local DY, DZ = 10, 100
+-- The fill the lower of two stacked cells holds at rest, given their total
+-- t and the compressibility: all of it up to one cell, then the excess
+-- shared so that the lower cell holds `comp` more than the upper.
+local function lower(t: number, comp: number): number
+  if t <= 1 then
+    return t
+  elseif t < 2 + comp then
+    return (1 + t * comp) / (1 + comp)
+  else
+    return (t + comp) / 2
+  end
+end
+
 -- The four sideways neighbours' halo offsets (read only).
 local SIDES = table.freeze({ 1, -1, DZ, -DZ })
 
@@ -60,15 +73,6 @@ return {
           return m == 0 or m == WATER
         end
         -- The fill the lower of two stacked cells holds at rest, given their total.
-        local function lower(t: number): number
-          if t <= 1 then
-            return t
-          elseif t < 2 + comp then
-            return (1 + t * comp) / (1 + comp)
-          else
-            return (t + comp) / 2
-          end
-        end
         for z = 0, 7 do
           for y = 0, 7 do
             for x = 0, 7 do
@@ -80,13 +84,13 @@ return {
                 -- down
                 if open(h - DY) then
                   local b = readf32(W, (h - DY) * 4)
-                  local f = fall * (lower(m + b) - b)
+                  local f = fall * (lower(m + b, comp) - b)
                   if f > still then out += f end
                 end
                 -- up (only when compressed)
                 if open(h + DY) then
                   local a = readf32(W, (h + DY) * 4)
-                  local f = -fall * (lower(m + a) - m)
+                  local f = -fall * (lower(m + a, comp) - m)
                   if f > still then out += f end
                 end
                 -- sideways
@@ -116,23 +120,14 @@ return {
           local m = readu8(M, h)
           return m == 0 or m == WATER
         end
-        local function lower(t: number): number
-          if t <= 1 then
-            return t
-          elseif t < 2 + comp then
-            return (1 + t * comp) / (1 + comp)
-          else
-            return (t + comp) / 2
-          end
-        end
         -- The flux from cell a to cell b (fills ma, mb), already scaled by
         -- the sender's k; `dir` is DY when b is below a, -DY above, 0 sideways.
         local function flux(ha: number, hb: number, ma: number, mb: number, dir: number): number
           local f
           if dir == DY then
-            f = fall * (lower(ma + mb) - mb)
+            f = fall * (lower(ma + mb, comp) - mb)
           elseif dir == -DY then
-            f = -fall * (lower(ma + mb) - ma)
+            f = -fall * (lower(ma + mb, comp) - ma)
           else
             f = spread * (ma - mb)
           end

@@ -376,20 +376,9 @@ impl Simulation {
         let mut loaded = self.prepare(src, kernel, limits)?;
         let old = &self.scripts[index];
         loaded.every = old.every;
-        let mut warnings = Vec::new();
-        for (i, p) in loaded.spec.params.iter().enumerate() {
-            if let Some(j) = old.spec.params.iter().position(|q| q.name == p.name) {
-                let v = old.params[j];
-                let kept = v.clamp(p.min, p.max);
-                if kept != v {
-                    warnings.push(format!(
-                        "{}.lua: parameter '{}' = {v} is outside its new range [{}, {}]; clamped to {kept}",
-                        loaded.spec.name, p.name, p.min, p.max
-                    ));
-                }
-                loaded.params[i] = kept;
-            }
-        }
+        let (values, warnings) =
+            crate::sim::script::carry_params(&old.spec, &old.params, &loaded.spec);
+        loaded.params = values;
         self.scripts[index] = loaded;
         self.wake_all();
         Ok(warnings)

@@ -95,6 +95,32 @@ pub struct CflSpec {
     pub dx: String,
 }
 
+/// Parameter values for a reloaded script: each parameter that still
+/// exists keeps its value, clamped into a narrowed range (with a warning);
+/// new ones start at their defaults.
+pub fn carry_params(
+    old: &ScriptSpec,
+    old_values: &[f64],
+    new: &ScriptSpec,
+) -> (Vec<f64>, Vec<String>) {
+    let mut values: Vec<f64> = new.params.iter().map(|p| p.default).collect();
+    let mut warnings = Vec::new();
+    for (i, p) in new.params.iter().enumerate() {
+        if let Some(j) = old.params.iter().position(|q| q.name == p.name) {
+            let v = old_values[j];
+            let kept = v.clamp(p.min, p.max);
+            if kept != v {
+                warnings.push(format!(
+                    "{}.lua: parameter '{}' = {v} is outside its new range [{}, {}]; clamped to {kept}",
+                    new.name, p.name, p.min, p.max
+                ));
+            }
+            values[i] = kept;
+        }
+    }
+    (values, warnings)
+}
+
 /// What a script declares, validated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ScriptSpec {
@@ -681,20 +707,6 @@ impl ScriptVm {
             }
         }
         let nonnegative = strings(src, def, "nonnegative")?;
-        let known = |name: &str, what: &str| -> Result<(), SimError> {
-            if channels.iter().any(|c| c == name) {
-                Ok(())
-            } else {
-                Err(declaration(
-                    src,
-                    Some(&format!("\"{name}\"")),
-                    format!(
-                        "{what} names unknown channel '{name}' (declared: {})",
-                        channels.join(", ")
-                    ),
-                ))
-            }
-        };
         for c in &nonnegative {
             known(c, "'nonnegative'")?;
         }

@@ -297,20 +297,9 @@ impl VoxelSim {
             .collect();
         let old = &self.scripts[i];
         new.every = old.every;
-        let mut warnings = Vec::new();
-        for (k, p) in new.spec.params.iter().enumerate() {
-            if let Some(j) = old.spec.params.iter().position(|q| q.name == p.name) {
-                let v = old.params[j];
-                let kept = v.clamp(p.min, p.max);
-                if kept != v {
-                    warnings.push(format!(
-                        "{}.lua: parameter '{}' = {v} is outside its new range [{}, {}]; clamped to {kept}",
-                        new.spec.name, p.name, p.min, p.max
-                    ));
-                }
-                new.params[k] = kept;
-            }
-        }
+        let (values, warnings) =
+            crate::sim::script::carry_params(&old.spec, &old.params, &new.spec);
+        new.params = values;
         self.scripts[i] = new;
         self.wake_all_known();
         Ok(warnings)
