@@ -30,18 +30,23 @@ fn read_png(path: &PathBuf) -> (u32, u32, Vec<u8>) {
     (info.width, info.height, buf)
 }
 
-fn check(name: &str, spec: &str, size: IVec3, shadows: bool) {
-    let spec: SceneSpec = spec.parse().unwrap();
-    let world = build_scene(&spec, size, 3, &ProgressBar::hidden()).unwrap();
+/// The 96×72 camera of every golden image: the world's medium view.
+fn golden_camera(world: &brickworld::scene::SceneWorld) -> Camera {
     let view = world.default_views()[1];
-    let cam = Camera::new(
+    Camera::new(
         DVec3::from(view.eye),
         DVec3::from(view.target),
         view.fov,
         96,
         72,
     )
-    .unwrap();
+    .unwrap()
+}
+
+fn check(name: &str, spec: &str, size: IVec3, shadows: bool) {
+    let spec: SceneSpec = spec.parse().unwrap();
+    let world = build_scene(&spec, size, 3, &ProgressBar::hidden()).unwrap();
+    let cam = golden_camera(&world);
     let opts = RenderOptions {
         shadows,
         ..Default::default()
@@ -156,25 +161,9 @@ fn fault_21_a_snow_only_world_shows_no_water() {
     for _ in 0..30 {
         assert!(ws.step(&mut world, 0.05).errors.is_empty());
     }
-    let water = world
-        .store
-        .iter()
-        .map(|(b, _)| {
-            let mut d = [0u8; 512];
-            world.store.read_dense(b, &mut d);
-            d.iter().filter(|&&m| m == WATER).count()
-        })
-        .sum::<usize>();
+    let water = brickworld::verify::voxels::count(&world.store, WATER);
     assert_eq!(water, 0, "water voxels in a world without water");
-    let view = world.default_views()[1];
-    let cam = Camera::new(
-        DVec3::from(view.eye),
-        DVec3::from(view.target),
-        view.fov,
-        96,
-        72,
-    )
-    .unwrap();
+    let cam = golden_camera(&world);
     let frame = render(
         &world.brickmap(),
         &cam,

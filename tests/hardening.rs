@@ -393,29 +393,36 @@ fn fault_15_a_second_daemon_on_one_state_directory_exits_clearly() {
 /// Change it only on purpose, with a note: it pins the whole pipeline.
 const HASH_AFTER_100: &str = "0x42739caa9de5276e";
 
+/// Run the daemon on `cfg` for `legs` ticks in turn (each a stop and
+/// resume); returns the world hash it reports at its final stop, which must
+/// be at tick `end`.
+fn hash_after_legs(cfg: &Path, state: &Path, legs: &[u64], end: u64) -> String {
+    let mut said = String::new();
+    for n in legs {
+        let out = run_cmd(cfg, state)
+            .arg("--ticks")
+            .arg(n.to_string())
+            .output()
+            .unwrap();
+        assert_success(&out);
+        said = String::from_utf8_lossy(&out.stdout).to_string();
+    }
+    let line = said
+        .lines()
+        .find(|l| l.starts_with(&format!("stopped at tick {end} ")))
+        .unwrap_or_else(|| panic!("{said}"));
+    line.split("checkpoint ")
+        .nth(1)
+        .unwrap()
+        .trim_end_matches(')')
+        .to_string()
+}
+
 #[test]
 fn fault_16_resuming_is_bit_identical_to_not_stopping() {
     let final_hash = |name: &str, legs: &[u64]| -> String {
         let (cfg, state, _) = setup(name);
-        let mut said = String::new();
-        for n in legs {
-            let out = run_cmd(&cfg, &state)
-                .arg("--ticks")
-                .arg(n.to_string())
-                .output()
-                .unwrap();
-            assert_success(&out);
-            said = String::from_utf8_lossy(&out.stdout).to_string();
-        }
-        let line = said
-            .lines()
-            .find(|l| l.starts_with("stopped at tick 100"))
-            .unwrap_or_else(|| panic!("{said}"));
-        line.split("checkpoint ")
-            .nth(1)
-            .unwrap()
-            .trim_end_matches(')')
-            .to_string()
+        hash_after_legs(&cfg, &state, legs, 100)
     };
     let straight = final_hash("f16a", &[100]);
     let resumed = final_hash("f16b", &[50, 50]);
@@ -637,26 +644,7 @@ fn a_voxel_world_resumes_bit_identically() {
         );
         assert!(text.contains("rain3d"), "{text}");
         std::fs::write(&cfg, text).unwrap();
-        let mut said = String::new();
-        for n in legs {
-            let out = run_cmd(&cfg, &state)
-                .arg("--ticks")
-                .arg(n.to_string())
-                .output()
-                .unwrap();
-            assert_success(&out);
-            said = String::from_utf8_lossy(&out.stdout).to_string();
-        }
-        let line = said
-            .lines()
-            .find(|l| l.starts_with("stopped at tick 40"))
-            .unwrap_or_else(|| panic!("{said}"));
-        let hash = line
-            .split("checkpoint ")
-            .nth(1)
-            .unwrap()
-            .trim_end_matches(')')
-            .to_string();
+        let hash = hash_after_legs(&cfg, &state, legs, 40);
         // The world hash covers bricks and column channels; the voxel
         // channels (water3d's fill) are compared from the checkpoint.
         let newest = checkpoint::list(&state).unwrap()[0].clone();

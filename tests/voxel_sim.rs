@@ -4,29 +4,16 @@
 
 use brickworld::sim::voxels::VoxelSim;
 use brickworld::sim::{Limits, ScriptSource};
-use brickworld::world::{BrickStore, MaterialDef, MaterialKind, MaterialRegistry, Palette};
+use brickworld::world::{BrickStore, MaterialRegistry, Palette};
 use glam::IVec3;
 
-const STONE: u8 = 1;
+use brickworld::verify::voxels::{STONE, count, registry as shipped_registry};
 
+/// The shipped materials (stone, grass, dirt, water and `materials.lua`'s),
+/// with sand's id.
 fn registry() -> (MaterialRegistry, u8) {
-    let mut r = MaterialRegistry::new();
-    let solid = |c: u8| MaterialDef {
-        color: [c, c, c],
-        kind: MaterialKind::Solid,
-        density: 2.5,
-    };
-    r.register_at(STONE, "stone", solid(120)).unwrap();
-    let sand = r
-        .register(
-            "sand",
-            MaterialDef {
-                color: [220, 200, 140],
-                kind: MaterialKind::Granular,
-                density: 1.6,
-            },
-        )
-        .unwrap();
+    let r = shipped_registry();
+    let sand = r.id("sand").expect("materials.lua declares sand");
     (r, sand)
 }
 
@@ -47,16 +34,6 @@ fn poured(n: i32, sand: u8) -> BrickStore {
     }
     s.take_modified();
     s
-}
-
-fn count(s: &BrickStore, m: u8) -> usize {
-    s.iter()
-        .map(|(b, _)| {
-            let mut d = [0u8; 512];
-            s.read_dense(b, &mut d);
-            d.iter().filter(|&&v| v == m).count()
-        })
-        .sum()
 }
 
 fn height_at(s: &BrickStore, m: u8, x: i32, z: i32) -> i32 {
@@ -152,8 +129,8 @@ fn bad_voxel_scripts_are_refused_clearly() {
     let e = sim
         .add_script(
             ScriptSource {
-                name: "lava".into(),
-                text: "return { grid = \"voxels\", materials = { \"lava\" }, passes = { { name = \"p\", reads = {}, writes = { \"mat\" }, kernel = function(c) end } } }".into(),
+                name: "magma".into(),
+                text: "return { grid = \"voxels\", materials = { \"magma\" }, passes = { { name = \"p\", reads = {}, writes = { \"mat\" }, kernel = function(c) end } } }".into(),
             },
             Limits::default(),
             &reg,
@@ -161,7 +138,7 @@ fn bad_voxel_scripts_are_refused_clearly() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("unknown material 'lava'") && e.contains("lava.lua:1"),
+        e.contains("unknown material 'magma'") && e.contains("magma.lua:1"),
         "{e}"
     );
     // Writing a material id that does not exist: the step is rejected.
@@ -203,30 +180,6 @@ fn u_tube_water_ends_at_one_level_and_mass_is_conserved() {
         r["right"].as_f64().unwrap() > 5.0,
         "the right basin filled: {r}"
     );
-}
-
-/// Every material the shipped scripts use, as `materials.lua` declares them
-/// (plus the stone, grass and dirt of these test worlds).
-fn shipped_registry() -> MaterialRegistry {
-    let mut r = MaterialRegistry::new();
-    let solid = |c: u8| MaterialDef {
-        color: [c, c, c],
-        kind: MaterialKind::Solid,
-        density: 2.5,
-    };
-    r.register_at(STONE, "stone", solid(120)).unwrap();
-    r.register_at(2, "grass", solid(90)).unwrap();
-    r.register_at(4, "dirt", solid(100)).unwrap();
-    r.register_at(252, "water", solid(60)).unwrap();
-    brickworld::sim::runtime::materials::load_materials(
-        &ScriptSource {
-            name: "materials".into(),
-            text: include_str!("../scripts/materials.lua").into(),
-        },
-        &mut r,
-    )
-    .unwrap();
-    r
 }
 
 fn shipped(name: &str) -> ScriptSource {

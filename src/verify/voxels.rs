@@ -41,7 +41,8 @@ pub fn registry() -> MaterialRegistry {
     r
 }
 
-fn count(s: &BrickStore, m: u8) -> usize {
+/// Voxels of material `m` in `s`.
+pub fn count(s: &BrickStore, m: u8) -> usize {
     s.iter()
         .map(|(b, _)| {
             let mut d = [0u8; 512];

@@ -743,6 +743,8 @@ fn run_script(
         .collect())
 }
 
+/// One tile of one pass in this thread's VM of the script (loaded on first
+/// use, prepared once per step).
 #[allow(clippy::too_many_arguments)]
 fn run_lua(
     s: &Loaded,
@@ -757,28 +759,6 @@ fn run_lua(
     writes: &mut [[f64; TILE_CELLS]],
 ) -> Result<(), SimError> {
     crate::sim::runtime::vms::with_vm(s.uid, &s.src, s.limits, |vm, prepared| {
-        run_in_vm(
-            vm, prepared, s, pass, t, dt, serial, key, read_idx, write_idx, reads, writes,
-        )
-    })
-}
-
-#[allow(clippy::too_many_arguments)]
-fn run_in_vm(
-    vm: &mut ScriptVm,
-    prepared: &mut u64,
-    s: &Loaded,
-    pass: usize,
-    t: TileCoord,
-    dt: f64,
-    serial: u64,
-    key: StepKey,
-    read_idx: &[usize],
-    write_idx: &[usize],
-    reads: &[[f64; HALO_CELLS]],
-    writes: &mut [[f64; TILE_CELLS]],
-) -> Result<(), SimError> {
-    {
         if *prepared != serial {
             vm.begin_step(dt, &s.spec, &s.params, key, &[])?;
             *prepared = serial;
@@ -801,5 +781,5 @@ fn run_in_vm(
             }
         }
         Ok(())
-    }
+    })
 }
