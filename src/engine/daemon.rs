@@ -617,6 +617,7 @@ impl Engine {
     fn script_status(&self, i: usize) -> ScriptStatus {
         let sim = &self.ws;
         let spec = sim.spec(i);
+        let (log, log_dropped) = crate::sim::runtime::log::recent(&spec.name);
         let note = self.notes.get(i).cloned().unwrap_or_default();
         let (state, error) = match sim.suspended(i) {
             Some(e) => (
@@ -653,8 +654,8 @@ impl Engine {
             warning: note.warning,
             ms_per_step: self.script_ms.get(i).copied().unwrap_or(0.0),
             totals: sim.conserved_totals(i).into_iter().collect(),
-            log: crate::sim::runtime::log::recent(&spec.name).0,
-            log_dropped: crate::sim::runtime::log::recent(&spec.name).1,
+            log,
+            log_dropped,
         }
     }
 

@@ -702,9 +702,10 @@ fn run_script(
                     (
                         Box::new([0u8; VOXEL_HALO]),
                         vec![Box::new([0f32; VOXEL_HALO]); nch],
+                        vec![0u8; VOXEL_HALO * 4],
                     )
                 },
-                |(mhalo, chalo), &b| -> Result<Out, SimError> {
+                |(mhalo, chalo, bytes), &b| -> Result<Out, SimError> {
                     let nbr_m: [Option<&[u8; VOXEL_CELLS]>; 27] = std::array::from_fn(|n| {
                         let nb = b + neighbour_offset(n);
                         if !inside(nb) {
@@ -732,12 +733,11 @@ fn run_script(
                             .expect("a voxel VM has material buffers");
                         mr.write_bytes(0, &mhalo[..]);
                         mw.write_bytes(0, &own_m);
-                        let mut bytes = vec![0u8; VOXEL_HALO * 4];
                         for &i in &ridx {
                             for (k, v) in chalo[i].iter().enumerate() {
                                 bytes[k * 4..k * 4 + 4].copy_from_slice(&v.to_le_bytes());
                             }
-                            vm.read_buffer(i).write_bytes(0, &bytes);
+                            vm.read_buffer(i).write_bytes(0, bytes);
                         }
                         for &i in &widx {
                             let cur = chans[i].get(&b).map_or(&ZERO_F32, |d| &**d);
