@@ -118,3 +118,25 @@ fn a_failed_write_leaves_the_previous_checkpoints_untouched() {
     let found = checkpoint::latest(&d).unwrap().found;
     assert_eq!(found.unwrap().1.tick, 1);
 }
+
+/// Checkpoints of format versions 1 and 2 (no identity, fewer sections)
+/// still decode to the same world: their payloads are this version's less
+/// the sections added since (12 bytes each when those are empty).
+#[test]
+fn version_1_and_2_payloads_still_load() {
+    let d = dir("versions");
+    let s = state(9, 1);
+    let (path, hash) = checkpoint::write(&d, &s).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let id_len = u32::from_le_bytes(bytes[40..44].try_into().unwrap()) as usize;
+    let raw = lz4_flex::decompress_size_prepended(&bytes[48 + id_len..]).unwrap();
+    for (version, cut) in [(1u32, 24usize), (2, 12)] {
+        let old = checkpoint::decode(9, version, &raw[..raw.len() - cut])
+            .unwrap_or_else(|e| panic!("version {version}: {e}"));
+        assert_eq!(checkpoint::world_hash(&old.store, &old.channels), hash);
+        assert_eq!(old.params, s.params);
+        assert!(old.extras.voxel_sleep.is_none());
+    }
+    // The current version refuses a payload cut short.
+    assert!(checkpoint::decode(9, 3, &raw[..raw.len() - 12]).is_err());
+}
