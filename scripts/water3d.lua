@@ -10,21 +10,32 @@
 -- (communicating vessels), which a fill level alone cannot do.
 --
 -- Flux form, in two passes, so water is conserved to round-off whatever the
--- thread count:
+-- thread count. Both passes walk the brick's faces, not its cells: each
+-- face's flux is computed once and applied to the cells on both sides (a
+-- face on the brick's border is computed by both bricks with the same
+-- formula and the same inputs, so both agree to the bit):
 --   limit: each cell sums what it would send through its six faces and
 --          stores k = min(1, fill / outflow), so it never sends more than
---          it holds;
---   flow:  each face's flux is computed from the two cells' fills (the same
---          formula on both sides), scaled by the sender's k, and applied to
---          both cells. A cell is drawn as water when it is at least half full.
+--          it holds (0 where it sends nothing);
+--   flow:  each face's flux, scaled by the sender's k, moves water from one
+--          cell to the other. A cell is drawn as water when it is at least
+--          half full.
+--
+-- Sums are kept in f64 in a scratch buffer made inside the kernel (a kernel
+-- keeps no state between calls); fills are stored as f32. Each face kind
+-- (x, z, then vertical) has its own loop, walking along its axis and
+-- carrying the previous face's share to the next cell, so every cell is
+-- read once per axis: a shared helper would cost a call per face.
 --
 -- Faces into solid cells (anything but air and water, and the world's
 -- boundary) carry nothing. Fluxes below `still` are dropped on both sides
 -- alike, so water at rest stops changing exactly and its bricks sleep.
 
 local readf32, writef32 = buffer.readf32, buffer.writef32
+local readf64, writef64 = buffer.readf64, buffer.writef64
 local readu8, writeu8 = buffer.readu8, buffer.writeu8
-local min, max = math.min, math.max
+local create = buffer.create
+local max = math.max
 
 -- Halo strides (x fastest, then y, then z, 10 per axis).
 local DY, DZ = 10, 100
@@ -41,8 +52,6 @@ local function lower(t: number, comp: number): number
   end
 end
 
--- The four sideways neighbours' halo offsets (read only).
-local SIDES = table.freeze({ 1, -1, DZ, -DZ })
 
 return {
   grid = "voxels",
@@ -59,49 +68,119 @@ return {
     spread = { default = 0.2, min = 0.0, max = 0.5 },
     still = { default = 1e-5, min = 0.0, max = 0.01 },
   },
+
   passes = {
     {
       name = "limit",
       reads = { "water" },
       writes = { "k" },
       kernel = function(c, bx: number, by: number, bz: number)
-        local W, M, K = c.r.water, c.r.mat, c.w.k
-        local WATER = c.m.water
-        local comp, fall, spread, still = c.p.compress, c.p.fall, c.p.spread, c.p.still
-        local function open(h: number): boolean
-          local m = readu8(M, h)
-          return m == 0 or m == WATER
+        local W: buffer, M: buffer, K: buffer = c.r.water, c.r.mat, c.w.k
+        local WATER: number = c.m.water
+        local comp: number, fall: number, spread: number, still: number =
+          c.p.compress, c.p.fall, c.p.spread, c.p.still
+        -- What each cell would send (f > 0: a sends to b), f64.
+        local OUT = create(8000)
+        -- x faces: along x, p = y, q = z.
+        for q = 0, 7 do
+          for p = 0, 7 do
+            local a = (p + 1) * DY + (q + 1) * DZ
+            local wa = readf32(W, a * 4)
+            local ma = readu8(M, a)
+            local oa = ma == 0 or ma == WATER
+            local carry = 0
+            for s = 1, 9 do
+              local b = a + 1
+              local wb = readf32(W, b * 4)
+              local mb = readu8(M, b)
+              local ob = mb == 0 or mb == WATER
+              local sent, back = 0, 0
+              if wa ~= wb and oa and ob then
+                local f = spread * (wa - wb)
+                if f > still then
+                  sent = f
+                elseif f < -still then
+                  back = -f
+                end
+              end
+              if s > 1 then
+                writef64(OUT, a * 8, (carry + sent))
+              end
+              carry = back
+              a, wa, oa = b, wb, ob
+            end
+          end
         end
-        -- The fill the lower of two stacked cells holds at rest, given their total.
+        -- z faces: along z, p = x, q = y.
+        for q = 0, 7 do
+          for p = 0, 7 do
+            local a = (p + 1) + (q + 1) * DY
+            local wa = readf32(W, a * 4)
+            local ma = readu8(M, a)
+            local oa = ma == 0 or ma == WATER
+            local carry = 0
+            for s = 1, 9 do
+              local b = a + DZ
+              local wb = readf32(W, b * 4)
+              local mb = readu8(M, b)
+              local ob = mb == 0 or mb == WATER
+              local sent, back = 0, 0
+              if wa ~= wb and oa and ob then
+                local f = spread * (wa - wb)
+                if f > still then
+                  sent = f
+                elseif f < -still then
+                  back = -f
+                end
+              end
+              if s > 1 then
+                writef64(OUT, a * 8, readf64(OUT, a * 8) + (carry + sent))
+              end
+              carry = back
+              a, wa, oa = b, wb, ob
+            end
+          end
+        end
+        -- vertical faces: along y (a below b), p = x, q = z.
+        for q = 0, 7 do
+          for p = 0, 7 do
+            local a = (p + 1) + (q + 1) * DZ
+            local wa = readf32(W, a * 4)
+            local ma = readu8(M, a)
+            local oa = ma == 0 or ma == WATER
+            local carry = 0
+            for s = 1, 9 do
+              local b = a + DY
+              local wb = readf32(W, b * 4)
+              local mb = readu8(M, b)
+              local ob = mb == 0 or mb == WATER
+              local sent, back = 0, 0
+              local t = wa + wb
+              if t > 0 and oa and ob then
+                local f = fall * (wa - lower(t, comp))
+                if f > still then
+                  sent = f
+                elseif f < -still then
+                  back = -f
+                end
+              end
+              if s > 1 then
+                writef64(OUT, a * 8, readf64(OUT, a * 8) + (carry + sent))
+              end
+              carry = back
+              a, wa, oa = b, wb, ob
+            end
+          end
+        end
         for z = 0, 7 do
           for y = 0, 7 do
             for x = 0, 7 do
               local h = (x + 1) + (y + 1) * DY + (z + 1) * DZ
-              local i = x + y * 8 + z * 64
+              local out = readf64(OUT, h * 8)
               local m = readf32(W, h * 4)
-              local out = 0
-              if m > 0 and open(h) then
-                -- down
-                if open(h - DY) then
-                  local b = readf32(W, (h - DY) * 4)
-                  local f = fall * (lower(m + b, comp) - b)
-                  if f > still then out += f end
-                end
-                -- up (only when compressed)
-                if open(h + DY) then
-                  local a = readf32(W, (h + DY) * 4)
-                  local f = -fall * (lower(m + a, comp) - m)
-                  if f > still then out += f end
-                end
-                -- sideways
-                for _, d in SIDES do
-                  if open(h + d) then
-                    local f = spread * (m - readf32(W, (h + d) * 4))
-                    if f > still then out += f end
-                  end
-                end
-              end
-              writef32(K, i * 4, if out > m then m / out else 1)
+              -- k only matters where the cell sends something; 0 elsewhere
+              -- keeps the channel sparse (air and water at rest hold none).
+              writef32(K, (x + y * 8 + z * 64) * 4, if out == 0 then 0 elseif out > m then m / out else 1)
             end
           end
         end
@@ -112,46 +191,113 @@ return {
       reads = { "water", "k" },
       writes = { "water", "mat" },
       kernel = function(c, bx: number, by: number, bz: number)
-        local W, KK, M = c.r.water, c.r.k, c.r.mat
-        local WO, MO = c.w.water, c.w.mat
-        local WATER = c.m.water
-        local comp, fall, spread, still = c.p.compress, c.p.fall, c.p.spread, c.p.still
-        local function open(h: number): boolean
-          local m = readu8(M, h)
-          return m == 0 or m == WATER
+        local W: buffer, KK: buffer, M: buffer = c.r.water, c.r.k, c.r.mat
+        local WO: buffer, MO: buffer = c.w.water, c.w.mat
+        local WATER: number = c.m.water
+        local comp: number, fall: number, spread: number, still: number =
+          c.p.compress, c.p.fall, c.p.spread, c.p.still
+        -- Each cell's change, f64: a face's flux (f > 0: a sends), scaled
+        -- by the sender's k, is taken from a and given to b.
+        local D = create(8000)
+        -- x faces: along x, p = y, q = z.
+        for q = 0, 7 do
+          for p = 0, 7 do
+            local a = (p + 1) * DY + (q + 1) * DZ
+            local wa = readf32(W, a * 4)
+            local ma = readu8(M, a)
+            local oa = ma == 0 or ma == WATER
+            local carry = 0
+            for s = 1, 9 do
+              local b = a + 1
+              local wb = readf32(W, b * 4)
+              local mb = readu8(M, b)
+              local ob = mb == 0 or mb == WATER
+              local g = 0
+              if wa ~= wb and oa and ob then
+                local f = spread * (wa - wb)
+                if f > still then
+                  g = f * readf32(KK, a * 4)
+                elseif f < -still then
+                  g = f * readf32(KK, b * 4)
+                end
+              end
+              if s > 1 then
+                writef64(D, a * 8, (carry - g))
+              end
+              carry = g
+              a, wa, oa = b, wb, ob
+            end
+          end
         end
-        -- The flux from cell a to cell b (fills ma, mb), already scaled by
-        -- the sender's k; `dir` is DY when b is below a, -DY above, 0 sideways.
-        local function flux(ha: number, hb: number, ma: number, mb: number, dir: number): number
-          local f
-          if dir == DY then
-            f = fall * (lower(ma + mb, comp) - mb)
-          elseif dir == -DY then
-            f = -fall * (lower(ma + mb, comp) - ma)
-          else
-            f = spread * (ma - mb)
+        -- z faces: along z, p = x, q = y.
+        for q = 0, 7 do
+          for p = 0, 7 do
+            local a = (p + 1) + (q + 1) * DY
+            local wa = readf32(W, a * 4)
+            local ma = readu8(M, a)
+            local oa = ma == 0 or ma == WATER
+            local carry = 0
+            for s = 1, 9 do
+              local b = a + DZ
+              local wb = readf32(W, b * 4)
+              local mb = readu8(M, b)
+              local ob = mb == 0 or mb == WATER
+              local g = 0
+              if wa ~= wb and oa and ob then
+                local f = spread * (wa - wb)
+                if f > still then
+                  g = f * readf32(KK, a * 4)
+                elseif f < -still then
+                  g = f * readf32(KK, b * 4)
+                end
+              end
+              if s > 1 then
+                writef64(D, a * 8, readf64(D, a * 8) + (carry - g))
+              end
+              carry = g
+              a, wa, oa = b, wb, ob
+            end
           end
-          if f > still then
-            return f * readf32(KK, ha * 4)
-          elseif f < -still then
-            return f * readf32(KK, hb * 4)
+        end
+        -- vertical faces: along y (a below b), p = x, q = z.
+        for q = 0, 7 do
+          for p = 0, 7 do
+            local a = (p + 1) + (q + 1) * DZ
+            local wa = readf32(W, a * 4)
+            local ma = readu8(M, a)
+            local oa = ma == 0 or ma == WATER
+            local carry = 0
+            for s = 1, 9 do
+              local b = a + DY
+              local wb = readf32(W, b * 4)
+              local mb = readu8(M, b)
+              local ob = mb == 0 or mb == WATER
+              local g = 0
+              local t = wa + wb
+              if t > 0 and oa and ob then
+                local f = fall * (wa - lower(t, comp))
+                if f > still then
+                  g = f * readf32(KK, a * 4)
+                elseif f < -still then
+                  g = f * readf32(KK, b * 4)
+                end
+              end
+              if s > 1 then
+                writef64(D, a * 8, readf64(D, a * 8) + (carry - g))
+              end
+              carry = g
+              a, wa, oa = b, wb, ob
+            end
           end
-          return 0
         end
         for z = 0, 7 do
           for y = 0, 7 do
             for x = 0, 7 do
               local h = (x + 1) + (y + 1) * DY + (z + 1) * DZ
-              local i = x + y * 8 + z * 64
-              if open(h) then
-                local m = readf32(W, h * 4)
-                local new = m
-                if open(h - DY) then new -= flux(h, h - DY, m, readf32(W, (h - DY) * 4), DY) end
-                if open(h + DY) then new -= flux(h, h + DY, m, readf32(W, (h + DY) * 4), -DY) end
-                for _, d in SIDES do
-                  if open(h + d) then new -= flux(h, h + d, m, readf32(W, (h + d) * 4), 0) end
-                end
-                new = max(new, 0)
+              local p = readu8(M, h)
+              if p == 0 or p == WATER then
+                local i = x + y * 8 + z * 64
+                local new = max(readf32(W, h * 4) + readf64(D, h * 8), 0)
                 writef32(WO, i * 4, new)
                 writeu8(MO, i, if new >= 0.5 then WATER else 0)
               end

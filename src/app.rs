@@ -75,6 +75,7 @@ pub fn run(cli: Cli) -> Result<()> {
         ),
         Command::Bench(BenchCommand::Sim(a)) => run_bench_sim(&a),
         Command::Bench(BenchCommand::Stream(a)) => run_bench_stream(&a),
+        Command::Bench(BenchCommand::Voxels(a)) => run_bench_voxels(&a),
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }
@@ -223,11 +224,58 @@ fn run_bench_sim(a: &crate::cli::BenchSimArgs) -> Result<()> {
                 p.wet_fraction, p.active_bricks, p.step_ms
             );
         }
-        let v = &r.voxels;
-        println!(
-            "water3d (voxels, {}³ pool): {:.3e} active-voxel updates/s; a small disturbance costs {:.4} of a fully active step ({} of {} bricks)",
-            v.pool, v.water3d_updates_per_s, v.sparse_over_full, v.sparse_candidates, v.full_candidates
+        print_voxels(&r.voxels);
+        Ok(())
+    })
+}
+
+fn print_voxels(v: &crate::bench::voxels::VoxelBench) {
+    println!(
+        "water3d on {}x{}x{} ({} bricks, {} threads): Lua {:.3e} active-voxel updates/s, native {:.3e} (Lua/native {:.2}); halo and crossing alone {:.3e} ({:.0} % of a Lua step); native bit-identical to Lua: {}",
+        v.world[0],
+        v.world[1],
+        v.world[2],
+        v.bricks,
+        v.threads,
+        v.lua.updates_per_s,
+        v.native.updates_per_s,
+        v.lua_over_native,
+        v.crossing.updates_per_s,
+        v.crossing_share * 100.0,
+        v.native_matches_lua
+    );
+    println!(
+        "sleeping: {:.2} % of bricks awake ({:.0} candidates) costs {:.4} of a fully active step ({:.2} ms against {:.1} ms)",
+        v.sparse.active_fraction * 100.0,
+        v.sparse.candidates,
+        v.sparse.over_full,
+        v.sparse.step_ms,
+        v.lua.step_ms
+    );
+}
+
+fn run_bench_voxels(a: &crate::cli::BenchVoxelsArgs) -> Result<()> {
+    let size = crate::config::parse_size(&a.size)?;
+    if size.y < 48 || size.x % 16 != 0 || size.z % 16 != 0 || size.x < 32 || size.z < 32 {
+        anyhow::bail!(
+            "invalid --size {}: x and z must be multiples of 16 of at least 32, y at least 48",
+            a.size
         );
+    }
+    if a.steps == 0 || a.steps > 10_000 {
+        anyhow::bail!("invalid --steps {}: must be in 1..=10000", a.steps);
+    }
+    if a.threads == Some(0) {
+        anyhow::bail!("invalid --threads 0: must be at least 1");
+    }
+    let pool = thread_pool(a.threads)?;
+    pool.install(|| {
+        let pb = bar("bench voxels", 4);
+        let r = crate::bench::voxels::run(size, a.steps as usize, || pb.inc(1));
+        pb.finish_and_clear();
+        std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
+            .with_context(|| format!("cannot write {}", a.json.display()))?;
+        print_voxels(&r);
         Ok(())
     })
 }

@@ -161,6 +161,25 @@ pub enum BenchCommand {
     Sim(BenchSimArgs),
     /// Ray-guided streaming of bricks to the GPU tracer.
     Stream(BenchStreamArgs),
+    /// water3d's voxel updates per second: Lua, native and crossing cost; and what sleeping bricks cost.
+    Voxels(BenchVoxelsArgs),
+}
+
+/// `brickworld bench voxels`.
+#[derive(Debug, Args)]
+pub struct BenchVoxelsArgs {
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// World size XxYxZ in voxels (Y at least 48; the pool fills y < 40)
+    #[arg(long, default_value = "256x48x256")]
+    pub size: String,
+    /// Timed steps per measurement
+    #[arg(long, default_value_t = 10)]
+    pub steps: u32,
+    /// Worker threads (default: all cores)
+    #[arg(long)]
+    pub threads: Option<usize>,
 }
 
 /// `brickworld bench stream`.

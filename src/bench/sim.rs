@@ -213,7 +213,11 @@ pub fn run(
         });
         progress.inc(1);
     }
-    let voxels = super::voxels::run(64, steps.clamp(3, 20) as usize);
+    let voxels = super::voxels::run(
+        glam::IVec3::new(256, 48, 256),
+        steps.clamp(3, 20) as usize,
+        || (),
+    );
     progress.inc(1);
     let report = SimBench {
         scripts,

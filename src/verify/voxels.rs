@@ -71,10 +71,11 @@ fn surface(sim: &VoxelSim, xs: std::ops::Range<i32>) -> f64 {
     total / xs.len() as f64
 }
 
-/// Two basins joined by a tunnel under a wall, the left one filled: both
-/// surfaces must end within one voxel, mass exact to round-off. `compress`
-/// is water3d's pressure parameter (the speed/accuracy knob).
-pub fn u_tube_run(compress: f64, max_steps: u64) -> serde_json::Value {
+/// The U-tube world with water3d loaded (its Lua kernels, or its native
+/// reference when `native`), fills applied.
+pub fn u_tube_world(
+    native: bool,
+) -> Result<(BrickStore, VoxelSim, MaterialRegistry), crate::sim::SimError> {
     let reg = registry();
     let water = reg.id("water").unwrap_or(252);
     let mut store = BrickStore::new(Palette::grey_ramp());
@@ -87,12 +88,30 @@ pub fn u_tube_run(compress: f64, max_steps: u64) -> serde_json::Value {
     store.take_modified();
     let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 32, 8), 1);
     let text = include_str!("../../scripts/water3d.lua");
-    if let Err(e) = sim.add_script(src("water3d", text), Limits::default(), &reg) {
-        return json!({ "error": e.to_string() });
+    if native {
+        sim.add_native(
+            src("water3d", text),
+            Limits::default(),
+            &reg,
+            std::sync::Arc::new(crate::sim::voxels::Water3d),
+        )?;
+    } else {
+        sim.add_script(src("water3d", text), Limits::default(), &reg)?;
     }
-    let _ = sim.set_param(0, "compress", compress);
-    let _ = sim.set_param(0, "spread", 0.25);
+    sim.set_param(0, "spread", 0.25)?;
     sim.apply_fills(&store, &reg);
+    Ok((store, sim, reg))
+}
+
+/// Two basins joined by a tunnel under a wall, the left one filled: both
+/// surfaces must end within one voxel, mass exact to round-off. `compress`
+/// is water3d's pressure parameter (the speed/accuracy knob).
+pub fn u_tube_run(compress: f64, max_steps: u64) -> serde_json::Value {
+    let (mut store, mut sim, reg) = match u_tube_world(false) {
+        Ok(w) => w,
+        Err(e) => return json!({ "error": e.to_string() }),
+    };
+    let _ = sim.set_param(0, "compress", compress);
     let id = sim.channels().find("water").expect("declared");
     let mass0 = sim.channels().total(id);
     let t0 = Instant::now();

@@ -32,16 +32,27 @@ struct Budget {
     /// The limit that tripped, if one did; it stays set (and is raised again
     /// at every interrupt) until [`arm`] starts the next call.
     tripped: Option<&'static str>,
+    /// Interrupts counted up to the last slow check.
     ticks: u64,
+    /// Interrupts in the batch that ends at the next slow check.
+    batch: u64,
     limit: u64,
     deadline: Instant,
     memory_soft_kb: c_int,
 }
 
+/// Most interrupts between two slow checks (time and memory are read there).
+const BATCH: u64 = 256;
+
 thread_local! {
+    /// Interrupts left before the next slow check. The hot path of every
+    /// loop back-edge and call is one decrement of this const-initialised
+    /// thread-local; the budget below is only read every [`BATCH`].
+    static COUNTDOWN: Cell<u64> = const { Cell::new(0) };
     static BUDGET: Cell<Budget> = Cell::new(Budget {
         tripped: None,
         ticks: 0,
+        batch: 1,
         limit: u64::MAX,
         deadline: Instant::now() + std::time::Duration::from_secs(3600),
         memory_soft_kb: c_int::MAX,
@@ -50,10 +61,12 @@ thread_local! {
 
 /// Reset the budget before a kernel call on this thread.
 pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
+    COUNTDOWN.with(|c| c.set(0));
     BUDGET.with(|b| {
         b.set(Budget {
             tripped: None,
             ticks: 0,
+            batch: 1,
             limit: instructions,
             deadline,
             memory_soft_kb: (memory_soft_bytes / 1024).min(c_int::MAX as usize) as c_int,
@@ -62,20 +75,36 @@ pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
 }
 
 /// Which limit, if any, the running kernel has exceeded (counts one tick).
+#[inline(always)]
 fn exceeded(l: *mut ffi::lua_State) -> Option<&'static str> {
+    let fast = COUNTDOWN.with(|c| {
+        let v = c.get();
+        c.set(v.wrapping_sub(1));
+        v > 0
+    });
+    if fast { None } else { slow_check(l) }
+}
+
+/// The check at the end of a batch: count the batch, then compare with the
+/// instruction limit (exactly: a batch never runs past it), the deadline and
+/// the memory limit, and size the next batch.
+#[cold]
+fn slow_check(l: *mut ffi::lua_State) -> Option<&'static str> {
     BUDGET.with(|cell| {
         let mut b = cell.get();
         if b.tripped.is_some() {
-            // Sticky: a caught budget error is raised again.
+            // Sticky: a caught budget error is raised again at every
+            // interrupt (the countdown stays at zero).
+            COUNTDOWN.with(|c| c.set(0));
             return b.tripped;
         }
-        b.ticks += 1;
+        b.ticks = b.ticks.saturating_add(b.batch);
         let mut what = None;
         if b.ticks > b.limit {
             what = Some("instruction budget");
-        } else if b.ticks & 1023 == 0 && Instant::now() > b.deadline {
+        } else if Instant::now() > b.deadline {
             what = Some("time budget");
-        } else if b.ticks & 255 == 0 {
+        } else {
             // SAFETY: `l` is the live state Luau passed to the interrupt
             // hook; LUA_GCCOUNT only reads the allocator's counter.
             let kb = unsafe { ffi::lua_gc(l, ffi::LUA_GCCOUNT, 0) };
@@ -84,6 +113,13 @@ fn exceeded(l: *mut ffi::lua_State) -> Option<&'static str> {
             }
         }
         b.tripped = what;
+        // The next slow check comes at interrupt limit + 1 at the latest.
+        b.batch = if what.is_some() {
+            1
+        } else {
+            BATCH.min(b.limit.saturating_add(1) - b.ticks).max(1)
+        };
+        COUNTDOWN.with(|c| c.set(b.batch - 1));
         cell.set(b);
         what
     })

@@ -426,8 +426,13 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     lua.set_memory_limit(limits.memory)
         .map_err(|e| SimError::Internal(e.to_string()))?;
     crate::sim::interrupt::install(&lua);
-    // Optimisation level 2 inlines small local functions and unrolls loops.
-    lua.set_compiler(mlua::chunk::Compiler::new().set_optimization_level(2));
+    // Optimisation level 2 inlines small local functions and unrolls loops;
+    // type information lets native code use annotations (`W: buffer`).
+    lua.set_compiler(
+        mlua::chunk::Compiler::new()
+            .set_optimization_level(2)
+            .set_type_info_level(1),
+    );
     Ok(lua)
 }
 

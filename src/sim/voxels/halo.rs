@@ -1,16 +1,17 @@
 //! Gathering a brick's one-voxel halo (10³ cells) from its 27-brick
-//! neighbourhood, through a table built once: cell `h` of the halo comes
-//! from neighbour `NBR[h]` at local index `LOCAL[h]`.
+//! neighbourhood, a row of ten cells at a time.
 //!
 //! Halo index: `(x + 1) + (y + 1)·10 + (z + 1)·100` for x, y, z in −1..=8
 //! (x fastest, as in a brick). Neighbour index: `(dx + 1) + (dy + 1)·3 +
 //! (dz + 1)·9`, so 13 is the brick itself.
 
+#[cfg(test)]
 use std::sync::OnceLock;
 
 use glam::IVec3;
 
 use crate::sim::script::{VOXEL_CELLS, VOXEL_HALO};
+#[cfg(test)]
 use crate::world::voxel_index;
 
 /// The brick itself in a neighbourhood.
@@ -27,6 +28,7 @@ pub fn neighbour_offset(n: usize) -> IVec3 {
     IVec3::new(n as i32 % 3 - 1, (n as i32 / 3) % 3 - 1, n as i32 / 9 - 1)
 }
 
+#[cfg(test)]
 fn table() -> &'static [(u8, u16); VOXEL_HALO] {
     static T: OnceLock<[(u8, u16); VOXEL_HALO]> = OnceLock::new();
     T.get_or_init(|| {
@@ -46,8 +48,43 @@ fn table() -> &'static [(u8, u16); VOXEL_HALO] {
     })
 }
 
-/// Fill `out` from the neighbourhood `nbr` (None: use `missing`).
+/// Fill `out` from the neighbourhood `nbr` (None: use `missing`), a row of
+/// ten cells at a time: the brick's own eight are one copy.
 pub fn gather<T: Copy>(
+    nbr: &[Option<&[T; VOXEL_CELLS]>; 27],
+    missing: T,
+    out: &mut [T; VOXEL_HALO],
+) {
+    for hz in 0..10 {
+        let (bz, lz) = split(hz);
+        for hy in 0..10 {
+            let (by, ly) = split(hy);
+            let n = 1 + by * 3 + bz * 9;
+            let row = &mut out[hy * 10 + hz * 100..][..10];
+            let base = ly * 8 + lz * 64;
+            row[0] = nbr[n - 1].map_or(missing, |d| d[base + 7]);
+            match nbr[n] {
+                Some(d) => row[1..9].copy_from_slice(&d[base..base + 8]),
+                None => row[1..9].fill(missing),
+            }
+            row[9] = nbr[n + 1].map_or(missing, |d| d[base]);
+        }
+    }
+}
+
+/// Halo coordinate (0..10) to (neighbour step 0..3, local coordinate).
+#[inline(always)]
+fn split(h: usize) -> (usize, usize) {
+    match h {
+        0 => (0, 7),
+        9 => (2, 0),
+        _ => (1, h - 1),
+    }
+}
+
+/// The per-cell reference of [`gather`], through the table.
+#[cfg(test)]
+fn gather_by_table<T: Copy>(
     nbr: &[Option<&[T; VOXEL_CELLS]>; 27],
     missing: T,
     out: &mut [T; VOXEL_HALO],
@@ -88,6 +125,17 @@ mod tests {
         assert_eq!(out[halo_index(-1, -1, -1)], 0);
         assert_eq!(out[halo_index(8, 8, 8)], 26);
         assert_eq!(neighbour_offset(SELF), IVec3::ZERO);
+        // The row copy agrees with the per-cell table, missing bricks too.
+        let mut holes = nbr;
+        for n in [0, 5, 13, 22] {
+            holes[n] = None;
+        }
+        for nb in [nbr, holes] {
+            let (mut a, mut b) = ([0u16; VOXEL_HALO], [0u16; VOXEL_HALO]);
+            gather(&nb, 9999, &mut a);
+            gather_by_table(&nb, 9999, &mut b);
+            assert_eq!(a, b);
+        }
         assert_eq!(neighbour_offset(0), IVec3::splat(-1));
     }
 }

@@ -6,12 +6,19 @@
 //!
 //! - [`halo`]: gathering a brick's halo from its 27-brick neighbourhood.
 //! - [`channels`]: sparse per-brick `f32` channels.
+//! - [`native`]: native (Rust) reference kernels of shipped scripts.
+//! - `exec`: one script's step: the dense working set, the parallel
+//!   passes (Lua or native kernels) and their validated commit.
 //! - [`step`]: scheduling (material filters, rates, sleep), the parallel
 //!   double-buffered step, validation and commit.
 
 pub mod channels;
+mod exec;
 pub mod halo;
+pub mod native;
 pub mod step;
 
 pub use channels::{VoxelChannelId, VoxelChannels};
+pub use exec::VoxelKernel;
+pub use native::{NativeBrick, VoxelNativeKernel, Water3d};
 pub use step::{BOUNDARY, VoxelSim, VoxelStepReport};

@@ -22,12 +22,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use glam::IVec3;
-use rayon::prelude::*;
 use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::channels::{VoxelChannelId, VoxelChannels};
-use super::halo::{SELF, gather, neighbour_offset};
-use crate::sim::script::{Grid, MAT, VOXEL_CELLS, VOXEL_HALO};
+use super::exec::{Job, VoxelKernel, run_script};
+use super::halo::neighbour_offset;
+use super::native::VoxelNativeKernel;
+use crate::sim::script::{Grid, VOXEL_CELLS};
 use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
 use crate::world::{BRICK_EDGE, BrickStore, MaterialRegistry};
 
@@ -70,6 +71,7 @@ struct Loaded {
     only: Option<MatSet>,
     keep_awake: MatSet,
     limits: Limits,
+    kernel: VoxelKernel,
     every: u64,
     failures: u32,
     suspended: Option<SimError>,
@@ -415,11 +417,47 @@ impl VoxelSim {
             only,
             keep_awake,
             limits,
+            kernel: VoxelKernel::Lua,
             every: 1,
             failures: 0,
             suspended: None,
         });
         Ok(self.scripts.len() - 1)
+    }
+
+    /// Load a voxel script for its declarations but run `kernel`, a native
+    /// reference of the same rule, in place of its Lua kernels.
+    pub fn add_native(
+        &mut self,
+        src: ScriptSource,
+        limits: Limits,
+        registry: &MaterialRegistry,
+        kernel: std::sync::Arc<dyn VoxelNativeKernel>,
+    ) -> Result<usize, SimError> {
+        let i = self.add_script(src, limits, registry)?;
+        let names: Vec<String> = self.scripts[i]
+            .spec
+            .params
+            .iter()
+            .map(|p| p.name.clone())
+            .collect();
+        if !names
+            .iter()
+            .map(String::as_str)
+            .eq(kernel.params().iter().copied())
+        {
+            let s = self.scripts.pop().expect("added");
+            return Err(SimError::Declaration {
+                script: s.spec.name,
+                line: None,
+                msg: format!(
+                    "the native kernel expects parameters {:?}, the script declares {names:?}",
+                    kernel.params()
+                ),
+            });
+        }
+        self.scripts[i].kernel = VoxelKernel::Native(kernel);
+        Ok(i)
     }
 
     fn presence(&mut self, store: &BrickStore, b: IVec3) -> MatSet {
@@ -503,8 +541,9 @@ impl VoxelSim {
             script_ms: vec![0.0; self.scripts.len()],
             ..Default::default()
         };
-        let valid =
-            set_of((0..=255u8).filter(|&m| m == 0 || (m != BOUNDARY && registry.get(m).is_some())));
+        let valid: [bool; 256] = std::array::from_fn(|m| {
+            m == 0 || (m != BOUNDARY as usize && registry.get(m as u8).is_some())
+        });
         let mut changed: FxHashSet<IVec3> = FxHashSet::default();
         for si in 0..self.scripts.len() {
             let (every, suspended) = {
@@ -518,8 +557,19 @@ impl VoxelSim {
             let cands = self.candidates(store, si);
             report.candidates = report.candidates.max(cands.len());
             let key = StepKey::new(self.seed, self.tick, &self.scripts[si].spec.name);
+            let l = &self.scripts[si];
+            let job = Job {
+                uid: l.uid,
+                src: &l.src,
+                spec: &l.spec,
+                params: &l.params,
+                channel_ids: &l.channel_ids,
+                material_ids: &l.material_ids,
+                limits: l.limits,
+                kernel: &l.kernel,
+            };
             let result = run_script(
-                &self.scripts[si],
+                &job,
                 store,
                 &self.channels,
                 &cands,
@@ -531,30 +581,31 @@ impl VoxelSim {
             );
             let s = &mut self.scripts[si];
             match result {
-                Ok(out) => {
+                Ok(work) => {
                     if !cands.is_empty() {
                         s.failures = 0;
                     }
-                    for (b, mats) in out.mats {
-                        let done = store.edit_brick(b, |d| *d = *mats);
-                        if done {
+                    for ci in work.changed_mats() {
+                        let (b, mats) = (work.cands[ci], &work.mats[ci]);
+                        if store.edit_brick(b, |d| *d = *mats) {
                             changed.insert(b);
-                            self.presence.insert(b, presence_of(&mats));
+                            self.presence.insert(b, presence_of(mats));
                         }
                     }
-                    for (ch, b, v) in out.channels {
-                        let before = self
-                            .channels
-                            .get(ch, b)
-                            .copied()
-                            .unwrap_or([0.0; VOXEL_CELLS]);
-                        if before
-                            .iter()
-                            .zip(v.iter())
-                            .any(|(a, c)| a.to_bits() != c.to_bits())
-                        {
-                            changed.insert(b);
-                            self.channels.set(ch, b, &v);
+                    for (k, &ch) in s.channel_ids.iter().enumerate() {
+                        for (ci, &b) in work.cands.iter().enumerate() {
+                            let v = &work.chans[k][ci];
+                            let same = match self.channels.get(ch, b) {
+                                Some(old) => old
+                                    .iter()
+                                    .zip(v.iter())
+                                    .all(|(a, c)| a.to_bits() == c.to_bits()),
+                                None => v.iter().all(|x| x.to_bits() == 0),
+                            };
+                            if !same {
+                                changed.insert(b);
+                                self.channels.set(ch, b, v);
+                            }
                         }
                     }
                 }
@@ -604,253 +655,4 @@ impl VoxelSim {
         report.changed = changed;
         report
     }
-}
-
-/// A script's committed outputs: materials of bricks that a pass wrote, and
-/// channel values of bricks written.
-struct Outputs {
-    mats: Vec<(IVec3, Box<[u8; VOXEL_CELLS]>)>,
-    channels: Vec<(VoxelChannelId, IVec3, Box<[f32; VOXEL_CELLS]>)>,
-}
-
-const ZERO_U8: [u8; VOXEL_CELLS] = [0; VOXEL_CELLS];
-const ZERO_F32: [f32; VOXEL_CELLS] = [0.0; VOXEL_CELLS];
-
-#[allow(clippy::too_many_arguments)]
-fn run_script(
-    s: &Loaded,
-    store: &BrickStore,
-    channels: &VoxelChannels,
-    cands: &[IVec3],
-    (lo, hi): (IVec3, IVec3),
-    valid: &MatSet,
-    dt: f64,
-    serial: u64,
-    key: StepKey,
-) -> Result<Outputs, SimError> {
-    let inside = |b: IVec3| b.cmpge(lo).all() && b.cmplt(hi).all();
-    // The previous generation of every brick the candidates can see.
-    let mut needed: FxHashSet<IVec3> = FxHashSet::default();
-    for &b in cands {
-        for n in 0..27 {
-            let nb = b + neighbour_offset(n);
-            if inside(nb) {
-                needed.insert(nb);
-            }
-        }
-    }
-    let mut mats: FxHashMap<IVec3, Box<[u8; VOXEL_CELLS]>> = FxHashMap::default();
-    for &b in &needed {
-        if store.cell(b) != crate::world::Cell::Empty {
-            let mut d = Box::new([0u8; VOXEL_CELLS]);
-            store.read_dense(b, &mut d);
-            mats.insert(b, d);
-        }
-    }
-    let original: FxHashMap<IVec3, Box<[u8; VOXEL_CELLS]>> = cands
-        .iter()
-        .filter_map(|b| mats.get(b).map(|d| (*b, d.clone())))
-        .collect();
-    let nch = s.channel_ids.len();
-    let mut chans: Vec<FxHashMap<IVec3, Box<[f32; VOXEL_CELLS]>>> = s
-        .channel_ids
-        .iter()
-        .map(|&id| {
-            needed
-                .iter()
-                .filter_map(|&b| channels.get(id, b).map(|d| (b, Box::new(*d))))
-                .collect()
-        })
-        .collect();
-    let conserved: Vec<usize> = s
-        .spec
-        .conserved
-        .iter()
-        .filter_map(|c| s.spec.channels.iter().position(|x| x == c))
-        .collect();
-    let sum = |chans: &Vec<FxHashMap<IVec3, Box<[f32; VOXEL_CELLS]>>>, i: usize| -> (f64, f64) {
-        cands
-            .iter()
-            .fold((0.0, 0.0), |(t, a), b| match chans[i].get(b) {
-                Some(d) => (
-                    t + d.iter().map(|&v| v as f64).sum::<f64>(),
-                    a + d.iter().map(|&v| (v as f64).abs()).sum::<f64>(),
-                ),
-                None => (t, a),
-            })
-    };
-    let before: Vec<(f64, f64)> = conserved.iter().map(|&i| sum(&chans, i)).collect();
-    let mut wrote_mat = false;
-    let mut written = vec![false; nch];
-    for (pi, pass) in s.spec.passes.iter().enumerate() {
-        let writes_mat = pass.writes.iter().any(|w| w == MAT);
-        let ridx: Vec<usize> = pass
-            .reads
-            .iter()
-            .filter_map(|r| s.spec.channels.iter().position(|c| c == r))
-            .collect();
-        let widx: Vec<usize> = pass
-            .writes
-            .iter()
-            .filter_map(|w| s.spec.channels.iter().position(|c| c == w))
-            .collect();
-        type Out = (Option<Box<[u8; VOXEL_CELLS]>>, Vec<Box<[f32; VOXEL_CELLS]>>);
-        let outs: Vec<Out> = cands
-            .par_iter()
-            .map_init(
-                || {
-                    (
-                        Box::new([0u8; VOXEL_HALO]),
-                        vec![Box::new([0f32; VOXEL_HALO]); nch],
-                        vec![0u8; VOXEL_HALO * 4],
-                    )
-                },
-                |(mhalo, chalo, bytes), &b| -> Result<Out, SimError> {
-                    let nbr_m: [Option<&[u8; VOXEL_CELLS]>; 27] = std::array::from_fn(|n| {
-                        let nb = b + neighbour_offset(n);
-                        if !inside(nb) {
-                            None
-                        } else {
-                            Some(mats.get(&nb).map_or(&ZERO_U8, |d| &**d))
-                        }
-                    });
-                    gather(&nbr_m, BOUNDARY, mhalo);
-                    for &i in &ridx {
-                        let nbr: [Option<&[f32; VOXEL_CELLS]>; 27] = std::array::from_fn(|n| {
-                            let nb = b + neighbour_offset(n);
-                            Some(chans[i].get(&nb).map_or(&ZERO_F32, |d| &**d))
-                        });
-                        gather(&nbr, 0.0, &mut chalo[i]);
-                    }
-                    let own_m = nbr_m[SELF].copied().unwrap_or(ZERO_U8);
-                    crate::sim::runtime::vms::with_vm(s.uid, &s.src, s.limits, |vm, prepared| {
-                        if *prepared != serial {
-                            vm.begin_step(dt, &s.spec, &s.params, key, &s.material_ids)?;
-                            *prepared = serial;
-                        }
-                        let (mr, mw) = vm
-                            .material_buffers()
-                            .expect("a voxel VM has material buffers");
-                        mr.write_bytes(0, &mhalo[..]);
-                        mw.write_bytes(0, &own_m);
-                        for &i in &ridx {
-                            for (k, v) in chalo[i].iter().enumerate() {
-                                bytes[k * 4..k * 4 + 4].copy_from_slice(&v.to_le_bytes());
-                            }
-                            vm.read_buffer(i).write_bytes(0, bytes);
-                        }
-                        for &i in &widx {
-                            let cur = chans[i].get(&b).map_or(&ZERO_F32, |d| &**d);
-                            for (k, v) in cur.iter().enumerate() {
-                                bytes[k * 4..k * 4 + 4].copy_from_slice(&v.to_le_bytes());
-                            }
-                            vm.write_buffer(i).write_bytes(0, &bytes[..VOXEL_CELLS * 4]);
-                        }
-                        vm.run_voxel(pi, &pass.name, b.to_array())?;
-                        let m_out = writes_mat.then(|| {
-                            let (_, mw) = vm.material_buffers().expect("voxel VM");
-                            Box::new(mw.read_bytes::<VOXEL_CELLS>(0))
-                        });
-                        let c_out = widx
-                            .iter()
-                            .map(|&i| {
-                                let raw: [u8; VOXEL_CELLS * 4] = vm.write_buffer(i).read_bytes(0);
-                                Box::new(std::array::from_fn(|k| {
-                                    f32::from_le_bytes(raw[k * 4..k * 4 + 4].try_into().expect("4"))
-                                }))
-                            })
-                            .collect();
-                        Ok((m_out, c_out))
-                    })
-                },
-            )
-            .collect::<Result<_, _>>()?;
-        // Commit the pass (every brick of it read the previous generation).
-        for (&b, (m, cs)) in cands.iter().zip(outs) {
-            if let Some(m) = m {
-                if let Some(bad) = m
-                    .iter()
-                    .find(|&&v| valid[v as usize >> 6] & (1 << (v & 63)) == 0)
-                {
-                    return Err(SimError::Runtime {
-                        script: s.spec.name.clone(),
-                        pass: pass.name.clone(),
-                        tile: (b.x, b.z),
-                        line: None,
-                        msg: format!(
-                            "brick ({}, {}, {}): wrote material id {bad}, which is not registered",
-                            b.x, b.y, b.z
-                        ),
-                    });
-                }
-                mats.insert(b, m);
-                wrote_mat = true;
-            }
-            for (j, &i) in widx.iter().enumerate() {
-                let v = &cs[j];
-                if let Some((c, x)) = v.iter().enumerate().find(|(_, x)| !x.is_finite()) {
-                    return Err(SimError::Unstable {
-                        script: s.spec.name.clone(),
-                        msg: format!(
-                            "channel '{}' = {x} at voxel {} of brick ({}, {}, {})",
-                            s.spec.channels[i], c, b.x, b.y, b.z
-                        ),
-                    });
-                }
-                if let Some(r) = s.spec.ranges.iter().find(|r| r.0 == s.spec.channels[i])
-                    && let Some(x) = v.iter().find(|&&x| (x as f64) < r.1 || (x as f64) > r.2)
-                {
-                    return Err(SimError::OutOfBounds {
-                        script: s.spec.name.clone(),
-                        channel: r.0.clone(),
-                        column: (b.x * BRICK_EDGE, b.z * BRICK_EDGE),
-                        value: *x as f64,
-                        bound: (r.1, r.2),
-                        why: format!("its declared range, in brick ({}, {}, {})", b.x, b.y, b.z),
-                    });
-                }
-                chans[i].insert(b, cs[j].clone());
-                written[i] = true;
-            }
-        }
-    }
-    for (k, &i) in conserved.iter().enumerate() {
-        let (after, abs_after) = sum(&chans, i);
-        let (was, abs_was) = before[k];
-        let tol = 1e-5 * (abs_was.max(abs_after) + 1.0);
-        if (after - was).abs() > tol {
-            return Err(SimError::Unstable {
-                script: s.spec.name.clone(),
-                msg: format!(
-                    "conserved channel '{}' drifted from {was} to {after} in one step (tolerance {tol:.3e})",
-                    s.spec.channels[i]
-                ),
-            });
-        }
-    }
-    let mats = if wrote_mat {
-        cands
-            .iter()
-            .filter_map(|b| {
-                let new = mats.get(b)?;
-                let old = original.get(b).map_or(&ZERO_U8, |d| &**d);
-                (**new != *old).then(|| (*b, new.clone()))
-            })
-            .collect()
-    } else {
-        Vec::new()
-    };
-    let mut chan_out = Vec::new();
-    for i in (0..nch).filter(|&i| written[i]) {
-        for &b in cands {
-            let v = chans[i]
-                .get(&b)
-                .map_or_else(|| Box::new(ZERO_F32), |d| d.clone());
-            chan_out.push((s.channel_ids[i], b, v));
-        }
-    }
-    Ok(Outputs {
-        mats,
-        channels: chan_out,
-    })
 }
