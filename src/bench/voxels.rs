@@ -113,7 +113,12 @@ fn pool(size: IVec3, kernel: Kernel) -> (BrickStore, VoxelSim, MaterialRegistry)
     let water3d = include_str!("../../scripts/water3d.lua");
     let added = match kernel {
         Kernel::Lua => sim.add_script(src(water3d), Limits::default(), &reg),
-        Kernel::Native => sim.add_native(src(water3d), Limits::default(), &reg, Arc::new(Water3d)),
+        Kernel::Native => sim.add_native(
+            src(water3d),
+            Limits::default(),
+            &reg,
+            Arc::new(Water3d::default()),
+        ),
         Kernel::Noop => sim.add_script(src(NOOP), Limits::default(), &reg),
     };
     added.expect("the bench's scripts load");

@@ -3,6 +3,7 @@
 
 pub mod sims;
 pub mod voxels;
+pub mod water3d;
 
 use std::path::Path;
 
@@ -101,6 +102,9 @@ pub fn run_sims(json: &Path, chart_dir: Option<&Path>, conservation_steps: u64) 
             ],
         )?;
     }
+    if let Some(dir) = chart_dir {
+        water3d_charts(dir, &charts)?;
+    }
     let failed: Vec<&str> = cases.iter().filter(|c| !c.passed).map(|c| c.name).collect();
     if !failed.is_empty() {
         anyhow::bail!(
@@ -110,5 +114,75 @@ pub fn run_sims(json: &Path, chart_dir: Option<&Path>, conservation_steps: u64) 
             json.display()
         );
     }
+    Ok(())
+}
+
+/// water3d's charts: the U-tube's error against cost and updates per
+/// second, and the dam break's surface against the spread rate.
+fn water3d_charts(dir: &Path, charts: &sims::ChartData) -> Result<()> {
+    let colors = [
+        RGBColor(60, 110, 200),
+        RGBColor(40, 150, 80),
+        RGBColor(200, 70, 60),
+    ];
+    let names = ["compress 0.05", "compress 0.1", "compress 0.2"];
+    let series = |x: fn(&(f64, f64, f64, f64)) -> f64| -> Vec<Series<'static>> {
+        [0.05, 0.1, 0.2]
+            .iter()
+            .enumerate()
+            .map(|(i, c)| Series {
+                name: names[i],
+                color: colors[i],
+                points: charts
+                    .u_tube
+                    .iter()
+                    .filter(|r| r.0 == *c)
+                    .map(|r| (x(r), r.2.max(1e-3)))
+                    .collect(),
+            })
+            .collect()
+    };
+    xy_chart(
+        &dir.join("u_tube_speed_accuracy.svg"),
+        "water3d U-tube: level error against wall-clock time (250..2000 steps)",
+        "wall-clock seconds (log)",
+        "level difference between the arms, voxels (log; 1e-3 = level)",
+        &series(|r| r.1),
+    )?;
+    xy_chart(
+        &dir.join("u_tube_error_vs_updates_per_s.svg"),
+        "water3d U-tube: level error against voxel updates per second",
+        "active-voxel updates per second (log)",
+        "level difference between the arms, voxels (log; 1e-3 = level)",
+        &series(|r| r.3),
+    )?;
+    xy_chart(
+        &dir.join("voxel_stability.svg"),
+        "water3d dam break (fall 0.5): the 1500th step's largest change against spread",
+        "spread (fraction per tick, log)",
+        "largest change of a cell's fill in the last step (log; 1e-6 = none)",
+        &[
+            Series {
+                name: "without the stability margin",
+                color: colors[2],
+                points: charts
+                    .voxel_stability
+                    .iter()
+                    .filter(|r| r.1.is_finite())
+                    .map(|r| (r.0, r.1.max(1e-6)))
+                    .collect(),
+            },
+            Series {
+                name: "shipped (rates scaled past 2s + f/2 = 0.45)",
+                color: colors[1],
+                points: charts
+                    .voxel_stability
+                    .iter()
+                    .filter(|r| r.2.is_finite())
+                    .map(|r| (r.0, r.2.max(1e-6)))
+                    .collect(),
+            },
+        ],
+    )?;
     Ok(())
 }

@@ -435,6 +435,12 @@ pub struct ChartData {
     pub steps_per_s: (Points, Points),
     /// (CFL, L1 raw, blew up, L1 sub-stepped) for the stability sweep.
     pub stability: Vec<(f64, f64, bool, f64)>,
+    /// water3d's U-tube: (compress, seconds, level difference, voxel
+    /// updates per second) over step budgets.
+    pub u_tube: Vec<(f64, f64, f64, f64)>,
+    /// water3d's dam break: (spread, the last step's largest change
+    /// without the stability margin, with it).
+    pub voxel_stability: Vec<(f64, f64, f64)>,
 }
 
 /// Run every case. `conservation_steps` is 10⁴ for the full check.
@@ -442,7 +448,7 @@ pub fn run_all(
     conservation_steps: u64,
     progress: &indicatif::ProgressBar,
 ) -> (Vec<Case>, ChartData) {
-    progress.set_length(10);
+    progress.set_length(13);
     let (ritter, resolution, dt) = ritter_case();
     progress.inc(1);
     let lake = lake_at_rest();
@@ -463,6 +469,12 @@ pub fn run_all(
     progress.inc(1);
     let vdet = super::voxels::voxel_determinism();
     progress.inc(1);
+    let cave = super::water3d::cave_fill();
+    progress.inc(1);
+    let (vstab, voxel_stability) = super::water3d::voxel_stability();
+    progress.inc(1);
+    let u_tube_chart = super::water3d::u_tube_speed_accuracy();
+    progress.inc(1);
     let sps = |c: &Case, key: &str| -> Vec<(f64, f64)> {
         c.metrics[key]
             .as_array()
@@ -481,13 +493,15 @@ pub fn run_all(
     let steps_per_s = (sps(&ritter, "resolutions"), sps(&ritter, "dt_sweep_256"));
     (
         vec![
-            ritter, lake, mass, talus, stab, det, u_tube, sand, lava, vdet,
+            ritter, lake, mass, talus, stab, det, u_tube, sand, lava, vdet, cave, vstab,
         ],
         ChartData {
             resolution,
             dt,
             steps_per_s,
             stability,
+            u_tube: u_tube_chart,
+            voxel_stability,
         },
     )
 }

@@ -93,7 +93,7 @@ pub fn u_tube_world(
             src("water3d", text),
             Limits::default(),
             &reg,
-            std::sync::Arc::new(crate::sim::voxels::Water3d),
+            std::sync::Arc::new(crate::sim::voxels::Water3d::default()),
         )?;
     } else {
         sim.add_script(src("water3d", text), Limits::default(), &reg)?;
@@ -106,7 +106,7 @@ pub fn u_tube_world(
 /// Two basins joined by a tunnel under a wall, the left one filled: both
 /// surfaces must end within one voxel, mass exact to round-off. `compress`
 /// is water3d's pressure parameter (the speed/accuracy knob).
-pub fn u_tube_run(compress: f64, max_steps: u64) -> serde_json::Value {
+pub fn u_tube_run(compress: f64, max_steps: u64, stop_when_level: bool) -> serde_json::Value {
     let (mut store, mut sim, reg) = match u_tube_world(false) {
         Ok(w) => w,
         Err(e) => return json!({ "error": e.to_string() }),
@@ -126,7 +126,9 @@ pub fn u_tube_run(compress: f64, max_steps: u64) -> serde_json::Value {
         steps += 1;
         updates += r.candidates as u64 * 512;
         if sim.active_bricks() == 0
-            || (steps % 100 == 0 && (surface(&sim, 2..12) - surface(&sim, 20..30)).abs() <= 1.0)
+            || (stop_when_level
+                && steps % 100 == 0
+                && (surface(&sim, 2..12) - surface(&sim, 20..30)).abs() <= 1.0)
         {
             break;
         }
@@ -141,18 +143,17 @@ pub fn u_tube_run(compress: f64, max_steps: u64) -> serde_json::Value {
         "right": r,
         "level_difference": (l - r).abs(),
         "mass_drift_rel": (mass - mass0) / mass0,
+        "voxel_updates": updates,
+        "seconds": secs,
         "voxel_updates_per_s": updates as f64 / secs.max(1e-9),
         "error": error,
     })
 }
 
-/// The U-tube case, with the speed/accuracy sweep over `compress`.
+/// The U-tube case (its speed/accuracy sweep is
+/// [`super::water3d::u_tube_speed_accuracy`], drawn as a chart).
 pub fn u_tube() -> Case {
-    let main = u_tube_run(0.1, 8000);
-    let sweep: Vec<serde_json::Value> = [0.05, 0.1, 0.2]
-        .iter()
-        .map(|&c| u_tube_run(c, 8000))
-        .collect();
+    let main = u_tube_run(0.2, 8000, true);
     let passed = main["error"].is_null()
         && main["level_difference"].as_f64().is_some_and(|d| d <= 1.0)
         && main["mass_drift_rel"]
@@ -162,7 +163,7 @@ pub fn u_tube() -> Case {
         name: "u_tube",
         script: "water3d.lua",
         passed,
-        metrics: json!({ "run": main, "compress_sweep": sweep, "criterion": "levels within 1 voxel, |mass drift| < 1e-4" }),
+        metrics: json!({ "run": main, "criterion": "levels within 1 voxel, |mass drift| < 1e-4" }),
     }
 }
 
@@ -286,13 +287,21 @@ pub fn four_scripts_hash(threads: usize) -> u64 {
     })
 }
 
-/// The four voxel scripts give one hash for 1, 2 and 8 threads.
+/// [`four_scripts_hash`]'s known-good value; `tests/voxel_sim.rs` keeps its
+/// history. Change it only on purpose, with a note there.
+pub const FOUR_SCRIPTS_PINNED: u64 = 0x58f2_517f_b553_a8e4;
+
+/// The four voxel scripts give the pinned hash for 1, 2 and 8 threads.
 pub fn voxel_determinism() -> Case {
     let hashes: Vec<u64> = [1, 2, 8].iter().map(|&t| four_scripts_hash(t)).collect();
     Case {
         name: "voxel_determinism",
         script: "water3d.lua, sand.lua, grass.lua, lava.lua",
-        passed: hashes[0] != 0 && hashes.iter().all(|h| *h == hashes[0]),
-        metrics: json!({ "threads": [1, 2, 8], "hashes": hashes.iter().map(|h| format!("{h:#018x}")).collect::<Vec<_>>() }),
+        passed: hashes.iter().all(|h| *h == FOUR_SCRIPTS_PINNED),
+        metrics: json!({
+            "threads": [1, 2, 8],
+            "hashes": hashes.iter().map(|h| format!("{h:#018x}")).collect::<Vec<_>>(),
+            "pinned": format!("{FOUR_SCRIPTS_PINNED:#018x}"),
+        }),
     }
 }

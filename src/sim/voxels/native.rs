@@ -52,7 +52,21 @@ const DZ: usize = 100;
 /// The rule of `scripts/water3d.lua`: channels `water, k`; materials
 /// `water`; parameters `compress, fall, spread, still`; passes `limit` and
 /// `flow`.
-pub struct Water3d;
+pub struct Water3d {
+    /// The script's `STABLE`: the most that 2·spread + fall/2 may be.
+    pub stable: f64,
+}
+
+impl Default for Water3d {
+    fn default() -> Self {
+        Water3d {
+            stable: WATER3D_STABLE,
+        }
+    }
+}
+
+/// water3d.lua's `STABLE`.
+pub const WATER3D_STABLE: f64 = 0.45;
 
 #[inline(always)]
 fn lower(t: f64, comp: f64) -> f64 {
@@ -71,7 +85,14 @@ impl VoxelNativeKernel for Water3d {
     }
 
     fn run(&self, pass: usize, b: NativeBrick<'_>) {
-        let (comp, fall, spread, still) = (b.params[0], b.params[1], b.params[2], b.params[3]);
+        let (comp, mut fall, mut spread, still) =
+            (b.params[0], b.params[1], b.params[2], b.params[3]);
+        let sum = 2.0 * spread + 0.5 * fall;
+        if sum > self.stable {
+            let r = self.stable / sum;
+            spread *= r;
+            fall *= r;
+        }
         let water = b.materials[0];
         let w = &b.reads[0];
         let shape = Shape {
