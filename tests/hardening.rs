@@ -656,6 +656,14 @@ fn a_voxel_world_resumes_bit_identically() {
                 .iter()
                 .any(|n| n == "water")
         );
+        // The timeline has each script's time and water3d's conserved total,
+        // one header across the restarts (rows appended, not moved aside).
+        let t = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
+        for c in ["ms:water3d", "ms:sand", "total:water3d.water"] {
+            assert!(t.col(c).is_some(), "no {c} in {:?}", t.columns);
+        }
+        let total = t.col("total:water3d.water").unwrap();
+        assert!(t.rows.len() >= 2 && t.rows.iter().all(|r| r[total] > 0.0));
         format!("{hash}/{:#x}", st.extras.voxel_channels.hash())
     };
     let straight = final_hash("v40a", &[40]);

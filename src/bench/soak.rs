@@ -129,7 +129,8 @@ pub fn run(
     let warm = rss.len() / 5;
     let base = rss.get(warm).map_or(0, |r| r.1).max(1) as f64;
     let end = rss.last().map_or(0, |r| r.1) as f64;
-    let rows = crate::engine::timeline::read(&state.join("timeline.csv")).unwrap_or_default();
+    let table = crate::engine::timeline::read(&state.join("timeline.csv")).unwrap_or_default();
+    let rows = &table.rows;
     let col = |n: &str| {
         crate::engine::timeline::COLUMNS
             .iter()

@@ -59,6 +59,22 @@ pub fn run(opts: DaemonOptions) -> Result<()> {
     Engine::start(opts)?.run()
 }
 
+/// The timeline's per-script columns: each script's time, then each
+/// declared conserved total.
+fn timeline_columns(ws: &WorldSim) -> Vec<String> {
+    let n = ws.script_count();
+    // A CSV header: no commas in a column's name.
+    let clean = |s: &str| s.replace([',', '\n', '\r'], "_");
+    let times = (0..n).map(|i| format!("ms:{}", clean(&ws.spec(i).name)));
+    let totals = (0..n).flat_map(|i| {
+        let name = clean(&ws.spec(i).name);
+        ws.conserved_totals(i)
+            .into_iter()
+            .map(move |(ch, _)| format!("total:{name}.{}", clean(&ch)))
+    });
+    times.chain(totals).collect()
+}
+
 fn total(ws: &WorldSim, name: &str) -> f64 {
     ws.sim
         .channels()
@@ -288,7 +304,7 @@ impl Engine {
                 }
             }
         };
-        let timeline = Timeline::open(&opts.state.join("timeline.csv"))?;
+        let timeline = Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
         println!(
             "brickworld is running: viewer http://{}/  (control token in {}: {token})",
             server.addr,
@@ -611,6 +627,12 @@ impl Engine {
             ground_plus_sediment: total(&self.ws, "ground") + total(&self.ws, "sediment"),
             snow: total(&self.ws, "snow"),
             drained: self.ws.drained,
+            script_ms: (0..self.ws.script_count())
+                .map(|i| self.ws.script_ms(r, i))
+                .collect(),
+            conserved: (0..self.ws.script_count())
+                .flat_map(|i| self.ws.conserved_totals(i).into_iter().map(|(_, v)| v))
+                .collect(),
         });
     }
 

@@ -1,5 +1,12 @@
 //! The timeline: one CSV row per frame interval, appended to
 //! `STATE/timeline.csv`, and `brickworld chart STATE` to draw it.
+//!
+//! The fixed [`COLUMNS`] come first, then one `ms:SCRIPT` column per script
+//! (its time in the step) and one `total:SCRIPT.CHANNEL` column per channel
+//! a script declares `conserved`. A file whose header differs (another
+//! world, another set of scripts) is renamed aside, never overwritten, and a
+//! file past [`ROTATE_BYTES`] is rotated to `timeline.1.csv`, so a world left
+//! running for days keeps a bounded timeline.
 
 use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
@@ -47,11 +54,23 @@ pub struct Row {
     pub snow: f64,
     /// Water drained over the edges so far.
     pub drained: f64,
+    /// Each script's time in the step, ms (the `ms:` columns, in order).
+    pub script_ms: Vec<f64>,
+    /// Each declared conserved total (the `total:` columns, in order).
+    pub conserved: Vec<f64>,
 }
+
+/// A timeline file is rotated to `timeline.1.csv` past this size.
+pub const ROTATE_BYTES: u64 = 32 << 20;
 
 /// An append-only CSV timeline.
 pub struct Timeline {
     file: File,
+    path: std::path::PathBuf,
+    header: String,
+    /// Per-script columns in the header.
+    extra: usize,
+    written: u64,
 }
 
 /// Resident memory of this process in KiB (Linux), 0 if unknown.
@@ -73,8 +92,45 @@ pub fn rss_kb_of(pid: u32) -> u64 {
 }
 
 impl Timeline {
-    /// Open (creating, with a header) the timeline at `path`.
-    pub fn open(path: &Path) -> Result<Self> {
+    /// Open (creating, with a header) the timeline at `path`, with the
+    /// per-script columns `extra` after the fixed ones. An existing file
+    /// with another header is renamed `timeline.<unix seconds>.csv` first.
+    pub fn open(path: &Path, extra: &[String]) -> Result<Self> {
+        let header = COLUMNS
+            .iter()
+            .map(|c| c.to_string())
+            .chain(extra.iter().cloned())
+            .collect::<Vec<_>>()
+            .join(",");
+        if let Ok(f) = File::open(path) {
+            let mut first = String::new();
+            let _ = BufReader::new(f).read_line(&mut first);
+            if first.trim_end() != header {
+                let secs = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_secs());
+                let aside = path.with_extension(format!("{secs}.csv"));
+                std::fs::rename(path, &aside).with_context(|| {
+                    format!(
+                        "cannot move {} aside to {}",
+                        path.display(),
+                        aside.display()
+                    )
+                })?;
+            }
+        }
+        let mut t = Timeline {
+            file: Self::create(path, &header)?,
+            path: path.to_path_buf(),
+            header,
+            extra: extra.len(),
+            written: 0,
+        };
+        t.written = t.file.metadata().map_or(0, |m| m.len());
+        Ok(t)
+    }
+
+    fn create(path: &Path, header: &str) -> Result<File> {
         let fresh = !path.exists();
         let mut file = OpenOptions::new()
             .create(true)
@@ -82,16 +138,17 @@ impl Timeline {
             .open(path)
             .with_context(|| format!("cannot open {}", path.display()))?;
         if fresh {
-            writeln!(file, "{}", COLUMNS.join(","))
+            writeln!(file, "{header}")
                 .with_context(|| format!("cannot write {}", path.display()))?;
         }
-        Ok(Timeline { file })
+        Ok(file)
     }
 
-    /// Append a row (errors are ignored: the timeline must never stop the engine).
+    /// Append a row (errors are ignored: the timeline must never stop the
+    /// engine). Past [`ROTATE_BYTES`] the file becomes `timeline.1.csv`
+    /// (replacing the one before) and a fresh one starts.
     pub fn record(&mut self, r: &Row) {
-        let _ = writeln!(
-            self.file,
+        let mut line = format!(
             "{},{:.3},{},{},{:.3},{},{},{:.9},{:.9},{:.9},{:.9}",
             r.tick,
             r.steps_per_s,
@@ -105,34 +162,79 @@ impl Timeline {
             r.snow,
             r.drained
         );
+        // As many per-script values as the header names (a reload that
+        // changed a script's declarations must not shift the columns).
+        let mut extra: Vec<String> = r
+            .script_ms
+            .iter()
+            .map(|v| format!("{v:.3}"))
+            .chain(r.conserved.iter().map(|v| format!("{v:.9}")))
+            .collect();
+        extra.resize(self.extra, "nan".into());
+        for v in extra {
+            line.push(',');
+            line.push_str(&v);
+        }
+        line.push('\n');
+        if self.written + line.len() as u64 > ROTATE_BYTES {
+            let _ = std::fs::rename(&self.path, self.path.with_extension("1.csv"));
+            if let Ok(f) = Self::create(&self.path, &self.header) {
+                self.file = f;
+                self.written = self.header.len() as u64 + 1;
+            }
+        }
+        if self.file.write_all(line.as_bytes()).is_ok() {
+            self.written += line.len() as u64;
+        }
+    }
+}
+
+/// A timeline read back: its column names and rows.
+#[derive(Clone, Debug, Default)]
+pub struct Table {
+    /// Column names, from the header.
+    pub columns: Vec<String>,
+    /// Rows (only those with every column).
+    pub rows: Vec<Vec<f64>>,
+}
+
+impl Table {
+    /// Index of column `name`.
+    pub fn col(&self, name: &str) -> Option<usize> {
+        self.columns.iter().position(|c| c == name)
     }
 }
 
 /// Read a timeline CSV.
-pub fn read(path: &Path) -> Result<Vec<Vec<f64>>> {
+pub fn read(path: &Path) -> Result<Table> {
     let f = File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut rows = Vec::new();
+    let mut t = Table::default();
     for (i, line) in BufReader::new(f).lines().enumerate() {
         let line = line?;
-        if i == 0 || line.trim().is_empty() {
+        if i == 0 {
+            t.columns = line.trim().split(',').map(str::to_string).collect();
+            continue;
+        }
+        if line.trim().is_empty() {
             continue;
         }
         let vals: Vec<f64> = line
             .split(',')
             .map(|v| v.trim().parse().unwrap_or(f64::NAN))
             .collect();
-        if vals.len() == COLUMNS.len() {
-            rows.push(vals);
+        if vals.len() == t.columns.len() {
+            t.rows.push(vals);
         }
     }
-    Ok(rows)
+    Ok(t)
 }
 
 /// `brickworld chart STATE`: draw the timeline as SVG charts in `STATE/charts`.
 pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
     use crate::bench::chart::{Series, xy_chart};
     use plotters::style::RGBColor;
-    let rows = read(&state.join("timeline.csv"))?;
+    let table = read(&state.join("timeline.csv"))?;
+    let rows = &table.rows;
     if rows.len() < 2 {
         anyhow::bail!(
             "{} has fewer than two rows: let the engine run a little longer",
@@ -141,20 +243,43 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
     }
     let dir = state.join("charts");
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let col = |name: &str| {
-        COLUMNS
-            .iter()
-            .position(|c| *c == name)
-            .expect("known column")
+    let palette = [
+        RGBColor(60, 110, 200),
+        RGBColor(200, 70, 60),
+        RGBColor(40, 150, 80),
+        RGBColor(150, 110, 80),
+        RGBColor(120, 120, 140),
+        RGBColor(170, 60, 170),
+        RGBColor(30, 160, 170),
+        RGBColor(220, 150, 30),
+    ];
+    let series = |name: &str, color: RGBColor| -> Series<'_> {
+        let c = table.col(name).expect("known column");
+        Series {
+            name: table.columns[c].as_str(),
+            color,
+            points: rows
+                .iter()
+                .map(|r| (r[0].max(1.0), r[c].abs().max(1e-9)))
+                .collect(),
+        }
     };
-    let series = |name: &'static str, color: RGBColor| Series {
-        name,
-        color,
-        points: rows
+    let with_prefix = |prefix: &str| -> Vec<Series<'_>> {
+        table
+            .columns
             .iter()
-            .map(|r| (r[0].max(1.0), r[col(name)].abs().max(1e-9)))
-            .collect(),
+            .filter(|c| c.starts_with(prefix))
+            .enumerate()
+            .map(|(i, c)| series(c, palette[i % palette.len()]))
+            .collect()
     };
+    let mut totals = vec![
+        series("water", palette[0]),
+        series("ground_plus_sediment", palette[3]),
+        series("snow", palette[4]),
+        series("drained", palette[1]),
+    ];
+    totals.extend(with_prefix("total:"));
     let mut out = Vec::new();
     for (file, title, y, list) in [
         (
@@ -162,40 +287,101 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             "Steps per second and frame time",
             "value (log)",
             vec![
-                series("steps_per_s", RGBColor(60, 110, 200)),
-                series("frame_ms", RGBColor(200, 70, 60)),
+                series("steps_per_s", palette[0]),
+                series("frame_ms", palette[1]),
             ],
         ),
         (
             "memory.svg",
             "Resident memory (KiB)",
             "KiB (log)",
-            vec![series("rss_kb", RGBColor(40, 150, 80))],
+            vec![series("rss_kb", palette[2])],
         ),
         (
             "work.svg",
             "Active tiles and dirty bricks",
             "count (log)",
             vec![
-                series("active_bricks", RGBColor(60, 110, 200)),
-                series("dirty_bricks", RGBColor(200, 70, 60)),
+                series("active_bricks", palette[0]),
+                series("dirty_bricks", palette[1]),
             ],
         ),
+        ("totals.svg", "Conserved totals", "total (log)", totals),
         (
-            "totals.svg",
-            "Conserved totals",
-            "total (log)",
-            vec![
-                series("water", RGBColor(60, 110, 200)),
-                series("ground_plus_sediment", RGBColor(150, 110, 80)),
-                series("snow", RGBColor(120, 120, 140)),
-                series("drained", RGBColor(200, 70, 60)),
-            ],
+            "scripts.svg",
+            "Time per step of each script (ms)",
+            "ms (log)",
+            with_prefix("ms:"),
         ),
     ] {
+        if list.is_empty() {
+            continue;
+        }
         let path = dir.join(file);
         xy_chart(&path, title, "tick (log)", y, &list)?;
         out.push(path);
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(tick: u64) -> Row {
+        Row {
+            tick,
+            script_ms: vec![1.5],
+            conserved: vec![42.0],
+            ..Row::default()
+        }
+    }
+
+    #[test]
+    fn per_script_columns_round_trip_and_another_header_is_moved_aside() {
+        let dir = std::env::temp_dir().join(format!("bw-timeline-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("timeline.csv");
+        let extra = vec!["ms:water3d".to_string(), "total:water3d.water".to_string()];
+        {
+            let mut t = Timeline::open(&path, &extra).unwrap();
+            t.record(&row(1));
+            t.record(&row(2));
+        }
+        let table = read(&path).unwrap();
+        assert_eq!(table.rows.len(), 2);
+        let c = table.col("total:water3d.water").unwrap();
+        assert_eq!(table.rows[1][c], 42.0);
+        assert_eq!(table.rows[0][table.col("ms:water3d").unwrap()], 1.5);
+        // Same header: appended to. Another header: the old file is kept aside.
+        Timeline::open(&path, &extra).unwrap().record(&row(3));
+        assert_eq!(read(&path).unwrap().rows.len(), 3);
+        Timeline::open(&path, &["ms:sand".to_string()]).unwrap();
+        let aside: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .filter(|e| e.file_name() != "timeline.csv")
+            .collect();
+        assert_eq!(aside.len(), 1, "the old timeline is kept");
+        assert_eq!(read(&aside[0].path()).unwrap().rows.len(), 3);
+        assert_eq!(read(&path).unwrap().rows.len(), 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_full_timeline_rotates_instead_of_growing() {
+        let dir = std::env::temp_dir().join(format!("bw-timeline-rot-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("timeline.csv");
+        let mut t = Timeline::open(&path, &[]).unwrap();
+        t.written = ROTATE_BYTES - 10;
+        t.record(&Row::default());
+        assert!(dir.join("timeline.1.csv").exists());
+        let now = std::fs::metadata(&path).unwrap().len();
+        assert!(now < 1024, "a fresh file: {now} bytes");
+        assert_eq!(read(&path).unwrap().rows.len(), 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
