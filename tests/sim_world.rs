@@ -163,6 +163,8 @@ fn verify_and_bench_sim_write_the_documented_json() {
         "sand_pile",
         "lava_cools",
         "voxel_determinism",
+        "cave_fill",
+        "voxel_stability",
     ] {
         assert!(names.contains(&n), "missing case {n}");
     }
@@ -189,4 +191,76 @@ fn verify_and_bench_sim_write_the_documented_json() {
             assert!(s.get(k).is_some(), "missing scripts[].{k}");
         }
     }
+    let v = &v["voxels"];
+    for k in ["lua", "native", "crossing", "sparse"] {
+        assert!(v[k].is_object(), "missing voxels.{k} in {v}");
+    }
+    assert!(v["lua"]["updates_per_s"].as_f64().unwrap() > 0.0);
+    assert_eq!(v["native_matches_lua"], true, "{v}");
+}
+
+/// Column scripts see one surface per column, so their write-back must
+/// only ever touch voxels above the topmost solid one: rain on a mesa with a
+/// sealed cave inside and an overhang along one side leaves the cave and the
+/// air under the overhang dry, while water stands on the mesa.
+///
+/// Regression: the write-back walked the tile's span of heights (down to its
+/// lowest column's ground) for every changed column, and filled the air
+/// under the overhang with sediment.
+#[test]
+fn column_write_back_never_fills_a_cave_or_an_overhangs_underside() {
+    use brickworld::scene::SceneWorld;
+    use brickworld::world::{BrickStore, Palette};
+    const ROCK: u8 = 6;
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(32, 4, 32), ROCK);
+    // The mesa, with a rim so that rain pools on top.
+    store.fill_box(IVec3::new(4, 4, 4), IVec3::new(28, 16, 28), ROCK);
+    store.fill_box(IVec3::new(6, 16, 6), IVec3::new(26, 18, 26), ROCK);
+    store.fill_box(IVec3::new(8, 16, 8), IVec3::new(24, 18, 24), 0);
+    let cave = (IVec3::new(8, 6, 8), IVec3::new(20, 12, 20));
+    let under = (IVec3::new(22, 4, 4), IVec3::new(28, 10, 28));
+    store.fill_box(cave.0, cave.1, 0);
+    store.fill_box(under.0, under.1, 0);
+    let mut world = SceneWorld::new(store, IVec3::ZERO, IVec3::splat(32)).unwrap();
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    let src = ScriptSource {
+        name: "water".into(),
+        text: include_str!("../scripts/water.lua").into(),
+    };
+    let i = ws.add_lua(src, Limits::default()).unwrap();
+    ws.set_param(i, "rain", 4.0).unwrap();
+    for _ in 0..300 {
+        let (r, _) = ws.step_within_cfl(&mut world, 0.05, 0.5);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+    }
+    let count_in = |(lo, hi): (IVec3, IVec3), pred: &dyn Fn(u8) -> bool| {
+        let mut n = 0;
+        for z in lo.z..hi.z {
+            for y in lo.y..hi.y {
+                for x in lo.x..hi.x {
+                    n += pred(world.store.voxel(IVec3::new(x, y, z))) as usize;
+                }
+            }
+        }
+        n
+    };
+    let water = brickworld::sim::columns::writeback::WATER;
+    let pooled = count_in((IVec3::new(8, 16, 8), IVec3::new(24, 18, 24)), &|m| {
+        m == water
+    });
+    assert!(
+        pooled > 100,
+        "rain pools on the mesa: {pooled} water voxels"
+    );
+    assert_eq!(
+        count_in(cave, &|m| m != 0),
+        0,
+        "the cave stays dry and empty"
+    );
+    assert_eq!(
+        count_in(under, &|m| m != 0),
+        0,
+        "nothing under the overhang"
+    );
 }

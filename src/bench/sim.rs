@@ -213,8 +213,10 @@ pub fn run(
         });
         progress.inc(1);
     }
+    // The voxel pool: as wide as the largest column world, 32..=256.
+    let side = (big / 16 * 16).clamp(32, 256);
     let voxels = super::voxels::run(
-        glam::IVec3::new(256, 48, 256),
+        glam::IVec3::new(side, 48, side),
         steps.clamp(3, 20) as usize,
         || (),
     );

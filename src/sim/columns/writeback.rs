@@ -7,9 +7,12 @@
 //! `round(ground + snow + water)` where the water is at least half a voxel
 //! deep (a dry column never shows water, whatever its ground's fraction).
 //! Every surface is clamped into the world's height, so no channel value
-//! can make the write-back allocate bricks outside the world. Only voxels between the old and new
-//! surfaces are touched, through [`BrickStore::edit_brick`], so every change
-//! is recorded as a dirty brick for the renderer.
+//! can make the write-back allocate bricks outside the world. Only voxels
+//! between a column's own old and new surfaces are touched, never below its
+//! topmost solid voxel (a column cannot see a cave or an overhang's
+//! underside, so it must not write there), through
+//! [`BrickStore::edit_brick`], so every change is recorded as a dirty brick
+//! for the renderer.
 
 use glam::{IVec2, IVec3};
 use rustc_hash::FxHashMap;
@@ -167,8 +170,16 @@ impl ColumnSync {
                                 continue;
                             }
                             let [gt, st, wt] = new[c];
+                            // Only this column's own span between its old and
+                            // new surfaces: the tile's span reaches lower where
+                            // another column's ground is lower, and filling
+                            // there would fill caves and overhangs' undersides.
+                            let span = old[c][0].min(gt)..old[c][2].max(old[c][0]).max(wt);
                             for ly in 0..BRICK_EDGE {
                                 let y = y0 + ly;
+                                if !span.contains(&y) {
+                                    continue;
+                                }
                                 let i = voxel_index(x, ly, z);
                                 let cur = d[i];
                                 d[i] = if y < gt {
