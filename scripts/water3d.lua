@@ -27,6 +27,17 @@
 -- carrying the previous face's share to the next cell, so every cell is
 -- read once per axis: a shared helper would cost a call per face.
 --
+-- Only supported water spreads sideways: a cell sends through a side face
+-- only if what is below it is solid or cannot take all of it. Water in the
+-- air falls; it does not smear sideways into a mist. And only what a cell
+-- holds above a thin `film` spreads (the residual water wet ground keeps),
+-- so a puddle stops growing and its bricks sleep.
+--
+-- Free fall: where the water of two stacked cells fits in the lower one,
+-- all of the upper cell's water falls into it in one tick, so a falling
+-- drop stays one compact voxel and moves one voxel per tick (only the
+-- lower's pushing back, in fuller water, can oscillate: `fall` rules there).
+--
 -- Faces into solid cells (anything but air and water, and the world's
 -- boundary) carry nothing. Fluxes below `still` are dropped on both sides
 -- alike, so water at rest stops changing exactly and its bricks sleep.
@@ -73,6 +84,9 @@ return {
   params = {
     compress = { default = 0.02, min = 0.0, max = 0.2 },
     fall = { default = 0.3, min = 0.0, max = 1.0 },
+    -- A film this thin stays where it is (it can still fall): a drop on
+    -- open ground makes a puddle and stops, instead of spreading forever.
+    film = { default = 0.02, min = 0.0, max = 0.5 },
     spread = { default = 0.15, min = 0.0, max = 0.5 },
     still = { default = 1e-5, min = 0.0, max = 0.01 },
   },
@@ -87,6 +101,7 @@ return {
         local WATER: number = c.m.water
         local comp: number, fall: number, spread: number, still: number =
           c.p.compress, c.p.fall, c.p.spread, c.p.still
+        local film: number = c.p.film
         local sum = 2 * spread + 0.5 * fall
         if sum > STABLE then
           local r = STABLE / sum
@@ -101,26 +116,36 @@ return {
             local wa = readf32(W, a * 4)
             local ma = readu8(M, a)
             local oa = ma == 0 or ma == WATER
+            local ua = readu8(M, a - DY)
+            local sa = not (ua == 0 or ua == WATER) or readf32(W, (a - DY) * 4) + wa > 1
             local carry = 0
             for s = 1, 9 do
               local b = a + 1
               local wb = readf32(W, b * 4)
               local mb = readu8(M, b)
               local ob = mb == 0 or mb == WATER
+              local ub = readu8(M, b - DY)
+              local sb = not (ub == 0 or ub == WATER) or readf32(W, (b - DY) * 4) + wb > 1
               local sent, back = 0, 0
               if wa ~= wb and oa and ob then
-                local f = spread * (wa - wb)
+                local ea = if wa > film then wa - film else 0
+                local eb = if wb > film then wb - film else 0
+                local f = spread * (ea - eb)
                 if f > still then
-                  sent = f
+                  if sa then
+                    sent = f
+                  end
                 elseif f < -still then
-                  back = -f
+                  if sb then
+                    back = -f
+                  end
                 end
               end
               if s > 1 then
                 writef64(OUT, a * 8, (carry + sent))
               end
               carry = back
-              a, wa, oa = b, wb, ob
+              a, wa, oa, sa = b, wb, ob, sb
             end
           end
         end
@@ -131,26 +156,36 @@ return {
             local wa = readf32(W, a * 4)
             local ma = readu8(M, a)
             local oa = ma == 0 or ma == WATER
+            local ua = readu8(M, a - DY)
+            local sa = not (ua == 0 or ua == WATER) or readf32(W, (a - DY) * 4) + wa > 1
             local carry = 0
             for s = 1, 9 do
               local b = a + DZ
               local wb = readf32(W, b * 4)
               local mb = readu8(M, b)
               local ob = mb == 0 or mb == WATER
+              local ub = readu8(M, b - DY)
+              local sb = not (ub == 0 or ub == WATER) or readf32(W, (b - DY) * 4) + wb > 1
               local sent, back = 0, 0
               if wa ~= wb and oa and ob then
-                local f = spread * (wa - wb)
+                local ea = if wa > film then wa - film else 0
+                local eb = if wb > film then wb - film else 0
+                local f = spread * (ea - eb)
                 if f > still then
-                  sent = f
+                  if sa then
+                    sent = f
+                  end
                 elseif f < -still then
-                  back = -f
+                  if sb then
+                    back = -f
+                  end
                 end
               end
               if s > 1 then
                 writef64(OUT, a * 8, readf64(OUT, a * 8) + (carry + sent))
               end
               carry = back
-              a, wa, oa = b, wb, ob
+              a, wa, oa, sa = b, wb, ob, sb
             end
           end
         end
@@ -170,7 +205,7 @@ return {
               local sent, back = 0, 0
               local t = wa + wb
               if t > 0 and oa and ob then
-                local f = fall * (wa - lower(t, comp))
+                local f = if t <= 1 then -wb else fall * (wa - lower(t, comp))
                 if f > still then
                   sent = f
                 elseif f < -still then
@@ -209,6 +244,7 @@ return {
         local WATER: number = c.m.water
         local comp: number, fall: number, spread: number, still: number =
           c.p.compress, c.p.fall, c.p.spread, c.p.still
+        local film: number = c.p.film
         local sum = 2 * spread + 0.5 * fall
         if sum > STABLE then
           local r = STABLE / sum
@@ -224,26 +260,36 @@ return {
             local wa = readf32(W, a * 4)
             local ma = readu8(M, a)
             local oa = ma == 0 or ma == WATER
+            local ua = readu8(M, a - DY)
+            local sa = not (ua == 0 or ua == WATER) or readf32(W, (a - DY) * 4) + wa > 1
             local carry = 0
             for s = 1, 9 do
               local b = a + 1
               local wb = readf32(W, b * 4)
               local mb = readu8(M, b)
               local ob = mb == 0 or mb == WATER
+              local ub = readu8(M, b - DY)
+              local sb = not (ub == 0 or ub == WATER) or readf32(W, (b - DY) * 4) + wb > 1
               local g = 0
               if wa ~= wb and oa and ob then
-                local f = spread * (wa - wb)
+                local ea = if wa > film then wa - film else 0
+                local eb = if wb > film then wb - film else 0
+                local f = spread * (ea - eb)
                 if f > still then
-                  g = f * readf32(KK, a * 4)
+                  if sa then
+                    g = f * readf32(KK, a * 4)
+                  end
                 elseif f < -still then
-                  g = f * readf32(KK, b * 4)
+                  if sb then
+                    g = f * readf32(KK, b * 4)
+                  end
                 end
               end
               if s > 1 then
                 writef64(D, a * 8, (carry - g))
               end
               carry = g
-              a, wa, oa = b, wb, ob
+              a, wa, oa, sa = b, wb, ob, sb
             end
           end
         end
@@ -254,26 +300,36 @@ return {
             local wa = readf32(W, a * 4)
             local ma = readu8(M, a)
             local oa = ma == 0 or ma == WATER
+            local ua = readu8(M, a - DY)
+            local sa = not (ua == 0 or ua == WATER) or readf32(W, (a - DY) * 4) + wa > 1
             local carry = 0
             for s = 1, 9 do
               local b = a + DZ
               local wb = readf32(W, b * 4)
               local mb = readu8(M, b)
               local ob = mb == 0 or mb == WATER
+              local ub = readu8(M, b - DY)
+              local sb = not (ub == 0 or ub == WATER) or readf32(W, (b - DY) * 4) + wb > 1
               local g = 0
               if wa ~= wb and oa and ob then
-                local f = spread * (wa - wb)
+                local ea = if wa > film then wa - film else 0
+                local eb = if wb > film then wb - film else 0
+                local f = spread * (ea - eb)
                 if f > still then
-                  g = f * readf32(KK, a * 4)
+                  if sa then
+                    g = f * readf32(KK, a * 4)
+                  end
                 elseif f < -still then
-                  g = f * readf32(KK, b * 4)
+                  if sb then
+                    g = f * readf32(KK, b * 4)
+                  end
                 end
               end
               if s > 1 then
                 writef64(D, a * 8, readf64(D, a * 8) + (carry - g))
               end
               carry = g
-              a, wa, oa = b, wb, ob
+              a, wa, oa, sa = b, wb, ob, sb
             end
           end
         end
@@ -293,7 +349,7 @@ return {
               local g = 0
               local t = wa + wb
               if t > 0 and oa and ob then
-                local f = fall * (wa - lower(t, comp))
+                local f = if t <= 1 then -wb else fall * (wa - lower(t, comp))
                 if f > still then
                   g = f * readf32(KK, a * 4)
                 elseif f < -still then

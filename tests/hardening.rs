@@ -638,7 +638,7 @@ fn a_voxel_world_resumes_bit_identically() {
         let text = std::fs::read_to_string(&cfg).unwrap();
         let text = text.replace(
             "[[scripts]]\nfile = \"water.lua\"\nparams = { rain = 0.2 }\n",
-            "[[scripts]]\nfile = \"rain3d.lua\"\nevery = 5\n[[scripts]]\nfile = \"water3d.lua\"\n[[scripts]]\nfile = \"sand.lua\"\n\
+            "[[scripts]]\nfile = \"rain3d.lua\"\nevery = 5\nparams = { rain = 0.05 }\n[[scripts]]\nfile = \"water3d.lua\"\n[[scripts]]\nfile = \"sand.lua\"\n\
              [[scripts]]\nfile = \"grass.lua\"\nparams = { rate = 0.05 }\n[[scripts]]\nfile = \"lava.lua\"\n\
              [[place]]\nmaterial = \"lava_source\"\nat = [24, 30, 24]\n[[place]]\nmaterial = \"sand\"\nat = [10, 25, 10]\nsize = [3, 3, 3]\n",
         );

@@ -291,9 +291,15 @@ fn grass_spreads_by_chance_deterministically_and_its_bricks_stay_awake() {
 /// its native reference agrees with it bit for bit. Then `0x07a8_f97a_75e9_4a06`
 /// until water3d gained its stability margin (2·spread + fall/2 ≤ 0.45, found
 /// by `verify sims`' voxel_stability) and new defaults (fall 0.3, spread 0.15).
+/// Then `0x58f2_517f_b553_a8e4` until water3d let a cell's water fall whole
+/// where it fits in the cell below (free fall). The candidate bricks were
+/// narrowed to the neighbours a seed can reach in the same change; the hash
+/// was checked equal with and without that narrowing. Then
+/// `0xd905_f42d_8690_4c8c` until only supported water spread sideways and
+/// only above a thin `film` (drops no longer smear into mist; puddles stop).
 #[test]
 fn voxel_scripts_hash_is_pinned_and_thread_independent() {
-    const PINNED: u64 = 0x58f2_517f_b553_a8e4;
+    const PINNED: u64 = 0x0477_3076_335e_bd98;
     use brickworld::verify::voxels::{FOUR_SCRIPTS_PINNED, four_scripts_hash};
     assert_eq!(
         FOUR_SCRIPTS_PINNED, PINNED,

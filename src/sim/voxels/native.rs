@@ -50,7 +50,7 @@ const DY: usize = 10;
 const DZ: usize = 100;
 
 /// The rule of `scripts/water3d.lua`: channels `water, k`; materials
-/// `water`; parameters `compress, fall, spread, still`; passes `limit` and
+/// `water`; parameters `compress, fall, film, spread, still`; passes `limit` and
 /// `flow`.
 pub struct Water3d {
     /// The script's `STABLE`: the most that 2·spread + fall/2 may be.
@@ -81,12 +81,17 @@ fn lower(t: f64, comp: f64) -> f64 {
 
 impl VoxelNativeKernel for Water3d {
     fn params(&self) -> &[&str] {
-        &["compress", "fall", "spread", "still"]
+        &["compress", "fall", "film", "spread", "still"]
     }
 
     fn run(&self, pass: usize, b: NativeBrick<'_>) {
-        let (comp, mut fall, mut spread, still) =
-            (b.params[0], b.params[1], b.params[2], b.params[3]);
+        let (comp, mut fall, film, mut spread, still) = (
+            b.params[0],
+            b.params[1],
+            b.params[2],
+            b.params[3],
+            b.params[4],
+        );
         let sum = 2.0 * spread + 0.5 * fall;
         if sum > self.stable {
             let r = self.stable / sum;
@@ -101,6 +106,7 @@ impl VoxelNativeKernel for Water3d {
             water,
             comp,
             fall,
+            film,
             spread,
         };
         let mut acc = [0.0f64; VOXEL_HALO];
@@ -157,6 +163,7 @@ struct Shape<'a> {
     water: u8,
     comp: f64,
     fall: f64,
+    film: f64,
     spread: f64,
 }
 
@@ -165,6 +172,12 @@ impl Shape<'_> {
     fn open(&self, h: usize) -> bool {
         let m = self.mats[h];
         m == 0 || m == self.water
+    }
+
+    /// What is below cell `h` (fill `w`) is solid or cannot take all of it.
+    #[inline(always)]
+    fn supported(&self, h: usize, w: f64) -> bool {
+        !self.open(h - DY) || self.w[h - DY] as f64 + w > 1.0
     }
 
     /// Walk every face in water3d.lua's order (x, z, then vertical faces,
@@ -188,20 +201,36 @@ impl Shape<'_> {
                     };
                     let mut wa = self.w[a] as f64;
                     let mut oa = self.open(a);
+                    let mut sa = axis == 2 || self.supported(a, wa);
                     let mut carry = 0.0;
                     for s in 1..10 {
                         let b = a + step;
                         let wb = self.w[b] as f64;
                         let ob = self.open(b);
+                        let sb = axis == 2 || self.supported(b, wb);
                         let (mine, next) = if axis == 2 {
                             let t = wa + wb;
                             if t > 0.0 && oa && ob {
-                                share(self.fall * (wa - lower(t, self.comp)), a, b)
+                                // Free fall where both fit in the lower cell.
+                                let f = if t <= 1.0 {
+                                    -wb
+                                } else {
+                                    self.fall * (wa - lower(t, self.comp))
+                                };
+                                share(f, a, b)
                             } else {
                                 share(0.0, a, b)
                             }
                         } else if wa != wb && oa && ob {
-                            share(self.spread * (wa - wb), a, b)
+                            // Only a supported sender spreads sideways, and
+                            // only what it holds above the film.
+                            let ex = |w: f64| if w > self.film { w - self.film } else { 0.0 };
+                            let f = self.spread * (ex(wa) - ex(wb));
+                            if (f > 0.0 && sa) || (f < 0.0 && sb) {
+                                share(f, a, b)
+                            } else {
+                                share(0.0, a, b)
+                            }
                         } else {
                             share(0.0, a, b)
                         };
@@ -216,6 +245,7 @@ impl Shape<'_> {
                         a = b;
                         wa = wb;
                         oa = ob;
+                        sa = sb;
                     }
                 }
             }

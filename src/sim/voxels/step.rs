@@ -26,7 +26,7 @@ use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::channels::{VoxelChannelId, VoxelChannels};
 use super::exec::{Job, VoxelKernel, run_script};
-use super::halo::neighbour_offset;
+use super::halo::{SELF, neighbour_offset};
 use super::native::VoxelNativeKernel;
 use crate::sim::script::{Grid, VOXEL_CELLS};
 use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
@@ -110,6 +110,44 @@ fn brick_bounds(lo: IVec3, hi: IVec3) -> (IVec3, IVec3) {
         lo.div_euclid(IVec3::splat(BRICK_EDGE)),
         (hi - 1).div_euclid(IVec3::splat(BRICK_EDGE)) + 1,
     )
+}
+
+/// For each cell of a brick, the neighbours (bit n = neighbour n, the
+/// brick itself included) that something in the cell can reach within
+/// `passes` voxels: on each axis the brick itself, and the lower or upper
+/// neighbour when the cell lies within `passes` of that face.
+fn reach_masks(passes: usize) -> &'static [u32; VOXEL_CELLS] {
+    static TABLES: std::sync::OnceLock<Vec<[u32; VOXEL_CELLS]>> = std::sync::OnceLock::new();
+    let tables = TABLES.get_or_init(|| {
+        (0..=BRICK_EDGE as usize)
+            .map(|r| {
+                let r = r as i32;
+                std::array::from_fn(|i| {
+                    let c = [i as i32 % 8, i as i32 / 8 % 8, i as i32 / 64];
+                    let sides = |v: i32| -> Vec<i32> {
+                        let mut s = vec![0];
+                        if v < r {
+                            s.push(-1);
+                        }
+                        if v >= BRICK_EDGE - r {
+                            s.push(1);
+                        }
+                        s
+                    };
+                    let mut m = 0u32;
+                    for dz in sides(c[2]) {
+                        for dy in sides(c[1]) {
+                            for dx in sides(c[0]) {
+                                m |= 1 << ((dx + 1) + (dy + 1) * 3 + (dz + 1) * 9);
+                            }
+                        }
+                    }
+                    m
+                })
+            })
+            .collect()
+    });
+    &tables[passes.clamp(1, BRICK_EDGE as usize)]
 }
 
 impl VoxelSim {
@@ -471,35 +509,72 @@ impl VoxelSim {
         p
     }
 
-    /// The bricks script `si` runs on this step, sorted: its seeds (active
-    /// bricks that hold one of its `only` materials, or any value of its
-    /// channels: water too shallow to be drawn still flows) and their
-    /// neighbours, so that whatever moves out of a seed has a kernel on the
-    /// other side to receive it.
+    /// The bricks script `si` runs on this step, sorted. Its seeds are the
+    /// active bricks that hold one of its `only` materials or any value of
+    /// its channels (water too shallow to be drawn still flows); without
+    /// `only`, every active brick. Each seed runs, and so does each
+    /// neighbour that something in the seed can reach this step: a script
+    /// of P passes moves things at most P voxels, so a neighbour is added
+    /// only when a seed's material or value lies within P voxels of it. A
+    /// falling drop in the middle of a brick runs that one brick, not 27.
+    /// `sky` scripts run on the world's top layer of bricks only.
     fn candidates(&mut self, store: &BrickStore, si: usize) -> Vec<IVec3> {
+        if self.scripts[si].spec.sky {
+            let mut out = Vec::new();
+            for z in self.lo.z..self.hi.z {
+                for x in self.lo.x..self.hi.x {
+                    out.push(IVec3::new(x, self.hi.y - 1, z));
+                }
+            }
+            return out;
+        }
         let only = self.scripts[si].only;
         let chans = self.scripts[si].channel_ids.clone();
+        let reach = reach_masks(self.scripts[si].spec.passes.len());
         let mut active: Vec<IVec3> = self.active.iter().copied().collect();
         active.sort_by_key(|b| (b.z, b.y, b.x));
         let mut out = FxHashSet::default();
+        let mut dense = [0u8; VOXEL_CELLS];
         for b in active {
-            if let Some(o) = only
-                && !meets(&self.presence(store, b), &o)
-                && !chans.iter().any(|&c| self.channels.get(c, b).is_some())
-            {
-                continue;
-            }
-            for n in 0..27 {
-                let nb = b + neighbour_offset(n);
-                if self.inside(nb) {
-                    out.insert(nb);
+            let mut mask = 0u32;
+            for &c in &chans {
+                if let Some(v) = self.channels.get(c, b) {
+                    for (i, x) in v.iter().enumerate() {
+                        if x.to_bits() != 0 {
+                            mask |= reach[i];
+                        }
+                    }
                 }
             }
-        }
-        if self.scripts[si].spec.sky {
-            for z in self.lo.z..self.hi.z {
-                for x in self.lo.x..self.hi.x {
-                    out.insert(IVec3::new(x, self.hi.y - 1, z));
+            match only {
+                Some(o) => {
+                    if meets(&self.presence(store, b), &o) {
+                        store.read_dense(b, &mut dense);
+                        for (i, &m) in dense.iter().enumerate() {
+                            if o[m as usize >> 6] & (1 << (m & 63)) != 0 {
+                                mask |= reach[i];
+                            }
+                        }
+                    }
+                }
+                None => {
+                    mask |= 1 << SELF;
+                    if store.cell(b) != crate::world::Cell::Empty {
+                        store.read_dense(b, &mut dense);
+                        for (i, &m) in dense.iter().enumerate() {
+                            if m != 0 {
+                                mask |= reach[i];
+                            }
+                        }
+                    }
+                }
+            }
+            for n in 0..27 {
+                if mask & (1 << n) != 0 {
+                    let nb = b + neighbour_offset(n);
+                    if self.inside(nb) {
+                        out.insert(nb);
+                    }
                 }
             }
         }
@@ -654,5 +729,28 @@ impl VoxelSim {
         self.tick += 1;
         report.changed = changed;
         report
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::voxel_index;
+
+    #[test]
+    fn a_cell_reaches_only_the_neighbours_within_the_scripts_passes() {
+        let count = |m: u32| m.count_ones();
+        let two = reach_masks(2);
+        // The middle of a brick: only the brick itself.
+        assert_eq!(two[voxel_index(3, 3, 4)], 1 << SELF);
+        // One voxel from the -x face: that neighbour too.
+        let m = two[voxel_index(1, 4, 4)];
+        assert_eq!(count(m), 2);
+        assert_ne!(m & (1 << 12), 0, "-x is neighbour 12");
+        // A corner reaches the seven bricks around it.
+        assert_eq!(count(reach_masks(1)[voxel_index(7, 7, 7)]), 8);
+        assert_eq!(count(reach_masks(1)[voxel_index(6, 7, 7)]), 4);
+        // Eight passes reach every neighbour from anywhere.
+        assert!(reach_masks(8).iter().all(|&m| count(m) == 27));
     }
 }
