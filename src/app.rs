@@ -191,13 +191,7 @@ fn run_bench_sim(a: &crate::cli::BenchSimArgs) -> Result<()> {
             a.sizes
         );
     }
-    if a.steps == 0 || a.steps > 10_000 {
-        anyhow::bail!("invalid --steps {}: must be in 1..=10000", a.steps);
-    }
-    if a.threads == Some(0) {
-        anyhow::bail!("invalid --threads 0: must be at least 1");
-    }
-    let pool = thread_pool(a.threads)?;
+    let pool = bench_pool(a.steps, a.threads)?;
     pool.install(|| {
         let pb = bar("bench sim", 0);
         let r = crate::bench::sim::run(&a.json, &a.sizes, a.steps, &pb)?;
@@ -254,6 +248,22 @@ fn print_voxels(v: &crate::bench::voxels::VoxelBench) {
     );
 }
 
+/// The simulation benches' shared checks of `--steps` and `--threads`, and
+/// their thread pool.
+fn bench_pool(steps: u32, threads: Option<usize>) -> Result<rayon::ThreadPool> {
+    if steps == 0 || steps > 10_000 {
+        anyhow::bail!("invalid --steps {steps}: must be in 1..=10000");
+    }
+    if threads == Some(0) {
+        anyhow::bail!("invalid --threads 0: must be at least 1");
+    }
+    thread_pool(threads)
+}
+
+/// Most bricks `bench voxels` builds (each holds ~5 KB of materials and
+/// channels, in three worlds built one after another).
+const MAX_BENCH_VOXEL_BRICKS: i64 = 1 << 17;
+
 fn run_bench_voxels(a: &crate::cli::BenchVoxelsArgs) -> Result<()> {
     let size = crate::config::parse_size(&a.size)?;
     if size.y < 48 || size.x % 16 != 0 || size.z % 16 != 0 || size.x < 32 || size.z < 32 {
@@ -262,13 +272,14 @@ fn run_bench_voxels(a: &crate::cli::BenchVoxelsArgs) -> Result<()> {
             a.size
         );
     }
-    if a.steps == 0 || a.steps > 10_000 {
-        anyhow::bail!("invalid --steps {}: must be in 1..=10000", a.steps);
+    let bricks = (size.x / 8) as i64 * (size.y / 8) as i64 * (size.z / 8) as i64;
+    if bricks > MAX_BENCH_VOXEL_BRICKS {
+        anyhow::bail!(
+            "invalid --size {}: {bricks} bricks; at most {MAX_BENCH_VOXEL_BRICKS}",
+            a.size
+        );
     }
-    if a.threads == Some(0) {
-        anyhow::bail!("invalid --threads 0: must be at least 1");
-    }
-    let pool = thread_pool(a.threads)?;
+    let pool = bench_pool(a.steps, a.threads)?;
     pool.install(|| {
         let pb = bar("bench voxels", 4);
         let r = crate::bench::voxels::run(size, a.steps as usize, || pb.inc(1));

@@ -126,6 +126,32 @@ fn sim_command_rejects_bad_input_clearly() {
             vec!["bench", "sim", "--json", "/tmp/x.json", "--sizes", "12"],
             "invalid --sizes",
         ),
+        (
+            vec![
+                "bench",
+                "voxels",
+                "--json",
+                "/tmp/x.json",
+                "--size",
+                "100x48x100",
+            ],
+            "multiples of 16",
+        ),
+        (
+            vec![
+                "bench",
+                "voxels",
+                "--json",
+                "/tmp/x.json",
+                "--size",
+                "8192x256x8192",
+            ],
+            "bricks; at most",
+        ),
+        (
+            vec!["bench", "voxels", "--json", "/tmp/x.json", "--steps", "0"],
+            "invalid --steps",
+        ),
     ] {
         let out = bin()
             .args(&args)
