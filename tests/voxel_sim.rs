@@ -186,7 +186,8 @@ fn shipped(name: &str) -> ScriptSource {
     let text = match name {
         "lava" => include_str!("../scripts/lava.lua"),
         "grass" => include_str!("../scripts/grass.lua"),
-        _ => unreachable!(),
+        "water3d" => include_str!("../scripts/water3d.lua"),
+        other => panic!("no shipped script {other} in this test"),
     };
     ScriptSource {
         name: name.into(),
@@ -337,4 +338,45 @@ fn water3d_native_reference_matches_lua_bit_for_bit() {
     assert_eq!(run(true, 1), lua);
     assert_eq!(run(true, 2), lua);
     assert_eq!(run(false, 2), lua);
+}
+
+/// The docs' claim that a falling drop runs one brick, not 27: a script's
+/// seed wakes only the neighbours its water can reach in the step (water3d
+/// has two passes, so within two voxels of a face), and a drop in free
+/// fall stays one voxel.
+#[test]
+fn a_falling_drop_runs_one_brick_not_its_whole_neighbourhood() {
+    let reg = shipped_registry();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(48, 1, 48), STONE);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(48, 48, 48), 1);
+    sim.add_script(shipped("water3d"), Limits::default(), &reg)
+        .unwrap();
+    // One drop at (20, 44, 20): local (4, 4, 4) of brick (2, 5, 2).
+    let id = sim.channels_mut().channel("water");
+    let b = IVec3::new(2, 5, 2);
+    let mut v = [0.0f32; 512];
+    v[4 + 4 * 8 + 4 * 64] = 1.0;
+    sim.channels_mut().set(id, b, &v);
+    sim.notify_edited(&[b]);
+    let mut runs = Vec::new();
+    for _ in 0..6 {
+        let r = sim.step(&mut store, &reg, 0.05);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+        runs.push(r.candidates);
+    }
+    // Two steps in the brick's middle, then within two voxels of its floor
+    // (the brick below joins), then inside the brick below.
+    assert_eq!(runs[0], 1, "{runs:?}");
+    assert_eq!(runs[1], 1, "{runs:?}");
+    assert!(runs.iter().all(|&n| n <= 2), "{runs:?}");
+    // It fell one voxel per step, whole.
+    let below = sim
+        .channels()
+        .get(id, IVec3::new(2, 4, 2))
+        .copied()
+        .unwrap();
+    assert_eq!(below[4 + 6 * 8 + 4 * 64], 1.0, "at y = 38 after six steps");
+    assert_eq!(sim.channels().total(id), 1.0);
 }
