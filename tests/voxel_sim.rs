@@ -380,3 +380,84 @@ fn a_falling_drop_runs_one_brick_not_its_whole_neighbourhood() {
     assert_eq!(below[4 + 6 * 8 + 4 * 64], 1.0, "at y = 38 after six steps");
     assert_eq!(sim.channels().total(id), 1.0);
 }
+
+/// Regression (review): a brick that an earlier script of the same tick
+/// changed (rain putting a drop into a sleeping brick) was not a seed of the
+/// next script, so the neighbours its new water could reach did not run,
+/// and water spread into a brick that never received it. Bricks a script
+/// changes are now woken before the next script chooses its bricks.
+#[test]
+fn a_brick_an_earlier_script_changed_is_a_seed_of_the_next_in_the_same_tick() {
+    let reg = shipped_registry();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(32, 16, 8), STONE);
+    // One open channel along x on the top row; a water cell at x = 15 is
+    // walled in at x = 14 and x = 16.
+    store.fill_box(IVec3::new(0, 15, 3), IVec3::new(32, 16, 4), 0);
+    store.set_voxel(IVec3::new(14, 15, 3), STONE);
+    store.set_voxel(IVec3::new(16, 15, 3), STONE);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 16, 8), 1);
+    let drip = ScriptSource {
+        name: "drip".into(),
+        text: r#"return {
+          grid = "voxels", sky = true, channels = { "water" }, materials = { "water" },
+          passes = { { name = "drip", reads = {}, writes = { "water" },
+            kernel = function(c, bx, by, bz)
+              if c.tick == 5 and bx == 2 then
+                buffer.writef32(c.w.water, (7 + 7 * 8 + 3 * 64) * 4, 1)
+              end
+            end } },
+        }"#
+        .into(),
+    };
+    sim.add_script(drip, Limits::default(), &reg).unwrap();
+    sim.add_script(shipped("water3d"), Limits::default(), &reg)
+        .unwrap();
+    let id = sim.channels_mut().channel("water");
+    let s = IVec3::new(1, 1, 0);
+    let mut v = [0.0f32; 512];
+    v[7 + 7 * 8 + 3 * 64] = 1.0;
+    sim.channels_mut().set(id, s, &v);
+    for tick in 0..12 {
+        if tick == 5 {
+            // Wake the brick left of S (and so S), not R to S's right.
+            sim.notify_edited(&[IVec3::new(0, 1, 0)]);
+        }
+        let r = sim.step(&mut store, &reg, 0.05);
+        assert!(r.errors.is_empty(), "tick {tick}: {:?}", r.errors);
+    }
+    assert!((sim.channels().total(id) - 2.0).abs() < 1e-6);
+    let m = sim.channels().get(id, IVec3::new(3, 1, 0)).copied();
+    assert!(
+        m.is_some_and(|m| m[3 * 64 + 7 * 8] > 0.0),
+        "water reached M"
+    );
+}
+
+/// A native kernel runs only for a script whose declarations it matches:
+/// water3d with its channels swapped is refused, not run on the wrong data.
+#[test]
+fn a_native_kernel_is_refused_for_a_script_it_does_not_match() {
+    let reg = shipped_registry();
+    let store = BrickStore::new(Palette::grey_ramp());
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::splat(16), 1);
+    let text = include_str!("../scripts/water3d.lua").replace(
+        r#"channels = { "water", "k" }"#,
+        r#"channels = { "k", "water" }"#,
+    );
+    assert!(text.contains(r#"{ "k", "water" }"#));
+    let e = sim
+        .add_native(
+            ScriptSource {
+                name: "water3d".into(),
+                text: text.into(),
+            },
+            Limits::default(),
+            &reg,
+            std::sync::Arc::new(brickworld::sim::voxels::Water3d::default()),
+        )
+        .unwrap_err();
+    assert!(e.to_string().contains("channels"), "{e}");
+    assert_eq!(sim.script_count(), 0);
+}

@@ -129,6 +129,7 @@ pub struct Engine {
     identity: WorldIdentity,
     watcher: Option<ScriptWatcher>,
     timeline: Timeline,
+    timeline_path: PathBuf,
     camera: CameraSettings,
     /// Dirty bricks not yet handed to the renderer, each once.
     dirty_pending: FxHashSet<IVec3>,
@@ -326,6 +327,7 @@ impl Engine {
             identity,
             watcher,
             timeline,
+            timeline_path: opts.state.join("timeline.csv"),
             dirty_pending: FxHashSet::default(),
             paused: false,
             steps_left: 0,
@@ -613,6 +615,14 @@ impl Engine {
         let tick = self.ws.sim.tick();
         if !tick.is_multiple_of(self.cfg.frames_every) {
             return;
+        }
+        // A reload can change a script's conserved channels: a new header
+        // (the old file is moved aside) rather than shifted columns.
+        let columns = timeline_columns(&self.ws);
+        if columns != self.timeline.extra_columns()
+            && let Ok(t) = Timeline::open(&self.timeline_path, &columns)
+        {
+            self.timeline = t;
         }
         let stats = &self.renderer.stats;
         self.timeline.record(&Row {

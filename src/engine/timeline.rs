@@ -70,6 +70,8 @@ pub struct Timeline {
     header: String,
     /// Per-script columns in the header.
     extra: usize,
+    /// Their names.
+    extra_names: Vec<String>,
     written: u64,
 }
 
@@ -109,7 +111,14 @@ impl Timeline {
                 let secs = std::time::SystemTime::now()
                     .duration_since(std::time::UNIX_EPOCH)
                     .map_or(0, |d| d.as_secs());
-                let aside = path.with_extension(format!("{secs}.csv"));
+                // A free name: a second move in the same second must not
+                // overwrite the first.
+                let mut aside = path.with_extension(format!("{secs}.csv"));
+                let mut n = 1;
+                while aside.exists() {
+                    aside = path.with_extension(format!("{secs}-{n}.csv"));
+                    n += 1;
+                }
                 std::fs::rename(path, &aside).with_context(|| {
                     format!(
                         "cannot move {} aside to {}",
@@ -124,10 +133,16 @@ impl Timeline {
             path: path.to_path_buf(),
             header,
             extra: extra.len(),
+            extra_names: extra.to_vec(),
             written: 0,
         };
         t.written = t.file.metadata().map_or(0, |m| m.len());
         Ok(t)
+    }
+
+    /// The per-script columns this file was opened with.
+    pub fn extra_columns(&self) -> &[String] {
+        &self.extra_names
     }
 
     fn create(path: &Path, header: &str) -> Result<File> {
@@ -162,8 +177,9 @@ impl Timeline {
             r.snow,
             r.drained
         );
-        // As many per-script values as the header names (a reload that
-        // changed a script's declarations must not shift the columns).
+        // As many per-script values as the header names (the engine reopens
+        // the timeline when a reload changes the columns; this only guards
+        // the row's shape).
         let mut extra: Vec<String> = r
             .script_ms
             .iter()
@@ -176,12 +192,12 @@ impl Timeline {
             line.push_str(&v);
         }
         line.push('\n');
-        if self.written + line.len() as u64 > ROTATE_BYTES {
-            let _ = std::fs::rename(&self.path, self.path.with_extension("1.csv"));
-            if let Ok(f) = Self::create(&self.path, &self.header) {
-                self.file = f;
-                self.written = self.header.len() as u64 + 1;
-            }
+        if self.written + line.len() as u64 > ROTATE_BYTES
+            && std::fs::rename(&self.path, self.path.with_extension("1.csv")).is_ok()
+            && let Ok(f) = Self::create(&self.path, &self.header)
+        {
+            self.file = f;
+            self.written = self.header.len() as u64 + 1;
         }
         if self.file.write_all(line.as_bytes()).is_ok() {
             self.written += line.len() as u64;
@@ -366,6 +382,10 @@ mod tests {
         assert_eq!(aside.len(), 1, "the old timeline is kept");
         assert_eq!(read(&aside[0].path()).unwrap().rows.len(), 3);
         assert_eq!(read(&path).unwrap().rows.len(), 0);
+        // Moved aside again within the same second: a second name.
+        Timeline::open(&path, &extra).unwrap();
+        let n = std::fs::read_dir(&dir).unwrap().count();
+        assert_eq!(n, 3, "two files aside and the current one");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -35,6 +35,10 @@ pub trait VoxelNativeKernel: Send + Sync {
     /// The parameter names it expects, in the script's (sorted) order; a
     /// script whose declarations differ is refused.
     fn params(&self) -> &[&str];
+    /// The channels it expects, in declaration order (refused likewise).
+    fn channels(&self) -> &[&str];
+    /// The materials it expects, in declaration order (refused likewise).
+    fn materials(&self) -> &[&str];
     /// Run pass `pass` on one brick.
     fn run(&self, pass: usize, b: NativeBrick<'_>);
 }
@@ -82,6 +86,14 @@ fn lower(t: f64, comp: f64) -> f64 {
 impl VoxelNativeKernel for Water3d {
     fn params(&self) -> &[&str] {
         &["compress", "fall", "film", "spread", "still"]
+    }
+
+    fn channels(&self) -> &[&str] {
+        &["water", "k"]
+    }
+
+    fn materials(&self) -> &[&str] {
+        &["water"]
     }
 
     fn run(&self, pass: usize, b: NativeBrick<'_>) {

@@ -473,24 +473,28 @@ impl VoxelSim {
         kernel: std::sync::Arc<dyn VoxelNativeKernel>,
     ) -> Result<usize, SimError> {
         let i = self.add_script(src, limits, registry)?;
-        let names: Vec<String> = self.scripts[i]
-            .spec
-            .params
-            .iter()
-            .map(|p| p.name.clone())
-            .collect();
-        if !names
-            .iter()
-            .map(String::as_str)
-            .eq(kernel.params().iter().copied())
-        {
+        let spec = &self.scripts[i].spec;
+        let same = |declared: &[String], expected: &[&str]| {
+            declared
+                .iter()
+                .map(String::as_str)
+                .eq(expected.iter().copied())
+        };
+        let params: Vec<String> = spec.params.iter().map(|p| p.name.clone()).collect();
+        let mismatch = [
+            ("parameters", params.clone(), kernel.params()),
+            ("channels", spec.channels.clone(), kernel.channels()),
+            ("materials", spec.materials.clone(), kernel.materials()),
+        ]
+        .into_iter()
+        .find(|(_, declared, expected)| !same(declared, expected));
+        if let Some((what, declared, expected)) = mismatch {
             let s = self.scripts.pop().expect("added");
             return Err(SimError::Declaration {
                 script: s.spec.name,
                 line: None,
                 msg: format!(
-                    "the native kernel expects parameters {:?}, the script declares {names:?}",
-                    kernel.params()
+                    "the native kernel expects {what} {expected:?}, the script declares {declared:?}"
                 ),
             });
         }
@@ -655,6 +659,11 @@ impl VoxelSim {
                 key,
             );
             let s = &mut self.scripts[si];
+            // Bricks this script changed, woken at once so that the next
+            // script's seeds include them (regression, from review: a drop
+            // rain3d put into a sleeping brick was not a water3d seed in the
+            // same tick, so its reach was missing and water could be lost).
+            let mut now_changed = Vec::new();
             match result {
                 Ok(work) => {
                     if !cands.is_empty() {
@@ -664,6 +673,7 @@ impl VoxelSim {
                         let (b, mats) = (work.cands[ci], &work.mats[ci]);
                         if store.edit_brick(b, |d| *d = *mats) {
                             changed.insert(b);
+                            now_changed.push(b);
                             self.presence.insert(b, presence_of(mats));
                         }
                     }
@@ -679,6 +689,7 @@ impl VoxelSim {
                             };
                             if !same {
                                 changed.insert(b);
+                                now_changed.push(b);
                                 self.channels.set(ch, b, v);
                             }
                         }
@@ -691,6 +702,9 @@ impl VoxelSim {
                     }
                     report.errors.push(e);
                 }
+            }
+            for b in now_changed {
+                self.wake(b);
             }
             report.script_ms[si] = t0.elapsed().as_secs_f64() * 1e3;
         }
