@@ -184,7 +184,6 @@ fn u_tube_water_ends_at_one_level_and_mass_is_conserved() {
 
 fn shipped(name: &str) -> ScriptSource {
     let text = match name {
-        "lava" => include_str!("../scripts/lava.lua"),
         "grass" => include_str!("../scripts/grass.lua"),
         "water3d" => include_str!("../scripts/water3d.lua"),
         other => panic!("no shipped script {other} in this test"),
@@ -196,28 +195,13 @@ fn shipped(name: &str) -> ScriptSource {
 }
 
 fn lava_run(threads: usize) -> (u64, usize, usize, f64) {
-    let reg = shipped_registry();
-    let (lava, source, basalt, water) = (
-        reg.id("lava").unwrap(),
-        reg.id("lava_source").unwrap(),
-        reg.id("basalt").unwrap(),
-        reg.id("water").unwrap(),
-    );
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
         .unwrap();
     pool.install(|| {
-        let mut store = BrickStore::new(Palette::grey_ramp());
-        store.fill_box(IVec3::ZERO, IVec3::new(32, 1, 32), STONE);
-        // A pool of (still) water a few voxels from where the lava lands.
-        store.fill_box(IVec3::new(20, 1, 10), IVec3::new(26, 2, 22), water);
-        store.set_voxel(IVec3::new(16, 12, 16), source);
-        store.take_modified();
-        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 32, 32), 7);
-        sim.add_script(shipped("lava"), Limits::default(), &reg)
-            .unwrap();
-        sim.set_param(0, "flow", 0.5).unwrap();
+        let (mut store, mut sim, reg) = brickworld::verify::voxels::lava_world().unwrap();
+        let (lava, basalt) = (reg.id("lava").unwrap(), reg.id("basalt").unwrap());
         for _ in 0..300 {
             let r = sim.step(&mut store, &reg, 0.05);
             assert!(r.errors.is_empty(), "{:?}", r.errors);
