@@ -18,6 +18,28 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
         Command::Run(a) => run_daemon(&a),
         Command::Ctl(a) => crate::engine::ctl::run(&a),
+        Command::Export { out, world, state } => {
+            let cfg = load_world_config(world.as_deref())?;
+            let (tick, hash) = crate::engine::persistence::export_world(&cfg, &state, &out)?;
+            println!(
+                "exported tick {tick} to {} (world hash {hash:#018x})",
+                out.display()
+            );
+            Ok(())
+        }
+        Command::Import { file, world, state } => {
+            let cfg = load_world_config(world.as_deref())?;
+            let st = crate::engine::persistence::import_world(&cfg, &state, &file)?;
+            println!(
+                "imported {} into {} ({} chunks, {} chunk columns, {} bytes)",
+                file.display(),
+                state.display(),
+                st.chunks,
+                st.columns,
+                st.bytes
+            );
+            Ok(())
+        }
         Command::Init { dir } => {
             for p in crate::engine::daemon::init(&dir)? {
                 println!("wrote {}", p.display());
@@ -82,6 +104,16 @@ pub fn run(cli: Cli) -> Result<()> {
     }
 }
 
+fn load_world_config(
+    path: Option<&std::path::Path>,
+) -> Result<crate::engine::world_config::WorldConfig> {
+    use crate::engine::world_config::WorldConfig;
+    Ok(match path {
+        Some(p) => WorldConfig::load(p)?,
+        None => WorldConfig::default_world(),
+    })
+}
+
 fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
     use crate::engine::world_config::WorldConfig;
     let mut world = match &a.world {
@@ -104,6 +136,7 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
         world,
         state: a.state.clone(),
         max_ticks: a.ticks,
+        until_tick: a.until_tick,
     })
 }
 

@@ -19,7 +19,7 @@ pub struct Cli {
 pub enum Command {
     /// Build a scene and ray-trace it to a PNG (and optionally depth .npy).
     Render(RenderArgs),
-    /// Run the engine: simulation, rendering, checkpoints and the control server.
+    /// Run the engine: simulation, rendering, commits to the world store and the control server.
     Run(RunArgs),
     /// Write the default world and its scripts into DIR for editing
     /// (DIR/world.toml, DIR/scripts/*.lua); never overwrites a file.
@@ -27,7 +27,29 @@ pub enum Command {
         /// Directory to create or fill
         dir: PathBuf,
     },
-    /// Talk to a running engine: status, pause, resume, step [N], checkpoint, param SCRIPT NAME VALUE.
+    /// Write a world's committed state as one file (a single-file backup).
+    Export {
+        /// Backup file to write (replaced atomically)
+        out: PathBuf,
+        /// World config (default: the embedded default world)
+        #[arg(long)]
+        world: Option<PathBuf>,
+        /// State directory of the world (the engine must be stopped)
+        #[arg(long, default_value = "state")]
+        state: PathBuf,
+    },
+    /// Load a single-file backup (or an old checkpoint) into an empty state directory.
+    Import {
+        /// Backup file to read
+        file: PathBuf,
+        /// World config the backup belongs to (default: the embedded default world)
+        #[arg(long)]
+        world: Option<PathBuf>,
+        /// Empty state directory to fill
+        #[arg(long, default_value = "state")]
+        state: PathBuf,
+    },
+    /// Talk to a running engine: status, pause, resume, step [N], commit, param SCRIPT NAME VALUE.
     Ctl(CtlArgs),
     /// Run the daemon for M minutes and report memory, queues, latency and drift.
     Soak {
@@ -86,7 +108,7 @@ pub struct VerifySimsArgs {
 pub struct RunArgs {
     /// World config (TOML); without one, the embedded default world
     pub world: Option<PathBuf>,
-    /// State directory: checkpoints, frames, control token
+    /// State directory: the world store, frames, timeline, control token
     #[arg(long, default_value = "state")]
     pub state: PathBuf,
     /// Control server address HOST:PORT (overrides the config)
@@ -95,9 +117,12 @@ pub struct RunArgs {
     /// Scripts directory (overrides the config)
     #[arg(long)]
     pub scripts: Option<PathBuf>,
-    /// Stop with a checkpoint after this many ticks
+    /// Stop with a commit after this many ticks
     #[arg(long)]
     pub ticks: Option<u64>,
+    /// Stop with a commit once the world reaches this tick
+    #[arg(long)]
+    pub until_tick: Option<u64>,
 }
 
 /// `brickworld ctl`.
@@ -109,7 +134,7 @@ pub struct CtlArgs {
     /// State directory holding control.token
     #[arg(long, default_value = "state")]
     pub state: PathBuf,
-    /// status | pause | resume | step [N] | checkpoint | param SCRIPT NAME VALUE
+    /// status | pause | resume | step [N] | commit | param SCRIPT NAME VALUE
     #[arg(required = true, num_args = 1.., allow_hyphen_values = true)]
     pub command: Vec<String>,
 }

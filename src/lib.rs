@@ -15,6 +15,7 @@ pub mod cli;
 pub mod config;
 pub mod engine;
 pub mod gpu;
+pub mod persist;
 pub mod progress;
 pub mod scene;
 pub mod sim;

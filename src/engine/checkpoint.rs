@@ -1,7 +1,14 @@
-//! Crash-safe checkpoints of a whole world: bricks, simulation channels,
-//! tick, script parameters, and everything else that defines the world's
-//! future (the drained total, which tiles sleep), under the identity of the
-//! world they belong to.
+//! Whole-world checkpoint files: bricks, simulation channels, tick, script
+//! parameters, and everything else that defines the world's future (the
+//! drained total, which tiles sleep), under the identity of the world they
+//! belong to.
+//!
+//! Since issue 10 the engine persists to the chunked world store
+//! ([`crate::persist`]), committing only what changed. This format lives on
+//! as the **single-file backup** of `brickworld export` / `import`, as the
+//! payload of the store's simulation-state blob (with no bricks), and as the
+//! state directories of earlier versions, which are migrated into the store
+//! on their first start (`engine::persistence::migrate_legacy`).
 //!
 //! **File format** (`ckpt-<tick>.bwc`, little-endian):
 //!
@@ -39,6 +46,7 @@ use std::path::{Path, PathBuf};
 use glam::{IVec2, IVec3};
 use thiserror::Error;
 
+use crate::persist::bytes::{Reader, Writer};
 use crate::sim::ChannelStore;
 use crate::sim::tile::TILE_CELLS;
 use crate::world::{BRICK_VOXELS, BrickContent, BrickStore, Palette};
@@ -174,60 +182,6 @@ pub fn world_hash(store: &BrickStore, channels: &ChannelStore) -> u64 {
     h
 }
 
-struct Writer(Vec<u8>);
-
-impl Writer {
-    fn u32(&mut self, v: u32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn i32(&mut self, v: i32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn f64(&mut self, v: f64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn str(&mut self, s: &str) {
-        self.u32(s.len() as u32);
-        self.0.extend_from_slice(s.as_bytes());
-    }
-}
-
-struct Reader<'a> {
-    data: &'a [u8],
-    at: usize,
-}
-
-impl Reader<'_> {
-    fn take(&mut self, n: usize) -> Result<&[u8], String> {
-        if self.at + n > self.data.len() {
-            return Err(format!("payload ends early at byte {}", self.at));
-        }
-        let s = &self.data[self.at..self.at + n];
-        self.at += n;
-        Ok(s)
-    }
-    fn u32(&mut self) -> Result<u32, String> {
-        Ok(u32::from_le_bytes(self.take(4)?.try_into().expect("4")))
-    }
-    fn i32(&mut self) -> Result<i32, String> {
-        Ok(i32::from_le_bytes(self.take(4)?.try_into().expect("4")))
-    }
-    fn f64(&mut self) -> Result<f64, String> {
-        Ok(f64::from_le_bytes(self.take(8)?.try_into().expect("8")))
-    }
-    fn str(&mut self) -> Result<String, String> {
-        let n = self.u32()? as usize;
-        String::from_utf8(self.take(n)?.to_vec()).map_err(|_| "a name is not UTF-8".to_string())
-    }
-    fn count(&mut self, max: usize, what: &str) -> Result<usize, String> {
-        let n = self.u32()? as usize;
-        if n > max {
-            return Err(format!("{what} count {n} exceeds {max}"));
-        }
-        Ok(n)
-    }
-}
-
 /// A world to checkpoint, borrowed from a running engine.
 #[derive(Clone, Copy, Debug)]
 pub struct WorldRef<'a> {
@@ -247,8 +201,8 @@ pub struct WorldRef<'a> {
     pub extras: &'a SimExtras,
 }
 
-fn encode(state: WorldRef<'_>) -> Vec<u8> {
-    let mut w = Writer(Vec::new());
+pub(crate) fn encode(state: WorldRef<'_>) -> Vec<u8> {
+    let mut w = Writer::default();
     for m in 0..=255u8 {
         w.0.extend_from_slice(&state.store.palette().rgb(m));
     }
@@ -370,10 +324,7 @@ fn encode(state: WorldRef<'_>) -> Vec<u8> {
 /// Decode a decompressed payload of format `version` (1 or 2). Never
 /// panics, whatever the bytes: every count is checked against what is left.
 pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, String> {
-    let mut r = Reader {
-        data: payload,
-        at: 0,
-    };
+    let mut r = Reader::new(payload);
     let mut colors = [[0u8; 3]; 256];
     for c in colors.iter_mut() {
         c.copy_from_slice(r.take(3)?);
@@ -675,6 +626,23 @@ fn quarantine(path: &Path) {
 
 fn write_file(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), CheckpointError> {
     fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
+    let path = dir.join(file_name(state.tick));
+    let hash = write_at(&path, state)?;
+    Ok((path, hash))
+}
+
+/// Write a checkpoint file at `path` (atomically: a temp file beside it,
+/// fsynced, renamed, the directory fsynced). Returns the world hash. This is
+/// also `brickworld export`'s single-file backup.
+pub fn write_at(path: &Path, state: WorldRef<'_>) -> Result<u64, CheckpointError> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| "backup.bwc".into());
     let hash = world_hash(state.store, state.channels);
     let payload = lz4_flex::compress_prepend_size(&encode(state));
     let mut header = Vec::with_capacity(HEADER);
@@ -690,29 +658,17 @@ fn write_file(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Checkpo
     header.extend_from_slice(&(id.len() as u32).to_le_bytes());
     header.extend_from_slice(&id);
     header.extend_from_slice(&crc32fast::hash(&id).to_le_bytes());
-    let path = dir.join(file_name(state.tick));
-    let tmp = dir.join(format!(".{}.tmp", file_name(state.tick)));
+    let tmp = dir.join(format!(".{name}.tmp"));
     let result = (|| -> std::io::Result<()> {
         let mut f = File::create(&tmp)?;
         f.write_all(&header)?;
-        match write_stall() {
-            // Test hook: stop half-way through the payload so a test can
-            // kill -9 the process in the middle of a write.
-            Some(stall) => {
-                let half = payload.len() / 2;
-                f.write_all(&payload[..half])?;
-                f.sync_all()?;
-                std::thread::sleep(stall);
-                f.write_all(&payload[half..])?;
-            }
-            None => f.write_all(&payload)?,
-        }
+        f.write_all(&payload)?;
         f.sync_all()?;
-        fs::rename(&tmp, &path)
+        fs::rename(&tmp, path)
     })();
     if let Err(e) = result {
         let _ = fs::remove_file(&tmp);
-        return Err(io(&path, e));
+        return Err(io(path, e));
     }
     // The file has landed under its final name: it is this checkpoint, and
     // retention must count it even if the directory's fsync fails (out of
@@ -733,17 +689,7 @@ fn write_file(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Checkpo
             }
         }
     }
-    Ok((path, hash))
-}
-
-/// `BRICKWORLD_TEST_CHECKPOINT_STALL_MS`: a pause half-way through writing
-/// each checkpoint's temp file, so the crash tests can kill the process
-/// mid-write. Unset in normal use.
-fn write_stall() -> Option<std::time::Duration> {
-    std::env::var("BRICKWORLD_TEST_CHECKPOINT_STALL_MS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .map(std::time::Duration::from_millis)
+    Ok(hash)
 }
 
 /// Header, identity and payload checksum; with `full`, also decode and the

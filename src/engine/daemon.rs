@@ -28,14 +28,15 @@ use anyhow::{Context, Result, bail};
 use glam::{DVec3, IVec3};
 use rustc_hash::FxHashSet;
 
-use super::checkpoint::{self, Checkpoints, SimExtras, WorldIdentity, WorldRef};
 use super::control::{
-    CheckpointRef, Command, ControlServer, ParamStatus, ScriptStatus, Shared, Status,
+    CheckpointRef, Command, CommitRef, ControlServer, ParamStatus, ScriptStatus, Shared, Status,
 };
+use super::persistence::{self, DirtyChunks};
 use super::render_thread::{FrameJob, RenderSettings, RenderThread};
 use super::state_dir::{self, StateLock};
 use super::timeline::{Row, Timeline};
 use super::world_config::{CameraMode, CameraSettings, WorldConfig};
+use crate::persist::WorldDb;
 use crate::progress::bar;
 use crate::scene::{SceneWorld, build_scene};
 use crate::sim::{
@@ -50,8 +51,10 @@ pub struct DaemonOptions {
     pub world: WorldConfig,
     /// State directory (checkpoints, frames, token).
     pub state: PathBuf,
-    /// Stop (with a checkpoint) after this many ticks: for tests and soaks.
+    /// Stop (with a commit) after this many ticks: for tests and soaks.
     pub max_ticks: Option<u64>,
+    /// Stop (with a commit) once the world reaches this tick.
+    pub until_tick: Option<u64>,
 }
 
 /// Run the engine until stopped.
@@ -119,26 +122,28 @@ struct ScriptNotes {
 pub struct Engine {
     cfg: WorldConfig,
     max_ticks: Option<u64>,
+    until_tick: Option<u64>,
     _lock: StateLock,
     shared: Arc<Shared>,
     server: Option<ControlServer>,
     world: SceneWorld,
     ws: WorldSim,
     renderer: RenderThread,
-    checkpoints: Checkpoints,
-    identity: WorldIdentity,
+    db: WorldDb,
     watcher: Option<ScriptWatcher>,
     timeline: Timeline,
     timeline_path: PathBuf,
     camera: CameraSettings,
     /// Dirty bricks not yet handed to the renderer, each once.
     dirty_pending: FxHashSet<IVec3>,
+    /// Chunks changed since the last commit.
+    dirty_chunks: DirtyChunks,
     paused: bool,
     steps_left: u64,
     notes: Vec<ScriptNotes>,
-    last_checkpoint: Option<CheckpointRef>,
+    last_commit: Option<CommitRef>,
     loaded_from: Option<CheckpointRef>,
-    checkpoint_error: Option<String>,
+    commit_error: Option<String>,
     snapshot_ms: f64,
     active_bricks: usize,
     rate_window: (Instant, u64),
@@ -180,32 +185,27 @@ impl Engine {
             .context("cannot install the SIGINT/SIGTERM handler")?;
         }
         let identity = cfg.identity();
-        let (checkpoints, found, warnings) = Checkpoints::open(&opts.state, identity.clone())?;
+        let (db, warnings) = WorldDb::open(&opts.state, &identity)?;
         for w in &warnings {
             eprintln!("warning: {w}");
         }
-        let (mut world, resumed) = match found {
-            Some((path, st)) => {
-                eprintln!("resuming from {} (tick {})", path.display(), st.tick);
-                let mut w = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)?;
-                if !st.extras.materials.is_empty() {
-                    w.materials = crate::world::MaterialRegistry::from_entries(
-                        &st.extras.materials,
-                        w.store.palette(),
-                    );
-                }
-                (w, Some((st.tick, st.channels, st.params, st.extras)))
-            }
-            None => {
-                let pb = bar("scene", 0);
-                let w = build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
-                    .context("cannot build the world")?;
-                pb.finish_and_clear();
-                (w, None)
-            }
-        };
+        if let Some((path, tick)) = persistence::migrate_legacy(&db, &opts.state, &identity)? {
+            eprintln!(
+                "migrated the checkpoint {} (tick {tick}) into the world store {}; the old checkpoint files are no longer read and can be deleted",
+                path.display(),
+                db.path().display()
+            );
+        }
+        let pb = bar("scene", 0);
+        let mut world =
+            build_scene(&cfg.source, cfg.size, cfg.seed, &pb).context("cannot build the world")?;
+        pb.finish_and_clear();
         let mut ws = WorldSim::with_edges(&mut world, true);
+        // The ground read from the generated world is regenerated on every
+        // start: not a change to commit.
+        ws.sim.channels_mut().take_dirty();
         ws.set_seed(cfg.seed);
+        let mut dirty_chunks = DirtyChunks::default();
         // materials.lua (optional) names the materials voxel scripts use.
         if let Some(src) = materials_source(&cfg)? {
             ws.load_materials(&mut world, &src)
@@ -221,59 +221,54 @@ impl Engine {
                     .with_context(|| format!("in the world config's scripts[{i}].params"))?;
             }
         }
+        // The stored chunks go over the generated world once the scripts
+        // have registered their channels, so channel ids are the same as in
+        // a run that never stopped.
+        let resumed = persistence::restore_chunks(&db, &mut world, &mut ws, &mut dirty_chunks)?;
         let mut loaded_from = None;
-        if resumed.is_none() {
-            for (i, p) in cfg.place.iter().enumerate() {
-                let id = world.materials.id(&p.material).with_context(|| {
-                    format!(
-                        "place[{i}].material: unknown material '{}' (declare it in materials.lua)",
-                        p.material
-                    )
-                })?;
-                let (lo, hi) = world.bounds;
-                if p.at.cmplt(lo).any() || (p.at + p.size).cmpgt(hi).any() {
-                    bail!(
-                        "place[{i}]: the box at {} of size {} is outside the world [{lo}, {hi})",
-                        p.at,
-                        p.size
-                    );
-                }
-                world.store.fill_box(p.at, p.at + p.size, id);
-            }
-            let placed = world.apply_edits();
-            ws.vox.notify_edited(&placed);
-            ws.vox.apply_fills(&world.store, &world.materials);
-        }
-        if let Some((tick, channels, params, extras)) = resumed {
-            ws.sim.set_channels(channels);
-            ws.vox.set_channels(extras.voxel_channels.clone());
-            if let Some((active, quiet)) = &extras.voxel_sleep {
-                ws.vox.restore_sleep_state(active, quiet);
-            }
-            ws.vox.set_tick(tick);
-            ws.resync_columns();
-            ws.sim.set_tick(tick);
-            ws.drained = extras.drained;
-            match &extras.sleep {
-                Some(s) => ws.sim.restore_sleep_state(s),
-                None => ws.sim.wake_all(),
-            }
-            for (script, values) in params {
-                if let Some(i) = ws.script_index(&script) {
-                    for (k, v) in values {
-                        if let Err(e) = ws.set_param(i, &k, v) {
-                            eprintln!(
-                                "warning: the checkpoint's {script}.{k} = {v} is not kept: {e}"
-                            );
-                        }
+        match &resumed {
+            None => {
+                for (i, p) in cfg.place.iter().enumerate() {
+                    let id = world.materials.id(&p.material).with_context(|| {
+                        format!(
+                            "place[{i}].material: unknown material '{}' (declare it in materials.lua)",
+                            p.material
+                        )
+                    })?;
+                    let (lo, hi) = world.bounds;
+                    if p.at.cmplt(lo).any() || (p.at + p.size).cmpgt(hi).any() {
+                        bail!(
+                            "place[{i}]: the box at {} of size {} is outside the world [{lo}, {hi})",
+                            p.at,
+                            p.size
+                        );
                     }
+                    world.store.fill_box(p.at, p.at + p.size, id);
                 }
+                let placed = world.apply_edits();
+                dirty_chunks.bricks(&placed);
+                ws.vox.notify_edited(&placed);
+                ws.vox.apply_fills(&world.store, &world.materials);
             }
-            let hash = checkpoint::world_hash(&world.store, ws.sim.channels());
-            loaded_from = Some(CheckpointRef {
-                tick,
-                hash: format!("{hash:#018x}"),
-            });
+            Some(r) => {
+                for c in &r.corrupt {
+                    eprintln!("warning: {c}");
+                }
+                for w in persistence::apply_state(&r.state, &mut ws) {
+                    eprintln!("warning: {w}");
+                }
+                let hash = persistence::engine_hash(&world, &ws);
+                eprintln!(
+                    "resumed {} at tick {} ({} stored chunks, world hash {hash:#018x})",
+                    db.path().display(),
+                    r.state.tick,
+                    r.chunks
+                );
+                loaded_from = Some(CheckpointRef {
+                    tick: r.state.tick,
+                    hash: format!("{hash:#018x}"),
+                });
+            }
         }
         let frames_dir = opts.state.join(&cfg.frames_dir);
         std::fs::create_dir_all(&frames_dir)
@@ -317,24 +312,25 @@ impl Engine {
             start_tick: ws.sim.tick(),
             cfg,
             max_ticks: opts.max_ticks,
+            until_tick: opts.until_tick,
             _lock: lock,
             shared,
             server: Some(server),
             world,
             ws,
             renderer,
-            checkpoints,
-            identity,
+            db,
             watcher,
             timeline,
             timeline_path: opts.state.join("timeline.csv"),
             dirty_pending: FxHashSet::default(),
+            dirty_chunks,
             paused: false,
             steps_left: 0,
             notes: vec![ScriptNotes::default(); n],
-            last_checkpoint: None,
+            last_commit: None,
             loaded_from,
-            checkpoint_error: None,
+            commit_error: None,
             snapshot_ms: 0.0,
             active_bricks: 0,
             rate_window: (Instant::now(), 0),
@@ -358,16 +354,17 @@ impl Engine {
             self.apply_commands();
             if self.should_step() {
                 let report = self.step();
+                self.collect_dirty();
                 self.offer_frame();
-                self.periodic_checkpoint();
+                self.periodic_commit();
                 self.record_timeline(&report);
             } else {
                 std::thread::sleep(std::time::Duration::from_millis(5));
             }
             self.publish_status();
-            if self
-                .max_ticks
-                .is_some_and(|m| self.ws.sim.tick() - self.start_tick >= m)
+            let tick = self.ws.sim.tick();
+            if self.max_ticks.is_some_and(|m| tick - self.start_tick >= m)
+                || self.until_tick.is_some_and(|t| tick >= t)
             {
                 break;
             }
@@ -427,10 +424,7 @@ impl Engine {
                     self.paused = true;
                     self.steps_left = (self.steps_left + n).min(100_000);
                 }
-                Command::Checkpoint => match self.write_checkpoint() {
-                    Ok(r) => self.last_checkpoint = Some(r),
-                    Err(e) => self.checkpoint_error = Some(e),
-                },
+                Command::Checkpoint => self.commit(),
                 Command::Camera { eye, target, fov } => {
                     self.camera.mode = CameraMode::Fixed;
                     self.camera.eye = Some(DVec3::from(eye));
@@ -495,12 +489,18 @@ impl Engine {
         r
     }
 
+    /// The step's changed bricks, in one hop each into the renderer's
+    /// pending set and the store's dirty chunks.
+    fn collect_dirty(&mut self) {
+        for batch in self.ws.dirty.try_iter() {
+            self.dirty_chunks.bricks(&batch.bricks);
+            self.dirty_pending.extend(batch.bricks);
+        }
+    }
+
     /// Every `frames.every` ticks: hand the renderer a snapshot if it is
     /// idle, else count a skipped frame.
     fn offer_frame(&mut self) {
-        for batch in self.ws.dirty.try_iter() {
-            self.dirty_pending.extend(batch.bricks);
-        }
         let tick = self.ws.sim.tick();
         if !tick.is_multiple_of(self.cfg.frames_every) {
             return;
@@ -553,62 +553,33 @@ impl Engine {
         Camera::new(eye, target, c.fov, self.cfg.width, self.cfg.height)
     }
 
-    fn periodic_checkpoint(&mut self) {
-        if !self.ws.sim.tick().is_multiple_of(self.cfg.checkpoint_every) {
-            return;
-        }
-        match self.write_checkpoint() {
-            Ok(r) => {
-                self.last_checkpoint = Some(r);
-                self.checkpoint_error = None;
-            }
-            Err(e) => {
-                eprintln!("warning: checkpoint failed, the last good one is kept: {e}");
-                self.checkpoint_error = Some(e);
-            }
+    fn periodic_commit(&mut self) {
+        if self.ws.sim.tick().is_multiple_of(self.cfg.checkpoint_every) {
+            self.commit();
         }
     }
 
-    fn write_checkpoint(&mut self) -> Result<CheckpointRef, String> {
-        let ws = &self.ws;
-        let sim = &self.ws.sim;
-        let params: Vec<(String, Vec<(String, f64)>)> = (0..ws.script_count())
-            .map(|i| {
-                let spec = ws.spec(i);
-                (
-                    spec.name.clone(),
-                    spec.params
-                        .iter()
-                        .zip(ws.params(i))
-                        .map(|(p, v)| (p.name.clone(), *v))
-                        .collect(),
-                )
-            })
-            .collect();
-        let extras = SimExtras {
-            drained: self.ws.drained,
-            sleep: Some(sim.sleep_state()),
-            voxel_channels: self.ws.vox.channels().clone(),
-            voxel_sleep: Some(self.ws.vox.sleep_state()),
-            materials: self.world.materials.entries(),
-        };
-        let r = WorldRef {
-            tick: sim.tick(),
-            store: &self.world.store,
-            bounds: self.world.bounds,
-            channels: sim.channels(),
-            params: &params,
-            identity: Some(&self.identity),
-            extras: &extras,
-        };
-        let tick = sim.tick();
-        self.checkpoints
-            .write(r)
-            .map(|(_, hash)| CheckpointRef {
-                tick,
-                hash: format!("{hash:#018x}"),
-            })
-            .map_err(|e| e.to_string())
+    /// Commit the dirty chunks and the simulation state in one transaction;
+    /// a failure (a full disk) is reported and retried at the next commit,
+    /// and loses nothing committed before.
+    fn commit(&mut self) {
+        let start = Instant::now();
+        match persistence::commit(&self.db, &mut self.dirty_chunks, &self.world, &mut self.ws) {
+            Ok(st) => {
+                self.last_commit = Some(CommitRef {
+                    tick: self.ws.sim.tick(),
+                    chunks: st.chunks,
+                    columns: st.columns,
+                    bytes: st.bytes,
+                    ms: start.elapsed().as_secs_f64() * 1e3,
+                });
+                self.commit_error = None;
+            }
+            Err(e) => {
+                eprintln!("warning: {e}");
+                self.commit_error = Some(e.to_string());
+            }
+        }
     }
 
     fn record_timeline(&mut self, r: &StepReport) {
@@ -710,27 +681,31 @@ impl Engine {
             frames: stats.frames(),
             frames_skipped: stats.skipped(),
             snapshot_ms: self.snapshot_ms,
-            last_checkpoint: self.last_checkpoint.clone(),
+            last_commit: self.last_commit.clone(),
             loaded_from: self.loaded_from.clone(),
-            checkpoint_error: self.checkpoint_error.clone(),
+            commit_error: self.commit_error.clone(),
+            dirty_chunks: self.dirty_chunks.len(),
+            store_bytes: self.db.file_bytes(),
         };
     }
 
-    /// Stop: a final checkpoint, the frame in flight, then the server.
+    /// Stop: a final commit, the frame in flight, then the server.
     fn finish(mut self) -> Result<()> {
-        let result = self.write_checkpoint();
+        self.commit();
         self.renderer.finish(std::time::Duration::from_secs(3));
         self.shared.shutdown.store(true, Ordering::Relaxed);
         if let Some(s) = self.server.take() {
             s.stop();
         }
-        match result {
-            Ok(r) => {
-                println!("stopped at tick {} (checkpoint {})", r.tick, r.hash);
-                Ok(())
-            }
-            Err(e) => bail!("the final checkpoint failed (the previous one is kept): {e}"),
+        if let Some(e) = &self.commit_error {
+            bail!("the final commit failed (the previous commit is kept): {e}");
         }
+        let hash = persistence::engine_hash(&self.world, &self.ws);
+        println!(
+            "stopped at tick {} (world hash {hash:#018x})",
+            self.ws.sim.tick()
+        );
+        Ok(())
     }
 }
 

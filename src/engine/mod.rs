@@ -1,10 +1,12 @@
-//! The long-running engine: world configs, crash-safe checkpoints, the
+//! The long-running engine: world configs, the world store glue and the
+//! single-file backups (checkpoints), the
 //! control server, the daemon loop and its command-line client.
 
 pub mod checkpoint;
 pub mod control;
 pub mod ctl;
 pub mod daemon;
+pub mod persistence;
 pub mod render_thread;
 pub mod state_dir;
 pub mod timeline;

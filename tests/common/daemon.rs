@@ -131,3 +131,57 @@ pub fn stop(mut daemon: Daemon) -> std::process::Output {
     // Dropping `daemon` kills it.
     panic!("the daemon did not stop on SIGTERM");
 }
+
+/// The tick of the last commit in `state`'s world store (None: never
+/// committed), read as a user's tools would, through the library.
+#[allow(dead_code)]
+pub fn stored_tick(cfg: &Path, state: &Path) -> Option<u64> {
+    let identity = brickworld::engine::world_config::WorldConfig::load(cfg)
+        .unwrap()
+        .identity();
+    let (db, _) = brickworld::persist::WorldDb::open(state, &identity).unwrap();
+    let blob = db.state().unwrap()?;
+    Some(brickworld::persist::state::decode(&blob).unwrap().tick)
+}
+
+/// Run the daemon until the world reaches tick `end`; the world hash it
+/// reports when it stops.
+#[allow(dead_code)]
+pub fn hash_at(cfg: &Path, state: &Path, end: u64) -> String {
+    let out = run_cmd(cfg, state)
+        .arg("--until-tick")
+        .arg(end.to_string())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let said = String::from_utf8_lossy(&out.stdout);
+    let line = said
+        .lines()
+        .find(|l| l.starts_with(&format!("stopped at tick {end} ")))
+        .unwrap_or_else(|| panic!("{said}"));
+    line.split("world hash ")
+        .nth(1)
+        .unwrap()
+        .trim_end_matches(')')
+        .to_string()
+}
+
+/// Run the daemon for `ticks` ticks, require success; its stderr.
+#[allow(dead_code)]
+pub fn stderr_of_ticks(cfg: &Path, state: &Path, ticks: u64) -> String {
+    let out = run_cmd(cfg, state)
+        .arg("--ticks")
+        .arg(ticks.to_string())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stderr).to_string()
+}

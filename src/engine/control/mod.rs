@@ -67,13 +67,28 @@ pub struct ScriptStatus {
     pub warning: Option<String>,
 }
 
-/// A checkpoint reference in `/status`.
+/// Where a run resumed from, in `/status`.
 #[derive(Clone, Debug, Serialize, PartialEq, Eq)]
 pub struct CheckpointRef {
     /// Tick.
     pub tick: u64,
-    /// World hash, hex.
+    /// World hash (bricks, column and voxel channels), hex.
     pub hash: String,
+}
+
+/// The last commit to the world store, in `/status`.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct CommitRef {
+    /// Tick committed.
+    pub tick: u64,
+    /// Chunks written.
+    pub chunks: usize,
+    /// Chunk columns (column channels) written.
+    pub columns: usize,
+    /// Bytes written.
+    pub bytes: usize,
+    /// Time the commit took (encoding, transaction and fsync), in ms.
+    pub ms: f64,
 }
 
 /// What `/status` returns.
@@ -101,12 +116,17 @@ pub struct Status {
     pub frames_skipped: u64,
     /// Time the engine loop spent copying the world for the last frame job.
     pub snapshot_ms: f64,
-    /// The last checkpoint written.
-    pub last_checkpoint: Option<CheckpointRef>,
-    /// The checkpoint this run resumed from.
+    /// The last commit to the world store.
+    pub last_commit: Option<CommitRef>,
+    /// The committed state this run resumed from.
     pub loaded_from: Option<CheckpointRef>,
-    /// The last checkpoint failure (a full disk, say), if any.
-    pub checkpoint_error: Option<String>,
+    /// The last commit failure (a full disk, say), if any; cleared by the
+    /// next commit that succeeds. Nothing committed before it is lost.
+    pub commit_error: Option<String>,
+    /// Chunks and chunk columns changed since the last commit.
+    pub dirty_chunks: usize,
+    /// The world store's size on disk, in bytes.
+    pub store_bytes: u64,
 }
 
 /// A command for the engine loop.
@@ -118,7 +138,7 @@ pub enum Command {
     Resume,
     /// Run N steps, then stay paused (pauses first if running).
     Step(u64),
-    /// Write a checkpoint now.
+    /// Commit what changed to the world store now.
     Checkpoint,
     /// Set a camera.
     Camera {
@@ -156,7 +176,7 @@ pub(crate) const VIEWER: &str = r#"<!doctype html><meta charset="utf-8"><title>b
 <style>body{font:14px sans-serif;margin:1em;background:#eef}img{max-width:100%;border:1px solid #999}pre{background:#fff;padding:.5em}</style>
 <h1>brickworld</h1><img id="f" src="/frame.png"><p>
 <button onclick="post('pause')">pause</button> <button onclick="post('resume')">resume</button>
-<button onclick="post('step','1')">step</button> <button onclick="post('checkpoint')">checkpoint</button>
+<button onclick="post('step','1')">step</button> <button onclick="post('commit')">commit</button>
 token <input id="t" size="34" placeholder="from STATE/control.token"></p>
 <p>camera: eye <input id="ce" size="16" placeholder="x,y,z"> target <input id="ct" size="16" placeholder="x,y,z">
 fov <input id="cf" size="4" value="50"> <button onclick="cam()">set camera</button></p><pre id="s"></pre>

@@ -148,7 +148,7 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
     match path {
         "/pause" => Ok(Command::Pause),
         "/resume" => Ok(Command::Resume),
-        "/checkpoint" => Ok(Command::Checkpoint),
+        "/checkpoint" | "/commit" => Ok(Command::Checkpoint),
         "/step" => {
             let t = body.trim();
             let n = if t.is_empty() {

@@ -5,7 +5,7 @@
 //! Values are `f64`, so that conserved totals drift only by round-off
 //! (≈1e-16 relative per operation) over long runs.
 
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 
 use crate::sim::tile::{TILE_CELLS, TileCoord};
 
@@ -28,6 +28,10 @@ pub type TileData = Box<[f64; TILE_CELLS]>;
 pub struct ChannelStore {
     names: Vec<String>,
     tiles: FxHashMap<TileCoord, Vec<Option<TileData>>>,
+    /// Tiles written since the last [`take_dirty`](Self::take_dirty): the
+    /// only way to write ([`set`](Self::set)) records the tile, so the
+    /// world store can commit exactly what changed.
+    dirty: FxHashSet<TileCoord>,
 }
 
 impl ChannelStore {
@@ -69,6 +73,7 @@ impl ChannelStore {
 
     /// Store values of `ch` on tile `t`; an all-zero array frees the storage.
     pub fn set(&mut self, t: TileCoord, ch: ChannelId, data: &[f64; TILE_CELLS]) {
+        self.dirty.insert(t);
         let all_zero = data.iter().all(|&v| v == 0.0);
         if all_zero {
             if let Some(v) = self.tiles.get_mut(&t)
@@ -89,6 +94,11 @@ impl ChannelStore {
             Some(b) => **b = *data,
             slot => *slot = Some(Box::new(*data)),
         }
+    }
+
+    /// The tiles written since the last call (see the `dirty` field).
+    pub fn take_dirty(&mut self) -> FxHashSet<TileCoord> {
+        std::mem::take(&mut self.dirty)
     }
 
     /// Number of tiles holding `ch`.

@@ -6,7 +6,7 @@
 //! `buffer.readf32`/`writef32` read it directly.
 
 use glam::IVec3;
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 
 use crate::sim::script::VOXEL_CELLS;
 
@@ -14,10 +14,20 @@ use crate::sim::script::VOXEL_CELLS;
 pub type VoxelChannelId = usize;
 
 /// Named per-voxel channels.
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default)]
 pub struct VoxelChannels {
     names: Vec<String>,
     data: Vec<FxHashMap<IVec3, Box<[f32; VOXEL_CELLS]>>>,
+    /// Bricks written since the last [`take_dirty`](Self::take_dirty): the
+    /// only way to write ([`set`](Self::set)) records the brick.
+    dirty: FxHashSet<IVec3>,
+}
+
+/// Equal names and values (what was written when does not count).
+impl PartialEq for VoxelChannels {
+    fn eq(&self, other: &Self) -> bool {
+        self.names == other.names && self.data == other.data
+    }
 }
 
 impl VoxelChannels {
@@ -48,11 +58,17 @@ impl VoxelChannels {
 
     /// Set brick `b`'s values; all zeros frees the array.
     pub fn set(&mut self, id: VoxelChannelId, b: IVec3, v: &[f32; VOXEL_CELLS]) {
+        self.dirty.insert(b);
         if v.iter().all(|x| x.to_bits() == 0) {
             self.data[id].remove(&b);
         } else {
             self.data[id].insert(b, Box::new(*v));
         }
+    }
+
+    /// The bricks written since the last call (see the `dirty` field).
+    pub fn take_dirty(&mut self) -> FxHashSet<IVec3> {
+        std::mem::take(&mut self.dirty)
     }
 
     /// The bricks holding an array of channel `id`, sorted.

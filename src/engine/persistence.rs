@@ -1,0 +1,408 @@
+//! The engine's side of the world store ([`crate::persist`]): which chunks
+//! changed ([`DirtyChunks`]), restoring a world from the store
+//! ([`restore_chunks`], [`apply_state`]), committing ([`commit`]), and the
+//! single-file backups: [`export`], [`import`] and the migration of a
+//! state directory written by the whole-world checkpoints of earlier
+//! versions ([`migrate_legacy`]).
+//!
+//! **Restoring** regenerates the world from its source, then overlays every
+//! stored chunk and chunk column (a stored chunk replaces the generated one
+//! whole), then applies the state blob. Only what was ever edited is on
+//! disk. A corrupt chunk is reported with its coordinates and regenerated
+//! from the source (and rewritten at the next commit); the rest of the world
+//! loads as stored.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use glam::{IVec2, IVec3};
+use rayon::prelude::*;
+use rustc_hash::FxHashSet;
+
+use super::checkpoint::{self, SimExtras, WorldIdentity, WorldRef, WorldState};
+use super::world_config::WorldConfig;
+use crate::persist::chunk::{self, CHUNK_SHIFT};
+use crate::persist::{ChunkKey, ColumnKey, CommitStats, StoreError, WorldDb, state};
+use crate::scene::SceneWorld;
+use crate::sim::WorldSim;
+
+/// Chunks and chunk columns changed since the last commit. Bricks arrive in
+/// one hop from the step's dirty batches; channel writes are recorded by the
+/// channel stores themselves and collected at commit time.
+#[derive(Debug, Default)]
+pub struct DirtyChunks {
+    chunks: FxHashSet<ChunkKey>,
+    columns: FxHashSet<ColumnKey>,
+}
+
+impl DirtyChunks {
+    /// Record changed bricks.
+    pub fn bricks(&mut self, bricks: &[IVec3]) {
+        self.chunks
+            .extend(bricks.iter().map(|b| ChunkKey::of_brick(*b)));
+    }
+
+    /// Collect the channel writes the simulation recorded.
+    pub fn collect(&mut self, ws: &mut WorldSim) {
+        for t in ws.sim.channels_mut().take_dirty() {
+            self.columns.insert(ColumnKey::of_tile(t));
+        }
+        for b in ws.vox.channels_mut().take_dirty() {
+            self.chunks.insert(ChunkKey::of_brick(b));
+        }
+    }
+
+    /// Mark every chunk and chunk column of the world dirty (an import).
+    pub fn everything(&mut self, world: &SceneWorld, ws: &WorldSim) {
+        let (lo, hi) = world.bounds;
+        let bmin = lo.div_euclid(IVec3::splat(8));
+        let bmax = (hi - 1).div_euclid(IVec3::splat(8));
+        let (cmin, cmax) = (bmin >> CHUNK_SHIFT, bmax >> CHUNK_SHIFT);
+        for z in cmin.z..=cmax.z {
+            for y in cmin.y..=cmax.y {
+                for x in cmin.x..=cmax.x {
+                    self.chunks.insert(ChunkKey(IVec3::new(x, y, z)));
+                }
+            }
+        }
+        let (tmin, tmax) = ws.sim.tile_bounds();
+        for z in (tmin.y >> CHUNK_SHIFT)..=((tmax.y - 1) >> CHUNK_SHIFT) {
+            for x in (tmin.x >> CHUNK_SHIFT)..=((tmax.x - 1) >> CHUNK_SHIFT) {
+                self.columns.insert(ColumnKey(IVec2::new(x, z)));
+            }
+        }
+    }
+
+    /// Dirty chunks plus dirty chunk columns.
+    pub fn len(&self) -> usize {
+        self.chunks.len() + self.columns.len()
+    }
+
+    /// Whether nothing changed.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Each script's parameters: (script, [(name, value)]).
+pub type ScriptParams = Vec<(String, Vec<(String, f64)>)>;
+
+/// The script parameters and the rest of the simulation state, as the
+/// state blob and the checkpoint format hold them.
+pub fn sim_state(world: &SceneWorld, ws: &WorldSim) -> (ScriptParams, SimExtras) {
+    let params = (0..ws.script_count())
+        .map(|i| {
+            let spec = ws.spec(i);
+            (
+                spec.name.clone(),
+                spec.params
+                    .iter()
+                    .zip(ws.params(i))
+                    .map(|(p, v)| (p.name.clone(), *v))
+                    .collect(),
+            )
+        })
+        .collect();
+    let extras = SimExtras {
+        drained: ws.drained,
+        sleep: Some(ws.sim.sleep_state()),
+        voxel_channels: Default::default(),
+        voxel_sleep: Some(ws.vox.sleep_state()),
+        materials: world.materials.entries(),
+    };
+    (params, extras)
+}
+
+/// Commit what changed (and the simulation state) in one transaction. On
+/// failure nothing is written and `dirty` keeps everything for the next try.
+pub fn commit(
+    db: &WorldDb,
+    dirty: &mut DirtyChunks,
+    world: &SceneWorld,
+    ws: &mut WorldSim,
+) -> Result<CommitStats, StoreError> {
+    dirty.collect(ws);
+    let store = &world.store;
+    let voxel = ws.vox.channels();
+    let columns = ws.sim.channels();
+    let chunks: Vec<(ChunkKey, Vec<u8>)> = dirty
+        .chunks
+        .par_iter()
+        .map(|k| (*k, chunk::encode_chunk(*k, store, voxel)))
+        .collect();
+    let cols: Vec<(ColumnKey, Vec<u8>)> = dirty
+        .columns
+        .par_iter()
+        .map(|k| (*k, chunk::encode_column(*k, columns)))
+        .collect();
+    let (params, extras) = sim_state(world, ws);
+    let blob = state::encode(
+        ws.sim.tick(),
+        world.store.palette(),
+        world.bounds,
+        &params,
+        &extras,
+    );
+    let stats = db.commit(&chunks, &cols, &blob)?;
+    dirty.chunks.clear();
+    dirty.columns.clear();
+    Ok(stats)
+}
+
+/// What [`restore_chunks`] found besides the chunks.
+#[derive(Debug)]
+pub struct Restored {
+    /// The decoded state blob (its store holds only the palette).
+    pub state: WorldState,
+    /// Chunks and columns overlaid.
+    pub chunks: usize,
+    /// Corrupt chunks and columns, regenerated from the source: marked
+    /// dirty so the next commit replaces them.
+    pub corrupt: Vec<String>,
+}
+
+/// Overlay the store's chunks and columns on a freshly generated world and
+/// simulation, and restore the palette and material registry. `None` if the
+/// store was never committed. The edits the overlay makes are not dirty;
+/// corrupt chunks are (they were regenerated).
+pub fn restore_chunks(
+    db: &WorldDb,
+    world: &mut SceneWorld,
+    ws: &mut WorldSim,
+    dirty: &mut DirtyChunks,
+) -> Result<Option<Restored>, StoreError> {
+    let Some(blob) = db.state()? else {
+        return Ok(None);
+    };
+    let st = state::decode(&blob).map_err(|msg| StoreError::Db {
+        path: db.path().to_path_buf(),
+        msg: format!("{msg}; the chunks are intact, but the world cannot resume without it"),
+    })?;
+    *world.store.palette_mut() = st.store.palette().clone();
+    let keys = db.chunk_keys()?;
+    let mut corrupt = Vec::new();
+    let mut regenerated = Vec::new();
+    let mut n = 0;
+    for k in &keys {
+        let Some(blob) = db.chunk(*k)? else { continue };
+        match chunk::decode_chunk(*k, &blob, world.store.palette()) {
+            Ok(data) => {
+                chunk::apply_chunk(*k, &data, &mut world.store, ws.vox.channels_mut());
+                n += 1;
+            }
+            Err(e) => {
+                corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
+                regenerated.push(*k);
+            }
+        }
+    }
+    let mut bad_columns = Vec::new();
+    for k in db.column_keys()? {
+        let Some(blob) = db.column(k)? else { continue };
+        match chunk::decode_column(k, &blob) {
+            Ok(data) => {
+                chunk::apply_column(k, &data, ws.sim.channels_mut());
+                n += 1;
+            }
+            Err(e) => {
+                corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
+                bad_columns.push(k);
+            }
+        }
+    }
+    if !st.extras.materials.is_empty() {
+        world.materials = crate::world::MaterialRegistry::from_entries(
+            &st.extras.materials,
+            world.store.palette(),
+        );
+    }
+    // The overlay is the stored state, not a change: patch the grid and
+    // forget it; only the regenerated chunks must be written again.
+    world.apply_edits();
+    ws.sim.channels_mut().take_dirty();
+    ws.vox.channels_mut().take_dirty();
+    dirty.chunks.extend(regenerated);
+    dirty.columns.extend(bad_columns);
+    Ok(Some(Restored {
+        state: st,
+        chunks: n,
+        corrupt,
+    }))
+}
+
+/// Apply a restored state blob once the scripts are loaded: tick, sleep
+/// states, the drained total and the parameters. Returns warnings
+/// (parameters a changed script no longer accepts).
+pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
+    let mut warnings = Vec::new();
+    let extras = &st.extras;
+    if let Some((active, quiet)) = &extras.voxel_sleep {
+        ws.vox.restore_sleep_state(active, quiet);
+    }
+    ws.vox.set_tick(st.tick);
+    ws.resync_columns();
+    ws.sim.set_tick(st.tick);
+    ws.drained = extras.drained;
+    match &extras.sleep {
+        Some(s) => ws.sim.restore_sleep_state(s),
+        None => ws.sim.wake_all(),
+    }
+    for (script, values) in &st.params {
+        if let Some(i) = ws.script_index(script) {
+            for (k, v) in values {
+                if let Err(e) = ws.set_param(i, k, *v) {
+                    warnings.push(format!("the stored {script}.{k} = {v} is not kept: {e}"));
+                }
+            }
+        }
+    }
+    warnings
+}
+
+/// The hash a run reports when it resumes and when it stops: the bricks,
+/// the column channels and the voxel channels (O(world): not per commit).
+pub fn engine_hash(world: &SceneWorld, ws: &WorldSim) -> u64 {
+    checkpoint::world_hash(&world.store, ws.sim.channels())
+        ^ ws.vox.channels().hash().rotate_left(17)
+}
+
+/// Write the whole of a store's world into a fresh store: every chunk and
+/// chunk column of its bounds (an empty chunk overrides the source's) and
+/// the state. Used by [`import`] and [`migrate_legacy`].
+fn write_everything(db: &WorldDb, st: WorldState) -> Result<CommitStats> {
+    let mut world = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)
+        .context("the imported world does not fit a brick grid")?;
+    if !st.extras.materials.is_empty() {
+        world.materials = crate::world::MaterialRegistry::from_entries(
+            &st.extras.materials,
+            world.store.palette(),
+        );
+    }
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    ws.sim.set_channels(st.channels);
+    ws.vox.set_channels(st.extras.voxel_channels.clone());
+    let mut dirty = DirtyChunks::default();
+    dirty.everything(&world, &ws);
+    let (params, extras) = (st.params, st.extras);
+    let store = &world.store;
+    let chunks: Vec<(ChunkKey, Vec<u8>)> = dirty
+        .chunks
+        .par_iter()
+        .map(|k| (*k, chunk::encode_chunk(*k, store, ws.vox.channels())))
+        .collect();
+    let cols: Vec<(ColumnKey, Vec<u8>)> = dirty
+        .columns
+        .par_iter()
+        .map(|k| (*k, chunk::encode_column(*k, ws.sim.channels())))
+        .collect();
+    let blob = state::encode(st.tick, store.palette(), world.bounds, &params, &extras);
+    Ok(db.commit(&chunks, &cols, &blob)?)
+}
+
+/// `brickworld import`: load a single-file backup (a checkpoint file) into
+/// the empty store of state directory `dir`. The file must belong to the
+/// world `identity` describes; a store that already holds a world is refused.
+pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<CommitStats> {
+    let st = checkpoint::read(file).with_context(|| format!("cannot import {}", file.display()))?;
+    if let Some(id) = &st.identity
+        && !id.same_world(identity)
+    {
+        bail!(
+            "{} is a backup of another world ({id}); the config describes {identity}",
+            file.display()
+        );
+    }
+    if WorldDb::has_state(dir) {
+        bail!(
+            "{} already holds this world; import into an empty --state directory (nothing was changed)",
+            dir.display()
+        );
+    }
+    let (db, _) = WorldDb::open(dir, identity)?;
+    write_everything(&db, st)
+}
+
+/// A state directory of an earlier version holds whole-world checkpoints
+/// and no store: write the newest good one into the store. Returns what was
+/// migrated (None: nothing to migrate). The old files are left in place.
+pub fn migrate_legacy(
+    db: &WorldDb,
+    dir: &Path,
+    identity: &WorldIdentity,
+) -> Result<Option<(std::path::PathBuf, u64)>> {
+    if db.state()?.is_some() || checkpoint::list(dir)?.is_empty() {
+        return Ok(None);
+    }
+    let (_, found, warnings) = checkpoint::Checkpoints::open(dir, identity.clone())?;
+    for w in warnings {
+        eprintln!("warning: {w}");
+    }
+    let Some((path, st)) = found else {
+        return Ok(None);
+    };
+    let tick = st.tick;
+    write_everything(db, st)?;
+    Ok(Some((path, tick)))
+}
+
+/// `brickworld export`: the world as restored from the store (regenerated,
+/// overlaid, with the state blob `st`) as one checkpoint file at `out`.
+/// Returns the world hash.
+pub fn export(
+    world: &SceneWorld,
+    ws: &WorldSim,
+    st: &WorldState,
+    identity: &WorldIdentity,
+    out: &Path,
+) -> Result<u64> {
+    let extras = SimExtras {
+        voxel_channels: ws.vox.channels().clone(),
+        ..st.extras.clone()
+    };
+    let hash = checkpoint::write_at(
+        out,
+        WorldRef {
+            tick: st.tick,
+            store: &world.store,
+            bounds: world.bounds,
+            channels: ws.sim.channels(),
+            params: &st.params,
+            identity: Some(identity),
+            extras: &extras,
+        },
+    )?;
+    Ok(hash)
+}
+
+/// `brickworld export`: open the store of state directory `dir` (locked, so
+/// a running engine is a clear error), restore its world, and write it to
+/// `out`. Returns the tick and the world hash.
+pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u64)> {
+    if !dir.join(crate::persist::db::DB_FILE).is_file() {
+        bail!("{} holds no world store (nothing to export)", dir.display());
+    }
+    let _lock = super::state_dir::lock(dir)?;
+    let identity = cfg.identity();
+    let (db, _) = WorldDb::open(dir, &identity)?;
+    let pb = crate::progress::bar("scene", 0);
+    let mut world = crate::scene::build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
+        .context("cannot build the world")?;
+    pb.finish_and_clear();
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    let mut dirty = DirtyChunks::default();
+    let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty)? else {
+        bail!("{} was never committed (nothing to export)", dir.display());
+    };
+    for c in &r.corrupt {
+        eprintln!("warning: {c}");
+    }
+    let hash = export(&world, &ws, &r.state, &identity, out)?;
+    Ok((r.state.tick, hash))
+}
+
+/// `brickworld import`: lock state directory `dir` and [`import`] `file`.
+pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<CommitStats> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let _lock = super::state_dir::lock(dir)?;
+    import(file, dir, &cfg.identity())
+}

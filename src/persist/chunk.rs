@@ -1,0 +1,433 @@
+//! Chunks: the unit the world is stored, committed and (later) paged in.
+//!
+//! A chunk is 8³ bricks (64³ voxels), keyed by [`ChunkKey`]. Its blob holds
+//! the chunk's bricks and the voxel scripts' per-voxel channels of those
+//! bricks. The column simulation's per-tile channels are 2-D, so they are
+//! stored per chunk *column* ([`ColumnKey`], 8×8 tiles), in their own blob.
+//!
+//! **Why 8³ bricks.** A commit rewrites whole chunks, so a chunk should be
+//! small enough that one edit costs little (at most 512 bricks, 256 KiB of
+//! raw voxels, typically a few KiB after LZ4 for a terrain surface), and
+//! large enough that the store's per-key overhead and the LRU's bookkeeping
+//! stay negligible: an 8192×256×8192 world has 128×4×128 = 65 536 chunk
+//! keys. A 16³-brick chunk (128³ voxels) would make a one-voxel edit
+//! rewrite up to 2 MiB and a 256-tall world only two chunks tall.
+//!
+//! **Blob format** (little-endian): magic `BWCH`, a `u32` CRC-32 of the
+//! rest, then the LZ4 (`lz4_flex`, size-prepended) payload:
+//!
+//! | payload | |
+//! |---|---|
+//! | `u32` bricks, each `u16` local index (`x + 8y + 64z`), `u8` tag | 1: uniform + `u8` material; 2: mixed + 512 material bytes |
+//! | `u32` channels, each name, `u32` bricks, each `u16` local index + 512 `f32` | voxel channels |
+//!
+//! A column blob (magic `BWCO`) holds `u32` channels, each a name, a `u32`
+//! tile count, and per tile a `u8` local index (`x + 8z`) and 64 `f64`.
+//!
+//! Decoding never panics and never allocates more than a chunk can hold:
+//! the size prefix is checked before decompression, every count against
+//! the chunk's capacity.
+
+use glam::{IVec2, IVec3};
+use rustc_hash::FxHashSet;
+
+use super::bytes::{Reader, Writer};
+use crate::sim::ChannelStore;
+use crate::sim::tile::TILE_CELLS;
+use crate::sim::voxels::VoxelChannels;
+use crate::world::{BRICK_VOXELS, BrickContent, BrickStore, Cell, Palette};
+
+/// Bricks along a chunk's edge.
+pub const CHUNK_BRICKS: i32 = 8;
+/// log2 of [`CHUNK_BRICKS`].
+pub const CHUNK_SHIFT: i32 = 3;
+/// Bricks in a chunk.
+pub const CHUNK_CELLS: usize = 512;
+/// Voxel channels one chunk may carry (more is a corrupt blob).
+const MAX_CHANNELS: usize = 256;
+/// The largest payload a chunk blob can decompress to: every brick mixed
+/// and every channel present, with room for names.
+const MAX_CHUNK_PAYLOAD: usize = 8
+    + CHUNK_CELLS * (3 + BRICK_VOXELS)
+    + MAX_CHANNELS * (8 + 256 + CHUNK_CELLS * (2 + 4 * BRICK_VOXELS));
+/// The largest payload a column blob can decompress to.
+const MAX_COLUMN_PAYLOAD: usize = 4 + MAX_CHANNELS * (8 + 256 + 64 * (1 + 8 * TILE_CELLS));
+
+/// A chunk's coordinate: brick coordinate `>> 3` on every axis.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ChunkKey(pub IVec3);
+
+impl ChunkKey {
+    /// The chunk holding brick `b`.
+    #[inline]
+    pub fn of_brick(b: IVec3) -> Self {
+        ChunkKey(b >> CHUNK_SHIFT)
+    }
+
+    /// The chunk's first brick.
+    pub fn min_brick(self) -> IVec3 {
+        self.0 << CHUNK_SHIFT
+    }
+
+    /// Brick coordinate of local index `i` (`x + 8y + 64z`).
+    #[inline]
+    pub fn brick(self, i: usize) -> IVec3 {
+        let i = i as i32;
+        self.min_brick() + IVec3::new(i & 7, (i >> 3) & 7, i >> 6)
+    }
+
+    /// The store key: big-endian with the sign bit flipped, so keys sort by
+    /// (x, y, z) as signed numbers.
+    pub fn to_bytes(self) -> [u8; 12] {
+        key_bytes(&[self.0.x, self.0.y, self.0.z])
+    }
+
+    /// The inverse of [`to_bytes`](Self::to_bytes).
+    pub fn from_bytes(b: &[u8]) -> Option<Self> {
+        let v = key_from_bytes::<3>(b)?;
+        Some(ChunkKey(IVec3::new(v[0], v[1], v[2])))
+    }
+}
+
+impl std::fmt::Display for ChunkKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let v = self.min_brick() * crate::world::BRICK_EDGE;
+        write!(
+            f,
+            "chunk ({}, {}, {}) at voxel ({}, {}, {})",
+            self.0.x, self.0.y, self.0.z, v.x, v.y, v.z
+        )
+    }
+}
+
+/// A chunk column's coordinate: tile (brick column) coordinate `>> 3`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ColumnKey(pub IVec2);
+
+impl ColumnKey {
+    /// The chunk column holding tile `t`.
+    #[inline]
+    pub fn of_tile(t: IVec2) -> Self {
+        ColumnKey(t >> CHUNK_SHIFT)
+    }
+
+    /// Tile of local index `i` (`x + 8z`).
+    pub fn tile(self, i: usize) -> IVec2 {
+        let i = i as i32;
+        (self.0 << CHUNK_SHIFT) + IVec2::new(i & 7, i >> 3)
+    }
+
+    /// The store key (see [`ChunkKey::to_bytes`]).
+    pub fn to_bytes(self) -> [u8; 8] {
+        key_bytes(&[self.0.x, self.0.y])
+    }
+
+    /// The inverse of [`to_bytes`](Self::to_bytes).
+    pub fn from_bytes(b: &[u8]) -> Option<Self> {
+        let v = key_from_bytes::<2>(b)?;
+        Some(ColumnKey(IVec2::new(v[0], v[1])))
+    }
+}
+
+impl std::fmt::Display for ColumnKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "chunk column ({}, {})", self.0.x, self.0.y)
+    }
+}
+
+fn key_bytes<const N: usize, const B: usize>(v: &[i32; N]) -> [u8; B] {
+    let mut out = [0u8; B];
+    for (i, x) in v.iter().enumerate() {
+        out[i * 4..i * 4 + 4].copy_from_slice(&((*x as u32) ^ 0x8000_0000).to_be_bytes());
+    }
+    out
+}
+
+fn key_from_bytes<const N: usize>(b: &[u8]) -> Option<[i32; N]> {
+    if b.len() != N * 4 {
+        return None;
+    }
+    let mut v = [0i32; N];
+    for (i, x) in v.iter_mut().enumerate() {
+        let u = u32::from_be_bytes(b[i * 4..i * 4 + 4].try_into().ok()?);
+        *x = (u ^ 0x8000_0000) as i32;
+    }
+    Some(v)
+}
+
+/// One voxel channel's arrays in a chunk, by brick.
+pub type VoxelArrays = Vec<(IVec3, Box<[f32; BRICK_VOXELS]>)>;
+/// One column channel's values in a chunk column, by tile.
+pub type TileArrays = Vec<(IVec2, Box<[f64; TILE_CELLS]>)>;
+
+/// A decoded chunk: its bricks (absent = empty) and voxel channels.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ChunkData {
+    /// Non-empty bricks, by brick coordinate.
+    pub bricks: Vec<(IVec3, BrickContent)>,
+    /// Per channel name, the bricks holding an array.
+    pub voxel: Vec<(String, VoxelArrays)>,
+}
+
+/// A decoded chunk column: per channel name, the tiles holding values.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ColumnData {
+    /// Per channel name, (tile, values).
+    pub channels: Vec<(String, TileArrays)>,
+}
+
+const CHUNK_MAGIC: &[u8; 4] = b"BWCH";
+const COLUMN_MAGIC: &[u8; 4] = b"BWCO";
+
+fn seal(magic: &[u8; 4], payload: &[u8]) -> Vec<u8> {
+    let packed = lz4_flex::compress_prepend_size(payload);
+    let mut out = Vec::with_capacity(8 + packed.len());
+    out.extend_from_slice(magic);
+    out.extend_from_slice(&crc32fast::hash(&packed).to_le_bytes());
+    out.extend_from_slice(&packed);
+    out
+}
+
+fn unseal(magic: &[u8; 4], blob: &[u8], max: usize) -> Result<Vec<u8>, String> {
+    if blob.len() < 12 || &blob[..4] != magic {
+        return Err("not a brickworld chunk blob (bad magic)".into());
+    }
+    let crc = u32::from_le_bytes(blob[4..8].try_into().expect("4"));
+    let packed = &blob[8..];
+    if crc32fast::hash(packed) != crc {
+        return Err("checksum mismatch".into());
+    }
+    let claimed = u32::from_le_bytes(packed[..4].try_into().expect("4")) as usize;
+    if claimed > max {
+        return Err(format!(
+            "claims {claimed} bytes, more than a chunk can hold ({max})"
+        ));
+    }
+    lz4_flex::decompress_size_prepended(packed).map_err(|e| format!("LZ4: {e}"))
+}
+
+/// Encode chunk `key` of `store` and `voxel`'s channels.
+pub fn encode_chunk(key: ChunkKey, store: &BrickStore, voxel: &VoxelChannels) -> Vec<u8> {
+    let mut w = Writer::default();
+    let mut dense = [0u8; BRICK_VOXELS];
+    let count_at = w.0.len();
+    w.u32(0);
+    let mut n = 0u32;
+    for i in 0..CHUNK_CELLS {
+        let b = key.brick(i);
+        match store.cell(b) {
+            Cell::Empty => continue,
+            Cell::Uniform(m) => {
+                w.u16(i as u16);
+                w.u8(1);
+                w.u8(m);
+            }
+            Cell::Mixed(_) => {
+                w.u16(i as u16);
+                w.u8(2);
+                store.read_dense(b, &mut dense);
+                w.0.extend_from_slice(&dense);
+            }
+        }
+        n += 1;
+    }
+    w.0[count_at..count_at + 4].copy_from_slice(&n.to_le_bytes());
+    let names = voxel.names();
+    let present: Vec<(usize, Vec<usize>)> = (0..names.len())
+        .map(|id| {
+            let locals: Vec<usize> = (0..CHUNK_CELLS)
+                .filter(|&i| voxel.get(id, key.brick(i)).is_some())
+                .collect();
+            (id, locals)
+        })
+        .filter(|(_, l)| !l.is_empty())
+        .collect();
+    w.u32(present.len() as u32);
+    for (id, locals) in present {
+        w.str(&names[id]);
+        w.u32(locals.len() as u32);
+        for i in locals {
+            w.u16(i as u16);
+            for v in voxel.get(id, key.brick(i)).expect("listed").iter() {
+                w.0.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+    seal(CHUNK_MAGIC, &w.0)
+}
+
+/// Decode a chunk blob; `palette` colours mixed bricks' LOD colour.
+pub fn decode_chunk(key: ChunkKey, blob: &[u8], palette: &Palette) -> Result<ChunkData, String> {
+    let payload = unseal(CHUNK_MAGIC, blob, MAX_CHUNK_PAYLOAD)?;
+    let mut r = Reader::new(&payload);
+    let mut seen = [false; CHUNK_CELLS];
+    let local = |r: &mut Reader, seen: &mut [bool; CHUNK_CELLS]| -> Result<usize, String> {
+        let i = r.u16()? as usize;
+        if i >= CHUNK_CELLS || std::mem::replace(&mut seen[i], true) {
+            return Err(format!("brick index {i} is out of range or repeated"));
+        }
+        Ok(i)
+    };
+    let n = r.count(CHUNK_CELLS, "brick")?;
+    let mut data = ChunkData::default();
+    let mut dense = [0u8; BRICK_VOXELS];
+    for _ in 0..n {
+        let i = local(&mut r, &mut seen)?;
+        let content = match r.u8()? {
+            1 => match r.u8()? {
+                0 => return Err("a uniform brick of material 0".into()),
+                m => BrickContent::Uniform(m),
+            },
+            2 => {
+                dense.copy_from_slice(r.take(BRICK_VOXELS)?);
+                BrickContent::from_dense(&dense, palette)
+            }
+            t => return Err(format!("unknown brick tag {t}")),
+        };
+        data.bricks.push((key.brick(i), content));
+    }
+    let channels = r.count(MAX_CHANNELS, "channel")?;
+    let mut names = FxHashSet::default();
+    for _ in 0..channels {
+        let name = r.str()?;
+        if !names.insert(name.clone()) {
+            return Err(format!("channel {name} appears twice"));
+        }
+        let m = r.count(CHUNK_CELLS, "channel brick")?;
+        let mut seen = [false; CHUNK_CELLS];
+        let mut arrays = Vec::with_capacity(m);
+        for _ in 0..m {
+            let i = local(&mut r, &mut seen)?;
+            let raw = r.take(4 * BRICK_VOXELS)?;
+            let mut v = Box::new([0f32; BRICK_VOXELS]);
+            for (d, c) in v.iter_mut().zip(raw.chunks_exact(4)) {
+                *d = f32::from_le_bytes(c.try_into().expect("4"));
+            }
+            arrays.push((key.brick(i), v));
+        }
+        data.voxel.push((name, arrays));
+    }
+    r.finish()?;
+    Ok(data)
+}
+
+/// Replace chunk `key` of `store` and `voxel` by `data` (bricks and channel
+/// arrays the chunk does not hold are cleared). The edits are recorded in
+/// the store's modified list like any other.
+pub fn apply_chunk(
+    key: ChunkKey,
+    data: &ChunkData,
+    store: &mut BrickStore,
+    voxel: &mut VoxelChannels,
+) {
+    let mut keep = [false; CHUNK_CELLS];
+    let local = |b: IVec3| {
+        let l = b - key.min_brick();
+        (l.x + 8 * l.y + 64 * l.z) as usize
+    };
+    for (b, _) in &data.bricks {
+        keep[local(*b)] = true;
+    }
+    for i in 0..CHUNK_CELLS {
+        let b = key.brick(i);
+        if !keep[i] && store.cell(b) != Cell::Empty {
+            store.set_brick(b, BrickContent::Empty);
+        }
+    }
+    for (b, content) in &data.bricks {
+        store.set_brick(*b, content.clone());
+    }
+    let zero = [0f32; BRICK_VOXELS];
+    for id in 0..voxel.names().len() {
+        for i in 0..CHUNK_CELLS {
+            if voxel.get(id, key.brick(i)).is_some() {
+                voxel.set(id, key.brick(i), &zero);
+            }
+        }
+    }
+    for (name, arrays) in &data.voxel {
+        let id = voxel.channel(name);
+        for (b, v) in arrays {
+            voxel.set(id, *b, v);
+        }
+    }
+}
+
+/// Encode chunk column `key` of the column channels.
+pub fn encode_column(key: ColumnKey, channels: &ChannelStore) -> Vec<u8> {
+    let mut w = Writer::default();
+    let present: Vec<(crate::sim::ChannelId, &str, Vec<usize>)> = channels
+        .channels()
+        .map(|(id, name)| {
+            let tiles = (0..64)
+                .filter(|&i| channels.get(key.tile(i), id).is_some())
+                .collect();
+            (id, name, tiles)
+        })
+        .filter(|(_, _, t): &(_, _, Vec<usize>)| !t.is_empty())
+        .collect();
+    w.u32(present.len() as u32);
+    for (id, name, tiles) in present {
+        w.str(name);
+        w.u32(tiles.len() as u32);
+        for i in tiles {
+            w.u8(i as u8);
+            for v in channels.get(key.tile(i), id).expect("listed").iter() {
+                w.f64(*v);
+            }
+        }
+    }
+    seal(COLUMN_MAGIC, &w.0)
+}
+
+/// Decode a chunk column blob.
+pub fn decode_column(key: ColumnKey, blob: &[u8]) -> Result<ColumnData, String> {
+    let payload = unseal(COLUMN_MAGIC, blob, MAX_COLUMN_PAYLOAD)?;
+    let mut r = Reader::new(&payload);
+    let n = r.count(MAX_CHANNELS, "channel")?;
+    let mut data = ColumnData::default();
+    let mut names = FxHashSet::default();
+    for _ in 0..n {
+        let name = r.str()?;
+        if !names.insert(name.clone()) {
+            return Err(format!("channel {name} appears twice"));
+        }
+        let m = r.count(64, "tile")?;
+        let mut seen = [false; 64];
+        let mut tiles = Vec::with_capacity(m);
+        for _ in 0..m {
+            let i = r.u8()? as usize;
+            if i >= 64 || std::mem::replace(&mut seen[i], true) {
+                return Err(format!("tile index {i} is out of range or repeated"));
+            }
+            let mut v = Box::new([0f64; TILE_CELLS]);
+            for d in v.iter_mut() {
+                *d = r.f64()?;
+            }
+            tiles.push((key.tile(i), v));
+        }
+        data.channels.push((name, tiles));
+    }
+    r.finish()?;
+    Ok(data)
+}
+
+/// Replace chunk column `key` of `channels` by `data` (tiles the column
+/// does not hold are cleared).
+pub fn apply_column(key: ColumnKey, data: &ColumnData, channels: &mut ChannelStore) {
+    let zero = [0f64; TILE_CELLS];
+    let ids: Vec<crate::sim::ChannelId> = channels.channels().map(|(id, _)| id).collect();
+    for id in ids {
+        for i in 0..64 {
+            if channels.get(key.tile(i), id).is_some() {
+                channels.set(key.tile(i), id, &zero);
+            }
+        }
+    }
+    for (name, tiles) in &data.channels {
+        let id = channels.channel(name);
+        for (t, v) in tiles {
+            channels.set(*t, id, v);
+        }
+    }
+}

@@ -1,0 +1,85 @@
+//! The simulation-state blob: everything besides the chunks that defines a
+//! world's future — tick, palette, bounds, script parameters, the drained
+//! total, which tiles and bricks sleep, the material registry. Committed
+//! with the dirty chunks in one transaction, so a resume sees a state and
+//! chunks of the same tick.
+//!
+//! The payload is the checkpoint payload (format 3, see
+//! `engine::checkpoint`) with no bricks, tiles or voxel arrays: one encoder
+//! for both, so the two cannot drift apart.
+//!
+//! Blob: magic `BWST`, `u32` payload version, `u64` tick, `u32` CRC-32 of the
+//! rest, LZ4 (size-prepended) payload.
+
+use glam::IVec3;
+
+use crate::engine::checkpoint::{self, SimExtras, WorldRef, WorldState};
+use crate::sim::ChannelStore;
+use crate::world::{BrickStore, Palette};
+
+const MAGIC: &[u8; 4] = b"BWST";
+const PAYLOAD_VERSION: u32 = 3;
+/// The largest state a blob may decompress to (a 64k×64k-tile world's sleep
+/// lists fit many times over).
+const MAX_STATE: usize = 1 << 30;
+
+/// Encode the state of a world at `tick`.
+pub fn encode(
+    tick: u64,
+    palette: &Palette,
+    bounds: (IVec3, IVec3),
+    params: &[(String, Vec<(String, f64)>)],
+    extras: &SimExtras,
+) -> Vec<u8> {
+    let store = BrickStore::new(palette.clone());
+    let channels = ChannelStore::default();
+    let extras = SimExtras {
+        voxel_channels: Default::default(),
+        ..extras.clone()
+    };
+    let payload = checkpoint::encode(WorldRef {
+        tick,
+        store: &store,
+        bounds,
+        channels: &channels,
+        params,
+        identity: None,
+        extras: &extras,
+    });
+    let packed = lz4_flex::compress_prepend_size(&payload);
+    let mut out = Vec::with_capacity(20 + packed.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&PAYLOAD_VERSION.to_le_bytes());
+    out.extend_from_slice(&tick.to_le_bytes());
+    out.extend_from_slice(&crc32fast::hash(&packed).to_le_bytes());
+    out.extend_from_slice(&packed);
+    out
+}
+
+/// Decode a state blob: a [`WorldState`] whose store holds only the palette
+/// and whose channels are empty (the chunks hold those).
+pub fn decode(blob: &[u8]) -> Result<WorldState, String> {
+    if blob.len() < 24 || &blob[..4] != MAGIC {
+        return Err("the simulation state is not a brickworld state blob".into());
+    }
+    let version = u32::from_le_bytes(blob[4..8].try_into().expect("4"));
+    if version != PAYLOAD_VERSION {
+        return Err(format!(
+            "the simulation state has version {version}, not {PAYLOAD_VERSION}"
+        ));
+    }
+    let tick = u64::from_le_bytes(blob[8..16].try_into().expect("8"));
+    let crc = u32::from_le_bytes(blob[16..20].try_into().expect("4"));
+    let packed = &blob[20..];
+    if crc32fast::hash(packed) != crc {
+        return Err("the simulation state's checksum does not match".into());
+    }
+    let claimed = u32::from_le_bytes(packed[..4].try_into().expect("4")) as usize;
+    if claimed > MAX_STATE {
+        return Err(format!("the simulation state claims {claimed} bytes"));
+    }
+    let payload = lz4_flex::decompress_size_prepended(packed)
+        .map_err(|e| format!("the simulation state: LZ4: {e}"))?;
+    checkpoint::decode(tick, PAYLOAD_VERSION, &payload)
+        .map_err(|e| format!("the simulation state: {e}"))
+}

@@ -1,0 +1,272 @@
+//! The world store (issue 10): chunk blobs round-trip and refuse corrupt
+//! bytes; a corrupt chunk on disk is reported with its coordinates and only
+//! that chunk is regenerated; a store of another format version is refused;
+//! a commit writes only what changed; export and import give a single-file
+//! backup that resumes bit-identically.
+
+use brickworld::persist::chunk::{self, ChunkKey, ColumnKey};
+use brickworld::persist::{WorldDb, state};
+use brickworld::sim::ChannelStore;
+use brickworld::sim::voxels::VoxelChannels;
+use brickworld::world::{BrickContent, BrickStore, Palette};
+use glam::{IVec2, IVec3};
+
+mod common;
+use common::cli::{assert_success, bin};
+use common::daemon::*;
+
+/// A chunk with uniform, mixed and empty bricks and a voxel channel.
+fn sample(key: ChunkKey) -> (BrickStore, VoxelChannels) {
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    let b0 = key.brick(0);
+    store.set_brick(b0, BrickContent::Uniform(7));
+    store.fill_sphere((b0 * 8 + IVec3::new(20, 12, 9)).as_dvec3(), 6.5, 3);
+    // A brick just outside the chunk must not be written into it.
+    store.set_brick(key.brick(511) + IVec3::X, BrickContent::Uniform(9));
+    let mut vox = VoxelChannels::default();
+    let water = vox.channel("water");
+    let mut v = [0f32; 512];
+    v[5] = 0.25;
+    v[511] = 1.0;
+    vox.set(water, key.brick(73), &v);
+    (store, vox)
+}
+
+#[test]
+fn a_chunk_round_trips_and_replaces_what_was_there() {
+    for key in [
+        ChunkKey(IVec3::new(0, 0, 0)),
+        ChunkKey(IVec3::new(-3, 1, -7)),
+    ] {
+        let (store, vox) = sample(key);
+        let blob = chunk::encode_chunk(key, &store, &vox);
+        let data = chunk::decode_chunk(key, &blob, store.palette()).unwrap();
+        // Applied onto a different world, the chunk becomes exactly the
+        // original: bricks and channel arrays it lacks are cleared.
+        let mut other = BrickStore::new(Palette::grey_ramp());
+        other.fill_box(key.min_brick() * 8, key.min_brick() * 8 + 64, 5);
+        let mut other_vox = VoxelChannels::default();
+        let w = other_vox.channel("water");
+        other_vox.set(w, key.brick(1), &[2.0; 512]);
+        chunk::apply_chunk(key, &data, &mut other, &mut other_vox);
+        let mut a = [0u8; 512];
+        let mut b = [0u8; 512];
+        for i in 0..512 {
+            store.read_dense(key.brick(i), &mut a);
+            other.read_dense(key.brick(i), &mut b);
+            assert_eq!(a, b, "brick {i} of {key}");
+        }
+        assert_eq!(other_vox, vox);
+        // Every edit the overlay made was recorded.
+        assert!(!other.take_modified().is_empty());
+    }
+}
+
+#[test]
+fn a_column_round_trips() {
+    let key = ColumnKey(IVec2::new(-1, 2));
+    let mut ch = ChannelStore::default();
+    let w = ch.channel("water");
+    let g = ch.channel("ground");
+    ch.set(key.tile(0), w, &[0.5; 64]);
+    ch.set(key.tile(63), g, &[3.0; 64]);
+    let blob = chunk::encode_column(key, &ch);
+    let data = chunk::decode_column(key, &blob).unwrap();
+    let mut other = ChannelStore::default();
+    other.channel("water");
+    let og = other.channel("ground");
+    other.set(key.tile(5), og, &[1.0; 64]);
+    chunk::apply_column(key, &data, &mut other);
+    assert_eq!(other.hash(), ch.hash());
+    assert!(other.get(key.tile(5), og).is_none());
+}
+
+#[test]
+fn corrupt_chunk_blobs_are_errors_never_panics() {
+    let key = ChunkKey(IVec3::new(1, 0, 2));
+    let (store, vox) = sample(key);
+    let blob = chunk::encode_chunk(key, &store, &vox);
+    let p = Palette::grey_ramp();
+    // Every truncation and every single-byte flip is refused.
+    for cut in 0..blob.len() {
+        assert!(
+            chunk::decode_chunk(key, &blob[..cut], &p).is_err(),
+            "cut {cut}"
+        );
+    }
+    for at in 0..blob.len() {
+        let mut b = blob.clone();
+        b[at] ^= 0x41;
+        assert!(chunk::decode_chunk(key, &b, &p).is_err(), "flip at {at}");
+    }
+    // A valid checksum over a payload claiming 4 GB is refused before
+    // anything is allocated.
+    let mut bomb = b"BWCH".to_vec();
+    let packed = [u32::MAX.to_le_bytes().to_vec(), vec![0u8; 16]].concat();
+    bomb.extend_from_slice(&crc32fast::hash(&packed).to_le_bytes());
+    bomb.extend_from_slice(&packed);
+    let e = chunk::decode_chunk(key, &bomb, &p).unwrap_err();
+    assert!(e.contains("more than a chunk can hold"), "{e}");
+    // Keys sort as signed coordinates and round-trip.
+    for v in [IVec3::new(-5, 0, 3), IVec3::new(i32::MIN, i32::MAX, -1)] {
+        assert_eq!(
+            ChunkKey::from_bytes(&ChunkKey(v).to_bytes()),
+            Some(ChunkKey(v))
+        );
+    }
+    assert!(ChunkKey(IVec3::new(-1, 0, 0)).to_bytes() < ChunkKey(IVec3::new(0, 0, 0)).to_bytes());
+}
+
+fn corrupt_first_chunk(state: &std::path::Path) -> ChunkKey {
+    use redb::{ReadableDatabase, ReadableTable, TableDefinition};
+    const CHUNKS: TableDefinition<&[u8], &[u8]> = TableDefinition::new("chunks");
+    let db = redb::Database::open(state.join("world.redb")).unwrap();
+    let (key, mut blob) = {
+        let tx = db.begin_read().unwrap();
+        let t = tx.open_table(CHUNKS).unwrap();
+        let (k, v) = t.first().unwrap().expect("a stored chunk");
+        (k.value().to_vec(), v.value().to_vec())
+    };
+    let n = blob.len();
+    blob[n / 2] ^= 0xff;
+    let tx = db.begin_write().unwrap();
+    tx.open_table(CHUNKS)
+        .unwrap()
+        .insert(&key[..], &blob[..])
+        .unwrap();
+    tx.commit().unwrap();
+    ChunkKey::from_bytes(&key).unwrap()
+}
+
+#[test]
+fn a_corrupt_chunk_is_reported_with_its_coordinates_and_only_it_is_regenerated() {
+    let (cfg, state, _) = setup("corruptchunk");
+    hash_at(&cfg, &state, 20);
+    let key = corrupt_first_chunk(&state);
+    let err = stderr_of_ticks(&cfg, &state, 10);
+    assert!(
+        err.contains(&format!("{key} is corrupt")) && err.contains("regenerated"),
+        "{err}"
+    );
+    // The regenerated chunk was committed again: the next start is clean.
+    let err = stderr_of_ticks(&cfg, &state, 1);
+    assert!(!err.contains("is corrupt"), "{err}");
+}
+
+#[test]
+fn a_store_of_another_format_version_is_refused_and_left_alone() {
+    let (cfg, state, _) = setup("formatversion");
+    hash_at(&cfg, &state, 5);
+    {
+        use redb::{ReadableTable, TableDefinition};
+        const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
+        let db = redb::Database::open(state.join("world.redb")).unwrap();
+        let tx = db.begin_write().unwrap();
+        {
+            let mut t = tx.open_table(META).unwrap();
+            let m = t.get("manifest").unwrap().unwrap().value().to_vec();
+            let m = String::from_utf8(m)
+                .unwrap()
+                .replace("\"format\": 1", "\"format\": 99");
+            t.insert("manifest", m.as_bytes()).unwrap();
+        }
+        tx.commit().unwrap();
+    }
+    let before = crc32fast::hash(&std::fs::read(state.join("world.redb")).unwrap());
+    let out = run_cmd(&cfg, &state)
+        .arg("--ticks")
+        .arg("1")
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("format version 99"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    assert_eq!(
+        crc32fast::hash(&std::fs::read(state.join("world.redb")).unwrap()),
+        before
+    );
+}
+
+#[test]
+fn a_commit_writes_only_what_changed_and_the_state_blob_round_trips() {
+    let (cfg, state, _) = setup("commitsize");
+    // A 48x32x48 world is one chunk column of 1 x 1 chunks: after 20 ticks
+    // of rain the store holds it and the state.
+    hash_at(&cfg, &state, 20);
+    let identity = brickworld::engine::world_config::WorldConfig::load(&cfg)
+        .unwrap()
+        .identity();
+    let (db, _) = WorldDb::open(&state, &identity).unwrap();
+    let chunks = db.chunk_keys().unwrap();
+    assert!(!chunks.is_empty() && chunks.len() <= 2, "{chunks:?}");
+    let st = state::decode(&db.state().unwrap().unwrap()).unwrap();
+    assert_eq!(st.tick, 20);
+    assert_eq!(st.params[0].0, "water");
+    // The manifest beside it names the world and the format.
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(state.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(m["format"], 1);
+    assert_eq!(m["world"]["seed"], 3);
+}
+
+#[test]
+fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
+    let (cfg, state, _) = setup("export");
+    hash_at(&cfg, &state, 30);
+    let backup = state.parent().unwrap().join("world.bwc");
+    let out = bin()
+        .args(["export", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("exported tick 30"));
+    let copy = state.parent().unwrap().join("copy");
+    let import = |dir: &std::path::Path, world: &std::path::Path| {
+        bin()
+            .args(["import", backup.to_str().unwrap(), "--world"])
+            .arg(world)
+            .arg("--state")
+            .arg(dir)
+            .output()
+            .unwrap()
+    };
+    assert_success(&import(&copy, &cfg));
+    // The same world twice is refused, and nothing changes.
+    let before = crc32fast::hash(&std::fs::read(copy.join("world.redb")).unwrap());
+    let out = import(&copy, &cfg);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("already holds"));
+    assert_eq!(
+        crc32fast::hash(&std::fs::read(copy.join("world.redb")).unwrap()),
+        before
+    );
+    // Another world's config is refused.
+    let other = state.parent().unwrap().join("other.toml");
+    std::fs::write(
+        &other,
+        std::fs::read_to_string(&cfg)
+            .unwrap()
+            .replace("seed = 3", "seed = 9"),
+    )
+    .unwrap();
+    let out = import(&state.parent().unwrap().join("empty"), &other);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("another world"), "{err}");
+    // Both go on identically.
+    assert_eq!(hash_at(&cfg, &copy, 60), hash_at(&cfg, &state, 60));
+    // Exporting a directory with no world is a clear error.
+    let out = bin()
+        .args(["export", "/tmp/never.bwc", "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(state.parent().unwrap().join("nothing-here"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no world store"));
+}
