@@ -108,6 +108,21 @@ pub struct Simulation {
     seed: u64,
     /// Bound of channels without a declared range.
     default_bound: f64,
+    /// Dense buffers reused by every step (allocating and faulting in
+    /// hundreds of MB per step at 2048² cost more than the copies).
+    scratch: StepScratch,
+}
+
+/// A step's dense working buffers, kept between steps.
+#[derive(Default)]
+struct StepScratch {
+    /// The running script's channels over the work set, tile-major (all of
+    /// a tile's channels side by side, so a tile's halo reads nine short
+    /// runs of memory instead of 9 × channels scattered ones): channel `i`
+    /// of work-set tile `w` is `data[w * channels + i]`.
+    data: Vec<[f64; TILE_CELLS]>,
+    /// One pass's outputs, per active tile and written channel.
+    outs: Vec<[f64; TILE_CELLS]>,
 }
 
 /// Which tiles sleep and how close the awake ones are to sleeping: part of
@@ -130,8 +145,6 @@ struct WorkSet {
 
 const OUTSIDE: u32 = u32::MAX;
 
-/// One channel over the work set, indexed like `WorkSet::tiles`.
-type DenseChannel = Vec<[f64; TILE_CELLS]>;
 
 impl WorkSet {
     fn new(active: &[TileCoord], min: TileCoord, max: TileCoord) -> Self {
@@ -171,10 +184,12 @@ impl WorkSet {
     /// Gather the halo of active tile `k` from dense `data`: rows and
     /// columns copied as slices, outside-world neighbours filled with
     /// `boundary`.
+    /// `data` is tile-major: channel `ch` of work-set tile `w` is
+    /// `data[w * stride + ch]`.
     fn gather(
         &self,
         k: usize,
-        data: &[[f64; TILE_CELLS]],
+        (data, stride, ch): (&[[f64; TILE_CELLS]], usize, usize),
         boundary: f64,
         out: &mut [f64; HALO_CELLS],
     ) {
@@ -183,7 +198,7 @@ impl WorkSet {
             if n[i] == OUTSIDE {
                 None
             } else {
-                Some(&data[n[i] as usize])
+                Some(&data[n[i] as usize * stride + ch])
             }
         };
         let t = TILE as usize;
@@ -220,9 +235,16 @@ impl WorkSet {
     }
 }
 
-fn to_bytes<const N: usize, const B: usize>(v: &[f64; N], out: &mut [u8; B]) {
-    for (i, x) in v.iter().enumerate() {
-        out[i * 8..i * 8 + 8].copy_from_slice(&x.to_le_bytes());
+/// `v` as little-endian bytes: the values themselves on a little-endian
+/// machine, else converted into `scratch`.
+fn le_bytes<'a>(v: &'a [f64], scratch: &'a mut [u8]) -> &'a [u8] {
+    if cfg!(target_endian = "little") {
+        bytemuck::cast_slice(v)
+    } else {
+        for (i, x) in v.iter().enumerate() {
+            scratch[i * 8..i * 8 + 8].copy_from_slice(&x.to_le_bytes());
+        }
+        &scratch[..v.len() * 8]
     }
 }
 
@@ -246,6 +268,7 @@ impl Simulation {
             tick: 0,
             seed: 0,
             default_bound: f64::MAX,
+            scratch: StepScratch::default(),
         }
     }
 
@@ -529,34 +552,40 @@ impl Simulation {
                 continue;
             }
             let t0 = std::time::Instant::now();
-            let result = run_script(script, &self.channels, &ws, &ctx);
-            script_ms[si] = t0.elapsed().as_secs_f64() * 1e3;
+            let result = run_script(script, &self.channels, &ws, &ctx, &mut self.scratch);
             match result {
-                Ok(outputs) => {
+                Ok(written) => {
                     // A step that ran on no tile proves nothing: a failing
                     // script stays failing (regression: its world fell asleep
                     // and the streak reset).
                     if !ws.active.is_empty() {
                         script.failures = 0;
                     }
-                    // Commit this script's channels in sorted tile order.
-                    for (i, data) in outputs {
-                        for (k, &w) in ws.active.iter().enumerate() {
+                    // Which tiles changed is found in parallel; the store is
+                    // written serially, in sorted tile order.
+                    let stride = script.ids.len();
+                    for i in written {
+                        let data = &self.scratch.data;
+                        let id = script.ids[i];
+                        let base = &self.channels;
+                        let differs: Vec<bool> = ws
+                            .active
+                            .par_iter()
+                            .map(|&w| {
+                                let new = &data[w as usize * stride + i];
+                                match base.get(ws.tiles[w as usize], id) {
+                                    Some(o) => o
+                                        .iter()
+                                        .zip(new.iter())
+                                        .any(|(a, b)| a.to_bits() != b.to_bits()),
+                                    None => new.iter().any(|v| v.to_bits() != 0),
+                                }
+                            })
+                            .collect();
+                        for (&w, _) in ws.active.iter().zip(&differs).filter(|(_, d)| **d) {
                             let t = ws.tiles[w as usize];
-                            let new = &data[w as usize];
-                            let old = self.channels.get(t, script.ids[i]);
-                            let differs = match old {
-                                Some(o) => o
-                                    .iter()
-                                    .zip(new.iter())
-                                    .any(|(a, b)| a.to_bits() != b.to_bits()),
-                                None => new.iter().any(|v| v.to_bits() != 0),
-                            };
-                            if differs {
-                                changed.insert(t);
-                                self.channels.set(t, script.ids[i], new);
-                            }
-                            let _ = k;
+                            changed.insert(t);
+                            self.channels.set(t, id, &data[w as usize * stride + i]);
                         }
                     }
                 }
@@ -568,6 +597,7 @@ impl Simulation {
                     errors.push(e);
                 }
             }
+            script_ms[si] = t0.elapsed().as_secs_f64() * 1e3;
         }
         let mut changed: Vec<TileCoord> = changed.into_iter().collect();
         changed.sort_by_key(|t| (t.y, t.x));
@@ -620,21 +650,22 @@ fn run_script(
     base: &ChannelStore,
     ws: &WorkSet,
     ctx: &StepContext,
-) -> Result<Vec<(usize, DenseChannel)>, SimError> {
+    scratch: &mut StepScratch,
+) -> Result<Vec<usize>, SimError> {
     let (dt, serial) = (ctx.dt, ctx.serial);
     let key = StepKey::new(ctx.seed, ctx.tick, &s.spec.name);
     let n = s.spec.channels.len();
-    // Dense previous generation of every channel this script uses.
-    let mut data: Vec<Vec<[f64; TILE_CELLS]>> = s
-        .ids
-        .iter()
-        .map(|&id| {
-            ws.tiles
-                .iter()
-                .map(|&t| base.get(t, id).copied().unwrap_or([0.0; TILE_CELLS]))
-                .collect()
-        })
-        .collect();
+    // Dense previous generation of every channel this script uses, gathered
+    // in parallel into the reused buffers.
+    let StepScratch { data, outs } = scratch;
+    data.resize(ws.tiles.len() * n, [0.0; TILE_CELLS]);
+    data.par_chunks_mut(n)
+        .zip(ws.tiles.par_iter())
+        .for_each(|(d, &t)| {
+            for (d, &id) in d.iter_mut().zip(&s.ids) {
+                *d = base.get(t, id).copied().unwrap_or([0.0; TILE_CELLS]);
+            }
+        });
     let mut written = vec![false; n];
     for (pi, pass) in s.spec.passes.iter().enumerate() {
         let read_idx: Vec<usize> = pass
@@ -647,18 +678,18 @@ fn run_script(
             .iter()
             .map(|w| s.spec.channels.iter().position(|c| c == w).unwrap_or(0))
             .collect();
-        let data_ref = &data;
+        let data_ref = &*data;
         let nw = write_idx.len();
-        let mut outs = vec![[0.0f64; TILE_CELLS]; ws.active.len() * nw];
+        outs.resize(ws.active.len() * nw, [0.0; TILE_CELLS]);
         outs.par_chunks_mut(nw).enumerate().try_for_each_init(
             || (vec![[0.0f64; HALO_CELLS]; n], vec![[0.0f64; TILE_CELLS]; n]),
             |(reads, writes), (k, out)| -> Result<(), SimError> {
                 for &i in &read_idx {
-                    ws.gather(k, &data_ref[i], s.boundary[i], &mut reads[i]);
+                    ws.gather(k, (data_ref, n, i), s.boundary[i], &mut reads[i]);
                 }
                 let w = ws.active[k] as usize;
                 for &i in &write_idx {
-                    writes[i] = data_ref[i][w];
+                    writes[i] = data_ref[w * n + i];
                 }
                 let t = ws.tiles[w];
                 match &s.kernel {
@@ -678,7 +709,7 @@ fn run_script(
         for (k, out) in outs.chunks(nw).enumerate() {
             let w = ws.active[k] as usize;
             for (j, &i) in write_idx.iter().enumerate() {
-                data[i][w] = out[j];
+                data[w * n + i] = out[j];
             }
         }
         for &i in &write_idx {
@@ -697,50 +728,52 @@ fn run_script(
                 format!("{DEFAULT_BOUND_HEIGHTS} world heights; declare `ranges` to change it"),
             ),
         };
-        for &w in &ws.active {
-            let v = &data[i][w as usize];
-            if let Some((c, x)) = v.iter().enumerate().find(|(_, x)| **x < lo || **x > hi) {
-                let t = ws.tiles[w as usize];
-                if x.is_finite() {
-                    return Err(SimError::OutOfBounds {
-                        script: s.spec.name.clone(),
-                        channel: name.clone(),
-                        column: (
-                            t.x * TILE + (c as i32 % TILE),
-                            t.y * TILE + (c as i32 / TILE),
-                        ),
-                        value: *x,
-                        bound: (lo, hi),
-                        why,
-                    });
-                }
+        let d = |w: u32| &data[w as usize * n + i];
+        let out_of_bounds = ws.active.par_iter().find_map_first(|&w| {
+            match d(w)
+                .iter()
+                .enumerate()
+                .find(|(_, x)| **x < lo || **x > hi)
+            {
+                Some((c, x)) if x.is_finite() => Some((w, c, *x)),
+                _ => None,
             }
+        });
+        if let Some((w, c, x)) = out_of_bounds {
+            let t = ws.tiles[w as usize];
+            return Err(SimError::OutOfBounds {
+                script: s.spec.name.clone(),
+                channel: name.clone(),
+                column: (
+                    t.x * TILE + (c as i32 % TILE),
+                    t.y * TILE + (c as i32 / TILE),
+                ),
+                value: x,
+                bound: (lo, hi),
+                why,
+            });
         }
-        for &w in &ws.active {
-            let v = &data[i][w as usize];
-            if let Some((c, x)) = v
+        let unstable = ws.active.par_iter().find_map_first(|&w| {
+            d(w)
                 .iter()
                 .enumerate()
                 .find(|(_, x)| !x.is_finite() || (nonneg && **x < -1e-9))
-            {
-                let t = ws.tiles[w as usize];
-                return Err(SimError::Unstable {
-                    script: s.spec.name.clone(),
-                    msg: format!(
-                        "channel '{}' = {x} at column ({}, {}); reduce dt (or enable sub-stepping)",
-                        s.spec.channels[i],
-                        t.x * TILE + (c as i32 % TILE),
-                        t.y * TILE + (c as i32 / TILE)
-                    ),
-                });
-            }
+                .map(|(c, x)| (w, c, *x))
+        });
+        if let Some((w, c, x)) = unstable {
+            let t = ws.tiles[w as usize];
+            return Err(SimError::Unstable {
+                script: s.spec.name.clone(),
+                msg: format!(
+                    "channel '{}' = {x} at column ({}, {}); reduce dt (or enable sub-stepping)",
+                    s.spec.channels[i],
+                    t.x * TILE + (c as i32 % TILE),
+                    t.y * TILE + (c as i32 / TILE)
+                ),
+            });
         }
     }
-    Ok(data
-        .into_iter()
-        .enumerate()
-        .filter(|(i, _)| written[*i])
-        .collect())
+    Ok((0..n).filter(|&i| written[i]).collect())
 }
 
 /// One tile of one pass in this thread's VM of the script (loaded on first
@@ -763,21 +796,25 @@ fn run_lua(
             vm.begin_step(dt, &s.spec, &s.params, key, &[])?;
             *prepared = serial;
         }
+        // Luau buffers hold little-endian f64s: on a little-endian machine
+        // the values' own bytes are copied straight in and out.
         let mut rb = [0u8; HALO_CELLS * 8];
         for &i in read_idx {
-            to_bytes(&reads[i], &mut rb);
-            vm.read_buffer(i).write_bytes(0, &rb);
+            vm.read_buffer(i).write_bytes(0, le_bytes(&reads[i], &mut rb));
         }
         let mut wb = [0u8; TILE_CELLS * 8];
         for &i in write_idx {
-            to_bytes(&writes[i], &mut wb);
-            vm.write_buffer(i).write_bytes(0, &wb);
+            vm.write_buffer(i).write_bytes(0, le_bytes(&writes[i], &mut wb));
         }
         vm.run(pass, &s.spec.passes[pass].name, t.x, t.y)?;
         for &i in write_idx {
             let bytes: [u8; TILE_CELLS * 8] = vm.write_buffer(i).read_bytes(0);
-            for (k, w) in writes[i].iter_mut().enumerate() {
-                *w = f64::from_le_bytes(bytes[k * 8..k * 8 + 8].try_into().expect("8 bytes"));
+            if cfg!(target_endian = "little") {
+                bytemuck::cast_slice_mut::<f64, u8>(&mut writes[i]).copy_from_slice(&bytes);
+            } else {
+                for (k, w) in writes[i].iter_mut().enumerate() {
+                    *w = f64::from_le_bytes(bytes[k * 8..k * 8 + 8].try_into().expect("8 bytes"));
+                }
             }
         }
         Ok(())
