@@ -32,7 +32,7 @@ use super::control::{
     CheckpointRef, Command, CommitRef, ControlServer, ParamStatus, ScriptStatus, Shared, Status,
 };
 use super::persistence::{self, DirtyChunks};
-use super::render_thread::{FrameJob, RenderSettings, RenderThread};
+use super::render_thread::{FrameJob, FrameWorld, RenderSettings, RenderThread};
 use super::state_dir::{self, StateLock};
 use super::timeline::{Row, Timeline};
 use super::world_config::{CameraMode, CameraSettings, WorldConfig};
@@ -138,6 +138,9 @@ pub struct Engine {
     dirty_pending: FxHashSet<IVec3>,
     /// Chunks changed since the last commit.
     dirty_chunks: DirtyChunks,
+    /// Whether the render thread holds its copy of the world (then frame
+    /// jobs carry only deltas).
+    mirror_sent: bool,
     paused: bool,
     steps_left: u64,
     notes: Vec<ScriptNotes>,
@@ -325,6 +328,7 @@ impl Engine {
             timeline_path: opts.state.join("timeline.csv"),
             dirty_pending: FxHashSet::default(),
             dirty_chunks,
+            mirror_sent: false,
             paused: false,
             steps_left: 0,
             notes: vec![ScriptNotes::default(); n],
@@ -512,17 +516,26 @@ impl Engine {
         let Ok(cam) = self.camera_at(tick) else {
             return;
         };
+        // The render thread keeps its own copy: the first job carries the
+        // world, every later one only the bricks that changed since.
         let copy = Instant::now();
-        let snapshot = self.world.clone();
+        let dirty: Vec<IVec3> = self.dirty_pending.drain().collect();
+        let full = !self.mirror_sent;
+        let world = if full {
+            FrameWorld::Full(Box::new(self.world.clone()))
+        } else {
+            FrameWorld::Delta(self.world.delta(&dirty))
+        };
         self.snapshot_ms = copy.elapsed().as_secs_f64() * 1e3;
         let job = FrameJob {
             tick,
-            world: snapshot,
-            dirty: self.dirty_pending.drain().collect(),
+            world,
+            dirty,
             camera: cam,
         };
-        if let Err(back) = self.renderer.offer(job) {
-            self.dirty_pending.extend(back);
+        match self.renderer.offer(job) {
+            Ok(()) => self.mirror_sent |= full,
+            Err(back) => self.dirty_pending.extend(back),
         }
     }
 

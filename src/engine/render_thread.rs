@@ -20,16 +20,26 @@ use glam::IVec3;
 
 use super::control::Shared;
 use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
-use crate::scene::SceneWorld;
+use crate::scene::{SceneWorld, WorldDelta};
 use crate::trace::{Camera, RenderOptions, render};
+
+/// The world a frame job brings: the whole of it once, then only what
+/// changed, applied to the render thread's own copy.
+#[derive(Debug)]
+pub enum FrameWorld {
+    /// A full copy (the first job).
+    Full(Box<SceneWorld>),
+    /// The changes since the previous job (O(changed bricks)).
+    Delta(WorldDelta),
+}
 
 /// One frame to draw.
 #[derive(Debug)]
 pub struct FrameJob {
     /// The tick the snapshot was taken at (names the PNG).
     pub tick: u64,
-    /// The world at that tick.
-    pub world: SceneWorld,
+    /// The world at that tick, whole or as a delta.
+    pub world: FrameWorld,
     /// Bricks changed since the last job the renderer took.
     pub dirty: Vec<IVec3>,
     /// Where to look from.
@@ -98,15 +108,33 @@ impl RenderThread {
                 let mut gpu: Option<(GpuContext, GpuBrickmap)> = None;
                 let mut gpu_tried = !settings.gpu;
                 let mut written = existing_frames(&settings.frames_dir);
+                // The render thread's own copy of the world, kept current by
+                // the jobs' deltas: the engine never copies the world again.
+                let mut mirror: Option<SceneWorld> = None;
                 for job in rx.iter() {
                     let t = Instant::now();
+                    match job.world {
+                        FrameWorld::Full(w) => mirror = Some(*w),
+                        FrameWorld::Delta(d) => match mirror.as_mut() {
+                            Some(m) => {
+                                m.apply_delta(d);
+                            }
+                            None => {
+                                eprintln!(
+                                    "warning: a frame delta came before the world; frame skipped"
+                                );
+                                continue;
+                            }
+                        },
+                    }
+                    let world = mirror.as_ref().expect("set above");
                     if !gpu_tried {
                         gpu_tried = true;
-                        gpu = start_gpu(&job.world);
+                        gpu = start_gpu(world);
                     } else if let Some((ctx, g)) = gpu.as_mut() {
-                        g.apply_edits(ctx, &job.world.grid, job.world.store.pool(), &job.dirty);
+                        g.apply_edits(ctx, &world.grid, world.store.pool(), &job.dirty);
                     }
-                    let rgb = draw(&mut gpu, &job, settings.shadows, &st);
+                    let rgb = draw(&mut gpu, world, &job.camera, settings.shadows, &st);
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
                     // Atomic (temp, rename): a full disk or a kill never leaves a
                     // truncated frame under a final name.
@@ -240,7 +268,8 @@ fn start_gpu(world: &SceneWorld) -> Option<(GpuContext, GpuBrickmap)> {
 
 fn draw(
     gpu: &mut Option<(GpuContext, GpuBrickmap)>,
-    job: &FrameJob,
+    world: &SceneWorld,
+    camera: &Camera,
     shadows: bool,
     stats: &RenderStats,
 ) -> Vec<u8> {
@@ -248,9 +277,8 @@ fn draw(
         shadows,
         ..Default::default()
     };
-    let world = &job.world;
     if let Some((ctx, g)) = gpu.as_mut() {
-        match g.render(ctx, &job.camera, &opts, &world.grid, world.store.pool()) {
+        match g.render(ctx, camera, &opts, &world.grid, world.store.pool()) {
             Ok((f, s)) => {
                 stats
                     .streamed
@@ -263,7 +291,7 @@ fn draw(
             }
         }
     }
-    render(&world.brickmap(), &job.camera, world.store.palette(), &opts).rgb
+    render(&world.brickmap(), camera, world.store.palette(), &opts).rgb
 }
 
 /// Encode an RGB8 image as PNG bytes.

@@ -18,6 +18,7 @@ use std::str::FromStr;
 
 use glam::{DVec3, IVec3};
 use indicatif::ProgressBar;
+use rayon::prelude::*;
 use thiserror::Error;
 
 pub use heightfield::{Heightfield, voxelize};
@@ -157,6 +158,18 @@ pub struct View {
     pub fov: f64,
 }
 
+/// The changes between two moments of a [`SceneWorld`], to keep a copy of
+/// it current (the render thread's) without copying the world.
+#[derive(Clone, Debug)]
+pub struct WorldDelta {
+    /// Changed bricks and their contents now.
+    pub bricks: Vec<(IVec3, crate::world::BrickContent)>,
+    /// The palette now.
+    pub palette: crate::world::Palette,
+    /// The materials now.
+    pub materials: MaterialRegistry,
+}
+
 /// A scene ready to trace: its store, bounds and brick grid.
 #[derive(Clone, Debug)]
 pub struct SceneWorld {
@@ -214,6 +227,32 @@ impl SceneWorld {
         let changed = self.store.take_modified();
         self.grid.apply_edits(&self.store, &changed);
         changed
+    }
+
+    /// What changed at `bricks` since a copy of this world was taken, for
+    /// that copy's owner to [`apply_delta`](Self::apply_delta): the bricks'
+    /// current contents, the palette and the materials. Costs O(bricks),
+    /// not O(world).
+    pub fn delta(&self, bricks: &[IVec3]) -> WorldDelta {
+        WorldDelta {
+            bricks: bricks
+                .par_iter()
+                .map(|b| (*b, self.store.content(*b)))
+                .collect(),
+            palette: self.store.palette().clone(),
+            materials: self.materials.clone(),
+        }
+    }
+
+    /// Bring a copy up to date with a [`delta`](Self::delta) of the world it
+    /// was copied from (grid patched); returns the bricks changed.
+    pub fn apply_delta(&mut self, delta: WorldDelta) -> Vec<IVec3> {
+        for (b, content) in delta.bricks {
+            self.store.set_brick(b, content);
+        }
+        *self.store.palette_mut() = delta.palette;
+        self.materials = delta.materials;
+        self.apply_edits()
     }
 
     /// Three documented viewpoints from the bounds: a distant overview, a

@@ -129,6 +129,19 @@ impl BrickStore {
         }
     }
 
+    /// Brick `b`'s content, as [`set_brick`](Self::set_brick) takes it.
+    pub fn content(&self, b: IVec3) -> BrickContent {
+        match self.cell(b) {
+            Cell::Empty => BrickContent::Empty,
+            Cell::Uniform(m) => BrickContent::Uniform(m),
+            Cell::Mixed(_) => {
+                let mut dense = [0u8; BRICK_VOXELS];
+                self.read_dense(b, &mut dense);
+                BrickContent::from_dense(&dense, &self.palette)
+            }
+        }
+    }
+
     /// Replace brick `b` wholesale and record the edit.
     pub fn set_brick(&mut self, b: IVec3, content: BrickContent) {
         self.tick += 1;
