@@ -98,6 +98,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Bench(BenchCommand::Sim(a)) => run_bench_sim(&a),
         Command::Bench(BenchCommand::Stream(a)) => run_bench_stream(&a),
         Command::Bench(BenchCommand::Voxels(a)) => run_bench_voxels(&a),
+        Command::Bench(BenchCommand::Store(a)) => run_bench_store(&a),
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }
@@ -296,6 +297,41 @@ fn bench_pool(steps: u32, threads: Option<usize>) -> Result<rayon::ThreadPool> {
 /// Most bricks `bench voxels` builds (each holds ~5 KB of materials and
 /// channels, in three worlds built one after another).
 const MAX_BENCH_VOXEL_BRICKS: i64 = 1 << 17;
+
+fn run_bench_store(a: &crate::cli::BenchStoreArgs) -> Result<()> {
+    let size = crate::config::parse_size(&a.size)?;
+    let bytes = size.x as i64 * size.y as i64 * size.z as i64;
+    if bytes > 1 << 34 {
+        anyhow::bail!("invalid --size {}: at most 2^34 voxels", a.size);
+    }
+    crate::scene::budget::check_world("the terrain", size)?;
+    if a.chunks == 0 || a.repeats == 0 || a.repeats > 100 {
+        anyhow::bail!("invalid --chunks/--repeats: at least 1 chunk, 1 to 100 repeats");
+    }
+    let pb = indicatif::ProgressBar::new_spinner().with_message("bench store");
+    pb.enable_steady_tick(std::time::Duration::from_millis(200));
+    let r = crate::bench::store::run(size, a.chunks, a.repeats, &a.dir)?;
+    pb.finish_and_clear();
+    std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
+        .with_context(|| format!("cannot write {}", a.json.display()))?;
+    println!(
+        "store on terrain {}x{}x{} ({} chunks): commit of {} chunks + {} columns {:.0} ms best ({:?}), {} bytes ({:.0} per blob); store file {} bytes; generate {:.0} ms, restore {:.0} ms",
+        r.size[0],
+        r.size[1],
+        r.size[2],
+        r.world_chunks,
+        r.chunks,
+        r.columns,
+        r.commit_best_ms,
+        r.commit_ms.iter().map(|m| m.round()).collect::<Vec<_>>(),
+        r.commit_bytes,
+        r.bytes_per_chunk,
+        r.store_file_bytes,
+        r.generate_ms,
+        r.restore_ms
+    );
+    Ok(())
+}
 
 fn run_bench_voxels(a: &crate::cli::BenchVoxelsArgs) -> Result<()> {
     let size = crate::config::parse_size(&a.size)?;

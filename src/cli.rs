@@ -188,6 +188,8 @@ pub enum BenchCommand {
     Stream(BenchStreamArgs),
     /// water3d's voxel updates per second: Lua, native and crossing cost; and what sleeping bricks cost.
     Voxels(BenchVoxelsArgs),
+    /// Commit and restore costs of the chunked world store on a terrain.
+    Store(BenchStoreArgs),
 }
 
 /// `brickworld bench voxels`.
@@ -205,6 +207,26 @@ pub struct BenchVoxelsArgs {
     /// Worker threads (default: all cores)
     #[arg(long)]
     pub threads: Option<usize>,
+}
+
+/// `brickworld bench store`.
+#[derive(Debug, Args)]
+pub struct BenchStoreArgs {
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Terrain size XxYxZ in voxels
+    #[arg(long, default_value = "2048x256x2048")]
+    pub size: String,
+    /// Dirty chunks per commit
+    #[arg(long, default_value_t = 1000)]
+    pub chunks: usize,
+    /// Commits to time
+    #[arg(long, default_value_t = 3)]
+    pub repeats: usize,
+    /// Scratch directory for the store (removed afterwards)
+    #[arg(long, default_value = "bench-store")]
+    pub dir: PathBuf,
 }
 
 /// `brickworld bench stream`.

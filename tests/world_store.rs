@@ -270,3 +270,55 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no world store"));
 }
+
+#[test]
+fn bench_store_writes_the_documented_json_keys_and_refuses_bad_sizes() {
+    let dir = common::cli::tmp("benchstore", "d");
+    let json = common::cli::tmp("benchstore", "store.json");
+    let out = bin()
+        .args([
+            "bench",
+            "store",
+            "--size",
+            "192x64x192",
+            "--chunks",
+            "5",
+            "--repeats",
+            "2",
+        ])
+        .arg("--json")
+        .arg(&json)
+        .arg("--dir")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let r = common::cli::read_json(&json);
+    for k in [
+        "world_chunks",
+        "chunks",
+        "columns",
+        "commit_ms",
+        "commit_best_ms",
+        "commit_bytes",
+        "store_file_bytes",
+        "restore_ms",
+    ] {
+        assert!(r.get(k).is_some(), "missing {k} in {r}");
+    }
+    assert_eq!(r["world_chunks"], 9);
+    assert_eq!(r["chunks"], 5);
+    assert!(!dir.exists(), "the scratch store is removed");
+    for (size, needle) in [
+        ("0x64x64", "size"),
+        ("99999999x256x99999", "limit"),
+        ("65536x4096x65536", "voxels"),
+    ] {
+        let out = bin()
+            .args(["bench", "store", "--size", size, "--json"])
+            .arg(&json)
+            .output()
+            .unwrap();
+        common::cli::assert_clear_failure(&out, size, needle);
+    }
+}

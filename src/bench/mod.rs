@@ -4,6 +4,7 @@
 pub mod chart;
 pub mod sim;
 pub mod soak;
+pub mod store;
 pub mod stream;
 pub mod tracers;
 pub mod voxels;

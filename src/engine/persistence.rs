@@ -73,6 +73,11 @@ impl DirtyChunks {
         }
     }
 
+    /// The dirty chunks' keys (in no particular order).
+    pub fn chunk_keys(&self) -> Vec<ChunkKey> {
+        self.chunks.iter().copied().collect()
+    }
+
     /// Dirty chunks plus dirty chunk columns.
     pub fn len(&self) -> usize {
         self.chunks.len() + self.columns.len()

@@ -145,7 +145,6 @@ struct WorkSet {
 
 const OUTSIDE: u32 = u32::MAX;
 
-
 impl WorkSet {
     fn new(active: &[TileCoord], min: TileCoord, max: TileCoord) -> Self {
         let inside = |t: TileCoord| t.cmpge(min).all() && t.cmplt(max).all();
@@ -730,11 +729,7 @@ fn run_script(
         };
         let d = |w: u32| &data[w as usize * n + i];
         let out_of_bounds = ws.active.par_iter().find_map_first(|&w| {
-            match d(w)
-                .iter()
-                .enumerate()
-                .find(|(_, x)| **x < lo || **x > hi)
-            {
+            match d(w).iter().enumerate().find(|(_, x)| **x < lo || **x > hi) {
                 Some((c, x)) if x.is_finite() => Some((w, c, *x)),
                 _ => None,
             }
@@ -754,8 +749,7 @@ fn run_script(
             });
         }
         let unstable = ws.active.par_iter().find_map_first(|&w| {
-            d(w)
-                .iter()
+            d(w).iter()
                 .enumerate()
                 .find(|(_, x)| !x.is_finite() || (nonneg && **x < -1e-9))
                 .map(|(c, x)| (w, c, *x))
@@ -800,11 +794,13 @@ fn run_lua(
         // the values' own bytes are copied straight in and out.
         let mut rb = [0u8; HALO_CELLS * 8];
         for &i in read_idx {
-            vm.read_buffer(i).write_bytes(0, le_bytes(&reads[i], &mut rb));
+            vm.read_buffer(i)
+                .write_bytes(0, le_bytes(&reads[i], &mut rb));
         }
         let mut wb = [0u8; TILE_CELLS * 8];
         for &i in write_idx {
-            vm.write_buffer(i).write_bytes(0, le_bytes(&writes[i], &mut wb));
+            vm.write_buffer(i)
+                .write_bytes(0, le_bytes(&writes[i], &mut wb));
         }
         vm.run(pass, &s.spec.passes[pass].name, t.x, t.y)?;
         for &i in write_idx {
