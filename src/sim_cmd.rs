@@ -68,9 +68,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
             }
             cells += r.active_tiles as u64 * 64 * n as u64;
             last_active = r.active_tiles;
-            for batch in ws.dirty.try_iter() {
-                bricks += batch.bricks.len();
-            }
+            bricks += r.bricks.len();
             if let Some(e) = r.errors.into_iter().next()
                 && failed.is_empty()
             {

@@ -238,9 +238,7 @@ fn a_running_snow_simulation_drives_re_streaming() {
     for _ in 0..12 {
         let r = ws.step(&mut w, 0.2);
         assert!(r.errors.is_empty());
-        for batch in ws.dirty.try_iter() {
-            gpu.apply_edits(&ctx, &w.grid, w.store.pool(), &batch.bricks);
-        }
+        gpu.apply_edits(&ctx, &w.grid, w.store.pool(), &r.bricks);
         let (_, s) = draw(&ctx, &mut gpu, &w, &cam);
         uploads += s.uploads;
     }

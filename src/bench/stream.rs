@@ -189,9 +189,7 @@ pub fn run(
             anyhow::bail!("the snow simulation failed: {e}");
         }
         let t = Instant::now();
-        for batch in ws.dirty.try_iter() {
-            gpu.apply_edits(&ctx, &world.grid, world.store.pool(), &batch.bricks);
-        }
+        gpu.apply_edits(&ctx, &world.grid, world.store.pool(), &r.bricks);
         gpu.render(&ctx, &cam, &opts, &world.grid, world.store.pool())?;
         editing_ms.push(t.elapsed().as_secs_f64() * 1e3);
         progress.inc(1);

@@ -358,7 +358,7 @@ impl Engine {
             self.apply_commands();
             if self.should_step() {
                 let report = self.step();
-                self.collect_dirty();
+                self.collect_dirty(&report);
                 self.offer_frame();
                 self.periodic_commit();
                 self.record_timeline(&report);
@@ -495,11 +495,9 @@ impl Engine {
 
     /// The step's changed bricks, in one hop each into the renderer's
     /// pending set and the store's dirty chunks.
-    fn collect_dirty(&mut self) {
-        for batch in self.ws.dirty.try_iter() {
-            self.dirty_chunks.bricks(&batch.bricks);
-            self.dirty_pending.extend(batch.bricks);
-        }
+    fn collect_dirty(&mut self, report: &StepReport) {
+        self.dirty_chunks.bricks(&report.bricks);
+        self.dirty_pending.extend(report.bricks.iter().copied());
     }
 
     /// Every `frames.every` ticks: hand the renderer a snapshot if it is

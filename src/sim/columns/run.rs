@@ -1,10 +1,7 @@
 //! A simulation running on a scene: the column simulation, the voxel
-//! coupling, and the editing queue that publishes each step's dirty bricks.
+//! coupling, and each step's changed bricks, handed to the caller in its report.
 
 use std::path::Path;
-
-use crossbeam_channel::{Receiver, Sender, unbounded};
-use glam::IVec3;
 
 use crate::scene::SceneWorld;
 use crate::sim::script::Grid;
@@ -15,15 +12,6 @@ use crate::sim::writeback::{
 };
 use crate::sim::{Limits, ScriptSource, SimError};
 use crate::sim::{ScriptSpec, ScriptVm};
-
-/// One step's dirty bricks, each listed once.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct DirtyBatch {
-    /// Step number (1 for the first step).
-    pub tick: u64,
-    /// Bricks whose voxels changed in this step.
-    pub bricks: Vec<IVec3>,
-}
 
 /// A simulation coupled to a scene's voxels.
 pub struct WorldSim {
@@ -39,9 +27,6 @@ pub struct WorldSim {
     /// Water that left the world over its edges (rain falling on the moat
     /// itself is counted here too).
     pub drained: f64,
-    queue: Sender<DirtyBatch>,
-    /// The editing queue's receiving end (the renderer's).
-    pub dirty: Receiver<DirtyBatch>,
 }
 
 /// Read a script file into a source named after its stem.
@@ -119,7 +104,6 @@ impl WorldSim {
             let _ = world.materials.register_at(id, name, def);
         }
         let vox = VoxelSim::new(&world.store, lo, hi, 0);
-        let (queue, dirty) = unbounded();
         WorldSim {
             sim,
             vox,
@@ -127,8 +111,6 @@ impl WorldSim {
             world_tiles: (tmin, tmax),
             drain,
             drained: 0.0,
-            queue,
-            dirty,
         }
     }
 
@@ -357,29 +339,20 @@ impl WorldSim {
         report.changed_tiles.sort_by_key(|t| (t.y, t.x));
         report.changed_tiles.dedup();
         self.voxel_step(world, dt, tick, &mut bricks, &mut report);
-        self.publish(bricks);
+        publish(&mut report, bricks);
         (report, n)
     }
 
     /// One step: the columns (written back into bricks), then the voxel
-    /// scripts; the changed bricks go to the grid and the editing queue.
+    /// scripts; the changed bricks go to the grid and the report's
+    /// [`bricks`](StepReport::bricks).
     pub fn step(&mut self, world: &mut SceneWorld, dt: f64) -> StepReport {
         let tick = self.sim.tick();
         let mut bricks = Vec::new();
         let mut report = self.column_step(world, dt, &mut bricks);
         self.voxel_step(world, dt, tick, &mut bricks, &mut report);
-        self.publish(bricks);
+        publish(&mut report, bricks);
         report
-    }
-
-    fn publish(&mut self, mut bricks: Vec<glam::IVec3>) {
-        bricks.sort_by_key(|b| (b.z, b.y, b.x));
-        bricks.dedup();
-        // The receiver lives in `self`, so sending cannot fail.
-        let _ = self.queue.send(DirtyBatch {
-            tick: self.sim.tick(),
-            bricks,
-        });
     }
 
     /// The voxel scripts at `tick`, after telling them which bricks the
@@ -447,4 +420,11 @@ impl WorldSim {
         bricks.extend(world.apply_edits());
         report
     }
+}
+
+/// The step's changed bricks into its report, sorted and each once.
+fn publish(report: &mut StepReport, mut bricks: Vec<glam::IVec3>) {
+    bricks.sort_by_key(|b| (b.z, b.y, b.x));
+    bricks.dedup();
+    report.bricks = bricks;
 }

@@ -94,6 +94,10 @@ pub struct StepReport {
     /// Milliseconds each column script took (script order; 0 if it did not
     /// run).
     pub script_ms: Vec<f64>,
+    /// Bricks whose voxels changed in this step, sorted, each once (set by
+    /// `WorldSim`'s steps): the step's editing batch, handed to the caller in
+    /// one hop for its renderer and store to take.
+    pub bricks: Vec<glam::IVec3>,
 }
 
 /// The simulation state: channels, scripts, active set.

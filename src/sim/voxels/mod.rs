@@ -2,7 +2,7 @@
 //! bricks. A kernel sees its brick's materials and declared per-voxel
 //! channels with a one-voxel halo (10³) and writes its own 8³ cells;
 //! materials it changes go through the store's recorded edit path, so they
-//! reach the editing queue and the renderer like any edit.
+//! reach the step report's bricks and the renderer like any edit.
 //!
 //! - [`halo`]: gathering a brick's halo from its 27-brick neighbourhood.
 //! - [`channels`]: sparse per-brick `f32` channels.
