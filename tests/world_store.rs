@@ -322,3 +322,61 @@ fn bench_store_writes_the_documented_json_keys_and_refuses_bad_sizes() {
         common::cli::assert_clear_failure(&out, size, needle);
     }
 }
+
+/// A full disk (the store's file cannot grow: a test hook in the store's
+/// storage backend) keeps the engine running; the failure is reported once,
+/// every later commit retries, the stop fails with one line, and the store
+/// still holds its last good commit, exactly the world a run that never
+/// failed had at that tick.
+#[test]
+fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
+    let (cfg, state, _) = setup("fulldisk");
+    edit_config(&cfg, "rain = 0.2", "rain = 2.0");
+    edit_config(&cfg, "[checkpoint]\nevery = 40", "[checkpoint]\nevery = 10");
+    hash_at(&cfg, &state, 20);
+    let size = std::fs::metadata(state.join("world.redb")).unwrap().len();
+    let out = run_cmd(&cfg, &state)
+        .env("BRICKWORLD_TEST_DISK_LIMIT", size.to_string())
+        .arg("--until-tick")
+        .arg("300")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "the final commit cannot succeed: {err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(
+        err.matches("No space left on device").count(),
+        2,
+        "reported once while running, once at the stop: {err}"
+    );
+    assert!(
+        err.lines()
+            .last()
+            .unwrap()
+            .starts_with("error: the final commit failed (the previous commit is kept)"),
+        "{err}"
+    );
+    // It stopped only at tick 300 (`--until-tick`), when the final commit
+    // failed too: no "stopped" line.
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(!said.contains("stopped at tick"), "{said}");
+    let tick = stored_tick(&cfg, &state).unwrap();
+    assert!((20..300).contains(&tick), "{tick}");
+    // What is on disk is exactly the world at that tick.
+    let err = stderr_of_ticks(&cfg, &state, 1);
+    let resumed = err
+        .lines()
+        .find(|l| l.starts_with("resumed"))
+        .unwrap_or_else(|| panic!("{err}"))
+        .to_string();
+    let (cfg2, state2, _) = setup("fulldisk-straight");
+    edit_config(&cfg2, "rain = 0.2", "rain = 2.0");
+    let straight = hash_at(&cfg2, &state2, tick);
+    assert!(
+        resumed.contains(&format!("at tick {tick} ")) && resumed.contains(&straight),
+        "{resumed} vs straight {straight}"
+    );
+}

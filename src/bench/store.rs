@@ -61,7 +61,7 @@ pub fn run(size: IVec3, chunks: usize, repeats: usize, dir: &Path) -> Result<Sto
     let generate_ms = t.elapsed().as_secs_f64() * 1e3;
     let mut ws = WorldSim::with_edges(&mut world, true);
     ws.sim.channels_mut().take_dirty();
-    let (db, _) = WorldDb::open(dir, &identity)?;
+    let (mut db, _) = WorldDb::open(dir, &identity)?;
     let mut all = DirtyChunks::default();
     all.everything(&world, &ws);
     let world_chunks = all.chunk_keys().len();
@@ -86,7 +86,7 @@ pub fn run(size: IVec3, chunks: usize, repeats: usize, dir: &Path) -> Result<Sto
             }
         }
         let t = Instant::now();
-        last = commit(&db, &mut dirty, &world, &mut ws)?;
+        last = commit(&mut db, &mut dirty, &world, &mut ws)?;
         commit_ms.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let store_file_bytes = db.file_bytes();

@@ -188,11 +188,11 @@ impl Engine {
             .context("cannot install the SIGINT/SIGTERM handler")?;
         }
         let identity = cfg.identity();
-        let (db, warnings) = WorldDb::open(&opts.state, &identity)?;
+        let (mut db, warnings) = WorldDb::open(&opts.state, &identity)?;
         for w in &warnings {
             eprintln!("warning: {w}");
         }
-        if let Some((path, tick)) = persistence::migrate_legacy(&db, &opts.state, &identity)? {
+        if let Some((path, tick)) = persistence::migrate_legacy(&mut db, &opts.state, &identity)? {
             eprintln!(
                 "migrated the checkpoint {} (tick {tick}) into the world store {}; the old checkpoint files are no longer read and can be deleted",
                 path.display(),
@@ -575,8 +575,16 @@ impl Engine {
     /// and loses nothing committed before.
     fn commit(&mut self) {
         let start = Instant::now();
-        match persistence::commit(&self.db, &mut self.dirty_chunks, &self.world, &mut self.ws) {
+        match persistence::commit(
+            &mut self.db,
+            &mut self.dirty_chunks,
+            &self.world,
+            &mut self.ws,
+        ) {
             Ok(st) => {
+                if self.commit_error.is_some() {
+                    eprintln!("committing again: nothing was lost");
+                }
                 self.last_commit = Some(CommitRef {
                     tick: self.ws.sim.tick(),
                     chunks: st.chunks,
@@ -587,8 +595,13 @@ impl Engine {
                 self.commit_error = None;
             }
             Err(e) => {
-                eprintln!("warning: {e}");
-                self.commit_error = Some(e.to_string());
+                // Once per distinct failure (a full disk fails every
+                // interval); `/status` always shows the current one.
+                let msg = e.to_string();
+                if self.commit_error.as_deref() != Some(msg.as_str()) {
+                    eprintln!("warning: {msg}; retrying at every commit");
+                }
+                self.commit_error = Some(msg);
             }
         }
     }
@@ -709,7 +722,7 @@ impl Engine {
             s.stop();
         }
         if let Some(e) = &self.commit_error {
-            bail!("the final commit failed (the previous commit is kept): {e}");
+            bail!("the final {e}");
         }
         let hash = persistence::engine_hash(&self.world, &self.ws);
         println!(

@@ -121,7 +121,7 @@ pub fn sim_state(world: &SceneWorld, ws: &WorldSim) -> (ScriptParams, SimExtras)
 /// Commit what changed (and the simulation state) in one transaction. On
 /// failure nothing is written and `dirty` keeps everything for the next try.
 pub fn commit(
-    db: &WorldDb,
+    db: &mut WorldDb,
     dirty: &mut DirtyChunks,
     world: &SceneWorld,
     ws: &mut WorldSim,
@@ -274,7 +274,7 @@ pub fn engine_hash(world: &SceneWorld, ws: &WorldSim) -> u64 {
 /// Write the whole of a store's world into a fresh store: every chunk and
 /// chunk column of its bounds (an empty chunk overrides the source's) and
 /// the state. Used by [`import`] and [`migrate_legacy`].
-fn write_everything(db: &WorldDb, st: WorldState) -> Result<CommitStats> {
+fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
     let mut world = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)
         .context("the imported world does not fit a brick grid")?;
     if !st.extras.materials.is_empty() {
@@ -323,15 +323,15 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
             dir.display()
         );
     }
-    let (db, _) = WorldDb::open(dir, identity)?;
-    write_everything(&db, st)
+    let (mut db, _) = WorldDb::open(dir, identity)?;
+    write_everything(&mut db, st)
 }
 
 /// A state directory of an earlier version holds whole-world checkpoints
 /// and no store: write the newest good one into the store. Returns what was
 /// migrated (None: nothing to migrate). The old files are left in place.
 pub fn migrate_legacy(
-    db: &WorldDb,
+    db: &mut WorldDb,
     dir: &Path,
     identity: &WorldIdentity,
 ) -> Result<Option<(std::path::PathBuf, u64)>> {

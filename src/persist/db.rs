@@ -89,7 +89,7 @@ pub enum StoreError {
         msg: String,
     },
     /// A commit failed; nothing of it is on disk.
-    #[error("commit failed, the previous commit is kept: {0}")]
+    #[error("commit failed (the previous commit is kept): {0}")]
     Commit(String),
 }
 
@@ -168,10 +168,126 @@ fn check_manifest(
     Ok(m)
 }
 
+/// `BRICKWORLD_TEST_DISK_LIMIT`: the store's file cannot grow past this many
+/// bytes, as on a full disk (writes past it fail with "No space left on
+/// device"), so the tests can fill the disk without filling the machine's.
+/// Unset in normal use.
+fn disk_limit() -> Option<u64> {
+    std::env::var("BRICKWORLD_TEST_DISK_LIMIT")
+        .ok()
+        .and_then(|v| v.parse().ok())
+}
+
+/// Open (or create) the database file, on a limited disk under the test
+/// hook.
+fn open_db(path: &Path) -> Result<redb::Database, redb::Error> {
+    match disk_limit() {
+        None => Ok(redb::Database::create(path)?),
+        Some(limit) => {
+            let file = std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .open(path)?;
+            let inner = redb::backends::FileBackend::new(file)?;
+            Ok(redb::Builder::new().create_with_backend(DiskLimit { inner, limit })?)
+        }
+    }
+}
+
+/// A file backend on a disk with `limit` bytes for this file.
+#[derive(Debug)]
+struct DiskLimit {
+    inner: redb::backends::FileBackend,
+    limit: u64,
+}
+
+impl DiskLimit {
+    fn check(&self, end: u64) -> std::io::Result<()> {
+        if end > self.limit {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::StorageFull,
+                "No space left on device (test disk limit)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl redb::StorageBackend for DiskLimit {
+    fn len(&self) -> std::io::Result<u64> {
+        self.inner.len()
+    }
+    fn read(&self, offset: u64, out: &mut [u8]) -> std::io::Result<()> {
+        self.inner.read(offset, out)
+    }
+    fn set_len(&self, len: u64) -> std::io::Result<()> {
+        self.check(len)?;
+        self.inner.set_len(len)
+    }
+    fn sync_data(&self) -> std::io::Result<()> {
+        self.inner.sync_data()
+    }
+    fn write(&self, offset: u64, data: &[u8]) -> std::io::Result<()> {
+        self.check(offset + data.len() as u64)?;
+        self.inner.write(offset, data)
+    }
+    fn close(&self) -> std::io::Result<()> {
+        self.inner.close()
+    }
+    fn try_lock_range(
+        &self,
+        start: std::ops::Bound<u64>,
+        end: std::ops::Bound<u64>,
+    ) -> Result<bool, redb::BackendError> {
+        self.inner.try_lock_range(start, end)
+    }
+    fn try_lock_shared_range(
+        &self,
+        start: std::ops::Bound<u64>,
+        end: std::ops::Bound<u64>,
+    ) -> Result<bool, redb::BackendError> {
+        self.inner.try_lock_shared_range(start, end)
+    }
+    fn lock_range(
+        &self,
+        start: std::ops::Bound<u64>,
+        end: std::ops::Bound<u64>,
+    ) -> Result<(), redb::BackendError> {
+        self.inner.lock_range(start, end)
+    }
+    fn lock_shared_range(
+        &self,
+        start: std::ops::Bound<u64>,
+        end: std::ops::Bound<u64>,
+    ) -> Result<(), redb::BackendError> {
+        self.inner.lock_shared_range(start, end)
+    }
+    fn unlock_range(
+        &self,
+        start: std::ops::Bound<u64>,
+        end: std::ops::Bound<u64>,
+    ) -> Result<(), redb::BackendError> {
+        self.inner.unlock_range(start, end)
+    }
+    fn query_lock_range(
+        &self,
+        start: std::ops::Bound<u64>,
+        end: std::ops::Bound<u64>,
+    ) -> Result<bool, redb::BackendError> {
+        self.inner.query_lock_range(start, end)
+    }
+}
+
 /// An open world store.
 pub struct WorldDb {
-    db: redb::Database,
+    /// None only after a failed commit whose reopen failed too.
+    db: Option<redb::Database>,
     path: PathBuf,
+    /// A commit failed: redb refuses every later write until the database
+    /// is reopened, so the next commit reopens it first.
+    failed: bool,
 }
 
 impl std::fmt::Debug for WorldDb {
@@ -212,10 +328,11 @@ impl WorldDb {
             path: path.clone(),
             msg: e.to_string(),
         };
-        let db = redb::Database::create(&path).map_err(|e| db_err(e.into()))?;
+        let db = open_db(&path).map_err(db_err)?;
         let this = WorldDb {
-            db,
+            db: Some(db),
             path: path.clone(),
+            failed: false,
         };
         let mut warnings = Vec::new();
         let stored = this.meta("manifest")?;
@@ -281,6 +398,13 @@ impl WorldDb {
         &self.path
     }
 
+    fn db(&self) -> Result<&redb::Database, StoreError> {
+        self.db.as_ref().ok_or_else(|| StoreError::Db {
+            path: self.path.clone(),
+            msg: "the database could not be reopened after a failed commit".into(),
+        })
+    }
+
     fn err(&self, e: impl Into<redb::Error>) -> StoreError {
         StoreError::Db {
             path: self.path.clone(),
@@ -289,7 +413,7 @@ impl WorldDb {
     }
 
     fn meta(&self, key: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let table = match tx.open_table(META) {
             Ok(t) => t,
             Err(redb::TableError::TableDoesNotExist(_)) => return Ok(None),
@@ -300,7 +424,7 @@ impl WorldDb {
     }
 
     fn put_meta(&self, key: &str, value: &[u8]) -> Result<(), StoreError> {
-        let mut tx = self.db.begin_write().map_err(|e| self.err(e))?;
+        let mut tx = self.db()?.begin_write().map_err(|e| self.err(e))?;
         tx.set_quick_repair(true);
         {
             let mut t = tx.open_table(META).map_err(|e| self.err(e))?;
@@ -332,7 +456,7 @@ impl WorldDb {
         def: TableDefinition<&[u8], &[u8]>,
         parse: impl Fn(&[u8]) -> Option<K>,
     ) -> Result<Vec<K>, StoreError> {
-        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let table = tx.open_table(def).map_err(|e| self.err(e))?;
         let mut out = Vec::new();
         for entry in table.iter().map_err(|e| self.err(e))? {
@@ -365,7 +489,7 @@ impl WorldDb {
         def: TableDefinition<&[u8], &[u8]>,
         key: &[u8],
     ) -> Result<Option<Vec<u8>>, StoreError> {
-        let tx = self.db.begin_read().map_err(|e| self.err(e))?;
+        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
         let table = tx.open_table(def).map_err(|e| self.err(e))?;
         let v = table.get(key).map_err(|e| self.err(e))?;
         Ok(v.map(|g| g.value().to_vec()))
@@ -373,7 +497,27 @@ impl WorldDb {
 
     /// Write `chunks`, `columns` and the `state` blob in one durable
     /// transaction: all of it or (on error) none of it.
+    ///
+    /// After a failed commit (a full disk) redb refuses every write until
+    /// the database is reopened; this commit reopens it first, so writing
+    /// resumes as soon as there is room again.
     pub fn commit(
+        &mut self,
+        chunks: &[(ChunkKey, Vec<u8>)],
+        columns: &[(ColumnKey, Vec<u8>)],
+        state: &[u8],
+    ) -> Result<CommitStats, StoreError> {
+        if self.failed {
+            self.db = None; // closes the file before it is opened again
+            self.db = Some(open_db(&self.path).map_err(|e| StoreError::Commit(e.to_string()))?);
+            self.failed = false;
+        }
+        let r = self.try_commit(chunks, columns, state);
+        self.failed = r.is_err();
+        r
+    }
+
+    fn try_commit(
         &self,
         chunks: &[(ChunkKey, Vec<u8>)],
         columns: &[(ColumnKey, Vec<u8>)],
@@ -381,7 +525,7 @@ impl WorldDb {
     ) -> Result<CommitStats, StoreError> {
         let t = Instant::now();
         let fail = |e: redb::Error| StoreError::Commit(e.to_string());
-        let mut tx = self.db.begin_write().map_err(|e| fail(e.into()))?;
+        let mut tx = self.db()?.begin_write().map_err(|e| fail(e.into()))?;
         // Quick repair: one more fsync per commit, and reopening after a
         // crash reads the allocator state instead of scanning the whole file
         // (2–9 ms instead of 70–240 ms for a 263 MB store; tools/store-compare).
