@@ -290,3 +290,60 @@ fn column_write_back_never_fills_a_cave_or_an_overhangs_underside() {
         "nothing under the overhang"
     );
 }
+
+/// A simulation region: only its tiles step, everything outside keeps its
+/// exact values, and its edge is a wall, so the rain that fell inside is
+/// all the water there is.
+#[test]
+fn a_simulation_region_steps_only_inside_and_its_edge_is_a_wall() {
+    use brickworld::scene::{SceneSpec, build_scene};
+    use brickworld::sim::{Limits, ScriptSource, WorldSim};
+    let mut world = build_scene(
+        &SceneSpec::Terrain { caves: false },
+        glam::IVec3::new(64, 48, 64),
+        5,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    let src = ScriptSource {
+        name: "water".into(),
+        text: include_str!("../scripts/water.lua").into(),
+    };
+    let id = ws.add_lua(src, Limits::default()).unwrap();
+    ws.set_param(id, "rain", 0.5).unwrap();
+    let (lo, hi) = (glam::IVec2::new(2, 1), glam::IVec2::new(6, 4));
+    ws.sim.set_region(Some((lo, hi)));
+    let water = ws.sim.channels().find("water").unwrap();
+    let ground = ws.sim.channels().find("ground").unwrap();
+    let (tmin, tmax) = ws.sim.tile_bounds();
+    let outside = |ws: &WorldSim| {
+        let mut v = Vec::new();
+        for z in tmin.y..tmax.y {
+            for x in tmin.x..tmax.x {
+                let t = glam::IVec2::new(x, z);
+                if !(t.cmpge(lo).all() && t.cmplt(hi).all()) {
+                    for ch in [water, ground] {
+                        v.push(ws.sim.channels().get(t, ch).copied());
+                    }
+                }
+            }
+        }
+        v
+    };
+    let before = outside(&ws);
+    let (steps, dt) = (20, 0.05);
+    for _ in 0..steps {
+        let r = ws.step(&mut world, dt);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+        assert!(r.active_tiles <= ((hi - lo).x * (hi - lo).y) as usize);
+    }
+    assert!(outside(&ws) == before, "a tile outside the region changed");
+    let total = ws.sim.channels().total(water);
+    let rained = steps as f64 * 0.5 * dt * ((hi - lo).x * (hi - lo).y * 64) as f64;
+    assert!(
+        (total - rained).abs() <= 1e-9 * rained,
+        "water {total} against {rained} rained inside: it crossed the edge"
+    );
+    assert_eq!(ws.drained, 0.0);
+}

@@ -67,6 +67,22 @@ fn bad_configs_name_the_file_field_and_reason() {
             "sim.dt",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[sim]\nradius = 64.0\nregion = { min = [0, 0], max = [8, 8] }\n",
+            "not both",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[sim]\nregion = { min = [8, 0], max = [8, 8] }\n",
+            "sim.region",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[sim]\nradius = 2.0\n",
+            "sim.radius",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[sim]\nregion = { min = [0, 0] }\n",
+            "missing field `max`",
+        ),
+        (
             "[world]\nsource = \"terrain\"\n[[scripts]]\nfile = \"../evil.lua\"\n",
             "scripts[0].file",
         ),

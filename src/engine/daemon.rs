@@ -35,7 +35,7 @@ use super::persistence::{self, DirtyChunks};
 use super::render_thread::{FrameJob, FrameWorld, RenderSettings, RenderThread};
 use super::state_dir::{self, StateLock};
 use super::timeline::{Row, Timeline};
-use super::world_config::{CameraMode, CameraSettings, WorldConfig};
+use super::world_config::{CameraMode, CameraSettings, SimRegion, WorldConfig};
 use crate::persist::WorldDb;
 use crate::progress::bar;
 use crate::scene::{SceneWorld, build_scene};
@@ -460,6 +460,8 @@ impl Engine {
         if self.paused {
             self.steps_left -= 1;
         }
+        let region = self.sim_region();
+        self.ws.sim.set_region(region);
         let (r, _) = self.ws.step_within_cfl(&mut self.world, self.cfg.dt, 0.5);
         for (i, n) in self.notes.iter_mut().enumerate() {
             if self.ws.failures(i) == 0 && self.ws.suspended(i).is_none() {
@@ -534,6 +536,26 @@ impl Engine {
         match self.renderer.offer(job) {
             Ok(()) => self.mirror_sent |= full,
             Err(back) => self.dirty_pending.extend(back),
+        }
+    }
+
+    /// The tiles the column scripts run on this tick (`[sim] region` or
+    /// `radius` around the camera's eye), None for everywhere.
+    fn sim_region(&self) -> Option<(glam::IVec2, glam::IVec2)> {
+        let tile = |x: f64| (x.floor() as i64).div_euclid(8).clamp(-(1 << 28), 1 << 28) as i32;
+        match self.cfg.sim_region {
+            SimRegion::Everywhere => None,
+            SimRegion::Box { min, max } => Some((
+                glam::IVec2::new(tile(min.x as f64), tile(min.y as f64)),
+                glam::IVec2::new(tile(max.x as f64 - 1.0) + 1, tile(max.y as f64 - 1.0) + 1),
+            )),
+            SimRegion::AroundCamera { radius } => {
+                let eye = self.camera_at(self.ws.sim.tick()).ok()?.eye;
+                Some((
+                    glam::IVec2::new(tile(eye.x - radius), tile(eye.z - radius)),
+                    glam::IVec2::new(tile(eye.x + radius) + 1, tile(eye.z + radius) + 1),
+                ))
+            }
         }
     }
 
@@ -710,6 +732,11 @@ impl Engine {
             commit_error: self.commit_error.clone(),
             dirty_chunks: self.dirty_chunks.len(),
             store_bytes: self.db.file_bytes(),
+            sim_region: self
+                .ws
+                .sim
+                .region()
+                .map(|(a, b)| [a.x * 8, a.y * 8, b.x * 8, b.y * 8]),
         };
     }
 

@@ -11,6 +11,8 @@
 //! [sim]
 //! dt = 0.05
 //! scripts_dir = "scripts"
+//! # region = { min = [0, 0], max = [512, 512] }  # columns (x, z) the column scripts run on
+//! # radius = 256.0            # or: a square of this half-side around the camera's eye
 //!
 //! [[scripts]]
 //! file = "water.lua"
@@ -128,6 +130,15 @@ struct RawWorld {
 struct RawSim {
     dt: Option<f64>,
     scripts_dir: Option<String>,
+    region: Option<RawRegion>,
+    radius: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawRegion {
+    min: [i64; 2],
+    max: [i64; 2],
 }
 
 #[derive(Debug, Deserialize)]
@@ -211,6 +222,27 @@ pub enum CameraMode {
     },
 }
 
+/// Where the column scripts run; outside it the world keeps its state and
+/// the region's edge is a wall (nothing flows across it, so what the
+/// scripts conserve stays conserved).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SimRegion {
+    /// The whole world.
+    Everywhere,
+    /// Columns `[min, max)` in voxels, (x, z).
+    Box {
+        /// First column.
+        min: glam::IVec2,
+        /// One past the last column.
+        max: glam::IVec2,
+    },
+    /// Columns within this many voxels (a square) of the camera's eye.
+    AroundCamera {
+        /// Half the square's side, in voxels.
+        radius: f64,
+    },
+}
+
 /// The camera: `None` eye/target means the scene's medium default view.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CameraSettings {
@@ -237,6 +269,8 @@ pub struct WorldConfig {
     pub dt: f64,
     /// Scripts directory (relative paths resolve against the config's directory).
     pub scripts_dir: PathBuf,
+    /// Where the column scripts run (`[sim] region` or `radius`).
+    pub sim_region: SimRegion,
     /// Take the scripts from the binary ([`crate::sim::embedded`]) instead
     /// of `scripts_dir`: true for the embedded default world, so it runs
     /// from any directory.
@@ -352,6 +386,43 @@ impl WorldConfig {
             return Err(err("sim.dt", format!("{dt} is outside (0, 10]")));
         }
         let scripts_dir = base.join(raw.sim.scripts_dir.unwrap_or_else(|| "scripts".into()));
+        let sim_region = match (raw.sim.region, raw.sim.radius) {
+            (Some(_), Some(_)) => {
+                return Err(err(
+                    "sim.region",
+                    "give a region or a radius around the camera, not both".into(),
+                ));
+            }
+            (Some(r), None) => {
+                let ok = |v: i64| (-(1 << 30)..=(1 << 30)).contains(&v);
+                if !r.min.iter().chain(&r.max).all(|v| ok(*v))
+                    || r.min[0] >= r.max[0]
+                    || r.min[1] >= r.max[1]
+                {
+                    return Err(err(
+                        "sim.region",
+                        format!(
+                            "min {:?} must be below max {:?} on both axes (x, z), within ±2^30",
+                            r.min, r.max
+                        ),
+                    ));
+                }
+                SimRegion::Box {
+                    min: glam::IVec2::new(r.min[0] as i32, r.min[1] as i32),
+                    max: glam::IVec2::new(r.max[0] as i32, r.max[1] as i32),
+                }
+            }
+            (None, Some(radius)) => {
+                if !(8.0..=1e6).contains(&radius) {
+                    return Err(err(
+                        "sim.radius",
+                        format!("{radius} is outside 8..=1000000 voxels"),
+                    ));
+                }
+                SimRegion::AroundCamera { radius }
+            }
+            (None, None) => SimRegion::Everywhere,
+        };
         let mut scripts = Vec::new();
         for (i, s) in raw.scripts.into_iter().enumerate() {
             let field = |f: &str| format!("scripts[{i}].{f}");
@@ -532,6 +603,7 @@ impl WorldConfig {
             seed: raw.world.seed,
             dt,
             scripts_dir,
+            sim_region,
             scripts,
             camera: CameraSettings {
                 mode,

@@ -127,6 +127,9 @@ pub struct Status {
     pub dirty_chunks: usize,
     /// The world store's size on disk, in bytes.
     pub store_bytes: u64,
+    /// The columns the column scripts ran on in the last step, `[x0, z0,
+    /// x1, z1)` in voxels; null for the whole world.
+    pub sim_region: Option<[i32; 4]>,
 }
 
 /// A command for the engine loop.

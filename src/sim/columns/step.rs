@@ -112,6 +112,9 @@ pub struct Simulation {
     seed: u64,
     /// Bound of channels without a declared range.
     default_bound: f64,
+    /// Tiles `[min, max)` a step runs on (None: all); see
+    /// [`set_region`](Simulation::set_region).
+    region: Option<(TileCoord, TileCoord)>,
     /// Dense buffers reused by every step (allocating and faulting in
     /// hundreds of MB per step at 2048² cost more than the copies).
     scratch: StepScratch,
@@ -271,6 +274,7 @@ impl Simulation {
             tick: 0,
             seed: 0,
             default_bound: f64::MAX,
+            region: None,
             scratch: StepScratch::default(),
         }
     }
@@ -348,7 +352,21 @@ impl Simulation {
         self.active.len()
     }
 
-    /// World bounds in tiles.
+    /// Run steps only on tiles `[min, max)` (None: everywhere). Awake tiles
+    /// outside keep their state and stay awake, frozen, until the region
+    /// reaches them again; the region's edge is a wall (neighbours outside
+    /// it read as the scripts' boundary values, like the world's edge), so
+    /// nothing flows across it and conserved channels stay conserved.
+    pub fn set_region(&mut self, region: Option<(TileCoord, TileCoord)>) {
+        self.region = region;
+    }
+
+    /// The region set by [`set_region`](Self::set_region).
+    pub fn region(&self) -> Option<(TileCoord, TileCoord)> {
+        self.region
+    }
+
+    /// World bounds in tiles (the drain moat included).
     pub fn tile_bounds(&self) -> (TileCoord, TileCoord) {
         (self.tiles_min, self.tiles_max)
     }
@@ -537,9 +555,18 @@ impl Simulation {
     /// back alone (reported in [`StepReport::errors`]); the others commit.
     pub fn step(&mut self, dt: f64) -> StepReport {
         let serial = STEP_SERIAL.fetch_add(1, Ordering::Relaxed);
-        let mut tiles: Vec<TileCoord> = self.active.iter().copied().collect();
+        let (lo, hi) = match self.region {
+            Some((a, b)) => (a.max(self.tiles_min), b.min(self.tiles_max)),
+            None => (self.tiles_min, self.tiles_max),
+        };
+        let mut tiles: Vec<TileCoord> = self
+            .active
+            .iter()
+            .copied()
+            .filter(|t| t.cmpge(lo).all() && t.cmplt(hi).all())
+            .collect();
         tiles.sort_by_key(|t| (t.y, t.x));
-        let ws = WorkSet::new(&tiles, self.tiles_min, self.tiles_max);
+        let ws = WorkSet::new(&tiles, lo, hi);
         let mut errors = Vec::new();
         let mut changed: FxHashSet<TileCoord> = FxHashSet::default();
         let ctx = StepContext {
