@@ -1,6 +1,6 @@
 //! Fuzzing the decoders of untrusted input (issue 8): the checkpoint file
-//! and payload decoders, the .vox and PNG heightmap loaders, and the world
-//! config, each fed random bytes and mutations of a valid input. No input
+//! and payload decoders, the .vox and PNG heightmap loaders, the world
+//! config, and (issue 10) the world store's chunk, column and state blobs, each fed random bytes and mutations of a valid input. No input
 //! may panic. Cases per target: `BRICKWORLD_FUZZ_CASES` (default 2 000 so
 //! CI stays quick; the README's figure is from 100 000).
 
@@ -179,5 +179,51 @@ fn the_world_config_parser_never_panics() {
     fuzz("world config", seed, |b| {
         let text = String::from_utf8_lossy(b);
         let _ = WorldConfig::parse("fuzz.toml", &text, std::path::Path::new("."));
+    });
+}
+
+/// The world store's chunk and chunk-column decoders, on random and mutated
+/// payloads (past the checksum, so the mutations reach the decoder) and on
+/// random and mutated sealed blobs.
+#[test]
+fn the_world_store_decoders_never_panic() {
+    use brickworld::persist::chunk::{self, ChunkKey, ColumnKey};
+    use glam::{IVec2, IVec3};
+    let w = brickworld::scene::build_scene(
+        &"terrain".parse().unwrap(),
+        IVec3::new(64, 64, 64),
+        2,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let key = ChunkKey(IVec3::ZERO);
+    let mut vox = brickworld::sim::voxels::VoxelChannels::default();
+    let water = vox.channel("water");
+    vox.set(water, IVec3::new(1, 2, 3), &[0.5; 512]);
+    let palette = w.store.palette().clone();
+    let payload = chunk::chunk_payload(key, &w.store, &vox);
+    fuzz("chunk payload", payload, |b| {
+        let _ = chunk::decode_chunk_payload(key, b, &palette);
+    });
+    let blob = chunk::encode_chunk(key, &w.store, &vox);
+    fuzz("chunk blob", blob, |b| {
+        let _ = chunk::decode_chunk(key, b, &palette);
+    });
+    let mut ch = brickworld::sim::ChannelStore::default();
+    let g = ch.channel("ground");
+    ch.set(IVec2::new(1, 1), g, &[3.0; 64]);
+    let col = ColumnKey(IVec2::ZERO);
+    fuzz("column payload", chunk::column_payload(col, &ch), |b| {
+        let _ = chunk::decode_column_payload(col, b);
+    });
+    let state = brickworld::persist::state::encode(
+        7,
+        &palette,
+        (IVec3::ZERO, IVec3::splat(64)),
+        &[("water".into(), vec![("rain".into(), 0.5)])],
+        &Default::default(),
+    );
+    fuzz("state blob", state, |b| {
+        let _ = brickworld::persist::state::decode(b);
     });
 }

@@ -208,6 +208,11 @@ fn unseal(magic: &[u8; 4], blob: &[u8], max: usize) -> Result<Vec<u8>, String> {
 
 /// Encode chunk `key` of `store` and `voxel`'s channels.
 pub fn encode_chunk(key: ChunkKey, store: &BrickStore, voxel: &VoxelChannels) -> Vec<u8> {
+    seal(CHUNK_MAGIC, &chunk_payload(key, store, voxel))
+}
+
+/// A chunk blob's payload, before LZ4 and the checksum.
+pub fn chunk_payload(key: ChunkKey, store: &BrickStore, voxel: &VoxelChannels) -> Vec<u8> {
     let mut w = Writer::default();
     let mut dense = [0u8; BRICK_VOXELS];
     let count_at = w.0.len();
@@ -253,13 +258,21 @@ pub fn encode_chunk(key: ChunkKey, store: &BrickStore, voxel: &VoxelChannels) ->
             }
         }
     }
-    seal(CHUNK_MAGIC, &w.0)
+    w.0
 }
 
 /// Decode a chunk blob; `palette` colours mixed bricks' LOD colour.
 pub fn decode_chunk(key: ChunkKey, blob: &[u8], palette: &Palette) -> Result<ChunkData, String> {
-    let payload = unseal(CHUNK_MAGIC, blob, MAX_CHUNK_PAYLOAD)?;
-    let mut r = Reader::new(&payload);
+    decode_chunk_payload(key, &unseal(CHUNK_MAGIC, blob, MAX_CHUNK_PAYLOAD)?, palette)
+}
+
+/// Decode a chunk blob's payload (after the checksum and LZ4).
+pub fn decode_chunk_payload(
+    key: ChunkKey,
+    payload: &[u8],
+    palette: &Palette,
+) -> Result<ChunkData, String> {
+    let mut r = Reader::new(payload);
     let mut seen = [false; CHUNK_CELLS];
     let local = |r: &mut Reader, seen: &mut [bool; CHUNK_CELLS]| -> Result<usize, String> {
         let i = r.u16()? as usize;
@@ -355,6 +368,11 @@ pub fn apply_chunk(
 
 /// Encode chunk column `key` of the column channels.
 pub fn encode_column(key: ColumnKey, channels: &ChannelStore) -> Vec<u8> {
+    seal(COLUMN_MAGIC, &column_payload(key, channels))
+}
+
+/// A column blob's payload, before LZ4 and the checksum.
+pub fn column_payload(key: ColumnKey, channels: &ChannelStore) -> Vec<u8> {
     let mut w = Writer::default();
     let present: Vec<(crate::sim::ChannelId, &str, Vec<usize>)> = channels
         .channels()
@@ -377,13 +395,17 @@ pub fn encode_column(key: ColumnKey, channels: &ChannelStore) -> Vec<u8> {
             }
         }
     }
-    seal(COLUMN_MAGIC, &w.0)
+    w.0
 }
 
 /// Decode a chunk column blob.
 pub fn decode_column(key: ColumnKey, blob: &[u8]) -> Result<ColumnData, String> {
-    let payload = unseal(COLUMN_MAGIC, blob, MAX_COLUMN_PAYLOAD)?;
-    let mut r = Reader::new(&payload);
+    decode_column_payload(key, &unseal(COLUMN_MAGIC, blob, MAX_COLUMN_PAYLOAD)?)
+}
+
+/// Decode a column blob's payload (after the checksum and LZ4).
+pub fn decode_column_payload(key: ColumnKey, payload: &[u8]) -> Result<ColumnData, String> {
+    let mut r = Reader::new(payload);
     let n = r.count(MAX_CHANNELS, "channel")?;
     let mut data = ColumnData::default();
     let mut names = FxHashSet::default();
