@@ -380,3 +380,36 @@ fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
         "{resumed} vs straight {straight}"
     );
 }
+
+/// Regression: a resume set the scripts' parameters after restoring which
+/// tiles sleep, and setting a parameter wakes every tile, so a resumed world
+/// woke up entirely (same results, but not the same work). The active tiles
+/// after a resume must be those of a run that never stopped.
+#[test]
+fn a_resume_keeps_sleeping_tiles_asleep() {
+    let active_after_40 = |name: &str, legs: &[u64]| -> Vec<f64> {
+        let (cfg, state, _) = setup(name);
+        // No rain: the dry terrain falls asleep within a few ticks. A
+        // timeline row every tick.
+        edit_config(&cfg, "rain = 0.2", "rain = 0.0");
+        edit_config(&cfg, "[frames]\nevery = 5", "[frames]\nevery = 1");
+        for &t in legs {
+            hash_at(&cfg, &state, t);
+        }
+        let t = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
+        let (tick, active) = (t.col("tick").unwrap(), t.col("active_bricks").unwrap());
+        t.rows
+            .iter()
+            .filter(|r| r[tick] > 40.0)
+            .map(|r| r[active])
+            .collect()
+    };
+    let straight = active_after_40("sleepa", &[45]);
+    let resumed = active_after_40("sleepb", &[40, 45]);
+    assert_eq!(straight.len(), 5);
+    assert_eq!(resumed, straight);
+    assert!(
+        straight[0] < 36.0,
+        "the dry world never fell asleep: {straight:?}"
+    );
+}

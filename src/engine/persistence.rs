@@ -240,6 +240,17 @@ pub fn restore_chunks(
 /// (parameters a changed script no longer accepts).
 pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
     let mut warnings = Vec::new();
+    // Parameters first: setting one wakes everything, and the sleep states
+    // restored after it must be the stored ones.
+    for (script, values) in &st.params {
+        if let Some(i) = ws.script_index(script) {
+            for (k, v) in values {
+                if let Err(e) = ws.set_param(i, k, *v) {
+                    warnings.push(format!("the stored {script}.{k} = {v} is not kept: {e}"));
+                }
+            }
+        }
+    }
     let extras = &st.extras;
     if let Some((active, quiet)) = &extras.voxel_sleep {
         ws.vox.restore_sleep_state(active, quiet);
@@ -251,15 +262,6 @@ pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
     match &extras.sleep {
         Some(s) => ws.sim.restore_sleep_state(s),
         None => ws.sim.wake_all(),
-    }
-    for (script, values) in &st.params {
-        if let Some(i) = ws.script_index(script) {
-            for (k, v) in values {
-                if let Err(e) = ws.set_param(i, k, *v) {
-                    warnings.push(format!("the stored {script}.{k} = {v} is not kept: {e}"));
-                }
-            }
-        }
     }
     warnings
 }
