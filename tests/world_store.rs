@@ -413,3 +413,43 @@ fn a_resume_keeps_sleeping_tiles_asleep() {
         "the dry world never fell asleep: {straight:?}"
     );
 }
+
+/// A heightmap world is imported whole into the store on its first start;
+/// it then resumes without its file, bit-identically.
+#[test]
+fn a_heightmap_world_is_imported_once_and_resumes_without_its_file() {
+    let (cfg, state, _) = setup("import-once");
+    let dir = cfg.parent().unwrap().to_path_buf();
+    std::fs::copy(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/worlds/valley.png"),
+        dir.join("valley.png"),
+    )
+    .unwrap();
+    edit_config(
+        &cfg,
+        "source = \"terrain\"\nsize = [48, 32, 48]",
+        "source = \"heightmap:valley.png\"",
+    );
+    let out = run_cmd(&cfg, &state)
+        .arg("--until-tick")
+        .arg("20")
+        .output()
+        .unwrap();
+    assert_success(&out);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("imported heightmap:valley.png"));
+    std::fs::rename(dir.join("valley.png"), dir.join("moved.png")).unwrap();
+    let resumed = hash_at(&cfg, &state, 40);
+    std::fs::rename(dir.join("moved.png"), dir.join("valley.png")).unwrap();
+    let (cfg2, state2, _) = setup("import-once-straight");
+    std::fs::copy(
+        dir.join("valley.png"),
+        cfg2.parent().unwrap().join("valley.png"),
+    )
+    .unwrap();
+    edit_config(
+        &cfg2,
+        "source = \"terrain\"\nsize = [48, 32, 48]",
+        "source = \"heightmap:valley.png\"",
+    );
+    assert_eq!(resumed, hash_at(&cfg2, &state2, 40));
+}

@@ -199,10 +199,26 @@ impl Engine {
                 db.path().display()
             );
         }
-        let pb = bar("scene", 0);
-        let mut world =
-            build_scene(&cfg.source, cfg.size, cfg.seed, &pb).context("cannot build the world")?;
-        pb.finish_and_clear();
+        // A procedural world is regenerated on every start (only its edits
+        // are stored); a heightmap or .vox world was imported whole into the
+        // store on its first start, so its file is not read again.
+        let imported = if cfg.source.is_procedural() {
+            None
+        } else {
+            persistence::stored_frame(&db)?
+        };
+        let mut world = match imported {
+            Some((palette, (lo, hi))) => {
+                SceneWorld::new(crate::world::BrickStore::new(palette), lo, hi)?
+            }
+            None => {
+                let pb = bar("scene", 0);
+                let w = build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
+                    .context("cannot build the world")?;
+                pb.finish_and_clear();
+                w
+            }
+        };
         let mut ws = WorldSim::with_edges(&mut world, true);
         // The ground read from the generated world is regenerated on every
         // start: not a change to commit.
@@ -252,6 +268,19 @@ impl Engine {
                 dirty_chunks.bricks(&placed);
                 ws.vox.notify_edited(&placed);
                 ws.vox.apply_fills(&world.store, &world.materials);
+                if !cfg.source.is_procedural() {
+                    // Import the file's world whole, now: from here on the
+                    // store is the world, and the file is not needed.
+                    dirty_chunks.everything(&world, &ws);
+                    let st = persistence::commit(&mut db, &mut dirty_chunks, &world, &mut ws)?;
+                    eprintln!(
+                        "imported {} into {} ({} chunks, {} bytes)",
+                        cfg.source_text,
+                        db.path().display(),
+                        st.chunks,
+                        st.bytes
+                    );
+                }
             }
             Some(r) => {
                 for c in &r.corrupt {

@@ -154,6 +154,22 @@ pub fn commit(
     Ok(stats)
 }
 
+/// The palette and bounds of the world the store last committed (None:
+/// never committed), read before the world is built: an imported world is
+/// rebuilt from the store alone.
+pub fn stored_frame(
+    db: &WorldDb,
+) -> Result<Option<(crate::world::Palette, (IVec3, IVec3))>, StoreError> {
+    let Some(blob) = db.state()? else {
+        return Ok(None);
+    };
+    let st = state::decode(&blob).map_err(|msg| StoreError::Db {
+        path: db.path().to_path_buf(),
+        msg,
+    })?;
+    Ok(Some((st.store.palette().clone(), st.bounds)))
+}
+
 /// What [`restore_chunks`] found besides the chunks.
 #[derive(Debug)]
 pub struct Restored {
