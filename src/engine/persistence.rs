@@ -154,12 +154,13 @@ pub fn commit(
     Ok(stats)
 }
 
+/// A stored world's palette and voxel bounds `[min, max)`.
+pub type StoredFrame = (crate::world::Palette, (IVec3, IVec3));
+
 /// The palette and bounds of the world the store last committed (None:
 /// never committed), read before the world is built: an imported world is
 /// rebuilt from the store alone.
-pub fn stored_frame(
-    db: &WorldDb,
-) -> Result<Option<(crate::world::Palette, (IVec3, IVec3))>, StoreError> {
+pub fn stored_frame(db: &WorldDb) -> Result<Option<StoredFrame>, StoreError> {
     let Some(blob) = db.state()? else {
         return Ok(None);
     };
