@@ -224,6 +224,13 @@ impl GpuBrickmap {
         residency: Option<Residency>,
         feedback_capacity: u32,
     ) -> Result<Self, GpuError> {
+        if grid.ring() != glam::IVec3::ZERO {
+            // The shader indexes the grid linearly; a slid (toroidal) grid
+            // would be read rotated.
+            return Err(GpuError::Runtime(
+                "the GPU tracer does not read a sliding (toroidal) brick grid yet".into(),
+            ));
+        }
         let dev = &ctx.device;
         let limit = ctx.limits.max_storage_buffer_binding_size;
         let pal: Vec<u32> = (0..=255u8)

@@ -36,7 +36,10 @@ fn slope_at(field: &dyn Heightfield, x: i32, z: i32) -> f32 {
     (dx * dx + dz * dz).sqrt()
 }
 
-fn column(
+/// Voxelise brick column (`bx`, `bz`) of `field` into `out` (non-empty
+/// bricks only). Columns are independent: any set of them gives the same
+/// bricks as the whole field.
+pub(crate) fn column(
     field: &dyn Heightfield,
     bx: i32,
     bz: i32,

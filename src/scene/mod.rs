@@ -6,12 +6,14 @@
 //! and builds the three tracers over the same local frame.
 
 pub mod budget;
+mod chunkgen;
 mod heightfield;
 mod heightmap;
 mod noise;
 mod shapes;
 mod terrain;
 mod vox;
+mod window;
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -21,12 +23,14 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use thiserror::Error;
 
+pub use chunkgen::{CHUNK_BRICKS, CHUNK_VOXELS, ChunkGen, chunk_column_of};
 pub use heightfield::{Heightfield, voxelize};
 pub use heightmap::Heightmap;
 pub use noise::Noise;
 pub use shapes::{Prim, Rng, rasterize};
 pub use terrain::Terrain;
 pub use vox::{parse as parse_vox, store_from_voxels, voxels as vox_voxels};
+pub use window::{RenderWindow, WindowSettings, WindowStats};
 
 use crate::trace::{BrickmapTracer, DenseGrid, Frame, Svo, TraceError};
 use crate::world::{BRICK_SHIFT, BrickGrid, BrickStore, WorldError, brick_of};
@@ -84,6 +88,17 @@ pub enum SceneError {
     /// The world structures could not be built.
     #[error(transparent)]
     World(#[from] WorldError),
+    /// Only procedural terrain generates chunk by chunk.
+    #[error(
+        "only terrain and terrain:caves worlds can stream (generate chunks on first touch); other sources are built whole"
+    )]
+    NotStreamable,
+    /// Fetcher threads could not be started.
+    #[error("cannot start the chunk fetcher threads: {0}")]
+    Threads(String),
+    /// A region with no chunk column inside the world.
+    #[error("the region holds no part of the world")]
+    EmptyRegion,
 }
 
 impl SceneError {
@@ -375,15 +390,20 @@ pub fn build_scene(
     };
     let mut world = SceneWorld::new(store, lo, hi)?;
     if let SceneSpec::Terrain { .. } = spec {
-        for (id, name) in terrain::NAMES {
-            let def = MaterialDef {
-                color: world.store.palette().rgb(*id),
-                kind: MaterialKind::Solid,
-                density: 2.5,
-            };
-            let _ = world.materials.register_at(*id, name, def);
-        }
+        name_terrain_materials(&mut world);
     }
     world.store.take_modified();
     Ok(world)
+}
+
+/// Give a terrain world's materials their names.
+fn name_terrain_materials(world: &mut SceneWorld) {
+    for (id, name) in terrain::NAMES {
+        let def = MaterialDef {
+            color: world.store.palette().rgb(*id),
+            kind: MaterialKind::Solid,
+            density: 2.5,
+        };
+        let _ = world.materials.register_at(*id, name, def);
+    }
 }

@@ -63,17 +63,37 @@ pub struct Terrain {
     noise: Noise,
     caves: bool,
     scale: f64,
+    /// Unbounded in x and z: heights are not clamped to an extent.
+    unbounded: bool,
 }
+
+/// The horizontal feature scale of every terrain at least 1536 voxels wide,
+/// and of unbounded ones: an 8192² continent and an endless world share it,
+/// so the same coordinates look alike in both.
+pub const LARGE_SCALE: f64 = 512.0;
 
 impl Terrain {
     /// A terrain of `extent` voxels (x, max height, z).
     pub fn new(extent: IVec3, seed: u64, caves: bool) -> Self {
-        let scale = (extent.x.max(extent.z) as f64 / 3.0).clamp(64.0, 512.0);
+        let scale = (extent.x.max(extent.z) as f64 / 3.0).clamp(64.0, LARGE_SCALE);
         Terrain {
             extent,
             noise: Noise::new(seed),
             caves,
             scale,
+            unbounded: false,
+        }
+    }
+
+    /// A terrain without bounds in x and z, `height` voxels tall, with the
+    /// feature scale of the largest bounded terrains ([`LARGE_SCALE`]).
+    pub fn unbounded(height: i32, seed: u64, caves: bool) -> Self {
+        Terrain {
+            extent: IVec3::new(i32::MAX, height, i32::MAX),
+            noise: Noise::new(seed),
+            caves,
+            scale: LARGE_SCALE,
+            unbounded: true,
         }
     }
 
@@ -88,8 +108,14 @@ impl Heightfield for Terrain {
     }
 
     fn height(&self, x: i32, z: i32) -> i32 {
-        let x = x.clamp(0, self.extent.x - 1) as f64;
-        let z = z.clamp(0, self.extent.z - 1) as f64;
+        let (x, z) = if self.unbounded {
+            (x as f64, z as f64)
+        } else {
+            (
+                x.clamp(0, self.extent.x - 1) as f64,
+                z.clamp(0, self.extent.z - 1) as f64,
+            )
+        };
         let n = self.noise.fbm2(x / self.scale, z / self.scale, 5);
         // Ridged low-frequency noise raises mountain ranges with snow caps.
         let ridge = 1.0

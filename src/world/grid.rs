@@ -5,6 +5,13 @@
 //!
 //! Pointer encoding: `0` empty, `UNIFORM | m` uniform material `m`, otherwise
 //! the pool slot index plus one.
+//!
+//! The grid is addressed toroidally: local brick `l` lives at physical cell
+//! `(l + ring) mod dims`. A world that streams keeps a window of the world
+//! around the camera in one grid and [`slide`](BrickGrid::slide)s it: only the
+//! slabs that enter are rewritten, O(entering cells), and the tracers, which
+//! only ever ask for local coordinates, never notice. A grid that never
+//! slides has `ring = 0` and the plain layout.
 
 use glam::IVec3;
 use thiserror::Error;
@@ -41,6 +48,8 @@ pub const MAX_GRID_CELLS: u64 = 1 << 30;
 pub struct BrickGrid {
     origin: IVec3,
     dims: IVec3,
+    /// Physical cell of local brick (0, 0, 0); a multiple of [`OCC_EDGE`].
+    ring: IVec3,
     cells: Vec<u32>,
     occ_dims: IVec3,
     occ: Vec<u64>,
@@ -73,6 +82,7 @@ impl BrickGrid {
         let mut grid = BrickGrid {
             origin,
             dims,
+            ring: IVec3::ZERO,
             cells: vec![0; cells_n as usize],
             occ_dims,
             occ: vec![0; occ_n.div_ceil(64)],
@@ -98,10 +108,72 @@ impl BrickGrid {
         }
     }
 
+    /// Move the grid to cover bricks `origin .. origin + dims()`, reading the
+    /// cells that enter from `store` (which must already hold them). Costs
+    /// O(entering cells); a move of a whole grid or more rewrites it all.
+    /// Every component of the move must be a multiple of [`OCC_EDGE`].
+    pub fn slide(&mut self, store: &BrickStore, origin: IVec3) {
+        let d = origin - self.origin;
+        assert!(
+            d.x % OCC_EDGE == 0 && d.y % OCC_EDGE == 0 && d.z % OCC_EDGE == 0,
+            "a grid slides by whole occupancy cells (moved by {d})"
+        );
+        if d == IVec3::ZERO {
+            return;
+        }
+        self.origin = origin;
+        self.ring = (self.ring + d).rem_euclid(self.dims);
+        let dims = self.dims;
+        // The entering slab of each axis, as local ranges.
+        for axis in 0..3 {
+            if d[axis] == 0 {
+                continue;
+            }
+            let n = d[axis].abs().min(dims[axis]);
+            let mut lo = IVec3::ZERO;
+            let mut hi = dims;
+            if d[axis] > 0 {
+                lo[axis] = dims[axis] - n;
+            } else {
+                hi[axis] = n;
+            }
+            self.refill(store, lo, hi);
+        }
+    }
+
+    /// Re-read local bricks `[lo, hi)` from the store and recompute the
+    /// occupancy cells they touch.
+    fn refill(&mut self, store: &BrickStore, lo: IVec3, hi: IVec3) {
+        for z in lo.z..hi.z {
+            for y in lo.y..hi.y {
+                for x in lo.x..hi.x {
+                    let l = IVec3::new(x, y, z);
+                    let i = self.index(l).expect("inside");
+                    self.cells[i] = encode(store.cell(self.origin + l));
+                }
+            }
+        }
+        let (olo, ohi) = (
+            lo >> OCC_SHIFT,
+            (hi + IVec3::splat(OCC_EDGE - 1)) >> OCC_SHIFT,
+        );
+        for z in olo.z..ohi.z {
+            for y in olo.y..ohi.y {
+                for x in olo.x..ohi.x {
+                    let o = IVec3::new(x, y, z);
+                    let any = self.occ_group_non_empty(o);
+                    self.set_occ(o, any);
+                }
+            }
+        }
+    }
+
     fn occ_group_non_empty(&self, o: IVec3) -> bool {
         let base = o << OCC_SHIFT;
         for z in 0..OCC_EDGE {
             for y in 0..OCC_EDGE {
+                // Rows of an occupancy cell stay contiguous: the ring is a
+                // multiple of the cell edge.
                 let row = self.index(base + IVec3::new(0, y, z)).unwrap();
                 if self.cells[row..row + OCC_EDGE as usize]
                     .iter()
@@ -114,16 +186,34 @@ impl BrickGrid {
         false
     }
 
+    /// Physical position of local `l` (inside) under the ring.
+    #[inline(always)]
+    fn wrap(l: IVec3, ring: IVec3, dims: IVec3) -> IVec3 {
+        let p = l + ring;
+        IVec3::new(
+            if p.x >= dims.x { p.x - dims.x } else { p.x },
+            if p.y >= dims.y { p.y - dims.y } else { p.y },
+            if p.z >= dims.z { p.z - dims.z } else { p.z },
+        )
+    }
+
     #[inline(always)]
     fn index(&self, l: IVec3) -> Option<usize> {
         if l.cmplt(IVec3::ZERO).any() || l.cmpge(self.dims).any() {
             return None;
         }
-        Some((l.x + self.dims.x * (l.y + self.dims.y * l.z)) as usize)
+        let p = Self::wrap(l, self.ring, self.dims);
+        Some((p.x + self.dims.x * (p.y + self.dims.y * p.z)) as usize)
+    }
+
+    #[inline(always)]
+    fn occ_index(&self, o: IVec3) -> usize {
+        let p = Self::wrap(o, self.ring >> OCC_SHIFT, self.occ_dims);
+        (p.x + self.occ_dims.x * (p.y + self.occ_dims.y * p.z)) as usize
     }
 
     fn set_occ(&mut self, o: IVec3, on: bool) {
-        let i = (o.x + self.occ_dims.x * (o.y + self.occ_dims.y * o.z)) as usize;
+        let i = self.occ_index(o);
         if on {
             self.occ[i >> 6] |= 1 << (i & 63);
         } else {
@@ -141,25 +231,33 @@ impl BrickGrid {
         self.dims
     }
 
+    /// Physical cell of local brick (0, 0, 0): zero until the grid slides.
+    pub fn ring(&self) -> IVec3 {
+        self.ring
+    }
+
     /// Pointer of local brick `l`, which must be inside the grid.
     #[inline(always)]
     pub fn pointer(&self, l: IVec3) -> u32 {
-        self.cells[(l.x + self.dims.x * (l.y + self.dims.y * l.z)) as usize]
+        let p = Self::wrap(l, self.ring, self.dims);
+        self.cells[(p.x + self.dims.x * (p.y + self.dims.y * p.z)) as usize]
     }
 
     /// Occupancy bit of local occupancy cell `o`, which must be inside.
     #[inline(always)]
     pub fn occupied(&self, o: IVec3) -> bool {
-        let i = (o.x + self.occ_dims.x * (o.y + self.occ_dims.y * o.z)) as usize;
+        let i = self.occ_index(o);
         (self.occ[i >> 6] >> (i & 63)) & 1 != 0
     }
 
-    /// The pointer array (x fastest, then y, then z).
+    /// The pointer array in physical order (x fastest, then y, then z):
+    /// local order only while [`ring`](Self::ring) is zero.
     pub fn pointers(&self) -> &[u32] {
         &self.cells
     }
 
-    /// The occupancy bits as 64-bit words (bit i = occupancy cell i, x fastest).
+    /// The occupancy bits as 64-bit words (bit i = occupancy cell i, x
+    /// fastest), in physical order like [`pointers`](Self::pointers).
     pub fn occupancy_words(&self) -> &[u64] {
         &self.occ
     }
@@ -196,6 +294,51 @@ mod tests {
         assert_eq!(g.occ, fresh.occ);
         assert!(g.occupied(IVec3::new(1, 0, 0)));
         assert!(!g.occupied(IVec3::ZERO));
+    }
+
+    /// Slides in every direction, with the store changing in between, leave
+    /// the grid equal (through its local accessors) to a fresh build.
+    #[test]
+    fn slides_match_a_fresh_build() {
+        let mut s = BrickStore::new(Palette::grey_ramp());
+        for i in 0..400 {
+            let p = IVec3::new((i * 37) % 190 - 60, (i * 11) % 40, (i * 53) % 170 - 50);
+            s.set_voxel(p, 1 + (i % 7) as u8);
+        }
+        s.take_modified();
+        let dims = IVec3::new(16, 8, 12);
+        let mut g = BrickGrid::build(&s, IVec3::new(-8, 0, -4), dims).unwrap();
+        let moves = [
+            IVec3::new(4, 0, 0),
+            IVec3::new(8, 0, -4),
+            IVec3::new(-12, 4, 8),
+            IVec3::new(0, -4, 0),
+            IVec3::new(40, 0, 40),
+            IVec3::new(-4, 0, 4),
+        ];
+        for (k, m) in moves.into_iter().enumerate() {
+            // An edit inside the grid, one outside; then slide.
+            s.set_voxel(g.origin() * 8 + IVec3::new(9, 3, 9), 9);
+            s.set_voxel(g.origin() * 8 - IVec3::splat(30), 9);
+            let changed = s.take_modified();
+            g.apply_edits(&s, &changed);
+            g.slide(&s, g.origin() + m);
+            let fresh = BrickGrid::build(&s, g.origin(), dims).unwrap();
+            for z in 0..dims.z {
+                for y in 0..dims.y {
+                    for x in 0..dims.x {
+                        let l = IVec3::new(x, y, z);
+                        assert_eq!(g.pointer(l), fresh.pointer(l), "move {k} brick {l}");
+                        if l % OCC_EDGE == IVec3::ZERO {
+                            let o = l >> OCC_SHIFT;
+                            assert_eq!(g.occupied(o), fresh.occupied(o), "move {k} occ {o}");
+                        }
+                    }
+                }
+            }
+            assert_eq!(g.non_empty(), fresh.non_empty());
+        }
+        assert_ne!(g.ring(), IVec3::ZERO);
     }
 
     #[test]

@@ -1,0 +1,580 @@
+//! The render window of a streamed world: the square of chunk columns around
+//! the camera that the tracers see, kept in one [`SceneWorld`] whose brick
+//! grid slides toroidally, with a byte-budgeted LRU cache of the columns that
+//! left it and fetcher threads that generate the ones that enter.
+//!
+//! A column enters in one of three ways, cheapest first:
+//! - **live**: it belongs to the simulated region, whose bricks the engine
+//!   sends (the caller passes that world in); it is copied from there;
+//! - **cached**: it was generated before and is still in the cache;
+//! - **coarse**: otherwise a stand-in (each brick column a stack of uniform
+//!   bricks at the sampled height, in the surface's colour) is installed at
+//!   once, and the exact column is requested from the fetchers. The frame is
+//!   never held up by generation: it shows the stand-in until the exact
+//!   column arrives, nearest columns first.
+//!
+//! Memory is bounded by the view, not the world: the window holds
+//! (2r + 1)² columns, and the cache holds what the budget leaves, least
+//! recently used first out.
+
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, Sender, unbounded};
+use glam::{DVec3, IVec2, IVec3};
+use rustc_hash::{FxHashMap, FxHashSet};
+
+use super::{CHUNK_BRICKS, CHUNK_VOXELS, ChunkGen, SceneError, SceneWorld, chunk_column_of};
+use crate::world::{BRICK_EDGE, BrickContent, BrickStore, OCC_EDGE};
+
+/// How large a window is and what it may cost.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WindowSettings {
+    /// Chunk columns from the centre column to the window's edge: the
+    /// window is `2 radius + 1` columns square.
+    pub radius: i32,
+    /// Bytes the window and its cache may hold together; the cache gets
+    /// what the window leaves.
+    pub budget_bytes: u64,
+    /// Fetcher threads generating exact columns.
+    pub fetchers: usize,
+}
+
+impl WindowSettings {
+    /// The window's radius for a view distance in voxels (at least one
+    /// column beyond the camera's own).
+    pub fn radius_for(view_distance: f64) -> i32 {
+        ((view_distance / CHUNK_VOXELS as f64).ceil() as i32).max(1)
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Column {
+    /// The stand-in, exact bricks requested.
+    Coarse,
+    /// The exact bricks (or a live copy, or nothing: outside the world).
+    Exact,
+}
+
+type Bricks = Vec<(IVec3, BrickContent)>;
+
+struct Cached {
+    bricks: Bricks,
+    bytes: u64,
+    used: u64,
+}
+
+/// What a window holds and has done, for `/status` and the benchmarks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct WindowStats {
+    /// Columns in the window.
+    pub columns: usize,
+    /// Columns still showing their stand-in.
+    pub coarse: usize,
+    /// Exact columns requested and not yet back.
+    pub in_flight: usize,
+    /// Bytes of the window's bricks and grid.
+    pub window_bytes: u64,
+    /// Bytes of cached columns.
+    pub cache_bytes: u64,
+    /// Cached columns.
+    pub cache_columns: usize,
+    /// Columns the fetchers generated.
+    pub generated: u64,
+    /// Columns that re-entered from the cache.
+    pub cache_hits: u64,
+    /// Columns dropped from the cache to stay in budget.
+    pub evicted: u64,
+    /// Times the window moved.
+    pub slides: u64,
+    /// Milliseconds the last move took.
+    pub slide_ms: f64,
+}
+
+/// The window; see the module docs.
+pub struct RenderWindow {
+    world: SceneWorld,
+    gen_: Arc<ChunkGen>,
+    live: Option<(IVec2, IVec2)>,
+    center: IVec2,
+    settings: WindowSettings,
+    columns: FxHashMap<IVec2, Column>,
+    in_flight: FxHashSet<IVec2>,
+    cache: FxHashMap<IVec2, Cached>,
+    cache_bytes: u64,
+    clock: u64,
+    requests: Option<Sender<IVec2>>,
+    results: Receiver<(IVec2, Bricks)>,
+    workers: Vec<JoinHandle<()>>,
+    stats: WindowStats,
+}
+
+fn brick_bytes(c: &BrickContent) -> u64 {
+    let own = std::mem::size_of::<(IVec3, BrickContent)>() as u64;
+    match c {
+        BrickContent::Mixed(b) => own + b.heap_bytes() as u64,
+        _ => own,
+    }
+}
+
+impl RenderWindow {
+    /// A window around `eye` over `gen`'s world. Chunk columns `live`
+    /// `[min, max)` are the simulated region, copied from the world passed to
+    /// [`update`](Self::update) instead of generated.
+    pub fn new(
+        gen_: Arc<ChunkGen>,
+        live: Option<(IVec2, IVec2)>,
+        settings: WindowSettings,
+        eye: DVec3,
+        live_world: Option<&SceneWorld>,
+    ) -> Result<Self, SceneError> {
+        let r = settings.radius.max(1);
+        let settings = WindowSettings {
+            radius: r,
+            fetchers: settings.fetchers.max(1),
+            ..settings
+        };
+        let center = Self::column_of(eye);
+        let (lo, hi) = Self::bounds(center, r, gen_.height());
+        let world = SceneWorld::new(BrickStore::new(gen_.palette().clone()), lo, hi)?;
+        let (req_tx, req_rx) = unbounded::<IVec2>();
+        let (res_tx, res_rx) = unbounded::<(IVec2, Bricks)>();
+        let workers = (0..settings.fetchers)
+            .map(|i| {
+                let rx = req_rx.clone();
+                let tx = res_tx.clone();
+                let g = gen_.clone();
+                std::thread::Builder::new()
+                    .name(format!("fetch-{i}"))
+                    .spawn(move || {
+                        for c in rx.iter() {
+                            let mut out = Vec::new();
+                            g.generate(c, &mut out);
+                            if tx.send((c, out)).is_err() {
+                                break;
+                            }
+                        }
+                    })
+            })
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| SceneError::Threads(e.to_string()))?;
+        let mut w = RenderWindow {
+            world,
+            gen_,
+            live,
+            center,
+            settings,
+            columns: FxHashMap::default(),
+            in_flight: FxHashSet::default(),
+            cache: FxHashMap::default(),
+            cache_bytes: 0,
+            clock: 0,
+            requests: Some(req_tx),
+            results: res_rx,
+            workers,
+            stats: WindowStats::default(),
+        };
+        for c in w.window_columns() {
+            w.enter(c, live_world);
+        }
+        w.world.grid = crate::world::BrickGrid::build(
+            &w.world.store,
+            w.world.grid.origin(),
+            w.world.grid.dims(),
+        )?;
+        w.world.store.take_modified();
+        w.request();
+        Ok(w)
+    }
+
+    fn column_of(eye: DVec3) -> IVec2 {
+        chunk_column_of(eye.x.floor() as i32, eye.z.floor() as i32)
+    }
+
+    fn bounds(center: IVec2, r: i32, height: i32) -> (IVec3, IVec3) {
+        let lo = (center - IVec2::splat(r)) * CHUNK_VOXELS;
+        let hi = (center + IVec2::splat(r + 1)) * CHUNK_VOXELS;
+        // Whole occupancy cells in y, so the grid's dims equal the bounds'.
+        let cell = BRICK_EDGE * OCC_EDGE;
+        let top = (height.max(1) + cell - 1) / cell * cell;
+        (IVec3::new(lo.x, 0, lo.y), IVec3::new(hi.x, top, hi.y))
+    }
+
+    fn window_columns(&self) -> Vec<IVec2> {
+        let r = self.settings.radius;
+        let c = self.center;
+        (c.y - r..=c.y + r)
+            .flat_map(|z| (c.x - r..=c.x + r).map(move |x| IVec2::new(x, z)))
+            .collect()
+    }
+
+    fn in_window(&self, c: IVec2) -> bool {
+        (c - self.center).abs().max_element() <= self.settings.radius
+    }
+
+    fn is_live(&self, c: IVec2) -> bool {
+        self.live
+            .is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all())
+    }
+
+    /// Brick coordinates of column `c` (every height).
+    fn column_bricks(&self, c: IVec2) -> impl Iterator<Item = IVec3> + use<> {
+        let ny = self.world.grid.dims().y;
+        let b0 = c * CHUNK_BRICKS;
+        (0..CHUNK_BRICKS).flat_map(move |z| {
+            (0..CHUNK_BRICKS)
+                .flat_map(move |x| (0..ny).map(move |y| IVec3::new(b0.x + x, y, b0.y + z)))
+        })
+    }
+
+    /// The world the tracers see: the window's bricks, grid and bounds.
+    pub fn world(&self) -> &SceneWorld {
+        &self.world
+    }
+
+    /// What the window holds now.
+    pub fn stats(&self) -> WindowStats {
+        let mut s = self.stats;
+        s.columns = self.columns.len();
+        s.coarse = self
+            .columns
+            .values()
+            .filter(|c| **c == Column::Coarse)
+            .count();
+        s.in_flight = self.in_flight.len();
+        s.window_bytes = self.window_bytes();
+        s.cache_bytes = self.cache_bytes;
+        s.cache_columns = self.cache.len();
+        s
+    }
+
+    fn window_bytes(&self) -> u64 {
+        let store = &self.world.store;
+        (store.pool().bytes()
+            + store.pool().index_bytes()
+            + self.world.grid.bytes()
+            + store.non_empty_bricks() * 24) as u64
+    }
+
+    /// Follow the camera to `eye`, copy the live region's changed bricks
+    /// (`changed`, read from `live_world`), install the exact columns the
+    /// fetchers finished, request more and keep the cache in budget. Never
+    /// waits for generation.
+    pub fn update(&mut self, eye: DVec3, live_world: Option<&SceneWorld>, changed: &[IVec3]) {
+        self.clock += 1;
+        let c = Self::column_of(eye);
+        if c != self.center {
+            self.slide(c, live_world);
+        }
+        if let Some(lw) = live_world {
+            for &b in changed {
+                let col = chunk_column_of(b.x * BRICK_EDGE, b.z * BRICK_EDGE);
+                if self.is_live(col) && self.in_window(col) {
+                    self.world.store.set_brick(b, lw.store.content(b));
+                }
+            }
+        }
+        while let Ok((col, bricks)) = self.results.try_recv() {
+            self.arrived(col, bricks);
+        }
+        self.world.apply_edits();
+        self.request();
+        self.evict();
+    }
+
+    /// Wait up to `limit` for every column in the window to be exact (for
+    /// the first frame of a benchmark or a test); returns whether they are.
+    pub fn settle(&mut self, limit: Duration) -> bool {
+        let end = Instant::now() + limit;
+        while self.columns.values().any(|c| *c == Column::Coarse) {
+            let left = end.saturating_duration_since(Instant::now());
+            match self.results.recv_timeout(left) {
+                Ok((col, bricks)) => self.arrived(col, bricks),
+                Err(_) => break,
+            }
+            self.request();
+        }
+        self.world.apply_edits();
+        self.evict();
+        !self.columns.values().any(|c| *c == Column::Coarse)
+    }
+
+    fn arrived(&mut self, col: IVec2, bricks: Bricks) {
+        self.in_flight.remove(&col);
+        self.stats.generated += 1;
+        if self.is_live(col) {
+            return;
+        }
+        if self.columns.get(&col) == Some(&Column::Coarse) {
+            self.clear(col);
+            self.install(&bricks);
+            // When it leaves, its bricks move into the cache.
+            self.columns.insert(col, Column::Exact);
+        } else if !self.columns.contains_key(&col) {
+            self.cache_put(col, bricks);
+        }
+    }
+
+    fn install(&mut self, bricks: &Bricks) {
+        for (b, content) in bricks {
+            self.world.store.set_brick(*b, content.clone());
+        }
+    }
+
+    /// Remove column `col`'s bricks from the window; returns the exact ones.
+    fn clear(&mut self, col: IVec2) -> Bricks {
+        let mut out = Vec::new();
+        for b in self.column_bricks(col) {
+            if self.world.store.cell(b) != crate::world::Cell::Empty {
+                out.push((b, self.world.store.content(b)));
+                self.world.store.set_brick(b, BrickContent::Empty);
+            }
+        }
+        out
+    }
+
+    fn cache_put(&mut self, col: IVec2, bricks: Bricks) {
+        let bytes = bricks.iter().map(|(_, c)| brick_bytes(c)).sum::<u64>() + 64;
+        self.cache_bytes += bytes;
+        if let Some(old) = self.cache.insert(
+            col,
+            Cached {
+                bricks,
+                bytes,
+                used: self.clock,
+            },
+        ) {
+            self.cache_bytes -= old.bytes;
+        }
+    }
+
+    fn enter(&mut self, col: IVec2, live_world: Option<&SceneWorld>) {
+        if !self.gen_.contains(col) {
+            self.columns.insert(col, Column::Exact);
+            return;
+        }
+        if self.is_live(col)
+            && let Some(lw) = live_world
+        {
+            for b in self.column_bricks(col) {
+                let content = lw.store.content(b);
+                if content != BrickContent::Empty {
+                    self.world.store.set_brick(b, content);
+                }
+            }
+            self.columns.insert(col, Column::Exact);
+            return;
+        }
+        if let Some(c) = self.cache.remove(&col) {
+            self.cache_bytes -= c.bytes;
+            self.stats.cache_hits += 1;
+            self.install(&c.bricks);
+            self.columns.insert(col, Column::Exact);
+            return;
+        }
+        let mut coarse = Vec::new();
+        self.gen_.generate_coarse(col, &mut coarse);
+        self.install(&coarse);
+        self.columns.insert(col, Column::Coarse);
+    }
+
+    fn slide(&mut self, to: IVec2, live_world: Option<&SceneWorld>) {
+        let t = Instant::now();
+        let old = self.window_columns();
+        self.center = to;
+        for col in old {
+            if self.in_window(col) {
+                continue;
+            }
+            let state = self.columns.remove(&col);
+            let bricks = self.clear(col);
+            if state == Some(Column::Exact) && !self.is_live(col) && self.gen_.contains(col) {
+                self.cache_put(col, bricks);
+            }
+        }
+        for col in self.window_columns() {
+            if !self.columns.contains_key(&col) {
+                self.enter(col, live_world);
+            }
+        }
+        let (lo, hi) = Self::bounds(to, self.settings.radius, self.gen_.height());
+        self.world.grid.slide(&self.world.store, lo >> 3);
+        self.world.bounds = (lo, hi);
+        // The slide re-read every entering cell; the cleared ones are
+        // outside the window now.
+        self.world.store.take_modified();
+        self.stats.slides += 1;
+        self.stats.slide_ms = t.elapsed().as_secs_f64() * 1e3;
+    }
+
+    fn request(&mut self) {
+        let cap = self.settings.fetchers * 4;
+        if self.in_flight.len() >= cap {
+            return;
+        }
+        let mut want: Vec<IVec2> = self
+            .columns
+            .iter()
+            .filter(|(c, s)| **s == Column::Coarse && !self.in_flight.contains(*c))
+            .map(|(c, _)| *c)
+            .collect();
+        let center = self.center;
+        want.sort_by_key(|c| ((*c - center).length_squared(), c.x, c.y));
+        let Some(tx) = &self.requests else { return };
+        for c in want.into_iter().take(cap - self.in_flight.len()) {
+            if tx.send(c).is_ok() {
+                self.in_flight.insert(c);
+            }
+        }
+    }
+
+    fn evict(&mut self) {
+        let allowance = self
+            .settings
+            .budget_bytes
+            .saturating_sub(self.window_bytes());
+        if self.cache_bytes <= allowance {
+            return;
+        }
+        let mut by_age: Vec<(u64, IVec2)> = self.cache.iter().map(|(c, e)| (e.used, *c)).collect();
+        by_age.sort_by_key(|(used, c)| (*used, c.x, c.y));
+        for (_, c) in by_age {
+            if self.cache_bytes <= allowance {
+                break;
+            }
+            if let Some(e) = self.cache.remove(&c) {
+                self.cache_bytes -= e.bytes;
+                self.stats.evicted += 1;
+            }
+        }
+    }
+}
+
+impl Drop for RenderWindow {
+    fn drop(&mut self) {
+        // Closing the request channel ends the fetchers after their column.
+        self.requests = None;
+        for w in self.workers.drain(..) {
+            let _ = w.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::SceneSpec;
+
+    fn gen_(size: Option<IVec3>) -> Arc<ChunkGen> {
+        Arc::new(ChunkGen::new(&SceneSpec::Terrain { caves: false }, size, 64, 4).unwrap())
+    }
+
+    /// The window after a flight, settled, holds exactly the bricks a
+    /// direct generation of its columns gives, and its grid agrees.
+    #[test]
+    fn a_settled_window_equals_its_columns_generated_directly() {
+        let g = gen_(None);
+        let settings = WindowSettings {
+            radius: 2,
+            budget_bytes: 64 << 20,
+            fetchers: 2,
+        };
+        let mut w = RenderWindow::new(
+            g.clone(),
+            None,
+            settings,
+            DVec3::new(10.0, 50.0, 10.0),
+            None,
+        )
+        .unwrap();
+        assert!(
+            w.stats().coarse > 0,
+            "nothing is exact before the fetchers answer"
+        );
+        assert!(w.settle(Duration::from_secs(30)));
+        for step in 0..12 {
+            let eye = DVec3::new(10.0 + 45.0 * step as f64, 50.0, 10.0 - 20.0 * step as f64);
+            w.update(eye, None, &[]);
+        }
+        // And back over the start, so cached columns re-enter.
+        w.update(DVec3::new(10.0, 50.0, 10.0), None, &[]);
+        assert!(w.settle(Duration::from_secs(30)));
+        let s = w.stats();
+        assert!(s.slides >= 6 && s.cache_hits > 0, "{s:?}");
+        let world = w.world();
+        let mut expect = BrickStore::new(g.palette().clone());
+        for col in w.window_columns() {
+            let mut v = Vec::new();
+            g.generate(col, &mut v);
+            for (b, c) in v {
+                expect.set_brick(b, c);
+            }
+        }
+        assert_eq!(world.store.non_empty_bricks(), expect.non_empty_bricks());
+        for (b, _) in expect.iter() {
+            assert_eq!(world.store.content(b), expect.content(b), "brick {b}");
+        }
+        let fresh = crate::world::BrickGrid::build(&expect, world.grid.origin(), world.grid.dims())
+            .unwrap();
+        let d = world.grid.dims();
+        for z in 0..d.z {
+            for y in 0..d.y {
+                for x in 0..d.x {
+                    let l = IVec3::new(x, y, z);
+                    assert_eq!(
+                        world.grid.pointer(l) != 0,
+                        fresh.pointer(l) != 0,
+                        "cell {l}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// A small budget keeps the cache small; the window itself stays whole.
+    #[test]
+    fn the_cache_stays_within_the_budget() {
+        let g = gen_(None);
+        let settings = WindowSettings {
+            radius: 1,
+            budget_bytes: 4 << 20,
+            fetchers: 1,
+        };
+        let mut w = RenderWindow::new(g, None, settings, DVec3::new(0.0, 40.0, 0.0), None).unwrap();
+        for step in 0..40 {
+            w.settle(Duration::from_secs(10));
+            w.update(DVec3::new(64.0 * step as f64, 40.0, 0.0), None, &[]);
+            let s = w.stats();
+            assert!(
+                s.cache_bytes + s.window_bytes <= settings.budget_bytes || s.cache_bytes == 0,
+                "step {step}: {s:?}"
+            );
+        }
+        assert!(w.stats().evicted > 0);
+    }
+
+    /// Live columns come from the simulated world, with its edits.
+    #[test]
+    fn live_columns_copy_the_simulated_world() {
+        let g = gen_(Some(IVec3::new(256, 64, 256)));
+        let live = (IVec2::new(1, 1), IVec2::new(3, 3));
+        let mut region = g.build_region(live.0, live.1).unwrap();
+        region.store.set_voxel(IVec3::new(100, 62, 100), 9);
+        region.apply_edits();
+        let settings = WindowSettings {
+            radius: 1,
+            budget_bytes: 64 << 20,
+            fetchers: 1,
+        };
+        let eye = DVec3::new(130.0, 60.0, 130.0);
+        let mut w = RenderWindow::new(g, Some(live), settings, eye, Some(&region)).unwrap();
+        assert_eq!(w.world().store.voxel(IVec3::new(100, 62, 100)), 9);
+        region.store.set_voxel(IVec3::new(101, 62, 100), 9);
+        let changed = region.apply_edits();
+        w.update(eye, Some(&region), &changed);
+        assert_eq!(w.world().store.voxel(IVec3::new(101, 62, 100)), 9);
+        // Columns outside a bounded world are empty and exact.
+        assert!(w.settle(Duration::from_secs(10)));
+    }
+}
