@@ -126,6 +126,16 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
             anyhow::anyhow!("invalid --addr '{addr}': expected HOST:PORT, e.g. 127.0.0.1:7878")
         })?;
     }
+    if let Some(text) = &a.memory_budget {
+        let bytes = crate::engine::world_config::parse_bytes(text)
+            .map_err(|e| anyhow::anyhow!("invalid --memory-budget: {e}"))?;
+        match world.stream.as_mut() {
+            Some(st) => st.memory_budget = bytes,
+            None => anyhow::bail!(
+                "--memory-budget applies to streamed worlds; this world is resident whole (add a [stream] table to its config to stream it)"
+            ),
+        }
+    }
     if let Some(dir) = &a.scripts {
         world.scripts_dir = dir.clone();
         world.scripts_embedded = false;

@@ -34,6 +34,7 @@ use super::control::{
 use super::persistence::{self, DirtyChunks};
 use super::render_thread::{FrameJob, FrameWorld, RenderSettings, RenderThread};
 use super::state_dir::{self, StateLock};
+use super::streaming;
 use super::timeline::{Row, Timeline};
 use super::world_config::{CameraMode, CameraSettings, SimRegion, WorldConfig};
 use crate::persist::WorldDb;
@@ -207,11 +208,27 @@ impl Engine {
         } else {
             persistence::stored_frame(&db)?
         };
-        let mut world = match imported {
-            Some((palette, (lo, hi))) => {
+        let mut stream_plan = None;
+        let mut world = match (imported, &cfg.stream) {
+            (_, Some(st)) => {
+                // A streamed world: only the simulated region is the
+                // engine's; the render thread streams the rest.
+                let (world, mut plan) = streaming::build_region(&cfg, st)?;
+                streaming::check_budget(&world, &mut plan, st.memory_budget)?;
+                eprintln!(
+                    "streaming: simulated region of {} chunk columns ({}), render window {} columns across, {} for the window and its cache",
+                    (plan.live.1 - plan.live.0).element_product(),
+                    crate::scene::budget::human(streaming::world_bytes(&world)),
+                    2 * plan.window.radius + 1,
+                    crate::scene::budget::human(plan.window.budget_bytes),
+                );
+                stream_plan = Some(plan);
+                world
+            }
+            (Some((palette, (lo, hi))), None) => {
                 SceneWorld::new(crate::world::BrickStore::new(palette), lo, hi)?
             }
-            None => {
+            (None, None) => {
                 let pb = bar("scene", 0);
                 let w = build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
                     .context("cannot build the world")?;
@@ -305,9 +322,15 @@ impl Engine {
         let frames_dir = opts.state.join(&cfg.frames_dir);
         std::fs::create_dir_all(&frames_dir)
             .with_context(|| format!("cannot create {}", frames_dir.display()))?;
+        if stream_plan.is_some() && cfg.gpu {
+            eprintln!(
+                "note: a streamed world renders on the CPU: the GPU tracer does not read a sliding brick grid yet"
+            );
+        }
         let renderer = RenderThread::spawn(
             RenderSettings {
-                gpu: cfg.gpu,
+                gpu: cfg.gpu && stream_plan.is_none(),
+                stream: stream_plan,
                 shadows: cfg.shadows,
                 frames_dir,
                 keep: cfg.frames_keep,
@@ -572,6 +595,10 @@ impl Engine {
     /// `radius` around the camera's eye), None for everywhere.
     fn sim_region(&self) -> Option<(glam::IVec2, glam::IVec2)> {
         let tile = |x: f64| (x.floor() as i64).div_euclid(8).clamp(-(1 << 28), 1 << 28) as i32;
+        if self.cfg.stream.is_some() {
+            // The engine's world is the region (whole chunk columns).
+            return None;
+        }
         match self.cfg.sim_region {
             SimRegion::Everywhere => None,
             SimRegion::Box { min, max } => Some((
@@ -608,6 +635,11 @@ impl Engine {
                 // 0 → 1 → 0 over one period.
                 let f = 1.0 - (phase(period_s).fract() * 2.0 - 1.0).abs();
                 let step = (to - eye) * f;
+                eye += step;
+                target += step;
+            }
+            CameraMode::Line { velocity } => {
+                let step = velocity * (tick as f64 * self.cfg.dt);
                 eye += step;
                 target += step;
             }
@@ -766,6 +798,9 @@ impl Engine {
                 .sim
                 .region()
                 .map(|(a, b)| [a.x * 8, a.y * 8, b.x * 8, b.y * 8]),
+            window: stats.window(),
+            memory_budget: self.cfg.stream.map(|s| s.memory_budget),
+            rss_bytes: super::timeline::rss_kb() * 1024,
         };
     }
 

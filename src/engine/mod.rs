@@ -9,5 +9,6 @@ pub mod daemon;
 pub mod persistence;
 pub mod render_thread;
 pub mod state_dir;
+pub mod streaming;
 pub mod timeline;
 pub mod world_config;

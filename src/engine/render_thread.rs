@@ -19,8 +19,9 @@ use crossbeam_channel::{Sender, TrySendError, bounded};
 use glam::IVec3;
 
 use super::control::Shared;
+use super::streaming::StreamPlan;
 use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
-use crate::scene::{SceneWorld, WorldDelta};
+use crate::scene::{RenderWindow, SceneWorld, WindowStats, WorldDelta};
 use crate::trace::{Camera, RenderOptions, render};
 
 /// The world a frame job brings: the whole of it once, then only what
@@ -53,6 +54,7 @@ pub struct RenderStats {
     streamed: AtomicU64,
     frames: AtomicU64,
     skipped: AtomicU64,
+    window: std::sync::Mutex<Option<WindowStats>>,
 }
 
 impl RenderStats {
@@ -72,6 +74,10 @@ impl RenderStats {
     pub fn skipped(&self) -> u64 {
         self.skipped.load(Ordering::Relaxed)
     }
+    /// The render window of a streamed world, after the last frame.
+    pub fn window(&self) -> Option<WindowStats> {
+        self.window.lock().ok().and_then(|w| *w)
+    }
 }
 
 /// Settings the render thread keeps for its whole life.
@@ -79,6 +85,9 @@ impl RenderStats {
 pub struct RenderSettings {
     /// Try the GPU tracer first.
     pub gpu: bool,
+    /// A streamed world: the jobs' world is the simulated region, and the
+    /// frames show a window around the camera streamed from this plan.
+    pub stream: Option<StreamPlan>,
     /// Shadow rays.
     pub shadows: bool,
     /// Where frame PNGs go.
@@ -111,6 +120,7 @@ impl RenderThread {
                 // The render thread's own copy of the world, kept current by
                 // the jobs' deltas: the engine never copies the world again.
                 let mut mirror: Option<SceneWorld> = None;
+                let mut window: Option<RenderWindow> = None;
                 for job in rx.iter() {
                     let t = Instant::now();
                     match job.world {
@@ -127,7 +137,37 @@ impl RenderThread {
                             }
                         },
                     }
-                    let world = mirror.as_ref().expect("set above");
+                    let mut world = mirror.as_ref().expect("set above");
+                    if let Some(plan) = &settings.stream {
+                        let eye = job.camera.eye;
+                        match window.as_mut() {
+                            Some(w) => w.update(eye, Some(world), &job.dirty),
+                            None => match RenderWindow::new(
+                                plan.gen_.clone(),
+                                Some(plan.live),
+                                plan.window,
+                                eye,
+                                Some(world),
+                            ) {
+                                Ok(mut w) => {
+                                    // The first frame waits for its exact
+                                    // columns (the simulation does not);
+                                    // later ones show stand-ins until then.
+                                    w.settle(std::time::Duration::from_secs(30));
+                                    window = Some(w);
+                                }
+                                Err(e) => {
+                                    eprintln!("warning: cannot open the render window: {e}");
+                                    continue;
+                                }
+                            },
+                        }
+                        let w = window.as_ref().expect("set above");
+                        if let Ok(mut s) = st.window.lock() {
+                            *s = Some(w.stats());
+                        }
+                        world = w.world();
+                    }
                     if !gpu_tried {
                         gpu_tried = true;
                         gpu = start_gpu(world);

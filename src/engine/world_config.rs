@@ -8,11 +8,19 @@
 //! size = [256, 96, 256]       # procedural sources only
 //! seed = 1
 //!
+//! # height = 256            # instead of size: unbounded in x and z (terrain; needs [stream])
+//!
+//! # [stream]                 # keep only the simulated region and a window around the camera
+//! # view_distance = 1024.0   # voxels from the camera to the window's edge
+//! # memory_budget = "1.5GiB" # the window and its cache of generated columns (also --memory-budget)
+//! # fetchers = 2             # threads generating chunk columns
+//!
 //! [sim]
 //! dt = 0.05
 //! scripts_dir = "scripts"
 //! # region = { min = [0, 0], max = [512, 512] }  # columns (x, z) the column scripts run on
 //! # radius = 256.0            # or: a square of this half-side around the camera's eye
+//! #                          # (a streamed world needs a region: it is what stays resident)
 //!
 //! [[scripts]]
 //! file = "water.lua"
@@ -20,7 +28,8 @@
 //! params = { rain = 0.05 }
 //!
 //! [camera]
-//! mode = "orbit"              # fixed, orbit, or fly (eye to fly_to and back)
+//! mode = "orbit"              # fixed, orbit, fly (eye to fly_to and back) or line
+//! # velocity = [40.0, 0.0, 0.0]  (mode = "line": voxels per simulated second, for ever)
 //! eye = [-100.0, 200.0, -100.0]
 //! target = [128.0, 40.0, 128.0]
 //! fov = 50.0
@@ -95,6 +104,63 @@ struct RawConfig {
     control: RawControl,
     #[serde(default)]
     place: Vec<RawPlace>,
+    stream: Option<RawStream>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawStream {
+    view_distance: Option<f64>,
+    memory_budget: Option<toml::Value>,
+    fetchers: Option<i64>,
+}
+
+/// How a streamed world keeps memory bounded (`[stream]`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StreamSettings {
+    /// Voxels from the camera to the render window's edge.
+    pub view_distance: f64,
+    /// Bytes the render window and its cache may hold.
+    pub memory_budget: u64,
+    /// Fetcher threads.
+    pub fetchers: usize,
+}
+
+/// The default memory budget of a streamed world: 1.5 GiB.
+pub const DEFAULT_MEMORY_BUDGET: u64 = 3 << 29;
+
+/// Parse a byte size: a number of bytes, or a number with a unit (`512MiB`,
+/// `1.5GiB`, `2GB`, `800M`…).
+pub fn parse_bytes(text: &str) -> Result<u64, String> {
+    let t = text.trim();
+    let split = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let n: f64 = num
+        .parse()
+        .map_err(|_| format!("'{text}' is not a size such as 1536MiB or 1.5GiB"))?;
+    let mult: f64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1.0,
+        "k" | "kb" => 1e3,
+        "kib" => 1024.0,
+        "m" | "mb" => 1e6,
+        "mib" => 1024.0 * 1024.0,
+        "g" | "gb" => 1e9,
+        "gib" => 1024.0 * 1024.0 * 1024.0,
+        "t" | "tb" => 1e12,
+        "tib" => 1024f64.powi(4),
+        u => {
+            return Err(format!(
+                "'{text}': unknown unit '{u}' (use B, KiB, MiB, GiB or TiB)"
+            ));
+        }
+    };
+    let v = n * mult;
+    if !v.is_finite() || v < 1.0 || v > 1e15 {
+        return Err(format!("'{text}' is outside 1 B..1 PB"));
+    }
+    Ok(v as u64)
 }
 
 #[derive(Debug, Deserialize)]
@@ -121,6 +187,7 @@ pub struct Placement {
 struct RawWorld {
     source: String,
     size: Option<[i64; 3]>,
+    height: Option<i64>,
     #[serde(default)]
     seed: u64,
 }
@@ -160,6 +227,7 @@ struct RawCamera {
     orbit_period_s: Option<f64>,
     fly_to: Option<[f64; 3]>,
     fly_period_s: Option<f64>,
+    velocity: Option<[f64; 3]>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -220,6 +288,11 @@ pub enum CameraMode {
         /// Seconds per round trip.
         period_s: f64,
     },
+    /// Flies in a straight line for ever, looking the same way.
+    Line {
+        /// Voxels per simulated second.
+        velocity: DVec3,
+    },
 }
 
 /// Where the column scripts run; outside it the world keeps its state and
@@ -261,8 +334,13 @@ pub struct CameraSettings {
 pub struct WorldConfig {
     /// Where the voxels come from.
     pub source: SceneSpec,
-    /// Size of procedural sources.
+    /// Size of procedural sources; x and z are 0 when unbounded.
     pub size: IVec3,
+    /// Unbounded in x and z (`[world] height` without `size`).
+    pub unbounded: bool,
+    /// Streaming (`[stream]`): only the simulated region and a window
+    /// around the camera are resident.
+    pub stream: Option<StreamSettings>,
     /// Seed.
     pub seed: u64,
     /// Simulation time step.
@@ -363,8 +441,26 @@ impl WorldConfig {
             SceneSpec::Vox(p) if p.is_relative() => SceneSpec::Vox(base.join(p)),
             s => s,
         };
-        let size = match raw.world.size {
-            Some(s) => {
+        let size = match (raw.world.size, raw.world.height) {
+            (Some(_), Some(_)) => {
+                return Err(err(
+                    "world.height",
+                    "give size (a bounded world) or height (unbounded in x and z), not both".into(),
+                ));
+            }
+            (None, Some(h)) => {
+                if !matches!(source, SceneSpec::Terrain { .. }) {
+                    return Err(err(
+                        "world.height",
+                        "only terrain and terrain:caves can be unbounded".into(),
+                    ));
+                }
+                if !(8..=4096).contains(&h) {
+                    return Err(err("world.height", format!("{h} is outside 8..=4096")));
+                }
+                IVec3::new(0, h as i32, 0)
+            }
+            (Some(s), None) => {
                 if !source.is_procedural() {
                     return Err(err(
                         "world.size",
@@ -379,7 +475,61 @@ impl WorldConfig {
                 }
                 IVec3::new(s[0] as i32, s[1] as i32, s[2] as i32)
             }
-            None => IVec3::new(256, 96, 256),
+            (None, None) => IVec3::new(256, 96, 256),
+        };
+        let unbounded = size.x == 0;
+        let stream = match raw.stream {
+            None if unbounded => {
+                return Err(err(
+                    "stream",
+                    "an unbounded world must stream: add a [stream] table (its defaults are fine)"
+                        .into(),
+                ));
+            }
+            None => None,
+            Some(st) => {
+                if !matches!(source, SceneSpec::Terrain { .. }) {
+                    return Err(err(
+                        "stream",
+                        "only terrain and terrain:caves worlds stream; other sources are built whole"
+                            .into(),
+                    ));
+                }
+                let view_distance = st.view_distance.unwrap_or(1024.0);
+                if !(64.0..=16384.0).contains(&view_distance) {
+                    return Err(err(
+                        "stream.view_distance",
+                        format!("{view_distance} is outside 64..=16384 voxels"),
+                    ));
+                }
+                let memory_budget = match st.memory_budget {
+                    None => DEFAULT_MEMORY_BUDGET,
+                    Some(toml::Value::String(t)) => {
+                        parse_bytes(&t).map_err(|e| err("stream.memory_budget", e))?
+                    }
+                    Some(toml::Value::Integer(n)) if n > 0 => n as u64,
+                    Some(v) => {
+                        return Err(err(
+                            "stream.memory_budget",
+                            format!(
+                                "{v} is not a size such as \"1.5GiB\" or a positive number of bytes"
+                            ),
+                        ));
+                    }
+                };
+                let fetchers = st.fetchers.unwrap_or(2);
+                if !(1..=16).contains(&fetchers) {
+                    return Err(err(
+                        "stream.fetchers",
+                        format!("{fetchers} is outside 1..=16"),
+                    ));
+                }
+                Some(StreamSettings {
+                    view_distance,
+                    memory_budget,
+                    fetchers: fetchers as usize,
+                })
+            }
         };
         let dt = raw.sim.dt.unwrap_or(0.05);
         if !(dt > 0.0 && dt <= 10.0) {
@@ -423,6 +573,25 @@ impl WorldConfig {
             }
             (None, None) => SimRegion::Everywhere,
         };
+        if stream.is_some() && !matches!(sim_region, SimRegion::Box { .. }) {
+            return Err(err(
+                "sim.region",
+                "a streamed world keeps only its simulated region resident: give [sim] region = { min = [x, z], max = [x, z] } (a radius is not supported yet)"
+                    .into(),
+            ));
+        }
+        if let (SimRegion::Box { min, max }, false) = (sim_region, unbounded)
+            && stream.is_some()
+            && (min.x >= size.x || min.y >= size.z || max.x <= 0 || max.y <= 0)
+        {
+            return Err(err(
+                "sim.region",
+                format!(
+                    "min {min} .. max {max} lies outside the world (0, 0) .. ({}, {})",
+                    size.x, size.z
+                ),
+            ));
+        }
         let mut scripts = Vec::new();
         for (i, s) in raw.scripts.into_iter().enumerate() {
             let field = |f: &str| format!("scripts[{i}].{f}");
@@ -466,6 +635,7 @@ impl WorldConfig {
             orbit_period_s: None,
             fly_to: None,
             fly_period_s: None,
+            velocity: None,
         });
         let fov = cam.fov.unwrap_or(50.0);
         if !(fov > 0.0 && fov < 180.0) {
@@ -508,10 +678,31 @@ impl WorldConfig {
                 }
                 CameraMode::Fly { to, period_s: p }
             }
+            "line" => {
+                let velocity = match cam.velocity {
+                    Some(a) if a.iter().all(|x| x.is_finite() && x.abs() <= 1e5) => DVec3::from(a),
+                    Some(a) => {
+                        return Err(err(
+                            "camera.velocity",
+                            format!("{a:?} must be finite, at most 100000 voxels/s per axis"),
+                        ));
+                    }
+                    None => {
+                        return Err(err(
+                            "camera.velocity",
+                            "is needed with mode = \"line\"".into(),
+                        ));
+                    }
+                };
+                if cam.eye.is_none() {
+                    return Err(err("camera.eye", "is needed with mode = \"line\"".into()));
+                }
+                CameraMode::Line { velocity }
+            }
             other => {
                 return Err(err(
                     "camera.mode",
-                    format!("'{other}' is not fixed, orbit or fly"),
+                    format!("'{other}' is not fixed, orbit, fly or line"),
                 ));
             }
         };
@@ -600,6 +791,8 @@ impl WorldConfig {
             scripts_embedded: false,
             source,
             size,
+            unbounded,
+            stream,
             seed: raw.world.seed,
             dt,
             scripts_dir,

@@ -130,6 +130,13 @@ pub struct Status {
     /// The columns the column scripts ran on in the last step, `[x0, z0,
     /// x1, z1)` in voxels; null for the whole world.
     pub sim_region: Option<[i32; 4]>,
+    /// A streamed world's render window after the last frame (null for a
+    /// world that is resident whole).
+    pub window: Option<crate::scene::WindowStats>,
+    /// A streamed world's memory budget in bytes.
+    pub memory_budget: Option<u64>,
+    /// The engine process's resident memory (Linux; 0 elsewhere).
+    pub rss_bytes: u64,
 }
 
 /// A command for the engine loop.
