@@ -157,7 +157,7 @@ pub fn parse_bytes(text: &str) -> Result<u64, String> {
         }
     };
     let v = n * mult;
-    if !v.is_finite() || v < 1.0 || v > 1e15 {
+    if !v.is_finite() || !(1.0..=1e15).contains(&v) {
         return Err(format!("'{text}' is outside 1 B..1 PB"));
     }
     Ok(v as u64)
