@@ -11,7 +11,15 @@ const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
 #[test]
 fn the_shipped_worlds_load_and_build() {
-    for name in ["default", "snowy_mountain", "valley", "caves", "sandbox"] {
+    for name in [
+        "default",
+        "snowy_mountain",
+        "valley",
+        "caves",
+        "sandbox",
+        "continent",
+        "endless",
+    ] {
         let path = Path::new(ROOT).join("worlds").join(format!("{name}.toml"));
         let cfg = WorldConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
         for s in &cfg.scripts {
@@ -117,6 +125,63 @@ fn bad_configs_name_the_file_field_and_reason() {
         (
             "[world]\nsource = \"terrain\"\n[render]\nwidth = 0\n",
             "render.width",
+        ),
+        // Streamed and unbounded worlds.
+        (
+            "[world]\nsource = \"terrain\"\nsize = [64, 64, 64]\nheight = 64\n",
+            "world.height: give size",
+        ),
+        (
+            "[world]\nsource = \"balls\"\nheight = 64\n",
+            "world.height: only terrain",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\nheight = 64\n",
+            "stream: an unbounded world must stream",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\nheight = 64\n[stream]\n",
+            "sim.region: a streamed world",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[stream]\n[sim]\nradius = 64.0\n",
+            "sim.region: a streamed world",
+        ),
+        (
+            "[world]\nsource = \"balls\"\n[stream]\n",
+            "stream: only terrain",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[stream]\nmemory_budget = \"lots\"\n[sim]\nregion = { min = [0, 0], max = [8, 8] }\n",
+            "stream.memory_budget: 'lots' is not a size",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[stream]\nmemory_budget = \"2 parsecs\"\n[sim]\nregion = { min = [0, 0], max = [8, 8] }\n",
+            "unknown unit",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[stream]\nmemory_budget = -5\n[sim]\nregion = { min = [0, 0], max = [8, 8] }\n",
+            "stream.memory_budget",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[stream]\nview_distance = 1.0\n[sim]\nregion = { min = [0, 0], max = [8, 8] }\n",
+            "stream.view_distance",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[stream]\nfetchers = 0\n[sim]\nregion = { min = [0, 0], max = [8, 8] }\n",
+            "stream.fetchers",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\nsize = [64, 64, 64]\n[stream]\n[sim]\nregion = { min = [100, 0], max = [200, 8] }\n",
+            "lies outside the world",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nmode = \"line\"\neye = [1.0, 2.0, 3.0]\ntarget = [4.0, 2.0, 3.0]\n",
+            "camera.velocity: is needed",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nmode = \"line\"\nvelocity = [1e9, 0.0, 0.0]\neye = [1.0, 2.0, 3.0]\ntarget = [4.0, 2.0, 3.0]\n",
+            "camera.velocity",
         ),
         (
             "[world]\nsource = \"terrain\"\n[render]\ntracer = \"tpu\"\n",

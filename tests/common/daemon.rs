@@ -144,21 +144,25 @@ pub fn stored_tick(cfg: &Path, state: &Path) -> Option<u64> {
     Some(brickworld::persist::state::decode(&blob).unwrap().tick)
 }
 
+/// Run the daemon with `flag N` (`--ticks` or `--until-tick`), require
+/// success; its (stdout, stderr).
+#[allow(dead_code)]
+pub fn run_ok(cfg: &Path, state: &Path, flag: &str, n: u64) -> (String, String) {
+    let out = run_cmd(cfg, state)
+        .arg(flag)
+        .arg(n.to_string())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "{err}");
+    (String::from_utf8_lossy(&out.stdout).to_string(), err)
+}
+
 /// Run the daemon until the world reaches tick `end`; the world hash it
 /// reports when it stops.
 #[allow(dead_code)]
 pub fn hash_at(cfg: &Path, state: &Path, end: u64) -> String {
-    let out = run_cmd(cfg, state)
-        .arg("--until-tick")
-        .arg(end.to_string())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let said = String::from_utf8_lossy(&out.stdout);
+    let (said, _) = run_ok(cfg, state, "--until-tick", end);
     let line = said
         .lines()
         .find(|l| l.starts_with(&format!("stopped at tick {end} ")))
@@ -173,15 +177,5 @@ pub fn hash_at(cfg: &Path, state: &Path, end: u64) -> String {
 /// Run the daemon for `ticks` ticks, require success; its stderr.
 #[allow(dead_code)]
 pub fn stderr_of_ticks(cfg: &Path, state: &Path, ticks: u64) -> String {
-    let out = run_cmd(cfg, state)
-        .arg("--ticks")
-        .arg(ticks.to_string())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stderr).to_string()
+    run_ok(cfg, state, "--ticks", ticks).1
 }
