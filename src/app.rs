@@ -99,6 +99,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Bench(BenchCommand::Stream(a)) => run_bench_stream(&a),
         Command::Bench(BenchCommand::Voxels(a)) => run_bench_voxels(&a),
         Command::Bench(BenchCommand::Store(a)) => run_bench_store(&a),
+        Command::Bench(BenchCommand::Flight(a)) => run_bench_flight(&a),
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }
@@ -307,6 +308,48 @@ fn bench_pool(steps: u32, threads: Option<usize>) -> Result<rayon::ThreadPool> {
 /// Most bricks `bench voxels` builds (each holds ~5 KB of materials and
 /// channels, in three worlds built one after another).
 const MAX_BENCH_VOXEL_BRICKS: i64 = 1 << 17;
+
+fn run_bench_flight(a: &crate::cli::BenchFlightArgs) -> Result<()> {
+    use crate::engine::world_config::WorldConfig;
+    let mut cfg = match &a.world {
+        Some(p) => WorldConfig::load(p)?,
+        None => WorldConfig::parse(
+            "<embedded endless>",
+            include_str!("../worlds/endless.toml"),
+            std::path::Path::new("worlds"),
+        )?,
+    };
+    if let (Some(text), Some(st)) = (&a.memory_budget, cfg.stream.as_mut()) {
+        st.memory_budget = crate::engine::world_config::parse_bytes(text)
+            .map_err(|e| anyhow::anyhow!("invalid --memory-budget: {e}"))?;
+    }
+    let pb = bar("flight (steps)", 0);
+    let r = crate::bench::flight::run(&cfg, a.distance, a.step, a.frame_every, !a.no_wait, &pb)?;
+    pb.finish_and_clear();
+    std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
+        .with_context(|| format!("cannot write {}", a.json.display()))?;
+    println!(
+        "flew {:.0} voxels in {:.1} s ({:.0} voxels/s{}): resident memory peaked at {} against a budget of {} ({:+.1} %), baseline {}; {} slides of {:.1} ms mean, {:.1} ms worst; {} frames of {:.0} ms, {:.0} % of columns still coarse when drawn; {} columns generated, {} from the cache, {} evicted",
+        r.distance,
+        r.seconds,
+        r.voxels_per_s,
+        if r.exact { ", every step exact" } else { "" },
+        crate::scene::budget::human(r.rss_max_kb * 1024),
+        crate::scene::budget::human(r.budget_bytes),
+        r.rss_max_over_budget_pct,
+        crate::scene::budget::human(r.baseline_kb * 1024),
+        r.slides,
+        r.slide_ms_mean,
+        r.slide_ms_max,
+        r.frames,
+        r.frame_ms_mean,
+        r.coarse_fraction_mean * 100.0,
+        r.window.generated,
+        r.window.cache_hits,
+        r.window.evicted,
+    );
+    Ok(())
+}
 
 fn run_bench_store(a: &crate::cli::BenchStoreArgs) -> Result<()> {
     let size = crate::config::parse_size(&a.size)?;

@@ -193,6 +193,34 @@ pub enum BenchCommand {
     Voxels(BenchVoxelsArgs),
     /// Commit and restore costs of the chunked world store on a terrain.
     Store(BenchStoreArgs),
+    /// Fly a streamed world's render window a long way: memory against the budget, slides, frames.
+    Flight(BenchFlightArgs),
+}
+
+/// `brickworld bench flight`.
+#[derive(Debug, Args)]
+pub struct BenchFlightArgs {
+    /// A streamed world's config (default: the shipped endless world)
+    #[arg(long)]
+    pub world: Option<PathBuf>,
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Voxels to fly
+    #[arg(long, default_value_t = 100_000.0)]
+    pub distance: f64,
+    /// Voxels per step
+    #[arg(long, default_value_t = 32.0)]
+    pub step: f64,
+    /// Draw a frame every this many voxels
+    #[arg(long, default_value_t = 1024.0)]
+    pub frame_every: f64,
+    /// Do not wait for exact columns at each step (fly as fast as the loop goes)
+    #[arg(long)]
+    pub no_wait: bool,
+    /// Memory budget (overrides the world's), e.g. 512MiB
+    #[arg(long)]
+    pub memory_budget: Option<String>,
 }
 
 /// `brickworld bench voxels`.

@@ -2,6 +2,7 @@
 //! JSON that other tools read, and SVG charts.
 
 pub mod chart;
+pub mod flight;
 pub mod sim;
 pub mod soak;
 pub mod store;

@@ -45,6 +45,22 @@ pub struct SoakReport {
     pub frames: u64,
     /// Frames skipped because the renderer was busy (the simulation went on).
     pub frames_skipped: u64,
+    /// Seconds from starting the daemon to its first frame.
+    pub first_frame_s: f64,
+    /// Largest resident memory seen, KiB.
+    pub rss_max_kb: u64,
+    /// The engine's per-frame snapshot time, milliseconds: median and worst.
+    pub snapshot_ms_p50: f64,
+    /// Worst.
+    pub snapshot_ms_max: f64,
+    /// The slowest commit seen (ms) and its chunk count.
+    pub commit_ms_max: f64,
+    /// Chunks in that commit.
+    pub commit_chunks: u64,
+    /// A streamed world's memory budget, bytes (null otherwise).
+    pub memory_budget: Option<u64>,
+    /// A streamed world's render window at the end (null otherwise).
+    pub window: Option<serde_json::Value>,
 }
 
 /// Run the soak.
@@ -75,6 +91,7 @@ pub fn run(
         .spawn()
         .context("cannot start the daemon")?;
     let start = Instant::now();
+    let mut first_frame_s = f64::NAN;
     while request(&addr, "GET", "/status", None, "").is_err() {
         if start.elapsed() > Duration::from_secs(120) {
             let _ = child.kill();
@@ -88,6 +105,9 @@ pub fn run(
     let (mut rss, mut lat, mut max_q, mut first_tick, mut last_tick) =
         (Vec::new(), Vec::new(), 0u64, None, 0u64);
     let mut frames = (0u64, 0u64);
+    let mut snaps = Vec::new();
+    let (mut commit_ms_max, mut commit_chunks) = (0f64, 0u64);
+    let (mut memory_budget, mut last_window) = (None, None);
     while t0.elapsed() < total {
         let t = Instant::now();
         let r = request(&addr, "GET", "/status", None, "");
@@ -103,16 +123,32 @@ pub fn run(
                 s["frames"].as_u64().unwrap_or(0),
                 s["frames_skipped"].as_u64().unwrap_or(0),
             );
+            if frames.0 > 0 && first_frame_s.is_nan() {
+                first_frame_s = start.elapsed().as_secs_f64();
+            }
+            if frames.0 > 0 {
+                snaps.push(s["snapshot_ms"].as_f64().unwrap_or(0.0));
+            }
+            let c = &s["last_commit"];
+            if c["ms"].as_f64().unwrap_or(0.0) > commit_ms_max {
+                commit_ms_max = c["ms"].as_f64().unwrap_or(0.0);
+                commit_chunks = c["chunks"].as_u64().unwrap_or(0);
+            }
+            memory_budget = s["memory_budget"].as_u64();
+            last_window = Some(s["window"].clone()).filter(|w| !w.is_null());
         }
-        rss.push((
-            t0.elapsed().as_secs_f64(),
-            crate::engine::timeline::rss_kb_of(child.id()),
-        ));
+        // One memory sample a second (the fifths compare equal spans).
+        let now = t0.elapsed().as_secs_f64();
+        if rss.last().is_none_or(|r: &(f64, u64)| now - r.0 >= 0.999) {
+            rss.push((now, crate::engine::timeline::rss_kb_of(child.id())));
+        }
         if let Some(status) = child.try_wait()? {
             bail!("the daemon exited early ({status})");
         }
         progress.set_position(t0.elapsed().as_secs());
-        std::thread::sleep(Duration::from_millis(1000).saturating_sub(t.elapsed()));
+        // Sample finely until the first frame, to time it; then each second.
+        let period = if first_frame_s.is_nan() { 50 } else { 1000 };
+        std::thread::sleep(Duration::from_millis(period).saturating_sub(t.elapsed()));
     }
     let secs = t0.elapsed().as_secs_f64();
     let _ = Command::new("kill")
@@ -166,6 +202,8 @@ pub fn run(
     };
     let rss_peak_growth_pct = growth(early.last(), late.last());
     let rss_median_growth_pct = growth(early.get(early.len() / 2), late.get(late.len() / 2));
+    snaps.sort_by(|a, b| a.total_cmp(b));
+    let rss_max_kb = rss.iter().map(|r| r.1).max().unwrap_or(0);
     Ok(SoakReport {
         rss_peak_growth_pct,
         rss_median_growth_pct,
@@ -182,5 +220,13 @@ pub fn run(
         ticks: last_tick,
         frames: frames.0,
         frames_skipped: frames.1,
+        first_frame_s,
+        rss_max_kb,
+        snapshot_ms_p50: snaps.get(snaps.len() / 2).copied().unwrap_or(0.0),
+        snapshot_ms_max: snaps.last().copied().unwrap_or(0.0),
+        commit_ms_max,
+        commit_chunks,
+        memory_budget,
+        window: last_window,
     })
 }

@@ -104,11 +104,6 @@ pub struct Brick {
 }
 
 impl Brick {
-    /// Bytes this brick owns on the heap (its palette and packed indices).
-    pub fn heap_bytes(&self) -> usize {
-        self.local_palette.len() + self.indices.len() * 8
-    }
-
     fn from_dense_mixed(dense: &[u8; BRICK_VOXELS], palette: &Palette) -> Self {
         let mut mask = [0u64; 8];
         let mut seen = [false; 256];
