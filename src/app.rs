@@ -462,8 +462,8 @@ fn run_render(s: RenderSettings) -> Result<()> {
             match crate::gpu::GpuContext::new() {
                 Ok(ctx) => {
                     let t1 = Instant::now();
-                    let mut gpu = crate::gpu::GpuBrickmap::preloaded(&ctx, &world.grid, world.store.pool(), world.store.palette())?;
-                    let (out, _) = gpu.render(&ctx, &camera, &opts, &world.grid, world.store.pool())?;
+                    let mut gpu = crate::gpu::GpuBrickmap::preloaded(&ctx, world.grid(), world.store().pool(), world.store().palette())?;
+                    let (out, _) = gpu.render(&ctx, &camera, &opts, world.grid(), world.store().pool())?;
                     let traced = t1.elapsed();
                     write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
                     if let Some(d) = &s.depth_out {
@@ -485,16 +485,16 @@ fn run_render(s: RenderSettings) -> Result<()> {
         }
         let t1 = Instant::now();
         let out = match s.structure {
-            Structure::Brickmap => render(&world.brickmap(), &camera, world.store.palette(), &opts),
+            Structure::Brickmap => render(&world.brickmap(), &camera, world.store().palette(), &opts),
             Structure::Svo => {
                 let pb = bar("octree", 0);
                 let svo = world.svo(&pb)?;
                 pb.finish_and_clear();
-                render(&svo, &camera, world.store.palette(), &opts)
+                render(&svo, &camera, world.store().palette(), &opts)
             }
             Structure::Dense => {
                 let dense = world.dense(s.dense_limit)?;
-                render(&dense as &dyn Tracer, &camera, world.store.palette(), &opts)
+                render(&dense as &dyn Tracer, &camera, world.store().palette(), &opts)
             }
         };
         let traced = t1.elapsed();

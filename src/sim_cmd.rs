@@ -27,7 +27,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
             let src = read_script(path)?;
             ws.add_script(&world, src, Limits::default()).context("cannot load the script")?;
         }
-        ws.vox.apply_fills(&world.store, &world.materials);
+        ws.vox.apply_fills(world.store(), &world.materials);
         for p in &s.params {
             let index = ws.script_index(&p.script)
                 .with_context(|| format!("--param names script '{}', which is not loaded", p.script))?;
@@ -109,7 +109,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
             shadows: s.shadows,
             ..Default::default()
         };
-        let out = render(&world.brickmap(), &cam, world.store.palette(), &opts);
+        let out = render(&world.brickmap(), &cam, world.store().palette(), &opts);
         write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
         eprintln!("-> {}", s.out.display());
         if let Some(e) = failed.first() {

@@ -24,8 +24,8 @@ fn state(tick: u64, seed: u64) -> WorldState {
     channels.set(IVec2::new(1, 2), water, &d);
     WorldState {
         tick,
-        store: w.store,
-        bounds: w.bounds,
+        store: w.store().clone(),
+        bounds: w.bounds(),
         channels,
         params: vec![("water".into(), vec![("rain".into(), 0.5)])],
         identity: None,

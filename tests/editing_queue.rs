@@ -45,10 +45,10 @@ fn every_changed_brick_is_published_exactly_once_per_step_and_nothing_else() {
     let (lo, hi) = (IVec3::new(0, 0, 0), IVec3::new(8, 8, 8));
     let mut published_any = false;
     for _ in 0..12 {
-        let before = snapshot(&world.store, lo, hi);
+        let before = snapshot(world.store(), lo, hi);
         let r = ws.step(&mut world, 0.1);
         assert!(r.errors.is_empty(), "{:?}", r.errors);
-        let after = snapshot(&world.store, lo, hi);
+        let after = snapshot(world.store(), lo, hi);
         let changed: BTreeSet<(i32, i32, i32)> = before
             .keys()
             .filter(|k| before[k] != after[k])
@@ -90,16 +90,19 @@ fn a_copy_fed_only_deltas_of_the_published_bricks_stays_identical() {
         copy.apply_delta(delta);
     }
     assert!(sent > 0, "the rain changed no brick");
-    let (lo, hi) = (world.grid.origin(), world.grid.origin() + world.grid.dims());
-    assert_eq!(
-        snapshot(&copy.store, lo, hi),
-        snapshot(&world.store, lo, hi)
+    let (lo, hi) = (
+        world.grid().origin(),
+        world.grid().origin() + world.grid().dims(),
     );
-    for z in 0..world.grid.dims().z {
-        for y in 0..world.grid.dims().y {
-            for x in 0..world.grid.dims().x {
+    assert_eq!(
+        snapshot(copy.store(), lo, hi),
+        snapshot(world.store(), lo, hi)
+    );
+    for z in 0..world.grid().dims().z {
+        for y in 0..world.grid().dims().y {
+            for x in 0..world.grid().dims().x {
                 let l = IVec3::new(x, y, z);
-                let (a, b) = (copy.grid.pointer(l), world.grid.pointer(l));
+                let (a, b) = (copy.grid().pointer(l), world.grid().pointer(l));
                 // Pool slots may differ; emptiness and uniform materials may not.
                 assert_eq!(a == 0, b == 0, "{l}");
                 if a & brickworld::world::UNIFORM != 0 || b & brickworld::world::UNIFORM != 0 {
@@ -109,6 +112,9 @@ fn a_copy_fed_only_deltas_of_the_published_bricks_stays_identical() {
         }
     }
     for m in 0..=255u8 {
-        assert_eq!(copy.store.palette().rgb(m), world.store.palette().rgb(m));
+        assert_eq!(
+            copy.store().palette().rgb(m),
+            world.store().palette().rgb(m)
+        );
     }
 }

@@ -53,13 +53,13 @@ fn placeholder_vox_matches_the_crates_documented_voxels() {
         (IVec3::new(0, 1, 0), 236),
         (IVec3::new(0, 0, -1), 6),
     ];
-    assert_eq!(w.store.solid_voxels(), 4);
+    assert_eq!(w.store().solid_voxels(), 4);
     for (p, m) in expected {
-        assert_eq!(w.store.voxel(p), m, "voxel {p}");
+        assert_eq!(w.store().voxel(p), m, "voxel {p}");
         let c = dot_vox::DEFAULT_PALETTE[m as usize - 1];
-        assert_eq!(w.store.palette().rgb(m), [c.r, c.g, c.b]);
+        assert_eq!(w.store().palette().rgb(m), [c.r, c.g, c.b]);
     }
-    assert_eq!(w.bounds, (IVec3::new(-1, 0, -1), IVec3::new(1, 2, 1)));
+    assert_eq!(w.bounds(), (IVec3::new(-1, 0, -1), IVec3::new(1, 2, 1)));
 }
 
 #[test]
@@ -69,7 +69,7 @@ fn every_vox_resource_of_dot_vox_loads_or_fails_cleanly() {
         let p = entry.unwrap().path();
         if p.extension().is_some_and(|e| e == "vox") {
             match build(SceneSpec::Vox(p.clone())) {
-                Ok(w) => assert!(w.store.solid_voxels() > 0, "{}", p.display()),
+                Ok(w) => assert!(w.store().solid_voxels() > 0, "{}", p.display()),
                 Err(e) => assert!(e.to_string().contains(&*p.to_string_lossy()), "{e}"),
             }
         }
@@ -96,7 +96,7 @@ fn heightmap_png_gives_exactly_the_columns_it_encodes() {
         for u in 0..w as i32 {
             let hv = heights[(v as u32 * w + u as u32) as usize] as i32;
             for y in -2..45 {
-                let solid = world.store.voxel(IVec3::new(u, y, v)) != 0;
+                let solid = world.store().voxel(IVec3::new(u, y, v)) != 0;
                 assert_eq!(
                     solid,
                     (0..hv).contains(&y),
@@ -114,7 +114,7 @@ fn heightmap_png_gives_exactly_the_columns_it_encodes() {
     for (i, &hv) in vals.iter().enumerate() {
         let (u, v) = ((i % 2) as i32, (i / 2) as i32);
         let top = (0..600)
-            .filter(|&y| world.store.voxel(IVec3::new(u, y, v)) != 0)
+            .filter(|&y| world.store().voxel(IVec3::new(u, y, v)) != 0)
             .count();
         assert_eq!(top, hv as usize);
     }

@@ -68,8 +68,8 @@ fn valid_checkpoint() -> Vec<u8> {
     let _ = std::fs::remove_dir_all(&dir);
     let state = checkpoint::WorldState {
         tick: 7,
-        store: w.store,
-        bounds: w.bounds,
+        store: w.store().clone(),
+        bounds: w.bounds(),
         channels: Default::default(),
         params: vec![("water".into(), vec![("rain".into(), 0.5)])],
         identity: None,
@@ -200,12 +200,12 @@ fn the_world_store_decoders_never_panic() {
     let mut vox = brickworld::sim::voxels::VoxelChannels::default();
     let water = vox.channel("water");
     vox.set(water, IVec3::new(1, 2, 3), &[0.5; 512]);
-    let palette = w.store.palette().clone();
-    let payload = chunk::chunk_payload(key, &w.store, &vox);
+    let palette = w.store().palette().clone();
+    let payload = chunk::chunk_payload(key, w.store(), &vox);
     fuzz("chunk payload", payload, |b| {
         let _ = chunk::decode_chunk_payload(key, b, &palette);
     });
-    let blob = chunk::encode_chunk(key, &w.store, &vox);
+    let blob = chunk::encode_chunk(key, w.store(), &vox);
     fuzz("chunk blob", blob, |b| {
         let _ = chunk::decode_chunk(key, b, &palette);
     });

@@ -57,7 +57,7 @@ fn check(name: &str, spec: &str, size: IVec3, shadows: bool) {
     let tracers: [&dyn Tracer; 3] = [&dense, &svo, &bm];
     let frames: Vec<_> = tracers
         .iter()
-        .map(|t| render(*t, &cam, world.store.palette(), &opts))
+        .map(|t| render(*t, &cam, world.store().palette(), &opts))
         .collect();
     for (t, f) in tracers.iter().zip(&frames).skip(1) {
         assert!(
@@ -161,13 +161,13 @@ fn fault_21_a_snow_only_world_shows_no_water() {
     for _ in 0..30 {
         assert!(ws.step(&mut world, 0.05).errors.is_empty());
     }
-    let water = brickworld::verify::voxels::count(&world.store, WATER);
+    let water = brickworld::verify::voxels::count(world.store(), WATER);
     assert_eq!(water, 0, "water voxels in a world without water");
     let cam = golden_camera(&world);
     let frame = render(
         &world.brickmap(),
         &cam,
-        world.store.palette(),
+        world.store().palette(),
         &RenderOptions::default(),
     );
     compare_golden("snow_only_96x72.png", &frame.rgb);

@@ -23,9 +23,9 @@ fn context() -> Option<GpuContext> {
 fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
     let mut gpu = GpuBrickmap::preloaded(
         ctx,
-        &b.world.grid,
-        b.world.store.pool(),
-        b.world.store.palette(),
+        b.world.grid(),
+        b.world.store().pool(),
+        b.world.store().palette(),
     )
     .unwrap();
     let opts = RenderOptions {
@@ -35,9 +35,9 @@ fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
     let bm = b.brickmap();
     for (vi, v) in b.world.default_views().iter().enumerate() {
         let cam = Camera::new(DVec3::from(v.eye), DVec3::from(v.target), v.fov, 160, 120).unwrap();
-        let cpu = render(&bm, &cam, b.world.store.palette(), &opts);
+        let cpu = render(&bm, &cam, b.world.store().palette(), &opts);
         let (g, _) = gpu
-            .render(ctx, &cam, &opts, &b.world.grid, b.world.store.pool())
+            .render(ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
             .unwrap();
         let n = cpu.hits.len();
         let (mut same, mut depth_bad, mut colour_bad) = (0usize, 0usize, 0usize);

@@ -26,7 +26,7 @@ fn agreement(w: &SceneWorld, cam: &Camera, g: &GpuFrame) -> f64 {
     let cpu = render(
         &w.brickmap(),
         cam,
-        w.store.palette(),
+        w.store().palette(),
         &RenderOptions::default(),
     );
     let same = cpu
@@ -53,9 +53,9 @@ fn terrain() -> SceneWorld {
 fn streaming(ctx: &GpuContext, w: &SceneWorld) -> GpuBrickmap {
     GpuBrickmap::streaming(
         ctx,
-        &w.grid,
-        w.store.pool(),
-        w.store.palette(),
+        w.grid(),
+        w.store().pool(),
+        w.store().palette(),
         StreamConfig::default(),
     )
     .unwrap()
@@ -68,8 +68,14 @@ fn draw(
     w: &SceneWorld,
     cam: &Camera,
 ) -> (GpuFrame, FrameStats) {
-    gpu.render(ctx, cam, &RenderOptions::default(), &w.grid, w.store.pool())
-        .unwrap()
+    gpu.render(
+        ctx,
+        cam,
+        &RenderOptions::default(),
+        w.grid(),
+        w.store().pool(),
+    )
+    .unwrap()
 }
 
 fn converge(
@@ -105,7 +111,7 @@ fn streaming_converges_to_the_fully_loaded_image() {
         gpu.resident()
     );
     let mut full =
-        GpuBrickmap::preloaded(&ctx, &w.grid, w.store.pool(), w.store.palette()).unwrap();
+        GpuBrickmap::preloaded(&ctx, w.grid(), w.store().pool(), w.store().palette()).unwrap();
     let (reference, _) = draw(&ctx, &mut full, &w, &cam);
     assert_eq!(
         last.hits, reference.hits,
@@ -113,7 +119,7 @@ fn streaming_converges_to_the_fully_loaded_image() {
     );
     assert_eq!(last.rgb, reference.rgb, "and looks the same");
     assert!(
-        gpu.resident() < w.store.pool().len() as u32,
+        gpu.resident() < w.store().pool().len() as u32,
         "only what rays reached was streamed"
     );
 }
@@ -126,13 +132,13 @@ fn an_edit_through_the_editing_queue_is_visible_within_two_frames() {
     let mut gpu = streaming(&ctx, &w);
     converge(&ctx, &mut gpu, &w, &cam);
     // Carve a visible crater, and raise a tower, through the store.
-    let c = (w.bounds.0 + w.bounds.1).as_dvec3() * 0.5;
-    w.store.fill_sphere(DVec3::new(c.x, 30.0, c.z), 9.0, 0);
-    w.store
-        .fill_box(IVec3::new(20, 0, 60), IVec3::new(26, 47, 66), 3);
-    let changed = w.apply_edits();
+    let c = (w.bounds().0 + w.bounds().1).as_dvec3() * 0.5;
+    let ((), changed) = w.edit(|s, _| {
+        s.fill_sphere(DVec3::new(c.x, 30.0, c.z), 9.0, 0);
+        s.fill_box(IVec3::new(20, 0, 60), IVec3::new(26, 47, 66), 3);
+    });
     assert!(!changed.is_empty());
-    gpu.apply_edits(&ctx, &w.grid, w.store.pool(), &changed);
+    gpu.apply_edits(&ctx, w.grid(), w.store().pool(), &changed);
     // Within two frames every pixel that shows an edited brick is exact.
     // (Unchanged bricks newly revealed behind the edit stream one frame
     // later: occlusion feedback only requests what rays reach.)
@@ -140,7 +146,7 @@ fn an_edit_through_the_editing_queue_is_visible_within_two_frames() {
     let cpu = render(
         &w.brickmap(),
         &cam,
-        w.store.palette(),
+        w.store().palette(),
         &RenderOptions::default(),
     );
     let mut visible = None;
@@ -179,11 +185,11 @@ fn exhausted_pool_and_feedback_degrade_to_lod_colours() {
         uploads_per_frame: 4,
     };
     let mut gpu =
-        GpuBrickmap::streaming(&ctx, &w.grid, w.store.pool(), w.store.palette(), cfg).unwrap();
+        GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg).unwrap();
     let cpu = render(
         &w.brickmap(),
         &cam,
-        w.store.palette(),
+        w.store().palette(),
         &RenderOptions::default(),
     );
     let mut overflowed = 0;
@@ -204,7 +210,7 @@ fn exhausted_pool_and_feedback_degrade_to_lod_colours() {
                 let v = f.hits[i].expect("an LOD pixel is a hit").0;
                 let b = brickworld::world::brick_of(v);
                 assert_ne!(
-                    w.store.cell(b),
+                    w.store().cell(b),
                     brickworld::world::Cell::Empty,
                     "LOD pixel {i} on an empty brick"
                 );
@@ -238,7 +244,7 @@ fn a_running_snow_simulation_drives_re_streaming() {
     for _ in 0..12 {
         let r = ws.step(&mut w, 0.2);
         assert!(r.errors.is_empty());
-        gpu.apply_edits(&ctx, &w.grid, w.store.pool(), &r.bricks);
+        gpu.apply_edits(&ctx, w.grid(), w.store().pool(), &r.bricks);
         let (_, s) = draw(&ctx, &mut gpu, &w, &cam);
         uploads += s.uploads;
     }
@@ -294,7 +300,7 @@ fn a_pool_beyond_the_device_limits_is_a_clear_error_naming_the_limit() {
         pool_slots: 1 << 30,
         ..Default::default()
     };
-    let e = GpuBrickmap::streaming(&ctx, &w.grid, w.store.pool(), w.store.palette(), cfg)
+    let e = GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg)
         .err()
         .expect("too large");
     assert!(matches!(e, GpuError::TooLarge { .. }), "{e}");
@@ -315,14 +321,14 @@ fn evicted_bricks_keep_the_worlds_lod_colour() {
         uploads_per_frame: 16,
     };
     let mut gpu =
-        GpuBrickmap::streaming(&ctx, &w.grid, w.store.pool(), w.store.palette(), cfg).unwrap();
+        GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg).unwrap();
     let mut evictions = 0;
     for view in [0, 1, 2, 0, 1, 2] {
         let (_, s) = draw(&ctx, &mut gpu, &w, &camera(&w, view));
         evictions += s.evictions;
     }
     assert!(evictions > 0, "the tiny pool must have evicted");
-    let dims = w.grid.dims();
+    let dims = w.grid().dims();
     for (i, &p) in gpu.pointers().iter().enumerate() {
         let state = p >> 30;
         if state == 1 || state == 2 {
@@ -331,8 +337,8 @@ fn evicted_bricks_keep_the_worlds_lod_colour() {
                 (i as i32 / dims.x) % dims.y,
                 i as i32 / (dims.x * dims.y),
             );
-            let wp = w.grid.pointer(l);
-            let c = w.store.pool().slot(wp - 1).unwrap().lod_rgb();
+            let wp = w.grid().pointer(l);
+            let c = w.store().pool().slot(wp - 1).unwrap().lod_rgb();
             let expect =
                 ((c[0] as u32 >> 3) << 11) | ((c[1] as u32 >> 2) << 5) | (c[2] as u32 >> 3);
             assert_eq!(

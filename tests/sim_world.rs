@@ -265,7 +265,7 @@ fn column_write_back_never_fills_a_cave_or_an_overhangs_underside() {
         for z in lo.z..hi.z {
             for y in lo.y..hi.y {
                 for x in lo.x..hi.x {
-                    n += pred(world.store.voxel(IVec3::new(x, y, z))) as usize;
+                    n += pred(world.store().voxel(IVec3::new(x, y, z))) as usize;
                 }
             }
         }

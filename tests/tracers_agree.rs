@@ -17,7 +17,7 @@ fn rays_per_scene() -> usize {
 fn check(name: &str, b: &Built, seed: u64) {
     let bm = b.brickmap();
     let tracers: [&dyn Tracer; 3] = [&b.dense, &b.svo, &bm];
-    let ext = (b.world.bounds.1 - b.world.frame().anchor).as_vec3();
+    let ext = (b.world.bounds().1 - b.world.frame().anchor).as_vec3();
     let mut rng = TestRng(seed);
     let mut hits = 0usize;
     let n = rays_per_scene();

@@ -128,7 +128,7 @@ pub fn run(
             )?;
             let t = Instant::now();
             let world = w.world();
-            let _ = render(&world.brickmap(), &cam, world.store.palette(), &opts);
+            let _ = render(&world.brickmap(), &cam, world.store().palette(), &opts);
             frame_ms.push(t.elapsed().as_secs_f64() * 1e3);
             coarse.push(s.coarse as f64 / s.columns.max(1) as f64);
         }

@@ -97,9 +97,9 @@ pub fn run(
     };
     let mut gpu = GpuBrickmap::streaming(
         &ctx,
-        &world.grid,
-        world.store.pool(),
-        world.store.palette(),
+        world.grid(),
+        world.store().pool(),
+        world.store().palette(),
         cfg,
     )?;
     progress.set_length(300);
@@ -109,7 +109,7 @@ pub fn run(
     let mut frames_to_converge = 0;
     for n in 1..=400u32 {
         let t = Instant::now();
-        let (f, s) = gpu.render(&ctx, &cam, &opts, &world.grid, world.store.pool())?;
+        let (f, s) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
         progress.inc(1);
         uploads.push(s.uploads);
@@ -137,7 +137,7 @@ pub fn run(
     let mut static_ms = Vec::new();
     for _ in 0..5 {
         let t = Instant::now();
-        gpu.render(&ctx, &cam, &opts, &world.grid, world.store.pool())?;
+        gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
         static_ms.push(t.elapsed().as_secs_f64() * 1e3);
         progress.inc(1);
     }
@@ -145,24 +145,24 @@ pub fn run(
     // CPU on the same view.
     let bm = world.brickmap();
     let t = Instant::now();
-    render(&bm, &cam, world.store.palette(), &opts);
+    render(&bm, &cam, world.store().palette(), &opts);
     let cpu_s = t.elapsed().as_secs_f64();
     let rays = (width * height) as f64;
     // An edit through the store where the view looks (a crater of radius 10
     // at the centre pixel's hit): frames until every edited-brick pixel is exact.
-    let centre = render(&world.brickmap(), &cam, world.store.palette(), &opts).hits
+    let centre = render(&world.brickmap(), &cam, world.store().palette(), &opts).hits
         [(height / 2 * width + width / 2) as usize];
-    let at = centre.map_or((world.bounds.0 + world.bounds.1).as_dvec3() * 0.5, |h| {
-        h.voxel.as_dvec3()
-    });
-    world.store.fill_sphere(at, 10.0, 0);
-    let changed = world.apply_edits();
-    gpu.apply_edits(&ctx, &world.grid, world.store.pool(), &changed);
+    let at = centre.map_or(
+        (world.bounds().0 + world.bounds().1).as_dvec3() * 0.5,
+        |h| h.voxel.as_dvec3(),
+    );
+    let ((), changed) = world.edit(|s, _| s.fill_sphere(at, 10.0, 0));
+    gpu.apply_edits(&ctx, world.grid(), world.store().pool(), &changed);
     let edited: rustc_hash::FxHashSet<glam::IVec3> = changed.iter().copied().collect();
-    let cpu = render(&world.brickmap(), &cam, world.store.palette(), &opts);
+    let cpu = render(&world.brickmap(), &cam, world.store().palette(), &opts);
     let mut edit_to_visible = 0;
     for n in 1..=20u32 {
-        let (f, _) = gpu.render(&ctx, &cam, &opts, &world.grid, world.store.pool())?;
+        let (f, _) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
         progress.inc(1);
         let wrong = (0..f.hits.len())
             .filter(|&i| cpu.hits[i].is_some_and(|h| edited.contains(&brick_of(h.voxel))))
@@ -189,8 +189,8 @@ pub fn run(
             anyhow::bail!("the snow simulation failed: {e}");
         }
         let t = Instant::now();
-        gpu.apply_edits(&ctx, &world.grid, world.store.pool(), &r.bricks);
-        gpu.render(&ctx, &cam, &opts, &world.grid, world.store.pool())?;
+        gpu.apply_edits(&ctx, world.grid(), world.store().pool(), &r.bricks);
+        gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
         editing_ms.push(t.elapsed().as_secs_f64() * 1e3);
         progress.inc(1);
     }
@@ -201,7 +201,7 @@ pub fn run(
             v.iter().sum::<f64>() / v.len() as f64
         }
     };
-    let world_brick_bytes = world.grid.bytes() as u64 + world.store.pool().bytes() as u64;
+    let world_brick_bytes = world.grid().bytes() as u64 + world.store().pool().bytes() as u64;
     Ok(StreamReport {
         adapter: ctx.describe(),
         frames_to_converge,
@@ -220,7 +220,7 @@ pub fn run(
             / 1e6
             / (streaming_ms.iter().sum::<f64>() / 1e3).max(1e-9),
         resident_bricks: resident,
-        world_bricks: world.store.pool().len() as u32,
+        world_bricks: world.store().pool().len() as u32,
         uploads_budget: budget,
         material_bytes_culled: culled,
         material_bytes_unculled: unculled,

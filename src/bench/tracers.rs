@@ -144,11 +144,11 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
         })
         .collect::<Result<_, _>>()
         .context("invalid camera")?;
-    let solid = world.store.solid_voxels();
+    let solid = world.store().solid_voxels();
 
     // Build each structure, timing it; failures are reported and skipped.
     let t = Instant::now();
-    let grid = BrickGrid::build(&world.store, world.grid.origin(), world.grid.dims());
+    let grid = BrickGrid::build(world.store(), world.grid().origin(), world.grid().dims());
     let grid_s = t.elapsed().as_secs_f64();
     drop(grid);
     let t = Instant::now();
@@ -185,7 +185,7 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
         (views.len() * built.len()) as u64 * s.repeat as u64,
     );
     let opts = RenderOptions::default();
-    let palette = world.store.palette();
+    let palette = world.store().palette();
     let pixels = (s.view.width * s.view.height) as u64;
     let mut times = vec![vec![0f64; cameras.len()]; built.len()];
     let mut hit_counts = vec![0u64; built.len()];
@@ -243,7 +243,7 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
         };
         Structure::ALL.iter().position(|s| s.name() == n)
     });
-    let ext = world.bounds.1 - world.bounds.0;
+    let ext = world.bounds().1 - world.bounds().0;
     Ok(BenchReport {
         scene: scene_name(&s.scene.spec),
         size: ext.to_array(),

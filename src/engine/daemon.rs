@@ -264,6 +264,7 @@ impl Engine {
         let mut loaded_from = None;
         match &resumed {
             None => {
+                let mut placed = Vec::new();
                 for (i, p) in cfg.place.iter().enumerate() {
                     let id = world.materials.id(&p.material).with_context(|| {
                         format!(
@@ -271,7 +272,7 @@ impl Engine {
                             p.material
                         )
                     })?;
-                    let (lo, hi) = world.bounds;
+                    let (lo, hi) = world.bounds();
                     if p.at.cmplt(lo).any() || (p.at + p.size).cmpgt(hi).any() {
                         bail!(
                             "place[{i}]: the box at {} of size {} is outside the world [{lo}, {hi})",
@@ -279,12 +280,12 @@ impl Engine {
                             p.size
                         );
                     }
-                    world.store.fill_box(p.at, p.at + p.size, id);
+                    let ((), changed) = world.edit(|s, _| s.fill_box(p.at, p.at + p.size, id));
+                    placed.extend(changed);
                 }
-                let placed = world.apply_edits();
                 dirty_chunks.bricks(&placed);
                 ws.vox.notify_edited(&placed);
-                ws.vox.apply_fills(&world.store, &world.materials);
+                ws.vox.apply_fills(world.store(), &world.materials);
                 if !cfg.source.is_procedural() {
                     // Import the file's world whole, now: from here on the
                     // store is the world, and the file is not needed.

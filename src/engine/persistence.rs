@@ -54,7 +54,7 @@ impl DirtyChunks {
 
     /// Mark every chunk and chunk column of the world dirty (an import).
     pub fn everything(&mut self, world: &SceneWorld, ws: &WorldSim) {
-        let (lo, hi) = world.bounds;
+        let (lo, hi) = world.bounds();
         let bmin = lo.div_euclid(IVec3::splat(8));
         let bmax = (hi - 1).div_euclid(IVec3::splat(8));
         let (cmin, cmax) = (bmin >> CHUNK_SHIFT, bmax >> CHUNK_SHIFT);
@@ -127,7 +127,7 @@ pub fn commit(
     ws: &mut WorldSim,
 ) -> Result<CommitStats, StoreError> {
     dirty.collect(ws);
-    let store = &world.store;
+    let store = world.store();
     let voxel = ws.vox.channels();
     let columns = ws.sim.channels();
     let chunks: Vec<(ChunkKey, Vec<u8>)> = dirty
@@ -143,8 +143,8 @@ pub fn commit(
     let (params, extras) = sim_state(world, ws);
     let blob = state::encode(
         ws.sim.tick(),
-        world.store.palette(),
-        world.bounds,
+        world.store().palette(),
+        world.bounds(),
         &params,
         &extras,
     );
@@ -200,47 +200,49 @@ pub fn restore_chunks(
         path: db.path().to_path_buf(),
         msg: format!("{msg}; the chunks are intact, but the world cannot resume without it"),
     })?;
-    *world.store.palette_mut() = st.store.palette().clone();
-    let keys = db.chunk_keys()?;
-    let mut corrupt = Vec::new();
-    let mut regenerated = Vec::new();
-    let mut n = 0;
-    for k in &keys {
-        let Some(blob) = db.chunk(*k)? else { continue };
-        match chunk::decode_chunk(*k, &blob, world.store.palette()) {
-            Ok(data) => {
-                chunk::apply_chunk(*k, &data, &mut world.store, ws.vox.channels_mut());
-                n += 1;
-            }
-            Err(e) => {
-                corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
-                regenerated.push(*k);
-            }
-        }
-    }
-    let mut bad_columns = Vec::new();
-    for k in db.column_keys()? {
-        let Some(blob) = db.column(k)? else { continue };
-        match chunk::decode_column(k, &blob) {
-            Ok(data) => {
-                chunk::apply_column(k, &data, ws.sim.channels_mut());
-                n += 1;
-            }
-            Err(e) => {
-                corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
-                bad_columns.push(k);
+    // The overlay is the stored state, not a change: the grid is patched
+    // and the changed bricks forgotten; only the regenerated chunks must be
+    // written again.
+    let (overlay, _) = world.edit(|store, materials| -> Result<_, StoreError> {
+        *store.palette_mut() = st.store.palette().clone();
+        let keys = db.chunk_keys()?;
+        let mut corrupt = Vec::new();
+        let mut regenerated = Vec::new();
+        let mut n = 0;
+        for k in &keys {
+            let Some(blob) = db.chunk(*k)? else { continue };
+            match chunk::decode_chunk(*k, &blob, store.palette()) {
+                Ok(data) => {
+                    chunk::apply_chunk(*k, &data, store, ws.vox.channels_mut());
+                    n += 1;
+                }
+                Err(e) => {
+                    corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
+                    regenerated.push(*k);
+                }
             }
         }
-    }
-    if !st.extras.materials.is_empty() {
-        world.materials = crate::world::MaterialRegistry::from_entries(
-            &st.extras.materials,
-            world.store.palette(),
-        );
-    }
-    // The overlay is the stored state, not a change: patch the grid and
-    // forget it; only the regenerated chunks must be written again.
-    world.apply_edits();
+        let mut bad_columns = Vec::new();
+        for k in db.column_keys()? {
+            let Some(blob) = db.column(k)? else { continue };
+            match chunk::decode_column(k, &blob) {
+                Ok(data) => {
+                    chunk::apply_column(k, &data, ws.sim.channels_mut());
+                    n += 1;
+                }
+                Err(e) => {
+                    corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
+                    bad_columns.push(k);
+                }
+            }
+        }
+        if !st.extras.materials.is_empty() {
+            *materials =
+                crate::world::MaterialRegistry::from_entries(&st.extras.materials, store.palette());
+        }
+        Ok((corrupt, regenerated, bad_columns, n))
+    });
+    let (corrupt, regenerated, bad_columns, n) = overlay?;
     ws.sim.channels_mut().take_dirty();
     ws.vox.channels_mut().take_dirty();
     dirty.chunks.extend(regenerated);
@@ -286,7 +288,7 @@ pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
 /// The hash a run reports when it resumes and when it stops: the bricks,
 /// the column channels and the voxel channels (O(world): not per commit).
 pub fn engine_hash(world: &SceneWorld, ws: &WorldSim) -> u64 {
-    checkpoint::world_hash(&world.store, ws.sim.channels())
+    checkpoint::world_hash(world.store(), ws.sim.channels())
         ^ ws.vox.channels().hash().rotate_left(17)
 }
 
@@ -299,7 +301,7 @@ fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
     if !st.extras.materials.is_empty() {
         world.materials = crate::world::MaterialRegistry::from_entries(
             &st.extras.materials,
-            world.store.palette(),
+            world.store().palette(),
         );
     }
     let mut ws = WorldSim::with_edges(&mut world, true);
@@ -308,7 +310,7 @@ fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
     let mut dirty = DirtyChunks::default();
     dirty.everything(&world, &ws);
     let (params, extras) = (st.params, st.extras);
-    let store = &world.store;
+    let store = world.store();
     let chunks: Vec<(ChunkKey, Vec<u8>)> = dirty
         .chunks
         .par_iter()
@@ -319,7 +321,7 @@ fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
         .par_iter()
         .map(|k| (*k, chunk::encode_column(*k, ws.sim.channels())))
         .collect();
-    let blob = state::encode(st.tick, store.palette(), world.bounds, &params, &extras);
+    let blob = state::encode(st.tick, store.palette(), world.bounds(), &params, &extras);
     Ok(db.commit(&chunks, &cols, &blob)?)
 }
 
@@ -387,8 +389,8 @@ pub fn export(
         out,
         WorldRef {
             tick: st.tick,
-            store: &world.store,
-            bounds: world.bounds,
+            store: world.store(),
+            bounds: world.bounds(),
             channels: ws.sim.channels(),
             params: &st.params,
             identity: Some(identity),

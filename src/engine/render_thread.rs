@@ -172,7 +172,7 @@ impl RenderThread {
                         gpu_tried = true;
                         gpu = start_gpu(world);
                     } else if let Some((ctx, g)) = gpu.as_mut() {
-                        g.apply_edits(ctx, &world.grid, world.store.pool(), &job.dirty);
+                        g.apply_edits(ctx, world.grid(), world.store().pool(), &job.dirty);
                     }
                     let rgb = draw(&mut gpu, world, &job.camera, settings.shadows, &st);
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
@@ -293,9 +293,9 @@ fn start_gpu(world: &SceneWorld) -> Option<(GpuContext, GpuBrickmap)> {
     };
     match GpuBrickmap::streaming(
         &ctx,
-        &world.grid,
-        world.store.pool(),
-        world.store.palette(),
+        world.grid(),
+        world.store().pool(),
+        world.store().palette(),
         StreamConfig::default(),
     ) {
         Ok(g) => Some((ctx, g)),
@@ -318,7 +318,7 @@ fn draw(
         ..Default::default()
     };
     if let Some((ctx, g)) = gpu.as_mut() {
-        match g.render(ctx, camera, &opts, &world.grid, world.store.pool()) {
+        match g.render(ctx, camera, &opts, world.grid(), world.store().pool()) {
             Ok((f, s)) => {
                 stats
                     .streamed
@@ -331,7 +331,7 @@ fn draw(
             }
         }
     }
-    render(&world.brickmap(), camera, world.store.palette(), &opts).rgb
+    render(&world.brickmap(), camera, world.store().palette(), &opts).rgb
 }
 
 /// Encode an RGB8 image as PNG bytes.

@@ -39,10 +39,10 @@ pub struct StreamPlan {
 
 /// Bytes a world's bricks and grid hold (the same measure the window uses).
 pub fn world_bytes(world: &SceneWorld) -> u64 {
-    let store = &world.store;
+    let store = world.store();
     (store.pool().bytes()
         + store.pool().index_bytes()
-        + world.grid.bytes()
+        + world.grid().bytes()
         + store.non_empty_bricks() * 24) as u64
 }
 
@@ -99,10 +99,10 @@ pub fn check_budget(region: &SceneWorld, plan: &mut StreamPlan, budget: u64) -> 
         let d = plan.live.1 - plan.live.0;
         (d.x as u64 * d.y as u64).max(1)
     };
-    let per_col = (region_bytes - region.grid.bytes() as u64) / region_cols;
+    let per_col = (region_bytes - region.grid().bytes() as u64) / region_cols;
     let side = 2 * plan.window.radius as u64 + 1;
     let window_cols = side * side;
-    let y_bricks = region.grid.dims().y as u64;
+    let y_bricks = region.grid().dims().y as u64;
     let window_grid = window_cols * 64 * y_bricks * 4 + window_cols * y_bricks;
     let window_min = window_cols * per_col + window_grid;
     let need = 2 * region_bytes + window_min;

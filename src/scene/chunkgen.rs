@@ -185,7 +185,6 @@ impl ChunkGen {
             IVec3::new(v1.x, self.height, v1.y),
         )?;
         super::name_terrain_materials(&mut world);
-        world.store.take_modified();
         Ok(world)
     }
 }

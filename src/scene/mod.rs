@@ -186,14 +186,25 @@ pub struct WorldDelta {
 }
 
 /// A scene ready to trace: its store, bounds and brick grid.
+///
+/// The store is reached for writing only through [`edit`](Self::edit),
+/// which patches the grid with whatever the edit changed before it returns:
+/// the grid cannot be forgotten.
+///
+/// ```
+/// use brickworld::scene::SceneWorld;
+/// use brickworld::world::{BrickStore, Palette};
+/// use glam::IVec3;
+/// let mut w = SceneWorld::new(BrickStore::new(Palette::grey_ramp()), IVec3::ZERO, IVec3::splat(32)).unwrap();
+/// let ((), changed) = w.edit(|store, _| store.set_voxel(IVec3::new(9, 1, 2), 5));
+/// assert_eq!(changed, vec![IVec3::new(1, 0, 0)]);
+/// assert_ne!(w.grid().pointer(IVec3::new(1, 0, 0)), 0); // the grid saw it
+/// ```
 #[derive(Clone, Debug)]
 pub struct SceneWorld {
-    /// The voxels.
-    pub store: BrickStore,
-    /// The brick grid over the bounds.
-    pub grid: BrickGrid,
-    /// Voxel bounds `[min, max)`.
-    pub bounds: (IVec3, IVec3),
+    store: BrickStore,
+    grid: BrickGrid,
+    bounds: (IVec3, IVec3),
     /// The world's named materials (scene materials, the simulation's,
     /// then `materials.lua`'s); their colours are the store's palette.
     pub materials: MaterialRegistry,
@@ -201,10 +212,12 @@ pub struct SceneWorld {
 
 impl SceneWorld {
     /// Wrap a store whose voxels lie in `[lo, hi)`.
-    pub fn new(store: BrickStore, lo: IVec3, hi: IVec3) -> Result<Self, WorldError> {
+    pub fn new(mut store: BrickStore, lo: IVec3, hi: IVec3) -> Result<Self, WorldError> {
         let b0 = brick_of(lo);
         let b1 = brick_of(hi - IVec3::ONE);
         let grid = BrickGrid::build(&store, b0, b1 - b0 + IVec3::ONE)?;
+        // The grid was built from everything the store holds.
+        store.take_modified();
         let materials = materials_present(&store);
         Ok(SceneWorld {
             store,
@@ -212,6 +225,32 @@ impl SceneWorld {
             bounds: (lo, hi),
             materials,
         })
+    }
+
+    /// The voxels (read-only; write through [`edit`](Self::edit)).
+    pub fn store(&self) -> &BrickStore {
+        &self.store
+    }
+
+    /// The brick grid over the bounds.
+    pub fn grid(&self) -> &BrickGrid {
+        &self.grid
+    }
+
+    /// Voxel bounds `[min, max)`.
+    pub fn bounds(&self) -> (IVec3, IVec3) {
+        self.bounds
+    }
+
+    /// Change the world: `f` gets the store and the materials; afterwards
+    /// the grid is patched with the bricks `f` changed, which are returned
+    /// with `f`'s result.
+    pub fn edit<R>(
+        &mut self,
+        f: impl FnOnce(&mut BrickStore, &mut MaterialRegistry) -> R,
+    ) -> (R, Vec<IVec3>) {
+        let r = f(&mut self.store, &mut self.materials);
+        (r, self.apply_edits())
     }
 
     /// The local frame every tracer of this world uses.
@@ -238,7 +277,7 @@ impl SceneWorld {
     }
 
     /// Patch the grid with the store's pending edits; returns the bricks changed.
-    pub fn apply_edits(&mut self) -> Vec<IVec3> {
+    fn apply_edits(&mut self) -> Vec<IVec3> {
         let changed = self.store.take_modified();
         self.grid.apply_edits(&self.store, &changed);
         changed
@@ -392,7 +431,6 @@ pub fn build_scene(
     if let SceneSpec::Terrain { .. } = spec {
         name_terrain_materials(&mut world);
     }
-    world.store.take_modified();
     Ok(world)
 }
 

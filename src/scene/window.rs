@@ -63,23 +63,33 @@ enum Column {
 type Bricks = Vec<(IVec3, BrickContent)>;
 
 struct Cached {
-    /// [`pack`]ed bricks.
-    packed: Vec<u8>,
+    /// [`pack`]ed bricks, in one allocation of exactly their size.
+    packed: Box<[u8]>,
     used: u64,
 }
 
 impl Cached {
     fn bytes(&self) -> u64 {
         // The allocation plus the map entry.
-        self.packed.capacity() as u64 + 64
+        self.packed.len() as u64 + 64
     }
+}
+
+/// Buffers [`pack`] reuses: packing allocates only its exact-size result
+/// (no over-sized compression buffer shrunk in place, which would leave
+/// the heap fragmented by every cached column).
+#[derive(Default)]
+struct PackScratch {
+    raw: Vec<u8>,
+    out: Vec<u8>,
 }
 
 /// A column's bricks as LZ4-compressed bytes: per brick its column-local
 /// position (`u8` x, `u16` y, `u8` z) and `u8` tag, then the uniform
 /// material or the 512 dense materials of a mixed brick.
-fn pack(col: IVec2, bricks: &Bricks) -> Vec<u8> {
-    let mut raw = Vec::with_capacity(bricks.len() * 64);
+fn pack(col: IVec2, bricks: &Bricks, scratch: &mut PackScratch) -> Box<[u8]> {
+    let raw = &mut scratch.raw;
+    raw.clear();
     let mut dense = [0u8; crate::world::BRICK_VOXELS];
     let base = col * CHUNK_BRICKS;
     for (b, c) in bricks {
@@ -96,9 +106,13 @@ fn pack(col: IVec2, bricks: &Bricks) -> Vec<u8> {
             }
         }
     }
-    let mut packed = lz4_flex::compress_prepend_size(&raw);
-    packed.shrink_to_fit();
-    packed
+    let out = &mut scratch.out;
+    out.resize(4 + lz4_flex::block::get_maximum_output_size(raw.len()), 0);
+    out[..4].copy_from_slice(&(raw.len() as u32).to_le_bytes());
+    // The buffer holds the largest output, so this cannot fail; if it did,
+    // the column would fail to unpack and be generated again.
+    let n = lz4_flex::block::compress_into(raw, &mut out[4..]).unwrap_or(0);
+    out[..4 + n].into()
 }
 
 /// The bricks [`pack`] packed (None if the bytes are not a packed column).
@@ -178,6 +192,7 @@ pub struct RenderWindow {
     results: Receiver<(IVec2, Bricks)>,
     workers: Vec<JoinHandle<()>>,
     stats: WindowStats,
+    scratch: PackScratch,
 }
 
 impl RenderWindow {
@@ -236,6 +251,7 @@ impl RenderWindow {
             results: res_rx,
             workers,
             stats: WindowStats::default(),
+            scratch: PackScratch::default(),
         };
         for c in w.window_columns() {
             w.enter(c, live_world);
@@ -398,7 +414,7 @@ impl RenderWindow {
 
     fn cache_put(&mut self, col: IVec2, bricks: Bricks) {
         let entry = Cached {
-            packed: pack(col, &bricks),
+            packed: pack(col, &bricks, &mut self.scratch),
             used: self.clock,
         };
         self.cache_bytes += entry.bytes();
@@ -598,7 +614,7 @@ mod tests {
         let col = IVec2::new(-7, 12);
         let mut bricks = Vec::new();
         g.generate(col, &mut bricks);
-        let packed = pack(col, &bricks);
+        let packed = pack(col, &bricks, &mut PackScratch::default());
         let raw_bytes = bricks.len() * 520;
         assert!(
             packed.len() * 3 < raw_bytes,

@@ -58,7 +58,7 @@ impl WorldSim {
     /// removed there each step (counted in [`drained`](Self::drained), so
     /// world water + drained water is conserved).
     pub fn with_edges(world: &mut SceneWorld, drain: bool) -> Self {
-        let (lo, hi) = world.bounds;
+        let (lo, hi) = world.bounds();
         let (tmin, tmax) = tiles_of(lo, hi);
         let (smin, smax) = if drain {
             (tmin - 1, tmax + 1)
@@ -73,7 +73,7 @@ impl WorldSim {
         for tz in tmin.y..tmax.y {
             for tx in tmin.x..tmax.x {
                 let t = glam::IVec2::new(tx, tz);
-                let ground = ground_of_tile(&world.store, t, hi.y);
+                let ground = ground_of_tile(world.store(), t, hi.y);
                 lowest = ground.iter().fold(lowest, |m, v| m.min(*v));
                 sim.channels_mut().set(t, g, &ground);
                 sync.record(t, &ground);
@@ -90,10 +90,10 @@ impl WorldSim {
                 }
             }
         }
-        set_palette(&mut world.store);
+        world.edit(|s, _| set_palette(s));
         for (id, name) in [(WATER, "water"), (SNOW, "snow"), (SEDIMENT, "sediment")] {
             let def = crate::world::MaterialDef {
-                color: world.store.palette().rgb(id),
+                color: world.store().palette().rgb(id),
                 kind: if id == WATER {
                     crate::world::MaterialKind::Liquid
                 } else {
@@ -103,7 +103,7 @@ impl WorldSim {
             };
             let _ = world.materials.register_at(id, name, def);
         }
-        let vox = VoxelSim::new(&world.store, lo, hi, 0);
+        let vox = VoxelSim::new(world.store(), lo, hi, 0);
         WorldSim {
             sim,
             vox,
@@ -149,7 +149,7 @@ impl WorldSim {
         src: &ScriptSource,
     ) -> Result<Vec<String>, SimError> {
         let names = crate::sim::runtime::materials::load_materials(src, &mut world.materials)?;
-        world.materials.apply(world.store.palette_mut());
+        world.edit(|s, m| m.apply(s.palette_mut()));
         Ok(names)
     }
 
@@ -370,8 +370,8 @@ impl WorldSim {
         }
         self.vox.notify_edited(bricks);
         self.vox.set_tick(tick);
-        let r = self.vox.step(&mut world.store, &world.materials, dt);
-        bricks.extend(world.apply_edits());
+        let (r, changed) = world.edit(|s, m| self.vox.step(s, m, dt));
+        bricks.extend(changed);
         report.errors.extend(r.errors.iter().cloned());
         report.voxel = r;
     }
@@ -415,9 +415,8 @@ impl WorldSim {
             .copied()
             .filter(inside)
             .collect();
-        self.sync
-            .write(self.sim.channels(), &changed, &mut world.store);
-        bricks.extend(world.apply_edits());
+        let (_, written) = world.edit(|s, _| self.sync.write(self.sim.channels(), &changed, s));
+        bricks.extend(written);
         report
     }
 }
