@@ -111,8 +111,7 @@ fn a_budget_too_small_for_one_view_names_the_minimum() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(
-        err.contains("memory budget 64 KiB is too small for one view")
-            && err.contains("need at least"),
+        err.contains("memory budget 64 KiB is too small for one view") && err.contains("at least"),
         "{err}"
     );
     // The minimum it names is enough.

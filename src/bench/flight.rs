@@ -14,8 +14,8 @@ use anyhow::{Result, bail};
 use glam::DVec3;
 use serde::Serialize;
 
-use crate::engine::timeline::rss_kb;
 use crate::engine::world_config::{CameraMode, WorldConfig};
+use crate::scene::budget::rss_kb;
 use crate::scene::{ChunkGen, RenderWindow, WindowSettings};
 use crate::trace::{Camera, RenderOptions, render};
 
@@ -94,6 +94,8 @@ pub fn run(
     };
     let baseline_kb = rss_kb();
     let mut w = RenderWindow::new(gen_, None, settings, eye0, None)?;
+    w.settle(Duration::from_secs(60));
+    w.measure_overhead();
     let opts = RenderOptions {
         shadows: cfg.shadows,
         ..Default::default()

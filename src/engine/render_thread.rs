@@ -154,6 +154,7 @@ impl RenderThread {
                                     // columns (the simulation does not);
                                     // later ones show stand-ins until then.
                                     w.settle(std::time::Duration::from_secs(30));
+                                    w.measure_overhead();
                                     window = Some(w);
                                 }
                                 Err(e) => {

@@ -89,11 +89,19 @@ pub fn build_region(
     Ok((world, plan))
 }
 
-/// Check that `budget` holds the simulated region (twice: the engine's
-/// world and the renderer's copy) and one full window, estimating the
-/// window's columns from the region's own; on success the window's share
-/// of the budget is set in `plan`. The error names the minimum.
+/// Memory the scripts, their Luau VMs and the simulation's channels are
+/// allowed for in the start-up check (they are measured, not estimated,
+/// once the first window is exact).
+const RUNTIME_MARGIN: u64 = 64 << 20;
+
+/// Check that `budget`, the process's resident-memory target, holds what
+/// the process holds now (the engine's simulated region among it), the
+/// renderer's copy of the region, one full window (its columns estimated
+/// from the region's own) and [`RUNTIME_MARGIN`]; on success the budget
+/// goes to the window, whose cache gets what is left. The error names the
+/// minimum.
 pub fn check_budget(region: &SceneWorld, plan: &mut StreamPlan, budget: u64) -> Result<()> {
+    let now = budget::rss_kb() * 1024;
     let region_bytes = world_bytes(region);
     let region_cols = {
         let d = plan.live.1 - plan.live.0;
@@ -105,18 +113,21 @@ pub fn check_budget(region: &SceneWorld, plan: &mut StreamPlan, budget: u64) -> 
     let y_bricks = region.grid().dims().y as u64;
     let window_grid = window_cols * 64 * y_bricks * 4 + window_cols * y_bricks;
     let window_min = window_cols * per_col + window_grid;
-    let need = 2 * region_bytes + window_min;
+    let need = now + region_bytes + window_min + RUNTIME_MARGIN;
     if budget < need {
         bail!(
-            "memory budget {} is too small for one view: the simulated region ({}, held twice: the engine's and the renderer's copies) and a window of {} chunk columns for the view distance (about {}) need at least {}; raise --memory-budget or [stream] memory_budget to {}, or lower [stream] view_distance or shrink [sim] region",
+            "memory budget {} is too small for one view: the engine holds {} with the simulated region, the renderer's copy of the region needs {}, a window of {} chunk columns for the view distance about {}, and the scripts {}: at least {}; raise --memory-budget or [stream] memory_budget to {}, or lower [stream] view_distance or shrink [sim] region",
             budget::human(budget),
+            budget::human(now),
             budget::human(region_bytes),
             window_cols,
             budget::human(window_min),
+            budget::human(RUNTIME_MARGIN),
             budget::human(need),
-            budget::human(need.next_multiple_of(1 << 20)),
+            // A little above the minimum: what the process holds varies.
+            budget::human((need + need / 16).next_multiple_of(1 << 20)),
         );
     }
-    plan.window.budget_bytes = budget - 2 * region_bytes;
+    plan.window.budget_bytes = budget;
     Ok(())
 }

@@ -75,23 +75,7 @@ pub struct Timeline {
     written: u64,
 }
 
-/// Resident memory of this process in KiB (Linux), 0 if unknown.
-pub fn rss_kb() -> u64 {
-    rss_kb_of(std::process::id())
-}
-
-/// Resident memory of process `pid` in KiB (Linux), 0 if unknown.
-pub fn rss_kb_of(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmRSS:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse().ok())
-        })
-        .unwrap_or(0)
-}
+pub use crate::scene::budget::{rss_kb, rss_kb_of};
 
 impl Timeline {
     /// Open (creating, with a header) the timeline at `path`, with the

@@ -126,3 +126,21 @@ pub fn check_world(what: &str, size: IVec3) -> Result<(), SceneError> {
     }
     Ok(())
 }
+
+/// Resident memory of this process in KiB (Linux), 0 if unknown.
+pub fn rss_kb() -> u64 {
+    rss_kb_of(std::process::id())
+}
+
+/// Resident memory of process `pid` in KiB (Linux), 0 if unknown.
+pub fn rss_kb_of(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmRSS:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse().ok())
+        })
+        .unwrap_or(0)
+}

@@ -37,8 +37,9 @@ pub struct WindowSettings {
     /// Chunk columns from the centre column to the window's edge: the
     /// window is `2 radius + 1` columns square.
     pub radius: i32,
-    /// Bytes the window and its cache may hold together; the cache gets
-    /// what the window leaves.
+    /// The process's resident memory target: the cache gets what the
+    /// window and everything else in the process (measured once, by
+    /// [`RenderWindow::measure_overhead`]) leave.
     pub budget_bytes: u64,
     /// Fetcher threads generating exact columns.
     pub fetchers: usize,
@@ -170,6 +171,9 @@ pub struct WindowStats {
     pub cache_hits: u64,
     /// Columns dropped from the cache to stay in budget.
     pub evicted: u64,
+    /// The rest of the process's resident memory, as measured once the
+    /// first window was exact (0 until measured).
+    pub overhead_bytes: u64,
     /// Times the window moved.
     pub slides: u64,
     /// Milliseconds the last move took.
@@ -333,6 +337,16 @@ impl RenderWindow {
             + store.pool().index_bytes()
             + self.world.grid.bytes()
             + store.non_empty_bricks() * 24) as u64
+    }
+
+    /// Measure what the process holds besides the window and its cache
+    /// (code, threads, the simulation, its own world copy…) from its
+    /// resident memory now; the cache's allowance is the budget less this
+    /// and the window. Call it once the first window is exact.
+    pub fn measure_overhead(&mut self) {
+        let rss = crate::scene::budget::rss_kb() * 1024;
+        self.stats.overhead_bytes = rss.saturating_sub(self.window_bytes() + self.cache_bytes);
+        self.evict();
     }
 
     /// Follow the camera to `eye`, copy the live region's changed bricks
@@ -509,7 +523,7 @@ impl RenderWindow {
         let allowance = self
             .settings
             .budget_bytes
-            .saturating_sub(self.window_bytes());
+            .saturating_sub(self.window_bytes() + self.stats.overhead_bytes);
         if self.cache_bytes <= allowance {
             return;
         }
