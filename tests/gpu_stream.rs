@@ -363,3 +363,37 @@ fn a_shader_that_fails_validation_is_an_error_not_a_crash() {
     ctx.validate_shader("brickmap.wgsl", include_str!("../src/gpu/brickmap.wgsl"))
         .expect("the real shader validates");
 }
+
+/// A streamed world's window slides (toroidal grid, ring not zero) and the
+/// GPU, told what changed, still draws what the CPU draws.
+#[test]
+fn a_sliding_window_renders_the_same_on_the_gpu_as_on_the_cpu() {
+    use brickworld::scene::{ChunkGen, RenderWindow, WindowSettings};
+    let Some(ctx) = context() else { return };
+    let g = std::sync::Arc::new(
+        ChunkGen::new(&SceneSpec::Terrain { caves: false }, None, 64, 4).unwrap(),
+    );
+    let settings = WindowSettings {
+        radius: 1,
+        budget_bytes: 256 << 20,
+        fetchers: 1,
+    };
+    let mut eye = DVec3::new(20.0, 70.0, 20.0);
+    let mut w = RenderWindow::new(g, None, settings, eye, None).unwrap();
+    assert!(w.settle(std::time::Duration::from_secs(30)));
+    w.track_changes();
+    let mut gpu = streaming(&ctx, w.world());
+    for step in 0..5 {
+        eye += DVec3::new(70.0, 0.0, 25.0 * step as f64 - 40.0);
+        w.update(eye, None, &[]);
+        assert!(w.settle(std::time::Duration::from_secs(30)));
+        let changed = w.take_changed();
+        let world = w.world();
+        gpu.apply_edits(&ctx, world.grid(), world.store().pool(), &changed);
+        let cam = Camera::new(eye, eye + DVec3::new(60.0, -45.0, 15.0), 60.0, 96, 64).unwrap();
+        let (_, last) = converge(&ctx, &mut gpu, world, &cam);
+        let a = agreement(world, &cam, &last);
+        assert!(a >= 0.999, "step {step}: {a} of pixels agree");
+    }
+    assert_ne!(w.world().grid().ring(), IVec3::ZERO, "the grid slid");
+}

@@ -100,6 +100,21 @@ fn an_unbounded_world_streams_as_the_camera_flies() {
     }
 }
 
+/// The same flight with the GPU tracer (lavapipe in CI): the toroidal
+/// grid slides under the GPU's streamed copy without a fallback.
+#[test]
+fn an_unbounded_world_streams_on_the_gpu_too() {
+    let (cfg, state) = streamed("endless-gpu", "height = 96", FLY);
+    common::daemon::edit_config(&cfg, "tracer = \"cpu\"", "tracer = \"gpu\"");
+    let (_, err) = run_ok(&cfg, &state, "--ticks", 100);
+    assert!(!err.contains("panicked"), "{err}");
+    if common::gpu_context().is_some() {
+        assert!(!err.contains("rendering on the CPU"), "{err}");
+    }
+    let frames = std::fs::read_dir(state.join("frames")).unwrap().count();
+    assert!(frames >= 10, "{frames} frames");
+}
+
 #[test]
 fn a_budget_too_small_for_one_view_names_the_minimum() {
     let (cfg, state) = streamed("budget", "size = [2048, 96, 2048]", FLY);

@@ -323,14 +323,9 @@ impl Engine {
         let frames_dir = opts.state.join(&cfg.frames_dir);
         std::fs::create_dir_all(&frames_dir)
             .with_context(|| format!("cannot create {}", frames_dir.display()))?;
-        if stream_plan.is_some() && cfg.gpu {
-            eprintln!(
-                "note: a streamed world renders on the CPU: the GPU tracer does not read a sliding brick grid yet"
-            );
-        }
         let renderer = RenderThread::spawn(
             RenderSettings {
-                gpu: cfg.gpu && stream_plan.is_none(),
+                gpu: cfg.gpu,
                 stream: stream_plan,
                 shadows: cfg.shadows,
                 frames_dir,

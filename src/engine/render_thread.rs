@@ -138,6 +138,7 @@ impl RenderThread {
                         },
                     }
                     let mut world = mirror.as_ref().expect("set above");
+                    let mut window_changed = Vec::new();
                     if let Some(plan) = &settings.stream {
                         let eye = job.camera.eye;
                         match window.as_mut() {
@@ -155,6 +156,9 @@ impl RenderThread {
                                     // later ones show stand-ins until then.
                                     w.settle(std::time::Duration::from_secs(30));
                                     w.measure_overhead();
+                                    if settings.gpu {
+                                        w.track_changes();
+                                    }
                                     window = Some(w);
                                 }
                                 Err(e) => {
@@ -163,7 +167,8 @@ impl RenderThread {
                                 }
                             },
                         }
-                        let w = window.as_ref().expect("set above");
+                        let w = window.as_mut().expect("set above");
+                        window_changed = w.take_changed();
                         if let Ok(mut s) = st.window.lock() {
                             *s = Some(w.stats());
                         }
@@ -173,7 +178,14 @@ impl RenderThread {
                         gpu_tried = true;
                         gpu = start_gpu(world);
                     } else if let Some((ctx, g)) = gpu.as_mut() {
-                        g.apply_edits(ctx, world.grid(), world.store().pool(), &job.dirty);
+                        // A streamed world's window reports what changed in
+                        // it (slides too); a resident one, the job's bricks.
+                        let changed = if settings.stream.is_some() {
+                            &window_changed
+                        } else {
+                            &job.dirty
+                        };
+                        g.apply_edits(ctx, world.grid(), world.store().pool(), changed);
                     }
                     let rgb = draw(&mut gpu, world, &job.camera, settings.shadows, &st);
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);

@@ -31,7 +31,7 @@ struct Params {
     light: vec3<f32>, width: u32,
     dims: vec3<i32>, height: u32,   // grid size in voxels
     anchor: vec3<i32>, frame: u32,  // world voxel of local (0, 0, 0); frame number
-    feedback_capacity: u32, _p0: u32, _p1: u32, _p2: u32,
+    feedback_capacity: u32, ring_x: i32, ring_y: i32, ring_z: i32, // ring: physical brick of local (0, 0, 0)
 };
 
 struct PixelOut {
@@ -195,15 +195,27 @@ fn inside(c: vec3<i32>, hi: vec3<i32>) -> bool {
     return all(c >= vec3<i32>(0)) && all(c < hi);
 }
 
+// Toroidal addressing: local cell c of a grid of d cells lives at
+// physical cell (c + ring) mod d (the ring is zero unless the grid slid).
+fn wrap(c: vec3<i32>, d: vec3<i32>) -> vec3<i32> {
+    return select(c, c - d, c >= d);
+}
+
+fn ring() -> vec3<i32> {
+    return vec3<i32>(P.ring_x, P.ring_y, P.ring_z);
+}
+
 fn occupied(o: vec3<i32>) -> bool {
     let od = P.dims >> vec3<u32>(5u);
-    let i = u32(o.x + od.x * (o.y + od.y * o.z));
+    let p = wrap(o + (ring() >> vec3<u32>(2u)), od);
+    let i = u32(p.x + od.x * (p.y + od.y * p.z));
     return ((occ[i >> 5u] >> (i & 31u)) & 1u) != 0u;
 }
 
 fn brick_index(b: vec3<i32>) -> u32 {
     let bd = P.dims >> vec3<u32>(3u);
-    return u32(b.x + bd.x * (b.y + bd.y * b.z));
+    let p = wrap(b + ring(), bd);
+    return u32(p.x + bd.x * (p.y + bd.y * p.z));
 }
 
 fn pointer(b: vec3<i32>) -> u32 {

@@ -139,7 +139,6 @@ impl GpuBrickmap {
             .residency
             .as_ref()
             .map_or(0, |r| r.cfg.uploads_per_frame) as usize;
-        let dims = grid.dims();
         let mut dense = [0u8; BRICK_VOXELS];
         for (k, &i) in requests.iter().enumerate() {
             let p = self.shadow[i as usize];
@@ -148,11 +147,7 @@ impl GpuBrickmap {
                 self.set_pointer(ctx, i, unloaded);
                 continue;
             }
-            let l = IVec3::new(
-                i as i32 % dims.x,
-                (i as i32 / dims.x) % dims.y,
-                i as i32 / (dims.x * dims.y),
-            );
+            let l = grid.local_of_index(i as usize);
             let wp = grid.pointer(l);
             let Some(brick) = (wp != 0 && wp & UNIFORM == 0)
                 .then(|| pool.slot(wp - 1))
@@ -283,14 +278,16 @@ impl GpuBrickmap {
         pool: &BrickPool,
         changed: &[IVec3],
     ) {
-        let dims = grid.dims();
         let mut seen = rustc_hash::FxHashSet::default();
         for &b in changed {
             let l = b - grid.origin();
-            if l.cmplt(IVec3::ZERO).any() || l.cmpge(dims).any() || !seen.insert(l) {
+            let Some(i) = grid.cell_index(l) else {
+                continue;
+            };
+            if !seen.insert(l) {
                 continue;
             }
-            let i = (l.x + dims.x * (l.y + dims.y * l.z)) as u32;
+            let i = i as u32;
             if let Some(res) = self.residency.as_mut()
                 && let Some(id) = res.slot_of.remove(&i)
             {

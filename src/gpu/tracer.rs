@@ -43,7 +43,9 @@ struct Params {
     anchor: [i32; 3],
     pub(super) frame: u32,
     pub(super) feedback_capacity: u32,
-    _pad: [u32; 3],
+    /// The grid's ring (physical cell of local brick 0), for toroidal
+    /// addressing of a sliding grid.
+    ring: [i32; 3],
 }
 
 #[repr(C)]
@@ -224,13 +226,6 @@ impl GpuBrickmap {
         residency: Option<Residency>,
         feedback_capacity: u32,
     ) -> Result<Self, GpuError> {
-        if grid.ring() != glam::IVec3::ZERO {
-            // The shader indexes the grid linearly; a slid (toroidal) grid
-            // would be read rotated.
-            return Err(GpuError::Runtime(
-                "the GPU tracer does not read a sliding (toroidal) brick grid yet".into(),
-            ));
-        }
         let dev = &ctx.device;
         let limit = ctx.limits.max_storage_buffer_binding_size;
         let pal: Vec<u32> = (0..=255u8)
@@ -403,6 +398,11 @@ impl GpuBrickmap {
         pool: &BrickPool,
     ) -> Result<(GpuFrame, FrameStats), GpuError> {
         self.frame_no += 1;
+        // A sliding grid moves its origin; its buffers are addressed
+        // physically, through the ring.
+        self.frame = Frame {
+            anchor: grid.origin() << BRICK_SHIFT,
+        };
         let dev = &ctx.device;
         let (w, h) = (camera.width, camera.height);
         let f = (camera.target - camera.eye).normalize();
@@ -424,7 +424,7 @@ impl GpuBrickmap {
             anchor: self.frame.anchor.to_array(),
             frame: self.frame_no,
             feedback_capacity: self.feedback_capacity,
-            _pad: [0; 3],
+            ring: grid.ring().to_array(),
         };
         ctx.queue
             .write_buffer(&self.feedback, 0, bytemuck::bytes_of(&0u32));

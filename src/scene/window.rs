@@ -197,6 +197,10 @@ pub struct RenderWindow {
     workers: Vec<JoinHandle<()>>,
     stats: WindowStats,
     scratch: PackScratch,
+    /// Bricks whose grid cells changed since [`take_changed`]
+    /// (RenderWindow::take_changed), kept only when tracked (for a GPU
+    /// copy of the grid).
+    changed: Option<Vec<IVec3>>,
 }
 
 impl RenderWindow {
@@ -256,6 +260,7 @@ impl RenderWindow {
             workers,
             stats: WindowStats::default(),
             scratch: PackScratch::default(),
+            changed: None,
         };
         for c in w.window_columns() {
             w.enter(c, live_world);
@@ -339,6 +344,29 @@ impl RenderWindow {
             + store.non_empty_bricks() * 24) as u64
     }
 
+    /// Keep a list of the bricks whose grid cells change (slides included),
+    /// for whoever mirrors the grid (the GPU tracer) to
+    /// [`take_changed`](Self::take_changed).
+    pub fn track_changes(&mut self) {
+        self.changed.get_or_insert_with(Vec::new);
+    }
+
+    /// The bricks whose grid cells changed since the last call (empty
+    /// unless [`track_changes`](Self::track_changes) was called).
+    pub fn take_changed(&mut self) -> Vec<IVec3> {
+        self.changed
+            .as_mut()
+            .map(std::mem::take)
+            .unwrap_or_default()
+    }
+
+    fn patch(&mut self) {
+        let c = self.world.apply_edits();
+        if let Some(v) = self.changed.as_mut() {
+            v.extend(c);
+        }
+    }
+
     /// Measure what the process holds besides the window and its cache
     /// (code, threads, the simulation, its own world copy…) from its
     /// resident memory now; the cache's allowance is the budget less this
@@ -370,7 +398,7 @@ impl RenderWindow {
         while let Ok((col, bricks)) = self.results.try_recv() {
             self.arrived(col, bricks);
         }
-        self.world.apply_edits();
+        self.patch();
         self.request();
         self.evict();
     }
@@ -387,7 +415,7 @@ impl RenderWindow {
             }
             self.request();
         }
-        self.world.apply_edits();
+        self.patch();
         self.evict();
         !self.columns.values().any(|c| *c == Column::Coarse)
     }
@@ -486,6 +514,12 @@ impl RenderWindow {
         for col in self.window_columns() {
             if !self.columns.contains_key(&col) {
                 self.enter(col, live_world);
+                if self.changed.is_some() {
+                    let cells: Vec<IVec3> = self.column_bricks(col).collect();
+                    if let Some(v) = self.changed.as_mut() {
+                        v.extend(cells);
+                    }
+                }
             }
         }
         let (lo, hi) = Self::bounds(to, self.settings.radius, self.gen_.height());

@@ -231,6 +231,21 @@ impl BrickGrid {
         self.dims
     }
 
+    /// Index in [`pointers`](Self::pointers) of local brick `l` (None
+    /// outside the grid).
+    pub fn cell_index(&self, l: IVec3) -> Option<usize> {
+        self.index(l)
+    }
+
+    /// The local brick whose pointer is at index `i` of
+    /// [`pointers`](Self::pointers) (which must be in range).
+    pub fn local_of_index(&self, i: usize) -> IVec3 {
+        let d = self.dims;
+        let i = i as i32;
+        let p = IVec3::new(i % d.x, (i / d.x) % d.y, i / (d.x * d.y));
+        (p - self.ring).rem_euclid(d)
+    }
+
     /// Physical cell of local brick (0, 0, 0): zero until the grid slides.
     pub fn ring(&self) -> IVec3 {
         self.ring
@@ -329,6 +344,9 @@ mod tests {
                     for x in 0..dims.x {
                         let l = IVec3::new(x, y, z);
                         assert_eq!(g.pointer(l), fresh.pointer(l), "move {k} brick {l}");
+                        let i = g.cell_index(l).unwrap();
+                        assert_eq!(g.local_of_index(i), l);
+                        assert_eq!(g.pointers()[i], g.pointer(l));
                         if l % OCC_EDGE == IVec3::ZERO {
                             let o = l >> OCC_SHIFT;
                             assert_eq!(g.occupied(o), fresh.occupied(o), "move {k} occ {o}");
