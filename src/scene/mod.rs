@@ -178,11 +178,25 @@ pub struct View {
 #[derive(Clone, Debug)]
 pub struct WorldDelta {
     /// Changed bricks and their contents now.
-    pub bricks: Vec<(IVec3, crate::world::BrickContent)>,
+    pub bricks: Vec<(IVec3, DeltaBrick)>,
     /// The palette now.
     pub palette: crate::world::Palette,
     /// The materials now.
     pub materials: MaterialRegistry,
+}
+
+/// One brick of a [`WorldDelta`]. A mixed brick travels as its 512 dense
+/// materials: reading them out of the pool is cheap, and the expensive
+/// half of a copy (re-encoding: palette, packed indices, LOD colour) then
+/// happens on the receiving thread, not on the engine loop's snapshot.
+#[derive(Clone, Debug)]
+pub enum DeltaBrick {
+    /// No solid voxel.
+    Empty,
+    /// One material throughout.
+    Uniform(u8),
+    /// Dense materials.
+    Dense(Box<[u8; crate::world::BRICK_VOXELS]>),
 }
 
 /// A scene ready to trace: its store, bounds and brick grid.
@@ -291,7 +305,18 @@ impl SceneWorld {
         WorldDelta {
             bricks: bricks
                 .par_iter()
-                .map(|b| (*b, self.store.content(*b)))
+                .map(|b| {
+                    let d = match self.store.cell(*b) {
+                        crate::world::Cell::Empty => DeltaBrick::Empty,
+                        crate::world::Cell::Uniform(m) => DeltaBrick::Uniform(m),
+                        crate::world::Cell::Mixed(_) => {
+                            let mut dense = Box::new([0u8; crate::world::BRICK_VOXELS]);
+                            self.store.read_dense(*b, &mut dense);
+                            DeltaBrick::Dense(dense)
+                        }
+                    };
+                    (*b, d)
+                })
                 .collect(),
             palette: self.store.palette().clone(),
             materials: self.materials.clone(),
@@ -301,10 +326,24 @@ impl SceneWorld {
     /// Bring a copy up to date with a [`delta`](Self::delta) of the world it
     /// was copied from (grid patched); returns the bricks changed.
     pub fn apply_delta(&mut self, delta: WorldDelta) -> Vec<IVec3> {
-        for (b, content) in delta.bricks {
+        *self.store.palette_mut() = delta.palette;
+        let encoded: Vec<(IVec3, crate::world::BrickContent)> = delta
+            .bricks
+            .into_par_iter()
+            .map(|(b, d)| {
+                let c = match d {
+                    DeltaBrick::Empty => crate::world::BrickContent::Empty,
+                    DeltaBrick::Uniform(m) => crate::world::BrickContent::Uniform(m),
+                    DeltaBrick::Dense(dense) => {
+                        crate::world::BrickContent::from_dense(&dense, self.store.palette())
+                    }
+                };
+                (b, c)
+            })
+            .collect();
+        for (b, content) in encoded {
             self.store.set_brick(b, content);
         }
-        *self.store.palette_mut() = delta.palette;
         self.materials = delta.materials;
         self.apply_edits()
     }
