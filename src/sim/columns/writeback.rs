@@ -115,7 +115,10 @@ impl ColumnSync {
     /// leaves it (used after a resume replaced the channels).
     pub fn resync(&mut self, channels: &ChannelStore, t: TileCoord) {
         let get = |n: &str| channels.find(n).and_then(|id| channels.get(t, id)).copied();
-        let Some(g) = get("ground") else { return };
+        // A tile whose ground is all zero holds no ground array: its ground
+        // is zeros, not unknown (regression: the resync skipped it, and a
+        // resumed run left water voxels a run that never stopped cleared).
+        let g = get("ground").unwrap_or([0.0; TILE_CELLS]);
         let s = get("snow").unwrap_or([0.0; TILE_CELLS]);
         let w = get("water").unwrap_or([0.0; TILE_CELLS]);
         let mut l = [[0; 3]; TILE_CELLS];
@@ -222,4 +225,30 @@ pub fn tiles_of(lo: IVec3, hi: IVec3) -> (TileCoord, TileCoord) {
             (hi.z - 1).div_euclid(TILE) + 1,
         ),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::Palette;
+
+    /// A resumed tile with zero ground (no ground array) gets the record a
+    /// run that never stopped has.
+    #[test]
+    fn a_resume_resyncs_tiles_whose_ground_is_zero() {
+        let t = TileCoord::new(0, 0);
+        let mut ch = ChannelStore::default();
+        ch.channel("ground");
+        let w = ch.channel("water");
+        ch.set(t, w, &[3.0; TILE_CELLS]);
+        // Uninterrupted: built with zero ground, then stepped and written.
+        let mut ran = ColumnSync::new(32);
+        ran.record(t, &[0.0; TILE_CELLS]);
+        ran.write(&ch, &[t], &mut BrickStore::new(Palette::grey_ramp()));
+        // Resumed: built with zero ground, then the stored channels resynced.
+        let mut resumed = ColumnSync::new(32);
+        resumed.record(t, &[0.0; TILE_CELLS]);
+        resumed.resync(&ch, t);
+        assert_eq!(ran.last.get(&t), resumed.last.get(&t));
+    }
 }
