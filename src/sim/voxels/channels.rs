@@ -66,6 +66,12 @@ impl VoxelChannels {
         }
     }
 
+    /// Every brick holding an array of any channel (unordered, possibly
+    /// repeated).
+    pub fn all_bricks(&self) -> impl Iterator<Item = IVec3> + '_ {
+        self.data.iter().flat_map(|m| m.keys().copied())
+    }
+
     /// The bricks written since the last call (see the `dirty` field).
     pub fn take_dirty(&mut self) -> FxHashSet<IVec3> {
         std::mem::take(&mut self.dirty)

@@ -100,6 +100,12 @@ pub struct VoxelSim {
     active: FxHashSet<IVec3>,
     quiet: FxHashMap<IVec3, u8>,
     presence: FxHashMap<IVec3, MatSet>,
+    /// A parameter changed or a script was replaced: wake every brick that
+    /// holds something at the next step. Decided from the world then, not
+    /// from the presence cache, whose contents depend on the run's history
+    /// (regression: after a resume, a parameter change woke fewer bricks
+    /// than in a run that never stopped).
+    wake_pending: bool,
     tick: u64,
     seed: u64,
 }
@@ -169,6 +175,7 @@ impl VoxelSim {
             active,
             quiet: FxHashMap::default(),
             presence: FxHashMap::default(),
+            wake_pending: false,
             tick: 0,
             seed,
         }
@@ -316,6 +323,7 @@ impl VoxelSim {
             active: FxHashSet::default(),
             quiet: FxHashMap::default(),
             presence: FxHashMap::default(),
+            wake_pending: false,
             tick: self.tick,
             seed: self.seed,
         };
@@ -375,8 +383,16 @@ impl VoxelSim {
     }
 
     fn wake_all_known(&mut self) {
-        let known: Vec<IVec3> = self.presence.keys().copied().collect();
-        self.active.extend(known);
+        self.wake_pending = true;
+    }
+
+    /// Wake every brick inside the bounds that is not empty or holds a
+    /// channel array (see `wake_pending`).
+    fn wake_everything(&mut self, store: &BrickStore) {
+        let mut all: Vec<IVec3> = store.iter().map(|(b, _)| b).collect();
+        all.extend(self.channels.all_bricks());
+        all.retain(|b| self.inside(*b));
+        self.active.extend(all);
         self.quiet.clear();
     }
 
@@ -623,6 +639,9 @@ impl VoxelSim {
         let valid: [bool; 256] = std::array::from_fn(|m| {
             m == 0 || (m != BOUNDARY as usize && registry.get(m as u8).is_some())
         });
+        if std::mem::take(&mut self.wake_pending) {
+            self.wake_everything(store);
+        }
         let mut changed: FxHashSet<IVec3> = FxHashSet::default();
         for si in 0..self.scripts.len() {
             let (every, suspended) = {
