@@ -107,12 +107,29 @@ fn corrupt_chunk_blobs_are_errors_never_panics() {
     bomb.extend_from_slice(&packed);
     let e = chunk::decode_chunk(key, &bomb, &p).unwrap_err();
     assert!(e.contains("more than a chunk can hold"), "{e}");
+    // Within a chunk's size but beyond what 16 bytes of LZ4 can expand to
+    // (regression: it was allocated before decompression failed).
+    let mut bomb = b"BWCH".to_vec();
+    let packed = [200_000u32.to_le_bytes().to_vec(), vec![0u8; 16]].concat();
+    bomb.extend_from_slice(&crc32fast::hash(&packed).to_le_bytes());
+    bomb.extend_from_slice(&packed);
+    let e = chunk::decode_chunk(key, &bomb, &p).unwrap_err();
+    assert!(e.contains("more than LZ4 can expand to"), "{e}");
     // Keys sort as signed coordinates and round-trip.
-    for v in [IVec3::new(-5, 0, 3), IVec3::new(i32::MIN, i32::MAX, -1)] {
+    for v in [IVec3::new(-5, 0, 3), IVec3::new(-(1 << 24), 1 << 24, -1)] {
         assert_eq!(
             ChunkKey::from_bytes(&ChunkKey(v).to_bytes()),
             Some(ChunkKey(v))
         );
+    }
+    // A key beyond any world is refused, not turned into overflowing
+    // brick coordinates (regression: `min_brick` overflowed).
+    for v in [
+        IVec3::new(i32::MIN, 0, 0),
+        IVec3::new(0, i32::MAX, 0),
+        IVec3::new(0, 0, (1 << 24) + 1),
+    ] {
+        assert_eq!(ChunkKey::from_bytes(&ChunkKey(v).to_bytes()), None, "{v}");
     }
     assert!(ChunkKey(IVec3::new(-1, 0, 0)).to_bytes() < ChunkKey(IVec3::new(0, 0, 0)).to_bytes());
 }
@@ -269,6 +286,40 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no world store"));
+    // A backup that does not say which world it is (an old checkpoint) is
+    // refused: it cannot be checked (regression: it skipped the check).
+    let w = brickworld::scene::build_scene(
+        &brickworld::scene::SceneSpec::Terrain { caves: false },
+        IVec3::splat(16),
+        1,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let anon = brickworld::engine::checkpoint::WorldState {
+        tick: 7,
+        store: w.store().clone(),
+        bounds: w.bounds(),
+        channels: Default::default(),
+        params: Vec::new(),
+        identity: None,
+        extras: Default::default(),
+    };
+    let (anon_file, _) =
+        brickworld::engine::checkpoint::write(&state.parent().unwrap().join("anon"), &anon)
+            .unwrap();
+    let out = bin()
+        .args(["import", anon_file.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(state.parent().unwrap().join("anon-import"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("does not say which world it belongs to"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -143,6 +143,9 @@ fn key_bytes<const N: usize, const B: usize>(v: &[i32; N]) -> [u8; B] {
     out
 }
 
+/// The largest chunk (or chunk column) coordinate a key may hold.
+const MAX_KEY: u32 = 1 << 24;
+
 fn key_from_bytes<const N: usize>(b: &[u8]) -> Option<[i32; N]> {
     if b.len() != N * 4 {
         return None;
@@ -151,6 +154,12 @@ fn key_from_bytes<const N: usize>(b: &[u8]) -> Option<[i32; N]> {
     for (i, x) in v.iter_mut().enumerate() {
         let u = u32::from_be_bytes(b[i * 4..i * 4 + 4].try_into().ok()?);
         *x = (u ^ 0x8000_0000) as i32;
+        // Chunks (64 voxels) of a world within ±2^30 voxels: anything
+        // larger is not a key this engine wrote, and would overflow the
+        // brick and voxel coordinates computed from it.
+        if x.unsigned_abs() > MAX_KEY {
+            return None;
+        }
     }
     Some(v)
 }
@@ -188,6 +197,12 @@ fn seal(magic: &[u8; 4], payload: &[u8]) -> Vec<u8> {
     out
 }
 
+/// The most bytes `packed` LZ4 bytes (with their 4-byte size prefix) can
+/// decompress to.
+pub(crate) fn lz4_bound(packed: usize) -> usize {
+    packed.saturating_sub(4).saturating_mul(255) + 16
+}
+
 fn unseal(magic: &[u8; 4], blob: &[u8], max: usize) -> Result<Vec<u8>, String> {
     if blob.len() < 12 || &blob[..4] != magic {
         return Err("not a brickworld chunk blob (bad magic)".into());
@@ -201,6 +216,14 @@ fn unseal(magic: &[u8; 4], blob: &[u8], max: usize) -> Result<Vec<u8>, String> {
     if claimed > max {
         return Err(format!(
             "claims {claimed} bytes, more than a chunk can hold ({max})"
+        ));
+    }
+    // LZ4 expands at most about 255 to 1: a larger claim is a lie, and
+    // would allocate before decompression fails.
+    if claimed > lz4_bound(packed.len()) {
+        return Err(format!(
+            "claims {claimed} bytes from {} packed bytes, more than LZ4 can expand to",
+            packed.len()
         ));
     }
     lz4_flex::decompress_size_prepended(packed).map_err(|e| format!("LZ4: {e}"))

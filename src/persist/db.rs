@@ -393,6 +393,12 @@ impl WorldDb {
         read_only_meta(&dir.join(DB_FILE), "state").is_some()
     }
 
+    /// Whether the store file in `dir` opens read-only (false while a
+    /// running engine holds it, or when it needs repair).
+    pub fn readable(dir: &Path) -> bool {
+        redb::ReadOnlyDatabase::open(dir.join(DB_FILE)).is_ok()
+    }
+
     /// The store's file.
     pub fn path(&self) -> &Path {
         &self.path

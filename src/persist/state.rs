@@ -75,8 +75,11 @@ pub fn decode(blob: &[u8]) -> Result<WorldState, String> {
         return Err("the simulation state's checksum does not match".into());
     }
     let claimed = u32::from_le_bytes(packed[..4].try_into().expect("4")) as usize;
-    if claimed > MAX_STATE {
-        return Err(format!("the simulation state claims {claimed} bytes"));
+    if claimed > MAX_STATE || claimed > super::chunk::lz4_bound(packed.len()) {
+        return Err(format!(
+            "the simulation state claims {claimed} bytes from {} packed bytes",
+            packed.len()
+        ));
     }
     let payload = lz4_flex::decompress_size_prepended(packed)
         .map_err(|e| format!("the simulation state: LZ4: {e}"))?;
