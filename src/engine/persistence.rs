@@ -187,11 +187,17 @@ pub struct Restored {
 /// simulation, and restore the palette and material registry. `None` if the
 /// store was never committed. The edits the overlay makes are not dirty;
 /// corrupt chunks are (they were regenerated).
+///
+/// A corrupt chunk of a procedural world is regenerated (and rewritten at
+/// the next commit); an imported world (`regenerable` false) cannot
+/// regenerate it, so it stays empty in this run and its stored blob is
+/// left alone, for a backup or a repair to restore.
 pub fn restore_chunks(
     db: &WorldDb,
     world: &mut SceneWorld,
     ws: &mut WorldSim,
     dirty: &mut DirtyChunks,
+    regenerable: bool,
 ) -> Result<Option<Restored>, StoreError> {
     let Some(blob) = db.state()? else {
         return Ok(None);
@@ -217,8 +223,14 @@ pub fn restore_chunks(
                     n += 1;
                 }
                 Err(e) => {
-                    corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
-                    regenerated.push(*k);
+                    if regenerable {
+                        corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
+                        regenerated.push(*k);
+                    } else {
+                        corrupt.push(format!(
+                            "{k} is corrupt ({e}): an imported world cannot regenerate it, so it is empty in this run; its stored blob is left as it is (restore it from a backup)"
+                        ));
+                    }
                 }
             }
         }
@@ -231,8 +243,14 @@ pub fn restore_chunks(
                     n += 1;
                 }
                 Err(e) => {
-                    corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
-                    bad_columns.push(k);
+                    if regenerable {
+                        corrupt.push(format!("{k} is corrupt ({e}): regenerated from the source"));
+                        bad_columns.push(k);
+                    } else {
+                        corrupt.push(format!(
+                            "{k} is corrupt ({e}): an imported world cannot regenerate it, so its columns start from the ground in this run; its stored blob is left as it is"
+                        ));
+                    }
                 }
             }
         }
@@ -330,12 +348,22 @@ fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
 /// world `identity` describes; a store that already holds a world is refused.
 pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<CommitStats> {
     let st = checkpoint::read(file).with_context(|| format!("cannot import {}", file.display()))?;
-    if let Some(id) = &st.identity
-        && !id.same_world(identity)
-    {
-        bail!(
+    match &st.identity {
+        Some(id) if !id.same_world(identity) => bail!(
             "{} is a backup of another world ({id}); the config describes {identity}",
             file.display()
+        ),
+        Some(_) => {}
+        None => bail!(
+            "{} does not say which world it belongs to (a checkpoint from before world identities); it cannot be checked against {identity}, so it is not imported",
+            file.display()
+        ),
+    }
+    let store_file = dir.join(crate::persist::db::DB_FILE);
+    if store_file.exists() && !WorldDb::readable(dir) {
+        bail!(
+            "{} exists but cannot be read (locked by a running engine, or damaged); import into an empty --state directory (nothing was changed)",
+            store_file.display()
         );
     }
     if WorldDb::has_state(dir) {
@@ -345,6 +373,13 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
         );
     }
     let (mut db, _) = WorldDb::open(dir, identity)?;
+    // Checked again on the open store: nothing may be overwritten.
+    if db.state()?.is_some() {
+        bail!(
+            "{} already holds this world; import into an empty --state directory (nothing was changed)",
+            dir.display()
+        );
+    }
     write_everything(&mut db, st)
 }
 
@@ -410,13 +445,21 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
     let _lock = super::state_dir::lock(dir)?;
     let identity = cfg.identity();
     let (db, _) = WorldDb::open(dir, &identity)?;
-    let pb = crate::progress::bar("scene", 0);
-    let mut world = crate::scene::build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
-        .context("cannot build the world")?;
-    pb.finish_and_clear();
+    let mut world = match &cfg.stream {
+        // A streamed world's store holds its simulated region.
+        Some(st) => super::streaming::build_region(cfg, st)?.0,
+        None => {
+            let pb = crate::progress::bar("scene", 0);
+            let w = crate::scene::build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
+                .context("cannot build the world")?;
+            pb.finish_and_clear();
+            w
+        }
+    };
     let mut ws = WorldSim::with_edges(&mut world, true);
     let mut dirty = DirtyChunks::default();
-    let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty)? else {
+    let regenerable = cfg.source.is_procedural();
+    let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty, regenerable)? else {
         bail!("{} was never committed (nothing to export)", dir.display());
     };
     for c in &r.corrupt {
