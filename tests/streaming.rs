@@ -73,6 +73,22 @@ fn a_streamed_world_stores_only_its_region_and_resumes_bit_identically() {
     // Frames were drawn along the flight.
     let frames = std::fs::read_dir(state.join("frames")).unwrap().count();
     assert!(frames >= 10, "{frames} frames");
+    // The backup of a streamed world is its region (regression: export
+    // tried to build the whole world).
+    let backup = state.with_file_name("backup.bwc");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["export", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&state)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && said.contains("exported tick 60"),
+        "{said}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 #[test]

@@ -1,16 +1,18 @@
 //! `brickworld run`: the long-running engine, a type whose loop calls named
 //! stages (like a physics pipeline's `step`):
 //!
-//! 1. [`Engine::start`]: lock the state directory, listen, write the token,
-//!    resume from this world's newest checkpoint that verifies (or build the
-//!    world), load the scripts, start the render thread.
+//! 1. [`Engine::start`] (`start.rs`): lock the state directory, listen,
+//!    write the token, open the world store, build the world (or a streamed
+//!    world's simulated region), load the scripts, resume from the store or
+//!    place the config's boxes, start the render thread.
 //! 2. Each turn of [`Engine::run`]: [`hot_reload`](Engine::hot_reload),
 //!    [`apply_commands`](Engine::apply_commands), [`step`](Engine::step),
+//!    [`collect_dirty`](Engine::collect_dirty),
 //!    [`offer_frame`](Engine::offer_frame),
-//!    [`periodic_checkpoint`](Engine::periodic_checkpoint),
+//!    [`periodic_commit`](Engine::periodic_commit),
 //!    [`record_timeline`](Engine::record_timeline),
 //!    [`publish_status`](Engine::publish_status).
-//! 3. [`Engine::finish`]: the frame in flight, a final checkpoint, then the
+//! 3. [`Engine::finish`]: a final commit, the frame in flight, then the
 //!    control server (which waits for no client).
 //!
 //! Rendering runs on its own thread ([`super::render_thread`]): the loop
@@ -20,8 +22,8 @@
 //! world's brick count).
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -31,18 +33,16 @@ use rustc_hash::FxHashSet;
 use super::control::{
     CheckpointRef, Command, CommitRef, ControlServer, ParamStatus, ScriptStatus, Shared, Status,
 };
+mod start;
+
 use super::persistence::{self, DirtyChunks};
-use super::render_thread::{FrameJob, FrameWorld, RenderSettings, RenderThread};
-use super::state_dir::{self, StateLock};
-use super::streaming;
+use super::render_thread::{FrameJob, FrameWorld, RenderThread};
+use super::state_dir::StateLock;
 use super::timeline::{Row, Timeline};
 use super::world_config::{CameraMode, CameraSettings, SimRegion, WorldConfig};
 use crate::persist::WorldDb;
-use crate::progress::bar;
-use crate::scene::{SceneWorld, build_scene};
-use crate::sim::{
-    Limits, ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, read_script,
-};
+use crate::scene::SceneWorld;
+use crate::sim::{ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, read_script};
 use crate::trace::Camera;
 
 /// Options of `brickworld run`.
@@ -158,244 +158,6 @@ pub struct Engine {
 }
 
 impl Engine {
-    /// Lock, listen, resume or build, load the scripts, start rendering.
-    pub fn start(opts: DaemonOptions) -> Result<Engine> {
-        let cfg = opts.world;
-        // The lock comes first: a second engine on this directory must not
-        // touch its token or checkpoints.
-        let lock = state_dir::lock(&opts.state)?;
-        let token = state_dir::new_token()?;
-        let shared = Arc::new(Shared {
-            status: Mutex::new(Status::default()),
-            commands: Mutex::new(Vec::new()),
-            frame: Mutex::new(None),
-            token: token.clone(),
-            shutdown: Default::default(),
-        });
-        // Listen before any work: a taken port is a clear error at once.
-        let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
-        let token_path = state_dir::write_token(&opts.state, &token)?;
-        {
-            // The first SIGINT/SIGTERM stops after the step in flight, with
-            // a final checkpoint; a second one exits at once (the last
-            // checkpoint on disk stays good).
-            let s = shared.clone();
-            ctrlc::set_handler(move || {
-                if s.shutdown.swap(true, Ordering::Relaxed) {
-                    eprintln!("second signal: exiting now, without a final checkpoint");
-                    std::process::exit(130);
-                }
-            })
-            .context("cannot install the SIGINT/SIGTERM handler")?;
-        }
-        let identity = cfg.identity();
-        let (mut db, warnings) = WorldDb::open(&opts.state, &identity)?;
-        for w in &warnings {
-            eprintln!("warning: {w}");
-        }
-        if let Some((path, tick)) = persistence::migrate_legacy(&mut db, &opts.state, &identity)? {
-            eprintln!(
-                "migrated the checkpoint {} (tick {tick}) into the world store {}; the old checkpoint files are no longer read and can be deleted",
-                path.display(),
-                db.path().display()
-            );
-        }
-        // A procedural world is regenerated on every start (only its edits
-        // are stored); a heightmap or .vox world was imported whole into the
-        // store on its first start, so its file is not read again.
-        let imported = if cfg.source.is_procedural() {
-            None
-        } else {
-            persistence::stored_frame(&db)?
-        };
-        let mut stream_plan = None;
-        let mut world = match (imported, &cfg.stream) {
-            (_, Some(st)) => {
-                // A streamed world: only the simulated region is the
-                // engine's; the render thread streams the rest.
-                let (world, mut plan) = streaming::build_region(&cfg, st)?;
-                streaming::check_budget(&world, &mut plan, st.memory_budget)?;
-                eprintln!(
-                    "streaming: simulated region of {} chunk columns ({}), render window {} columns across, {} for the window and its cache",
-                    (plan.live.1 - plan.live.0).element_product(),
-                    crate::scene::budget::human(streaming::world_bytes(&world)),
-                    2 * plan.window.radius + 1,
-                    crate::scene::budget::human(plan.window.budget_bytes),
-                );
-                stream_plan = Some(plan);
-                world
-            }
-            (Some((palette, (lo, hi))), None) => {
-                SceneWorld::new(crate::world::BrickStore::new(palette), lo, hi)?
-            }
-            (None, None) => {
-                let pb = bar("scene", 0);
-                let w = build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
-                    .context("cannot build the world")?;
-                pb.finish_and_clear();
-                w
-            }
-        };
-        let mut ws = WorldSim::with_edges(&mut world, true);
-        // The ground read from the generated world is regenerated on every
-        // start: not a change to commit.
-        ws.sim.channels_mut().take_dirty();
-        ws.set_seed(cfg.seed);
-        let mut dirty_chunks = DirtyChunks::default();
-        // materials.lua (optional) names the materials voxel scripts use.
-        if let Some(src) = materials_source(&cfg)? {
-            ws.load_materials(&mut world, &src)
-                .context("cannot load materials.lua")?;
-        }
-        for (i, s) in cfg.scripts.iter().enumerate() {
-            let id = ws
-                .add_script(&world, load_source(&cfg, &s.file)?, Limits::default())
-                .with_context(|| format!("cannot load script {}", s.file))?;
-            ws.set_every(id, s.every);
-            for (k, v) in &s.params {
-                ws.set_param(id, k, *v)
-                    .with_context(|| format!("in the world config's scripts[{i}].params"))?;
-            }
-        }
-        // The stored chunks go over the generated world once the scripts
-        // have registered their channels, so channel ids are the same as in
-        // a run that never stopped.
-        let resumed = persistence::restore_chunks(&db, &mut world, &mut ws, &mut dirty_chunks)?;
-        let mut loaded_from = None;
-        match &resumed {
-            None => {
-                let mut placed = Vec::new();
-                for (i, p) in cfg.place.iter().enumerate() {
-                    let id = world.materials.id(&p.material).with_context(|| {
-                        format!(
-                            "place[{i}].material: unknown material '{}' (declare it in materials.lua)",
-                            p.material
-                        )
-                    })?;
-                    let (lo, hi) = world.bounds();
-                    if p.at.cmplt(lo).any() || (p.at + p.size).cmpgt(hi).any() {
-                        bail!(
-                            "place[{i}]: the box at {} of size {} is outside the world [{lo}, {hi})",
-                            p.at,
-                            p.size
-                        );
-                    }
-                    let ((), changed) = world.edit(|s, _| s.fill_box(p.at, p.at + p.size, id));
-                    placed.extend(changed);
-                }
-                dirty_chunks.bricks(&placed);
-                ws.vox.notify_edited(&placed);
-                ws.vox.apply_fills(world.store(), &world.materials);
-                if !cfg.source.is_procedural() {
-                    // Import the file's world whole, now: from here on the
-                    // store is the world, and the file is not needed.
-                    dirty_chunks.everything(&world, &ws);
-                    let st = persistence::commit(&mut db, &mut dirty_chunks, &world, &mut ws)?;
-                    eprintln!(
-                        "imported {} into {} ({} chunks, {} bytes)",
-                        cfg.source_text,
-                        db.path().display(),
-                        st.chunks,
-                        st.bytes
-                    );
-                }
-            }
-            Some(r) => {
-                for c in &r.corrupt {
-                    eprintln!("warning: {c}");
-                }
-                for w in persistence::apply_state(&r.state, &mut ws) {
-                    eprintln!("warning: {w}");
-                }
-                let hash = persistence::engine_hash(&world, &ws);
-                eprintln!(
-                    "resumed {} at tick {} ({} stored chunks, world hash {hash:#018x})",
-                    db.path().display(),
-                    r.state.tick,
-                    r.chunks
-                );
-                loaded_from = Some(CheckpointRef {
-                    tick: r.state.tick,
-                    hash: format!("{hash:#018x}"),
-                });
-            }
-        }
-        let frames_dir = opts.state.join(&cfg.frames_dir);
-        std::fs::create_dir_all(&frames_dir)
-            .with_context(|| format!("cannot create {}", frames_dir.display()))?;
-        let renderer = RenderThread::spawn(
-            RenderSettings {
-                gpu: cfg.gpu,
-                stream: stream_plan,
-                shadows: cfg.shadows,
-                frames_dir,
-                keep: cfg.frames_keep,
-            },
-            shared.clone(),
-        )
-        .context("cannot start the render thread")?;
-        // Hot reload: the scripts directory is watched; a changed script is
-        // compiled and smoke-tested in a fresh VM and swapped in between
-        // steps; a broken one keeps the last good version running.
-        let watcher = if cfg.scripts_embedded {
-            eprintln!(
-                "note: the default world's scripts are built in; `brickworld init DIR` writes editable copies (hot reload watches them)"
-            );
-            None
-        } else {
-            match ScriptWatcher::new(&cfg.scripts_dir, std::time::Duration::from_millis(150)) {
-                Ok(w) => Some(w),
-                Err(e) => {
-                    eprintln!("warning: hot reload is off: {e}");
-                    None
-                }
-            }
-        };
-        let timeline = Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
-        println!(
-            "brickworld is running: viewer http://{}/  (control token in {}: {token})",
-            server.addr,
-            token_path.display()
-        );
-        let n = ws.script_count();
-        let mut engine = Engine {
-            camera: cfg.camera,
-            start_tick: ws.sim.tick(),
-            cfg,
-            max_ticks: opts.max_ticks,
-            until_tick: opts.until_tick,
-            _lock: lock,
-            shared,
-            server: Some(server),
-            world,
-            ws,
-            renderer,
-            db,
-            watcher,
-            timeline,
-            timeline_path: opts.state.join("timeline.csv"),
-            dirty_pending: FxHashSet::default(),
-            dirty_chunks,
-            mirror_sent: false,
-            paused: false,
-            steps_left: 0,
-            notes: vec![ScriptNotes::default(); n],
-            last_commit: None,
-            loaded_from,
-            commit_error: None,
-            snapshot_ms: 0.0,
-            active_bricks: 0,
-            rate_window: (Instant::now(), 0),
-            steps_per_s: 0.0,
-            script_ms: vec![0.0; n],
-        };
-        // Publish the loaded world in one go: a client that sees the scripts
-        // also sees the tick and where it was resumed from (regression: a
-        // restart test read `loaded_from: null` in between).
-        engine.publish_status();
-        Ok(engine)
-    }
-
     /// The loop: stages in order until stopped, then [`finish`](Self::finish).
     pub fn run(mut self) -> Result<()> {
         loop {
