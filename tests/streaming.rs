@@ -7,6 +7,7 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
+use common::cli::assert_clear_failure;
 use common::daemon::{hash_at, run_cmd, run_ok};
 
 /// A streamed world: 2048² terrain (or unbounded with `height`), a 128²
@@ -166,11 +167,7 @@ fn a_budget_too_small_for_one_view_names_the_minimum() {
             .args(["--ticks", "5", "--memory-budget", bad])
             .output()
             .unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(
-            !out.status.success() && err.contains("--memory-budget"),
-            "{bad}: {err}"
-        );
+        assert_clear_failure(&out, bad, "--memory-budget");
     }
 }
 
@@ -181,10 +178,9 @@ fn a_memory_budget_for_a_world_that_does_not_stream_is_refused() {
         .args(["--ticks", "5", "--memory-budget", "1GiB"])
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("--memory-budget applies to streamed worlds"),
-        "{err}"
+    assert_clear_failure(
+        &out,
+        "a budget for a resident world",
+        "--memory-budget applies to streamed worlds",
     );
 }

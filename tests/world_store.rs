@@ -314,11 +314,10 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
         .arg(state.parent().unwrap().join("anon-import"))
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("does not say which world it belongs to"),
-        "{err}"
+    common::cli::assert_clear_failure(
+        &out,
+        "an anonymous backup",
+        "does not say which world it belongs to",
     );
 }
 
