@@ -140,6 +140,43 @@ fn kill_dash_nine_then_restart_resumes_from_the_last_commit() {
     assert!(stop(child).status.success());
 }
 
+/// A camera set through `/camera` is committed with the state: a
+/// simulation region that follows the camera follows it after a resume too
+/// (regression: the resume went back to the configured camera, so it
+/// simulated other tiles than a run that never stopped; found by review).
+#[test]
+fn a_camera_set_through_the_api_survives_a_resume() {
+    let (cfg, state, addr) = setup("camera-resume");
+    edit_config(&cfg, "[sim]\n", "[sim]\nradius = 12.0\n");
+    let child = start(&cfg, &state);
+    wait_ready(&addr);
+    let region = |addr: &str| {
+        let t = Instant::now();
+        while status(addr)["sim_region"].is_null() && t.elapsed() < Duration::from_secs(20) {
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        status(addr)["sim_region"].clone()
+    };
+    let before = region(&addr);
+    assert!(!before.is_null());
+    let cam = "{\"eye\": [40, 30, 40], \"target\": [20, 5, 20], \"fov\": 45}";
+    assert_eq!(post(&addr, &state, "/camera", cam).0, 200);
+    let t = Instant::now();
+    let moved = loop {
+        let r = status(&addr)["sim_region"].clone();
+        if r != before || t.elapsed() > Duration::from_secs(20) {
+            break r;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_ne!(moved, before, "the region follows the camera");
+    assert!(stop(child).status.success());
+    let child = start(&cfg, &state);
+    wait_ready(&addr);
+    assert_eq!(region(&addr), moved, "the region after the resume");
+    assert!(stop(child).status.success());
+}
+
 #[test]
 fn a_port_in_use_and_a_bad_config_are_clear_errors() {
     let (cfg, state, old_addr) = setup("port");

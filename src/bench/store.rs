@@ -86,7 +86,7 @@ pub fn run(size: IVec3, chunks: usize, repeats: usize, dir: &Path) -> Result<Sto
             }
         }
         let t = Instant::now();
-        last = commit(&mut db, &mut dirty, &world, &mut ws)?;
+        last = commit(&mut db, &mut dirty, &world, &mut ws, None)?;
         commit_ms.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let store_file_bytes = db.file_bytes();

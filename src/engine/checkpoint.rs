@@ -123,6 +123,19 @@ impl std::fmt::Display for WorldIdentity {
 /// The voxel grid's awake bricks and their quiet counters.
 pub type VoxelSleep = (Vec<IVec3>, Vec<(IVec3, u8)>);
 
+/// A camera set through the control API (`/camera`). It replaces the
+/// configured camera path, and a simulation region that follows the camera
+/// follows it, so a resume must restore it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraOverride {
+    /// Eye.
+    pub eye: [f64; 3],
+    /// Look-at point.
+    pub target: [f64; 3],
+    /// Vertical field of view, degrees.
+    pub fov: f64,
+}
+
 /// Simulation state beyond the channels that a resume needs to continue
 /// exactly as if it had not stopped.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -139,6 +152,9 @@ pub struct SimExtras {
     /// The material registry: (id, name, kind, density); colours are the
     /// palette's. Empty before version 3 (names are then derived).
     pub materials: Vec<(u8, String, crate::world::MaterialKind, f32)>,
+    /// The camera set through `/camera`, if any (an optional trailing
+    /// section: states without one read as before).
+    pub camera: Option<CameraOverride>,
 }
 
 /// Everything a checkpoint holds.
@@ -318,6 +334,12 @@ pub(crate) fn encode(state: WorldRef<'_>) -> Vec<u8> {
             }
         }
     }
+    if let Some(c) = &state.extras.camera {
+        w.u32(1);
+        for v in c.eye.iter().chain(&c.target).chain([&c.fov]) {
+            w.f64(*v);
+        }
+    }
     w.0
 }
 
@@ -433,6 +455,23 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
                 quiet.push((IVec3::new(r.i32()?, r.i32()?, r.i32()?), r.take(1)?[0]));
             }
             extras.voxel_sleep = Some((active, quiet));
+        }
+        if r.at < payload.len() && r.u32()? == 1 {
+            let mut v = [0f64; 7];
+            for x in v.iter_mut() {
+                *x = r.f64()?;
+            }
+            if v.iter().any(|x| !x.is_finite()) || !(v[6] > 0.0 && v[6] < 180.0) {
+                return Err(
+                    "the stored camera is not finite or its field of view is outside (0, 180)"
+                        .into(),
+                );
+            }
+            extras.camera = Some(CameraOverride {
+                eye: [v[0], v[1], v[2]],
+                target: [v[3], v[4], v[5]],
+                fov: v[6],
+            });
         }
     }
     if r.at != payload.len() {

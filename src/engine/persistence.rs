@@ -19,7 +19,7 @@ use glam::{IVec2, IVec3};
 use rayon::prelude::*;
 use rustc_hash::FxHashSet;
 
-use super::checkpoint::{self, SimExtras, WorldIdentity, WorldRef, WorldState};
+use super::checkpoint::{self, CameraOverride, SimExtras, WorldIdentity, WorldRef, WorldState};
 use super::world_config::WorldConfig;
 use crate::persist::chunk::{self, CHUNK_SHIFT};
 use crate::persist::{ChunkKey, ColumnKey, CommitStats, StoreError, WorldDb, state};
@@ -114,6 +114,7 @@ pub fn sim_state(world: &SceneWorld, ws: &WorldSim) -> (ScriptParams, SimExtras)
         voxel_channels: Default::default(),
         voxel_sleep: Some(ws.vox.sleep_state()),
         materials: world.materials.entries(),
+        camera: None,
     };
     (params, extras)
 }
@@ -125,6 +126,7 @@ pub fn commit(
     dirty: &mut DirtyChunks,
     world: &SceneWorld,
     ws: &mut WorldSim,
+    camera: Option<CameraOverride>,
 ) -> Result<CommitStats, StoreError> {
     dirty.collect(ws);
     let store = world.store();
@@ -140,7 +142,8 @@ pub fn commit(
         .par_iter()
         .map(|k| (*k, chunk::encode_column(*k, columns)))
         .collect();
-    let (params, extras) = sim_state(world, ws);
+    let (params, mut extras) = sim_state(world, ws);
+    extras.camera = camera;
     let blob = state::encode(
         ws.sim.tick(),
         world.store().palette(),

@@ -35,6 +35,7 @@ use super::control::{
 };
 mod start;
 
+use super::checkpoint::CameraOverride;
 use super::persistence::{self, DirtyChunks};
 use super::render_thread::{FrameJob, FrameWorld, RenderThread};
 use super::state_dir::StateLock;
@@ -135,6 +136,8 @@ pub struct Engine {
     timeline: Timeline,
     timeline_path: PathBuf,
     camera: CameraSettings,
+    /// The camera set through `/camera` (stored with each commit).
+    camera_override: Option<CameraOverride>,
     /// Dirty bricks not yet handed to the renderer, each once.
     dirty_pending: FxHashSet<IVec3>,
     /// Chunks changed since the last commit.
@@ -244,6 +247,9 @@ impl Engine {
                     self.camera.eye = Some(DVec3::from(eye));
                     self.camera.target = Some(DVec3::from(target));
                     self.camera.fov = fov;
+                    // Committed with the state: a region that follows the
+                    // camera must follow it after a resume too.
+                    self.camera_override = Some(CameraOverride { eye, target, fov });
                 }
                 Command::Params { script, values } => {
                     // The server validated against /status; a reload in
@@ -421,6 +427,7 @@ impl Engine {
             &mut self.dirty_chunks,
             &self.world,
             &mut self.ws,
+            self.camera_override,
         ) {
             Ok(st) => {
                 if self.commit_error.is_some() {

@@ -75,9 +75,20 @@ impl Engine {
             cfg.source.is_procedural(),
         )?;
         let mut loaded_from = None;
+        let mut camera = cfg.camera;
+        let mut camera_override = None;
         match &resumed {
             None => first_start(&cfg, &mut db, &mut world, &mut ws, &mut dirty_chunks)?,
             Some(r) => {
+                if let Some(c) = r.state.extras.camera {
+                    camera = super::super::world_config::CameraSettings {
+                        mode: super::super::world_config::CameraMode::Fixed,
+                        eye: Some(glam::DVec3::from(c.eye)),
+                        target: Some(glam::DVec3::from(c.target)),
+                        fov: c.fov,
+                    };
+                    camera_override = Some(c);
+                }
                 for c in &r.corrupt {
                     eprintln!("warning: {c}");
                 }
@@ -136,7 +147,8 @@ impl Engine {
         );
         let n = ws.script_count();
         let mut engine = Engine {
-            camera: cfg.camera,
+            camera,
+            camera_override,
             start_tick: ws.sim.tick(),
             cfg,
             max_ticks: opts.max_ticks,
@@ -291,7 +303,7 @@ fn first_start(
         // Import the file's world whole, now: from here on the
         // store is the world, and the file is not needed.
         dirty_chunks.everything(world, ws);
-        let st = persistence::commit(db, dirty_chunks, world, ws)?;
+        let st = persistence::commit(db, dirty_chunks, world, ws, None)?;
         eprintln!(
             "imported {} into {} ({} chunks, {} bytes)",
             cfg.source_text,
