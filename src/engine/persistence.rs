@@ -112,7 +112,7 @@ pub fn sim_state(world: &SceneWorld, ws: &WorldSim) -> (ScriptParams, SimExtras)
         drained: ws.drained,
         sleep: Some(ws.sim.sleep_state()),
         voxel_channels: Default::default(),
-        voxel_sleep: Some(ws.vox.sleep_state()),
+        voxel_sleep: Some(ws.vox.sleep_state(world.store())),
         materials: world.materials.entries(),
         camera: None,
     };

@@ -605,10 +605,28 @@ impl VoxelSim {
 
     /// The active set and quiet counters, sorted (for checkpoints).
     #[allow(clippy::type_complexity)]
-    pub fn sleep_state(&self) -> (Vec<IVec3>, Vec<(IVec3, u8)>) {
-        let mut a: Vec<IVec3> = self.active.iter().copied().collect();
+    ///
+    /// A wake still pending (a parameter changed since the last step) is
+    /// saved as done, from `store`: the next step of a run that never
+    /// stopped wakes exactly those bricks, from the same world (nothing
+    /// edits it between a commit and the next step), so the resumed run
+    /// continues the same (regression: a pending wake was lost on stop).
+    pub fn sleep_state(&self, store: &BrickStore) -> (Vec<IVec3>, Vec<(IVec3, u8)>) {
+        let mut active = self.active.clone();
+        let mut quiet = self.quiet.clone();
+        if self.wake_pending {
+            active.extend(
+                store
+                    .iter()
+                    .map(|(b, _)| b)
+                    .chain(self.channels.all_bricks())
+                    .filter(|b| self.inside(*b)),
+            );
+            quiet.clear();
+        }
+        let mut a: Vec<IVec3> = active.into_iter().collect();
         a.sort_by_key(|b| (b.z, b.y, b.x));
-        let mut q: Vec<(IVec3, u8)> = self.quiet.iter().map(|(b, n)| (*b, *n)).collect();
+        let mut q: Vec<(IVec3, u8)> = quiet.iter().map(|(b, n)| (*b, *n)).collect();
         q.sort_by_key(|(b, _)| (b.z, b.y, b.x));
         (a, q)
     }
@@ -785,5 +803,27 @@ mod tests {
         assert_eq!(count(reach_masks(1)[voxel_index(6, 7, 7)]), 4);
         // Eight passes reach every neighbour from anywhere.
         assert!(reach_masks(8).iter().all(|&m| count(m) == 27));
+    }
+
+    /// A wake pending at a commit (a parameter changed, no step since) is
+    /// in the saved sleep state: a resumed run wakes what the run that
+    /// never stopped wakes at its next step.
+    #[test]
+    fn a_pending_wake_is_saved_with_the_sleep_state() {
+        let mut store = BrickStore::new(crate::world::Palette::grey_ramp());
+        store.set_voxel(IVec3::new(3, 3, 3), 1);
+        store.set_voxel(IVec3::new(20, 3, 3), 1);
+        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::splat(32), 1);
+        // Everything fell asleep; one brick is quiet.
+        sim.active.clear();
+        sim.quiet.insert(IVec3::new(2, 0, 0), 3);
+        assert_eq!(sim.sleep_state(&store).0, Vec::<IVec3>::new());
+        sim.wake_all_known();
+        let (active, quiet) = sim.sleep_state(&store);
+        assert_eq!(active, vec![IVec3::ZERO, IVec3::new(2, 0, 0)]);
+        assert!(quiet.is_empty());
+        // The next step wakes the same bricks.
+        sim.wake_everything(&store);
+        assert_eq!(sim.sleep_state(&store).0, active);
     }
 }
