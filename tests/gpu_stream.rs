@@ -379,7 +379,7 @@ fn a_sliding_window_renders_the_same_on_the_gpu_as_on_the_cpu() {
         fetchers: 1,
     };
     let mut eye = DVec3::new(20.0, 70.0, 20.0);
-    let mut w = RenderWindow::new(g, None, settings, eye, None).unwrap();
+    let mut w = RenderWindow::new(g, None, settings, eye, None, None).unwrap();
     assert!(w.settle(std::time::Duration::from_secs(30)));
     w.track_changes();
     let mut gpu = streaming(&ctx, w.world());

@@ -145,7 +145,7 @@ fn bad_configs_name_the_file_field_and_reason() {
         ),
         (
             "[world]\nsource = \"terrain\"\n[stream]\n[sim]\nradius = 64.0\n",
-            "sim.region: a streamed world",
+            "camera.eye: is needed when a streamed world's region follows the camera",
         ),
         (
             "[world]\nsource = \"balls\"\n[stream]\n",

@@ -93,7 +93,7 @@ pub fn run(
         fetchers: stream.fetchers,
     };
     let baseline_kb = rss_kb();
-    let mut w = RenderWindow::new(gen_, None, settings, eye0, None)?;
+    let mut w = RenderWindow::new(gen_, None, settings, eye0, None, None)?;
     w.settle(Duration::from_secs(60));
     w.measure_overhead();
     let opts = RenderOptions {

@@ -212,9 +212,27 @@ pub fn restore_chunks(
     // The overlay is the stored state, not a change: the grid is patched
     // and the changed bricks forgotten; only the regenerated chunks must be
     // written again.
+    // Only what lies in the world: a streamed world's store also holds
+    // chunks its simulated region covered before it moved.
+    let (lo, hi) = world.bounds();
+    let (bmin, bmax) = (
+        lo.div_euclid(IVec3::splat(8)),
+        (hi - 1).div_euclid(IVec3::splat(8)),
+    );
+    let in_world = |k: &ChunkKey| {
+        let (a, b) = (k.min_brick(), k.min_brick() + (chunk::CHUNK_BRICKS - 1));
+        a.cmple(bmax).all() && b.cmpge(bmin).all()
+    };
+    let (tmin, tmax) = ws.sim.tile_bounds();
+    let in_sim = |k: &ColumnKey| {
+        let a = k.tile(0);
+        let b = a + (chunk::CHUNK_BRICKS - 1);
+        a.cmplt(tmax).all() && b.cmpge(tmin).all()
+    };
     let (overlay, _) = world.edit(|store, materials| -> Result<_, StoreError> {
         *store.palette_mut() = st.store.palette().clone();
-        let keys = db.chunk_keys()?;
+        let mut keys = db.chunk_keys()?;
+        keys.retain(in_world);
         let mut corrupt = Vec::new();
         let mut regenerated = Vec::new();
         let mut n = 0;
@@ -238,7 +256,7 @@ pub fn restore_chunks(
             }
         }
         let mut bad_columns = Vec::new();
-        for k in db.column_keys()? {
+        for k in db.column_keys()?.into_iter().filter(in_sim) {
             let Some(blob) = db.column(k)? else { continue };
             match chunk::decode_column(k, &blob) {
                 Ok(data) => {
@@ -449,8 +467,18 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
     let identity = cfg.identity();
     let (db, _) = WorldDb::open(dir, &identity)?;
     let mut world = match &cfg.stream {
-        // A streamed world's store holds its simulated region.
-        Some(st) => super::streaming::build_region(cfg, st)?.0,
+        // A streamed world's backup is its simulated region where it was
+        // last committed.
+        Some(_) => {
+            let (gen_, rule) = super::streaming::generator(cfg)?;
+            let columns = match stored_frame(&db)? {
+                Some((_, (lo, hi))) if rule.follows() => {
+                    super::streaming::columns_of_bounds(lo, hi)
+                }
+                _ => rule.around(glam::DVec3::ZERO),
+            };
+            super::streaming::build_columns(&gen_, columns.0, columns.1)?
+        }
         None => {
             let pb = crate::progress::bar("scene", 0);
             let w = crate::scene::build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
@@ -459,7 +487,11 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
             w
         }
     };
-    let mut ws = WorldSim::with_edges(&mut world, true);
+    let drains = !matches!(
+        cfg.sim_region,
+        super::world_config::SimRegion::AroundCamera { .. }
+    ) || cfg.stream.is_none();
+    let mut ws = WorldSim::with_edges(&mut world, drains);
     let mut dirty = DirtyChunks::default();
     let regenerable = cfg.source.is_procedural();
     let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty, regenerable)? else {

@@ -19,7 +19,7 @@ use crossbeam_channel::{Sender, TrySendError, bounded};
 use glam::IVec3;
 
 use super::control::Shared;
-use super::streaming::StreamPlan;
+use super::streaming::{StreamPlan, columns_of};
 use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
 use crate::scene::{RenderWindow, SceneWorld, WindowStats, WorldDelta};
 use crate::trace::{Camera, RenderOptions, render};
@@ -123,6 +123,7 @@ impl RenderThread {
                 let mut window: Option<RenderWindow> = None;
                 for job in rx.iter() {
                     let t = Instant::now();
+                    let full = matches!(job.world, FrameWorld::Full(_));
                     match job.world {
                         FrameWorld::Full(w) => mirror = Some(*w),
                         FrameWorld::Delta(d) => match mirror.as_mut() {
@@ -141,14 +142,23 @@ impl RenderThread {
                     let mut window_changed = Vec::new();
                     if let Some(plan) = &settings.stream {
                         let eye = job.camera.eye;
+                        // A whole world after the first: the simulated
+                        // region moved (it is the engine's world).
+                        let live = columns_of(world);
                         match window.as_mut() {
-                            Some(w) => w.update(eye, Some(world), &job.dirty),
+                            Some(w) => {
+                                if full {
+                                    w.set_live(live, world);
+                                }
+                                w.update(eye, Some(world), &job.dirty)
+                            }
                             None => match RenderWindow::new(
                                 plan.gen_.clone(),
-                                Some(plan.live),
+                                Some(live),
                                 plan.window,
                                 eye,
                                 Some(world),
+                                plan.overlay.clone(),
                             ) {
                                 Ok(mut w) => {
                                     // The first frame waits for its exact

@@ -4,29 +4,41 @@
 //!
 //! A streamed world keeps two things in memory:
 //! - the **simulated region** (`[sim] region`, rounded outward to whole
-//!   chunk columns of 64 × 64 voxels): the engine's world, stepped, edited,
-//!   committed and resumed exactly like a small world, plus the render
-//!   thread's copy of it;
+//!   chunk columns of 64 × 64 voxels, or `[sim] radius`, a square that
+//!   follows the camera: [`RegionRule`]): the engine's world, stepped,
+//!   edited, committed and resumed exactly like a small world, plus the
+//!   render thread's copy of it;
 //! - the **render window**: the chunk columns within the view distance of
 //!   the camera, generated on first touch by fetcher threads, with a
 //!   byte-budgeted LRU cache of the columns that left it
 //!   ([`crate::scene::RenderWindow`]).
 //!
 //! Everything else is never built: far terrain is a pure function of the
-//! seed, regenerated when the camera comes back, and stored only once
-//! edited (only the simulated region is edited, so only its chunks ever
-//! reach the world store).
+//! seed, regenerated when the camera comes back, with the chunks the store
+//! holds laid over it ([`store_overlay`]). Only the simulated region is
+//! edited, so only chunks it covered ever reach the store.
+//!
+//! A region that follows the camera **moves** at a step boundary: the
+//! engine commits, then rebuilds the region at its new place exactly as a
+//! resume would (generate, lay the stored chunks and columns over it, apply
+//! the state). Moving therefore costs a commit and a rebuild, not a copy
+//! of anything far, and a run that stops and resumes moves at the same
+//! ticks to the same places: where the region is, is part of the committed
+//! state (the state blob's bounds).
 
 use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
-use glam::{IVec2, IVec3};
+use glam::{DVec3, IVec2, IVec3};
+use rustc_hash::FxHashSet;
 
 use super::world_config::{SimRegion, StreamSettings, WorldConfig};
-use crate::scene::{CHUNK_VOXELS, ChunkGen, SceneWorld, WindowSettings, budget};
+use crate::persist::{ChunkKey, StoreReader, chunk};
+use crate::scene::{CHUNK_VOXELS, ChunkGen, ColumnOverlay, SceneWorld, WindowSettings, budget};
+use crate::world::BrickContent;
 
 /// What the render thread needs to stream a world.
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct StreamPlan {
     /// The generator of far columns.
     pub gen_: Arc<ChunkGen>,
@@ -35,6 +47,18 @@ pub struct StreamPlan {
     pub live: (IVec2, IVec2),
     /// The window's size and its share of the budget.
     pub window: WindowSettings,
+    /// The stored edits the fetchers lay over generated columns.
+    pub overlay: Option<ColumnOverlay>,
+}
+
+impl std::fmt::Debug for StreamPlan {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StreamPlan")
+            .field("live", &self.live)
+            .field("window", &self.window)
+            .field("overlay", &self.overlay.is_some())
+            .finish()
+    }
 }
 
 /// Bytes a world's bricks and grid hold (the same measure the window uses).
@@ -46,47 +70,193 @@ pub fn world_bytes(world: &SceneWorld) -> u64 {
         + store.non_empty_bricks() * 24) as u64
 }
 
-/// Build the simulated region of a streamed world and the plan for
-/// streaming the rest.
-pub fn build_region(
-    cfg: &WorldConfig,
-    stream: &StreamSettings,
-) -> Result<(SceneWorld, StreamPlan)> {
-    let SimRegion::Box { min, max } = cfg.sim_region else {
-        bail!("sim.region: a streamed world needs a region (validated config)");
-    };
-    let size = (!cfg.unbounded).then_some(cfg.size);
-    let gen_ = ChunkGen::new(&cfg.source, size, cfg.size.y, cfg.seed)?;
-    let lo = IVec2::new(
-        min.x.div_euclid(CHUNK_VOXELS),
-        min.y.div_euclid(CHUNK_VOXELS),
-    );
-    let hi = IVec2::new(
-        (max.x + CHUNK_VOXELS - 1).div_euclid(CHUNK_VOXELS),
-        (max.y + CHUNK_VOXELS - 1).div_euclid(CHUNK_VOXELS),
-    );
+/// Where a streamed world's simulated region lies, in chunk columns.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RegionRule {
+    /// A fixed region `[min, max)` (`[sim] region`).
+    Fixed(IVec2, IVec2),
+    /// A square that follows the camera (`[sim] radius`): `2 half + 1`
+    /// columns across, re-centred on the camera's column once the camera
+    /// is more than [`FOLLOW_SLACK`] columns from the region's centre (and
+    /// kept inside a bounded world).
+    Follow {
+        /// Columns from the centre column to the region's edge.
+        half: i32,
+        /// A bounded world's chunk columns `[min, max)`.
+        world: Option<(IVec2, IVec2)>,
+    },
+}
+
+/// How far (in chunk columns) the camera may stray from the centre of a
+/// region that follows it before the region moves: moving costs a commit
+/// and a rebuild of the region, so it happens every few columns of flight,
+/// not at every one.
+pub const FOLLOW_SLACK: i32 = 1;
+
+impl RegionRule {
+    /// The rule of `cfg`'s (validated) simulated region.
+    pub fn of(cfg: &WorldConfig, gen_: &ChunkGen) -> Result<Self> {
+        match cfg.sim_region {
+            SimRegion::Box { min, max } => Ok(RegionRule::Fixed(
+                IVec2::new(
+                    min.x.div_euclid(CHUNK_VOXELS),
+                    min.y.div_euclid(CHUNK_VOXELS),
+                ),
+                IVec2::new(
+                    (max.x + CHUNK_VOXELS - 1).div_euclid(CHUNK_VOXELS),
+                    (max.y + CHUNK_VOXELS - 1).div_euclid(CHUNK_VOXELS),
+                ),
+            )),
+            SimRegion::AroundCamera { radius } => Ok(RegionRule::Follow {
+                half: (radius / CHUNK_VOXELS as f64).ceil() as i32,
+                world: gen_.columns(),
+            }),
+            SimRegion::Everywhere => {
+                bail!("sim.region: a streamed world needs a region or a radius (validated config)")
+            }
+        }
+    }
+
+    /// Whether the region follows the camera.
+    pub fn follows(&self) -> bool {
+        matches!(self, RegionRule::Follow { .. })
+    }
+
+    /// The region for a camera at `eye` (a fixed region's own).
+    pub fn around(&self, eye: DVec3) -> (IVec2, IVec2) {
+        match *self {
+            RegionRule::Fixed(lo, hi) => (lo, hi),
+            RegionRule::Follow { half, world } => {
+                let c = column_of(eye);
+                let mut lo = c - half;
+                let mut hi = c + half + 1;
+                if let Some((wlo, whi)) = world {
+                    // Inside the world where it fits; the whole world where
+                    // it does not.
+                    let side = hi - lo;
+                    lo = lo.min(whi - side).max(wlo);
+                    hi = (lo + side).min(whi);
+                }
+                (lo, hi)
+            }
+        }
+    }
+
+    /// Where the region `now` should move for a camera at `eye`: None while
+    /// the camera is within [`FOLLOW_SLACK`] columns of its centre (or the
+    /// region is fixed, or moving would not change it).
+    pub fn follow(&self, now: (IVec2, IVec2), eye: DVec3) -> Option<(IVec2, IVec2)> {
+        if !self.follows() {
+            return None;
+        }
+        let centre = (now.0 + now.1 - 1).div_euclid(IVec2::splat(2));
+        if (column_of(eye) - centre).abs().max_element() <= FOLLOW_SLACK {
+            return None;
+        }
+        let to = self.around(eye);
+        (to != now).then_some(to)
+    }
+}
+
+fn column_of(eye: DVec3) -> IVec2 {
+    let clamp = |v: f64| v.floor().clamp(-1e9, 1e9) as i32;
+    crate::scene::chunk_column_of(clamp(eye.x), clamp(eye.z))
+}
+
+/// The region's voxel bounds in chunk columns (a world built by
+/// [`build_columns`] has whole ones).
+pub fn columns_of(world: &SceneWorld) -> (IVec2, IVec2) {
+    let (lo, hi) = world.bounds();
+    columns_of_bounds(lo, hi)
+}
+
+/// The chunk columns covering voxel bounds `[lo, hi)` (a stored region's).
+pub fn columns_of_bounds(lo: IVec3, hi: IVec3) -> (IVec2, IVec2) {
+    (
+        IVec2::new(lo.x, lo.z).div_euclid(IVec2::splat(CHUNK_VOXELS)),
+        (IVec2::new(hi.x, hi.z) + (CHUNK_VOXELS - 1)).div_euclid(IVec2::splat(CHUNK_VOXELS)),
+    )
+}
+
+/// Build chunk columns `[lo, hi)` of a streamed world (its simulated
+/// region), refusing a region the machine cannot hold.
+pub fn build_columns(gen_: &ChunkGen, lo: IVec2, hi: IVec2) -> Result<SceneWorld> {
     let cols = (hi - lo).as_i64vec2();
     budget::check_world(
         "sim.region",
         IVec3::new(
             (cols.x * CHUNK_VOXELS as i64).min(1 << 20) as i32,
-            cfg.size.y,
+            gen_.height(),
             (cols.y * CHUNK_VOXELS as i64).min(1 << 20) as i32,
         ),
     )?;
-    let world = gen_
-        .build_region(lo, hi)
-        .context("cannot build the simulated region")?;
+    gen_.build_region(lo, hi)
+        .context("cannot build the simulated region")
+}
+
+/// The generator of a streamed world and the rule its region follows.
+pub fn generator(cfg: &WorldConfig) -> Result<(Arc<ChunkGen>, RegionRule)> {
+    let size = (!cfg.unbounded).then_some(cfg.size);
+    let gen_ = ChunkGen::new(&cfg.source, size, cfg.size.y, cfg.seed)?;
+    let rule = RegionRule::of(cfg, &gen_)?;
+    Ok((Arc::new(gen_), rule))
+}
+
+/// Build the simulated region of a streamed world, chunk columns
+/// `[lo, hi)`, and the plan for streaming the rest.
+pub fn build_region(
+    gen_: Arc<ChunkGen>,
+    (lo, hi): (IVec2, IVec2),
+    stream: &StreamSettings,
+) -> Result<(SceneWorld, StreamPlan)> {
+    let world = build_columns(&gen_, lo, hi)?;
     let plan = StreamPlan {
-        gen_: Arc::new(gen_),
+        gen_,
         live: (lo, hi),
         window: WindowSettings {
             radius: WindowSettings::radius_for(stream.view_distance),
             budget_bytes: stream.memory_budget,
             fetchers: stream.fetchers,
         },
+        overlay: None,
     };
     Ok((world, plan))
+}
+
+/// The fetchers' overlay for a streamed world whose store holds chunks
+/// outside the simulated region (it moved on): each chunk of a column that
+/// the store holds replaces the generated one. A chunk that cannot be read
+/// or decoded is reported once and shown as generated.
+pub fn store_overlay(reader: StoreReader, gen_: &ChunkGen) -> ColumnOverlay {
+    let palette = gen_.palette().clone();
+    let chunks_y = (gen_.height() + CHUNK_VOXELS - 1) / CHUNK_VOXELS;
+    let reported = Arc::new(std::sync::Mutex::new(FxHashSet::<ChunkKey>::default()));
+    Arc::new(move |col: IVec2, bricks: &mut Vec<(IVec3, BrickContent)>| {
+        for y in 0..chunks_y {
+            let key = ChunkKey(IVec3::new(col.x, y, col.y));
+            let data = match reader.chunk(key) {
+                Ok(None) => continue,
+                Ok(Some(blob)) => chunk::decode_chunk(key, &blob, &palette),
+                Err(e) => Err(e.to_string()),
+            };
+            match data {
+                Ok(data) => {
+                    let lo = key.min_brick();
+                    let hi = lo + IVec3::splat(chunk::CHUNK_BRICKS);
+                    bricks.retain(|(b, _)| !(b.cmpge(lo).all() && b.cmplt(hi).all()));
+                    bricks.extend(data.bricks);
+                }
+                Err(e) => {
+                    let mut seen = reported.lock().unwrap_or_else(|p| p.into_inner());
+                    if seen.insert(key) {
+                        eprintln!(
+                            "warning: {key} cannot be shown as stored ({e}): drawn as generated"
+                        );
+                    }
+                }
+            }
+        }
+    })
 }
 
 /// Memory the scripts, their Luau VMs and the simulation's channels are

@@ -573,10 +573,10 @@ impl WorldConfig {
             }
             (None, None) => SimRegion::Everywhere,
         };
-        if stream.is_some() && !matches!(sim_region, SimRegion::Box { .. }) {
+        if stream.is_some() && sim_region == SimRegion::Everywhere {
             return Err(err(
                 "sim.region",
-                "a streamed world keeps only its simulated region resident: give [sim] region = { min = [x, z], max = [x, z] } (a radius is not supported yet)"
+                "a streamed world keeps only its simulated region resident: give [sim] region = { min = [x, z], max = [x, z] }, or [sim] radius to follow the camera"
                     .into(),
             ));
         }
@@ -732,6 +732,16 @@ impl WorldConfig {
             }
             (None, Some(_)) => {
                 return Err(err("camera.eye", "is needed with camera.target".into()));
+            }
+            (None, None)
+                if stream.is_some() && matches!(sim_region, SimRegion::AroundCamera { .. }) =>
+            {
+                // The default view is the region's own: it would move with it.
+                return Err(err(
+                    "camera.eye",
+                    "is needed when a streamed world's region follows the camera ([sim] radius)"
+                        .into(),
+                ));
             }
             _ => {}
         }

@@ -280,10 +280,14 @@ impl redb::StorageBackend for DiskLimit {
     }
 }
 
+/// The database handle, shared with [`StoreReader`]s (the render window's
+/// fetcher threads): `None` only after a failed commit whose reopen failed
+/// too. The lock is taken for writing only to reopen after a failure.
+type Shared = std::sync::Arc<std::sync::RwLock<Option<redb::Database>>>;
+
 /// An open world store.
 pub struct WorldDb {
-    /// None only after a failed commit whose reopen failed too.
-    db: Option<redb::Database>,
+    db: Shared,
     path: PathBuf,
     /// A commit failed: redb refuses every later write until the database
     /// is reopened, so the next commit reopens it first.
@@ -330,7 +334,7 @@ impl WorldDb {
         };
         let db = open_db(&path).map_err(db_err)?;
         let this = WorldDb {
-            db: Some(db),
+            db: std::sync::Arc::new(std::sync::RwLock::new(Some(db))),
             path: path.clone(),
             failed: false,
         };
@@ -404,11 +408,22 @@ impl WorldDb {
         &self.path
     }
 
-    fn db(&self) -> Result<&redb::Database, StoreError> {
-        self.db.as_ref().ok_or_else(|| StoreError::Db {
+    /// Run `f` on the open database (an error if it could not be reopened
+    /// after a failed commit).
+    fn with_db<R>(
+        &self,
+        f: impl FnOnce(&redb::Database) -> Result<R, StoreError>,
+    ) -> Result<R, StoreError> {
+        with_shared(&self.db, &self.path, f)
+    }
+
+    /// A read-only handle on the chunks, for other threads: it reads each
+    /// chunk as last committed (redb's readers never block the writer).
+    pub fn reader(&self) -> StoreReader {
+        StoreReader {
+            db: self.db.clone(),
             path: self.path.clone(),
-            msg: "the database could not be reopened after a failed commit".into(),
-        })
+        }
     }
 
     fn err(&self, e: impl Into<redb::Error>) -> StoreError {
@@ -419,18 +434,24 @@ impl WorldDb {
     }
 
     fn meta(&self, key: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
-        let table = match tx.open_table(META) {
-            Ok(t) => t,
-            Err(redb::TableError::TableDoesNotExist(_)) => return Ok(None),
-            Err(e) => return Err(self.err(e)),
-        };
-        let v = table.get(key).map_err(|e| self.err(e))?;
-        Ok(v.map(|g| g.value().to_vec()))
+        self.with_db(|db| {
+            let tx = db.begin_read().map_err(|e| self.err(e))?;
+            let table = match tx.open_table(META) {
+                Ok(t) => t,
+                Err(redb::TableError::TableDoesNotExist(_)) => return Ok(None),
+                Err(e) => return Err(self.err(e)),
+            };
+            let v = table.get(key).map_err(|e| self.err(e))?;
+            Ok(v.map(|g| g.value().to_vec()))
+        })
     }
 
     fn put_meta(&self, key: &str, value: &[u8]) -> Result<(), StoreError> {
-        let mut tx = self.db()?.begin_write().map_err(|e| self.err(e))?;
+        self.with_db(|db| self.put_meta_in(db, key, value))
+    }
+
+    fn put_meta_in(&self, db: &redb::Database, key: &str, value: &[u8]) -> Result<(), StoreError> {
+        let mut tx = db.begin_write().map_err(|e| self.err(e))?;
         tx.set_quick_repair(true);
         {
             let mut t = tx.open_table(META).map_err(|e| self.err(e))?;
@@ -462,22 +483,24 @@ impl WorldDb {
         def: TableDefinition<&[u8], &[u8]>,
         parse: impl Fn(&[u8]) -> Option<K>,
     ) -> Result<Vec<K>, StoreError> {
-        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
-        let table = tx.open_table(def).map_err(|e| self.err(e))?;
-        let mut out = Vec::new();
-        for entry in table.iter().map_err(|e| self.err(e))? {
-            let (k, _) = entry.map_err(|e| self.err(e))?;
-            match parse(k.value()) {
-                Some(key) => out.push(key),
-                None => {
-                    return Err(StoreError::Db {
-                        path: self.path.clone(),
-                        msg: format!("a key of {} bytes in table {def}", k.value().len()),
-                    });
+        self.with_db(|db| {
+            let tx = db.begin_read().map_err(|e| self.err(e))?;
+            let table = tx.open_table(def).map_err(|e| self.err(e))?;
+            let mut out = Vec::new();
+            for entry in table.iter().map_err(|e| self.err(e))? {
+                let (k, _) = entry.map_err(|e| self.err(e))?;
+                match parse(k.value()) {
+                    Some(key) => out.push(key),
+                    None => {
+                        return Err(StoreError::Db {
+                            path: self.path.clone(),
+                            msg: format!("a key of {} bytes in table {def}", k.value().len()),
+                        });
+                    }
                 }
             }
-        }
-        Ok(out)
+            Ok(out)
+        })
     }
 
     /// Chunk `key`'s blob, if stored.
@@ -495,10 +518,7 @@ impl WorldDb {
         def: TableDefinition<&[u8], &[u8]>,
         key: &[u8],
     ) -> Result<Option<Vec<u8>>, StoreError> {
-        let tx = self.db()?.begin_read().map_err(|e| self.err(e))?;
-        let table = tx.open_table(def).map_err(|e| self.err(e))?;
-        let v = table.get(key).map_err(|e| self.err(e))?;
-        Ok(v.map(|g| g.value().to_vec()))
+        self.with_db(|db| get_in(db, &self.path, def, key))
     }
 
     /// Write `chunks`, `columns` and the `state` blob in one durable
@@ -514,8 +534,9 @@ impl WorldDb {
         state: &[u8],
     ) -> Result<CommitStats, StoreError> {
         if self.failed {
-            self.db = None; // closes the file before it is opened again
-            self.db = Some(open_db(&self.path).map_err(|e| StoreError::Commit(e.to_string()))?);
+            let mut slot = self.db.write().unwrap_or_else(|p| p.into_inner());
+            *slot = None; // closes the file before it is opened again
+            *slot = Some(open_db(&self.path).map_err(|e| StoreError::Commit(e.to_string()))?);
             self.failed = false;
         }
         let r = self.try_commit(chunks, columns, state);
@@ -529,9 +550,19 @@ impl WorldDb {
         columns: &[(ColumnKey, Vec<u8>)],
         state: &[u8],
     ) -> Result<CommitStats, StoreError> {
+        self.with_db(|db| self.commit_in(db, chunks, columns, state))
+    }
+
+    fn commit_in(
+        &self,
+        db: &redb::Database,
+        chunks: &[(ChunkKey, Vec<u8>)],
+        columns: &[(ColumnKey, Vec<u8>)],
+        state: &[u8],
+    ) -> Result<CommitStats, StoreError> {
         let t = Instant::now();
         let fail = |e: redb::Error| StoreError::Commit(e.to_string());
-        let mut tx = self.db()?.begin_write().map_err(|e| fail(e.into()))?;
+        let mut tx = db.begin_write().map_err(|e| fail(e.into()))?;
         // Quick repair: one more fsync per commit, and reopening after a
         // crash reads the allocator state instead of scanning the whole file
         // (2–9 ms instead of 70–240 ms for a 263 MB store; tools/store-compare).
@@ -569,5 +600,61 @@ impl WorldDb {
     /// The store file's size in bytes.
     pub fn file_bytes(&self) -> u64 {
         std::fs::metadata(&self.path).map_or(0, |m| m.len())
+    }
+}
+
+fn with_shared<R>(
+    db: &Shared,
+    path: &Path,
+    f: impl FnOnce(&redb::Database) -> Result<R, StoreError>,
+) -> Result<R, StoreError> {
+    let slot = db.read().unwrap_or_else(|p| p.into_inner());
+    match slot.as_ref() {
+        Some(db) => f(db),
+        None => Err(StoreError::Db {
+            path: path.to_path_buf(),
+            msg: "the database could not be reopened after a failed commit".into(),
+        }),
+    }
+}
+
+fn get_in(
+    db: &redb::Database,
+    path: &Path,
+    def: TableDefinition<&[u8], &[u8]>,
+    key: &[u8],
+) -> Result<Option<Vec<u8>>, StoreError> {
+    let err = |e: redb::Error| StoreError::Db {
+        path: path.to_path_buf(),
+        msg: e.to_string(),
+    };
+    let tx = db.begin_read().map_err(|e| err(e.into()))?;
+    let table = tx.open_table(def).map_err(|e| err(e.into()))?;
+    let v = table.get(key).map_err(|e| err(e.into()))?;
+    Ok(v.map(|g| g.value().to_vec()))
+}
+
+/// A read-only handle on a [`WorldDb`]'s chunks for another thread (see
+/// [`WorldDb::reader`]). Cheap to clone.
+#[derive(Clone)]
+pub struct StoreReader {
+    db: Shared,
+    path: PathBuf,
+}
+
+impl std::fmt::Debug for StoreReader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StoreReader")
+            .field("path", &self.path)
+            .finish()
+    }
+}
+
+impl StoreReader {
+    /// Chunk `key`'s blob as last committed, if stored.
+    pub fn chunk(&self, key: ChunkKey) -> Result<Option<Vec<u8>>, StoreError> {
+        with_shared(&self.db, &self.path, |db| {
+            get_in(db, &self.path, CHUNKS, &key.to_bytes())
+        })
     }
 }

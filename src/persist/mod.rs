@@ -12,4 +12,4 @@ pub mod db;
 pub mod state;
 
 pub use chunk::{ChunkData, ChunkKey, ColumnData, ColumnKey};
-pub use db::{CommitStats, Manifest, StoreError, WorldDb};
+pub use db::{CommitStats, Manifest, StoreError, StoreReader, WorldDb};

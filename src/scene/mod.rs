@@ -30,7 +30,7 @@ pub use noise::Noise;
 pub use shapes::{Prim, Rng, rasterize};
 pub use terrain::Terrain;
 pub use vox::{parse as parse_vox, store_from_voxels, voxels as vox_voxels};
-pub use window::{RenderWindow, WindowSettings, WindowStats};
+pub use window::{ColumnOverlay, RenderWindow, WindowSettings, WindowStats};
 
 use crate::trace::{BrickmapTracer, DenseGrid, Frame, Svo, TraceError};
 use crate::world::{BRICK_SHIFT, BrickGrid, BrickStore, WorldError, brick_of};

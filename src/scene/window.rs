@@ -63,6 +63,12 @@ enum Column {
 
 type Bricks = Vec<(IVec3, BrickContent)>;
 
+/// What the fetchers lay over a generated column before it enters: the
+/// edits a world store holds for it (chunks stored since they were edited,
+/// by a simulated region that has moved on). It replaces the bricks of
+/// every chunk it has stored and leaves the rest as generated.
+pub type ColumnOverlay = Arc<dyn Fn(IVec2, &mut Vec<(IVec3, BrickContent)>) + Send + Sync>;
+
 struct Cached {
     /// [`pack`]ed bricks, in one allocation of exactly their size.
     packed: Box<[u8]>,
@@ -206,13 +212,15 @@ pub struct RenderWindow {
 impl RenderWindow {
     /// A window around `eye` over `gen`'s world. Chunk columns `live`
     /// `[min, max)` are the simulated region, copied from the world passed to
-    /// [`update`](Self::update) instead of generated.
+    /// [`update`](Self::update) instead of generated. The fetchers lay
+    /// `overlay` (the stored edits) over every column they generate.
     pub fn new(
         gen_: Arc<ChunkGen>,
         live: Option<(IVec2, IVec2)>,
         settings: WindowSettings,
         eye: DVec3,
         live_world: Option<&SceneWorld>,
+        overlay: Option<ColumnOverlay>,
     ) -> Result<Self, SceneError> {
         let r = settings.radius.max(1);
         let settings = WindowSettings {
@@ -230,12 +238,16 @@ impl RenderWindow {
                 let rx = req_rx.clone();
                 let tx = res_tx.clone();
                 let g = gen_.clone();
+                let overlay = overlay.clone();
                 std::thread::Builder::new()
                     .name(format!("fetch-{i}"))
                     .spawn(move || {
                         for c in rx.iter() {
                             let mut out = Vec::new();
                             g.generate(c, &mut out);
+                            if let Some(o) = &overlay {
+                                o(c, &mut out);
+                            }
                             if tx.send((c, out)).is_err() {
                                 break;
                             }
@@ -403,6 +415,48 @@ impl RenderWindow {
         self.evict();
     }
 
+    /// The simulated region moved to chunk columns `live` `[min, max)`:
+    /// its columns in the window are copied from `live_world` (the engine's
+    /// new region), and the window's columns that left it are fetched again
+    /// (generated, with the stored edits laid over them), showing their
+    /// last bricks until then. Cached copies of the region's columns are
+    /// dropped: they will be stale when the region moves on.
+    pub fn set_live(&mut self, live: (IVec2, IVec2), live_world: &SceneWorld) {
+        let old = self.live.replace(live);
+        if old == Some(live) {
+            return;
+        }
+        let was_live =
+            |c: IVec2| old.is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all());
+        let gone: Vec<IVec2> = self
+            .cache
+            .keys()
+            .copied()
+            .filter(|c| self.is_live(*c))
+            .collect();
+        for c in gone {
+            if let Some(e) = self.cache.remove(&c) {
+                self.cache_bytes -= e.bytes();
+            }
+        }
+        for col in self.window_columns() {
+            if !self.gen_.contains(col) {
+                continue;
+            }
+            if self.is_live(col) {
+                self.in_flight.remove(&col);
+                if !was_live(col) {
+                    self.clear(col);
+                    self.enter(col, Some(live_world));
+                }
+            } else if was_live(col) {
+                // Its bricks stay until the fetched ones replace them.
+                self.columns.insert(col, Column::Coarse);
+            }
+        }
+        self.request();
+    }
+
     /// Wait up to `limit` for every column in the window to be exact (for
     /// the first frame of a benchmark or a test); returns whether they are.
     pub fn settle(&mut self, limit: Duration) -> bool {
@@ -421,9 +475,9 @@ impl RenderWindow {
     }
 
     fn arrived(&mut self, col: IVec2, bricks: Bricks) {
-        self.in_flight.remove(&col);
         self.stats.generated += 1;
-        if self.is_live(col) {
+        // A request cancelled when its column became live: stale.
+        if !self.in_flight.remove(&col) || self.is_live(col) {
             return;
         }
         if self.columns.get(&col) == Some(&Column::Coarse) {
@@ -610,6 +664,7 @@ mod tests {
             settings,
             DVec3::new(10.0, 50.0, 10.0),
             None,
+            None,
         )
         .unwrap();
         assert!(
@@ -682,7 +737,8 @@ mod tests {
             budget_bytes: 1 << 30,
             fetchers: 1,
         };
-        let mut w = RenderWindow::new(g, None, settings, DVec3::new(0.0, 40.0, 0.0), None).unwrap();
+        let mut w =
+            RenderWindow::new(g, None, settings, DVec3::new(0.0, 40.0, 0.0), None, None).unwrap();
         let fly = |w: &mut RenderWindow, step: i32| {
             w.settle(Duration::from_secs(10));
             w.update(DVec3::new(64.0 * step as f64, 40.0, 0.0), None, &[]);
@@ -722,7 +778,7 @@ mod tests {
             fetchers: 1,
         };
         let eye = DVec3::new(130.0, 60.0, 130.0);
-        let mut w = RenderWindow::new(g, Some(live), settings, eye, Some(&region)).unwrap();
+        let mut w = RenderWindow::new(g, Some(live), settings, eye, Some(&region), None).unwrap();
         assert_eq!(w.world().store.voxel(IVec3::new(100, 62, 100)), 9);
         region.store.set_voxel(IVec3::new(101, 62, 100), 9);
         let changed = region.apply_edits();
@@ -730,5 +786,81 @@ mod tests {
         assert_eq!(w.world().store.voxel(IVec3::new(101, 62, 100)), 9);
         // Columns outside a bounded world are empty and exact.
         assert!(w.settle(Duration::from_secs(10)));
+    }
+
+    /// When the simulated region moves, its new columns are copied from the
+    /// new region, and the columns it left are fetched again, with the
+    /// overlay (the store's chunks) laid over the generated bricks.
+    #[test]
+    fn a_moved_region_is_copied_and_the_columns_it_left_are_fetched_with_the_overlay() {
+        let g = gen_(Some(IVec3::new(512, 64, 512)));
+        let settings = WindowSettings {
+            radius: 2,
+            budget_bytes: 64 << 20,
+            fetchers: 1,
+        };
+        let mark = IVec3::new(100, 62, 100); // chunk column (1, 1)
+        let (a, b) = (
+            (IVec2::new(1, 1), IVec2::new(2, 2)),
+            (IVec2::new(2, 1), IVec2::new(3, 2)),
+        );
+        let mut region_a = g.build_region(a.0, a.1).unwrap();
+        region_a.store.set_voxel(mark, 9);
+        region_a.apply_edits();
+        // What the store holds once region A moved on: its last edit,
+        // which the window's copy of the region had not seen yet.
+        let left: Bricks = vec![(mark >> 3, region_a.store.content(mark >> 3))];
+        region_a.store.set_voxel(mark, 8);
+        region_a.apply_edits();
+        let overlay: ColumnOverlay = Arc::new(move |c: IVec2, bricks: &mut Bricks| {
+            if c == IVec2::new(1, 1) {
+                bricks.retain(|(b, _)| *b != left[0].0);
+                bricks.extend(left.iter().cloned());
+            }
+        });
+        let eye = DVec3::new(130.0, 60.0, 100.0);
+        let mut w = RenderWindow::new(
+            g.clone(),
+            Some(a),
+            settings,
+            eye,
+            Some(&region_a),
+            Some(overlay),
+        )
+        .unwrap();
+        assert!(w.settle(Duration::from_secs(10)));
+        assert_eq!(w.world().store.voxel(mark), 8, "the live copy");
+        let mut region_b = g.build_region(b.0, b.1).unwrap();
+        let mark_b = IVec3::new(150, 62, 100); // chunk column (2, 1)
+        region_b.store.set_voxel(mark_b, 7);
+        region_b.apply_edits();
+        w.set_live(b, &region_b);
+        w.update(eye, Some(&region_b), &[]);
+        assert_eq!(w.world().store.voxel(mark_b), 7, "the new region is copied");
+        assert!(w.settle(Duration::from_secs(10)));
+        // The column left behind: generated, with the stored edit over it.
+        assert_eq!(w.world().store.voxel(mark), 9, "the overlay is shown");
+        let mut direct = Vec::new();
+        g.generate(IVec2::new(1, 1), &mut direct);
+        for (bk, c) in direct.iter().filter(|(bk, _)| *bk != mark >> 3) {
+            assert_eq!(&w.world().store.content(*bk), c, "brick {bk}");
+        }
+        let world = w.world();
+        let fresh =
+            crate::world::BrickGrid::build(&world.store, world.grid.origin(), world.grid.dims())
+                .unwrap();
+        let d = world.grid.dims();
+        for z in 0..d.z {
+            for y in 0..d.y {
+                for x in 0..d.x {
+                    let l = IVec3::new(x, y, z);
+                    assert_eq!(
+                        world.grid.pointer(l) != 0,
+                        fresh.pointer(l) != 0,
+                        "cell {l}: the grid follows the bricks"
+                    );
+                }
+            }
+        }
     }
 }

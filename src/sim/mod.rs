@@ -27,6 +27,23 @@ pub use run::{WorldSim, read_script};
 pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm, StepKey};
 pub use step::{Kernel, Simulation, StepReport};
 
+/// A running script as a rebuilt simulation needs it (a streamed world's
+/// region that moved is rebuilt with the scripts it ran): its current
+/// source (hot reloads included), limits, rate and health.
+#[derive(Clone, Debug)]
+pub struct ScriptState {
+    /// The source it runs now.
+    pub src: ScriptSource,
+    /// Its budgets.
+    pub limits: Limits,
+    /// Runs on ticks that are multiples of this.
+    pub every: u64,
+    /// Failed steps in a row.
+    pub failures: u32,
+    /// Why it is suspended, if it is.
+    pub suspended: Option<SimError>,
+}
+
 /// A number for a message: plain when moderate, in scientific notation
 /// when huge or tiny (a 1e300 is not printed as 301 digits).
 pub fn fmt_num(v: f64) -> String {

@@ -128,8 +128,13 @@ pub struct Status {
     /// The world store's size on disk, in bytes.
     pub store_bytes: u64,
     /// The columns the column scripts ran on in the last step, `[x0, z0,
-    /// x1, z1)` in voxels; null for the whole world.
+    /// x1, z1)` in voxels (a streamed world's simulated region); null for
+    /// the whole world.
     pub sim_region: Option<[i32; 4]>,
+    /// Times a streamed world's simulated region moved after the camera in
+    /// this run, and the milliseconds the last move took (commit and
+    /// rebuild); null when it does not follow the camera.
+    pub region_moves: Option<(u64, f64)>,
     /// A streamed world's render window after the last frame (null for a
     /// world that is resident whole).
     pub window: Option<crate::scene::WindowStats>,

@@ -33,6 +33,7 @@ use rustc_hash::FxHashSet;
 use super::control::{
     CheckpointRef, Command, CommitRef, ControlServer, ParamStatus, ScriptStatus, Shared, Status,
 };
+mod follow;
 mod start;
 
 use super::checkpoint::CameraOverride;
@@ -158,6 +159,8 @@ pub struct Engine {
     start_tick: u64,
     /// Milliseconds each script took in the last step (script id order).
     script_ms: Vec<f64>,
+    /// A streamed world's region that follows the camera.
+    follow: Option<follow::Follow>,
 }
 
 impl Engine {
@@ -170,6 +173,7 @@ impl Engine {
             self.hot_reload();
             self.apply_commands();
             if self.should_step() {
+                self.follow_camera();
                 let report = self.step();
                 self.collect_dirty(&report);
                 self.offer_frame();
@@ -562,7 +566,12 @@ impl Engine {
                 .ws
                 .sim
                 .region()
-                .map(|(a, b)| [a.x * 8, a.y * 8, b.x * 8, b.y * 8]),
+                .map(|(a, b)| [a.x * 8, a.y * 8, b.x * 8, b.y * 8])
+                .or_else(|| {
+                    let (lo, hi) = self.world.bounds();
+                    self.cfg.stream.map(|_| [lo.x, lo.z, hi.x, hi.z])
+                }),
+            region_moves: self.follow.as_ref().map(|f| (f.moves, f.move_ms)),
             window: stats.window(),
             memory_budget: self.cfg.stream.map(|s| s.memory_budget),
             rss_bytes: super::timeline::rss_kb() * 1024,

@@ -15,7 +15,7 @@ use super::super::control::{CheckpointRef, ControlServer, Shared, Status};
 use super::super::persistence::{self, DirtyChunks};
 use super::super::render_thread::{RenderSettings, RenderThread};
 use super::super::state_dir;
-use super::super::streaming::{self, StreamPlan};
+use super::super::streaming::{self, RegionRule, StreamPlan};
 use super::super::timeline::Timeline;
 use super::super::world_config::WorldConfig;
 use super::{DaemonOptions, Engine, ScriptNotes, load_source, materials_source, timeline_columns};
@@ -57,7 +57,14 @@ impl Engine {
         }
         let mut db = open_store(&opts.state, &cfg)?;
         let (mut world, stream_plan) = build_world(&cfg, &db)?;
-        let mut ws = WorldSim::with_edges(&mut world, true);
+        let follow = stream_plan
+            .as_ref()
+            .filter(|(_, rule)| rule.follows())
+            .map(|(plan, rule)| super::follow::Follow::new(plan.gen_.clone(), *rule));
+        let stream_plan = stream_plan.map(|(plan, _)| plan);
+        // A region that follows the camera has closed edges (see
+        // `follow.rs`); a fixed one drains over them like a small world.
+        let mut ws = WorldSim::with_edges(&mut world, follow.is_none());
         // The ground read from the generated world is regenerated on every
         // start: not a change to commit.
         ws.sim.channels_mut().take_dirty();
@@ -177,6 +184,7 @@ impl Engine {
             rate_window: (Instant::now(), 0),
             steps_per_s: 0.0,
             script_ms: vec![0.0; n],
+            follow,
         };
         // Publish the loaded world in one go: a client that sees the scripts
         // also sees the tick and where it was resumed from (regression: a
@@ -207,7 +215,10 @@ fn open_store(state: &Path, cfg: &WorldConfig) -> Result<WorldDb> {
 /// The engine's world: generated (a procedural source), the stored frame
 /// of an imported one, or a streamed world's simulated region (with the
 /// plan the render thread streams the rest by).
-fn build_world(cfg: &WorldConfig, db: &WorldDb) -> Result<(SceneWorld, Option<StreamPlan>)> {
+fn build_world(
+    cfg: &WorldConfig,
+    db: &WorldDb,
+) -> Result<(SceneWorld, Option<(StreamPlan, RegionRule)>)> {
     // A procedural world is regenerated on every start (only its edits
     // are stored); a heightmap or .vox world was imported whole into the
     // store on its first start, so its file is not read again.
@@ -221,7 +232,17 @@ fn build_world(cfg: &WorldConfig, db: &WorldDb) -> Result<(SceneWorld, Option<St
         (_, Some(st)) => {
             // A streamed world: only the simulated region is the
             // engine's; the render thread streams the rest.
-            let (world, mut plan) = streaming::build_region(cfg, st)?;
+            let (gen_, rule) = streaming::generator(cfg)?;
+            let columns = match (rule, persistence::stored_frame(db)?) {
+                // Where a region that follows the camera was is part of the
+                // committed state.
+                (RegionRule::Follow { .. }, Some((_, (lo, hi)))) => {
+                    streaming::columns_of_bounds(lo, hi)
+                }
+                _ => rule.around(initial_eye(cfg)),
+            };
+            let (world, mut plan) = streaming::build_region(gen_, columns, st)?;
+            plan.overlay = Some(streaming::store_overlay(db.reader(), &plan.gen_));
             streaming::check_budget(&world, &mut plan, st.memory_budget)?;
             eprintln!(
                 "streaming: simulated region of {} chunk columns ({}), render window {} columns across, memory budget {}",
@@ -230,7 +251,7 @@ fn build_world(cfg: &WorldConfig, db: &WorldDb) -> Result<(SceneWorld, Option<St
                 2 * plan.window.radius + 1,
                 crate::scene::budget::human(plan.window.budget_bytes),
             );
-            stream_plan = Some(plan);
+            stream_plan = Some((plan, rule));
             world
         }
         (Some((palette, (lo, hi))), None) => {
@@ -245,6 +266,18 @@ fn build_world(cfg: &WorldConfig, db: &WorldDb) -> Result<(SceneWorld, Option<St
         }
     };
     Ok((world, stream_plan))
+}
+
+/// Where the camera starts (every camera mode is at its configured eye at
+/// tick 0): the middle of the world when the config names no eye.
+fn initial_eye(cfg: &WorldConfig) -> glam::DVec3 {
+    cfg.camera.eye.unwrap_or_else(|| {
+        if cfg.unbounded {
+            glam::DVec3::ZERO
+        } else {
+            cfg.size.as_dvec3() * 0.5
+        }
+    })
 }
 
 /// `materials.lua`, then the config's scripts with their rates and

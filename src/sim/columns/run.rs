@@ -159,6 +159,37 @@ impl WorldSim {
         self.vox.set_seed(seed);
     }
 
+    /// Every script's source, limits, rate and health, in id order (what
+    /// [`rebuild_scripts`](Self::rebuild_scripts) takes).
+    pub fn script_states(&self) -> Vec<crate::sim::ScriptState> {
+        (0..self.sim.script_count())
+            .map(|c| self.sim.script_state(c))
+            .chain((0..self.vox.script_count()).map(|v| self.vox.script_state(v)))
+            .collect()
+    }
+
+    /// Load `scripts` (from [`script_states`](Self::script_states) of the
+    /// simulation this one replaces) with their rates and health; their ids
+    /// and channel ids come out as before. Parameters are the state's to
+    /// restore.
+    pub fn rebuild_scripts(
+        &mut self,
+        world: &SceneWorld,
+        scripts: &[crate::sim::ScriptState],
+    ) -> Result<(), SimError> {
+        for s in scripts {
+            let i = self.add_script(world, s.src.clone(), s.limits)?;
+            self.set_every(i, s.every);
+        }
+        for (i, s) in scripts.iter().enumerate() {
+            match self.route(i) {
+                Ok(c) => self.sim.set_health(c, s.failures, s.suspended.clone()),
+                Err(v) => self.vox.set_health(v, s.failures, s.suspended.clone()),
+            }
+        }
+        Ok(())
+    }
+
     fn route(&self, i: usize) -> Result<usize, usize> {
         let n = self.sim.script_count();
         if i < n { Ok(i) } else { Err(i - n) }

@@ -492,6 +492,24 @@ impl Simulation {
         })
     }
 
+    /// Script `i`'s source, limits, rate and health, for a rebuild.
+    pub fn script_state(&self, i: usize) -> crate::sim::ScriptState {
+        let s = &self.scripts[i];
+        crate::sim::ScriptState {
+            src: s.src.clone(),
+            limits: s.limits,
+            every: s.every,
+            failures: s.failures,
+            suspended: s.suspended.clone(),
+        }
+    }
+
+    /// Give script `i` the health a rebuilt simulation carries over.
+    pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
+        self.scripts[i].failures = failures;
+        self.scripts[i].suspended = suspended;
+    }
+
     /// Run script `index` only on ticks that are multiples of `every` (≥ 1).
     pub fn set_every(&mut self, index: usize, every: u64) {
         self.scripts[index].every = every.max(1);
