@@ -455,33 +455,46 @@ fn run_render(s: RenderSettings) -> Result<()> {
             ..Default::default()
         };
         let built = t0.elapsed();
-        if s.gpu {
-            if s.structure != Structure::Brickmap {
-                anyhow::bail!("--tracer gpu renders the brickmap only; drop --structure {}", s.structure);
+        use crate::gpu::TracerChoice;
+        if s.tracer == TracerChoice::Gpu && s.structure != Structure::Brickmap {
+            anyhow::bail!("--tracer gpu renders the brickmap only; drop --structure {}", s.structure);
+        }
+        let gpu = match s.tracer {
+            TracerChoice::Cpu => None,
+            // auto traces the dense grid and the octree on the CPU.
+            TracerChoice::Auto if s.structure != Structure::Brickmap => None,
+            TracerChoice::Auto => {
+                let (ctx, line) = crate::gpu::choose(TracerChoice::Auto);
+                eprintln!("{line}");
+                ctx
             }
-            match crate::gpu::GpuContext::new() {
-                Ok(ctx) => {
-                    let t1 = Instant::now();
-                    let mut gpu = crate::gpu::GpuBrickmap::preloaded(&ctx, world.grid(), world.store().pool(), world.store().palette())?;
-                    let (out, _) = gpu.render(&ctx, &camera, &opts, world.grid(), world.store().pool())?;
-                    let traced = t1.elapsed();
-                    write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
-                    if let Some(d) = &s.depth_out {
-                        write_npy(d, out.width, out.height, &out.depth).with_context(|| format!("cannot write {}", d.display()))?;
-                    }
-                    eprintln!(
-                        "rendered {}x{} on the GPU ({}) in {:.3} s, upload included (scene built in {:.2} s) -> {}",
-                        out.width,
-                        out.height,
-                        ctx.describe(),
-                        traced.as_secs_f64(),
-                        built.as_secs_f64(),
-                        s.out.display()
-                    );
-                    return Ok(());
+            TracerChoice::Gpu => match crate::gpu::GpuContext::new() {
+                Ok(ctx) => Some(ctx),
+                Err(e) => {
+                    eprintln!("warning: {e}; rendering on the CPU instead");
+                    None
                 }
-                Err(e) => eprintln!("warning: {e}; rendering on the CPU instead"),
+            },
+        };
+        if let Some(ctx) = gpu {
+            let t1 = Instant::now();
+            let mut gpu = crate::gpu::GpuBrickmap::preloaded(&ctx, world.grid(), world.store().pool(), world.store().palette())?;
+            let (out, _) = gpu.render(&ctx, &camera, &opts, world.grid(), world.store().pool())?;
+            let traced = t1.elapsed();
+            write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
+            if let Some(d) = &s.depth_out {
+                write_npy(d, out.width, out.height, &out.depth).with_context(|| format!("cannot write {}", d.display()))?;
             }
+            eprintln!(
+                "rendered {}x{} on the GPU ({}) in {:.3} s, upload included (scene built in {:.2} s) -> {}",
+                out.width,
+                out.height,
+                ctx.describe(),
+                traced.as_secs_f64(),
+                built.as_secs_f64(),
+                s.out.display()
+            );
+            return Ok(());
         }
         let t1 = Instant::now();
         let out = match s.structure {

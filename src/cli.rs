@@ -278,7 +278,7 @@ pub struct BenchStreamArgs {
     /// Most bricks uploaded per frame
     #[arg(long, default_value_t = 256)]
     pub uploads: u32,
-    /// Brick slots in the GPU pool
+    /// Brick slots the GPU pool starts with (it doubles when the view needs more, up to 2^20)
     #[arg(long, default_value_t = 65_536)]
     pub pool: u32,
     /// Write the results as JSON here
@@ -355,7 +355,7 @@ pub struct RenderArgs {
     /// Tracer: dense, svo or brickmap
     #[arg(long, default_value = "brickmap")]
     pub structure: String,
-    /// Where to trace: cpu, or gpu (the brickmap on wgpu; falls back to the CPU with one line if no adapter)
+    /// Where to trace: cpu, gpu (the brickmap on wgpu; falls back to the CPU with one line if no adapter), or auto (the GPU unless its only adapter is a software rasterizer)
     #[arg(long, default_value = "cpu")]
     pub tracer: String,
     /// Trace hard shadows towards the light

@@ -226,8 +226,8 @@ pub struct RenderSettings {
     pub depth_out: Option<PathBuf>,
     /// Dense grid limit, bytes.
     pub dense_limit: u64,
-    /// Trace on the GPU.
-    pub gpu: bool,
+    /// Where to trace.
+    pub tracer: crate::gpu::TracerChoice,
 }
 
 /// Default size of procedural scenes for `render`.
@@ -249,11 +249,10 @@ impl RenderSettings {
             out: a.out.clone(),
             depth_out: a.depth_out.clone(),
             dense_limit: a.dense_limit_mib.saturating_mul(1 << 20),
-            gpu: match a.tracer.as_str() {
-                "cpu" => false,
-                "gpu" => true,
-                other => return Err(bad("--tracer", other, "expected cpu or gpu")),
-            },
+            tracer: a
+                .tracer
+                .parse()
+                .map_err(|e: String| bad("--tracer", &a.tracer, e))?,
         })
     }
 }

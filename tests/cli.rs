@@ -253,33 +253,45 @@ fn a_structure_that_does_not_fit_reports_an_error_and_the_bench_goes_on() {
     assert!(v["structures"][2]["mrays_per_s"].as_f64().unwrap() > 0.0);
 }
 
+/// `render --tracer TRACER` of a small terrain into `png`, with `extra`
+/// arguments and environment `envs`.
+fn render_with(
+    tracer: &str,
+    png: &std::path::Path,
+    extra: &[&std::ffi::OsStr],
+    envs: &[(&str, &str)],
+) -> std::process::Output {
+    let mut c = bin();
+    c.args([
+        "render", "--tracer", tracer, "--size", "48x32x48", "--width", "40", "--height", "30",
+        "--out",
+    ])
+    .arg(png)
+    .args(extra);
+    for (k, v) in envs {
+        c.env(k, v);
+    }
+    c.output().unwrap()
+}
+
+/// No Vulkan driver at all.
+const NO_VULKAN: [(&str, &str); 2] = [
+    ("VK_ICD_FILENAMES", "/nonexistent"),
+    ("VK_DRIVER_FILES", "/nonexistent"),
+];
+
 #[test]
 fn gpu_tracer_renders_or_falls_back_to_the_cpu_with_one_line() {
     let png = tmp("g.png");
     let npy = tmp("g.npy");
-    let run = |envs: &[(&str, &str)]| {
-        let mut c = bin();
-        c.args([
-            "render", "--tracer", "gpu", "--size", "48x32x48", "--width", "40", "--height", "30",
-            "--out",
-        ])
-        .arg(&png)
-        .arg("--depth-out")
-        .arg(&npy);
-        for (k, v) in envs {
-            c.env(k, v);
-        }
-        c.output().unwrap()
-    };
+    let depth = [std::ffi::OsStr::new("--depth-out"), npy.as_os_str()];
+    let run = |envs: &[(&str, &str)]| render_with("gpu", &png, &depth, envs);
     // Whatever the machine has, the command succeeds and writes both files.
     let out = run(&[]);
     assert_success(&out);
     assert!(std::fs::metadata(&npy).unwrap().len() > 0);
     // With no Vulkan driver at all: one warning line, then the CPU renders.
-    let out = run(&[
-        ("VK_ICD_FILENAMES", "/nonexistent"),
-        ("VK_DRIVER_FILES", "/nonexistent"),
-    ]);
+    let out = run(&NO_VULKAN);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{err}");
     assert!(
@@ -305,5 +317,37 @@ fn gpu_tracer_renders_or_falls_back_to_the_cpu_with_one_line() {
             png.to_str().unwrap(),
         ],
         "brickmap only",
+    );
+}
+
+/// `--tracer auto` says which tracer it chose and why: the CPU when the
+/// only adapter is a software rasterizer (lavapipe in CI) or there is none,
+/// the GPU otherwise; a world config's unknown tracer names the field.
+#[test]
+fn tracer_auto_says_what_it_chose_and_why() {
+    let png = tmp("auto.png");
+    let run = |envs: &[(&str, &str)]| render_with("auto", &png, &[], envs);
+    let out = run(&[]);
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    match common::gpu_context() {
+        Some(ctx) if ctx.is_software() => assert!(
+            err.contains("tracer: cpu (auto: the only GPU adapter")
+                && err.contains("is a software rasterizer"),
+            "{err}"
+        ),
+        Some(_) => assert!(err.contains("tracer: gpu (auto: "), "{err}"),
+        None => assert!(err.contains("tracer: cpu (auto: no GPU adapter"), "{err}"),
+    }
+    let out = run(&NO_VULKAN);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("tracer: cpu (auto: no GPU adapter found"),
+        "{err}"
+    );
+    expect_failure(
+        &["render", "--tracer", "fast", "--out", png.to_str().unwrap()],
+        "is not auto, gpu or cpu",
     );
 }

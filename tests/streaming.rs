@@ -126,6 +126,7 @@ fn an_unbounded_world_streams_on_the_gpu_too() {
     let (_, err) = run_ok(&cfg, &state, "--ticks", 100);
     assert!(!err.contains("panicked"), "{err}");
     if common::gpu_context().is_some() {
+        assert!(err.contains("tracer: gpu (gpu: "), "{err}");
         assert!(!err.contains("rendering on the CPU"), "{err}");
     }
     let frames = std::fs::read_dir(state.join("frames")).unwrap().count();
@@ -283,7 +284,7 @@ fn the_store_overlay_shows_what_a_moving_region_left_behind() {
     let mut generated = Vec::new();
     gen_.generate(col, &mut generated);
     let mut shown = generated.clone();
-    overlay(col, &mut shown);
+    overlay(col, &mut shown).unwrap();
     let mut stored = Vec::new();
     for k in db.chunk_keys().unwrap() {
         if k.0.x == col.x && k.0.z == col.y {

@@ -96,7 +96,11 @@ pub fn run(size: IVec3, chunks: usize, repeats: usize, dir: &Path) -> Result<Sto
     let mut ws2 = WorldSim::with_edges(&mut fresh, true);
     let t = Instant::now();
     let mut dirty = DirtyChunks::default();
-    restore_chunks(&db, &mut fresh, &mut ws2, &mut dirty, true)?;
+    let scope = crate::engine::persistence::RestoreScope {
+        regenerable: true,
+        ..Default::default()
+    };
+    restore_chunks(&db, &mut fresh, &mut ws2, &mut dirty, scope)?;
     let restore_ms = t.elapsed().as_secs_f64() * 1e3;
     let _ = std::fs::remove_dir_all(dir);
     Ok(StoreBench {

@@ -56,6 +56,9 @@ pub struct StreamReport {
     pub resident_bricks: u32,
     /// Mixed bricks in the world.
     pub world_bricks: u32,
+    /// Slots the pool started with, and holds at the end (it doubles when
+    /// a view needs more, up to [`crate::gpu::MAX_POOL_SLOTS`]).
+    pub pool_slots: (u32, u32),
     /// The streaming budget used.
     pub uploads_budget: u32,
     /// Material bytes uploaded during the cold start, with hidden voxels'
@@ -127,8 +130,10 @@ pub fn run(
     }
     if frames_to_converge == 0 {
         anyhow::bail!(
-            "streaming did not converge in 400 frames ({budget} uploads per frame, {pool_slots} pool slots, {} resident): the view needs more slots (--pool)",
-            gpu.resident()
+            "streaming did not converge in 400 frames ({budget} uploads per frame, {pool_slots} pool slots grown to {}, {} resident): the view needs more slots than the device or the cap ({}) allows",
+            gpu.pool_slots(),
+            gpu.resident(),
+            crate::gpu::MAX_POOL_SLOTS
         );
     }
     let gpu_bytes = gpu.gpu_bytes_used();
@@ -225,5 +230,6 @@ pub fn run(
         material_bytes_culled: culled,
         material_bytes_unculled: unculled,
         material_bytes_dxt1: uploaded * 256,
+        pool_slots: (pool_slots, gpu.pool_slots()),
     })
 }

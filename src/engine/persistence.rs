@@ -186,6 +186,22 @@ pub struct Restored {
     pub corrupt: Vec<String>,
 }
 
+/// How [`restore_chunks`] reads the store.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct RestoreScope {
+    /// A procedural world: a corrupt chunk is regenerated from the source.
+    pub regenerable: bool,
+    /// A streamed world's simulated region: the store holds more than the
+    /// region, so the chunks and columns inside it are looked up one by one
+    /// (a move or a resume costs the region, not the store).
+    pub region: bool,
+    /// A region with closed edges (one that follows the camera): take only
+    /// whole stored columns. A region that drains keeps a moat of tiles in
+    /// its neighbours' columns; such a column's blob holds only those tiles
+    /// and fictitious ground, and restoring it would zero the real column.
+    pub whole_columns: bool,
+}
+
 /// Overlay the store's chunks and columns on a freshly generated world and
 /// simulation, and restore the palette and material registry. `None` if the
 /// store was never committed. The edits the overlay makes are not dirty;
@@ -200,8 +216,9 @@ pub fn restore_chunks(
     world: &mut SceneWorld,
     ws: &mut WorldSim,
     dirty: &mut DirtyChunks,
-    regenerable: bool,
+    scope: RestoreScope,
 ) -> Result<Option<Restored>, StoreError> {
+    let regenerable = scope.regenerable;
     let Some(blob) = db.state()? else {
         return Ok(None);
     };
@@ -229,9 +246,26 @@ pub fn restore_chunks(
         let b = a + (chunk::CHUNK_BRICKS - 1);
         a.cmplt(tmax).all() && b.cmpge(tmin).all()
     };
+    let (chunk_keys, column_keys) = if scope.region {
+        let (cmin, cmax) = (bmin >> CHUNK_SHIFT, bmax >> CHUNK_SHIFT);
+        let chunks = (cmin.z..=cmax.z)
+            .flat_map(|z| {
+                (cmin.y..=cmax.y).flat_map(move |y| {
+                    (cmin.x..=cmax.x).map(move |x| ChunkKey(IVec3::new(x, y, z)))
+                })
+            })
+            .collect();
+        let (kmin, kmax) = (tmin >> CHUNK_SHIFT, (tmax - 1) >> CHUNK_SHIFT);
+        let columns = (kmin.y..=kmax.y)
+            .flat_map(|z| (kmin.x..=kmax.x).map(move |x| ColumnKey(IVec2::new(x, z))))
+            .collect();
+        (chunks, columns)
+    } else {
+        (db.chunk_keys()?, db.column_keys()?)
+    };
     let (overlay, _) = world.edit(|store, materials| -> Result<_, StoreError> {
         *store.palette_mut() = st.store.palette().clone();
-        let mut keys = db.chunk_keys()?;
+        let mut keys = chunk_keys;
         keys.retain(in_world);
         let mut corrupt = Vec::new();
         let mut regenerated = Vec::new();
@@ -256,9 +290,10 @@ pub fn restore_chunks(
             }
         }
         let mut bad_columns = Vec::new();
-        for k in db.column_keys()?.into_iter().filter(in_sim) {
+        for k in column_keys.into_iter().filter(in_sim) {
             let Some(blob) = db.column(k)? else { continue };
             match chunk::decode_column(k, &blob) {
+                Ok(data) if scope.whole_columns && !whole(&data) => {}
                 Ok(data) => {
                     chunk::apply_column(k, &data, ws.sim.channels_mut());
                     n += 1;
@@ -291,6 +326,14 @@ pub fn restore_chunks(
         chunks: n,
         corrupt,
     }))
+}
+
+/// Whether a stored column holds the ground of all its 64 tiles (what a
+/// region that covered it writes; a moat's few tiles do not).
+fn whole(data: &crate::persist::ColumnData) -> bool {
+    data.channels
+        .iter()
+        .any(|(name, tiles)| name == "ground" && tiles.len() == 64)
 }
 
 /// Apply a restored state blob once the scripts are loaded: tick, sleep
@@ -463,20 +506,26 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
     if !dir.join(crate::persist::db::DB_FILE).is_file() {
         bail!("{} holds no world store (nothing to export)", dir.display());
     }
+    if cfg.stream.is_some()
+        && matches!(
+            cfg.sim_region,
+            super::world_config::SimRegion::AroundCamera { .. }
+        )
+    {
+        bail!(
+            "export writes one region, and this world's simulated region follows the camera: its store holds every place the region has been. Back it up by copying {} and {} while the engine is stopped (nothing was written)",
+            dir.join(crate::persist::db::DB_FILE).display(),
+            dir.join(crate::persist::db::MANIFEST_FILE).display()
+        );
+    }
     let _lock = super::state_dir::lock(dir)?;
     let identity = cfg.identity();
     let (db, _) = WorldDb::open(dir, &identity)?;
     let mut world = match &cfg.stream {
-        // A streamed world's backup is its simulated region where it was
-        // last committed.
+        // A streamed world's backup is its fixed simulated region.
         Some(_) => {
             let (gen_, rule) = super::streaming::generator(cfg)?;
-            let columns = match stored_frame(&db)? {
-                Some((_, (lo, hi))) if rule.follows() => {
-                    super::streaming::columns_of_bounds(lo, hi)
-                }
-                _ => rule.around(glam::DVec3::ZERO),
-            };
+            let columns = rule.around(glam::DVec3::ZERO);
             super::streaming::build_columns(&gen_, columns.0, columns.1)?
         }
         None => {
@@ -487,14 +536,14 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
             w
         }
     };
-    let drains = !matches!(
-        cfg.sim_region,
-        super::world_config::SimRegion::AroundCamera { .. }
-    ) || cfg.stream.is_none();
-    let mut ws = WorldSim::with_edges(&mut world, drains);
+    let mut ws = WorldSim::with_edges(&mut world, true);
     let mut dirty = DirtyChunks::default();
-    let regenerable = cfg.source.is_procedural();
-    let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty, regenerable)? else {
+    let scope = RestoreScope {
+        regenerable: cfg.source.is_procedural(),
+        region: cfg.stream.is_some(),
+        whole_columns: false,
+    };
+    let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty, scope)? else {
         bail!("{} was never committed (nothing to export)", dir.display());
     };
     for c in &r.corrupt {

@@ -45,6 +45,10 @@ pub struct FrameJob {
     pub dirty: Vec<IVec3>,
     /// Where to look from.
     pub camera: Camera,
+    /// With a whole world after the first (a streamed world's region
+    /// moved): the chunk columns the region covered since the last whole
+    /// world and no longer does, to be fetched again from the store.
+    pub left: Vec<glam::IVec2>,
 }
 
 /// Counters the render thread publishes (read by `/status` and the timeline).
@@ -83,8 +87,9 @@ impl RenderStats {
 /// Settings the render thread keeps for its whole life.
 #[derive(Clone, Debug)]
 pub struct RenderSettings {
-    /// Try the GPU tracer first.
-    pub gpu: bool,
+    /// Where to trace (`auto` says which it chose, and why, at the first
+    /// frame).
+    pub tracer: crate::gpu::TracerChoice,
     /// A streamed world: the jobs' world is the simulated region, and the
     /// frames show a window around the camera streamed from this plan.
     pub stream: Option<StreamPlan>,
@@ -115,7 +120,7 @@ impl RenderThread {
             .name("render".into())
             .spawn(move || {
                 let mut gpu: Option<(GpuContext, GpuBrickmap)> = None;
-                let mut gpu_tried = !settings.gpu;
+                let mut gpu_tried = false;
                 let mut written = existing_frames(&settings.frames_dir);
                 // The render thread's own copy of the world, kept current by
                 // the jobs' deltas: the engine never copies the world again.
@@ -148,7 +153,7 @@ impl RenderThread {
                         match window.as_mut() {
                             Some(w) => {
                                 if full {
-                                    w.set_live(live, world);
+                                    w.set_live(live, world, &job.left);
                                 }
                                 w.update(eye, Some(world), &job.dirty)
                             }
@@ -166,7 +171,7 @@ impl RenderThread {
                                     // later ones show stand-ins until then.
                                     w.settle(std::time::Duration::from_secs(30));
                                     w.measure_overhead();
-                                    if settings.gpu {
+                                    if settings.tracer != crate::gpu::TracerChoice::Cpu {
                                         w.track_changes();
                                     }
                                     window = Some(w);
@@ -186,7 +191,7 @@ impl RenderThread {
                     }
                     if !gpu_tried {
                         gpu_tried = true;
-                        gpu = start_gpu(world);
+                        gpu = start_gpu(world, settings.tracer);
                     } else if let Some((ctx, g)) = gpu.as_mut() {
                         // A streamed world's window reports what changed in
                         // it (slides too); a resident one, the job's bricks.
@@ -306,14 +311,13 @@ fn existing_frames(dir: &std::path::Path) -> std::collections::VecDeque<PathBuf>
     v.into()
 }
 
-fn start_gpu(world: &SceneWorld) -> Option<(GpuContext, GpuBrickmap)> {
-    let ctx = match GpuContext::new() {
-        Ok(ctx) => ctx,
-        Err(e) => {
-            eprintln!("warning: {e}; rendering on the CPU");
-            return None;
-        }
-    };
+fn start_gpu(
+    world: &SceneWorld,
+    choice: crate::gpu::TracerChoice,
+) -> Option<(GpuContext, GpuBrickmap)> {
+    let (ctx, line) = crate::gpu::choose(choice);
+    eprintln!("{line}");
+    let ctx = ctx?;
     match GpuBrickmap::streaming(
         &ctx,
         world.grid(),

@@ -225,8 +225,9 @@ pub fn build_region(
 
 /// The fetchers' overlay for a streamed world whose store holds chunks
 /// outside the simulated region (it moved on): each chunk of a column that
-/// the store holds replaces the generated one. A chunk that cannot be read
-/// or decoded is reported once and shown as generated.
+/// the store holds replaces the generated one. A store that cannot be read
+/// is an error (the column keeps its stand-in and is asked for again); a
+/// chunk that does not decode is reported once and drawn as generated.
 pub fn store_overlay(reader: StoreReader, gen_: &ChunkGen) -> ColumnOverlay {
     let palette = gen_.palette().clone();
     let chunks_y = (gen_.height() + CHUNK_VOXELS - 1) / CHUNK_VOXELS;
@@ -234,12 +235,10 @@ pub fn store_overlay(reader: StoreReader, gen_: &ChunkGen) -> ColumnOverlay {
     Arc::new(move |col: IVec2, bricks: &mut Vec<(IVec3, BrickContent)>| {
         for y in 0..chunks_y {
             let key = ChunkKey(IVec3::new(col.x, y, col.y));
-            let data = match reader.chunk(key) {
-                Ok(None) => continue,
-                Ok(Some(blob)) => chunk::decode_chunk(key, &blob, &palette),
-                Err(e) => Err(e.to_string()),
+            let Some(blob) = reader.chunk(key).map_err(|e| e.to_string())? else {
+                continue;
             };
-            match data {
+            match chunk::decode_chunk(key, &blob, &palette) {
                 Ok(data) => {
                     let lo = key.min_brick();
                     let hi = lo + IVec3::splat(chunk::CHUNK_BRICKS);
@@ -256,6 +255,7 @@ pub fn store_overlay(reader: StoreReader, gen_: &ChunkGen) -> ColumnOverlay {
                 }
             }
         }
+        Ok(())
     })
 }
 
@@ -270,7 +270,12 @@ const RUNTIME_MARGIN: u64 = 64 << 20;
 /// from the region's own) and [`RUNTIME_MARGIN`]; on success the budget
 /// goes to the window, whose cache gets what is left. The error names the
 /// minimum.
-pub fn check_budget(region: &SceneWorld, plan: &mut StreamPlan, budget: u64) -> Result<()> {
+pub fn check_budget(
+    region: &SceneWorld,
+    plan: &mut StreamPlan,
+    budget: u64,
+    follows: bool,
+) -> Result<()> {
     let now = budget::rss_kb() * 1024;
     let region_bytes = world_bytes(region);
     let region_cols = {
@@ -283,16 +288,28 @@ pub fn check_budget(region: &SceneWorld, plan: &mut StreamPlan, budget: u64) -> 
     let y_bricks = region.grid().dims().y as u64;
     let window_grid = window_cols * 64 * y_bricks * 4 + window_cols * y_bricks;
     let window_min = window_cols * per_col + window_grid;
-    let need = now + region_bytes + window_min + RUNTIME_MARGIN;
+    // A region that follows the camera is built anew while the old one
+    // still stands (a move); and the store's page cache fills as it works.
+    let copies = if follows { 2 } else { 1 };
+    let need = now
+        + copies * region_bytes
+        + window_min
+        + RUNTIME_MARGIN
+        + crate::persist::db::STORE_CACHE_BYTES as u64;
     if budget < need {
         bail!(
-            "memory budget {} is too small for one view: the engine holds {} with the simulated region, the renderer's copy of the region needs {}, a window of {} chunk columns for the view distance about {}, and the scripts {}: at least {}; raise --memory-budget or [stream] memory_budget to {}, or lower [stream] view_distance or shrink [sim] region",
+            "memory budget {} is too small for one view: the engine holds {} with the simulated region, the renderer's copy of the region{} needs {}, a window of {} chunk columns for the view distance about {}, and the scripts and the store's cache {}: at least {}; raise --memory-budget or [stream] memory_budget to {}, or lower [stream] view_distance or shrink [sim] region",
             budget::human(budget),
             budget::human(now),
-            budget::human(region_bytes),
+            if follows {
+                " (and a second while it moves)"
+            } else {
+                ""
+            },
+            budget::human(copies * region_bytes),
             window_cols,
             budget::human(window_min),
-            budget::human(RUNTIME_MARGIN),
+            budget::human(RUNTIME_MARGIN + crate::persist::db::STORE_CACHE_BYTES as u64),
             budget::human(need),
             // A little above the minimum: what the process holds varies.
             budget::human((need + need / 16).next_multiple_of(1 << 20)),

@@ -39,7 +39,7 @@
 //! [render]
 //! width = 640
 //! height = 360
-//! tracer = "gpu"              # gpu (falls back to cpu) or cpu
+//! tracer = "auto"             # auto (the GPU unless it is software), gpu (falls back to cpu) or cpu
 //! shadows = true
 //!
 //! [frames]
@@ -365,8 +365,9 @@ pub struct WorldConfig {
     pub width: u32,
     /// Frame size.
     pub height: u32,
-    /// Trace on the GPU (falling back to the CPU).
-    pub gpu: bool,
+    /// Where frames are traced (`auto`: the GPU unless it is a software
+    /// rasterizer).
+    pub tracer: crate::gpu::TracerChoice,
     /// Hard shadows.
     pub shadows: bool,
     /// Frame directory, relative to the state directory.
@@ -752,11 +753,13 @@ impl WorldConfig {
             }
             Ok(v as u32)
         };
-        let gpu = match raw.render.tracer.as_deref().unwrap_or("gpu") {
-            "gpu" => true,
-            "cpu" => false,
-            other => return Err(err("render.tracer", format!("'{other}' is not gpu or cpu"))),
-        };
+        let tracer: crate::gpu::TracerChoice = raw
+            .render
+            .tracer
+            .as_deref()
+            .unwrap_or("auto")
+            .parse()
+            .map_err(|e| err("render.tracer", e))?;
         let every = |v: Option<i64>, d: i64, f: &str| -> Result<u64, WorldConfigError> {
             let v = v.unwrap_or(d);
             if !(1..=100_000_000).contains(&v) {
@@ -816,7 +819,7 @@ impl WorldConfig {
             },
             width: dim(raw.render.width, 640, "render.width")?,
             height: dim(raw.render.height, 360, "render.height")?,
-            gpu,
+            tracer,
             shadows: raw.render.shadows.unwrap_or(true),
             frames_dir: PathBuf::from(raw.frames.dir.unwrap_or_else(|| "frames".into())),
             frames_every: every(raw.frames.every, 10, "frames.every")?,

@@ -22,7 +22,15 @@ pub struct StreamConfig {
     pub feedback_capacity: u32,
     /// Most bricks uploaded per frame.
     pub uploads_per_frame: u32,
+    /// The pool doubles (slots and arena together) when a frame needs
+    /// more than it holds, up to this many slots (and the device's
+    /// storage-buffer limit).
+    pub max_pool_slots: u32,
 }
+
+/// The default cap of a growing pool: 2²⁰ slots, 64 MiB of masks and 96
+/// MiB of arena at the default arena share.
+pub const MAX_POOL_SLOTS: u32 = 1 << 20;
 
 impl Default for StreamConfig {
     fn default() -> Self {
@@ -31,8 +39,27 @@ impl Default for StreamConfig {
             arena_bytes: 65_536 * 96,
             feedback_capacity: 4096,
             uploads_per_frame: 256,
+            max_pool_slots: MAX_POOL_SLOTS,
         }
     }
+}
+
+/// `cfg` shrunk to a device whose storage buffers hold at most `limit`
+/// bytes, with a warning giving the figures if it had to shrink.
+pub fn fit_pool(mut cfg: StreamConfig, limit: u64) -> (StreamConfig, Option<String>) {
+    let slots = (limit / 64).min(u32::MAX as u64) as u32;
+    let arena = (limit.min(u32::MAX as u64) / 16 * 16) as u32;
+    if cfg.pool_slots <= slots && cfg.arena_bytes <= arena {
+        return (cfg, None);
+    }
+    let asked = (cfg.pool_slots, cfg.arena_bytes);
+    cfg.pool_slots = cfg.pool_slots.min(slots);
+    cfg.arena_bytes = cfg.arena_bytes.min(arena);
+    let warning = format!(
+        "the GPU's storage buffers hold at most {limit} bytes: the brick pool has {} slots and {} arena bytes instead of the {} and {} asked for",
+        cfg.pool_slots, cfg.arena_bytes, asked.0, asked.1
+    );
+    (cfg, Some(warning))
 }
 
 /// What one streamed frame did.
@@ -55,6 +82,8 @@ pub struct FrameStats {
     pub unculled_material_bytes: u64,
     /// Material bytes actually uploaded.
     pub material_bytes: u64,
+    /// Times the pool doubled this frame.
+    pub grown: u32,
 }
 
 /// Residency bookkeeping of a streaming pool.
@@ -195,7 +224,7 @@ impl GpuBrickmap {
         brick: crate::world::Brick,
         stats: &mut FrameStats,
     ) -> Result<Option<u32>, GpuError> {
-        for _attempt in 0..2 {
+        for _attempt in 0..4 {
             let frame_no = self.frame_no;
             let res = self.residency.as_mut().expect("streaming");
             let full = res.mirror.len() as u32 >= res.cfg.pool_slots;
@@ -246,12 +275,65 @@ impl GpuBrickmap {
                 .min_by_key(|(slot, _)| (res.last_seen[**slot as usize], **slot))
                 .map(|(s, i)| (*s, *i));
             let Some((_, victim_index)) = victim else {
+                // Every resident brick was seen this frame: the view needs
+                // a larger pool.
+                if self.grow(ctx) {
+                    stats.grown += 1;
+                    continue;
+                }
                 return Ok(None);
             };
             self.evict(ctx, victim_index);
             stats.evictions += 1;
         }
         Ok(None)
+    }
+
+    /// Double the pool's slots and arena (up to the configured cap and the
+    /// device's limit), copying what is resident; false if it cannot grow.
+    fn grow(&mut self, ctx: &GpuContext) -> bool {
+        let Some(res) = self.residency.as_mut() else {
+            return false;
+        };
+        let limit = ctx.limits.max_storage_buffer_binding_size;
+        let cfg = res.cfg;
+        let slots = (cfg.pool_slots as u64 * 2)
+            .min(cfg.max_pool_slots as u64)
+            .min(limit / 64) as u32;
+        let arena = (cfg.arena_bytes as u64 * 2).min(limit) as u32 / 16 * 16;
+        // Slots and arena grow together, within the slot cap.
+        if slots <= cfg.pool_slots {
+            return false;
+        }
+        let (slots, arena) = (slots.max(cfg.pool_slots), arena.max(cfg.arena_bytes));
+        let dev = &ctx.device;
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("grow pool"),
+        });
+        let mut bigger = |old: &wgpu::Buffer, what: &'static str, size: u64| {
+            let b = dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(what),
+                size,
+                usage: old.usage(),
+                mapped_at_creation: false,
+            });
+            enc.copy_buffer_to_buffer(old, 0, &b, 0, old.size());
+            b
+        };
+        let masks = bigger(&self.masks, "brick masks", slots as u64 * 64);
+        let meta = bigger(&self.meta, "brick metadata", slots as u64 * 8);
+        let arena_buf = bigger(&self.arena, "material arena", arena as u64);
+        let last_seen = bigger(&self.last_seen, "last seen", slots as u64 * 4);
+        ctx.queue.submit([enc.finish()]);
+        self.masks = masks;
+        self.meta = meta;
+        self.arena = arena_buf;
+        self.last_seen = last_seen;
+        self.slots = slots;
+        res.cfg.pool_slots = slots;
+        res.cfg.arena_bytes = arena;
+        res.last_seen.resize(slots as usize, 0);
+        true
     }
 
     /// Drop grid index `i`'s brick from the pool; its pointer becomes unloaded.
@@ -300,5 +382,82 @@ impl GpuBrickmap {
         }
         ctx.queue
             .write_buffer(&self.occ, 0, bytemuck::cast_slice(&occupancy_words(grid)));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A pool too large for the device shrinks to fit, with the figures;
+    /// one that fits is left alone.
+    #[test]
+    fn a_pool_too_large_for_the_device_shrinks_with_a_warning() {
+        let asked = StreamConfig {
+            pool_slots: 1 << 24,
+            arena_bytes: u32::MAX,
+            ..StreamConfig::default()
+        };
+        let (cfg, warning) = fit_pool(asked, 128 << 20);
+        assert_eq!(cfg.pool_slots, (128 << 20) / 64);
+        assert_eq!(cfg.arena_bytes, 128 << 20);
+        let w = warning.expect("a warning");
+        assert!(
+            w.contains("134217728 bytes") && w.contains("2097152 slots") && w.contains("16777216"),
+            "{w}"
+        );
+        let (same, none) = fit_pool(StreamConfig::default(), 1 << 30);
+        assert_eq!(same, StreamConfig::default());
+        assert!(none.is_none());
+    }
+
+    /// On a device whose storage buffers are small, the default pool
+    /// shrinks to fit and the tracer still draws.
+    #[test]
+    fn a_device_with_small_buffers_gets_a_smaller_pool_that_works() {
+        let mut ctx = match GpuContext::new() {
+            Ok(c) => c,
+            Err(e) if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() == Ok("1") => {
+                panic!("GPU required but unavailable: {e}")
+            }
+            Err(e) => {
+                eprintln!("{e}: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
+                return;
+            }
+        };
+        ctx.limits.max_storage_buffer_binding_size = 1 << 20;
+        let w = crate::scene::build_scene(
+            &crate::scene::SceneSpec::Terrain { caves: false },
+            IVec3::new(64, 32, 64),
+            3,
+            &indicatif::ProgressBar::hidden(),
+        )
+        .unwrap();
+        let mut g = GpuBrickmap::streaming(
+            &ctx,
+            w.grid(),
+            w.store().pool(),
+            w.store().palette(),
+            StreamConfig::default(),
+        )
+        .unwrap();
+        let cfg = g.residency.as_ref().expect("streaming").cfg;
+        assert_eq!(cfg.pool_slots, (1 << 20) / 64);
+        assert_eq!(cfg.arena_bytes, 1 << 20);
+        let v = w.default_views()[1];
+        let cam = crate::trace::Camera::new(
+            glam::DVec3::from(v.eye),
+            glam::DVec3::from(v.target),
+            v.fov,
+            32,
+            24,
+        )
+        .unwrap();
+        let opts = crate::trace::RenderOptions::default();
+        for _ in 0..4 {
+            g.render(&ctx, &cam, &opts, w.grid(), w.store().pool())
+                .unwrap();
+        }
+        assert!(g.resident() > 0);
     }
 }

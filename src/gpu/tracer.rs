@@ -158,13 +158,16 @@ impl GpuBrickmap {
                     .into(),
             ));
         }
-        // Check against the device before allocating anything of that size.
+        // Check against the device before allocating anything of that size:
+        // a pool too large for it shrinks (with the figures), the rest must
+        // fit.
         let limit = ctx.limits.max_storage_buffer_binding_size;
+        let (cfg, warning) = super::stream::fit_pool(cfg, limit);
+        if let Some(w) = warning {
+            eprintln!("warning: {w}");
+        }
         for (what, needed) in [
             ("brick grid", grid.pointers().len() as u64 * 4),
-            ("brick masks", cfg.pool_slots as u64 * 64),
-            ("brick metadata", cfg.pool_slots as u64 * 8),
-            ("material arena", cfg.arena_bytes as u64),
             ("feedback", (cfg.feedback_capacity as u64 + 1) * 4),
         ] {
             if needed > limit {
@@ -372,6 +375,11 @@ impl GpuBrickmap {
     /// encoding): for inspection and tests.
     pub fn pointers(&self) -> &[u32] {
         &self.shadow
+    }
+
+    /// Brick slots in the pool (it grows when a view needs more).
+    pub fn pool_slots(&self) -> u32 {
+        self.slots
     }
 
     /// Bricks currently resident (streaming) or uploaded (preloaded).

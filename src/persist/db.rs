@@ -36,6 +36,10 @@ use crate::engine::checkpoint::WorldIdentity;
 
 /// The store's format version (the layout of tables and blobs).
 pub const FORMAT: u32 = 1;
+/// redb's page cache (its default is 1 GiB, more than a streamed world's
+/// memory budget may allow): the commits of a region and the window's
+/// reads fit in it.
+pub const STORE_CACHE_BYTES: usize = 64 << 20;
 /// The store's file name in the state directory.
 pub const DB_FILE: &str = "world.redb";
 /// The manifest's file name in the state directory.
@@ -182,7 +186,9 @@ fn disk_limit() -> Option<u64> {
 /// hook.
 fn open_db(path: &Path) -> Result<redb::Database, redb::Error> {
     match disk_limit() {
-        None => Ok(redb::Database::create(path)?),
+        None => Ok(redb::Builder::new()
+            .set_cache_size(STORE_CACHE_BYTES)
+            .create(path)?),
         Some(limit) => {
             let file = std::fs::OpenOptions::new()
                 .read(true)
@@ -191,7 +197,9 @@ fn open_db(path: &Path) -> Result<redb::Database, redb::Error> {
                 .truncate(false)
                 .open(path)?;
             let inner = redb::backends::FileBackend::new(file)?;
-            Ok(redb::Builder::new().create_with_backend(DiskLimit { inner, limit })?)
+            Ok(redb::Builder::new()
+                .set_cache_size(STORE_CACHE_BYTES)
+                .create_with_backend(DiskLimit { inner, limit })?)
         }
     }
 }

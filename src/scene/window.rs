@@ -66,8 +66,18 @@ type Bricks = Vec<(IVec3, BrickContent)>;
 /// What the fetchers lay over a generated column before it enters: the
 /// edits a world store holds for it (chunks stored since they were edited,
 /// by a simulated region that has moved on). It replaces the bricks of
-/// every chunk it has stored and leaves the rest as generated.
-pub type ColumnOverlay = Arc<dyn Fn(IVec2, &mut Vec<(IVec3, BrickContent)>) + Send + Sync>;
+/// every chunk it has stored and leaves the rest as generated. An error
+/// (the store could not be read) leaves the column's stand-in up, and the
+/// column is asked for again.
+pub type ColumnOverlay =
+    Arc<dyn Fn(IVec2, &mut Vec<(IVec3, BrickContent)>) -> Result<(), String> + Send + Sync>;
+
+/// A fetch request: the column and the request's number, so that an answer
+/// to a cancelled request is recognised when it arrives.
+type Request = (IVec2, u64);
+/// A fetcher's answer: the column's bricks, or None if its stored edits
+/// could not be read.
+type Answer = (IVec2, u64, Option<Bricks>);
 
 struct Cached {
     /// [`pack`]ed bricks, in one allocation of exactly their size.
@@ -194,12 +204,14 @@ pub struct RenderWindow {
     center: IVec2,
     settings: WindowSettings,
     columns: FxHashMap<IVec2, Column>,
-    in_flight: FxHashSet<IVec2>,
+    /// Columns requested and not answered, with their request's number.
+    in_flight: FxHashMap<IVec2, u64>,
+    next_request: u64,
     cache: FxHashMap<IVec2, Cached>,
     cache_bytes: u64,
     clock: u64,
-    requests: Option<Sender<IVec2>>,
-    results: Receiver<(IVec2, Bricks)>,
+    requests: Option<Sender<Request>>,
+    results: Receiver<Answer>,
     workers: Vec<JoinHandle<()>>,
     stats: WindowStats,
     scratch: PackScratch,
@@ -231,8 +243,8 @@ impl RenderWindow {
         let center = Self::column_of(eye);
         let (lo, hi) = Self::bounds(center, r, gen_.height());
         let world = SceneWorld::new(BrickStore::new(gen_.palette().clone()), lo, hi)?;
-        let (req_tx, req_rx) = unbounded::<IVec2>();
-        let (res_tx, res_rx) = unbounded::<(IVec2, Bricks)>();
+        let (req_tx, req_rx) = unbounded::<Request>();
+        let (res_tx, res_rx) = unbounded::<Answer>();
         let workers = (0..settings.fetchers)
             .map(|i| {
                 let rx = req_rx.clone();
@@ -242,13 +254,11 @@ impl RenderWindow {
                 std::thread::Builder::new()
                     .name(format!("fetch-{i}"))
                     .spawn(move || {
-                        for c in rx.iter() {
+                        for (c, n) in rx.iter() {
                             let mut out = Vec::new();
                             g.generate(c, &mut out);
-                            if let Some(o) = &overlay {
-                                o(c, &mut out);
-                            }
-                            if tx.send((c, out)).is_err() {
+                            let ok = overlay.as_ref().is_none_or(|o| o(c, &mut out).is_ok());
+                            if tx.send((c, n, ok.then_some(out))).is_err() {
                                 break;
                             }
                         }
@@ -263,7 +273,8 @@ impl RenderWindow {
             center,
             settings,
             columns: FxHashMap::default(),
-            in_flight: FxHashSet::default(),
+            in_flight: FxHashMap::default(),
+            next_request: 0,
             cache: FxHashMap::default(),
             cache_bytes: 0,
             clock: 0,
@@ -288,7 +299,10 @@ impl RenderWindow {
     }
 
     fn column_of(eye: DVec3) -> IVec2 {
-        chunk_column_of(eye.x.floor() as i32, eye.z.floor() as i32)
+        // Clamped as the engine clamps it: far enough for any flight, and
+        // the window's voxel bounds cannot overflow.
+        let v = |x: f64| x.floor().clamp(-1e9, 1e9) as i32;
+        chunk_column_of(v(eye.x), v(eye.z))
     }
 
     fn bounds(center: IVec2, r: i32, height: i32) -> (IVec3, IVec3) {
@@ -407,32 +421,37 @@ impl RenderWindow {
                 }
             }
         }
-        while let Ok((col, bricks)) = self.results.try_recv() {
-            self.arrived(col, bricks);
+        while let Ok((col, n, bricks)) = self.results.try_recv() {
+            self.arrived(col, n, bricks);
         }
         self.patch();
         self.request();
         self.evict();
     }
 
-    /// The simulated region moved to chunk columns `live` `[min, max)`:
-    /// its columns in the window are copied from `live_world` (the engine's
-    /// new region), and the window's columns that left it are fetched again
-    /// (generated, with the stored edits laid over them), showing their
-    /// last bricks until then. Cached copies of the region's columns are
-    /// dropped: they will be stale when the region moves on.
-    pub fn set_live(&mut self, live: (IVec2, IVec2), live_world: &SceneWorld) {
+    /// The simulated region moved to chunk columns `live` `[min, max)`;
+    /// `left` are the columns it covered since the last call and no longer
+    /// does (all of them, when it moved more than once in between). The
+    /// window's live columns are copied whole from `live_world` (the
+    /// engine's new region: edits the window missed included); the columns
+    /// it left are fetched again, with the stored edits laid over them, and
+    /// show their last bricks until then. Cached copies of either are
+    /// dropped, and requests in flight for them cancelled: they are stale.
+    pub fn set_live(&mut self, live: (IVec2, IVec2), live_world: &SceneWorld, left: &[IVec2]) {
         let old = self.live.replace(live);
-        if old == Some(live) {
-            return;
-        }
         let was_live =
             |c: IVec2| old.is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all());
+        let stale: FxHashSet<IVec2> = left
+            .iter()
+            .copied()
+            .chain(self.window_columns().into_iter().filter(|c| was_live(*c)))
+            .filter(|c| !self.is_live(*c))
+            .collect();
         let gone: Vec<IVec2> = self
             .cache
             .keys()
             .copied()
-            .filter(|c| self.is_live(*c))
+            .filter(|c| self.is_live(*c) || stale.contains(c))
             .collect();
         for c in gone {
             if let Some(e) = self.cache.remove(&c) {
@@ -445,15 +464,15 @@ impl RenderWindow {
             }
             if self.is_live(col) {
                 self.in_flight.remove(&col);
-                if !was_live(col) {
-                    self.clear(col);
-                    self.enter(col, Some(live_world));
-                }
-            } else if was_live(col) {
+                self.clear(col);
+                self.enter(col, Some(live_world));
+            } else if stale.contains(&col) {
                 // Its bricks stay until the fetched ones replace them.
+                self.in_flight.remove(&col);
                 self.columns.insert(col, Column::Coarse);
             }
         }
+        self.patch();
         self.request();
     }
 
@@ -464,7 +483,7 @@ impl RenderWindow {
         while self.columns.values().any(|c| *c == Column::Coarse) {
             let left = end.saturating_duration_since(Instant::now());
             match self.results.recv_timeout(left) {
-                Ok((col, bricks)) => self.arrived(col, bricks),
+                Ok((col, n, bricks)) => self.arrived(col, n, bricks),
                 Err(_) => break,
             }
             self.request();
@@ -474,10 +493,17 @@ impl RenderWindow {
         !self.columns.values().any(|c| *c == Column::Coarse)
     }
 
-    fn arrived(&mut self, col: IVec2, bricks: Bricks) {
+    fn arrived(&mut self, col: IVec2, n: u64, bricks: Option<Bricks>) {
+        // An answer to a cancelled request (its column became live, or its
+        // stored edits changed since): stale.
+        if self.in_flight.get(&col) != Some(&n) {
+            return;
+        }
+        self.in_flight.remove(&col);
+        // The stored edits could not be read: asked for again.
+        let Some(bricks) = bricks else { return };
         self.stats.generated += 1;
-        // A request cancelled when its column became live: stale.
-        if !self.in_flight.remove(&col) || self.is_live(col) {
+        if self.is_live(col) {
             return;
         }
         if self.columns.get(&col) == Some(&Column::Coarse) {
@@ -553,6 +579,9 @@ impl RenderWindow {
 
     fn slide(&mut self, to: IVec2, live_world: Option<&SceneWorld>) {
         let t = Instant::now();
+        // Edits not yet in the grid go in first: the slide forgets the
+        // store's record of them.
+        self.patch();
         let old = self.window_columns();
         self.center = to;
         for col in old {
@@ -594,15 +623,16 @@ impl RenderWindow {
         let mut want: Vec<IVec2> = self
             .columns
             .iter()
-            .filter(|(c, s)| **s == Column::Coarse && !self.in_flight.contains(*c))
+            .filter(|(c, s)| **s == Column::Coarse && !self.in_flight.contains_key(*c))
             .map(|(c, _)| *c)
             .collect();
         let center = self.center;
         want.sort_by_key(|c| ((*c - center).length_squared(), c.x, c.y));
         let Some(tx) = &self.requests else { return };
         for c in want.into_iter().take(cap - self.in_flight.len()) {
-            if tx.send(c).is_ok() {
-                self.in_flight.insert(c);
+            self.next_request += 1;
+            if tx.send((c, self.next_request)).is_ok() {
+                self.in_flight.insert(c, self.next_request);
             }
         }
     }
@@ -817,6 +847,7 @@ mod tests {
                 bricks.retain(|(b, _)| *b != left[0].0);
                 bricks.extend(left.iter().cloned());
             }
+            Ok(())
         });
         let eye = DVec3::new(130.0, 60.0, 100.0);
         let mut w = RenderWindow::new(
@@ -834,7 +865,7 @@ mod tests {
         let mark_b = IVec3::new(150, 62, 100); // chunk column (2, 1)
         region_b.store.set_voxel(mark_b, 7);
         region_b.apply_edits();
-        w.set_live(b, &region_b);
+        w.set_live(b, &region_b, &[a.0]);
         w.update(eye, Some(&region_b), &[]);
         assert_eq!(w.world().store.voxel(mark_b), 7, "the new region is copied");
         assert!(w.settle(Duration::from_secs(10)));

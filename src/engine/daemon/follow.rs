@@ -21,6 +21,7 @@ use std::time::Instant;
 
 use anyhow::{Result, bail};
 use glam::IVec2;
+use rustc_hash::FxHashSet;
 
 use super::super::persistence;
 use super::super::streaming::{self, RegionRule};
@@ -38,6 +39,11 @@ pub(super) struct Follow {
     pub(super) move_ms: f64,
     /// The last failure to move, reported once.
     error: Option<String>,
+    /// When a failed move may be tried again.
+    retry_at: Option<Instant>,
+    /// Chunk columns the region left since the render thread last got it
+    /// whole.
+    left: FxHashSet<IVec2>,
 }
 
 impl Follow {
@@ -48,26 +54,46 @@ impl Follow {
             moves: 0,
             move_ms: 0.0,
             error: None,
+            retry_at: None,
+            left: FxHashSet::default(),
         }
+    }
+
+    /// The columns the region left since the last whole world the render
+    /// thread took, sorted.
+    pub(super) fn left(&self) -> Vec<IVec2> {
+        let mut v: Vec<IVec2> = self.left.iter().copied().collect();
+        v.sort_by_key(|c| (c.y, c.x));
+        v
+    }
+
+    /// The render thread took a whole world (and [`left`](Self::left)).
+    pub(super) fn delivered(&mut self) {
+        self.left.clear();
     }
 }
 
 impl Engine {
     /// Stage: move the simulated region if the camera has left its middle.
-    /// A move that fails (the commit before it, or building the new
-    /// region) leaves the region where it is, is reported once, and is
-    /// tried again at the next step.
-    pub(super) fn follow_camera(&mut self) {
+    /// Returns whether the tick may be stepped: a move that fails (the
+    /// commit before it, or building the new region) leaves the region
+    /// where it is, is reported once, and holds the simulation (a step in
+    /// the wrong place would differ from a resumed run) until a retry, at
+    /// most once a second, succeeds.
+    pub(super) fn follow_camera(&mut self) -> bool {
         let Some(f) = self.follow.as_ref() else {
-            return;
+            return true;
         };
         let Ok(cam) = self.camera_at(self.ws.sim.tick()) else {
-            return;
+            return true;
         };
         let now = streaming::columns_of(&self.world);
         let Some(to) = f.rule.follow(now, cam.eye) else {
-            return;
+            return true;
         };
+        if f.retry_at.is_some_and(|t| Instant::now() < t) {
+            return false;
+        }
         let t = Instant::now();
         let result = self.move_region(now, to);
         let f = self.follow.as_mut().expect("checked above");
@@ -76,16 +102,30 @@ impl Engine {
                 f.moves += 1;
                 f.move_ms = t.elapsed().as_secs_f64() * 1e3;
                 f.error = None;
+                f.retry_at = None;
+                let inside = |c: IVec2| c.cmpge(to.0).all() && c.cmplt(to.1).all();
+                for cz in now.0.y..now.1.y {
+                    for cx in now.0.x..now.1.x {
+                        let c = IVec2::new(cx, cz);
+                        if !inside(c) {
+                            f.left.insert(c);
+                        }
+                    }
+                }
+                f.left.retain(|c| !inside(*c));
+                true
             }
             Err(e) => {
                 let msg = format!("{e:#}");
                 if f.error.as_deref() != Some(msg.as_str()) {
                     eprintln!(
-                        "warning: the simulated region stays at chunk columns {} .. {}: {msg}; trying again at the next step",
+                        "warning: the simulated region cannot move from chunk columns {} .. {}: {msg}; the simulation waits and tries again every second",
                         now.0, now.1
                     );
                 }
                 f.error = Some(msg);
+                f.retry_at = Some(Instant::now() + std::time::Duration::from_secs(1));
+                false
             }
         }
     }
@@ -119,7 +159,11 @@ impl Engine {
             &mut world,
             &mut ws,
             &mut dirty,
-            self.cfg.source.is_procedural(),
+            persistence::RestoreScope {
+                regenerable: self.cfg.source.is_procedural(),
+                region: true,
+                whole_columns: true,
+            },
         );
         self.dirty_chunks = dirty;
         let Some(r) = restored? else {

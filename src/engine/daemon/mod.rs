@@ -172,8 +172,7 @@ impl Engine {
             }
             self.hot_reload();
             self.apply_commands();
-            if self.should_step() {
-                self.follow_camera();
+            if self.should_step() && self.follow_camera() {
                 let report = self.step();
                 self.collect_dirty(&report);
                 self.offer_frame();
@@ -347,14 +346,24 @@ impl Engine {
             FrameWorld::Delta(self.world.delta(&dirty))
         };
         self.snapshot_ms = copy.elapsed().as_secs_f64() * 1e3;
+        let left = match (&self.follow, full) {
+            (Some(f), true) => f.left(),
+            _ => Vec::new(),
+        };
         let job = FrameJob {
             tick,
             world,
             dirty,
             camera: cam,
+            left,
         };
         match self.renderer.offer(job) {
-            Ok(()) => self.mirror_sent |= full,
+            Ok(()) => {
+                self.mirror_sent |= full;
+                if let (Some(f), true) = (self.follow.as_mut(), full) {
+                    f.delivered();
+                }
+            }
             Err(back) => self.dirty_pending.extend(back),
         }
     }

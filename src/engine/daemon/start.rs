@@ -79,7 +79,11 @@ impl Engine {
             &mut world,
             &mut ws,
             &mut dirty_chunks,
-            cfg.source.is_procedural(),
+            persistence::RestoreScope {
+                regenerable: cfg.source.is_procedural(),
+                region: cfg.stream.is_some(),
+                whole_columns: follow.is_some(),
+            },
         )?;
         let mut loaded_from = None;
         let mut camera = cfg.camera;
@@ -120,7 +124,7 @@ impl Engine {
             .with_context(|| format!("cannot create {}", frames_dir.display()))?;
         let renderer = RenderThread::spawn(
             RenderSettings {
-                gpu: cfg.gpu,
+                tracer: cfg.tracer,
                 stream: stream_plan,
                 shadows: cfg.shadows,
                 frames_dir,
@@ -243,7 +247,7 @@ fn build_world(
             };
             let (world, mut plan) = streaming::build_region(gen_, columns, st)?;
             plan.overlay = Some(streaming::store_overlay(db.reader(), &plan.gen_));
-            streaming::check_budget(&world, &mut plan, st.memory_budget)?;
+            streaming::check_budget(&world, &mut plan, st.memory_budget, rule.follows())?;
             eprintln!(
                 "streaming: simulated region of {} chunk columns ({}), render window {} columns across, memory budget {}",
                 (plan.live.1 - plan.live.0).element_product(),

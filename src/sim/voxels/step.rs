@@ -649,8 +649,14 @@ impl VoxelSim {
         (a, q)
     }
 
-    /// Restore what [`sleep_state`](Self::sleep_state) saved.
+    /// Restore what [`sleep_state`](Self::sleep_state) saved. A wake
+    /// pending from parameters set before (a resume sets the stored ones)
+    /// is dropped: the saved state already holds the wake that was pending
+    /// when it was saved, and nothing else (regression: every resume woke
+    /// every brick at its first step, which the run that never stopped did
+    /// not).
     pub fn restore_sleep_state(&mut self, active: &[IVec3], quiet: &[(IVec3, u8)]) {
+        self.wake_pending = false;
         self.active = active.iter().copied().filter(|b| self.inside(*b)).collect();
         self.quiet = quiet
             .iter()
@@ -843,5 +849,19 @@ mod tests {
         // The next step wakes the same bricks.
         sim.wake_everything(&store);
         assert_eq!(sim.sleep_state(&store).0, active);
+    }
+
+    /// A resume sets the stored parameters (each set wakes everything) and
+    /// then restores the sleep state: only the saved bricks are awake after
+    /// it (regression: every resume woke every brick at its first step).
+    #[test]
+    fn restoring_a_sleep_state_drops_the_wake_of_the_parameters_set_before() {
+        let mut store = BrickStore::new(crate::world::Palette::grey_ramp());
+        store.set_voxel(IVec3::new(3, 3, 3), 1);
+        store.set_voxel(IVec3::new(20, 3, 3), 1);
+        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::splat(32), 1);
+        sim.wake_all_known();
+        sim.restore_sleep_state(&[IVec3::new(2, 0, 0)], &[]);
+        assert_eq!(sim.sleep_state(&store).0, vec![IVec3::new(2, 0, 0)]);
     }
 }
