@@ -452,6 +452,7 @@ fn run_render(s: RenderSettings) -> Result<()> {
         .context("invalid camera")?;
         let opts = RenderOptions {
             shadows: s.shadows,
+            fog: s.fog,
             ..Default::default()
         };
         let built = t0.elapsed();

@@ -361,6 +361,9 @@ pub struct RenderArgs {
     /// Trace hard shadows towards the light
     #[arg(long)]
     pub shadows: bool,
+    /// Distance fog extent in voxels: hits blend towards the sky by 1 - exp(-t / FOG) (0: none)
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub fog: f64,
     /// Output PNG
     #[arg(long, default_value = "brickworld.png")]
     pub out: PathBuf,

@@ -228,6 +228,8 @@ pub struct RenderSettings {
     pub dense_limit: u64,
     /// Where to trace.
     pub tracer: crate::gpu::TracerChoice,
+    /// Distance fog extent in voxels (0: none).
+    pub fog: f32,
 }
 
 /// Default size of procedural scenes for `render`.
@@ -253,6 +255,15 @@ impl RenderSettings {
                 .tracer
                 .parse()
                 .map_err(|e: String| bad("--tracer", &a.tracer, e))?,
+            fog: if a.fog.is_finite() && (0.0..=1e6).contains(&a.fog) {
+                a.fog as f32
+            } else {
+                return Err(bad(
+                    "--fog",
+                    &a.fog.to_string(),
+                    "expected a distance in 0..=1000000 voxels (0: no fog)",
+                ));
+            },
         })
     }
 }

@@ -350,4 +350,10 @@ fn tracer_auto_says_what_it_chose_and_why() {
         &["render", "--tracer", "fast", "--out", png.to_str().unwrap()],
         "is not auto, gpu or cpu",
     );
+    for fog in ["-1", "nan", "inf", "1e9"] {
+        expect_failure(
+            &["render", "--fog", fog, "--out", png.to_str().unwrap()],
+            "invalid --fog",
+        );
+    }
 }

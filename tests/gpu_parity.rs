@@ -20,7 +20,7 @@ fn context() -> Option<GpuContext> {
     common::gpu_context()
 }
 
-fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
+fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, fog: f32) {
     let mut gpu = GpuBrickmap::preloaded(
         ctx,
         b.world.grid(),
@@ -30,12 +30,24 @@ fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
     .unwrap();
     let opts = RenderOptions {
         shadows,
+        fog,
         ..Default::default()
     };
     let bm = b.brickmap();
     for (vi, v) in b.world.default_views().iter().enumerate() {
         let cam = Camera::new(DVec3::from(v.eye), DVec3::from(v.target), v.fov, 160, 120).unwrap();
         let cpu = render(&bm, &cam, b.world.store().palette(), &opts);
+        if fog > 0.0 {
+            // The fog shows: most hits move towards the sky colour.
+            let clear = RenderOptions { fog: 0.0, ..opts };
+            let plain = render(&bm, &cam, b.world.store().palette(), &clear);
+            let hits = cpu.hits.iter().filter(|h| h.is_some()).count();
+            let moved = (0..cpu.hits.len())
+                .filter(|&i| cpu.hits[i].is_some())
+                .filter(|&i| (0..3).any(|k| cpu.rgb[i * 3 + k].abs_diff(plain.rgb[i * 3 + k]) > 8))
+                .count();
+            assert!(moved * 2 > hits, "{name}: fog moved {moved} of {hits} hits");
+        }
         let (g, _) = gpu
             .render(ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
             .unwrap();
@@ -82,8 +94,12 @@ fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool) {
 fn gpu_matches_cpu_on_the_standard_scenes_and_views() {
     let Some(ctx) = context() else { return };
     eprintln!("adapter: {}", ctx.describe());
-    parity("terrain", common::terrain(), &ctx, true);
-    parity("caves", common::caves(), &ctx, false);
-    parity("balls", common::balls(), &ctx, true);
-    parity("hairball", common::hairball(), &ctx, false);
+    parity("terrain", common::terrain(), &ctx, true, 0.0);
+    parity("caves", common::caves(), &ctx, false, 0.0);
+    parity("balls", common::balls(), &ctx, true, 0.0);
+    parity("hairball", common::hairball(), &ctx, false, 0.0);
+    // Distance fog, on both tracers alike (the colour check would fail if
+    // either left it out: at this extent it moves most hits by far more
+    // than the tolerance).
+    parity("terrain with fog", common::terrain(), &ctx, true, 40.0);
 }

@@ -188,6 +188,10 @@ fn bad_configs_name_the_file_field_and_reason() {
             "render.tracer",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[render]\nfog = -5.0\n",
+            "render.fog: -5 is outside",
+        ),
+        (
             "[world]\nsource = \"terrain\"\n[checkpoint]\nevery = 0\n",
             "checkpoint.every",
         ),

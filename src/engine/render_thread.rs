@@ -95,6 +95,8 @@ pub struct RenderSettings {
     pub stream: Option<StreamPlan>,
     /// Shadow rays.
     pub shadows: bool,
+    /// Distance fog extent in voxels (0: none).
+    pub fog: f32,
     /// Where frame PNGs go.
     pub frames_dir: PathBuf,
     /// Frames kept on disk; older ones are deleted.
@@ -202,7 +204,12 @@ impl RenderThread {
                         };
                         g.apply_edits(ctx, world.grid(), world.store().pool(), changed);
                     }
-                    let rgb = draw(&mut gpu, world, &job.camera, settings.shadows, &st);
+                    let opts = RenderOptions {
+                        shadows: settings.shadows,
+                        fog: settings.fog,
+                        ..Default::default()
+                    };
+                    let rgb = draw(&mut gpu, world, &job.camera, &opts, &st);
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
                     // Atomic (temp, rename): a full disk or a kill never leaves a
                     // truncated frame under a final name.
@@ -337,15 +344,11 @@ fn draw(
     gpu: &mut Option<(GpuContext, GpuBrickmap)>,
     world: &SceneWorld,
     camera: &Camera,
-    shadows: bool,
+    opts: &RenderOptions,
     stats: &RenderStats,
 ) -> Vec<u8> {
-    let opts = RenderOptions {
-        shadows,
-        ..Default::default()
-    };
     if let Some((ctx, g)) = gpu.as_mut() {
-        match g.render(ctx, camera, &opts, world.grid(), world.store().pool()) {
+        match g.render(ctx, camera, opts, world.grid(), world.store().pool()) {
             Ok((f, s)) => {
                 stats
                     .streamed
@@ -358,7 +361,7 @@ fn draw(
             }
         }
     }
-    render(&world.brickmap(), camera, world.store().palette(), &opts).rgb
+    render(&world.brickmap(), camera, world.store().palette(), opts).rgb
 }
 
 /// Encode an RGB8 image as PNG bytes.

@@ -41,6 +41,7 @@
 //! height = 360
 //! tracer = "auto"             # auto (the GPU unless it is software), gpu (falls back to cpu) or cpu
 //! shadows = true
+//! fog = 512.0                 # distance fog extent in voxels (0: none; default: half the view distance of a streamed world, else none)
 //!
 //! [frames]
 //! dir = "frames"              # relative to the state directory
@@ -237,6 +238,7 @@ struct RawRender {
     height: Option<i64>,
     tracer: Option<String>,
     shadows: Option<bool>,
+    fog: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -370,6 +372,8 @@ pub struct WorldConfig {
     pub tracer: crate::gpu::TracerChoice,
     /// Hard shadows.
     pub shadows: bool,
+    /// Distance fog extent in voxels (0: none).
+    pub fog: f32,
     /// Frame directory, relative to the state directory.
     pub frames_dir: PathBuf,
     /// Write a frame every this many ticks.
@@ -753,6 +757,18 @@ impl WorldConfig {
             }
             Ok(v as u32)
         };
+        // A streamed world's window ends at the view distance: fog hides
+        // the edge by default.
+        let fog = match raw.render.fog {
+            Some(f) if f.is_finite() && (0.0..=1e6).contains(&f) => f as f32,
+            Some(f) => {
+                return Err(err(
+                    "render.fog",
+                    format!("{f} is outside 0..=1000000 voxels (0 is no fog)"),
+                ));
+            }
+            None => stream.map_or(0.0, |s| (s.view_distance * 0.5) as f32),
+        };
         let tracer: crate::gpu::TracerChoice = raw
             .render
             .tracer
@@ -821,6 +837,7 @@ impl WorldConfig {
             height: dim(raw.render.height, 360, "render.height")?,
             tracer,
             shadows: raw.render.shadows.unwrap_or(true),
+            fog,
             frames_dir: PathBuf::from(raw.frames.dir.unwrap_or_else(|| "frames".into())),
             frames_every: every(raw.frames.every, 10, "frames.every")?,
             frames_keep: match raw.frames.keep.unwrap_or(200) {

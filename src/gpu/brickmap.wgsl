@@ -32,6 +32,7 @@ struct Params {
     dims: vec3<i32>, height: u32,   // grid size in voxels
     anchor: vec3<i32>, frame: u32,  // world voxel of local (0, 0, 0); frame number
     feedback_capacity: u32, ring_x: i32, ring_y: i32, ring_z: i32, // ring: physical brick of local (0, 0, 0)
+    fog: f32, pad0: u32, pad1: u32, pad2: u32,  // distance fog extent in voxels (0: none)
 };
 
 struct PixelOut {
@@ -413,6 +414,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         let k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
         color = unpack_rgb(hit.rgb) * k;
+        if (P.fog > 0.0) {
+            color = mix(color, sky(d), 1.0 - exp(-hit.t / P.fog));
+        }
         o.depth = hit.t;
         let world = hit.cell + P.anchor;
         o.vx = world.x; o.vy = world.y; o.vz = world.z;

@@ -46,6 +46,9 @@ struct Params {
     /// The grid's ring (physical cell of local brick 0), for toroidal
     /// addressing of a sliding grid.
     ring: [i32; 3],
+    /// Distance fog extent in voxels (0: none).
+    fog: f32,
+    pad: [u32; 3],
 }
 
 #[repr(C)]
@@ -433,6 +436,8 @@ impl GpuBrickmap {
             frame: self.frame_no,
             feedback_capacity: self.feedback_capacity,
             ring: grid.ring().to_array(),
+            fog: opts.fog,
+            pad: [0; 3],
         };
         ctx.queue
             .write_buffer(&self.feedback, 0, bytemuck::bytes_of(&0u32));

@@ -1,5 +1,6 @@
 //! The tiled CPU renderer: 16×16 tiles traced in parallel on a rayon pool,
-//! Lambert shading with one directional light and optional hard shadows.
+//! Lambert shading with one directional light, optional hard shadows and
+//! optional distance fog towards the sky gradient.
 //!
 //! Shadow rays start from the exact hit point clamped into the empty
 //! neighbour cell the primary ray came from (bit-exact cell bounds, no
@@ -41,6 +42,19 @@ pub struct RenderOptions {
     pub shadows: bool,
     /// Lighting.
     pub shading: Shading,
+    /// Distance fog: a hit at distance `t` (voxels) is blended towards the
+    /// sky colour of its ray by `1 − exp(−t / fog)`. 0 is no fog.
+    pub fog: f32,
+}
+
+/// Blend `c`, seen at distance `t`, into the sky colour `sky` by the fog
+/// of extent `fog` (0: none).
+fn fogged(c: [f32; 3], sky: [f32; 3], t: f32, fog: f32) -> [f32; 3] {
+    if fog <= 0.0 {
+        return c;
+    }
+    let k = 1.0 - (-t / fog).exp();
+    [0, 1, 2].map(|i| c[i] + (sky[i] - c[i]) * k)
 }
 
 /// A rendered frame: 8-bit RGB, depth (t, +inf on a miss) and the hit per pixel.
@@ -140,7 +154,8 @@ pub fn render(
                             Some(hit) => {
                                 depth[px] = hit.t;
                                 hits[px] = Some(hit);
-                                shade(tracer, &ray, &hit, palette, opts)
+                                let c = shade(tracer, &ray, &hit, palette, opts);
+                                fogged(c, sky(dir), hit.t, opts.fog)
                             }
                             None => sky(dir),
                         };
@@ -157,5 +172,24 @@ pub fn render(
         rgb,
         depth,
         hits,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// No fog leaves the colour; fog blends towards the sky with distance,
+    /// by 1 − 1/e at its extent.
+    #[test]
+    fn fog_blends_towards_the_sky_with_distance() {
+        let (c, s) = ([0.2, 0.4, 0.6], [1.0, 1.0, 1.0]);
+        assert_eq!(fogged(c, s, 500.0, 0.0), c);
+        let near = fogged(c, s, 1.0, 100.0);
+        let at = fogged(c, s, 100.0, 100.0);
+        let far = fogged(c, s, 1e5, 100.0);
+        assert!((at[0] - (0.2 + 0.8 * (1.0 - (-1.0f32).exp()))).abs() < 1e-6);
+        assert!(near[0] < at[0] && at[0] < far[0]);
+        assert!((far[0] - 1.0).abs() < 1e-6);
     }
 }

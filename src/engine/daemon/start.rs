@@ -127,6 +127,7 @@ impl Engine {
                 tracer: cfg.tracer,
                 stream: stream_plan,
                 shadows: cfg.shadows,
+                fog: cfg.fog,
                 frames_dir,
                 keep: cfg.frames_keep,
             },
