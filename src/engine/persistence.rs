@@ -526,7 +526,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
         Some(_) => {
             let (gen_, rule) = super::streaming::generator(cfg)?;
             let columns = rule.around(glam::DVec3::ZERO);
-            super::streaming::build_columns(&gen_, columns.0, columns.1)?
+            super::streaming::build_columns(&gen_, columns)?
         }
         None => {
             let pb = crate::progress::bar("scene", 0);

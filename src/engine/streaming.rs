@@ -180,10 +180,10 @@ pub fn columns_of_bounds(lo: IVec3, hi: IVec3) -> (IVec2, IVec2) {
 
 /// Build chunk columns `[lo, hi)` of a streamed world (its simulated
 /// region), refusing a region the machine cannot hold.
-pub fn build_columns(gen_: &ChunkGen, lo: IVec2, hi: IVec2) -> Result<SceneWorld> {
+pub fn build_columns(gen_: &ChunkGen, (lo, hi): (IVec2, IVec2)) -> Result<SceneWorld> {
     let cols = (hi - lo).as_i64vec2();
     budget::check_world(
-        "sim.region",
+        "sim.region (or radius)",
         IVec3::new(
             (cols.x * CHUNK_VOXELS as i64).min(1 << 20) as i32,
             gen_.height(),
@@ -209,7 +209,7 @@ pub fn build_region(
     (lo, hi): (IVec2, IVec2),
     stream: &StreamSettings,
 ) -> Result<(SceneWorld, StreamPlan)> {
-    let world = build_columns(&gen_, lo, hi)?;
+    let world = build_columns(&gen_, (lo, hi))?;
     let plan = StreamPlan {
         gen_,
         live: (lo, hi),
@@ -298,7 +298,7 @@ pub fn check_budget(
         + crate::persist::db::STORE_CACHE_BYTES as u64;
     if budget < need {
         bail!(
-            "memory budget {} is too small for one view: the engine holds {} with the simulated region, the renderer's copy of the region{} needs {}, a window of {} chunk columns for the view distance about {}, and the scripts and the store's cache {}: at least {}; raise --memory-budget or [stream] memory_budget to {}, or lower [stream] view_distance or shrink [sim] region",
+            "memory budget {} is too small for one view: the engine holds {} with the simulated region, the renderer's copy of the region{} needs {}, a window of {} chunk columns for the view distance about {}, and the scripts and the store's cache {}: at least {}; raise --memory-budget or [stream] memory_budget to {}, or lower [stream] view_distance or shrink [sim] region (or radius)",
             budget::human(budget),
             budget::human(now),
             if follows {

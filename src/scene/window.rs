@@ -678,6 +678,26 @@ mod tests {
         Arc::new(ChunkGen::new(&SceneSpec::Terrain { caves: false }, size, 64, 4).unwrap())
     }
 
+    /// Every cell of `world`'s (toroidal) grid is occupied exactly where a
+    /// grid built afresh from `bricks` is.
+    fn assert_grid_follows(world: &SceneWorld, bricks: &BrickStore) {
+        let fresh =
+            crate::world::BrickGrid::build(bricks, world.grid.origin(), world.grid.dims()).unwrap();
+        let d = world.grid.dims();
+        for z in 0..d.z {
+            for y in 0..d.y {
+                for x in 0..d.x {
+                    let l = IVec3::new(x, y, z);
+                    assert_eq!(
+                        world.grid.pointer(l) != 0,
+                        fresh.pointer(l) != 0,
+                        "cell {l}: the grid follows the bricks"
+                    );
+                }
+            }
+        }
+    }
+
     /// The window after a flight, settled, holds exactly the bricks a
     /// direct generation of its columns gives, and its grid agrees.
     #[test]
@@ -724,21 +744,7 @@ mod tests {
         for (b, _) in expect.iter() {
             assert_eq!(world.store.content(b), expect.content(b), "brick {b}");
         }
-        let fresh = crate::world::BrickGrid::build(&expect, world.grid.origin(), world.grid.dims())
-            .unwrap();
-        let d = world.grid.dims();
-        for z in 0..d.z {
-            for y in 0..d.y {
-                for x in 0..d.x {
-                    let l = IVec3::new(x, y, z);
-                    assert_eq!(
-                        world.grid.pointer(l) != 0,
-                        fresh.pointer(l) != 0,
-                        "cell {l}"
-                    );
-                }
-            }
-        }
+        assert_grid_follows(world, &expect);
     }
 
     #[test]
@@ -876,22 +882,6 @@ mod tests {
         for (bk, c) in direct.iter().filter(|(bk, _)| *bk != mark >> 3) {
             assert_eq!(&w.world().store.content(*bk), c, "brick {bk}");
         }
-        let world = w.world();
-        let fresh =
-            crate::world::BrickGrid::build(&world.store, world.grid.origin(), world.grid.dims())
-                .unwrap();
-        let d = world.grid.dims();
-        for z in 0..d.z {
-            for y in 0..d.y {
-                for x in 0..d.x {
-                    let l = IVec3::new(x, y, z);
-                    assert_eq!(
-                        world.grid.pointer(l) != 0,
-                        fresh.pointer(l) != 0,
-                        "cell {l}: the grid follows the bricks"
-                    );
-                }
-            }
-        }
+        assert_grid_follows(w.world(), &w.world().store);
     }
 }

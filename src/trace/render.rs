@@ -155,7 +155,11 @@ pub fn render(
                                 depth[px] = hit.t;
                                 hits[px] = Some(hit);
                                 let c = shade(tracer, &ray, &hit, palette, opts);
-                                fogged(c, sky(dir), hit.t, opts.fog)
+                                if opts.fog > 0.0 {
+                                    fogged(c, sky(dir), hit.t, opts.fog)
+                                } else {
+                                    c
+                                }
                             }
                             None => sky(dir),
                         };

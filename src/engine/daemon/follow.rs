@@ -143,7 +143,7 @@ impl Engine {
             .expect("a region that follows")
             .gen_
             .clone();
-        let mut world = streaming::build_columns(&gen_, to.0, to.1)?;
+        let mut world = streaming::build_columns(&gen_, to)?;
         let mut ws = WorldSim::with_edges(&mut world, false);
         // The registry the scripts were loaded against (materials.lua's
         // names); the palette and registry of the state follow.
