@@ -19,10 +19,10 @@ use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool, OCC_SHIFT, UNIFORM, voxel_
 /// A tracer over a [`BrickGrid`] and the pool its pointers index.
 #[derive(Clone, Copy, Debug)]
 pub struct BrickmapTracer<'w> {
-    grid: &'w BrickGrid,
-    pool: &'w BrickPool,
-    frame: Frame,
-    dims: [i32; 3],
+    pub(super) grid: &'w BrickGrid,
+    pub(super) pool: &'w BrickPool,
+    pub(super) frame: Frame,
+    pub(super) dims: [i32; 3],
 }
 
 const OCC_VOXEL_SHIFT: i32 = OCC_SHIFT + BRICK_SHIFT;
@@ -42,7 +42,7 @@ impl<'w> BrickmapTracer<'w> {
     }
 
     #[inline(always)]
-    fn inside(&self, c: [i32; 3]) -> bool {
+    pub(super) fn inside(&self, c: [i32; 3]) -> bool {
         (c[0] as u32) < self.dims[0] as u32
             && (c[1] as u32) < self.dims[1] as u32
             && (c[2] as u32) < self.dims[2] as u32
@@ -157,6 +157,10 @@ impl Tracer for BrickmapTracer<'_> {
                 bc = st.cell.map(|v| v >> BRICK_SHIFT);
             }
         }
+    }
+
+    fn trace_lod(&self, ray: &Ray, t_max: f32, k: f32) -> Option<Hit> {
+        BrickmapTracer::trace_lod(self, ray, t_max, k)
     }
 
     fn bytes(&self) -> usize {

@@ -101,6 +101,13 @@ impl Camera {
         })
     }
 
+    /// The angle one pixel subtends at the image centre (radians, small
+    /// angle): a cone of this angle per unit distance is a pixel's
+    /// footprint, what level-of-detail selection compares cells with.
+    pub fn pixel_angle(&self) -> f64 {
+        2.0 * self.tan_half / self.height as f64
+    }
+
     /// Normalised world direction of pixel (i, j).
     #[inline]
     pub fn direction(&self, i: u32, j: u32) -> DVec3 {

@@ -14,6 +14,7 @@ mod brickmap;
 mod camera;
 pub mod dda;
 mod dense;
+mod lod;
 mod output;
 mod ray;
 mod render;
@@ -28,6 +29,7 @@ use thiserror::Error;
 pub use brickmap::BrickmapTracer;
 pub use camera::{Camera, CameraError};
 pub use dense::DenseGrid;
+pub use lod::lod_level;
 pub use output::{write_npy, write_png};
 pub use ray::{Frame, Hit, Ray};
 pub use render::{RenderOptions, RenderOutput, Shading, render};
@@ -59,6 +61,13 @@ pub trait Tracer: Sync {
     fn frame(&self) -> Frame;
     /// First solid voxel along `ray` with `t ≤ t_max`.
     fn trace(&self, ray: &Ray, t_max: f32) -> Option<Hit>;
+    /// First cell solid at the level of detail its footprint allows, with
+    /// `k = C ·` pixel angle; `k = 0` is [`trace`](Self::trace). Tracers
+    /// without levels (dense, svo) trace exactly.
+    fn trace_lod(&self, ray: &Ray, t_max: f32, k: f32) -> Option<Hit> {
+        let _ = k;
+        self.trace(ray, t_max)
+    }
     /// Bytes of the structure as traced.
     fn bytes(&self) -> usize;
     /// Voxels (dense), descriptors (svo) or non-empty bricks (brickmap).

@@ -17,6 +17,7 @@
 //! [`super::BrickPool`] stores the same encoding compactly (masks, 8-byte
 //! metadata and a shared material arena) and hands out [`super::BrickRef`]s.
 
+use super::mip::BrickLod;
 use super::palette::Palette;
 
 /// Edge length of a brick in voxels.
@@ -101,6 +102,8 @@ pub struct Brick {
     bits: u8,
     /// Average RGB of the solid voxels, for level of detail.
     lod_rgb: [u8; 3],
+    /// Materials of the coarser levels (octants and the whole brick).
+    lod: BrickLod,
 }
 
 impl Brick {
@@ -160,6 +163,7 @@ impl Brick {
             indices: indices.into_boxed_slice(),
             bits,
             lod_rgb,
+            lod: BrickLod::of_dense(dense),
         }
     }
 
@@ -233,6 +237,11 @@ impl Brick {
     /// Average colour of the solid voxels.
     pub fn lod_rgb(&self) -> [u8; 3] {
         self.lod_rgb
+    }
+
+    /// Materials of the brick's coarser levels.
+    pub fn lod(&self) -> BrickLod {
+        self.lod
     }
 
     /// Distinct materials used, sorted.

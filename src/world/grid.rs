@@ -16,6 +16,8 @@
 use glam::IVec3;
 use thiserror::Error;
 
+use super::mip::CoarseLevels;
+use super::pool::BrickPool;
 use super::store::{BrickStore, Cell};
 
 /// Pointer flag for a uniform brick; the low byte is the material.
@@ -53,6 +55,18 @@ pub struct BrickGrid {
     cells: Vec<u32>,
     occ_dims: IVec3,
     occ: Vec<u64>,
+    /// Levels 4 and 5 (16 and 32 voxels per cell) for level of detail.
+    coarse: CoarseLevels,
+}
+
+/// The level-3 material of the brick behind grid pointer `p` (0 if empty).
+#[inline]
+pub fn brick_material(pool: &BrickPool, p: u32) -> u8 {
+    match p {
+        0 => 0,
+        p if p & UNIFORM != 0 => p as u8,
+        p => pool.slot(p - 1).map_or(0, |b| b.lod().whole),
+    }
 }
 
 #[inline]
@@ -86,6 +100,7 @@ impl BrickGrid {
             cells: vec![0; cells_n as usize],
             occ_dims,
             occ: vec![0; occ_n.div_ceil(64)],
+            coarse: CoarseLevels::new(dims.to_array()),
         };
         for (b, cell) in store.iter() {
             if let Some(i) = grid.index(b - origin) {
@@ -93,7 +108,31 @@ impl BrickGrid {
                 grid.set_occ((b - origin) >> OCC_SHIFT, true);
             }
         }
+        grid.update_coarse(store.pool(), IVec3::ZERO, dims);
         Ok(grid)
+    }
+
+    /// Recompute the level-4 cells (2³ bricks) touching local bricks
+    /// `[lo, hi)` and their level-5 parents.
+    fn update_coarse(&mut self, pool: &BrickPool, lo: IVec3, hi: IVec3) {
+        let (clo, chi): (IVec3, IVec3) = (lo >> 1i32, (hi + IVec3::ONE) >> 1i32);
+        let (cells, dims, ring) = (&self.cells, self.dims, self.ring);
+        let material = |l: [i32; 3]| {
+            let p = Self::wrap(IVec3::from(l), ring, dims);
+            brick_material(pool, cells[(p.x + dims.x * (p.y + dims.y * p.z)) as usize])
+        };
+        for z in clo.z..chi.z {
+            for y in clo.y..chi.y {
+                for x in clo.x..chi.x {
+                    self.coarse.update([x, y, z], ring.to_array(), material);
+                }
+            }
+        }
+    }
+
+    /// The grid's levels 4 and 5 (see [`crate::world::mip`]).
+    pub fn coarse(&self) -> &CoarseLevels {
+        &self.coarse
     }
 
     /// Patch the grid after edits to bricks `changed` (world brick coordinates).
@@ -105,6 +144,7 @@ impl BrickGrid {
             let o = local >> OCC_SHIFT;
             let any = self.occ_group_non_empty(o);
             self.set_occ(o, any);
+            self.update_coarse(store.pool(), local, local + IVec3::ONE);
         }
     }
 
@@ -166,6 +206,7 @@ impl BrickGrid {
                 }
             }
         }
+        self.update_coarse(store.pool(), lo, hi);
     }
 
     fn occ_group_non_empty(&self, o: IVec3) -> bool {
@@ -279,7 +320,7 @@ impl BrickGrid {
 
     /// Bytes of the pointer array and the occupancy layer.
     pub fn bytes(&self) -> usize {
-        self.cells.len() * 4 + self.occ.len() * 8
+        self.cells.len() * 4 + self.occ.len() * 8 + self.coarse.bytes()
     }
 
     /// Number of non-empty pointers.
@@ -307,6 +348,7 @@ mod tests {
         let fresh = BrickGrid::build(&s, IVec3::ZERO, IVec3::new(8, 4, 4)).unwrap();
         assert_eq!(g.cells, fresh.cells);
         assert_eq!(g.occ, fresh.occ);
+        assert_eq!(g.coarse().raw(), fresh.coarse().raw());
         assert!(g.occupied(IVec3::new(1, 0, 0)));
         assert!(!g.occupied(IVec3::ZERO));
     }
@@ -350,13 +392,44 @@ mod tests {
                         if l % OCC_EDGE == IVec3::ZERO {
                             let o = l >> OCC_SHIFT;
                             assert_eq!(g.occupied(o), fresh.occupied(o), "move {k} occ {o}");
+                            let m5 = g.coarse().get(5, o.to_array(), g.ring().to_array());
+                            assert_eq!(m5 != 0, g.occupied(o), "level 5 is the occupancy");
                         }
+                        assert_same_coarse(&g, &fresh, l);
                     }
                 }
             }
             assert_eq!(g.non_empty(), fresh.non_empty());
         }
         assert_ne!(g.ring(), IVec3::ZERO);
+    }
+
+    /// Levels 4 and 5 over local brick `l` agree between two grids.
+    fn assert_same_coarse(g: &BrickGrid, fresh: &BrickGrid, l: IVec3) {
+        for level in [4u32, 5] {
+            if l % (1 << (level - 3)) == IVec3::ZERO {
+                let c = (l >> (level as i32 - 3)).to_array();
+                assert_eq!(
+                    g.coarse().get(level, c, g.ring().to_array()),
+                    fresh.coarse().get(level, c, fresh.ring().to_array()),
+                    "level {level} at brick {l}"
+                );
+            }
+        }
+    }
+
+    /// Levels 4 and 5 hold the most common top of their bricks' materials.
+    #[test]
+    fn coarse_levels_hold_the_most_common_top() {
+        let mut s = BrickStore::new(Palette::grey_ramp());
+        // Stone bricks under a grass layer in brick row y = 1.
+        s.fill_box(IVec3::ZERO, IVec3::new(32, 12, 32), 3);
+        s.fill_box(IVec3::new(0, 12, 0), IVec3::new(32, 13, 32), 7);
+        let g = BrickGrid::build(&s, IVec3::ZERO, IVec3::new(4, 4, 4)).unwrap();
+        let r = g.ring().to_array();
+        assert_eq!(g.coarse().get(4, [0, 0, 0], r), 7);
+        assert_eq!(g.coarse().get(4, [1, 1, 1], r), 0);
+        assert_eq!(g.coarse().get(5, [0, 0, 0], r), 7);
     }
 
     #[test]

@@ -5,6 +5,7 @@
 mod brick;
 mod grid;
 mod materials;
+mod mip;
 mod palette;
 mod pool;
 mod store;
@@ -12,6 +13,7 @@ mod store;
 pub use brick::{BRICK_EDGE, BRICK_SHIFT, BRICK_VOXELS, Brick, BrickContent, voxel_index};
 pub use grid::{BrickGrid, MAX_GRID_CELLS, OCC_EDGE, OCC_SHIFT, UNIFORM, WorldError};
 pub use materials::{MaterialDef, MaterialError, MaterialId, MaterialKind, MaterialRegistry};
+pub use mip::{BrickLod, CoarseLevels, TOP_LEVEL, block_solid, representative};
 pub use palette::Palette;
-pub use pool::{BrickId, BrickPool, BrickRef};
+pub use pool::{BrickId, BrickPool, BrickRef, GPU_META_WORDS};
 pub use store::{BrickStore, Cell, brick_of};

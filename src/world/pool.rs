@@ -4,18 +4,33 @@
 //!
 //! **Layout** (structure of arrays, what tracers read):
 //! - `masks`: one 64-byte occupancy mask per slot;
-//! - `meta`: 8 bytes per slot — a `u32` that is either the single material
+//! - `meta`: 20 bytes per slot — a `u32` that is either the single material
 //!   of a one-material brick or an offset into the material arena, the LOD
-//!   colour as RGB565, and flags;
+//!   colour as RGB565, flags, and the materials of the brick's coarser
+//!   levels ([`BrickLod`]: 8 octants and the whole brick);
 //! - `arena`: for multi-material bricks, `[palette_len, bits, size_class,
 //!   palette…, packed indices…]`, allocated in 16-byte size classes with a free list per
 //!   class (the thesis' colour allocator, simplified), so edits reuse holes.
 //!
-//! A one-material brick therefore costs 72 bytes in total. Generations and
+//! A one-material brick therefore costs 84 bytes in total. Generations and
 //! the free slot list are editing bookkeeping, reported by
 //! [`BrickPool::index_bytes`], not by [`BrickPool::bytes`].
 
 use super::brick::{BRICK_VOXELS, Brick};
+use super::mip::BrickLod;
+
+/// Words of metadata per slot in [`BrickPool::raw`].
+pub const GPU_META_WORDS: usize = 4;
+
+fn gpu_meta(m: &Meta) -> [u32; GPU_META_WORDS] {
+    let o = m.lod.octants;
+    [
+        m.data,
+        m.flags as u32 | (m.lod.whole as u32) << 8,
+        u32::from_le_bytes([o[0], o[1], o[2], o[3]]),
+        u32::from_le_bytes([o[4], o[5], o[6], o[7]]),
+    ]
+}
 
 /// Handle to a brick in a [`BrickPool`]. Stale handles are detected.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -43,6 +58,8 @@ struct Meta {
     data: u32,
     lod565: u16,
     flags: u16,
+    /// Materials of the coarser levels.
+    lod: BrickLod,
 }
 
 fn to565(c: [u8; 3]) -> u16 {
@@ -159,6 +176,12 @@ impl BrickRef<'_> {
     pub fn lod_rgb(&self) -> [u8; 3] {
         from565(self.pool.meta[self.slot].lod565)
     }
+
+    /// Materials of the brick's coarser levels (see [`super::mip`]).
+    #[inline(always)]
+    pub fn lod(&self) -> BrickLod {
+        self.pool.meta[self.slot].lod
+    }
 }
 
 impl BrickPool {
@@ -194,6 +217,7 @@ impl BrickPool {
                 data: palette.first().copied().unwrap_or(0) as u32,
                 lod565,
                 flags: FLAG_LIVE,
+                lod: brick.lod(),
             };
         }
         let bits = brick.bits();
@@ -214,6 +238,7 @@ impl BrickPool {
             data: off,
             lod565,
             flags: FLAG_LIVE | FLAG_MULTI,
+            lod: brick.lod(),
         }
     }
 
@@ -296,9 +321,11 @@ impl BrickPool {
     }
 
     /// Raw arrays for uploading to a GPU: masks (one per slot), metadata as
-    /// `(data, flags)` per slot (see the module docs), and the material arena.
-    pub fn raw(&self) -> (&[[u64; 8]], Vec<[u32; 2]>, &[u8]) {
-        let meta = self.meta.iter().map(|m| [m.data, m.flags as u32]).collect();
+    /// [`GPU_META_WORDS`] words per slot — data, flags with the brick's
+    /// material in bits 8..16, and the eight octant materials — and the
+    /// material arena.
+    pub fn raw(&self) -> (&[[u64; 8]], Vec<[u32; GPU_META_WORDS]>, &[u8]) {
+        let meta = self.meta.iter().map(gpu_meta).collect();
         (&self.masks, meta, &self.arena)
     }
 
@@ -418,10 +445,14 @@ mod tests {
     }
 
     #[test]
-    fn one_material_bricks_cost_72_bytes() {
+    fn one_material_bricks_cost_84_bytes() {
         let mut pool = BrickPool::default();
         pool.insert(brick_from(|i| (i % 2) as u8 * 9));
-        assert_eq!(pool.bytes(), 72);
+        assert_eq!(
+            pool.bytes(),
+            84,
+            "64 mask + 20 meta (8 of them level-of-detail materials)"
+        );
         assert_eq!(
             pool.get(BrickId {
                 index: 0,

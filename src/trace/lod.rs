@@ -1,0 +1,226 @@
+//! Level of detail on the brickmap: a ray stops descending when a cell's
+//! footprint falls below `C` pixels (Áfra 2012 §6.2, R ≤ t·C).
+//!
+//! **Footprint.** A pixel at distance `t` covers `t · θ` voxels, θ being
+//! [`Camera::pixel_angle`](super::Camera::pixel_angle). With `k = C · θ`, a
+//! cell of edge `2^s` may be taken whole when `2^s ≤ t·k`: it covers at most
+//! `C` pixels. [`lod_level`] is that rule, in `f32` comparisons the GPU
+//! shader repeats exactly.
+//!
+//! **The walk** is one stackless loop over the levels of
+//! [`crate::world::mip`]: at the current voxel it checks levels from the
+//! highest one whose cell changed down to the allowed level; the first empty
+//! level is skipped with the exact [`DdaRay::skip`], and a solid cell at the
+//! allowed level is the hit. Levels above the highest changed bit of the
+//! cell coordinates were solid when the ray entered them and still are, so
+//! they are not read again. Every skip is exact, so with `k = 0` the walk
+//! reports bit for bit what [`BrickmapTracer`]'s exact walk reports (a test
+//! holds it to that), and a coarse hit is the coarse cube's entry face:
+//! its `t`, its normal, and the voxel through which the ray entered it.
+
+use glam::IVec3;
+
+use super::brickmap::BrickmapTracer;
+use super::dda::DdaRay;
+use super::ray::{Hit, Ray};
+use crate::world::{BrickRef, TOP_LEVEL, UNIFORM, block_solid, representative, voxel_index};
+
+/// The level whose cells a ray may take whole at footprint `w = t·k`
+/// voxels: the largest `s ≤ 5` with `2^s ≤ w` (0 below 2).
+#[inline(always)]
+pub fn lod_level(w: f32) -> u32 {
+    if w < 2.0 {
+        0
+    } else if w < 4.0 {
+        1
+    } else if w < 8.0 {
+        2
+    } else if w < 16.0 {
+        3
+    } else if w < 32.0 {
+        4
+    } else {
+        TOP_LEVEL
+    }
+}
+
+impl BrickmapTracer<'_> {
+    /// First cell along `ray` (entry `t ≤ t_max`) that is solid at the level
+    /// its footprint allows, with `k = C ·` pixel angle (0: exact).
+    pub fn trace_lod(&self, ray: &Ray, t_max: f32, k: f32) -> Option<Hit> {
+        let r = DdaRay::new(ray)?;
+        let mut st = r.enter([0; 3], self.dims)?;
+        let ring = self.grid.ring().to_array();
+        let coarse = self.grid.coarse();
+        let mut top = TOP_LEVEL;
+        // The current brick's pointer and, if mixed, the brick: read when
+        // level 3 is checked, valid below it while the brick is unchanged.
+        let mut p = 0u32;
+        let mut brick: Option<BrickRef<'_>> = None;
+        loop {
+            if st.t > t_max {
+                return None;
+            }
+            let allowed = lod_level(st.t * k);
+            let c = st.cell;
+            let mut level = top;
+            let solid_at = loop {
+                let solid = match level {
+                    4 | 5 => coarse.get(level, c.map(|v| v >> level), ring) != 0,
+                    3 => {
+                        p = self.grid.pointer(IVec3::from(c.map(|v| v >> 3)));
+                        brick = if p != 0 && p & UNIFORM == 0 {
+                            self.pool.slot(p - 1)
+                        } else {
+                            None
+                        };
+                        p != 0
+                    }
+                    _ => match brick {
+                        Some(b) => block_solid(b.mask(), level, c.map(|v| v & 7)),
+                        None => p != 0,
+                    },
+                };
+                if !solid {
+                    break None;
+                }
+                if level <= allowed {
+                    break Some(level);
+                }
+                level -= 1;
+            };
+            if let Some(level) = solid_at {
+                let material = self.lod_material(level, c, p, brick);
+                return Some(Hit {
+                    t: st.t,
+                    voxel: self.frame.to_world(c),
+                    normal: IVec3::from(r.normal(&st)),
+                    material,
+                });
+            }
+            r.skip(&mut st, level);
+            if !self.inside(st.cell) {
+                return None;
+            }
+            let changed = (c[0] ^ st.cell[0]) | (c[1] ^ st.cell[1]) | (c[2] ^ st.cell[2]);
+            top = (31 - (changed as u32).leading_zeros()).min(TOP_LEVEL);
+        }
+    }
+
+    /// Material of the level-`level` cell holding local voxel `c`, whose
+    /// brick has pointer `p` (and is `brick` when mixed).
+    fn lod_material(&self, level: u32, c: [i32; 3], p: u32, brick: Option<BrickRef<'_>>) -> u8 {
+        if level >= 4 {
+            let ring = self.grid.ring().to_array();
+            return self.grid.coarse().get(level, c.map(|v| v >> level), ring);
+        }
+        let Some(b) = brick else {
+            return p as u8; // uniform
+        };
+        let l = c.map(|v| v & 7);
+        match level {
+            0 => b.material_index(voxel_index(l[0], l[1], l[2])),
+            1 => representative(l.map(|v| v & !1), 2, |x, y, z| {
+                b.material_index(voxel_index(x, y, z))
+            }),
+            _ => b.lod().at(level, l),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::trace::Tracer;
+    use crate::world::{BrickGrid, BrickStore, Palette};
+    use glam::{DVec3, Vec3};
+
+    fn scene() -> (BrickStore, BrickGrid) {
+        let mut s = BrickStore::new(Palette::grey_ramp());
+        s.fill_box(IVec3::new(0, 0, 0), IVec3::new(200, 20, 150), 3);
+        s.fill_box(IVec3::new(0, 20, 0), IVec3::new(200, 21, 150), 7);
+        s.fill_sphere(DVec3::new(60.0, 40.0, 70.0), 18.5, 9);
+        let mut x = 0x9e37_79b9u32;
+        for _ in 0..3000 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            let p = IVec3::new(
+                (x % 200) as i32,
+                21 + (x >> 8) as i32 % 60,
+                (x >> 16) as i32 % 150,
+            );
+            s.set_voxel(p, 1 + (x >> 24) as u8 % 200);
+        }
+        let (lo, hi) = s.brick_bounds().unwrap();
+        let g = BrickGrid::build(&s, lo, hi - lo + IVec3::ONE).unwrap();
+        (s, g)
+    }
+
+    fn rays() -> Vec<Ray> {
+        let mut out = Vec::new();
+        let mut x = 0x1234_5677u32;
+        let mut f = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            (x >> 8) as f32 / (1 << 24) as f32
+        };
+        for _ in 0..20_000 {
+            let o = Vec3::new(f() * 300.0 - 50.0, f() * 120.0, f() * 250.0 - 50.0);
+            let d = Vec3::new(f() - 0.5, f() - 0.6, f() - 0.5);
+            // Some axis-aligned and diagonal rays, the DDA's edge cases.
+            let d = match out.len() % 7 {
+                0 => Vec3::new(d.x, 0.0, 0.0),
+                1 => Vec3::new(1.0, -1.0, 1.0),
+                _ => d,
+            };
+            out.push(Ray::new(o, d.normalize_or(Vec3::X)));
+        }
+        out
+    }
+
+    /// With `k = 0` the level walk is the exact tracer, bit for bit.
+    #[test]
+    fn lod_off_is_the_exact_walk_bit_for_bit() {
+        let (s, g) = scene();
+        let t = BrickmapTracer::new(&g, s.pool());
+        let mut hits = 0;
+        for ray in rays() {
+            let local = Ray::new(ray.origin, ray.dir);
+            let exact = t.trace(&local, f32::INFINITY);
+            assert_eq!(t.trace_lod(&local, f32::INFINITY, 0.0), exact, "{ray:?}");
+            assert_eq!(t.trace_lod(&local, 40.0, 0.0), t.trace(&local, 40.0));
+            hits += exact.is_some() as u32;
+        }
+        assert!(hits > 5_000, "the rays must hit something ({hits})");
+    }
+
+    /// A coarse hit is never behind the exact one (any-solid levels only
+    /// grow the solid), lies on a solid coarse cell, and a footprint of a
+    /// whole level picks that level.
+    #[test]
+    fn lod_hits_come_no_later_than_exact_ones() {
+        let (s, g) = scene();
+        let t = BrickmapTracer::new(&g, s.pool());
+        let mut coarser = 0;
+        for ray in rays() {
+            let exact = t.trace(&ray, f32::INFINITY);
+            let lod = t.trace_lod(&ray, f32::INFINITY, 0.2);
+            match (exact, lod) {
+                (Some(e), Some(l)) => {
+                    assert!(l.t <= e.t, "{ray:?}: lod {} after exact {}", l.t, e.t);
+                    assert_ne!(l.material, 0);
+                    coarser += (l.t < e.t) as u32;
+                }
+                (Some(e), None) => panic!("{ray:?}: lod missed the exact hit {e:?}"),
+                _ => {}
+            }
+        }
+        assert!(coarser > 100, "some hits must be coarse ({coarser})");
+        assert_eq!(lod_level(1.99), 0);
+        assert_eq!(lod_level(2.0), 1);
+        assert_eq!(lod_level(31.9), 4);
+        assert_eq!(lod_level(1e9), TOP_LEVEL);
+    }
+}
