@@ -21,6 +21,10 @@ fn context() -> Option<GpuContext> {
 }
 
 fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, fog: f32) {
+    parity_with(name, b, ctx, shadows, fog, 0.0);
+}
+
+fn parity_with(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, fog: f32, lod: f32) {
     let mut gpu = GpuBrickmap::preloaded(
         ctx,
         b.world.grid(),
@@ -31,6 +35,7 @@ fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, fog: f
     let opts = RenderOptions {
         shadows,
         fog,
+        lod,
         ..Default::default()
     };
     let bm = b.brickmap();
@@ -47,6 +52,18 @@ fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, fog: f
                 .filter(|&i| (0..3).any(|k| cpu.rgb[i * 3 + k].abs_diff(plain.rgb[i * 3 + k]) > 8))
                 .count();
             assert!(moved * 2 > hits, "{name}: fog moved {moved} of {hits} hits");
+        }
+        if lod > 0.0 {
+            // The levels are used: many hits differ from the exact ones.
+            let exact = RenderOptions { lod: 0.0, ..opts };
+            let plain = render(&bm, &cam, b.world.store().palette(), &exact);
+            let coarse = (0..cpu.hits.len())
+                .filter(|&i| cpu.hits[i].map(|h| h.t) != plain.hits[i].map(|h| h.t))
+                .count();
+            assert!(
+                coarse * 20 > cpu.hits.len(),
+                "{name} view {vi}: level of detail changed only {coarse} pixels"
+            );
         }
         let (g, _) = gpu
             .render(ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
@@ -102,4 +119,22 @@ fn gpu_matches_cpu_on_the_standard_scenes_and_views() {
     // either left it out: at this extent it moves most hits by far more
     // than the tolerance).
     parity("terrain with fog", common::terrain(), &ctx, true, 40.0);
+}
+
+/// Level of detail picks the same levels, cells and materials on both
+/// (the footprint rule is the same f32 comparisons); the test fails if the
+/// shader ignores `lod_k` (checked by replacing it with 0).
+#[test]
+fn gpu_matches_cpu_with_level_of_detail() {
+    let Some(ctx) = context() else { return };
+    parity_with("terrain, C = 4", common::terrain(), &ctx, true, 0.0, 4.0);
+    parity_with("balls, C = 8", common::balls(), &ctx, false, 0.0, 8.0);
+    parity_with(
+        "hairball, C = 16",
+        common::hairball(),
+        &ctx,
+        false,
+        30.0,
+        16.0,
+    );
 }

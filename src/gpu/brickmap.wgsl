@@ -1,17 +1,21 @@
 // The GPU brickmap tracer: the same exact hierarchical DDA as the CPU
-// (src/trace/dda.rs, src/trace/brickmap.rs), ported to WGSL.
+// (src/trace/dda.rs) and the same level walk (src/trace/lod.rs), in WGSL.
 //
 // One invocation per pixel: build the DESIGN §3 camera ray, enter the grid,
-// walk occupancy cells (32³ voxels) and bricks (8³) as coarse DDAs through
-// empty space, restore the exact voxel state on descent, step voxels against
-// the 512-bit mask, shade with Lambert (+ an optional shadow ray).
+// walk the levels of src/world/mip.rs (32, 16, 8, 4, 2, 1 voxels per cell)
+// skipping empty cells exactly, stop at the level the pixel footprint allows
+// (P.lod_k = C * pixel angle; 0 is exact), shade with Lambert (+ an optional
+// shadow ray, always exact).
 //
 // WGSL implementations may treat infinities as indeterminate, so switched-off
 // axes use a large finite crossing time (BIG) instead of +inf.
 //
 // Streaming (van Wingerden §4.1): a grid pointer's top two bits give its state.
 //   0x00000000          empty
-//   0b01 << 30 | lod565 unloaded: shade the whole brick with its LOD colour and
+//   0b01 << 30 | m << 16 | lod565
+//                       unloaded: a ray whose footprint takes the brick whole
+//                       (level >= 3) hits it with material m and asks nothing;
+//                       a finer one shades it with its LOD colour and
 //                       request it (once: compare-exchange to "requested", then
 //                       append to the bounded feedback buffer; on overflow the
 //                       pointer goes back to unloaded, so the request is simply
@@ -19,7 +23,7 @@
 //                       the brick, for requests only (up to 8 LOD bricks), so a
 //                       frame asks for everything up to the real surface and
 //                       bricks revealed by an edit arrive with it.
-//   0b10 << 30 | lod565 requested: LOD colour, no new request
+//   0b10 << 30 | m << 16 | lod565 requested: LOD colour, no new request
 //   0b11 << 30 | m      uniform brick of material m
 //   otherwise           loaded: GPU pool slot + 1 (its last-seen frame is stamped)
 
@@ -32,7 +36,7 @@ struct Params {
     dims: vec3<i32>, height: u32,   // grid size in voxels
     anchor: vec3<i32>, frame: u32,  // world voxel of local (0, 0, 0); frame number
     feedback_capacity: u32, ring_x: i32, ring_y: i32, ring_z: i32, // ring: physical brick of local (0, 0, 0)
-    fog: f32, pad0: u32, pad1: u32, pad2: u32,  // distance fog extent in voxels (0: none)
+    fog: f32, lod_k: f32, l4_offset: u32, pad0: u32,  // fog extent (0: none); C * pixel angle (0: exact); level 4's word offset in `coarse`
 };
 
 struct PixelOut {
@@ -46,9 +50,9 @@ struct PixelOut {
 
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read_write> grid: array<atomic<u32>>;
-@group(0) @binding(2) var<storage, read> occ: array<u32>;
+@group(0) @binding(2) var<storage, read> coarse: array<u32>; // levels 5 then 4: material bytes
 @group(0) @binding(3) var<storage, read> masks: array<u32>;   // 16 words per slot
-@group(0) @binding(4) var<storage, read> bmeta: array<u32>;   // 2 words per slot: data, flags
+@group(0) @binding(4) var<storage, read> bmeta: array<u32>;   // 4 words per slot: data, flags | material << 8, octant materials x2
 @group(0) @binding(5) var<storage, read> arena: array<u32>;   // material arena bytes
 @group(0) @binding(6) var<storage, read> palette: array<u32>; // 256 x 0x00BBGGRR
 @group(0) @binding(7) var<storage, read_write> out: array<PixelOut>;
@@ -188,9 +192,6 @@ fn step_fine(r: Ray, st: ptr<function, State>) {
     (*st).axes = axes;
 }
 
-fn coarse_exit(r: Ray, a: i32, c: i32, shift: u32) -> i32 {
-    return select((c << shift) - 1, (c + 1) << shift, r.step[a] > 0);
-}
 
 fn inside(c: vec3<i32>, hi: vec3<i32>) -> bool {
     return all(c >= vec3<i32>(0)) && all(c < hi);
@@ -204,13 +205,6 @@ fn wrap(c: vec3<i32>, d: vec3<i32>) -> vec3<i32> {
 
 fn ring() -> vec3<i32> {
     return vec3<i32>(P.ring_x, P.ring_y, P.ring_z);
-}
-
-fn occupied(o: vec3<i32>) -> bool {
-    let od = P.dims >> vec3<u32>(5u);
-    let p = wrap(o + (ring() >> vec3<u32>(2u)), od);
-    let i = u32(p.x + od.x * (p.y + od.y * p.z));
-    return ((occ[i >> 5u] >> (i & 31u)) & 1u) != 0u;
 }
 
 fn brick_index(b: vec3<i32>) -> u32 {
@@ -250,8 +244,8 @@ fn arena_byte(k: u32) -> u32 {
 }
 
 fn brick_material(slot: u32, idx: u32) -> u32 {
-    let data = bmeta[slot * 2u];
-    let flags = bmeta[slot * 2u + 1u];
+    let data = bmeta[slot * 4u];
+    let flags = bmeta[slot * 4u + 1u];
     if ((flags & FLAG_MULTI) == 0u) { return data & 0xffu; }
     let word = idx >> 5u;
     var rank = 0u;
@@ -287,93 +281,138 @@ fn select_lod(lod: Hit, other: Hit) -> Hit {
     return other;
 }
 
-fn trace(o: vec3<f32>, d: vec3<f32>) -> Hit {
+// Skip the empty aligned cube of edge 1 << shift holding the current cell
+// (src/trace/dda.rs, DdaRay::skip).
+fn skip(r: Ray, st: ptr<function, State>, shift: u32) {
+    if (shift == 0u) { step_fine(r, st); return; }
+    let size = 1 << shift;
+    var t = BIG;
+    for (var a = 0; a < 3; a++) {
+        let base = ((*st).cell[a] >> shift) << shift;
+        let exit = select(base - 1, base + size, r.step[a] > 0);
+        t = min(t, crossing(r, a, exit));
+    }
+    advance_to(r, st, t);
+}
+
+// The level a footprint of w voxels allows (src/trace/lod.rs, lod_level).
+fn lod_level(w: f32) -> u32 {
+    if (w < 2.0) { return 0u; }
+    if (w < 4.0) { return 1u; }
+    if (w < 8.0) { return 2u; }
+    if (w < 16.0) { return 3u; }
+    if (w < 32.0) { return 4u; }
+    return 5u;
+}
+
+// Material byte of the level-4 or level-5 cell holding local voxel c (0: empty).
+fn coarse_mat(level: u32, c: vec3<i32>) -> u32 {
+    let d = P.dims >> vec3<u32>(level);
+    let p = wrap((c >> vec3<u32>(level)) + (ring() >> vec3<u32>(level - 3u)), d);
+    let k = select(0u, P.l4_offset * 4u, level == 4u) + u32(p.x + d.x * (p.y + d.y * p.z));
+    return (coarse[k >> 2u] >> (8u * (k & 3u))) & 0xffu;
+}
+
+// Whether the level-0, 1 or 2 cell holding brick-local voxel l is solid
+// (src/world/mip.rs, block_solid): a few masked words of the brick mask.
+fn block_solid(slot: u32, level: u32, l: vec3<i32>) -> bool {
+    let base = slot * 16u;
+    if (level == 0u) {
+        let i = u32(l.x | (l.y << 3u) | (l.z << 6u));
+        return ((masks[base + (i >> 5u)] >> (i & 31u)) & 1u) != 0u;
+    }
+    let e = 1 << level;
+    let b = l & vec3<i32>(~(e - 1));
+    let hi = u32(b.y >> 2u);
+    var bits = 0x0F0F0F0Fu << u32(b.x);
+    if (level == 1u) { bits = 0x303u << u32(b.x + 8 * (b.y & 3)); }
+    var acc = 0u;
+    for (var z = b.z; z < b.z + e; z++) { acc |= masks[base + u32(z) * 2u + hi]; }
+    return (acc & bits) != 0u;
+}
+
+// Material of a hit at `level` on local voxel c, in the brick of GPU pointer p.
+fn lod_material(level: u32, c: vec3<i32>, p: u32, slot: u32, loaded: bool) -> u32 {
+    if (level >= 4u) { return coarse_mat(level, c); }
+    let state = p & STATE_MASK;
+    if (state == UNIFORM) { return p & 0xffu; }
+    if (!loaded) { return (p >> 16u) & 0xffu; }
+    let l = c & vec3<i32>(7);
+    if (level == 0u) { return brick_material(slot, u32(l.x | (l.y << 3u) | (l.z << 6u))); }
+    if (level == 3u) { return (bmeta[slot * 4u + 1u] >> 8u) & 0xffu; }
+    let o = u32((l.x >> 2u) | ((l.y >> 2u) << 1u) | ((l.z >> 2u) << 2u));
+    return (bmeta[slot * 4u + 2u + (o >> 2u)] >> (8u * (o & 3u))) & 0xffu;
+}
+
+// The level walk of src/trace/lod.rs: at the current voxel, check levels from
+// the highest whose cell changed down to the level the footprint allows
+// (k = C * pixel angle; 0 is exact); skip the first empty one exactly, or hit.
+fn trace(o: vec3<f32>, d: vec3<f32>, k: f32) -> Hit {
     var miss: Hit;
     miss.found = false;
     let r = make_ray(o, d);
     if (!any(r.act)) { return miss; }
     var st: State;
     if (!enter(r, P.dims, &st)) { return miss; }
-    let od = P.dims >> vec3<u32>(5u);
     var lod_hit: Hit;
     lod_hit.found = false;
     var lod_count = 0;
+    var top = 5u;
+    var p = 0u;
+    var slot = 0u;
+    var loaded = false;
     for (var guard = 0; guard < 1000000; guard++) {
-        var oc = st.cell >> vec3<u32>(5u);
-        if (!occupied(oc)) {
-            var ot: vec3<f32>;
-            for (var a = 0; a < 3; a++) { ot[a] = crossing(r, a, coarse_exit(r, a, oc[a], 5u)); }
-            loop {
-                let t = min(ot.x, min(ot.y, ot.z));
-                for (var a = 0; a < 3; a++) {
-                    if (ot[a] == t) {
-                        oc[a] += r.step[a];
-                        ot[a] = crossing(r, a, coarse_exit(r, a, oc[a], 5u));
-                    }
-                }
-                if (!inside(oc, od)) { return select_lod(lod_hit, miss); }
-                if (occupied(oc)) { advance_to(r, &st, t); break; }
-            }
-        }
-        var bc = st.cell >> vec3<u32>(3u);
-        var leave = false;
+        let allowed = lod_level(st.t * k);
+        let c = st.cell;
+        var level = top;
+        var hit_level = -1;
         loop {
-            var p = pointer(bc);
-            let state = p & STATE_MASK;
-            if (p != 0u && (state == UNLOADED || state == REQUESTED)) {
-                if (state == UNLOADED) { request(bc, p); }
-                if (!lod_hit.found) {
-                    lod_hit = hit_of(r, st, 0u);
-                    lod_hit.lod = true;
-                    lod_hit.rgb = unpack565(p & 0xffffu);
+            var solid = true;
+            if (level >= 4u) {
+                solid = coarse_mat(level, c) != 0u;
+            } else if (level == 3u) {
+                let bc = c >> vec3<u32>(3u);
+                p = pointer(bc);
+                let state = p & STATE_MASK;
+                loaded = p != 0u && state == 0u;
+                if (loaded) {
+                    slot = p - 1u;
+                    last_seen[slot] = P.frame;
                 }
-                lod_count++;
-                if (lod_count >= 8) { return lod_hit; }
-                // Walk on through it, for requests only.
-                p = 0u;
-            }
-            if (p == 0u) {
-                var bt: vec3<f32>;
-                for (var a = 0; a < 3; a++) { bt[a] = crossing(r, a, coarse_exit(r, a, bc[a], 3u)); }
-                var up = false;
-                loop {
-                    let t = min(bt.x, min(bt.y, bt.z));
-                    for (var a = 0; a < 3; a++) {
-                        if (bt[a] == t) {
-                            bc[a] += r.step[a];
-                            bt[a] = crossing(r, a, coarse_exit(r, a, bc[a], 3u));
-                        }
+                solid = p != 0u;
+                if ((state == UNLOADED || state == REQUESTED) && allowed < 3u) {
+                    // Needed finer than it is here: ask for it, show its
+                    // colour, and walk on through it for requests only.
+                    if (state == UNLOADED) { request(bc, p); }
+                    if (!lod_hit.found) {
+                        lod_hit = hit_of(r, st, 0u);
+                        lod_hit.lod = true;
+                        lod_hit.rgb = unpack565(p & 0xffffu);
                     }
-                    if (any((bc >> vec3<u32>(2u)) != oc)) {
-                        advance_to(r, &st, t);
-                        if (!inside(st.cell, P.dims)) { return select_lod(lod_hit, miss); }
-                        up = true;
-                        break;
-                    }
-                    if (pointer(bc) != 0u) { advance_to(r, &st, t); break; }
+                    lod_count++;
+                    if (lod_count >= 8) { return lod_hit; }
+                    solid = false;
+                } else if (solid && lod_hit.found) {
+                    return lod_hit;
                 }
-                if (up) { leave = true; break; }
-                continue;
+            } else if (loaded) {
+                solid = block_solid(slot, level, c & vec3<i32>(7));
             }
-            if (lod_hit.found) { return lod_hit; }
-            if (state == UNIFORM) { return hit_of(r, st, p & 0xffu); }
-            let slot = p - 1u;
-            last_seen[slot] = P.frame;
-            loop {
-                let l = st.cell & vec3<i32>(7);
-                let i = u32(l.x | (l.y << 3u) | (l.z << 6u));
-                if (((masks[slot * 16u + (i >> 5u)] >> (i & 31u)) & 1u) != 0u) {
-                    if (lod_hit.found) { return lod_hit; }
-                    return hit_of(r, st, brick_material(slot, i));
-                }
-                step_fine(r, &st);
-                if (any((st.cell >> vec3<u32>(3u)) != bc)) { break; }
+            if (!solid) { break; }
+            if (level <= allowed) {
+                hit_level = i32(level);
+                break;
             }
-            if (!inside(st.cell, P.dims)) { return select_lod(lod_hit, miss); }
-            if (any((st.cell >> vec3<u32>(5u)) != oc)) { leave = true; break; }
-            bc = st.cell >> vec3<u32>(3u);
+            level -= 1u;
         }
-        if (leave) { continue; }
+        if (hit_level >= 0) {
+            if (lod_hit.found) { return lod_hit; }
+            return hit_of(r, st, lod_material(u32(hit_level), c, p, slot, loaded));
+        }
+        skip(r, &st, level);
+        if (!inside(st.cell, P.dims)) { return select_lod(lod_hit, miss); }
+        let ch = (c.x ^ st.cell.x) | (c.y ^ st.cell.y) | (c.z ^ st.cell.z);
+        top = min(firstLeadingBit(u32(ch)), 5u);
     }
     return select_lod(lod_hit, miss);
 }
@@ -395,7 +434,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let a = ((f32(gid.x) + 0.5) / w * 2.0 - 1.0) * P.tan_half * P.aspect;
     let b = (1.0 - (f32(gid.y) + 0.5) / h * 2.0) * P.tan_half;
     let d = normalize(P.f + a * P.r + b * P.u);
-    let hit = trace(P.eye, d);
+    let hit = trace(P.eye, d, P.lod_k);
     var o: PixelOut;
     var color: vec3<f32>;
     if (hit.found) {
@@ -410,7 +449,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let below = bitcast<vec3<f32>>(bitcast<vec3<u32>>(hi) - vec3<u32>(select(vec3<u32>(0u), vec3<u32>(1u), hi > vec3<f32>(0.0)))) ;
             let hi2 = select(below, -bitcast<vec3<f32>>(bitcast<vec3<u32>>(-hi) + vec3<u32>(1u)), hi <= vec3<f32>(0.0));
             let q = clamp(p, lo, hi2);
-            if (trace(q, P.light).found) { lambert = 0.0; }
+            if (trace(q, P.light, 0.0).found) { lambert = 0.0; }
         }
         let k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
         color = unpack_rgb(hit.rgb) * k;

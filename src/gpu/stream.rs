@@ -7,7 +7,7 @@
 use glam::IVec3;
 use rustc_hash::FxHashMap;
 
-use super::tracer::{GpuBrickmap, STATE_MASK, UNLOADED, lod565, occupancy_words};
+use super::tracer::{GpuBrickmap, META_BYTES, STATE_MASK, UNLOADED, coarse_words, unloaded_bits};
 use super::{GpuContext, GpuError};
 use crate::world::{BRICK_VOXELS, BrickContent, BrickGrid, BrickPool, Palette, UNIFORM};
 
@@ -188,7 +188,7 @@ impl GpuBrickmap {
                 continue;
             };
             brick.to_dense(&mut dense);
-            let lod = lod565(brick.lod_rgb());
+            let lod = unloaded_bits(&brick);
             if let BrickContent::Mixed(full) =
                 BrickContent::from_dense(&dense, &Palette::grey_ramp())
             {
@@ -199,6 +199,9 @@ impl GpuBrickmap {
             else {
                 continue;
             };
+            // Hidden voxels were recoloured; from afar it must still look
+            // like the world's brick.
+            let b = b.with_lod(brick.lod());
             stats.material_bytes += material_bytes(&b);
             if let Some(res) = self.residency.as_mut() {
                 res.lod_of.insert(i, lod);
@@ -252,10 +255,10 @@ impl GpuBrickmap {
                     );
                     ctx.queue.write_buffer(
                         &self.meta,
-                        slot as u64 * 8,
+                        slot as u64 * META_BYTES,
                         bytemuck::cast_slice(&meta[slot as usize]),
                     );
-                    stats.upload_bytes += 72;
+                    stats.upload_bytes += 64 + META_BYTES;
                     if let Some((off, len)) = res.mirror.arena_block(slot) {
                         // Arena writes must be 4-byte aligned: blocks are 16-byte aligned.
                         ctx.queue
@@ -321,7 +324,7 @@ impl GpuBrickmap {
             b
         };
         let masks = bigger(&self.masks, "brick masks", slots as u64 * 64);
-        let meta = bigger(&self.meta, "brick metadata", slots as u64 * 8);
+        let meta = bigger(&self.meta, "brick metadata", slots as u64 * META_BYTES);
         let arena_buf = bigger(&self.arena, "material arena", arena as u64);
         let last_seen = bigger(&self.last_seen, "last seen", slots as u64 * 4);
         ctx.queue.submit([enc.finish()]);
@@ -352,7 +355,7 @@ impl GpuBrickmap {
     /// Apply the world's edits to bricks `changed` (world brick coordinates,
     /// duplicates allowed): pointers go back to unloaded with their new LOD
     /// colour (or empty / uniform), freed slots return to the pool, and the
-    /// occupancy layer is refreshed. Only meaningful when streaming.
+    /// coarse levels (16 and 32 voxels per cell) are refreshed. Only meaningful when streaming.
     pub fn apply_edits(
         &mut self,
         ctx: &GpuContext,
@@ -381,7 +384,7 @@ impl GpuBrickmap {
             self.set_pointer(ctx, i, p);
         }
         ctx.queue
-            .write_buffer(&self.occ, 0, bytemuck::cast_slice(&occupancy_words(grid)));
+            .write_buffer(&self.coarse, 0, bytemuck::cast_slice(&coarse_words(grid)));
     }
 }
 

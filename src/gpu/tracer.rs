@@ -18,7 +18,7 @@ use wgpu::util::DeviceExt;
 use super::stream::{FrameStats, Residency, StreamConfig};
 use super::{GpuContext, GpuError, GpuFrame};
 use crate::trace::{Camera, Frame, RenderOptions};
-use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool, Palette, UNIFORM};
+use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool, BrickRef, GPU_META_WORDS, Palette, UNIFORM};
 
 pub(super) const UNLOADED: u32 = 0x4000_0000;
 pub(super) const REQUESTED: u32 = 0x8000_0000;
@@ -48,7 +48,11 @@ struct Params {
     ring: [i32; 3],
     /// Distance fog extent in voxels (0: none).
     fog: f32,
-    pad: [u32; 3],
+    /// Level of detail: `C ·` pixel angle (0: exact).
+    lod_k: f32,
+    /// Word offset of level 4 in the coarse buffer (level 5 is first).
+    l4_offset: u32,
+    pad: u32,
 }
 
 #[repr(C)]
@@ -67,7 +71,7 @@ pub struct GpuBrickmap {
     pub(super) pipeline: wgpu::ComputePipeline,
     pub(super) layout: wgpu::BindGroupLayout,
     pub(super) grid: wgpu::Buffer,
-    pub(super) occ: wgpu::Buffer,
+    pub(super) coarse: wgpu::Buffer,
     pub(super) masks: wgpu::Buffer,
     pub(super) meta: wgpu::Buffer,
     pub(super) arena: wgpu::Buffer,
@@ -99,11 +103,27 @@ pub(super) fn lod565(c: [u8; 3]) -> u32 {
     ((c[0] as u32 >> 3) << 11) | ((c[1] as u32 >> 2) << 5) | (c[2] as u32 >> 3)
 }
 
-pub(super) fn occupancy_words(grid: &BrickGrid) -> Vec<u32> {
-    grid.occupancy_words()
-        .iter()
-        .flat_map(|w| [*w as u32, (*w >> 32) as u32])
-        .collect()
+/// Bytes of metadata per pool slot on the GPU.
+pub(super) const META_BYTES: u64 = 4 * GPU_META_WORDS as u64;
+
+/// The low bits of an unloaded pointer: the brick's material (what a
+/// coarse hit reports) in bits 16..24 and its average colour as RGB565 (what
+/// a ray shows while the brick is on its way).
+pub(super) fn unloaded_bits(b: &BrickRef<'_>) -> u32 {
+    (b.lod().whole as u32) << 16 | lod565(b.lod_rgb())
+}
+
+/// The grid's levels 5 then 4 (material bytes, 0 when empty) as words, and
+/// the word offset of level 4.
+pub(super) fn coarse_words(grid: &BrickGrid) -> Vec<u32> {
+    let (l4, l5) = grid.coarse().raw();
+    let mut w = words_of(l5);
+    w.extend(words_of(l4));
+    w
+}
+
+fn l4_offset(grid: &BrickGrid) -> u32 {
+    grid.coarse().raw().1.len().div_ceil(4) as u32
 }
 
 impl GpuBrickmap {
@@ -200,7 +220,7 @@ impl GpuBrickmap {
             palette,
             shadow,
             vec![0; cfg.pool_slots as usize * 16],
-            vec![0; cfg.pool_slots as usize * 2],
+            vec![0; cfg.pool_slots as usize * GPU_META_WORDS],
             vec![0; (cfg.arena_bytes as usize).div_ceil(4)],
             cfg.pool_slots,
             Some(residency),
@@ -215,7 +235,7 @@ impl GpuBrickmap {
         } else if p & UNIFORM != 0 {
             UNIFORM_GPU | (p & 0xff)
         } else {
-            UNLOADED | pool.slot(p - 1).map_or(0, |b| lod565(b.lod_rgb()))
+            UNLOADED | pool.slot(p - 1).map_or(0, |b| unloaded_bits(&b))
         }
     }
 
@@ -260,7 +280,7 @@ impl GpuBrickmap {
             }))
         };
         let grid_buf = make("brick grid", &shadow)?;
-        let occ = make("occupancy layer", &occupancy_words(grid))?;
+        let coarse = make("coarse levels", &coarse_words(grid))?;
         let masks_buf = make("brick masks", &masks)?;
         let meta_buf = make("brick metadata", &meta)?;
         let arena_buf = make("material arena", &arena)?;
@@ -320,7 +340,7 @@ impl GpuBrickmap {
             pipeline,
             layout,
             grid: grid_buf,
-            occ,
+            coarse,
             masks: masks_buf,
             meta: meta_buf,
             arena: arena_buf,
@@ -343,7 +363,7 @@ impl GpuBrickmap {
     pub fn gpu_bytes(&self) -> u64 {
         [
             &self.grid,
-            &self.occ,
+            &self.coarse,
             &self.masks,
             &self.meta,
             &self.arena,
@@ -356,10 +376,10 @@ impl GpuBrickmap {
         .sum()
     }
 
-    /// Bytes of GPU memory in use: the grid and occupancy layer, plus the
-    /// resident bricks (64-byte mask, 8-byte metadata, material block).
+    /// Bytes of GPU memory in use: the grid and its coarse levels, plus the
+    /// resident bricks (64-byte mask, 16-byte metadata, material block).
     pub fn gpu_bytes_used(&self) -> u64 {
-        let fixed = self.grid.size() + self.occ.size() + self.palette.size();
+        let fixed = self.grid.size() + self.coarse.size() + self.palette.size();
         match &self.residency {
             Some(r) => {
                 let arena: u64 = r
@@ -368,7 +388,7 @@ impl GpuBrickmap {
                     .filter_map(|s| r.mirror.arena_block(*s))
                     .map(|(_, len)| len as u64)
                     .sum();
-                fixed + r.mirror.len() as u64 * 72 + arena
+                fixed + r.mirror.len() as u64 * (64 + META_BYTES) + arena
             }
             None => self.gpu_bytes(),
         }
@@ -437,7 +457,9 @@ impl GpuBrickmap {
             feedback_capacity: self.feedback_capacity,
             ring: grid.ring().to_array(),
             fog: opts.fog,
-            pad: [0; 3],
+            lod_k: opts.lod * camera.pixel_angle() as f32,
+            l4_offset: l4_offset(grid),
+            pad: 0,
         };
         ctx.queue
             .write_buffer(&self.feedback, 0, bytemuck::bytes_of(&0u32));
@@ -465,7 +487,7 @@ impl GpuBrickmap {
         let buffers = [
             &uniform,
             &self.grid,
-            &self.occ,
+            &self.coarse,
             &self.masks,
             &self.meta,
             &self.arena,

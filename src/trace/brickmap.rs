@@ -160,7 +160,12 @@ impl Tracer for BrickmapTracer<'_> {
     }
 
     fn trace_lod(&self, ray: &Ray, t_max: f32, k: f32) -> Option<Hit> {
-        BrickmapTracer::trace_lod(self, ray, t_max, k)
+        // Exact tracing keeps its specialised walk (same answers, faster).
+        if k == 0.0 {
+            self.trace(ray, t_max)
+        } else {
+            BrickmapTracer::trace_lod(self, ray, t_max, k)
+        }
     }
 
     fn bytes(&self) -> usize {

@@ -23,7 +23,7 @@ use glam::IVec3;
 use super::brickmap::BrickmapTracer;
 use super::dda::DdaRay;
 use super::ray::{Hit, Ray};
-use crate::world::{BrickRef, TOP_LEVEL, UNIFORM, block_solid, representative, voxel_index};
+use crate::world::{BrickRef, TOP_LEVEL, UNIFORM, block_solid, voxel_index};
 
 /// The level whose cells a ray may take whole at footprint `w = t·k`
 /// voxels: the largest `s ≤ 5` with `2^s ≤ w` (0 below 2).
@@ -120,9 +120,6 @@ impl BrickmapTracer<'_> {
         let l = c.map(|v| v & 7);
         match level {
             0 => b.material_index(voxel_index(l[0], l[1], l[2])),
-            1 => representative(l.map(|v| v & !1), 2, |x, y, z| {
-                b.material_index(voxel_index(x, y, z))
-            }),
             _ => b.lod().at(level, l),
         }
     }

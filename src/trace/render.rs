@@ -45,6 +45,9 @@ pub struct RenderOptions {
     /// Distance fog: a hit at distance `t` (voxels) is blended towards the
     /// sky colour of its ray by `1 − exp(−t / fog)`. 0 is no fog.
     pub fog: f32,
+    /// Level of detail: primary rays stop at cells under `lod` pixels wide
+    /// (Áfra's `C`). 0 is exact.
+    pub lod: f32,
 }
 
 /// Blend `c`, seen at distance `t`, into the sky colour `sky` by the fog
@@ -137,6 +140,8 @@ pub fn render(
     let mut hits = vec![None; w * h];
     let frame = tracer.frame();
     let origin = frame.to_local(camera.eye);
+    // The same f32 product the GPU shader is given.
+    let lod_k = opts.lod * camera.pixel_angle() as f32;
     rgb.par_chunks_mut(w * 3 * TILE)
         .zip(depth.par_chunks_mut(w * TILE))
         .zip(hits.par_chunks_mut(w * TILE))
@@ -150,7 +155,7 @@ pub fn render(
                         let dir = camera.direction(i as u32, j as u32);
                         let ray = Ray::new(origin, dir.as_vec3());
                         let px = r * w + i;
-                        let c = match tracer.trace(&ray, f32::INFINITY) {
+                        let c = match tracer.trace_lod(&ray, f32::INFINITY, lod_k) {
                             Some(hit) => {
                                 depth[px] = hit.t;
                                 hits[px] = Some(hit);

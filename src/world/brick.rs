@@ -244,6 +244,14 @@ impl Brick {
         self.lod
     }
 
+    /// The same brick with the coarser levels' materials of another: for a
+    /// copy whose hidden voxels were recoloured, which must still look,
+    /// from afar, like its original.
+    pub fn with_lod(mut self, lod: BrickLod) -> Self {
+        self.lod = lod;
+        self
+    }
+
     /// Distinct materials used, sorted.
     pub fn local_palette(&self) -> &[u8] {
         &self.local_palette
