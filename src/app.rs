@@ -453,6 +453,7 @@ fn run_render(s: RenderSettings) -> Result<()> {
         let opts = RenderOptions {
             shadows: s.shadows,
             fog: s.fog,
+            lod: s.lod,
             ..Default::default()
         };
         let built = t0.elapsed();

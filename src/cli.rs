@@ -364,6 +364,9 @@ pub struct RenderArgs {
     /// Distance fog extent in voxels: hits blend towards the sky by 1 - exp(-t / FOG) (0: none)
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub fog: f64,
+    /// Level of detail: stop at cells under C pixels wide (brickmap only; leave out for exact output)
+    #[arg(long, value_name = "C", allow_negative_numbers = true)]
+    pub lod: Option<f64>,
     /// Output PNG
     #[arg(long, default_value = "brickworld.png")]
     pub out: PathBuf,

@@ -230,6 +230,26 @@ pub struct RenderSettings {
     pub tracer: crate::gpu::TracerChoice,
     /// Distance fog extent in voxels (0: none).
     pub fog: f32,
+    /// Level of detail `C` in pixels (0: exact).
+    pub lod: f32,
+}
+
+/// Largest level-of-detail `C`, in pixels.
+pub const MAX_LOD: f64 = 256.0;
+
+/// Validate a level-of-detail `C` given as `flag`.
+pub fn lod_c(flag: &'static str, c: f64) -> Result<f32, ConfigError> {
+    if c.is_finite() && c > 0.0 && c <= MAX_LOD {
+        Ok(c as f32)
+    } else {
+        Err(bad(
+            flag,
+            &c.to_string(),
+            format!(
+                "expected a cell footprint in pixels, above 0 and at most {MAX_LOD} (leave it out for exact tracing)"
+            ),
+        ))
+    }
 }
 
 /// Default size of procedural scenes for `render`.
@@ -263,6 +283,17 @@ impl RenderSettings {
                     &a.fog.to_string(),
                     "expected a distance in 0..=1000000 voxels (0: no fog)",
                 ));
+            },
+            lod: match a.lod {
+                None => 0.0,
+                Some(_) if a.structure != "brickmap" => {
+                    return Err(bad(
+                        "--structure",
+                        &a.structure,
+                        "--lod needs the brickmap (the dense grid and the octree have no levels)",
+                    ));
+                }
+                Some(c) => lod_c("--lod", c)?,
             },
         })
     }

@@ -357,3 +357,28 @@ fn tracer_auto_says_what_it_chose_and_why() {
         );
     }
 }
+
+/// `--lod C`: zero, negative, non-finite and absurd values get one line
+/// naming the flag; the dense grid and the octree refuse it.
+#[test]
+fn bad_level_of_detail_values_are_refused() {
+    let png = tmp("lod.png");
+    for c in ["0", "-1", "nan", "inf", "1e9"] {
+        expect_failure(
+            &["render", "--lod", c, "--out", png.to_str().unwrap()],
+            "invalid --lod",
+        );
+    }
+    expect_failure(
+        &[
+            "render",
+            "--lod",
+            "2",
+            "--structure",
+            "svo",
+            "--out",
+            png.to_str().unwrap(),
+        ],
+        "--lod needs the brickmap",
+    );
+}

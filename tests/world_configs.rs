@@ -192,6 +192,14 @@ fn bad_configs_name_the_file_field_and_reason() {
             "render.fog: -5 is outside",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[render]\nlod = -2.0\n",
+            "render.lod: -2 is not a cell footprint",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[render]\nlod = nan\n",
+            "render.lod: NaN is not a cell footprint",
+        ),
+        (
             "[world]\nsource = \"terrain\"\n[checkpoint]\nevery = 0\n",
             "checkpoint.every",
         ),

@@ -97,6 +97,8 @@ pub struct RenderSettings {
     pub shadows: bool,
     /// Distance fog extent in voxels (0: none).
     pub fog: f32,
+    /// Level of detail `C` in pixels (0: exact).
+    pub lod: f32,
     /// Where frame PNGs go.
     pub frames_dir: PathBuf,
     /// Frames kept on disk; older ones are deleted.
@@ -207,6 +209,7 @@ impl RenderThread {
                     let opts = RenderOptions {
                         shadows: settings.shadows,
                         fog: settings.fog,
+                        lod: settings.lod,
                         ..Default::default()
                     };
                     let rgb = draw(&mut gpu, world, &job.camera, &opts, &st);

@@ -42,6 +42,7 @@
 //! tracer = "auto"             # auto (the GPU unless it is software), gpu (falls back to cpu) or cpu
 //! shadows = true
 //! fog = 512.0                 # distance fog extent in voxels (0: none; default: half the view distance of a streamed world, else none)
+//! lod = 1.0                   # level of detail: cells under this many pixels are traced whole (0: exact)
 //!
 //! [frames]
 //! dir = "frames"              # relative to the state directory
@@ -129,6 +130,10 @@ pub struct StreamSettings {
 
 /// The default memory budget of a streamed world: 1.5 GiB.
 pub const DEFAULT_MEMORY_BUDGET: u64 = 3 << 29;
+
+/// Level-of-detail `C` of the daemon's frames when `render.lod` is not set
+/// (see README, "Level of detail", for the measurement behind it).
+pub const DEFAULT_LOD: f32 = 1.0;
 
 /// Parse a byte size: a number of bytes, or a number with a unit (`512MiB`,
 /// `1.5GiB`, `2GB`, `800M`…).
@@ -239,6 +244,7 @@ struct RawRender {
     tracer: Option<String>,
     shadows: Option<bool>,
     fog: Option<f64>,
+    lod: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -374,6 +380,8 @@ pub struct WorldConfig {
     pub shadows: bool,
     /// Distance fog extent in voxels (0: none).
     pub fog: f32,
+    /// Level of detail `C` in pixels (0: exact).
+    pub lod: f32,
     /// Frame directory, relative to the state directory.
     pub frames_dir: PathBuf,
     /// Write a frame every this many ticks.
@@ -838,6 +846,20 @@ impl WorldConfig {
             tracer,
             shadows: raw.render.shadows.unwrap_or(true),
             fog,
+            lod: match raw.render.lod {
+                None => DEFAULT_LOD,
+                Some(0.0) => 0.0,
+                Some(c) if c.is_finite() && c > 0.0 && c <= crate::config::MAX_LOD => c as f32,
+                Some(c) => {
+                    return Err(err(
+                        "render.lod",
+                        format!(
+                            "{c} is not a cell footprint in pixels in (0, {}] (0 turns level of detail off)",
+                            crate::config::MAX_LOD
+                        ),
+                    ));
+                }
+            },
             frames_dir: PathBuf::from(raw.frames.dir.unwrap_or_else(|| "frames".into())),
             frames_every: every(raw.frames.every, 10, "frames.every")?,
             frames_keep: match raw.frames.keep.unwrap_or(200) {

@@ -128,6 +128,7 @@ impl Engine {
                 stream: stream_plan,
                 shadows: cfg.shadows,
                 fog: cfg.fog,
+                lod: cfg.lod,
                 frames_dir,
                 keep: cfg.frames_keep,
             },
