@@ -100,6 +100,9 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Bench(BenchCommand::Voxels(a)) => run_bench_voxels(&a),
         Command::Bench(BenchCommand::Store(a)) => run_bench_store(&a),
         Command::Bench(BenchCommand::Flight(a)) => run_bench_flight(&a),
+        Command::Bench(BenchCommand::Lod(a)) => {
+            crate::bench::lod::run(&crate::config::BenchLodSettings::from_args(&a)?)
+        }
         Command::Bench(BenchCommand::Tracers(a)) => {
             crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
         }

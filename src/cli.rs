@@ -185,6 +185,8 @@ pub struct SimArgs {
 pub enum BenchCommand {
     /// Compare the dense, svo and brickmap tracers on one scene.
     Tracers(BenchTracersArgs),
+    /// Level of detail: speed against image error (FLIP) over C, against a supersampled reference
+    Lod(BenchLodArgs),
     /// Column updates per second of each simulation script, Lua and native.
     Sim(BenchSimArgs),
     /// Ray-guided streaming of bricks to the GPU tracer.
@@ -285,6 +287,32 @@ pub struct BenchStreamArgs {
     #[arg(long)]
     pub json: PathBuf,
     /// Also chart uploads per frame as SVG
+    #[arg(long)]
+    pub chart: Option<PathBuf>,
+}
+
+/// `brickworld bench lod`.
+#[derive(Debug, Args)]
+pub struct BenchLodArgs {
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Footprints C to measure, in pixels, comma-separated (exact tracing is always measured too)
+    #[arg(long, value_name = "C,C,...", default_value = "0.5,1,2,4,8")]
+    pub lod: String,
+    /// Jittered samples per pixel of the reference image (16 or more)
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
+    /// Timed renders per view and C; the fastest counts
+    #[arg(long, default_value_t = 3)]
+    pub repeat: u32,
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Also chart speed against image error as SVG
     #[arg(long)]
     pub chart: Option<PathBuf>,
 }

@@ -299,6 +299,61 @@ impl RenderSettings {
     }
 }
 
+/// Settings of `brickworld bench lod`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BenchLodSettings {
+    /// Scene.
+    pub scene: SceneSettings,
+    /// View (the scene's three bench views unless one is given).
+    pub view: ViewSettings,
+    /// Footprints measured besides exact tracing, ascending.
+    pub lods: Vec<f32>,
+    /// Reference samples per pixel.
+    pub spp: u32,
+    /// Timed renders per point.
+    pub repeat: u32,
+    /// JSON path.
+    pub json: PathBuf,
+    /// Chart path.
+    pub chart: Option<PathBuf>,
+}
+
+/// Default size of procedural scenes for `bench lod` (the terrain).
+pub const BENCH_LOD_DEFAULT_SIZE: IVec3 = IVec3::new(2048, 256, 2048);
+
+impl BenchLodSettings {
+    /// Validate `bench lod` arguments.
+    pub fn from_args(a: &crate::cli::BenchLodArgs) -> Result<Self, ConfigError> {
+        let mut lods = Vec::new();
+        for part in a.lod.split(',') {
+            let c: f64 = part
+                .trim()
+                .parse()
+                .map_err(|_| bad("--lod", &a.lod, format!("'{part}' is not a number")))?;
+            lods.push(lod_c("--lod", c)?);
+        }
+        lods.sort_by(f32::total_cmp);
+        lods.dedup();
+        Ok(BenchLodSettings {
+            scene: SceneSettings::from_args(&a.scene, BENCH_LOD_DEFAULT_SIZE)?,
+            view: ViewSettings::from_args(&a.view, 960, 540)?,
+            lods,
+            spp: if (16..=1024).contains(&a.spp) {
+                a.spp
+            } else {
+                return Err(bad(
+                    "--spp",
+                    &a.spp.to_string(),
+                    "expected 16..=1024 samples per pixel",
+                ));
+            },
+            repeat: a.repeat.clamp(1, 100),
+            json: a.json.clone(),
+            chart: a.chart.clone(),
+        })
+    }
+}
+
 /// Settings of `brickworld bench tracers`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BenchTracersSettings {

@@ -3,6 +3,7 @@
 
 pub mod chart;
 pub mod flight;
+pub mod lod;
 pub mod sim;
 pub mod soak;
 pub mod store;

@@ -265,7 +265,7 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
     })
 }
 
-fn scene_name(spec: &crate::scene::SceneSpec) -> String {
+pub(crate) fn scene_name(spec: &crate::scene::SceneSpec) -> String {
     use crate::scene::SceneSpec::*;
     match spec {
         Terrain { caves: false } => "terrain".into(),

@@ -37,6 +37,7 @@ struct Params {
     anchor: vec3<i32>, frame: u32,  // world voxel of local (0, 0, 0); frame number
     feedback_capacity: u32, ring_x: i32, ring_y: i32, ring_z: i32, // ring: physical brick of local (0, 0, 0)
     fog: f32, lod_k: f32, l4_offset: u32, pad0: u32,  // fog extent (0: none); C * pixel angle (0: exact); level 4's word offset in `coarse`
+    jitter: vec2<f32>, pad1: u32, pad2: u32,          // where primary rays pass in each pixel
 };
 
 struct PixelOut {
@@ -431,8 +432,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= P.width || gid.y >= P.height) { return; }
     let w = f32(P.width);
     let h = f32(P.height);
-    let a = ((f32(gid.x) + 0.5) / w * 2.0 - 1.0) * P.tan_half * P.aspect;
-    let b = (1.0 - (f32(gid.y) + 0.5) / h * 2.0) * P.tan_half;
+    let a = ((f32(gid.x) + P.jitter.x) / w * 2.0 - 1.0) * P.tan_half * P.aspect;
+    let b = (1.0 - (f32(gid.y) + P.jitter.y) / h * 2.0) * P.tan_half;
     let d = normalize(P.f + a * P.r + b * P.u);
     let hit = trace(P.eye, d, P.lod_k);
     var o: PixelOut;

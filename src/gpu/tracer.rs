@@ -53,6 +53,9 @@ struct Params {
     /// Word offset of level 4 in the coarse buffer (level 5 is first).
     l4_offset: u32,
     pad: u32,
+    /// Where primary rays pass in each pixel (0.5, 0.5: the centre).
+    jitter: [f32; 2],
+    pad2: [u32; 2],
 }
 
 #[repr(C)]
@@ -460,6 +463,8 @@ impl GpuBrickmap {
             lod_k: opts.lod * camera.pixel_angle() as f32,
             l4_offset: l4_offset(grid),
             pad: 0,
+            jitter: opts.jitter.unwrap_or([0.5, 0.5]).map(|v| v as f32),
+            pad2: [0; 2],
         };
         ctx.queue
             .write_buffer(&self.feedback, 0, bytemuck::bytes_of(&0u32));

@@ -108,13 +108,20 @@ impl Camera {
         2.0 * self.tan_half / self.height as f64
     }
 
-    /// Normalised world direction of pixel (i, j).
+    /// Normalised world direction of pixel (i, j) (through its centre).
     #[inline]
     pub fn direction(&self, i: u32, j: u32) -> DVec3 {
+        self.direction_at(i as f64 + 0.5, j as f64 + 0.5)
+    }
+
+    /// Normalised world direction through image point `(x, y)` in pixels
+    /// (pixel `(i, j)` covers `[i, i+1) × [j, j+1)`): for jittered samples.
+    #[inline]
+    pub fn direction_at(&self, x: f64, y: f64) -> DVec3 {
         let w = self.width as f64;
         let h = self.height as f64;
-        let a = ((i as f64 + 0.5) / w * 2.0 - 1.0) * self.tan_half * w / h;
-        let b = (1.0 - (j as f64 + 0.5) / h * 2.0) * self.tan_half;
+        let a = (x / w * 2.0 - 1.0) * self.tan_half * w / h;
+        let b = (1.0 - y / h * 2.0) * self.tan_half;
         (self.f + a * self.r + b * self.u).normalize()
     }
 }

@@ -48,6 +48,9 @@ pub struct RenderOptions {
     /// Level of detail: primary rays stop at cells under `lod` pixels wide
     /// (Áfra's `C`). 0 is exact.
     pub lod: f32,
+    /// Where in each pixel the primary ray passes, in `[0, 1)²`; `None` is
+    /// the centre. Jittered offsets averaged make a supersampled image.
+    pub jitter: Option<[f64; 2]>,
 }
 
 /// Blend `c`, seen at distance `t`, into the sky colour `sky` by the fog
@@ -142,6 +145,7 @@ pub fn render(
     let origin = frame.to_local(camera.eye);
     // The same f32 product the GPU shader is given.
     let lod_k = opts.lod * camera.pixel_angle() as f32;
+    let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
     rgb.par_chunks_mut(w * 3 * TILE)
         .zip(depth.par_chunks_mut(w * TILE))
         .zip(hits.par_chunks_mut(w * TILE))
@@ -152,7 +156,7 @@ pub fn render(
                 for r in 0..rows {
                     let j = band * TILE + r;
                     for i in tx..(tx + TILE).min(w) {
-                        let dir = camera.direction(i as u32, j as u32);
+                        let dir = camera.direction_at(i as f64 + jx, j as f64 + jy);
                         let ray = Ray::new(origin, dir.as_vec3());
                         let px = r * w + i;
                         let c = match tracer.trace_lod(&ray, f32::INFINITY, lod_k) {

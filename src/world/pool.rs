@@ -97,10 +97,10 @@ pub struct BrickRef<'p> {
     slot: usize,
 }
 
-impl BrickRef<'_> {
+impl<'p> BrickRef<'p> {
     /// The 512-bit occupancy mask, word `z` holding the slice at depth `z`.
     #[inline(always)]
-    pub fn mask(&self) -> &[u64; 8] {
+    pub fn mask(&self) -> &'p [u64; 8] {
         &self.pool.masks[self.slot]
     }
 
