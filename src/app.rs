@@ -173,10 +173,26 @@ fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
     if a.pool == 0 || a.pool > 1 << 24 {
         anyhow::bail!("invalid --pool {}: must be in 1..=16777216 slots", a.pool);
     }
+    let lod = a
+        .lod
+        .map(|c| crate::config::lod_c("--lod", c))
+        .transpose()?
+        .unwrap_or(0.0);
     let mut world = build_world(&scene)?;
     let pb = bar("bench stream", 0);
     let r = crate::bench::stream::run(
-        &mut world, a.view, a.width, a.height, a.uploads, a.pool, &pb,
+        &mut world,
+        a.view,
+        a.width,
+        a.height,
+        a.uploads,
+        a.pool,
+        RenderOptions {
+            lod,
+            beam: a.beam,
+            ..Default::default()
+        },
+        &pb,
     )?;
     pb.finish_and_clear();
     std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
@@ -457,6 +473,8 @@ fn run_render(s: RenderSettings) -> Result<()> {
             shadows: s.shadows,
             fog: s.fog,
             lod: s.lod,
+            ao: s.ao,
+            beam: s.beam,
             ..Default::default()
         };
         let built = t0.elapsed();

@@ -283,6 +283,12 @@ pub struct BenchStreamArgs {
     /// Brick slots the GPU pool starts with (it doubles when the view needs more, up to 2^20)
     #[arg(long, default_value_t = 65_536)]
     pub pool: u32,
+    /// Level of detail: bricks under C pixels wide are drawn whole and not streamed (leave out for exact)
+    #[arg(long, value_name = "C", allow_negative_numbers = true)]
+    pub lod: Option<f64>,
+    /// Beam starts: a coarse pass per 8x8 pixel block finds where its rays may start (same image)
+    #[arg(long)]
+    pub beam: bool,
     /// Write the results as JSON here
     #[arg(long)]
     pub json: PathBuf,
@@ -392,6 +398,12 @@ pub struct RenderArgs {
     /// Distance fog extent in voxels: hits blend towards the sky by 1 - exp(-t / FOG) (0: none)
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub fog: f64,
+    /// Per-voxel ambient occlusion (darkens creases and corners from the neighbouring voxels)
+    #[arg(long)]
+    pub ao: bool,
+    /// Beam starts: a coarse pass per 8x8 pixel block finds where its rays may start (same image)
+    #[arg(long)]
+    pub beam: bool,
     /// Level of detail: stop at cells under C pixels wide (brickmap only; leave out for exact output)
     #[arg(long, value_name = "C", allow_negative_numbers = true)]
     pub lod: Option<f64>,

@@ -232,6 +232,10 @@ pub struct RenderSettings {
     pub fog: f32,
     /// Level of detail `C` in pixels (0: exact).
     pub lod: f32,
+    /// Ambient occlusion.
+    pub ao: bool,
+    /// Beam starts.
+    pub beam: bool,
 }
 
 /// Largest level-of-detail `C`, in pixels.
@@ -295,6 +299,8 @@ impl RenderSettings {
                 }
                 Some(c) => lod_c("--lod", c)?,
             },
+            ao: a.ao,
+            beam: a.beam,
         })
     }
 }

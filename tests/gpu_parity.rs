@@ -21,10 +21,24 @@ fn context() -> Option<GpuContext> {
 }
 
 fn parity(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, fog: f32) {
-    parity_with(name, b, ctx, shadows, fog, 0.0);
+    let opts = RenderOptions {
+        shadows,
+        fog,
+        ..Default::default()
+    };
+    parity_with(name, b, ctx, opts);
 }
 
-fn parity_with(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, fog: f32, lod: f32) {
+/// The GPU with `opts` against the CPU with the same options, except beam
+/// starts: the CPU traces without them, so a GPU beam that skipped a hit
+/// would show.
+fn parity_with(name: &str, b: &common::Built, ctx: &GpuContext, opts: RenderOptions) {
+    let (fog, lod, ao) = (opts.fog, opts.lod, opts.ao);
+    let gpu_opts = opts;
+    let opts = RenderOptions {
+        beam: false,
+        ..opts
+    };
     let mut gpu = GpuBrickmap::preloaded(
         ctx,
         b.world.grid(),
@@ -32,12 +46,6 @@ fn parity_with(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, f
         b.world.store().palette(),
     )
     .unwrap();
-    let opts = RenderOptions {
-        shadows,
-        fog,
-        lod,
-        ..Default::default()
-    };
     let bm = b.brickmap();
     for (vi, v) in b.world.default_views().iter().enumerate() {
         let cam = Camera::new(DVec3::from(v.eye), DVec3::from(v.target), v.fov, 160, 120).unwrap();
@@ -53,6 +61,20 @@ fn parity_with(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, f
                 .count();
             assert!(moved * 2 > hits, "{name}: fog moved {moved} of {hits} hits");
         }
+        if ao {
+            // The occlusion shows: a good share of hits darken.
+            let flat = RenderOptions { ao: false, ..opts };
+            let plain = render(&bm, &cam, b.world.store().palette(), &flat);
+            let darker = (0..cpu.hits.len())
+                .filter(|&i| {
+                    (0..3).any(|k| cpu.rgb[i * 3 + k] as u32 + 4 < plain.rgb[i * 3 + k] as u32)
+                })
+                .count();
+            assert!(
+                darker * 20 > cpu.hits.iter().filter(|h| h.is_some()).count(),
+                "{name} view {vi}: ambient occlusion darkened only {darker} pixels"
+            );
+        }
         if lod > 0.0 {
             // The levels are used: many hits differ from the exact ones.
             let exact = RenderOptions { lod: 0.0, ..opts };
@@ -66,7 +88,7 @@ fn parity_with(name: &str, b: &common::Built, ctx: &GpuContext, shadows: bool, f
             );
         }
         let (g, _) = gpu
-            .render(ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
+            .render(ctx, &cam, &gpu_opts, b.world.grid(), b.world.store().pool())
             .unwrap();
         let n = cpu.hits.len();
         let (mut same, mut depth_bad, mut colour_bad) = (0usize, 0usize, 0usize);
@@ -127,14 +149,115 @@ fn gpu_matches_cpu_on_the_standard_scenes_and_views() {
 #[test]
 fn gpu_matches_cpu_with_level_of_detail() {
     let Some(ctx) = context() else { return };
-    parity_with("terrain, C = 4", common::terrain(), &ctx, true, 0.0, 4.0);
-    parity_with("balls, C = 8", common::balls(), &ctx, false, 0.0, 8.0);
+    parity_with(
+        "terrain, C = 4",
+        common::terrain(),
+        &ctx,
+        RenderOptions {
+            shadows: true,
+            fog: 0.0,
+            lod: 4.0,
+            ao: false,
+            ..Default::default()
+        },
+    );
+    parity_with(
+        "balls, C = 8",
+        common::balls(),
+        &ctx,
+        RenderOptions {
+            shadows: false,
+            fog: 0.0,
+            lod: 8.0,
+            ao: false,
+            ..Default::default()
+        },
+    );
     parity_with(
         "hairball, C = 16",
         common::hairball(),
         &ctx,
-        false,
-        30.0,
-        16.0,
+        RenderOptions {
+            shadows: false,
+            fog: 30.0,
+            lod: 16.0,
+            ao: false,
+            ..Default::default()
+        },
+    );
+}
+
+/// Beam starts on the GPU change nothing: the CPU traces without them.
+#[test]
+fn gpu_beam_starts_match_the_cpu_without_them() {
+    let Some(ctx) = context() else { return };
+    for (name, b) in [
+        ("terrain", common::terrain()),
+        ("caves", common::caves()),
+        ("balls", common::balls()),
+    ] {
+        parity_with(
+            name,
+            b,
+            &ctx,
+            RenderOptions {
+                beam: true,
+                ..Default::default()
+            },
+        );
+    }
+    parity_with(
+        "terrain, C = 4, with beams",
+        common::terrain(),
+        &ctx,
+        RenderOptions {
+            beam: true,
+            lod: 4.0,
+            shadows: true,
+            ..Default::default()
+        },
+    );
+}
+
+/// Ambient occlusion is the same on both (same corner rule, same lookups);
+/// the test fails if the shader leaves it out (checked by mutation).
+#[test]
+fn gpu_matches_cpu_with_ambient_occlusion() {
+    let Some(ctx) = context() else { return };
+    parity_with(
+        "terrain with AO",
+        common::terrain(),
+        &ctx,
+        RenderOptions {
+            shadows: true,
+            fog: 0.0,
+            lod: 0.0,
+            ao: true,
+            ..Default::default()
+        },
+    );
+    parity_with(
+        "caves with AO",
+        common::caves(),
+        &ctx,
+        RenderOptions {
+            shadows: false,
+            fog: 0.0,
+            lod: 0.0,
+            ao: true,
+            ..Default::default()
+        },
+    );
+    parity_with(
+        "hairball with AO and C = 4",
+        common::hairball(),
+        &ctx,
+        RenderOptions {
+            shadows: false,
+            fog: 0.0,
+            lod: 4.0,
+            ao: true,
+            ..Default::default()
+        },
     );
 }

@@ -34,6 +34,13 @@ pub struct FrameMs {
 pub struct StreamReport {
     /// Adapter used.
     pub adapter: String,
+    /// Level-of-detail footprint `C` in pixels (0: exact): bricks whose
+    /// footprint is under it are drawn whole and never streamed.
+    pub lod_c: f32,
+    /// Beam starts on the GPU (and on the CPU run of the same view).
+    pub beam: bool,
+    /// `gpu_bytes / world_brick_bytes`.
+    pub gpu_memory_fraction: f64,
     /// Frames from an empty pool until a static view requests nothing more.
     pub frames_to_converge: u32,
     /// Bricks uploaded after each cold-start frame.
@@ -80,8 +87,10 @@ pub fn run(
     height: u32,
     budget: u32,
     pool_slots: u32,
+    opts: RenderOptions,
     progress: &indicatif::ProgressBar,
 ) -> Result<StreamReport> {
+    let lod = opts.lod;
     let ctx = GpuContext::new()?;
     let v = world.default_views()[view];
     let cam = Camera::new(
@@ -91,7 +100,6 @@ pub fn run(
         width,
         height,
     )?;
-    let opts = RenderOptions::default();
     let cfg = StreamConfig {
         uploads_per_frame: budget,
         pool_slots,
@@ -209,6 +217,9 @@ pub fn run(
     let world_brick_bytes = world.grid().bytes() as u64 + world.store().pool().bytes() as u64;
     Ok(StreamReport {
         adapter: ctx.describe(),
+        lod_c: lod,
+        beam: opts.beam,
+        gpu_memory_fraction: gpu_bytes as f64 / world_brick_bytes.max(1) as f64,
         frames_to_converge,
         uploads_per_frame: uploads,
         frame_ms: FrameMs {

@@ -89,6 +89,17 @@ pub struct BenchReport {
     pub grid_voxels: u64,
     /// Seconds to build the scene into the brick store.
     pub scene_build_s: f64,
+    /// The brickmap with beam starts (its hits count in `agree` too).
+    pub brickmap_beam: BeamFigures,
+}
+
+/// The brickmap with beam starts, per view.
+#[derive(Debug, Clone, Serialize)]
+pub struct BeamFigures {
+    /// Mrays/s of each view.
+    pub view_mrays_per_s: Vec<f64>,
+    /// Speed relative to the brickmap without beams, per view.
+    pub view_speedup: Vec<f64>,
 }
 
 /// Run the bench and write its JSON (and chart).
@@ -182,8 +193,9 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
 
     let pb = bar(
         "bench",
-        (views.len() * built.len()) as u64 * s.repeat as u64,
+        (views.len() * (built.len() + 1)) as u64 * s.repeat as u64,
     );
+    let mut beam_times = vec![0f64; cameras.len()];
     let opts = RenderOptions::default();
     let palette = world.store().palette();
     let pixels = (s.view.width * s.view.height) as u64;
@@ -212,8 +224,30 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
                 }
             }
         }
+        // The brickmap again with beam starts: the same hits, sooner.
+        let beamed = RenderOptions { beam: true, ..opts };
+        let mut best = f64::INFINITY;
+        for _ in 0..s.repeat {
+            let t = Instant::now();
+            let o = render(&brickmap, cam, palette, &beamed);
+            best = best.min(t.elapsed().as_secs_f64());
+            if let Some(r) = &reference {
+                mismatches += r.iter().zip(&o.hits).filter(|(a, b)| a != b).count() as u64;
+            }
+            pb.inc(1);
+        }
+        beam_times[vi] = best;
     }
     pb.finish_and_clear();
+    let brickmap_i = built.len() - 1;
+    let beam = BeamFigures {
+        view_mrays_per_s: beam_times.iter().map(|t| pixels as f64 / t / 1e6).collect(),
+        view_speedup: beam_times
+            .iter()
+            .zip(&times[brickmap_i])
+            .map(|(b, p)| p / b)
+            .collect(),
+    };
 
     for (si, (structure, tracer, build_s)) in built.iter().enumerate() {
         let total: f64 = times[si].iter().sum();
@@ -262,6 +296,7 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
         },
         grid_voxels: ext.as_u64vec3().element_product(),
         scene_build_s,
+        brickmap_beam: beam,
     })
 }
 
@@ -326,6 +361,17 @@ fn print_table(r: &BenchReport) {
             StructureReport::Failed { name, error } => println!("{name:<9} not built: {error}"),
         }
     }
+    let per_view = |v: &[f64]| {
+        v.iter()
+            .map(|x| format!("{x:.2}"))
+            .collect::<Vec<_>>()
+            .join(" / ")
+    };
+    println!(
+        "brickmap with beam starts: {} Mrays/s per view, {} x the plain brickmap",
+        per_view(&r.brickmap_beam.view_mrays_per_s),
+        per_view(&r.brickmap_beam.view_speedup)
+    );
     println!(
         "agreement: {} mismatches in {} rays",
         r.agree.mismatches, r.agree.rays

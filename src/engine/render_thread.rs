@@ -99,6 +99,8 @@ pub struct RenderSettings {
     pub fog: f32,
     /// Level of detail `C` in pixels (0: exact).
     pub lod: f32,
+    /// Ambient occlusion.
+    pub ao: bool,
     /// Where frame PNGs go.
     pub frames_dir: PathBuf,
     /// Frames kept on disk; older ones are deleted.
@@ -210,6 +212,7 @@ impl RenderThread {
                         shadows: settings.shadows,
                         fog: settings.fog,
                         lod: settings.lod,
+                        ao: settings.ao,
                         ..Default::default()
                     };
                     let rgb = draw(&mut gpu, world, &job.camera, &opts, &st);

@@ -42,6 +42,7 @@
 //! tracer = "auto"             # auto (the GPU unless it is software), gpu (falls back to cpu) or cpu
 //! shadows = true
 //! fog = 512.0                 # distance fog extent in voxels (0: none; default: half the view distance of a streamed world, else none)
+//! ao = true                   # per-voxel ambient occlusion
 //! lod = 1.0                   # level of detail: cells under this many pixels are traced whole (0: exact)
 //!
 //! [frames]
@@ -245,6 +246,7 @@ struct RawRender {
     shadows: Option<bool>,
     fog: Option<f64>,
     lod: Option<f64>,
+    ao: Option<bool>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -382,6 +384,8 @@ pub struct WorldConfig {
     pub fog: f32,
     /// Level of detail `C` in pixels (0: exact).
     pub lod: f32,
+    /// Ambient occlusion in frames.
+    pub ao: bool,
     /// Frame directory, relative to the state directory.
     pub frames_dir: PathBuf,
     /// Write a frame every this many ticks.
@@ -845,6 +849,7 @@ impl WorldConfig {
             height: dim(raw.render.height, 360, "render.height")?,
             tracer,
             shadows: raw.render.shadows.unwrap_or(true),
+            ao: raw.render.ao.unwrap_or(true),
             fog,
             lod: match raw.render.lod {
                 None => DEFAULT_LOD,

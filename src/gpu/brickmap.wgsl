@@ -36,8 +36,8 @@ struct Params {
     dims: vec3<i32>, height: u32,   // grid size in voxels
     anchor: vec3<i32>, frame: u32,  // world voxel of local (0, 0, 0); frame number
     feedback_capacity: u32, ring_x: i32, ring_y: i32, ring_z: i32, // ring: physical brick of local (0, 0, 0)
-    fog: f32, lod_k: f32, l4_offset: u32, pad0: u32,  // fog extent (0: none); C * pixel angle (0: exact); level 4's word offset in `coarse`
-    jitter: vec2<f32>, pad1: u32, pad2: u32,          // where primary rays pass in each pixel
+    fog: f32, lod_k: f32, l4_offset: u32, ao: u32,  // fog extent (0: none); C * pixel angle (0: exact); level 4's word offset in `coarse`
+    jitter: vec2<f32>, beam: u32, pad2: u32,          // where primary rays pass in each pixel; beam starts on (1)
 };
 
 struct PixelOut {
@@ -59,6 +59,7 @@ struct PixelOut {
 @group(0) @binding(7) var<storage, read_write> out: array<PixelOut>;
 @group(0) @binding(8) var<storage, read_write> feedback: array<atomic<u32>>; // [0] = count, then brick indices
 @group(0) @binding(9) var<storage, read_write> last_seen: array<u32>;        // per pool slot
+@group(0) @binding(10) var<storage, read_write> beams: array<f32>;           // per 8x8 block: where its rays start
 
 const BIG: f32 = 1e30;
 const STATE_MASK: u32 = 0xC0000000u;
@@ -193,6 +194,16 @@ fn step_fine(r: Ray, st: ptr<function, State>) {
     (*st).axes = axes;
 }
 
+
+fn coarse_exit(r: Ray, a: i32, c: i32, shift: u32) -> i32 {
+    return select((c << shift) - 1, (c + 1) << shift, r.step[a] > 0);
+}
+
+fn coarse_tmax(r: Ray, c: vec3<i32>, shift: u32) -> vec3<f32> {
+    var t: vec3<f32>;
+    for (var a = 0; a < 3; a++) { t[a] = crossing(r, a, coarse_exit(r, a, c[a], shift)); }
+    return t;
+}
 
 fn inside(c: vec3<i32>, hi: vec3<i32>) -> bool {
     return all(c >= vec3<i32>(0)) && all(c < hi);
@@ -348,13 +359,18 @@ fn lod_material(level: u32, c: vec3<i32>, p: u32, slot: u32, loaded: bool) -> u3
 // The level walk of src/trace/lod.rs: at the current voxel, check levels from
 // the highest whose cell changed down to the level the footprint allows
 // (k = C * pixel angle; 0 is exact); skip the first empty one exactly, or hit.
-fn trace(o: vec3<f32>, d: vec3<f32>, k: f32) -> Hit {
+fn trace(o: vec3<f32>, d: vec3<f32>, k: f32, t_start: f32) -> Hit {
     var miss: Hit;
     miss.found = false;
     let r = make_ray(o, d);
     if (!any(r.act)) { return miss; }
     var st: State;
     if (!enter(r, P.dims, &st)) { return miss; }
+    // A beam start: restore the exact state there (src/trace/beam.rs).
+    if (t_start > st.t) {
+        advance_to(r, &st, t_start);
+        if (!inside(st.cell, P.dims)) { return miss; }
+    }
     var lod_hit: Hit;
     lod_hit.found = false;
     var lod_count = 0;
@@ -418,6 +434,128 @@ fn trace(o: vec3<f32>, d: vec3<f32>, k: f32) -> Hit {
     return select_lod(lod_hit, miss);
 }
 
+// Whether local voxel c is solid, for ambient occlusion. A brick not loaded
+// counts as solid (its voxels are unknown here); preloaded pools are exact.
+fn solid_at(c: vec3<i32>) -> bool {
+    if (!inside(c, P.dims)) { return false; }
+    let p = pointer(c >> vec3<u32>(3u));
+    if (p == 0u) { return false; }
+    if ((p & STATE_MASK) == 0u) { return block_solid(p - 1u, 0u, c & vec3<i32>(7)); }
+    return true;
+}
+
+// Openness of the face of voxel `cell` with normal n at hit point p
+// (src/trace/ao.rs, face_ao): the classic voxel corner rule, interpolated.
+fn face_ao(cell: vec3<i32>, n: vec3<i32>, p: vec3<f32>) -> f32 {
+    if (all(n == vec3<i32>(0))) { return 1.0; }
+    var a = 0;
+    if (n.y != 0) { a = 1; }
+    if (n.z != 0) { a = 2; }
+    let u = (a + 1) % 3;
+    let v = (a + 2) % 3;
+    var eu = vec3<i32>(0);
+    eu[u] = 1;
+    var ev = vec3<i32>(0);
+    ev[v] = 1;
+    let f = cell + n;
+    var cs: array<f32, 4>;
+    for (var k = 0; k < 4; k++) {
+        let su = select(-1, 1, (k & 1) != 0);
+        let sv = select(-1, 1, (k & 2) != 0);
+        let s1 = u32(solid_at(f + eu * su));
+        let s2 = u32(solid_at(f + ev * sv));
+        let c = u32(solid_at(f + eu * su + ev * sv));
+        cs[k] = select(f32(3u - s1 - s2 - c) / 3.0, 0.0, s1 + s2 == 2u);
+    }
+    let fu = clamp(p[u] - f32(cell[u]), 0.0, 1.0);
+    let fv = clamp(p[v] - f32(cell[v]), 0.0, 1.0);
+    let low = cs[0] + (cs[1] - cs[0]) * fu;
+    let high = cs[2] + (cs[3] - cs[2]) * fu;
+    return low + (high - low) * fv;
+}
+
+// Beam starts (src/trace/beam.rs): whether the 3x3x3 level-`level` cells
+// (3, 4 or 5) around c are empty.
+fn neighbourhood_empty(c: vec3<i32>, level: u32) -> bool {
+    let n = P.dims >> vec3<u32>(level);
+    for (var dz = -1; dz <= 1; dz++) {
+        for (var dy = -1; dy <= 1; dy++) {
+            for (var dx = -1; dx <= 1; dx++) {
+                let q = c + vec3<i32>(dx, dy, dz);
+                if (any(q < vec3<i32>(0)) || any(q >= n)) { continue; }
+                if (level == 3u) {
+                    if (pointer(q) != 0u) { return false; }
+                } else if (coarse_mat(level, q << vec3<u32>(level)) != 0u) {
+                    return false;
+                }
+            }
+        }
+    }
+    return true;
+}
+
+// A distance before which every ray within `spread` of the centre ray meets
+// nothing (BrickmapTracer::beam_start).
+fn beam_start(o: vec3<f32>, d: vec3<f32>, spread: f32, k: f32) -> f32 {
+    let r = make_ray(o, d);
+    if (!any(r.act)) { return 0.0; }
+    // From the eye, even outside the grid (see src/trace/beam.rs).
+    var level = 3u;
+    var cc = vec3<i32>(floor(o)) >> vec3<u32>(level);
+    var ct = coarse_tmax(r, cc, level);
+    var t_in = 0.0;
+    for (var guard = 0; guard < 4096; guard++) {
+        var t_out = min(ct.x, min(ct.y, ct.z));
+        loop {
+            if (t_out * spread * 1.5 < f32(1u << level)) { break; }
+            if (level == 5u) { return t_in; }
+            level += 1u;
+            cc = cc >> vec3<u32>(1u);
+            ct = coarse_tmax(r, cc, level);
+            t_out = min(ct.x, min(ct.y, ct.z));
+        }
+        if (lod_level(t_out * k) > level || !neighbourhood_empty(cc, level)) { return t_in; }
+        for (var a = 0; a < 3; a++) {
+            if (ct[a] == t_out) {
+                cc[a] += r.step[a];
+                ct[a] = crossing(r, a, coarse_exit(r, a, cc[a], level));
+            }
+        }
+        t_in = t_out;
+        let n = P.dims >> vec3<u32>(level);
+        for (var a = 0; a < 3; a++) {
+            if ((cc[a] < -1 && r.step[a] <= 0) || (cc[a] > n[a] && r.step[a] >= 0)) { return t_in; }
+        }
+    }
+    return t_in;
+}
+
+fn pixel_dir(x: f32, y: f32) -> vec3<f32> {
+    let a = (x / f32(P.width) * 2.0 - 1.0) * P.tan_half * P.aspect;
+    let b = (1.0 - y / f32(P.height) * 2.0) * P.tan_half;
+    return normalize(P.f + a * P.r + b * P.u);
+}
+
+// The coarse pass: one invocation per 8x8 block of pixels.
+@compute @workgroup_size(8, 8)
+fn beam_pass(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let bw = (P.width + 7u) / 8u;
+    let bh = (P.height + 7u) / 8u;
+    if (gid.x >= bw || gid.y >= bh) { return; }
+    let x0 = f32(gid.x * 8u);
+    let y0 = f32(gid.y * 8u);
+    let x1 = f32(min((gid.x + 1u) * 8u, P.width));
+    let y1 = f32(min((gid.y + 1u) * 8u, P.height));
+    let c = pixel_dir((x0 + x1) * 0.5, (y0 + y1) * 0.5);
+    var spread = 0.0;
+    for (var k = 0; k < 4; k++) {
+        let dc = pixel_dir(select(x0, x1, (k & 1) != 0), select(y0, y1, (k & 2) != 0));
+        spread = max(spread, length(cross(dc, c)) / max(dot(dc, c), 1e-9));
+    }
+    let t = beam_start(P.eye, c, spread, P.lod_k);
+    beams[gid.y * bw + gid.x] = max(t * (1.0 - 1e-3) - 0.05, 0.0);
+}
+
 fn unpack_rgb(c: u32) -> vec3<f32> {
     return vec3<f32>(f32(c & 0xffu), f32((c >> 8u) & 0xffu), f32((c >> 16u) & 0xffu)) / 255.0;
 }
@@ -435,7 +573,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let a = ((f32(gid.x) + P.jitter.x) / w * 2.0 - 1.0) * P.tan_half * P.aspect;
     let b = (1.0 - (f32(gid.y) + P.jitter.y) / h * 2.0) * P.tan_half;
     let d = normalize(P.f + a * P.r + b * P.u);
-    let hit = trace(P.eye, d, P.lod_k);
+    var t0 = 0.0;
+    if (P.beam != 0u) { t0 = beams[(gid.y / 8u) * ((P.width + 7u) / 8u) + gid.x / 8u]; }
+    let hit = trace(P.eye, d, P.lod_k, t0);
     var o: PixelOut;
     var color: vec3<f32>;
     if (hit.found) {
@@ -450,9 +590,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let below = bitcast<vec3<f32>>(bitcast<vec3<u32>>(hi) - vec3<u32>(select(vec3<u32>(0u), vec3<u32>(1u), hi > vec3<f32>(0.0)))) ;
             let hi2 = select(below, -bitcast<vec3<f32>>(bitcast<vec3<u32>>(-hi) + vec3<u32>(1u)), hi <= vec3<f32>(0.0));
             let q = clamp(p, lo, hi2);
-            if (trace(q, P.light, 0.0).found) { lambert = 0.0; }
+            if (trace(q, P.light, 0.0, 0.0).found) { lambert = 0.0; }
         }
-        let k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
+        var k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
+        if (P.ao != 0u) {
+            k *= 1.0 - 0.45 * (1.0 - face_ao(hit.cell, hit.normal, P.eye + d * hit.t));
+        }
         color = unpack_rgb(hit.rgb) * k;
         if (P.fog > 0.0) {
             color = mix(color, sky(d), 1.0 - exp(-hit.t / P.fog));

@@ -52,10 +52,13 @@ struct Params {
     lod_k: f32,
     /// Word offset of level 4 in the coarse buffer (level 5 is first).
     l4_offset: u32,
-    pad: u32,
+    /// Ambient occlusion on (1) or off (0).
+    ao: u32,
     /// Where primary rays pass in each pixel (0.5, 0.5: the centre).
     jitter: [f32; 2],
-    pad2: [u32; 2],
+    /// Beam starts on (1) or off (0).
+    beam: u32,
+    pad2: u32,
 }
 
 #[repr(C)]
@@ -72,6 +75,8 @@ struct PixelOut {
 /// The brickmap on the GPU.
 pub struct GpuBrickmap {
     pub(super) pipeline: wgpu::ComputePipeline,
+    /// The coarse pass of beam starts (entry point `beam_pass`).
+    pub(super) beam_pipeline: wgpu::ComputePipeline,
     pub(super) layout: wgpu::BindGroupLayout,
     pub(super) grid: wgpu::Buffer,
     pub(super) coarse: wgpu::Buffer,
@@ -318,6 +323,7 @@ impl GpuBrickmap {
             entry(7, rw),
             entry(8, rw),
             entry(9, rw),
+            entry(10, rw),
         ];
         let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("brickmap"),
@@ -336,11 +342,20 @@ impl GpuBrickmap {
             compilation_options: Default::default(),
             cache: None,
         });
+        let beam_pipeline = dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("beam starts"),
+            layout: Some(&pl),
+            module: &module,
+            entry_point: Some("beam_pass"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Shader(e.to_string()));
         }
         Ok(GpuBrickmap {
             pipeline,
+            beam_pipeline,
             layout,
             grid: grid_buf,
             coarse,
@@ -462,9 +477,10 @@ impl GpuBrickmap {
             fog: opts.fog,
             lod_k: opts.lod * camera.pixel_angle() as f32,
             l4_offset: l4_offset(grid),
-            pad: 0,
+            ao: opts.ao as u32,
             jitter: opts.jitter.unwrap_or([0.5, 0.5]).map(|v| v as f32),
-            pad2: [0; 2],
+            beam: opts.beam as u32,
+            pad2: 0,
         };
         ctx.queue
             .write_buffer(&self.feedback, 0, bytemuck::bytes_of(&0u32));
@@ -489,6 +505,13 @@ impl GpuBrickmap {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
+        let (bw, bh) = (w.div_ceil(8), h.div_ceil(8));
+        let beams = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("beam starts"),
+            size: (bw * bh) as u64 * 4,
+            usage: wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
         let buffers = [
             &uniform,
             &self.grid,
@@ -500,6 +523,7 @@ impl GpuBrickmap {
             &out,
             &self.feedback,
             &self.last_seen,
+            &beams,
         ];
         let entries: Vec<wgpu::BindGroupEntry> = buffers
             .iter()
@@ -517,6 +541,16 @@ impl GpuBrickmap {
         let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("frame"),
         });
+        if opts.beam {
+            // Its own pass, so that its writes are visible to the next.
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("beam starts"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.beam_pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(bw.div_ceil(8), bh.div_ceil(8), 1);
+        }
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("trace"),

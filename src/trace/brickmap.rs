@@ -55,28 +55,18 @@ impl<'w> BrickmapTracer<'w> {
             && (o[2] as u32) < (self.dims[2] >> OCC_VOXEL_SHIFT) as u32
     }
 
-    fn hit(&self, r: &DdaRay, st: &super::dda::DdaState, material: u8) -> Hit {
-        Hit {
-            t: st.t,
-            voxel: self.frame.to_world(st.cell),
-            normal: IVec3::from(r.normal(st)),
-            material,
-        }
-    }
-}
-
-impl Tracer for BrickmapTracer<'_> {
-    fn name(&self) -> &'static str {
-        "brickmap"
-    }
-
-    fn frame(&self) -> Frame {
-        self.frame
-    }
-
-    fn trace(&self, ray: &Ray, t_max: f32) -> Option<Hit> {
+    /// The exact walk from distance `t_start` (0: the eye), which must be
+    /// a distance before which the ray meets nothing (a beam start): the
+    /// exact state there is restored, so the answer is the walk's from 0.
+    pub fn trace_exact_from(&self, ray: &Ray, t_start: f32, t_max: f32) -> Option<Hit> {
         let r = DdaRay::new(ray)?;
         let mut st = r.enter([0; 3], self.dims)?;
+        if t_start > st.t {
+            r.advance_to(&mut st, t_start);
+            if !self.inside(st.cell) {
+                return None;
+            }
+        }
         // `st` is the exact voxel state whenever a cell's content is read.
         // Across empty space only the coarse cell is stepped: its next
         // crossing depends on the coarse cell alone, so no voxel state is
@@ -159,12 +149,58 @@ impl Tracer for BrickmapTracer<'_> {
         }
     }
 
+    fn hit(&self, r: &DdaRay, st: &super::dda::DdaState, material: u8) -> Hit {
+        Hit {
+            t: st.t,
+            voxel: self.frame.to_world(st.cell),
+            normal: IVec3::from(r.normal(st)),
+            material,
+        }
+    }
+}
+
+impl Tracer for BrickmapTracer<'_> {
+    fn name(&self) -> &'static str {
+        "brickmap"
+    }
+
+    fn frame(&self) -> Frame {
+        self.frame
+    }
+
+    fn trace(&self, ray: &Ray, t_max: f32) -> Option<Hit> {
+        self.trace_exact_from(ray, 0.0, t_max)
+    }
+
     fn trace_lod(&self, ray: &Ray, t_max: f32, k: f32) -> Option<Hit> {
+        Tracer::trace_from(self, ray, 0.0, t_max, k)
+    }
+
+    fn trace_from(&self, ray: &Ray, t_start: f32, t_max: f32, k: f32) -> Option<Hit> {
         // Exact tracing keeps its specialised walk (same answers, faster).
         if k == 0.0 {
-            self.trace(ray, t_max)
+            self.trace_exact_from(ray, t_start, t_max)
         } else {
-            BrickmapTracer::trace_lod(self, ray, t_max, k)
+            self.trace_lod_from(ray, t_start, t_max, k)
+        }
+    }
+
+    fn beam_start(&self, centre: &Ray, spread: f32, k: f32) -> f32 {
+        BrickmapTracer::beam_start(self, centre, spread, k)
+    }
+
+    fn solid_local(&self, c: [i32; 3]) -> bool {
+        if !self.inside(c) {
+            return false;
+        }
+        let p = self.grid.pointer(IVec3::from(c.map(|v| v >> BRICK_SHIFT)));
+        match p {
+            0 => false,
+            p if p & UNIFORM != 0 => true,
+            p => self
+                .pool
+                .slot(p - 1)
+                .is_some_and(|b| crate::world::block_solid(b.mask(), 0, c.map(|v| v & 7))),
         }
     }
 

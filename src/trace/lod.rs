@@ -48,8 +48,20 @@ impl BrickmapTracer<'_> {
     /// First cell along `ray` (entry `t ≤ t_max`) that is solid at the level
     /// its footprint allows, with `k = C ·` pixel angle (0: exact).
     pub fn trace_lod(&self, ray: &Ray, t_max: f32, k: f32) -> Option<Hit> {
+        self.trace_lod_from(ray, 0.0, t_max, k)
+    }
+
+    /// [`trace_lod`](Self::trace_lod) from distance `t_start`, which must be
+    /// a beam start for `k` (see [`super::beam`]).
+    pub fn trace_lod_from(&self, ray: &Ray, t_start: f32, t_max: f32, k: f32) -> Option<Hit> {
         let r = DdaRay::new(ray)?;
         let mut st = r.enter([0; 3], self.dims)?;
+        if t_start > st.t {
+            r.advance_to(&mut st, t_start);
+            if !self.inside(st.cell) {
+                return None;
+            }
+        }
         let ring = self.grid.ring().to_array();
         let coarse = self.grid.coarse();
         let mut top = TOP_LEVEL;

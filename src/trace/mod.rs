@@ -10,6 +10,8 @@
 //! All three share [`dda::DdaRay`], so they agree on every ray: same voxel,
 //! same face, same `t`.
 
+mod ao;
+mod beam;
 mod brickmap;
 mod camera;
 pub mod dda;
@@ -26,6 +28,8 @@ use std::str::FromStr;
 use glam::IVec3;
 use thiserror::Error;
 
+pub use ao::{AO_STRENGTH, face_ao};
+pub use beam::{BEAM, beam_of, ray_start};
 pub use brickmap::BrickmapTracer;
 pub use camera::{Camera, CameraError};
 pub use dense::DenseGrid;
@@ -67,6 +71,27 @@ pub trait Tracer: Sync {
     fn trace_lod(&self, ray: &Ray, t_max: f32, k: f32) -> Option<Hit> {
         let _ = k;
         self.trace(ray, t_max)
+    }
+    /// [`trace_lod`](Self::trace_lod) for a ray that meets nothing before
+    /// `t_start` (a beam start): the same answer, sooner. The default
+    /// ignores the start.
+    fn trace_from(&self, ray: &Ray, t_start: f32, t_max: f32, k: f32) -> Option<Hit> {
+        let _ = t_start;
+        self.trace_lod(ray, t_max, k)
+    }
+    /// A distance before which every ray within `spread` (tangent of the
+    /// half-angle) of `centre` meets nothing, at level of detail `k`; 0
+    /// (the default) when the tracer cannot say.
+    fn beam_start(&self, centre: &Ray, spread: f32, k: f32) -> f32 {
+        let _ = (centre, spread, k);
+        0.0
+    }
+    /// Whether local voxel `c` is solid (for ambient occlusion). The
+    /// default asks [`trace`](Self::trace) for a hit at `t = 0` from the
+    /// voxel's centre; tracers with a direct lookup override it.
+    fn solid_local(&self, c: [i32; 3]) -> bool {
+        let o = glam::Vec3::new(c[0] as f32 + 0.5, c[1] as f32 + 0.5, c[2] as f32 + 0.5);
+        self.trace(&Ray::new(o, glam::Vec3::X), 0.0).is_some()
     }
     /// Bytes of the structure as traced.
     fn bytes(&self) -> usize;

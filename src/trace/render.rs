@@ -1,6 +1,7 @@
 //! The tiled CPU renderer: 16×16 tiles traced in parallel on a rayon pool,
-//! Lambert shading with one directional light, optional hard shadows and
-//! optional distance fog towards the sky gradient.
+//! Lambert shading with one directional light, optional hard shadows,
+//! optional per-voxel ambient occlusion and optional distance fog towards
+//! the sky gradient.
 //!
 //! Shadow rays start from the exact hit point clamped into the empty
 //! neighbour cell the primary ray came from (bit-exact cell bounds, no
@@ -51,6 +52,11 @@ pub struct RenderOptions {
     /// Where in each pixel the primary ray passes, in `[0, 1)²`; `None` is
     /// the centre. Jittered offsets averaged make a supersampled image.
     pub jitter: Option<[f64; 2]>,
+    /// Per-voxel ambient occlusion on every hit ([`super::face_ao`]).
+    pub ao: bool,
+    /// Beam starts: a coarse pass per 8×8 block finds where its rays may
+    /// start ([`super::beam`]); the image is the same, sooner.
+    pub beam: bool,
 }
 
 /// Blend `c`, seen at distance `t`, into the sky colour `sky` by the fog
@@ -122,11 +128,17 @@ fn shade(
             lambert = 0.0;
         }
     }
-    let k = if hit.normal == IVec3::ZERO {
+    let mut k = if hit.normal == IVec3::ZERO {
         opts.shading.ambient
     } else {
         opts.shading.ambient + (1.0 - opts.shading.ambient) * lambert
     };
+    if opts.ao {
+        let cell = (hit.voxel - tracer.frame().anchor).to_array();
+        let p = ray.origin + ray.dir * hit.t;
+        let ao = super::face_ao(|c| tracer.solid_local(c), cell, hit.normal.to_array(), p);
+        k *= 1.0 - super::AO_STRENGTH * (1.0 - ao);
+    }
     base.map(|c| c * k)
 }
 
@@ -146,6 +158,18 @@ pub fn render(
     // The same f32 product the GPU shader is given.
     let lod_k = opts.lod * camera.pixel_angle() as f32;
     let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
+    let bw = camera.width.div_ceil(super::BEAM);
+    let starts: Option<Vec<f32>> = opts.beam.then(|| {
+        let bh = camera.height.div_ceil(super::BEAM);
+        (0..bw * bh)
+            .into_par_iter()
+            .map(|b| {
+                let (c, spread) = super::beam_of(camera, b % bw, b / bw);
+                let centre = Ray::new(origin, c.as_vec3());
+                super::ray_start(tracer.beam_start(&centre, spread, lod_k))
+            })
+            .collect()
+    });
     rgb.par_chunks_mut(w * 3 * TILE)
         .zip(depth.par_chunks_mut(w * TILE))
         .zip(hits.par_chunks_mut(w * TILE))
@@ -159,7 +183,10 @@ pub fn render(
                         let dir = camera.direction_at(i as f64 + jx, j as f64 + jy);
                         let ray = Ray::new(origin, dir.as_vec3());
                         let px = r * w + i;
-                        let c = match tracer.trace_lod(&ray, f32::INFINITY, lod_k) {
+                        let t0 = starts.as_ref().map_or(0.0, |s| {
+                            s[(j as u32 / super::BEAM * bw + i as u32 / super::BEAM) as usize]
+                        });
+                        let c = match tracer.trace_from(&ray, t0, f32::INFINITY, lod_k) {
                             Some(hit) => {
                                 depth[px] = hit.t;
                                 hits[px] = Some(hit);

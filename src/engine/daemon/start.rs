@@ -129,6 +129,7 @@ impl Engine {
                 shadows: cfg.shadows,
                 fog: cfg.fog,
                 lod: cfg.lod,
+                ao: cfg.ao,
                 frames_dir,
                 keep: cfg.frames_keep,
             },
