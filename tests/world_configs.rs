@@ -192,6 +192,10 @@ fn bad_configs_name_the_file_field_and_reason() {
             "render.fog: -5 is outside",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[render]\naa = 0\n",
+            "render.aa: 0 is outside 1..=16",
+        ),
+        (
             "[world]\nsource = \"terrain\"\n[render]\nlod = -2.0\n",
             "render.lod: -2 is not a cell footprint",
         ),

@@ -3,7 +3,7 @@
 //!
 //! For each view the reference is the same view supersampled: `--spp`
 //! jittered samples per pixel (an R2 low-discrepancy pattern), traced
-//! exactly, averaged in 8-bit sRGB's float values. Every measured image is
+//! exactly, averaged over the 8-bit sRGB values. Every measured image is
 //! one sample per pixel at the pixel centre, exact (`C = 0`) or with level
 //! of detail; its error is the mean of NVIDIA's FLIP (LDR, through
 //! `nv-flip`, at its default 67 pixels per degree) against the reference.
@@ -22,7 +22,7 @@ use crate::config::BenchLodSettings;
 use crate::engine::world_config::DEFAULT_LOD;
 use crate::progress::bar;
 use crate::scene::View;
-use crate::trace::{Camera, RenderOptions, Tracer, render};
+use crate::trace::{Camera, RenderOptions, Tracer, render, supersample};
 use crate::world::Palette;
 
 /// One measured image.
@@ -77,29 +77,11 @@ pub struct LodReport {
     pub target_met: Option<bool>,
 }
 
-/// Sample `k` of the R2 sequence in `[0, 1)²` (Roberts 2018).
-fn r2(k: u32) -> [f64; 2] {
-    const G: f64 = 1.324_717_957_244_746;
-    let (a1, a2) = (1.0 / G, 1.0 / (G * G));
-    [(0.5 + a1 * k as f64).fract(), (0.5 + a2 * k as f64).fract()]
-}
-
 /// The supersampled reference of one view.
 fn reference(tracer: &dyn Tracer, cam: &Camera, palette: &Palette, spp: u32) -> Vec<u8> {
-    let mut acc = vec![0f32; (cam.width * cam.height * 3) as usize];
-    for k in 0..spp {
-        let opts = RenderOptions {
-            jitter: Some(r2(k)),
-            ..Default::default()
-        };
-        let out = render(tracer, cam, palette, &opts);
-        for (a, &c) in acc.iter_mut().zip(&out.rgb) {
-            *a += c as f32;
-        }
-    }
-    acc.iter()
-        .map(|a| (a / spp as f32).round().clamp(0.0, 255.0) as u8)
-        .collect()
+    supersample(spp, &RenderOptions::default(), |o| {
+        render(tracer, cam, palette, o).rgb
+    })
 }
 
 /// Mean FLIP of `test` against `reference` (RGB8, `w`×`h`).

@@ -22,7 +22,7 @@ use super::control::Shared;
 use super::streaming::{StreamPlan, columns_of};
 use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
 use crate::scene::{RenderWindow, SceneWorld, WindowStats, WorldDelta};
-use crate::trace::{Camera, RenderOptions, render};
+use crate::trace::{Camera, RenderOptions, render, supersample};
 
 /// The world a frame job brings: the whole of it once, then only what
 /// changed, applied to the render thread's own copy.
@@ -101,6 +101,8 @@ pub struct RenderSettings {
     pub lod: f32,
     /// Ambient occlusion.
     pub ao: bool,
+    /// Jittered samples per pixel (1: none).
+    pub aa: u32,
     /// Where frame PNGs go.
     pub frames_dir: PathBuf,
     /// Frames kept on disk; older ones are deleted.
@@ -215,7 +217,9 @@ impl RenderThread {
                         ao: settings.ao,
                         ..Default::default()
                     };
-                    let rgb = draw(&mut gpu, world, &job.camera, &opts, &st);
+                    let rgb = supersample(settings.aa, &opts, |o| {
+                        draw(&mut gpu, world, &job.camera, o, &st)
+                    });
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
                     // Atomic (temp, rename): a full disk or a kill never leaves a
                     // truncated frame under a final name.

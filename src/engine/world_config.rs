@@ -43,6 +43,7 @@
 //! shadows = true
 //! fog = 512.0                 # distance fog extent in voxels (0: none; default: half the view distance of a streamed world, else none)
 //! ao = true                   # per-voxel ambient occlusion
+//! aa = 1                      # jittered samples per pixel, averaged (1..=16; 1: no anti-aliasing)
 //! lod = 1.0                   # level of detail: cells under this many pixels are traced whole (0: exact)
 //!
 //! [frames]
@@ -247,6 +248,7 @@ struct RawRender {
     fog: Option<f64>,
     lod: Option<f64>,
     ao: Option<bool>,
+    aa: Option<i64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -386,6 +388,8 @@ pub struct WorldConfig {
     pub lod: f32,
     /// Ambient occlusion in frames.
     pub ao: bool,
+    /// Jittered anti-aliasing samples per pixel in frames (1: none).
+    pub aa: u32,
     /// Frame directory, relative to the state directory.
     pub frames_dir: PathBuf,
     /// Write a frame every this many ticks.
@@ -850,6 +854,15 @@ impl WorldConfig {
             tracer,
             shadows: raw.render.shadows.unwrap_or(true),
             ao: raw.render.ao.unwrap_or(true),
+            aa: match raw.render.aa.unwrap_or(1) {
+                n @ 1..=16 => n as u32,
+                n => {
+                    return Err(err(
+                        "render.aa",
+                        format!("{n} is outside 1..=16 samples per pixel (1 is no anti-aliasing)"),
+                    ));
+                }
+            },
             fog,
             lod: match raw.render.lod {
                 None => DEFAULT_LOD,

@@ -142,6 +142,57 @@ fn shade(
     base.map(|c| c * k)
 }
 
+/// Sample `k` of the R2 low-discrepancy sequence in `[0, 1)²` (Roberts
+/// 2018): where the `k`-th jittered sample of a pixel passes.
+pub fn jitter_sample(k: u32) -> [f64; 2] {
+    const G: f64 = 1.324_717_957_244_746;
+    [
+        (0.5 + k as f64 / G).fract(),
+        (0.5 + k as f64 / (G * G)).fract(),
+    ]
+}
+
+/// Average `samples` jittered images: `draw` renders one with the options
+/// it is given (the caller's, with [`RenderOptions::jitter`] set). One
+/// sample is the caller's options unchanged.
+///
+/// ```
+/// use brickworld::trace::{RenderOptions, supersample};
+/// // Two "images" of one pixel, 0 and 255, average to 128.
+/// let mut k = 0;
+/// let rgb = supersample(2, &RenderOptions::default(), |_| {
+///     k += 1;
+///     vec![if k == 1 { 0 } else { 255 }; 3]
+/// });
+/// assert_eq!(rgb, vec![128; 3]);
+/// ```
+pub fn supersample(
+    samples: u32,
+    opts: &RenderOptions,
+    mut draw: impl FnMut(&RenderOptions) -> Vec<u8>,
+) -> Vec<u8> {
+    if samples <= 1 {
+        return draw(opts);
+    }
+    let mut acc: Vec<u32> = Vec::new();
+    for k in 0..samples {
+        let o = RenderOptions {
+            jitter: Some(jitter_sample(k)),
+            ..*opts
+        };
+        let img = draw(&o);
+        if acc.is_empty() {
+            acc = vec![0; img.len()];
+        }
+        for (a, &c) in acc.iter_mut().zip(&img) {
+            *a += c as u32;
+        }
+    }
+    acc.iter()
+        .map(|&a| ((a + samples / 2) / samples) as u8)
+        .collect()
+}
+
 /// Render `camera`'s view of `tracer` on the current rayon pool.
 pub fn render(
     tracer: &dyn Tracer,

@@ -130,6 +130,7 @@ impl Engine {
                 fog: cfg.fog,
                 lod: cfg.lod,
                 ao: cfg.ao,
+                aa: cfg.aa,
                 frames_dir,
                 keep: cfg.frames_keep,
             },
