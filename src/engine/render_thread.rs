@@ -103,6 +103,8 @@ pub struct RenderSettings {
     pub ao: bool,
     /// Jittered samples per pixel (1: none).
     pub aa: u32,
+    /// Beam starts.
+    pub beam: bool,
     /// Where frame PNGs go.
     pub frames_dir: PathBuf,
     /// Frames kept on disk; older ones are deleted.
@@ -215,6 +217,7 @@ impl RenderThread {
                         fog: settings.fog,
                         lod: settings.lod,
                         ao: settings.ao,
+                        beam: settings.beam,
                         ..Default::default()
                     };
                     let rgb = supersample(settings.aa, &opts, |o| {

@@ -44,6 +44,7 @@
 //! fog = 512.0                 # distance fog extent in voxels (0: none; default: half the view distance of a streamed world, else none)
 //! ao = true                   # per-voxel ambient occlusion
 //! aa = 1                      # jittered samples per pixel, averaged (1..=16; 1: no anti-aliasing)
+//! beam = false                # beam starts: a coarse pass per 8x8 block; the same image
 //! lod = 1.0                   # level of detail: cells under this many pixels are traced whole (0: exact)
 //!
 //! [frames]
@@ -249,6 +250,7 @@ struct RawRender {
     lod: Option<f64>,
     ao: Option<bool>,
     aa: Option<i64>,
+    beam: Option<bool>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -390,6 +392,9 @@ pub struct WorldConfig {
     pub ao: bool,
     /// Jittered anti-aliasing samples per pixel in frames (1: none).
     pub aa: u32,
+    /// Beam starts in frames (the same image; off by default: on this
+    /// machine they bought under 10 %).
+    pub beam: bool,
     /// Frame directory, relative to the state directory.
     pub frames_dir: PathBuf,
     /// Write a frame every this many ticks.
@@ -854,6 +859,7 @@ impl WorldConfig {
             tracer,
             shadows: raw.render.shadows.unwrap_or(true),
             ao: raw.render.ao.unwrap_or(true),
+            beam: raw.render.beam.unwrap_or(false),
             aa: match raw.render.aa.unwrap_or(1) {
                 n @ 1..=16 => n as u32,
                 n => {

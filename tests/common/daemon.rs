@@ -26,7 +26,7 @@ pub fn setup(name: &str) -> (PathBuf, PathBuf, String) {
         &cfg,
         format!(
             "[world]\nsource = \"terrain\"\nsize = [48, 32, 48]\nseed = 3\n[sim]\ndt = 0.05\nscripts_dir = \"{}/scripts\"\n\
-             [[scripts]]\nfile = \"water.lua\"\nparams = {{ rain = 0.2 }}\n[render]\nwidth = 32\nheight = 24\ntracer = \"cpu\"\n\
+             [[scripts]]\nfile = \"water.lua\"\nparams = {{ rain = 0.2 }}\n[render]\nwidth = 32\nheight = 24\ntracer = \"cpu\"\naa = 2\nbeam = true\n\
              [frames]\nevery = 5\n[checkpoint]\nevery = 40\n[control]\naddr = \"{addr}\"\n",
             env!("CARGO_MANIFEST_DIR")
         ),

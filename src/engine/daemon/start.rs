@@ -131,6 +131,7 @@ impl Engine {
                 lod: cfg.lod,
                 ao: cfg.ao,
                 aa: cfg.aa,
+                beam: cfg.beam,
                 frames_dir,
                 keep: cfg.frames_keep,
             },
