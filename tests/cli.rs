@@ -358,6 +358,68 @@ fn tracer_auto_says_what_it_chose_and_why() {
     }
 }
 
+/// `bench lod` writes its curve per view (exact first, then each C) and a
+/// chart; bad lists and too few reference samples are refused.
+#[test]
+fn bench_lod_writes_the_documented_json_keys() {
+    let json = tmp("lod.json");
+    let svg = tmp("lod.svg");
+    let out = bin()
+        .args([
+            "bench", "lod", "--scene", "terrain", "--size", "96x48x96", "--width", "64",
+            "--height", "48", "--lod", "2,8", "--repeat", "1",
+        ])
+        .arg("--json")
+        .arg(&json)
+        .arg("--chart")
+        .arg(&svg)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let v: serde_json::Value = read_json(&json);
+    for k in ["scene", "size", "spp", "default_c", "views", "target_met"] {
+        assert!(v.get(k).is_some(), "missing key {k}");
+    }
+    let views = v["views"].as_array().unwrap();
+    assert_eq!(views.len(), 3, "three default views");
+    let points = views[0]["points"].as_array().unwrap();
+    let cs: Vec<f64> = points.iter().map(|p| p["c"].as_f64().unwrap()).collect();
+    assert_eq!(cs, [0.0, 2.0, 8.0], "exact first, then each C ascending");
+    for p in points {
+        for k in [
+            "mrays_per_s",
+            "flip",
+            "speedup",
+            "error_ratio",
+            "coarse_fraction",
+        ] {
+            assert!(p[k].as_f64().is_some_and(f64::is_finite), "{k} in {p}");
+        }
+    }
+    assert_eq!(points[0]["coarse_fraction"].as_f64(), Some(0.0));
+    assert!(
+        points[0]["flip"].as_f64().unwrap() > 0.0,
+        "one sample is not the reference"
+    );
+    assert!(std::fs::read_to_string(&svg).unwrap().contains("<svg"));
+    for (args, needle) in [
+        (&["--lod", "1,x"][..], "is not a number"),
+        (&["--lod", "0"][..], "invalid --lod"),
+        (&["--spp", "8"][..], "invalid --spp"),
+    ] {
+        let mut a = vec![
+            "bench",
+            "lod",
+            "--size",
+            "32x32x32",
+            "--json",
+            json.to_str().unwrap(),
+        ];
+        a.extend_from_slice(args);
+        expect_failure(&a, needle);
+    }
+}
+
 /// `--lod C`: zero, negative, non-finite and absurd values get one line
 /// naming the flag; the dense grid and the octree refuse it.
 #[test]

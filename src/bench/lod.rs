@@ -40,6 +40,9 @@ pub struct LodPoint {
     pub speedup: f64,
     /// Error relative to exact tracing's (one sample per pixel).
     pub error_ratio: f64,
+    /// Fraction of pixels whose hit differs from exact tracing's (drawn
+    /// from a coarser level).
+    pub coarse_fraction: f64,
 }
 
 /// One view's curve.
@@ -102,12 +105,12 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
     for (vi, v) in report.views.iter().enumerate() {
         eprintln!("view {vi} (reference {:.1} s):", v.reference_s);
         eprintln!(
-            "  {:>6} {:>10} {:>8} {:>8} {:>8}",
-            "C", "Mrays/s", "FLIP", "speed", "error"
+            "  {:>6} {:>10} {:>8} {:>8} {:>8} {:>8}",
+            "C", "Mrays/s", "FLIP", "speed", "error", "coarse"
         );
         for p in &v.points {
             eprintln!(
-                "  {:>6} {:>10.2} {:>8.4} {:>7.2}x {:>7.2}x",
+                "  {:>6} {:>10.2} {:>8.4} {:>7.2}x {:>7.2}x {:>7.1}%",
                 if p.c == 0.0 {
                     "exact".to_string()
                 } else {
@@ -116,7 +119,8 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
                 p.mrays_per_s,
                 p.flip,
                 p.speedup,
-                p.error_ratio
+                p.error_ratio,
+                p.coarse_fraction * 100.0
             );
         }
     }
@@ -198,21 +202,29 @@ fn measure(s: &BenchLodSettings) -> Result<LodReport> {
         let reference_s = t.elapsed().as_secs_f64();
         pb.inc(s.spp as u64);
         let mut points: Vec<LodPoint> = Vec::new();
+        let mut exact_hits: Option<Vec<Option<crate::trace::Hit>>> = None;
         for &c in &cs {
             let opts = RenderOptions {
                 lod: c,
                 ..Default::default()
             };
             let mut best = f64::INFINITY;
-            let mut img = Vec::new();
+            let mut out = None;
             for _ in 0..s.repeat {
                 let t = Instant::now();
                 let o = render(&tracer, &cam, palette, &opts);
                 best = best.min(t.elapsed().as_secs_f64());
-                img = o.rgb;
+                out = Some(o);
                 pb.inc(1);
             }
-            let flip = flip_mean(&refimg, &img, w, h);
+            let out = out.expect("repeat >= 1");
+            let flip = flip_mean(&refimg, &out.rgb, w, h);
+            let exact_hits = exact_hits.get_or_insert_with(|| out.hits.clone());
+            let coarse = exact_hits
+                .iter()
+                .zip(&out.hits)
+                .filter(|(a, b)| a != b)
+                .count();
             let (base_s, base_flip) = points.first().map_or((best, flip), |e| (e.seconds, e.flip));
             points.push(LodPoint {
                 c,
@@ -225,6 +237,7 @@ fn measure(s: &BenchLodSettings) -> Result<LodReport> {
                 } else {
                     1.0
                 },
+                coarse_fraction: coarse as f64 / (w * h) as f64,
             });
         }
         out.push(LodView {

@@ -270,7 +270,7 @@ fn brick_material(slot: u32, idx: u32) -> u32 {
     return arena_byte(data + 3u + local);
 }
 
-struct Hit { found: bool, t: f32, cell: vec3<i32>, normal: vec3<i32>, material: u32, lod: bool, rgb: u32 };
+struct Hit { found: bool, t: f32, cell: vec3<i32>, normal: vec3<i32>, material: u32, lod: bool, rgb: u32, level: u32, slot: u32, loaded: bool };
 
 fn hit_of(r: Ray, st: State, m: u32) -> Hit {
     var h: Hit;
@@ -280,6 +280,9 @@ fn hit_of(r: Ray, st: State, m: u32) -> Hit {
     h.material = m;
     h.lod = false;
     h.rgb = palette[m];
+    h.level = 0u;
+    h.slot = 0u;
+    h.loaded = false;
     h.normal = vec3<i32>(0);
     if (st.axes != 0u) {
         let a = i32(firstTrailingBit(st.axes));
@@ -424,7 +427,11 @@ fn trace(o: vec3<f32>, d: vec3<f32>, k: f32, t_start: f32) -> Hit {
         }
         if (hit_level >= 0) {
             if (lod_hit.found) { return lod_hit; }
-            return hit_of(r, st, lod_material(u32(hit_level), c, p, slot, loaded));
+            var h = hit_of(r, st, lod_material(u32(hit_level), c, p, slot, loaded));
+            h.level = u32(hit_level);
+            h.slot = slot;
+            h.loaded = loaded;
+            return h;
         }
         skip(r, &st, level);
         if (!inside(st.cell, P.dims)) { return select_lod(lod_hit, miss); }
@@ -432,6 +439,75 @@ fn trace(o: vec3<f32>, d: vec3<f32>, k: f32, t_start: f32) -> Hit {
         top = min(firstLeadingBit(u32(ch)), 5u);
     }
     return select_lod(lod_hit, miss);
+}
+
+// Word w (of 16) of the mask of local brick b: empty outside the grid, for
+// an empty brick or one not loaded (unknown here), full for a uniform one.
+fn mask_word(b: vec3<i32>, w: u32) -> u32 {
+    if (any(b < vec3<i32>(0)) || any(b >= (P.dims >> vec3<u32>(3u)))) { return 0u; }
+    let p = pointer(b);
+    if (p == 0u) { return 0u; }
+    let state = p & STATE_MASK;
+    if (state == UNIFORM) { return 0xffffffffu; }
+    if (state == 0u) { return masks[(p - 1u) * 16u + w]; }
+    return 0u;
+}
+
+// A coarse hit on a 2- or 4-voxel cell of a loaded brick: its exposed voxel
+// faces' colours lit by Lambert, averaged by the area each shows along d
+// (src/trace/render.rs, coarse_average). w = 0: nothing to average.
+fn coarse_average(hit: Hit, d: vec3<f32>) -> vec4<f32> {
+    let e = 1 << hit.level;
+    let lc = hit.cell & vec3<i32>(7);
+    let bl = lc & vec3<i32>(~(e - 1));
+    let b = hit.cell >> vec3<u32>(3u);
+    let hi = u32(bl.y >> 2u);            // which half-word (rows 0-3 or 4-7)
+    let y0 = bl.y & 3;
+    let row = ((1u << u32(e)) - 1u) << u32(bl.x);
+    var cellm = 0u;
+    for (var y = y0; y < y0 + e; y++) { cellm |= row << u32(8 * y); }
+    let base = hit.slot * 16u;
+    var sum = vec3<f32>(0.0);
+    var weight = 0.0;
+    for (var z = bl.z; z < bl.z + e; z++) {
+        let wi = u32(z) * 2u + hi;
+        let h = masks[base + wi];
+        let wv = h & cellm;
+        if (wv == 0u) { continue; }
+        var nbr: array<u32, 6>;
+        nbr[0] = ((h >> 1u) & ~0x80808080u) | ((mask_word(b + vec3<i32>(1, 0, 0), wi) & 0x01010101u) << 7u);
+        nbr[1] = ((h << 1u) & ~0x01010101u) | ((mask_word(b - vec3<i32>(1, 0, 0), wi) & 0x80808080u) >> 7u);
+        var above = 0u;
+        var below = 0u;
+        if (hi == 0u) {
+            above = masks[base + wi + 1u] & 0xffu;
+            below = (mask_word(b - vec3<i32>(0, 1, 0), wi + 1u) >> 24u) & 0xffu;
+        } else {
+            above = mask_word(b + vec3<i32>(0, 1, 0), wi - 1u) & 0xffu;
+            below = (masks[base + wi - 1u] >> 24u) & 0xffu;
+        }
+        nbr[2] = (h >> 8u) | (above << 24u);
+        nbr[3] = (h << 8u) | below;
+        if (z < 7) { nbr[4] = masks[base + wi + 2u]; } else { nbr[4] = mask_word(b + vec3<i32>(0, 0, 1), hi); }
+        if (z > 0) { nbr[5] = masks[base + wi - 2u]; } else { nbr[5] = mask_word(b - vec3<i32>(0, 0, 1), 14u + hi); }
+        for (var k = 0; k < 6; k++) {
+            var n = vec3<f32>(0.0);
+            n[k / 2] = select(1.0, -1.0, (k & 1) != 0);
+            let wgt = max(-dot(n, d), 0.0);
+            var bits = wv & ~nbr[k];
+            if (bits == 0u || wgt <= 0.0) { continue; }
+            let light = P.ambient + (1.0 - P.ambient) * max(dot(n, P.light), 0.0);
+            loop {
+                if (bits == 0u) { break; }
+                let bit = firstTrailingBit(bits);
+                bits &= bits - 1u;
+                let i = u32(z) * 64u + hi * 32u + bit;
+                sum += unpack_rgb(palette[brick_material(hit.slot, i)]) * light * wgt;
+                weight += wgt;
+            }
+        }
+    }
+    return vec4<f32>(sum, weight);
 }
 
 // Whether local voxel c is solid, for ambient occlusion. A brick not loaded
@@ -579,9 +655,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var o: PixelOut;
     var color: vec3<f32>;
     if (hit.found) {
+        var avg = vec4<f32>(0.0);
+        if ((hit.level == 1u || hit.level == 2u) && hit.loaded) { avg = coarse_average(hit, d); }
         let n = vec3<f32>(hit.normal);
         var lambert = max(dot(n, P.light), 0.0);
-        if (P.shadows != 0u && lambert > 0.0) {
+        if (P.shadows != 0u && lambert > 0.0 && avg.w <= 0.0) {
             let cell = hit.cell + hit.normal;
             let p = P.eye + d * hit.t;
             let lo = vec3<f32>(cell);
@@ -592,11 +670,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let q = clamp(p, lo, hi2);
             if (trace(q, P.light, 0.0, 0.0).found) { lambert = 0.0; }
         }
-        var k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
-        if (P.ao != 0u) {
-            k *= 1.0 - 0.45 * (1.0 - face_ao(hit.cell, hit.normal, P.eye + d * hit.t));
-        }
+        let k = select(P.ambient + (1.0 - P.ambient) * lambert, P.ambient, all(hit.normal == vec3<i32>(0)));
         color = unpack_rgb(hit.rgb) * k;
+        if (avg.w > 0.0) { color = avg.xyz / avg.w; }
+        if (P.ao != 0u) {
+            color *= 1.0 - 0.45 * (1.0 - face_ao(hit.cell, hit.normal, P.eye + d * hit.t));
+        }
         if (P.fog > 0.0) {
             color = mix(color, sky(d), 1.0 - exp(-hit.t / P.fog));
         }

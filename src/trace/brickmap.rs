@@ -155,6 +155,7 @@ impl<'w> BrickmapTracer<'w> {
             voxel: self.frame.to_world(st.cell),
             normal: IVec3::from(r.normal(st)),
             material,
+            level: 0,
         }
     }
 }
@@ -187,6 +188,44 @@ impl Tracer for BrickmapTracer<'_> {
 
     fn beam_start(&self, centre: &Ray, spread: f32, k: f32) -> f32 {
         BrickmapTracer::beam_start(self, centre, spread, k)
+    }
+
+    fn coarse_faces(&self, hit: &Hit, visit: &mut dyn FnMut(u8, usize, u32)) -> bool {
+        use crate::world::{EMPTY_MASK, FACE_DIRS, FULL_MASK, for_each_exposed};
+        if hit.level == 0 || hit.level > 2 {
+            return false;
+        }
+        let c = (hit.voxel - self.frame.anchor).to_array();
+        let b = IVec3::from(c.map(|v| v >> BRICK_SHIFT));
+        let cell = |b: IVec3| -> (u32, &[u64; 8]) {
+            if !self.inside((b << BRICK_SHIFT).to_array()) {
+                return (0, &EMPTY_MASK);
+            }
+            match self.grid.pointer(b) {
+                0 => (0, &EMPTY_MASK),
+                p if p & UNIFORM != 0 => (p, &FULL_MASK),
+                p => (p, self.pool.slot(p - 1).map_or(&EMPTY_MASK, |r| r.mask())),
+            }
+        };
+        let (p, own) = cell(b);
+        if p == 0 {
+            return false;
+        }
+        // A uniform brick's cells are full: its faces are the brick's,
+        // shaded as a voxel's are.
+        let Some(r) = (p & UNIFORM == 0).then(|| self.pool.slot(p - 1)).flatten() else {
+            return false;
+        };
+        let nb = FACE_DIRS.map(|d| cell(b + IVec3::from(d)).1);
+        for_each_exposed(own, nb, hit.level as u32, c.map(|v| v & 7), |z, d, bits| {
+            let mut rest = bits;
+            while rest != 0 {
+                let i = z * 64 + rest.trailing_zeros() as usize;
+                rest &= rest - 1;
+                visit(r.material_index(i), d, 1);
+            }
+        });
+        true
     }
 
     fn solid_local(&self, c: [i32; 3]) -> bool {

@@ -126,6 +126,7 @@ impl Tracer for DenseGrid {
                     voxel: self.frame.to_world(c),
                     normal: IVec3::from(r.normal(&st)),
                     material: m,
+                    level: 0,
                 });
             }
             r.step_fine(&mut st);

@@ -115,6 +115,7 @@ impl BrickmapTracer<'_> {
                     voxel: self.frame.to_world(c),
                     normal: IVec3::from(r.normal(&st)),
                     material,
+                    level: level as u8,
                 });
             }
             // The level-`level` cell is empty: walk that level's cells as a

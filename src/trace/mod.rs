@@ -86,6 +86,15 @@ pub trait Tracer: Sync {
         let _ = (centre, spread, k);
         0.0
     }
+    /// For a level-of-detail hit on a cell of 2 or 4 voxels, call
+    /// `visit(material, direction, faces)` for its exposed voxel faces
+    /// (direction an index of [`crate::world::FACE_DIRS`]), so that it can
+    /// be shaded as the average of what it holds; false (and no call) for
+    /// voxel hits, coarser cells and tracers without levels.
+    fn coarse_faces(&self, hit: &Hit, visit: &mut dyn FnMut(u8, usize, u32)) -> bool {
+        let _ = (hit, visit);
+        false
+    }
     /// Whether local voxel `c` is solid (for ambient occlusion). The
     /// default asks [`trace`](Self::trace) for a hit at `t = 0` from the
     /// voxel's centre; tracers with a direct lookup override it.

@@ -35,6 +35,9 @@ pub struct Hit {
     pub normal: IVec3,
     /// Material of the voxel (never 0).
     pub material: u8,
+    /// Level of detail of the cell hit: 0 a voxel, `s` a cube of `2^s`
+    /// voxels entered through `voxel` (see [`crate::world::mip`]).
+    pub level: u8,
 }
 
 /// The integer anchor of a local frame.

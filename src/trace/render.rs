@@ -105,7 +105,28 @@ fn shade(
     palette: &Palette,
     opts: &RenderOptions,
 ) -> [f32; 3] {
-    let base = palette.rgb(hit.material).map(|c| c as f32 / 255.0);
+    // A coarse cell: the average of its exposed faces as the view sees
+    // them (each weighted by its projected area), not one face; no shadow.
+    let mut lit = match coarse_average(tracer, hit, ray.dir, palette, opts.shading) {
+        Some(avg) => avg,
+        None => {
+            let base = palette.rgb(hit.material).map(|c| c as f32 / 255.0);
+            let k = voxel_light(tracer, ray, hit, opts);
+            base.map(|c| c * k)
+        }
+    };
+    if opts.ao {
+        let cell = (hit.voxel - tracer.frame().anchor).to_array();
+        let p = ray.origin + ray.dir * hit.t;
+        let ao = super::face_ao(|c| tracer.solid_local(c), cell, hit.normal.to_array(), p);
+        let k = 1.0 - super::AO_STRENGTH * (1.0 - ao);
+        lit = lit.map(|c| c * k);
+    }
+    lit
+}
+
+/// Ambient plus Lambert (with an optional shadow ray) on a voxel's face.
+fn voxel_light(tracer: &dyn Tracer, ray: &Ray, hit: &Hit, opts: &RenderOptions) -> f32 {
     let n = hit.normal.as_vec3();
     let light = opts.shading.light;
     let mut lambert = n.dot(light).max(0.0);
@@ -128,18 +149,11 @@ fn shade(
             lambert = 0.0;
         }
     }
-    let mut k = if hit.normal == IVec3::ZERO {
+    if hit.normal == IVec3::ZERO {
         opts.shading.ambient
     } else {
         opts.shading.ambient + (1.0 - opts.shading.ambient) * lambert
-    };
-    if opts.ao {
-        let cell = (hit.voxel - tracer.frame().anchor).to_array();
-        let p = ray.origin + ray.dir * hit.t;
-        let ao = super::face_ao(|c| tracer.solid_local(c), cell, hit.normal.to_array(), p);
-        k *= 1.0 - super::AO_STRENGTH * (1.0 - ao);
     }
-    base.map(|c| c * k)
 }
 
 /// Sample `k` of the R2 low-discrepancy sequence in `[0, 1)²` (Roberts
@@ -191,6 +205,33 @@ pub fn supersample(
     acc.iter()
         .map(|&a| ((a + samples / 2) / samples) as u8)
         .collect()
+}
+
+/// The colour of a coarse level-of-detail hit: its exposed voxel faces'
+/// colours lit by Lambert, averaged by the area each shows along `dir`.
+/// `None` for voxel hits (or if no face looks at the viewer).
+fn coarse_average(
+    tracer: &dyn Tracer,
+    hit: &Hit,
+    dir: Vec3,
+    palette: &Palette,
+    shading: Shading,
+) -> Option<[f32; 3]> {
+    let (mut sum, mut weight) = ([0.0f32; 3], 0.0f32);
+    let coarse = tracer.coarse_faces(hit, &mut |m, d, n| {
+        let f = crate::world::FACE_DIRS[d];
+        let nv = Vec3::new(f[0] as f32, f[1] as f32, f[2] as f32);
+        let w = n as f32 * (-nv.dot(dir)).max(0.0);
+        if w > 0.0 {
+            let light = shading.ambient + (1.0 - shading.ambient) * nv.dot(shading.light).max(0.0);
+            let c = palette.rgb(m);
+            for k in 0..3 {
+                sum[k] += c[k] as f32 / 255.0 * light * w;
+            }
+            weight += w;
+        }
+    });
+    (coarse && weight > 0.0).then(|| sum.map(|s| s / weight))
 }
 
 /// Render `camera`'s view of `tracer` on the current rayon pool.

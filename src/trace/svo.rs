@@ -431,6 +431,7 @@ impl Tracer for Svo {
                     voxel: self.frame.to_world(c),
                     normal: IVec3::from(r.normal(&st)),
                     material: self.leaf_material(idx, d, k),
+                    level: 0,
                 });
             }
             let inner = valid & !leaf;

@@ -93,6 +93,90 @@ pub fn representative(lo: [i32; 3], edge: i32, at: impl Fn(i32, i32, i32) -> u8)
         .map_or(0, |e| e.0)
 }
 
+/// Directions of [`exposed_faces`], in order: +x, −x, +y, −y, +z, −z.
+pub const FACE_DIRS: [[i32; 3]; 6] = [
+    [1, 0, 0],
+    [-1, 0, 0],
+    [0, 1, 0],
+    [0, -1, 0],
+    [0, 0, 1],
+    [0, 0, -1],
+];
+
+/// A full mask (a uniform neighbour) and an empty one (no neighbour).
+pub const FULL_MASK: [u64; 8] = [u64::MAX; 8];
+/// See [`FULL_MASK`].
+pub const EMPTY_MASK: [u64; 8] = [0; 8];
+
+/// Exposed voxel faces of the level-`level` cell (1, 2 or 3) holding
+/// brick-local voxel `l`, per direction of [`FACE_DIRS`]: solid voxels of
+/// the cell whose neighbour that way is empty. `nb[d]` is the mask of the
+/// neighbouring brick in direction `d` ([`FULL_MASK`] for a uniform one,
+/// [`EMPTY_MASK`] for none). A handful of shifts and popcounts per slice:
+/// what a coarse hit needs to be shaded as the average of its faces.
+///
+/// ```
+/// use brickworld::world::{EMPTY_MASK, exposed_faces};
+/// // One solid voxel alone: one exposed face each way, at every level.
+/// let mut m = [0u64; 8];
+/// m[3] = 1 << (2 + 8 * 5);
+/// assert_eq!(exposed_faces(&m, [&EMPTY_MASK; 6], 3, [0, 0, 0]), [1; 6]);
+/// assert_eq!(exposed_faces(&m, [&EMPTY_MASK; 6], 1, [2, 4, 2]), [1; 6]);
+/// assert_eq!(exposed_faces(&m, [&EMPTY_MASK; 6], 1, [0, 0, 0]), [0; 6]);
+/// ```
+pub fn exposed_faces(m: &[u64; 8], nb: [&[u64; 8]; 6], level: u32, l: [i32; 3]) -> [u32; 6] {
+    let mut out = [0u32; 6];
+    for_each_exposed(m, nb, level, l, |z, d, bits| {
+        out[d] += bits.count_ones();
+        let _ = z;
+    });
+    out
+}
+
+/// Call `f(z, d, bits)` for each slice `z` of the cell of
+/// [`exposed_faces`] and direction `d` with the bits (`x + 8y`) of its
+/// voxels whose face that way is exposed (never with no bits).
+pub fn for_each_exposed(
+    m: &[u64; 8],
+    nb: [&[u64; 8]; 6],
+    level: u32,
+    l: [i32; 3],
+    mut f: impl FnMut(usize, usize, u64),
+) {
+    const COL0: u64 = 0x0101_0101_0101_0101;
+    const COL7: u64 = COL0 << 7;
+    const ROW0: u64 = 0xFF;
+    const ROW7: u64 = 0xFF << 56;
+    let e = 1i32 << level.min(3);
+    let b = l.map(|v| v & !(e - 1));
+    let row = (((1u64 << e) - 1) as u8 as u64) << b[0];
+    let row = if e == 8 { 0xFF } else { row };
+    let mut cell = 0u64;
+    for y in b[1]..b[1] + e {
+        cell |= row << (8 * y);
+    }
+    for z in b[2] as usize..(b[2] + e) as usize {
+        let w = m[z] & cell;
+        if w == 0 {
+            continue;
+        }
+        let nbr = [
+            ((m[z] >> 1) & !COL7) | ((nb[0][z] & COL0) << 7),
+            ((m[z] << 1) & !COL0) | ((nb[1][z] & COL7) >> 7),
+            (m[z] >> 8) | ((nb[2][z] & ROW0) << 56),
+            (m[z] << 8) | ((nb[3][z] & ROW7) >> 56),
+            if z < 7 { m[z + 1] } else { nb[4][0] },
+            if z > 0 { m[z - 1] } else { nb[5][7] },
+        ];
+        for (d, n) in nbr.iter().enumerate() {
+            let bits = w & !n;
+            if bits != 0 {
+                f(z, d, bits);
+            }
+        }
+    }
+}
+
 /// The level-of-detail materials of one mixed brick: one per 4³ octant
 /// (index `x + 2y + 4z` of the octant) and one for the whole brick.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -228,6 +312,73 @@ mod tests {
                         }
                     }
                     assert_eq!(block_solid(&mask, level, l), any, "level {level} {l:?}");
+                }
+            }
+        }
+    }
+
+    /// Exposed faces by shifts and popcounts equal a voxel-by-voxel count,
+    /// neighbour bricks included.
+    #[test]
+    fn exposed_faces_match_a_voxel_by_voxel_count() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for _ in 0..50 {
+            let masks: Vec<[u64; 8]> = (0..7)
+                .map(|_| std::array::from_fn(|_| next() & next()))
+                .collect();
+            let solid = |b: usize, x: i32, y: i32, z: i32| {
+                let i = voxel_index(x, y, z);
+                (masks[b][i >> 6] >> (i & 63)) & 1 != 0
+            };
+            // Voxel (x, y, z) relative to the centre brick 0; neighbours 1..7.
+            let at = |x: i32, y: i32, z: i32| -> bool {
+                let inside = |v: i32| (0..8).contains(&v);
+                match (inside(x), inside(y), inside(z)) {
+                    (true, true, true) => solid(0, x, y, z),
+                    _ => {
+                        let d = FACE_DIRS
+                            .iter()
+                            .position(|d| {
+                                [x, y, z].iter().zip(d).all(|(v, &k)| {
+                                    (k == 0 && inside(*v))
+                                        || (k == 1 && *v == 8)
+                                        || (k == -1 && *v == -1)
+                                })
+                            })
+                            .unwrap();
+                        solid(1 + d, x.rem_euclid(8), y.rem_euclid(8), z.rem_euclid(8))
+                    }
+                }
+            };
+            let nb: [&[u64; 8]; 6] = std::array::from_fn(|d| &masks[1 + d]);
+            for level in 1..=3u32 {
+                let e = 1 << level;
+                for cz in (0..8).step_by(e) {
+                    for cy in (0..8).step_by(e) {
+                        for cx in (0..8).step_by(e) {
+                            let mut want = [0u32; 6];
+                            for z in cz..cz + e as i32 {
+                                for y in cy..cy + e as i32 {
+                                    for x in cx..cx + e as i32 {
+                                        if !at(x, y, z) {
+                                            continue;
+                                        }
+                                        for (d, n) in FACE_DIRS.iter().enumerate() {
+                                            want[d] += !at(x + n[0], y + n[1], z + n[2]) as u32;
+                                        }
+                                    }
+                                }
+                            }
+                            let got = exposed_faces(&masks[0], nb, level, [cx, cy, cz]);
+                            assert_eq!(got, want, "level {level} cell {cx},{cy},{cz}");
+                        }
+                    }
                 }
             }
         }

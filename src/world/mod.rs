@@ -13,7 +13,10 @@ mod store;
 pub use brick::{BRICK_EDGE, BRICK_SHIFT, BRICK_VOXELS, Brick, BrickContent, voxel_index};
 pub use grid::{BrickGrid, MAX_GRID_CELLS, OCC_EDGE, OCC_SHIFT, UNIFORM, WorldError};
 pub use materials::{MaterialDef, MaterialError, MaterialId, MaterialKind, MaterialRegistry};
-pub use mip::{BrickLod, CoarseLevels, TOP_LEVEL, block_solid, representative};
+pub use mip::{
+    BrickLod, CoarseLevels, EMPTY_MASK, FACE_DIRS, FULL_MASK, TOP_LEVEL, block_solid,
+    exposed_faces, for_each_exposed, representative,
+};
 pub use palette::Palette;
 pub use pool::{BrickId, BrickPool, BrickRef, GPU_META_WORDS};
 pub use store::{BrickStore, Cell, brick_of};
