@@ -172,19 +172,7 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
 
 fn measure(s: &BenchLodSettings) -> Result<LodReport> {
     let world = build_world(&s.scene)?;
-    let views: Vec<View> = match s.view.view {
-        Some(v) => vec![v],
-        None => world
-            .default_views()
-            .into_iter()
-            .map(|mut v| {
-                if let Some(f) = s.view.fov {
-                    v.fov = f;
-                }
-                v
-            })
-            .collect(),
-    };
+    let views = super::views(&world, &s.view);
     let (w, h) = (s.view.width, s.view.height);
     let tracer = world.brickmap();
     let palette = world.store().palette();

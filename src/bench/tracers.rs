@@ -129,19 +129,7 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
     let t0 = Instant::now();
     let world = build_world(&s.scene)?;
     let scene_build_s = t0.elapsed().as_secs_f64();
-    let views: Vec<View> = match s.view.view {
-        Some(v) => vec![v],
-        None => world
-            .default_views()
-            .into_iter()
-            .map(|mut v| {
-                if let Some(f) = s.view.fov {
-                    v.fov = f;
-                }
-                v
-            })
-            .collect(),
-    };
+    let views = super::views(&world, &s.view);
     let cameras: Vec<Camera> = views
         .iter()
         .map(|v| {

@@ -12,7 +12,7 @@
 use glam::IVec3;
 
 use super::Tracer;
-use super::dda::DdaRay;
+use super::dda::{DdaRay, DdaState};
 use super::ray::{Frame, Hit, Ray};
 use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool, OCC_SHIFT, UNIFORM, voxel_index};
 
@@ -59,14 +59,7 @@ impl<'w> BrickmapTracer<'w> {
     /// a distance before which the ray meets nothing (a beam start): the
     /// exact state there is restored, so the answer is the walk's from 0.
     pub fn trace_exact_from(&self, ray: &Ray, t_start: f32, t_max: f32) -> Option<Hit> {
-        let r = DdaRay::new(ray)?;
-        let mut st = r.enter([0; 3], self.dims)?;
-        if t_start > st.t {
-            r.advance_to(&mut st, t_start);
-            if !self.inside(st.cell) {
-                return None;
-            }
-        }
+        let (r, mut st) = self.start(ray, t_start)?;
         // `st` is the exact voxel state whenever a cell's content is read.
         // Across empty space only the coarse cell is stepped: its next
         // crossing depends on the coarse cell alone, so no voxel state is
@@ -149,7 +142,21 @@ impl<'w> BrickmapTracer<'w> {
         }
     }
 
-    fn hit(&self, r: &DdaRay, st: &super::dda::DdaState, material: u8) -> Hit {
+    /// The ray's DDA and its exact state on entering the grid, or at
+    /// `t_start` if that is later (a beam start); `None` if it misses.
+    pub(super) fn start(&self, ray: &Ray, t_start: f32) -> Option<(DdaRay, DdaState)> {
+        let r = DdaRay::new(ray)?;
+        let mut st = r.enter([0; 3], self.dims)?;
+        if t_start > st.t {
+            r.advance_to(&mut st, t_start);
+            if !self.inside(st.cell) {
+                return None;
+            }
+        }
+        Some((r, st))
+    }
+
+    fn hit(&self, r: &DdaRay, st: &DdaState, material: u8) -> Hit {
         Hit {
             t: st.t,
             voxel: self.frame.to_world(st.cell),

@@ -10,7 +10,7 @@
 //! **The walk** is one stackless loop over the levels of
 //! [`crate::world::mip`]: at the current voxel it checks levels from the
 //! highest one whose cell changed down to the allowed level; the first empty
-//! level is skipped with the exact [`DdaRay::skip`], and a solid cell at the
+//! level is skipped with the exact [`super::dda::DdaRay::skip`], and a solid cell at the
 //! allowed level is the hit. Levels above the highest changed bit of the
 //! cell coordinates were solid when the ray entered them and still are, so
 //! they are not read again. Every skip is exact, so with `k = 0` the walk
@@ -21,7 +21,6 @@
 use glam::IVec3;
 
 use super::brickmap::BrickmapTracer;
-use super::dda::DdaRay;
 use super::ray::{Hit, Ray};
 use crate::world::{BrickRef, TOP_LEVEL, UNIFORM, block_solid, voxel_index};
 
@@ -54,14 +53,7 @@ impl BrickmapTracer<'_> {
     /// [`trace_lod`](Self::trace_lod) from distance `t_start`, which must be
     /// a beam start for `k` (see [`super::beam`]).
     pub fn trace_lod_from(&self, ray: &Ray, t_start: f32, t_max: f32, k: f32) -> Option<Hit> {
-        let r = DdaRay::new(ray)?;
-        let mut st = r.enter([0; 3], self.dims)?;
-        if t_start > st.t {
-            r.advance_to(&mut st, t_start);
-            if !self.inside(st.cell) {
-                return None;
-            }
-        }
+        let (r, mut st) = self.start(ray, t_start)?;
         let ring = self.grid.ring().to_array();
         let coarse = self.grid.coarse();
         let mut top = TOP_LEVEL;
