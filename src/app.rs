@@ -450,6 +450,7 @@ pub fn build_world(s: &SceneSettings) -> Result<SceneWorld> {
 }
 
 fn run_render(s: RenderSettings) -> Result<()> {
+    crate::scene::budget::check_images("render", s.view.width, s.view.height, 1)?;
     let pool = thread_pool(s.view.threads)?;
     pool.install(|| {
         let t0 = Instant::now();

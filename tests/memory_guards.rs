@@ -128,3 +128,26 @@ fn fault_20_worlds_larger_than_memory_are_refused_with_the_need() {
     let out = render_capped("terrain", Some("65536x4096x65536"));
     assert_clear_failure(&out, "a 65536x4096x65536 terrain", "needs about");
 }
+
+/// Images whose colour, depth and hit buffers would not fit are refused
+/// before anything is built or traced (before: `render` at 16384² under
+/// this limit died with a panic backtrace).
+#[test]
+fn images_larger_than_memory_are_refused_with_the_need() {
+    for cmd in [
+        "render --width 16384 --height 16384 --out /dev/null",
+        "bench lod --width 16384 --height 16384 --json /dev/null",
+        "bench tracers --width 16384 --height 16384 --json /dev/null",
+    ] {
+        let out = std::process::Command::new("bash")
+            .arg("-c")
+            .arg(format!(
+                "ulimit -v 3000000 && exec '{}' {cmd}",
+                env!("CARGO_BIN_EXE_brickworld")
+            ))
+            .output()
+            .unwrap();
+        assert_clear_failure(&out, cmd, "not enough memory");
+        assert!(String::from_utf8_lossy(&out.stderr).contains("use a smaller --width/--height"));
+    }
+}

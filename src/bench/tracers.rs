@@ -125,6 +125,8 @@ pub fn run(s: &BenchTracersSettings) -> Result<()> {
 }
 
 fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
+    // The reference hits and the frame being measured.
+    crate::scene::budget::check_images("bench tracers", s.view.width, s.view.height, 2)?;
     let threads = rayon::current_num_threads();
     let t0 = Instant::now();
     let world = build_world(&s.scene)?;

@@ -127,6 +127,31 @@ pub fn check_world(what: &str, size: IVec3) -> Result<(), SceneError> {
     Ok(())
 }
 
+/// Bytes one rendered frame of `width`×`height` holds on the CPU: colour,
+/// depth and the hit per pixel.
+pub fn image_bytes(width: u32, height: u32) -> u64 {
+    let per_pixel = 3 + 4 + std::mem::size_of::<Option<crate::trace::Hit>>() as u64;
+    width as u64 * height as u64 * per_pixel
+}
+
+/// Refuse `copies` frames of `width`×`height` (for `what`) that would not
+/// fit in memory, before rendering any.
+pub fn check_images(what: &str, width: u32, height: u32, copies: u64) -> Result<(), SceneError> {
+    let need = image_bytes(width, height).saturating_mul(copies);
+    let have = available_bytes();
+    if need > have / 10 * 9 {
+        return Err(SceneError::OutOfMemory {
+            what: what.to_string(),
+            msg: format!(
+                "{copies} frame(s) of {width}x{height} need about {} (colour, depth and hits); {} is available: use a smaller --width/--height",
+                human(need),
+                human(have)
+            ),
+        });
+    }
+    Ok(())
+}
+
 /// Resident memory of this process in KiB (Linux), 0 if unknown.
 pub fn rss_kb() -> u64 {
     rss_kb_of(std::process::id())
