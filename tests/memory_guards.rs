@@ -148,6 +148,36 @@ fn images_larger_than_memory_are_refused_with_the_need() {
             .output()
             .unwrap();
         assert_clear_failure(&out, cmd, "not enough memory");
-        assert!(String::from_utf8_lossy(&out.stderr).contains("use a smaller --width/--height"));
+        assert!(String::from_utf8_lossy(&out.stderr).contains("make the image smaller"));
     }
+}
+
+/// A daemon whose frames would not fit is refused at start, naming the
+/// fields, before it builds its world.
+#[test]
+fn a_daemon_with_frames_larger_than_memory_is_refused_naming_the_fields() {
+    let dir = tmp("mem", "bigframe");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = dir.join("w.toml");
+    std::fs::write(
+        &cfg,
+        "[world]\nsource = \"terrain\"\nsize = [48, 32, 48]\n[render]\nwidth = 8192\nheight = 8192\naa = 4\n[control]\naddr = \"127.0.0.1:0\"\n",
+    )
+    .unwrap();
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 3000000 && exec '{}' run '{}' --state '{}' --ticks 1",
+            env!("CARGO_BIN_EXE_brickworld"),
+            cfg.display(),
+            dir.join("state").display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "8192x8192 frames",
+        "render.width/render.height: not enough memory",
+    );
 }

@@ -143,7 +143,7 @@ pub fn check_images(what: &str, width: u32, height: u32, copies: u64) -> Result<
         return Err(SceneError::OutOfMemory {
             what: what.to_string(),
             msg: format!(
-                "{copies} frame(s) of {width}x{height} need about {} (colour, depth and hits); {} is available: use a smaller --width/--height",
+                "{copies} frame(s) of {width}x{height} need about {} (colour, depth and hits); {} is available: make the image smaller",
                 human(need),
                 human(have)
             ),

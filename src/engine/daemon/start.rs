@@ -31,6 +31,13 @@ impl Engine {
         // The lock comes first: a second engine on this directory must not
         // touch its token or checkpoints.
         let lock = state_dir::lock(&opts.state)?;
+        // A frame (and an anti-aliased frame's sums) must fit in memory.
+        crate::scene::budget::check_images(
+            "render.width/render.height",
+            cfg.width,
+            cfg.height,
+            if cfg.aa > 1 { 3 } else { 2 },
+        )?;
         let token = state_dir::new_token()?;
         let shared = Arc::new(Shared {
             status: Mutex::new(Status::default()),
