@@ -40,8 +40,9 @@ fn beam_starts_give_bit_identical_images() {
                 };
                 let a = render(&bm, cam, palette, &plain);
                 let z = render(&bm, cam, palette, &beamed);
-                assert_eq!(a.hits, z.hits, "{name} view {vi} lod {lod}: hits differ");
-                assert_eq!(a.rgb, z.rgb, "{name} view {vi} lod {lod}: colours differ");
+                let hits = a.hits.iter().zip(&z.hits).filter(|(x, y)| x != y).count();
+                assert_eq!(hits, 0, "{name} view {vi} lod {lod}: {hits} hits differ");
+                assert!(a.rgb == z.rgb, "{name} view {vi} lod {lod}: colours differ");
             }
         }
     }
