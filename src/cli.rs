@@ -284,7 +284,7 @@ pub struct BenchStreamArgs {
     #[arg(long, default_value_t = 65_536)]
     pub pool: u32,
     /// Level of detail: bricks under C pixels wide are drawn whole and not streamed (leave out for exact)
-    #[arg(long, value_name = "C", allow_negative_numbers = true)]
+    #[arg(long, value_name = "C", allow_hyphen_values = true)]
     pub lod: Option<f64>,
     /// Beam starts: a coarse pass per 8x8 pixel block finds where its rays may start (same image)
     #[arg(long)]
@@ -307,14 +307,19 @@ pub struct BenchLodArgs {
     #[command(flatten)]
     pub view: ViewArgs,
     /// Footprints C to measure, in pixels, comma-separated (exact tracing is always measured too)
-    #[arg(long, value_name = "C,C,...", default_value = "0.5,1,2,4,8")]
+    #[arg(
+        long,
+        value_name = "C,C,...",
+        default_value = "0.5,1,2,4,8",
+        allow_hyphen_values = true
+    )]
     pub lod: String,
-    /// Jittered samples per pixel of the reference image (16 or more)
-    #[arg(long, default_value_t = 16)]
-    pub spp: u32,
-    /// Timed renders per view and C; the fastest counts
-    #[arg(long, default_value_t = 3)]
-    pub repeat: u32,
+    /// Jittered samples per pixel of the reference image (16 to 1024)
+    #[arg(long, default_value = "16", allow_hyphen_values = true)]
+    pub spp: String,
+    /// Timed renders per view and C, the fastest counting (1 to 100)
+    #[arg(long, default_value = "3", allow_hyphen_values = true)]
+    pub repeat: String,
     /// Write the results as JSON here
     #[arg(long)]
     pub json: PathBuf,
@@ -405,7 +410,7 @@ pub struct RenderArgs {
     #[arg(long)]
     pub beam: bool,
     /// Level of detail: stop at cells under C pixels wide (brickmap only; leave out for exact output)
-    #[arg(long, value_name = "C", allow_negative_numbers = true)]
+    #[arg(long, value_name = "C", allow_hyphen_values = true)]
     pub lod: Option<f64>,
     /// Output PNG
     #[arg(long, default_value = "brickworld.png")]

@@ -240,17 +240,25 @@ pub struct RenderSettings {
 
 /// Largest level-of-detail `C`, in pixels.
 pub const MAX_LOD: f64 = 256.0;
+/// Smallest level-of-detail `C`, in pixels (smaller ones would round to an
+/// exact trace unannounced).
+pub const MIN_LOD: f64 = 0.01;
+
+/// Whether `c` is a level-of-detail `C` in [`MIN_LOD`]..=[`MAX_LOD`].
+pub fn lod_in_range(c: f64) -> bool {
+    c.is_finite() && (MIN_LOD..=MAX_LOD).contains(&c)
+}
 
 /// Validate a level-of-detail `C` given as `flag`.
 pub fn lod_c(flag: &'static str, c: f64) -> Result<f32, ConfigError> {
-    if c.is_finite() && c > 0.0 && c <= MAX_LOD {
+    if lod_in_range(c) {
         Ok(c as f32)
     } else {
         Err(bad(
             flag,
             &c.to_string(),
             format!(
-                "expected a cell footprint in pixels, above 0 and at most {MAX_LOD} (leave it out for exact tracing)"
+                "expected a cell footprint in pixels from {MIN_LOD} to {MAX_LOD} (leave it out for exact tracing)"
             ),
         ))
     }
@@ -344,16 +352,8 @@ impl BenchLodSettings {
             scene: SceneSettings::from_args(&a.scene, BENCH_LOD_DEFAULT_SIZE)?,
             view: ViewSettings::from_args(&a.view, 960, 540)?,
             lods,
-            spp: if (16..=1024).contains(&a.spp) {
-                a.spp
-            } else {
-                return Err(bad(
-                    "--spp",
-                    &a.spp.to_string(),
-                    "expected 16..=1024 samples per pixel",
-                ));
-            },
-            repeat: a.repeat.clamp(1, 100),
+            spp: parse_num("--spp", &a.spp, 16u32, 1024)?,
+            repeat: parse_num("--repeat", &a.repeat, 1u32, 100)?,
             json: a.json.clone(),
             chart: a.chart.clone(),
         })

@@ -405,7 +405,13 @@ fn bench_lod_writes_the_documented_json_keys() {
     for (args, needle) in [
         (&["--lod", "1,x"][..], "is not a number"),
         (&["--lod", "0"][..], "invalid --lod"),
+        (&["--lod", "-1"][..], "invalid --lod"),
+        // Would round to 0 as f32 and trace exactly, unannounced.
+        (&["--lod", "1e-50"][..], "invalid --lod"),
         (&["--spp", "8"][..], "invalid --spp"),
+        (&["--spp", "-1"][..], "invalid --spp"),
+        (&["--repeat", "0"][..], "invalid --repeat"),
+        (&["--repeat", "1000"][..], "invalid --repeat"),
     ] {
         let mut a = vec![
             "bench",
@@ -425,7 +431,7 @@ fn bench_lod_writes_the_documented_json_keys() {
 #[test]
 fn bad_level_of_detail_values_are_refused() {
     let png = tmp("lod.png");
-    for c in ["0", "-1", "nan", "inf", "1e9"] {
+    for c in ["0", "-1", "nan", "inf", "-inf", "1e9", "1e-50"] {
         expect_failure(
             &["render", "--lod", c, "--out", png.to_str().unwrap()],
             "invalid --lod",

@@ -200,6 +200,10 @@ fn bad_configs_name_the_file_field_and_reason() {
             "render.lod: -2 is not a cell footprint",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[render]\nlod = 1e-50\n",
+            "render.lod: 0.00000000000000000000000000000000000000000000000001 is not a cell footprint",
+        ),
+        (
             "[world]\nsource = \"terrain\"\n[render]\nlod = nan\n",
             "render.lod: NaN is not a cell footprint",
         ),

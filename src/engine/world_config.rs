@@ -873,12 +873,13 @@ impl WorldConfig {
             lod: match raw.render.lod {
                 None => DEFAULT_LOD,
                 Some(0.0) => 0.0,
-                Some(c) if c.is_finite() && c > 0.0 && c <= crate::config::MAX_LOD => c as f32,
+                Some(c) if crate::config::lod_in_range(c) => c as f32,
                 Some(c) => {
                     return Err(err(
                         "render.lod",
                         format!(
-                            "{c} is not a cell footprint in pixels in (0, {}] (0 turns level of detail off)",
+                            "{c} is not a cell footprint in pixels from {} to {} (0 turns level of detail off)",
+                            crate::config::MIN_LOD,
                             crate::config::MAX_LOD
                         ),
                     ));

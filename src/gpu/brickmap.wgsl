@@ -441,8 +441,9 @@ fn trace(o: vec3<f32>, d: vec3<f32>, k: f32, t_start: f32) -> Hit {
     return select_lod(lod_hit, miss);
 }
 
-// Word w (of 16) of the mask of local brick b: empty outside the grid, for
-// an empty brick or one not loaded (unknown here), full for a uniform one.
+// Word w (of 16) of the mask of local brick b: empty outside the grid or for
+// an empty brick, full for a uniform one or one not loaded (unknown here:
+// solid, as for ambient occlusion).
 fn mask_word(b: vec3<i32>, w: u32) -> u32 {
     if (any(b < vec3<i32>(0)) || any(b >= (P.dims >> vec3<u32>(3u)))) { return 0u; }
     let p = pointer(b);
@@ -450,7 +451,7 @@ fn mask_word(b: vec3<i32>, w: u32) -> u32 {
     let state = p & STATE_MASK;
     if (state == UNIFORM) { return 0xffffffffu; }
     if (state == 0u) { return masks[(p - 1u) * 16u + w]; }
-    return 0u;
+    return 0xffffffffu;
 }
 
 // A coarse hit on a 2- or 4-voxel cell of a loaded brick: its exposed voxel
@@ -590,7 +591,8 @@ fn beam_start(o: vec3<f32>, d: vec3<f32>, spread: f32, k: f32) -> f32 {
             ct = coarse_tmax(r, cc, level);
             t_out = min(ct.x, min(ct.y, ct.z));
         }
-        if (lod_level(t_out * k) > level || !neighbourhood_empty(cc, level)) { return t_in; }
+        // An off-centre ray is at t_out * sqrt(1 + spread^2) when it projects to t_out.
+        if (lod_level(t_out * k * sqrt(1.0 + spread * spread)) > level || !neighbourhood_empty(cc, level)) { return t_in; }
         for (var a = 0; a < 3; a++) {
             if (ct[a] == t_out) {
                 cc[a] += r.step[a];

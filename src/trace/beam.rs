@@ -73,6 +73,7 @@ impl BrickmapTracer<'_> {
         let mut ct = r.coarse_tmax(cc, level);
         let mut t_in = 0.0f32;
         let step = r.step();
+        let widen = (1.0 + spread * spread).sqrt();
         for _ in 0..MAX_BEAM_STEPS {
             let mut t_out = ct[0].min(ct[1]).min(ct[2]);
             // Widen the cells until the frustum is narrower than one.
@@ -85,7 +86,9 @@ impl BrickmapTracer<'_> {
                 ct = r.coarse_tmax(cc, level);
                 t_out = ct[0].min(ct[1]).min(ct[2]);
             }
-            if lod_level(t_out * k) > level || !self.neighbourhood_empty(cc, level) {
+            // An off-centre ray is at distance t_out · sqrt(1 + spread²)
+            // when it projects to t_out: its footprint is that much wider.
+            if lod_level(t_out * k * widen) > level || !self.neighbourhood_empty(cc, level) {
                 return t_in;
             }
             t_in = r.coarse_step(&mut cc, &mut ct, level);
