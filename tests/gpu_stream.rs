@@ -438,3 +438,50 @@ fn a_sliding_window_renders_the_same_on_the_gpu_as_on_the_cpu() {
     }
     assert_ne!(w.world().grid().ring(), IVec3::ZERO, "the grid slid");
 }
+
+/// Streaming by level of detail: where the footprint takes every brick
+/// whole (level 3 exactly: a far, narrow view, so that every hit's
+/// footprint is 8 to 16 voxels), a frame asks for no brick and draws no
+/// placeholder, while an exact frame of the same view asks for bricks. A
+/// shader that requested bricks it takes whole fails (checked by mutation).
+#[test]
+fn bricks_taken_whole_are_never_requested() {
+    let Some(ctx) = context() else { return };
+    let w = terrain();
+    let target = DVec3::new(48.0, 20.0, 48.0);
+    let eye = target + DVec3::new(1400.0, 1300.0, 1000.0);
+    let cam = Camera::new(eye, target, 3.0, 128, 96).unwrap();
+    let exact = render(
+        &w.brickmap(),
+        &cam,
+        w.store().palette(),
+        &RenderOptions::default(),
+    );
+    let ts: Vec<f32> = exact.hits.iter().flatten().map(|h| h.t).collect();
+    assert!(ts.len() > 1000, "the view sees terrain");
+    let (lo, hi) = ts
+        .iter()
+        .fold((f32::MAX, 0f32), |(a, b), &t| (a.min(t), b.max(t)));
+    let theta = cam.pixel_angle() as f32;
+    let c = 12.0 / (0.5 * (lo + hi) * theta);
+    // Every hit's footprint allows bricks, and nothing coarser.
+    assert!(
+        lo * c * theta >= 8.0 && hi * c * theta < 16.0,
+        "{lo}..{hi}, C {c}"
+    );
+    let coarse = RenderOptions {
+        lod: c,
+        ..Default::default()
+    };
+    let mut gpu = streaming(&ctx, &w);
+    let (f, s) = gpu
+        .render(&ctx, &cam, &coarse, w.grid(), w.store().pool())
+        .unwrap();
+    assert!(f.hits.iter().filter(|h| h.is_some()).count() > 1000);
+    assert_eq!(s.requests, 0, "bricks taken whole were requested");
+    assert_eq!(f.lod_pixels, 0, "no placeholder colours are needed");
+    assert_eq!(gpu.resident(), 0);
+    let mut plain = streaming(&ctx, &w);
+    let (_, s) = draw(&ctx, &mut plain, &w, &cam);
+    assert!(s.requests > 0, "an exact frame asks for its bricks");
+}

@@ -646,11 +646,7 @@ fn sky(d: vec3<f32>) -> vec3<f32> {
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= P.width || gid.y >= P.height) { return; }
-    let w = f32(P.width);
-    let h = f32(P.height);
-    let a = ((f32(gid.x) + P.jitter.x) / w * 2.0 - 1.0) * P.tan_half * P.aspect;
-    let b = (1.0 - (f32(gid.y) + P.jitter.y) / h * 2.0) * P.tan_half;
-    let d = normalize(P.f + a * P.r + b * P.u);
+    let d = pixel_dir(f32(gid.x) + P.jitter.x, f32(gid.y) + P.jitter.y);
     var t0 = 0.0;
     if (P.beam != 0u) { t0 = beams[(gid.y / 8u) * ((P.width + 7u) / 8u) + gid.x / 8u]; }
     let hit = trace(P.eye, d, P.lod_k, t0);

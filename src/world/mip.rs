@@ -126,10 +126,7 @@ pub const EMPTY_MASK: [u64; 8] = [0; 8];
 /// ```
 pub fn exposed_faces(m: &[u64; 8], nb: [&[u64; 8]; 6], level: u32, l: [i32; 3]) -> [u32; 6] {
     let mut out = [0u32; 6];
-    for_each_exposed(m, nb, level, l, |z, d, bits| {
-        out[d] += bits.count_ones();
-        let _ = z;
-    });
+    for_each_exposed(m, nb, level, l, |_, d, bits| out[d] += bits.count_ones());
     out
 }
 
@@ -149,8 +146,7 @@ pub fn for_each_exposed(
     const ROW7: u64 = 0xFF << 56;
     let e = 1i32 << level.min(3);
     let b = l.map(|v| v & !(e - 1));
-    let row = (((1u64 << e) - 1) as u8 as u64) << b[0];
-    let row = if e == 8 { 0xFF } else { row };
+    let row = ((1u64 << e) - 1) << b[0];
     let mut cell = 0u64;
     for y in b[1]..b[1] + e {
         cell |= row << (8 * y);
