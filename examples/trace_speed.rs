@@ -24,7 +24,13 @@ fn main() {
     let size: i32 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(512);
     let w: u32 = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1024);
     let h = w * 3 / 4;
-    let world = build_scene(&spec, IVec3::new(size, 128, size), 1, &ProgressBar::hidden()).unwrap();
+    let world = build_scene(
+        &spec,
+        IVec3::new(size, 128, size),
+        1,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
     let bm = world.brickmap();
     let svo = all.then(|| world.svo(&ProgressBar::hidden()).unwrap());
     let dense = all.then(|| world.dense(1 << 33).unwrap());

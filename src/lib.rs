@@ -24,6 +24,8 @@ pub mod trace;
 pub mod verify;
 pub mod world;
 
+pub mod runtime_dir;
+
 /// Replace Rust's panic message with a one-line report (no backtrace unless
 /// `RUST_BACKTRACE` is set): a panic is a bug, but users should not see a
 /// wall of frames.

@@ -450,3 +450,26 @@ fn bad_level_of_detail_values_are_refused() {
         "--lod needs the brickmap",
     );
 }
+
+/// Issue 12: with `XDG_RUNTIME_DIR` unset, Mesa printed "error:
+/// XDG_RUNTIME_DIR is invalid or not set" twice when a GPU was opened,
+/// which reads like a failure. The binary now gives it a private one.
+#[test]
+fn no_xdg_runtime_dir_noise_when_the_variable_is_missing() {
+    let out_png = common::cli::tmp("xdg", "frame.png");
+    let out = bin()
+        .env_remove("XDG_RUNTIME_DIR")
+        .args([
+            "render", "--scene", "terrain", "--size", "64x32x64", "--tracer", "gpu",
+        ])
+        .arg("--out")
+        .arg(&out_png)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("XDG_RUNTIME_DIR"), "Mesa's noise: {err}");
+    // Without a GPU the render fails with one line; with one it succeeds.
+    if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() == Ok("1") {
+        assert_success(&out);
+    }
+}

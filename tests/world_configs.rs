@@ -208,6 +208,14 @@ fn bad_configs_name_the_file_field_and_reason() {
             "render.lod: NaN is not a cell footprint",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[frames]\nmax_mb = 0.5\n",
+            "frames.max_mb: 0.5 is outside 1..=1048576 MiB",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[frames]\nmax_mb = inf\n",
+            "frames.max_mb: inf is outside",
+        ),
+        (
             "[world]\nsource = \"terrain\"\n[checkpoint]\nevery = 0\n",
             "checkpoint.every",
         ),

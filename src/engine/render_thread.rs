@@ -109,6 +109,9 @@ pub struct RenderSettings {
     pub frames_dir: PathBuf,
     /// Frames kept on disk; older ones are deleted.
     pub keep: usize,
+    /// Most bytes of frames kept on disk; the oldest go first (the newest
+    /// frame is always kept).
+    pub max_bytes: u64,
 }
 
 /// The running render thread.
@@ -131,7 +134,7 @@ impl RenderThread {
             .spawn(move || {
                 let mut gpu: Option<(GpuContext, GpuBrickmap)> = None;
                 let mut gpu_tried = false;
-                let mut written = existing_frames(&settings.frames_dir);
+                let mut written = FrameFiles::scan(&settings.frames_dir);
                 // The render thread's own copy of the world, kept current by
                 // the jobs' deltas: the engine never copies the world again.
                 let mut mirror: Option<SceneWorld> = None;
@@ -236,16 +239,11 @@ impl RenderThread {
                         .and_then(|_| std::fs::rename(&tmp, &path))
                         .is_ok()
                     {
-                        written.retain(|p| p != &path);
-                        written.push_back(path);
+                        written.push(path, png.len() as u64);
                     } else {
                         let _ = std::fs::remove_file(&tmp);
                     }
-                    while written.len() > settings.keep {
-                        if let Some(old) = written.pop_front() {
-                            let _ = std::fs::remove_file(old);
-                        }
-                    }
+                    written.prune(settings.keep, settings.max_bytes);
                     if let Ok(mut f) = shared.frame.lock() {
                         *f = Some(png);
                     }
@@ -313,22 +311,63 @@ impl RenderThread {
     }
 }
 
-/// The frames already in `dir`, oldest first (by name: the tick).
-fn existing_frames(dir: &std::path::Path) -> std::collections::VecDeque<PathBuf> {
-    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|rd| {
-            rd.flatten()
-                .map(|e| e.path())
-                .filter(|p| {
-                    p.file_name()
-                        .and_then(|n| n.to_str())
-                        .is_some_and(|n| n.starts_with("frame-") && n.ends_with(".png"))
-                })
-                .collect()
-        })
-        .unwrap_or_default();
-    v.sort();
-    v.into()
+/// The frames on disk, oldest first (by name: the tick), with their sizes,
+/// pruned to a count and a byte total (`[frames] keep` and `max_mb`).
+#[derive(Debug, Default)]
+pub struct FrameFiles {
+    files: std::collections::VecDeque<(PathBuf, u64)>,
+    bytes: u64,
+}
+
+impl FrameFiles {
+    /// The frames already in `dir` (a missing directory has none).
+    pub fn scan(dir: &std::path::Path) -> Self {
+        let mut v: Vec<(PathBuf, u64)> = std::fs::read_dir(dir)
+            .map(|rd| {
+                rd.flatten()
+                    .filter(|e| {
+                        e.file_name()
+                            .to_str()
+                            .is_some_and(|n| n.starts_with("frame-") && n.ends_with(".png"))
+                    })
+                    .map(|e| (e.path(), e.metadata().map_or(0, |m| m.len())))
+                    .collect()
+            })
+            .unwrap_or_default();
+        v.sort();
+        let bytes = v.iter().map(|f| f.1).sum();
+        FrameFiles {
+            files: v.into(),
+            bytes,
+        }
+    }
+
+    /// Record a frame just written (replacing one of the same name).
+    pub fn push(&mut self, path: PathBuf, bytes: u64) {
+        if let Some(i) = self.files.iter().position(|f| f.0 == path) {
+            let (_, b) = self.files.remove(i).expect("present");
+            self.bytes -= b;
+        }
+        self.bytes += bytes;
+        self.files.push_back((path, bytes));
+    }
+
+    /// Delete the oldest frames until at most `keep` remain and they hold at
+    /// most `max_bytes` (the newest frame is always kept).
+    pub fn prune(&mut self, keep: usize, max_bytes: u64) {
+        while self.files.len() > keep || (self.bytes > max_bytes && self.files.len() > 1) {
+            let Some((old, b)) = self.files.pop_front() else {
+                break;
+            };
+            self.bytes -= b;
+            let _ = std::fs::remove_file(old);
+        }
+    }
+
+    /// Frames kept, and their bytes.
+    pub fn totals(&self) -> (usize, u64) {
+        (self.files.len(), self.bytes)
+    }
 }
 
 fn start_gpu(
@@ -389,4 +428,37 @@ pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::FrameFiles;
+
+    #[test]
+    fn frames_are_pruned_to_a_count_and_to_a_byte_total_oldest_first() {
+        let dir = std::env::temp_dir().join(format!("bw-frames-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let name = |t: u32| dir.join(format!("frame-{t:08}.png"));
+        for t in 0..5 {
+            std::fs::write(name(t), vec![0u8; 100]).unwrap();
+        }
+        std::fs::write(dir.join("notes.txt"), "not a frame").unwrap();
+        let mut f = FrameFiles::scan(&dir);
+        assert_eq!(f.totals(), (5, 500));
+        // By count.
+        f.prune(4, u64::MAX);
+        assert!(!name(0).exists() && name(1).exists());
+        // By size: a new 250-byte frame under a 400-byte cap leaves 250 + 100.
+        std::fs::write(name(5), vec![0u8; 250]).unwrap();
+        f.push(name(5), 250);
+        f.prune(100, 400);
+        assert_eq!(f.totals(), (2, 350));
+        assert!(name(4).exists() && name(5).exists() && !name(3).exists());
+        // The newest frame stays even when it alone is over the cap.
+        f.prune(100, 10);
+        assert_eq!(f.totals(), (1, 250));
+        assert!(name(5).exists() && dir.join("notes.txt").exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

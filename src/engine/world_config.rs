@@ -51,6 +51,7 @@
 //! dir = "frames"              # relative to the state directory
 //! every = 10                  # ticks
 //! keep = 200                  # frames kept on disk; older ones are deleted
+//! max_mb = 256                # and at most this many MiB of them (oldest go first)
 //!
 //! [checkpoint]
 //! every = 500                 # ticks
@@ -133,6 +134,9 @@ pub struct StreamSettings {
 
 /// The default memory budget of a streamed world: 1.5 GiB.
 pub const DEFAULT_MEMORY_BUDGET: u64 = 3 << 29;
+
+/// Most MiB of frames kept on disk when `frames.max_mb` is not set.
+pub const DEFAULT_FRAMES_MB: f64 = 256.0;
 
 /// Level-of-detail `C` of the daemon's frames when `render.lod` is not set
 /// (see README, "Level of detail", for the measurement behind it).
@@ -259,6 +263,7 @@ struct RawFrames {
     dir: Option<String>,
     every: Option<i64>,
     keep: Option<i64>,
+    max_mb: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -401,6 +406,8 @@ pub struct WorldConfig {
     pub frames_every: u64,
     /// Frames kept on disk (older ones are deleted).
     pub frames_keep: usize,
+    /// Most bytes of frames kept on disk; the oldest go first.
+    pub frames_max_bytes: u64,
     /// Checkpoint every this many ticks.
     pub checkpoint_every: u64,
     /// Control server address.
@@ -890,6 +897,15 @@ impl WorldConfig {
             frames_keep: match raw.frames.keep.unwrap_or(200) {
                 k @ 1..=1_000_000 => k as usize,
                 k => return Err(err("frames.keep", format!("{k} is outside 1..=1000000"))),
+            },
+            frames_max_bytes: match raw.frames.max_mb.unwrap_or(DEFAULT_FRAMES_MB) {
+                m if m.is_finite() && (1.0..=1_048_576.0).contains(&m) => (m * 1048576.0) as u64,
+                m => {
+                    return Err(err(
+                        "frames.max_mb",
+                        format!("{m} is outside 1..=1048576 MiB"),
+                    ));
+                }
             },
             checkpoint_every: every(raw.checkpoint.every, 500, "checkpoint.every")?,
             addr,

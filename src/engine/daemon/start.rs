@@ -141,6 +141,7 @@ impl Engine {
                 beam: cfg.beam,
                 frames_dir,
                 keep: cfg.frames_keep,
+                max_bytes: cfg.frames_max_bytes,
             },
             shared.clone(),
         )
