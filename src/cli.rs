@@ -137,7 +137,11 @@ pub struct CtlArgs {
     /// State directory holding control.token
     #[arg(long, default_value = "state")]
     pub state: PathBuf,
-    /// status | pause | resume | step [N] | commit | param SCRIPT NAME VALUE
+    /// `log`: print the lines there are and exit, instead of following
+    #[arg(long)]
+    pub no_follow: bool,
+    /// status | pause | resume | step [N] | commit | param SCRIPT NAME VALUE |
+    /// params [SCRIPT] | log [SCRIPT] | camera path
     #[arg(required = true, num_args = 1.., allow_hyphen_values = true)]
     pub command: Vec<String>,
 }

@@ -9,6 +9,7 @@
 //! A job carries a snapshot of the world taken at a step boundary, so the
 //! renderer never sees a half-applied step.
 
+use super::control::live::{FrameEvent, unix_ms};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -247,6 +248,15 @@ impl RenderThread {
                     if let Ok(mut f) = shared.frame.lock() {
                         *f = Some(png);
                     }
+                    // Live viewers: a value stored, never a wait for them.
+                    let seq = st.frames.load(Ordering::Relaxed) + 1;
+                    shared.frame_events.send_replace(FrameEvent {
+                        seq,
+                        tick: job.tick,
+                        width: job.camera.width,
+                        height: job.camera.height,
+                        rendered_unix_ms: unix_ms(),
+                    });
                     st.frame_ms_bits.store(
                         (t.elapsed().as_secs_f64() * 1e3).to_bits(),
                         Ordering::Relaxed,

@@ -60,6 +60,29 @@ pub struct Row {
     pub conserved: Vec<f64>,
 }
 
+impl Row {
+    /// The row's values in column order ([`COLUMNS`], then the per-script
+    /// ones), as the viewer's charts take them.
+    pub fn values(&self) -> Vec<f64> {
+        let mut v = vec![
+            self.tick as f64,
+            self.steps_per_s,
+            self.active_bricks as f64,
+            self.dirty_bricks as f64,
+            self.frame_ms,
+            self.bricks_streamed as f64,
+            self.rss_kb as f64,
+            self.water,
+            self.ground_plus_sediment,
+            self.snow,
+            self.drained,
+        ];
+        v.extend(&self.script_ms);
+        v.extend(&self.conserved);
+        v
+    }
+}
+
 /// A timeline file is rotated to `timeline.1.csv` past this size.
 pub const ROTATE_BYTES: u64 = 32 << 20;
 

@@ -4,10 +4,14 @@
 //! - [`server`]: the transport (hyper on a tokio thread) and its limits
 //!   against hostile clients.
 //! - [`routes`]: the routes, the token rule and request validation.
+//! - [`live`]: what live viewers are pushed (server-sent events), the
+//!   camera lease and parameter verdicts.
+//! - `viewer.html`: the viewer page, embedded in the binary.
 //!
 //! Nothing a request says can crash or stall the engine: commands are
 //! validated, queued (bounded) and applied by the engine loop between steps.
 
+pub mod live;
 pub mod routes;
 pub mod server;
 
@@ -65,6 +69,28 @@ pub struct ScriptStatus {
     /// The last warning about this script (a parameter clamped on reload,
     /// a refused parameter change…).
     pub warning: Option<String>,
+    /// Lines `log(...)` accepted so far: the last of [`log`](Self::log) is
+    /// number `log_seq - 1` (for followers such as `ctl log`).
+    pub log_seq: u64,
+    /// Hot reloads of this script in this run, and the tick of the last.
+    pub reloads: u64,
+    /// Tick of the last hot reload (0: none).
+    pub reloaded_at: u64,
+}
+
+/// The camera in `/status`.
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct CameraStatus {
+    /// Eye (world voxels).
+    pub eye: [f64; 3],
+    /// Look-at point.
+    pub target: [f64; 3],
+    /// Vertical field of view, degrees.
+    pub fov: f64,
+    /// `path` (the world's configured camera) or `set` (through `/camera`).
+    pub mode: String,
+    /// The viewer holding the camera lease, if one does.
+    pub holder: Option<String>,
 }
 
 /// Where a run resumed from, in `/status`.
@@ -142,6 +168,8 @@ pub struct Status {
     pub memory_budget: Option<u64>,
     /// The engine process's resident memory (Linux; 0 elsewhere).
     pub rss_bytes: u64,
+    /// The camera of the next frame.
+    pub camera: CameraStatus,
 }
 
 /// A command for the engine loop.
@@ -155,6 +183,8 @@ pub enum Command {
     Step(u64),
     /// Commit what changed to the world store now.
     Checkpoint,
+    /// Go back to the world's configured camera (path).
+    CameraPath,
     /// Set a camera.
     Camera {
         /// Eye.
@@ -163,6 +193,8 @@ pub enum Command {
         target: [f64; 3],
         /// Field of view, degrees.
         fov: f64,
+        /// The viewer that moved it (the lease holder), if a viewer did.
+        viewer: Option<String>,
     },
     /// Set script parameters.
     Params {
@@ -170,6 +202,8 @@ pub enum Command {
         script: String,
         /// Name → value.
         values: Vec<(String, f64)>,
+        /// Where the engine says whether it applied them.
+        verdict: live::VerdictSlot,
     },
 }
 
@@ -185,22 +219,32 @@ pub struct Shared {
     pub token: String,
     /// Set to stop everything.
     pub shutdown: AtomicBool,
+    /// The latest rendered frame, for live viewers.
+    pub frame_events: tokio::sync::watch::Sender<live::FrameEvent>,
+    /// The timeline's last rows, for the viewer's charts.
+    pub timeline: Mutex<live::TimelineRing>,
+    /// Which viewer holds the camera.
+    pub camera_lease: Mutex<live::CameraLease>,
+    /// Slots for live viewers' event streams.
+    pub viewers: std::sync::Arc<tokio::sync::Semaphore>,
 }
 
-pub(crate) const VIEWER: &str = r#"<!doctype html><meta charset="utf-8"><title>brickworld</title>
-<style>body{font:14px sans-serif;margin:1em;background:#eef}img{max-width:100%;border:1px solid #999}pre{background:#fff;padding:.5em}</style>
-<h1>brickworld</h1><img id="f" src="/frame.png"><p>
-<button onclick="post('pause')">pause</button> <button onclick="post('resume')">resume</button>
-<button onclick="post('step','1')">step</button> <button onclick="post('commit')">commit</button>
-token <input id="t" size="34" placeholder="from STATE/control.token"></p>
-<p>camera: eye <input id="ce" size="16" placeholder="x,y,z"> target <input id="ct" size="16" placeholder="x,y,z">
-fov <input id="cf" size="4" value="50"> <button onclick="cam()">set camera</button></p><pre id="s"></pre>
-<script>
-const t=document.getElementById('t');t.value=localStorage.getItem('bw-token')||'';
-t.onchange=()=>localStorage.setItem('bw-token',t.value);
-function v3(id){return document.getElementById(id).value.split(',').map(Number)}
-function cam(){post('camera',JSON.stringify({eye:v3('ce'),target:v3('ct'),fov:Number(document.getElementById('cf').value)}))}
-function post(p,b){fetch('/'+p,{method:'POST',headers:{Authorization:'Bearer '+t.value},body:b||''}).then(r=>r.text()).then(x=>document.getElementById('s').textContent=x)}
-setInterval(()=>{fetch('/status').then(r=>r.json()).then(s=>document.getElementById('s').textContent=JSON.stringify(s,null,1));
-document.getElementById('f').src='/frame.png?'+Date.now()},1000);
-</script>"#;
+impl Shared {
+    /// Shared state for an engine whose control token is `token`.
+    pub fn new(token: String) -> Self {
+        Shared {
+            status: Mutex::new(Status::default()),
+            commands: Mutex::new(Vec::new()),
+            frame: Mutex::new(None),
+            token,
+            shutdown: AtomicBool::new(false),
+            frame_events: tokio::sync::watch::Sender::new(live::FrameEvent::default()),
+            timeline: Mutex::new(live::TimelineRing::default()),
+            camera_lease: Mutex::new(live::CameraLease::default()),
+            viewers: std::sync::Arc::new(tokio::sync::Semaphore::new(live::MAX_VIEWERS)),
+        }
+    }
+}
+
+/// The viewer page (HTML, CSS and script in one file, no external assets).
+pub(crate) const VIEWER: &str = include_str!("viewer.html");

@@ -1,27 +1,45 @@
 //! The control API's routes: what each request means, the token rule, and
 //! the validation that turns a request into a [`Command`] or a 4xx.
 //!
-//! `GET /status`, `GET /frame.png` and `GET /` (the viewer) are open; every
-//! `POST` needs `Authorization: Bearer TOKEN` (compared in constant time).
+//! `GET /status`, `GET /frame.png`, `GET /events` (live viewers, see
+//! [`super::live`]), `GET /timeline` and `GET /` (the viewer) are open;
+//! every `POST` needs `Authorization: Bearer TOKEN` (compared in constant
+//! time). `POST /auth` only checks the token (the viewer's login).
+//! `POST /scripts/NAME/params` waits up to [`VERDICT_WAIT`] for the
+//! engine's verdict and answers 409 with the reason when the engine refuses
+//! (202 if it has not decided yet). `POST /camera` from a viewer (a
+//! `viewer` id in the body) holds the camera lease; another viewer's move
+//! meanwhile gets 409.
 //! Unknown routes get 404, malformed requests or refused values 400, a
 //! wrong token 401, a body over [`MAX_BODY`] 413 (decided from the declared
 //! length, before the body is read), a body too slow 408, and a full command
 //! queue 503.
 
+use std::convert::Infallible;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
 use bytes::Bytes;
+use http_body_util::combinators::BoxBody;
 use http_body_util::{BodyExt, Full, Limited};
 use hyper::body::Incoming;
 use hyper::header::{AUTHORIZATION, CONTENT_LENGTH, CONTENT_TYPE};
 use hyper::{Method, Request, Response, StatusCode};
 use serde::Serialize;
 
+use super::live::{self, VerdictSlot};
 use super::server::BODY_TIMEOUT;
 use super::{Command, MAX_BODY, MAX_QUEUED_COMMANDS, Shared, Status};
 
-type Reply = Response<Full<Bytes>>;
+/// A response: a whole body, or an event stream.
+pub type Reply = Response<BoxBody<Bytes, Infallible>>;
+
+/// Longest a parameter change waits for the engine's verdict.
+pub const VERDICT_WAIT: Duration = Duration::from_secs(3);
 
 fn reply(code: u16, content_type: &'static str, body: impl Into<Bytes>) -> Reply {
-    let mut r = Response::new(Full::new(body.into()));
+    let mut r = Response::new(Full::new(body.into()).boxed());
     *r.status_mut() = StatusCode::from_u16(code).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
     r.headers_mut().insert(
         CONTENT_TYPE,
@@ -54,16 +72,73 @@ fn shown(name: &str) -> String {
     }
 }
 
-/// Answer one request.
-pub async fn handle(req: Request<Incoming>, shared: &Shared) -> Reply {
+/// Answer one request. `streaming` is set when the answer is an event
+/// stream (the server then lets the connection outlive its usual limit).
+pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &AtomicBool) -> Reply {
     let path = req.uri().path().to_string();
     let method = req.method().clone();
     match (&method, path.as_str()) {
         (&Method::GET, "/status") => json(200, &*shared.status.lock().expect("status lock")),
         (&Method::GET, "/frame.png") => match shared.frame.lock().expect("frame lock").clone() {
-            Some(png) => reply(200, "image/png", png),
+            Some(png) => {
+                let mut r = reply(200, "image/png", png);
+                r.headers_mut().insert(
+                    hyper::header::CACHE_CONTROL,
+                    hyper::header::HeaderValue::from_static("no-store"),
+                );
+                r
+            }
             None => error(404, "no frame rendered yet"),
         },
+        (&Method::GET, "/events") => {
+            let Ok(permit) = shared.viewers.clone().try_acquire_owned() else {
+                return error(
+                    503,
+                    &format!(
+                        "{} viewers are already watching; try again later",
+                        live::MAX_VIEWERS
+                    ),
+                );
+            };
+            streaming.store(true, Ordering::Relaxed);
+            let mut r = Response::new(live::stream(shared.clone(), permit).boxed());
+            let h = r.headers_mut();
+            h.insert(
+                CONTENT_TYPE,
+                hyper::header::HeaderValue::from_static("text/event-stream"),
+            );
+            h.insert(
+                hyper::header::CACHE_CONTROL,
+                hyper::header::HeaderValue::from_static("no-store"),
+            );
+            r
+        }
+        (&Method::GET, "/timeline") => {
+            let q = req.uri().query().unwrap_or("");
+            let arg = |k: &str| {
+                q.split('&')
+                    .filter_map(|kv| kv.split_once('='))
+                    .find(|(a, _)| *a == k)
+                    .map(|(_, v)| v.parse::<u64>())
+            };
+            let (since, epoch) = match (arg("since"), arg("epoch")) {
+                (Some(Err(_)), _) | (_, Some(Err(_))) => {
+                    return error(400, "since and epoch must be whole numbers");
+                }
+                (s, e) => (
+                    s.map_or(Ok(0), |v| v).unwrap_or(0),
+                    e.map_or(Ok(u64::MAX), |v| v).unwrap_or(u64::MAX),
+                ),
+            };
+            json(
+                200,
+                &shared
+                    .timeline
+                    .lock()
+                    .expect("timeline lock")
+                    .since(since, epoch),
+            )
+        }
         (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
         (&Method::POST, _) => post(req, &path, shared).await,
         _ => error(404, &format!("no route {method} {}", shown(&path))),
@@ -118,14 +193,36 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
     let Ok(body) = std::str::from_utf8(&bytes) else {
         return error(400, "the body is not UTF-8 text");
     };
+    if path == "/auth" {
+        return json(200, &serde_json::json!({ "ok": true }));
+    }
     let cmd = {
         let status = shared.status.lock().expect("status lock");
         parse_command(path, body, &status)
     };
     match cmd {
-        Ok(cmd) => {
-            let mut q = shared.commands.lock().expect("command lock");
-            if q.len() >= MAX_QUEUED_COMMANDS {
+        Ok(mut cmd) => {
+            if let Command::Camera { viewer, .. } = &cmd {
+                let mut lease = shared.camera_lease.lock().expect("lease lock");
+                if let Err(msg) = lease.take(viewer.as_deref(), Instant::now()) {
+                    return error(409, &msg);
+                }
+            }
+            let mut wait = None;
+            if let Command::Params { verdict, .. } = &mut cmd {
+                let (slot, rx) = VerdictSlot::new();
+                *verdict = slot;
+                wait = Some(rx);
+            }
+            let queued = {
+                let mut q = shared.commands.lock().expect("command lock");
+                let room = q.len() < MAX_QUEUED_COMMANDS;
+                if room {
+                    q.push(cmd);
+                }
+                room
+            };
+            if !queued {
                 return error(
                     503,
                     &format!(
@@ -133,8 +230,18 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
                     ),
                 );
             }
-            q.push(cmd);
-            json(200, &serde_json::json!({ "ok": true }))
+            let Some(rx) = wait else {
+                return json(200, &serde_json::json!({ "ok": true }));
+            };
+            match tokio::time::timeout(VERDICT_WAIT, rx).await {
+                Ok(Ok(Ok(()))) => json(200, &serde_json::json!({ "ok": true, "applied": true })),
+                Ok(Ok(Err(reason))) => error(409, &reason),
+                // The engine is busy (a long step) or stopping: queued.
+                _ => json(
+                    202,
+                    &serde_json::json!({ "ok": true, "applied": false, "note": "queued: the engine has not applied it yet; see /status" }),
+                ),
+            }
         }
         Err((code, msg)) => error(code, &msg),
     }
@@ -162,6 +269,7 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             }
             Ok(Command::Step(n))
         }
+        "/camera/path" => Ok(Command::CameraPath),
         "/camera" => {
             #[derive(serde::Deserialize)]
             #[serde(deny_unknown_fields)]
@@ -169,6 +277,7 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
                 eye: [f64; 3],
                 target: [f64; 3],
                 fov: Option<f64>,
+                viewer: Option<String>,
             }
             let c: Cam =
                 serde_json::from_str(body).map_err(|e| bad(format!("camera JSON: {e}")))?;
@@ -185,10 +294,23 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             }
             crate::trace::Camera::new(c.eye.into(), c.target.into(), fov, 8, 8)
                 .map_err(|e| bad(e.to_string()))?;
+            if let Some(v) = &c.viewer
+                && (v.is_empty()
+                    || v.len() > 64
+                    || !v
+                        .chars()
+                        .all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_'))
+            {
+                return Err(bad(format!(
+                    "viewer id '{}' must be 1 to 64 letters, digits, '-' or '_'",
+                    shown(v)
+                )));
+            }
             Ok(Command::Camera {
                 eye: c.eye,
                 target: c.target,
                 fov,
+                viewer: c.viewer,
             })
         }
         p if p.starts_with("/scripts/")
@@ -233,6 +355,7 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             Ok(Command::Params {
                 script: script.to_string(),
                 values: map.into_iter().collect(),
+                verdict: VerdictSlot::default(),
             })
         }
         other => Err((404, format!("no route POST {}", shown(other)))),

@@ -13,12 +13,17 @@
 //! - **Exhaust descriptors**: at most [`MAX_CONNECTIONS`] are served at once
 //!   (more are closed at once); an accept error (EMFILE, ENFILE…) pauses the
 //!   accept loop briefly and never ends it, so the listener survives.
+//! - **Hold a connection for ever**: only a live viewer's event stream
+//!   outlives [`CONNECTION_LIFETIME`]; at most
+//!   [`MAX_VIEWERS`](super::live::MAX_VIEWERS) are served and one that
+//!   reads nothing for [`STALL_LIMIT`](super::live::STALL_LIMIT) is closed.
 //! - **Hold up shutdown**: [`ControlServer::stop`] drops every connection
 //!   task without waiting for its client.
 
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use hyper::server::conn::http1;
@@ -146,14 +151,26 @@ async fn accept_loop(
 
 async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>) {
     let _ = stream.set_nodelay(true);
+    // Set once this connection answers with an event stream: a live viewer
+    // may stay longer than CONNECTION_LIFETIME (the stream has its own
+    // limits, see `live`).
+    let streaming = Arc::new(AtomicBool::new(false));
+    let flag = streaming.clone();
     let service = service_fn(move |req| {
-        let shared = shared.clone();
-        async move { Ok::<_, Infallible>(super::routes::handle(req, &shared).await) }
+        let (shared, flag) = (shared.clone(), flag.clone());
+        async move { Ok::<_, Infallible>(super::routes::handle(req, &shared, &flag).await) }
     });
     let conn = http1::Builder::new()
         .timer(TokioTimer::new())
         .header_read_timeout(HEADER_TIMEOUT)
         .max_buf_size(MAX_HEADER_BYTES)
         .serve_connection(TokioIo::new(stream), service);
-    let _ = tokio::time::timeout(CONNECTION_LIFETIME, conn).await;
+    tokio::pin!(conn);
+    loop {
+        match tokio::time::timeout(CONNECTION_LIFETIME, &mut conn).await {
+            Ok(_) => return,
+            Err(_) if streaming.load(Ordering::Relaxed) => continue,
+            Err(_) => return,
+        }
+    }
 }

@@ -119,6 +119,9 @@ struct ScriptNotes {
     /// The last failed reload (cleared by a successful one).
     reload_error: Option<String>,
     warning: Option<String>,
+    /// Hot reloads in this run, and the tick of the last.
+    reloads: u64,
+    reloaded_at: u64,
 }
 
 /// The running engine.
@@ -209,8 +212,11 @@ impl Engine {
                     for w in &warnings {
                         eprintln!("warning: {w}");
                     }
+                    let reloads = self.notes[i].reloads + 1;
                     self.notes[i] = ScriptNotes {
                         warning: warnings.last().cloned(),
+                        reloads,
+                        reloaded_at: self.ws.sim.tick(),
                         ..Default::default()
                     };
                 }
@@ -245,7 +251,9 @@ impl Engine {
                     self.steps_left = (self.steps_left + n).min(100_000);
                 }
                 Command::Checkpoint => self.commit(),
-                Command::Camera { eye, target, fov } => {
+                Command::Camera {
+                    eye, target, fov, ..
+                } => {
                     self.camera.mode = CameraMode::Fixed;
                     self.camera.eye = Some(DVec3::from(eye));
                     self.camera.target = Some(DVec3::from(target));
@@ -254,17 +262,35 @@ impl Engine {
                     // camera must follow it after a resume too.
                     self.camera_override = Some(CameraOverride { eye, target, fov });
                 }
-                Command::Params { script, values } => {
+                Command::Params {
+                    script,
+                    values,
+                    verdict,
+                } => {
                     // The server validated against /status; a reload in
-                    // between may still refuse, which is shown per script.
+                    // between may still refuse: the caller is told, and the
+                    // refusal is shown per script.
                     let Some(i) = self.ws.script_index(&script) else {
+                        verdict.send(Err(format!("no script named '{script}' any more")));
                         continue;
                     };
+                    let mut refused = Vec::new();
                     for (k, v) in values {
                         if let Err(e) = self.ws.set_param(i, &k, v) {
-                            self.notes[i].warning = Some(format!("refused: {e}"));
+                            refused.push(e.to_string());
                         }
                     }
+                    if refused.is_empty() {
+                        verdict.send(Ok(()));
+                    } else {
+                        let msg = format!("refused: {}", refused.join("; "));
+                        self.notes[i].warning = Some(msg.clone());
+                        verdict.send(Err(msg));
+                    }
+                }
+                Command::CameraPath => {
+                    self.camera = self.cfg.camera;
+                    self.camera_override = None;
                 }
             }
         }
@@ -481,7 +507,7 @@ impl Engine {
             self.timeline = t;
         }
         let stats = &self.renderer.stats;
-        self.timeline.record(&Row {
+        let row = Row {
             tick,
             steps_per_s: self.steps_per_s,
             active_bricks: r.active_tiles,
@@ -499,13 +525,25 @@ impl Engine {
             conserved: (0..self.ws.script_count())
                 .flat_map(|i| self.ws.conserved_totals(i).into_iter().map(|(_, v)| v))
                 .collect(),
-        });
+        };
+        self.timeline.record(&row);
+        // The viewer's charts: the same row, same columns.
+        let names: Vec<String> = super::timeline::COLUMNS
+            .iter()
+            .map(|c| c.to_string())
+            .chain(columns)
+            .collect();
+        let mut values = row.values();
+        values.resize(names.len(), f64::NAN);
+        if let Ok(mut ring) = self.shared.timeline.lock() {
+            ring.push(&names, values);
+        }
     }
 
     fn script_status(&self, i: usize) -> ScriptStatus {
         let sim = &self.ws;
         let spec = sim.spec(i);
-        let (log, log_dropped) = crate::sim::runtime::log::recent(&spec.name);
+        let (log, log_dropped, log_seq) = crate::sim::runtime::log::recent(&spec.name);
         let note = self.notes.get(i).cloned().unwrap_or_default();
         let (state, error) = match sim.suspended(i) {
             Some(e) => (
@@ -544,6 +582,38 @@ impl Engine {
             totals: sim.conserved_totals(i).into_iter().collect(),
             log,
             log_dropped,
+            log_seq,
+            reloads: note.reloads,
+            reloaded_at: note.reloaded_at,
+        }
+    }
+
+    /// The camera of the next frame, and who holds it, for `/status`.
+    fn camera_status(&self) -> super::control::CameraStatus {
+        let holder = self
+            .shared
+            .camera_lease
+            .lock()
+            .ok()
+            .and_then(|l| l.holder(Instant::now()).map(str::to_string));
+        let mode = if self.camera_override.is_some() {
+            "set"
+        } else {
+            "path"
+        };
+        match self.camera_at(self.ws.sim.tick()) {
+            Ok(c) => super::control::CameraStatus {
+                eye: c.eye.to_array(),
+                target: c.target.to_array(),
+                fov: c.fov_deg,
+                mode: mode.into(),
+                holder,
+            },
+            Err(_) => super::control::CameraStatus {
+                mode: mode.into(),
+                holder,
+                ..Default::default()
+            },
         }
     }
 
@@ -584,6 +654,7 @@ impl Engine {
             window: stats.window(),
             memory_budget: self.cfg.stream.map(|s| s.memory_budget),
             rss_bytes: super::timeline::rss_kb() * 1024,
+            camera: self.camera_status(),
         };
     }
 

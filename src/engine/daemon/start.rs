@@ -4,14 +4,14 @@
 //! the timeline.
 
 use std::path::Path;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use rustc_hash::FxHashSet;
 
-use super::super::control::{CheckpointRef, ControlServer, Shared, Status};
+use super::super::control::{CheckpointRef, ControlServer, Shared};
 use super::super::persistence::{self, DirtyChunks};
 use super::super::render_thread::{RenderSettings, RenderThread};
 use super::super::state_dir;
@@ -39,13 +39,7 @@ impl Engine {
             if cfg.aa > 1 { 3 } else { 2 },
         )?;
         let token = state_dir::new_token()?;
-        let shared = Arc::new(Shared {
-            status: Mutex::new(Status::default()),
-            commands: Mutex::new(Vec::new()),
-            frame: Mutex::new(None),
-            token: token.clone(),
-            shutdown: Default::default(),
-        });
+        let shared = Arc::new(Shared::new(token.clone()));
         // Listen before any work: a taken port is a clear error at once.
         let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
         let token_path = state_dir::write_token(&opts.state, &token)?;

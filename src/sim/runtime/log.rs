@@ -21,6 +21,8 @@ struct ScriptLog {
     recent: VecDeque<String>,
     unprinted: Vec<String>,
     dropped: u64,
+    /// Lines accepted so far (the sequence number of the next one).
+    accepted: u64,
     window: Option<Instant>,
     in_window: u32,
 }
@@ -50,6 +52,7 @@ pub fn push(script: &str, mut line: String) {
         return;
     }
     log.in_window += 1;
+    log.accepted += 1;
     log.recent.push_back(line.clone());
     while log.recent.len() > KEPT {
         log.recent.pop_front();
@@ -59,13 +62,14 @@ pub fn push(script: &str, mut line: String) {
     }
 }
 
-/// The last lines of `script`, and how many were dropped by the rate limit.
-pub fn recent(script: &str) -> (Vec<String>, u64) {
+/// The last lines of `script`, how many were dropped by the rate limit,
+/// and how many were accepted so far (the last line is number `seq - 1`).
+pub fn recent(script: &str) -> (Vec<String>, u64, u64) {
     let Ok(map) = logs().lock() else {
-        return (Vec::new(), 0);
+        return (Vec::new(), 0, 0);
     };
     map.get(script)
-        .map(|l| (l.recent.iter().cloned().collect(), l.dropped))
+        .map(|l| (l.recent.iter().cloned().collect(), l.dropped, l.accepted))
         .unwrap_or_default()
 }
 

@@ -1,0 +1,334 @@
+//! What the live viewer is pushed, and how: server-sent events.
+//!
+//! `GET /events` is a `text/event-stream` with three kinds of event:
+//! - `frame`: a frame was rendered (its sequence number, tick, size and the
+//!   wall-clock time it was finished, so a page can measure its latency);
+//!   the page then fetches `/frame.png`, one fetch at a time;
+//! - `status`: what `/status` shows, at most [`STATUS_EVERY`] apart and
+//!   only when it changed;
+//! - `rows`: timeline rows the client has not had yet (the charts).
+//!
+//! **Why server-sent events.** They need nothing beyond HTTP/1.1 and the
+//! hyper already serving the control API (no WebSocket handshake or crate),
+//! pass through the same token-free read-only rule as `GET /status`, and
+//! the browser's `EventSource` reconnects by itself. Frames stay binary
+//! PNGs behind a plain GET instead of base64 inside the stream (a third
+//! more bytes and a decode in script).
+//!
+//! **A slow browser never slows the engine.** Each stream is a task that
+//! hands its events to the connection through a channel of
+//! [`QUEUE`] events with `try_send`: when the client does not read, the
+//! channel fills and newer events are dropped for that client alone (a
+//! frame event only says "the latest frame is N", so a skipped one loses
+//! nothing). The engine and the render thread only ever store values
+//! ([`tokio::sync::watch`], a mutex held for a copy); they never wait for a
+//! viewer. A client that has read nothing for [`STALL_LIMIT`] is
+//! disconnected, and at most [`MAX_VIEWERS`] streams are served at once.
+
+use std::collections::VecDeque;
+use std::convert::Infallible;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use hyper::body::{Body, Frame};
+use serde::Serialize;
+use tokio::sync::mpsc;
+
+use super::Shared;
+
+/// Event streams served at once; more get 503.
+pub const MAX_VIEWERS: usize = 16;
+/// Least time between two `status` events on one stream.
+pub const STATUS_EVERY: Duration = Duration::from_millis(250);
+/// Events waiting for one slow client before newer ones are dropped.
+pub const QUEUE: usize = 8;
+/// A client that reads nothing for this long is disconnected.
+pub const STALL_LIMIT: Duration = Duration::from_secs(30);
+/// Timeline rows kept for the charts.
+pub const TIMELINE_ROWS: usize = 4096;
+/// A viewer keeps the camera this long after its last move.
+pub const CAMERA_LEASE: Duration = Duration::from_secs(3);
+
+/// A rendered frame, as announced to viewers.
+#[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
+pub struct FrameEvent {
+    /// Frames rendered so far (0: none yet).
+    pub seq: u64,
+    /// The tick it shows.
+    pub tick: u64,
+    /// Width and height in pixels.
+    pub width: u32,
+    /// Height.
+    pub height: u32,
+    /// When it was finished (PNG encoded), in ms since the Unix epoch.
+    pub rendered_unix_ms: f64,
+}
+
+/// Milliseconds since the Unix epoch, now.
+pub fn unix_ms() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64() * 1e3)
+}
+
+/// The timeline's last [`TIMELINE_ROWS`] rows, for the viewer's charts.
+#[derive(Debug, Default)]
+pub struct TimelineRing {
+    /// Column names (the timeline CSV's header).
+    pub columns: Vec<String>,
+    rows: VecDeque<(u64, Vec<f64>)>,
+    next: u64,
+    /// Bumped when the columns change (a reload): viewers start over.
+    pub epoch: u64,
+}
+
+/// Rows for one client: everything after `since`.
+#[derive(Debug, Serialize)]
+pub struct Rows {
+    /// Column names.
+    pub columns: Vec<String>,
+    /// Column set; a change means "clear your charts".
+    pub epoch: u64,
+    /// The rows, oldest first.
+    pub rows: Vec<Vec<f64>>,
+    /// Pass this as `since` next time.
+    pub next: u64,
+}
+
+impl TimelineRing {
+    /// Append a row under `columns` (a different column set starts over).
+    pub fn push(&mut self, columns: &[String], values: Vec<f64>) {
+        if self.columns != columns {
+            self.columns = columns.to_vec();
+            self.rows.clear();
+            self.epoch += 1;
+        }
+        self.rows.push_back((self.next, values));
+        self.next += 1;
+        while self.rows.len() > TIMELINE_ROWS {
+            self.rows.pop_front();
+        }
+    }
+
+    /// The rows numbered `since` or later (all kept ones if `since` is
+    /// older than the ring, or from another epoch).
+    pub fn since(&self, since: u64, epoch: u64) -> Rows {
+        let since = if epoch == self.epoch { since } else { 0 };
+        Rows {
+            columns: self.columns.clone(),
+            epoch: self.epoch,
+            rows: self
+                .rows
+                .iter()
+                .filter(|(n, _)| *n >= since)
+                .map(|(_, v)| v.clone())
+                .collect(),
+            next: self.next,
+        }
+    }
+}
+
+/// Who holds the camera: the viewer that moved it last, for
+/// [`CAMERA_LEASE`] after its last move. Others' moves are refused (409)
+/// meanwhile; `ctl` and calls without a viewer id always win.
+#[derive(Debug, Default)]
+pub struct CameraLease {
+    holder: Option<(String, Instant)>,
+}
+
+impl CameraLease {
+    /// Take or renew the camera for `viewer` (None: an administrative
+    /// move, which always wins and holds nothing). `Err` says who holds it
+    /// and for how long.
+    pub fn take(&mut self, viewer: Option<&str>, now: Instant) -> Result<(), String> {
+        let Some(v) = viewer else {
+            self.holder = None;
+            return Ok(());
+        };
+        if let Some((h, at)) = &self.holder {
+            let left = CAMERA_LEASE.saturating_sub(now.saturating_duration_since(*at));
+            if h != v && !left.is_zero() {
+                return Err(format!(
+                    "another viewer is moving the camera; it is free {:.1} s after their last move",
+                    left.as_secs_f64()
+                ));
+            }
+        }
+        self.holder = Some((v.to_string(), now));
+        Ok(())
+    }
+
+    /// The holder, while its lease lasts.
+    pub fn holder(&self, now: Instant) -> Option<&str> {
+        self.holder
+            .as_ref()
+            .filter(|(_, at)| now.saturating_duration_since(*at) < CAMERA_LEASE)
+            .map(|(h, _)| h.as_str())
+    }
+}
+
+/// The engine's answer to a command that waits for one (a parameter
+/// change): applied, or refused with the reason.
+pub type Verdict = Result<(), String>;
+
+/// Where the engine sends a [`Verdict`]; comparing or cloning one compares
+/// or clones nothing (commands are compared by what they ask).
+#[derive(Clone, Default)]
+pub struct VerdictSlot(Arc<std::sync::Mutex<Option<tokio::sync::oneshot::Sender<Verdict>>>>);
+
+impl VerdictSlot {
+    /// A slot and the receiver of its verdict.
+    pub fn new() -> (Self, tokio::sync::oneshot::Receiver<Verdict>) {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        (VerdictSlot(Arc::new(std::sync::Mutex::new(Some(tx)))), rx)
+    }
+
+    /// Deliver the verdict (once; nobody waiting is fine).
+    pub fn send(&self, v: Verdict) {
+        if let Some(tx) = self.0.lock().ok().and_then(|mut s| s.take()) {
+            let _ = tx.send(v);
+        }
+    }
+}
+
+impl std::fmt::Debug for VerdictSlot {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("VerdictSlot")
+    }
+}
+
+impl PartialEq for VerdictSlot {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+/// The response body of an event stream: what the stream's task sends.
+pub struct EventBody(mpsc::Receiver<Bytes>);
+
+impl Body for EventBody {
+    type Data = Bytes;
+    type Error = Infallible;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, Infallible>>> {
+        self.0.poll_recv(cx).map(|m| m.map(|b| Ok(Frame::data(b))))
+    }
+}
+
+fn event(kind: &str, data: &impl Serialize) -> Bytes {
+    let json = serde_json::to_string(data).unwrap_or_else(|_| "{}".into());
+    Bytes::from(format!("event: {kind}\ndata: {json}\n\n"))
+}
+
+/// Start an event stream for one viewer (the caller holds its viewer slot
+/// in `permit` for as long as the stream lives).
+pub fn stream(shared: Arc<Shared>, permit: tokio::sync::OwnedSemaphorePermit) -> EventBody {
+    let (tx, rx) = mpsc::channel::<Bytes>(QUEUE);
+    tokio::spawn(async move {
+        let _permit = permit;
+        let mut frames = shared.frame_events.subscribe();
+        let mut last_status = String::new();
+        let (mut since, mut epoch) = (0u64, u64::MAX);
+        let mut stalled_since: Option<Instant> = None;
+        let mut tick = tokio::time::interval(STATUS_EVERY);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        // Reconnect quickly after a restart of the engine.
+        let mut pending = vec![Bytes::from_static(b"retry: 1000\n\n")];
+        let first = *frames.borrow_and_update();
+        if first.seq > 0 {
+            pending.push(event("frame", &first));
+        }
+        loop {
+            for e in pending.drain(..) {
+                match tx.try_send(e) {
+                    Ok(()) => stalled_since = None,
+                    Err(mpsc::error::TrySendError::Full(_)) => {
+                        // This client is slow: drop the event for it alone.
+                        let s = *stalled_since.get_or_insert_with(Instant::now);
+                        if s.elapsed() > STALL_LIMIT {
+                            return;
+                        }
+                    }
+                    Err(mpsc::error::TrySendError::Closed(_)) => return,
+                }
+            }
+            if tx.is_closed() || shared.shutdown.load(std::sync::atomic::Ordering::Relaxed) {
+                return;
+            }
+            tokio::select! {
+                changed = frames.changed() => {
+                    if changed.is_err() {
+                        return;
+                    }
+                    let f = *frames.borrow_and_update();
+                    pending.push(event("frame", &f));
+                }
+                _ = tick.tick() => {
+                    let status = {
+                        let s = shared.status.lock().expect("status lock");
+                        serde_json::to_string(&*s).unwrap_or_default()
+                    };
+                    if status != last_status {
+                        pending.push(Bytes::from(format!("event: status\ndata: {status}\n\n")));
+                        last_status = status;
+                    }
+                    let rows = shared.timeline.lock().expect("timeline lock").since(since, epoch);
+                    if !rows.rows.is_empty() || rows.epoch != epoch {
+                        (since, epoch) = (rows.next, rows.epoch);
+                        pending.push(event("rows", &rows));
+                    }
+                }
+            }
+        }
+    });
+    EventBody(rx)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_camera_lease_holds_off_other_viewers_until_it_lapses() {
+        let mut l = CameraLease::default();
+        let t0 = Instant::now();
+        assert!(l.take(Some("a"), t0).is_ok());
+        assert!(l.take(Some("a"), t0 + Duration::from_secs(1)).is_ok());
+        let refused = l.take(Some("b"), t0 + Duration::from_secs(2)).unwrap_err();
+        assert!(refused.contains("another viewer"), "{refused}");
+        assert_eq!(l.holder(t0 + Duration::from_secs(2)), Some("a"));
+        // Free once "a" has not moved for the lease.
+        assert!(l.take(Some("b"), t0 + Duration::from_secs(5)).is_ok());
+        // An administrative move always wins and frees the camera.
+        assert!(l.take(None, t0 + Duration::from_secs(5)).is_ok());
+        assert!(l.take(Some("c"), t0 + Duration::from_secs(5)).is_ok());
+    }
+
+    #[test]
+    fn timeline_rows_are_handed_out_once_and_a_new_column_set_starts_over() {
+        let mut r = TimelineRing::default();
+        let cols = vec!["tick".to_string()];
+        r.push(&cols, vec![1.0]);
+        r.push(&cols, vec![2.0]);
+        let a = r.since(0, u64::MAX);
+        assert_eq!(a.rows, vec![vec![1.0], vec![2.0]]);
+        r.push(&cols, vec![3.0]);
+        let b = r.since(a.next, a.epoch);
+        assert_eq!(b.rows, vec![vec![3.0]]);
+        let cols2 = vec!["tick".to_string(), "ms:lava".to_string()];
+        r.push(&cols2, vec![4.0, 0.5]);
+        let c = r.since(b.next, b.epoch);
+        assert_ne!(c.epoch, b.epoch);
+        assert_eq!(c.rows, vec![vec![4.0, 0.5]]);
+        for i in 0..TIMELINE_ROWS + 10 {
+            r.push(&cols2, vec![i as f64, 0.0]);
+        }
+        assert_eq!(r.since(0, c.epoch).rows.len(), TIMELINE_ROWS);
+    }
+}
