@@ -86,8 +86,9 @@ fn status_pause_step_and_control_errors() {
         "pause",
         "resume",
         "step",
-        "set camera",
-        "/status",
+        "/camera",
+        "/events",
+        "/scripts/",
     ] {
         assert!(page.contains(control), "the viewer lacks {control}");
     }

@@ -391,7 +391,11 @@ fn log_lines_are_kept_per_script_and_rate_limited() {
     let mut sim = sim_with(&[script("logger", "log(\"tick\", c.tick, tx, tz, nil, true)")]);
     sim.step(0.1);
     let (lines, _, seq) = brickworld::sim::runtime::log::recent("logger");
-    assert_eq!(seq, lines.len() as u64, "every line so far is kept and numbered");
+    assert_eq!(
+        seq,
+        lines.len() as u64,
+        "every line so far is kept and numbered"
+    );
     assert!(
         lines.iter().any(|l| l.starts_with("tick\t1\t")),
         "{lines:?}"
@@ -406,7 +410,10 @@ fn log_lines_are_kept_per_script_and_rate_limited() {
     assert!(lines.len() <= brickworld::sim::runtime::log::KEPT);
     assert!(dropped > 0);
     // Accepted lines are numbered past what is kept (followers see gaps).
-    assert!(seq2 >= lines.len() as u64 && seq2 > seq, "{seq2} after {seq}");
+    assert!(
+        seq2 >= lines.len() as u64 && seq2 > seq,
+        "{seq2} after {seq}"
+    );
     let printed = brickworld::sim::runtime::log::take_unprinted();
     assert!(!printed.is_empty());
     assert!(

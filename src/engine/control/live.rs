@@ -279,7 +279,7 @@ pub fn stream(shared: Arc<Shared>, permit: tokio::sync::OwnedSemaphorePermit) ->
                         last_status = status;
                     }
                     let rows = shared.timeline.lock().expect("timeline lock").since(since, epoch);
-                    if !rows.rows.is_empty() || rows.epoch != epoch {
+                    if !rows.columns.is_empty() && (!rows.rows.is_empty() || rows.epoch != epoch) {
                         (since, epoch) = (rows.next, rows.epoch);
                         pending.push(event("rows", &rows));
                     }

@@ -1,0 +1,352 @@
+//! The live viewer's server side, as a browser and `ctl` use it (issue 12):
+//! the event stream pushes frames, status and timeline rows; parameter
+//! changes answer with the engine's verdict; the camera lease keeps two
+//! viewers from fighting; the token check; `ctl params` and `ctl log`; the
+//! page is small and self-contained.
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use brickworld::engine::ctl::request;
+
+mod common;
+use common::cli::{assert_clear_failure, assert_success};
+use common::daemon::*;
+
+/// Read `GET /events` until `done` says so (or 20 s pass); returns the
+/// events as (kind, data JSON).
+fn events(
+    addr: &str,
+    done: impl Fn(&[(String, serde_json::Value)]) -> bool,
+) -> Vec<(String, serde_json::Value)> {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(500)))
+        .unwrap();
+    write!(s, "GET /events HTTP/1.1\r\nHost: {addr}\r\n\r\n").unwrap();
+    let (mut buf, mut seen) = (String::new(), Vec::new());
+    let t = Instant::now();
+    let mut chunk = [0u8; 65536];
+    while t.elapsed() < Duration::from_secs(20) && !done(&seen) {
+        if let Ok(n) = s.read(&mut chunk) {
+            if n == 0 {
+                break;
+            }
+            buf.push_str(&String::from_utf8_lossy(&chunk[..n]));
+        }
+        // Chunked transfer framing aside, each event is "event: K\ndata: J\n\n".
+        while let Some(i) = buf.find("event: ") {
+            let rest = &buf[i..];
+            let Some(end) = rest.find("\n\n") else { break };
+            let block = &rest[..end];
+            let kind = block["event: ".len()..]
+                .lines()
+                .next()
+                .unwrap_or("")
+                .to_string();
+            if let Some(d) = block.lines().find_map(|l| l.strip_prefix("data: ")) {
+                if let Ok(v) = serde_json::from_str(d) {
+                    seen.push((kind, v));
+                }
+            }
+            buf = buf[i + end + 2..].to_string();
+        }
+    }
+    seen
+}
+
+#[test]
+fn the_event_stream_pushes_frames_status_and_timeline_rows() {
+    let (cfg, state, addr) = setup("viewer-events");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let seen = events(&addr, |e| {
+        let frames: Vec<u64> = e
+            .iter()
+            .filter(|(k, _)| k == "frame")
+            .filter_map(|(_, v)| v["seq"].as_u64())
+            .collect();
+        frames.len() >= 2
+            && frames.windows(2).all(|w| w[0] < w[1])
+            && e.iter().any(|(k, _)| k == "status")
+            && e.iter()
+                .any(|(k, v)| k == "rows" && !v["rows"].as_array().unwrap().is_empty())
+    });
+    let kinds: Vec<&str> = seen.iter().map(|(k, _)| k.as_str()).collect();
+    let frames: Vec<&serde_json::Value> = seen
+        .iter()
+        .filter(|(k, _)| k == "frame")
+        .map(|(_, v)| v)
+        .collect();
+    assert!(frames.len() >= 2, "frames arrive and change: {kinds:?}");
+    assert!(
+        frames
+            .windows(2)
+            .all(|w| w[0]["seq"].as_u64() < w[1]["seq"].as_u64())
+    );
+    assert!(frames[0]["rendered_unix_ms"].as_f64().unwrap() > 1e12);
+    let status = &seen
+        .iter()
+        .find(|(k, _)| k == "status")
+        .expect("a status event")
+        .1;
+    assert!(status["camera"]["eye"].is_array() && status["scripts"][0]["name"] == "water");
+    let rows = &seen
+        .iter()
+        .find(|(k, v)| k == "rows" && !v["rows"].as_array().unwrap().is_empty())
+        .expect("a rows event")
+        .1;
+    assert_eq!(rows["columns"][0], "tick");
+    assert!(
+        rows["columns"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|c| c == "ms:water")
+    );
+    // The frame itself is a plain PNG, never cached.
+    let mut s = TcpStream::connect(&addr).unwrap();
+    write!(
+        s,
+        "GET /frame.png HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut png = Vec::new();
+    s.read_to_end(&mut png).unwrap();
+    let head = String::from_utf8_lossy(&png[..png.len().min(400)]).to_lowercase();
+    assert!(head.starts_with("http/1.1 200"), "{head}");
+    assert!(
+        head.contains("content-type: image/png") && head.contains("cache-control: no-store"),
+        "{head}"
+    );
+    // /timeline hands out the same rows; bad arguments are a 400.
+    let (code, body) = request(&addr, "GET", "/timeline?since=0", None, "").unwrap();
+    assert_eq!(code, 200, "{body}");
+    assert!(body.contains("\"steps_per_s\""));
+    assert_eq!(
+        request(&addr, "GET", "/timeline?since=x", None, "")
+            .unwrap()
+            .0,
+        400
+    );
+    // The page is self-contained and small.
+    let (code, page) = request(&addr, "GET", "/", None, "").unwrap();
+    assert_eq!(code, 200);
+    assert!(page.len() < 1 << 20, "the page is {} bytes", page.len());
+    assert!(
+        page.contains("EventSource") && !page.contains("http://") && !page.contains("https://")
+    );
+    assert!(
+        !page.contains("localStorage"),
+        "the token must live in sessionStorage only"
+    );
+    stop(d);
+}
+
+#[test]
+fn parameter_changes_get_the_engines_verdict_and_viewers_share_the_camera_by_lease() {
+    let (cfg, state, addr) = setup("viewer-verdicts");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    // Applied: the answer says so, and /status agrees.
+    let (code, body) = post(&addr, &state, "/scripts/water/params", "{\"rain\": 0.7}");
+    assert_eq!(code, 200, "{body}");
+    assert!(body.contains("\"applied\": true"), "{body}");
+    let t = Instant::now();
+    while status(&addr)["scripts"][0]["params"][3]["value"] != 0.7 {
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "applied but not shown"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Refused: out of range and not a number, with the reason.
+    let (code, body) = post(&addr, &state, "/scripts/water/params", "{\"rain\": 50}");
+    assert_eq!(code, 400);
+    assert!(body.contains("outside [0, 10]"), "{body}");
+    assert_eq!(
+        post(&addr, &state, "/scripts/water/params", "{\"rain\": \"x\"}").0,
+        400
+    );
+    // The token: the page's check, wrong and right.
+    assert_eq!(
+        request(&addr, "POST", "/auth", Some("wrong"), "")
+            .unwrap()
+            .0,
+        401
+    );
+    assert_eq!(post(&addr, &state, "/auth", "").0, 200);
+    // The camera lease: viewer a moves; b is refused while a moves; ctl wins.
+    let cam =
+        |v: &str| format!("{{\"eye\": [5, 60, 5], \"target\": [24, 10, 24], \"viewer\": \"{v}\"}}");
+    assert_eq!(post(&addr, &state, "/camera", &cam("a")).0, 200);
+    let (code, body) = post(&addr, &state, "/camera", &cam("b"));
+    assert_eq!(code, 409, "{body}");
+    assert!(body.contains("another viewer"), "{body}");
+    assert_eq!(post(&addr, &state, "/camera", &cam("bad id!")).0, 400);
+    let t = Instant::now();
+    while status(&addr)["camera"]["mode"] != "set" {
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "the camera was not set"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(status(&addr)["camera"]["eye"][1], 60.0);
+    // Back to the world's path.
+    assert_eq!(post(&addr, &state, "/camera/path", "").0, 200);
+    while status(&addr)["camera"]["mode"] != "path" {
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "the camera did not return to its path"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    stop(d);
+}
+
+fn ctl(state: &Path, addr: &str, args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .arg("ctl")
+        .args(["--addr", addr])
+        .arg("--state")
+        .arg(state)
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn ctl_params_reads_values_and_ctl_log_prints_a_scripts_lines_once() {
+    let (cfg, state, addr) = setup("viewer-ctl");
+    // A script that logs every step.
+    let dir = cfg.parent().unwrap().join("scripts");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(
+        dir.join("logger.lua"),
+        "return { channels = { \"logger_v\" }, params = { level = { default = 2, min = 0, max = 5 } },\n\
+         passes = { { name = \"p\", reads = {}, writes = { \"logger_v\" },\n\
+         kernel = function(c, tx, tz) if tx == 0 and tz == 0 then log(\"tick\", c.tick) end end } } }\n",
+    )
+    .unwrap();
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    let text = text
+        .replace(
+            &format!("{}/scripts", env!("CARGO_MANIFEST_DIR")),
+            &dir.display().to_string(),
+        )
+        .replace(
+            "file = \"water.lua\"\nparams = { rain = 0.2 }",
+            "file = \"logger.lua\"",
+        );
+    std::fs::write(&cfg, text).unwrap();
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let out = ctl(&state, &addr, &["params", "logger"]);
+    assert_success(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("logger.level = 2 (default 2, range [0, 5])"),
+        "{text}"
+    );
+    assert_clear_failure(
+        &ctl(&state, &addr, &["params", "nosuch"]),
+        "ctl params nosuch",
+        "no script named 'nosuch' (loaded: logger)",
+    );
+    // Wait for a few lines, then read them twice: no line twice within a run.
+    let t = Instant::now();
+    while status(&addr)["scripts"][0]["log_seq"].as_u64().unwrap_or(0) < 3 {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "the script logged nothing"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Paused, the log stands still: ctl log prints exactly what /status
+    // keeps, and following it for a while prints each line once.
+    assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    std::thread::sleep(Duration::from_millis(300));
+    let kept: Vec<String> = status(&addr)["scripts"][0]["log"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| format!("[logger] {}", l.as_str().unwrap()))
+        .collect();
+    assert!(kept.len() >= 3, "{kept:?}");
+    let out = ctl(&state, &addr, &["--no-follow", "log", "logger"]);
+    assert_success(&out);
+    let lines: Vec<String> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(String::from)
+        .collect();
+    assert_eq!(lines, kept);
+    let follow = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .arg("ctl")
+        .args(["--addr", &addr])
+        .arg("--state")
+        .arg(&state)
+        .args(["log", "logger"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Three polls or more.
+    std::thread::sleep(Duration::from_millis(1800));
+    let _ = std::process::Command::new("kill")
+        .arg(follow.id().to_string())
+        .status();
+    let out = follow.wait_with_output().unwrap();
+    let followed: Vec<String> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(String::from)
+        .collect();
+    assert_eq!(
+        followed, kept,
+        "following printed a line twice or missed one"
+    );
+    stop(d);
+}
+
+/// Viewers that never read their stream do not slow the engine or shut out
+/// other requests; past the viewer limit a stream is refused with 503.
+#[test]
+fn viewers_that_never_read_do_not_hold_up_the_engine() {
+    let (cfg, state, addr) = setup("viewer-stalled");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let mut stalled = Vec::new();
+    for _ in 0..16 {
+        let mut s = TcpStream::connect(&addr).unwrap();
+        write!(s, "GET /events HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
+        stalled.push(s);
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let (code, body) = request(&addr, "GET", "/events", None, "").unwrap();
+    assert_eq!(code, 503, "{body}");
+    assert!(body.contains("viewers are already watching"), "{body}");
+    let t0 = status(&addr)["tick"].as_u64().unwrap();
+    std::thread::sleep(Duration::from_secs(2));
+    let t1 = status(&addr)["tick"].as_u64().unwrap();
+    assert!(t1 > t0 + 5, "the engine stalled: tick {t0} then {t1}");
+    assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    // Closing them frees the slots.
+    drop(stalled);
+    let t = Instant::now();
+    loop {
+        let mut s = TcpStream::connect(&addr).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+        write!(s, "GET /events HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
+        let mut b = [0u8; 64];
+        let n = s.read(&mut b).unwrap_or(0);
+        if String::from_utf8_lossy(&b[..n]).starts_with("HTTP/1.1 200") {
+            break;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "slots were not freed"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    stop(d);
+}
