@@ -45,10 +45,10 @@ fn events(
                 .next()
                 .unwrap_or("")
                 .to_string();
-            if let Some(d) = block.lines().find_map(|l| l.strip_prefix("data: ")) {
-                if let Ok(v) = serde_json::from_str(d) {
-                    seen.push((kind, v));
-                }
+            if let Some(d) = block.lines().find_map(|l| l.strip_prefix("data: "))
+                && let Ok(v) = serde_json::from_str(d)
+            {
+                seen.push((kind, v));
             }
             buf = buf[i + end + 2..].to_string();
         }
