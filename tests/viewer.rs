@@ -141,6 +141,8 @@ fn the_event_stream_pushes_frames_status_and_timeline_rows() {
         !page.contains("localStorage"),
         "the token must live in sessionStorage only"
     );
+    // Frames are fetched when an event says so, never polled on a timer.
+    assert!(!page.contains("setInterval"), "the page polls");
     stop(d);
 }
 

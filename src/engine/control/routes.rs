@@ -202,33 +202,38 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
     };
     match cmd {
         Ok(mut cmd) => {
-            if let Command::Camera { viewer, .. } = &cmd {
-                let mut lease = shared.camera_lease.lock().expect("lease lock");
-                if let Err(msg) = lease.take(viewer.as_deref(), Instant::now()) {
-                    return error(409, &msg);
-                }
-            }
             let mut wait = None;
             if let Command::Params { verdict, .. } = &mut cmd {
                 let (slot, rx) = VerdictSlot::new();
                 *verdict = slot;
                 wait = Some(rx);
             }
-            let queued = {
+            // One decision under the queue's lock: a full queue refuses
+            // before the camera lease is taken or renewed.
+            let refused = {
                 let mut q = shared.commands.lock().expect("command lock");
-                let room = q.len() < MAX_QUEUED_COMMANDS;
-                if room {
+                if q.len() >= MAX_QUEUED_COMMANDS {
+                    Some((
+                        503,
+                        format!(
+                            "{MAX_QUEUED_COMMANDS} commands are already waiting for the engine; try again"
+                        ),
+                    ))
+                } else if let Command::Camera { viewer, .. } = &cmd
+                    && let Err(msg) = shared
+                        .camera_lease
+                        .lock()
+                        .expect("lease lock")
+                        .take(viewer.as_deref(), Instant::now())
+                {
+                    Some((409, msg))
+                } else {
                     q.push(cmd);
+                    None
                 }
-                room
             };
-            if !queued {
-                return error(
-                    503,
-                    &format!(
-                        "{MAX_QUEUED_COMMANDS} commands are already waiting for the engine; try again"
-                    ),
-                );
+            if let Some((code, msg)) = refused {
+                return error(code, &msg);
             }
             let Some(rx) = wait else {
                 return json(200, &serde_json::json!({ "ok": true }));
