@@ -352,3 +352,34 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
     }
     stop(d);
 }
+
+/// A script with nothing awake for it is shown as sleeping, not running.
+#[test]
+fn a_script_with_nothing_awake_is_shown_sleeping() {
+    let (cfg, state, addr) = setup("viewer-sleeping");
+    edit_config(&cfg, "params = { rain = 0.2 }", "params = { rain = 0.0 }");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let t = Instant::now();
+    while status(&addr)["scripts"][0]["state"] != "sleeping" {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "a dry world's water never sleeps: {}",
+            status(&addr)["scripts"][0]
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Rain wakes it: running again.
+    assert_eq!(
+        post(&addr, &state, "/scripts/water/params", "{\"rain\": 1}").0,
+        200
+    );
+    while status(&addr)["scripts"][0]["state"] != "running" {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "rain did not wake the water"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    stop(d);
+}

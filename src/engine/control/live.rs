@@ -270,10 +270,10 @@ pub fn stream(shared: Arc<Shared>, permit: tokio::sync::OwnedSemaphorePermit) ->
                     pending.push(event("frame", &f));
                 }
                 _ = tick.tick() => {
-                    let status = {
-                        let s = shared.status.lock().expect("status lock");
-                        serde_json::to_string(&*s).unwrap_or_default()
-                    };
+                    // A copy under the lock, encoded outside it: the engine
+                    // publishing status never waits for a viewer's encoding.
+                    let copy = shared.status.lock().expect("status lock").clone();
+                    let status = serde_json::to_string(&copy).unwrap_or_default();
                     if status != last_status {
                         pending.push(Bytes::from(format!("event: status\ndata: {status}\n\n")));
                         last_status = status;

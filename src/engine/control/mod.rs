@@ -49,8 +49,10 @@ pub struct ScriptStatus {
     pub name: String,
     /// Steps per second over the last second of running.
     pub steps_per_s: f64,
-    /// `running`, `failing` (its last step failed) or `suspended` (it
-    /// failed too many steps in a row and waits for a fix or a reload).
+    /// `running`, `sleeping` (it did no work for two of its intervals:
+    /// nothing is awake for it), `failing` (its last step failed) or
+    /// `suspended` (it failed too many steps in a row and waits for a fix or
+    /// a reload).
     pub state: String,
     /// The last error, with file and line, if the last step failed.
     pub error: Option<String>,

@@ -122,6 +122,9 @@ struct ScriptNotes {
     /// Hot reloads in this run, and the tick of the last.
     reloads: u64,
     reloaded_at: u64,
+    /// Steps in a row in which the script did no work (nothing awake for
+    /// it, or not its tick).
+    idle_steps: u64,
 }
 
 /// The running engine.
@@ -334,6 +337,13 @@ impl Engine {
         self.script_ms = (0..self.ws.script_count())
             .map(|i| self.ws.script_ms(&r, i))
             .collect();
+        for (i, n) in self.notes.iter_mut().enumerate() {
+            n.idle_steps = if self.ws.did_work(&r, i) {
+                0
+            } else {
+                n.idle_steps + 1
+            };
+        }
         for (script, line) in crate::sim::runtime::log::take_unprinted() {
             eprintln!("[{script}] {line}");
         }
@@ -555,6 +565,10 @@ impl Engine {
             ),
             None if sim.failures(i) > 0 && note.step_error.is_some() => {
                 ("failing", note.step_error)
+            }
+            // Nothing awake for it for longer than two of its intervals.
+            None if note.reload_error.is_none() && note.idle_steps >= 2 * sim.every(i) => {
+                ("sleeping", None)
             }
             // A broken save: the last good version runs; its error is shown.
             None => ("running", note.reload_error),

@@ -237,6 +237,25 @@ impl WorldSim {
         }
     }
 
+    /// The tick interval of script `i`.
+    pub fn every(&self, i: usize) -> u64 {
+        match self.route(i) {
+            Ok(c) => self.sim.every(c),
+            Err(v) => self.vox.every(v),
+        }
+    }
+
+    /// Whether script `i` ran on anything awake in the step `report`
+    /// describes (false when it was not its tick, or everything it runs on
+    /// sleeps).
+    pub fn did_work(&self, report: &StepReport, i: usize) -> bool {
+        let (awake, ms) = match self.route(i) {
+            Ok(c) => (report.active_tiles, report.script_ms.get(c)),
+            Err(v) => (report.voxel.candidates, report.voxel.script_ms.get(v)),
+        };
+        awake > 0 && ms.is_some_and(|&m| m > 0.0)
+    }
+
     /// Milliseconds script `i` took in the step `report` describes.
     pub fn script_ms(&self, report: &StepReport, i: usize) -> f64 {
         match self.route(i) {

@@ -515,6 +515,11 @@ impl Simulation {
         self.scripts[index].every = every.max(1);
     }
 
+    /// The tick interval of script `index`.
+    pub fn every(&self, index: usize) -> u64 {
+        self.scripts[index].every
+    }
+
     /// Continue counting ticks from `tick` (after a resume).
     pub fn set_tick(&mut self, tick: u64) {
         self.tick = tick;

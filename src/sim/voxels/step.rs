@@ -376,6 +376,11 @@ impl VoxelSim {
         self.scripts[i].every = every.max(1);
     }
 
+    /// The tick interval of script `i`.
+    pub fn every(&self, i: usize) -> u64 {
+        self.scripts[i].every
+    }
+
     /// Set a parameter (refused outside its declared range).
     pub fn set_param(&mut self, i: usize, name: &str, value: f64) -> Result<(), SimError> {
         let s = &mut self.scripts[i];
