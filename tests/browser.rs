@@ -4,7 +4,8 @@
 //! without a token and reports a wrong one, dragging moves the camera, a
 //! slider moved with the keyboard changes a parameter, a refused value and a
 //! non-number show their messages, a broken script shows its error with
-//! file and line, and that the page looks like its golden screenshot.
+//! file and line, a dropped connection is announced, and that the page
+//! looks like its golden screenshot.
 //!
 //! Without Chromium the test says so and passes locally; with
 //! `BRICKWORLD_REQUIRE_BROWSER=1` (set by `.ci/run`, which installs
@@ -261,9 +262,15 @@ fn the_viewer_works_in_a_real_browser() {
         lat.get(lat.len() / 2).copied().unwrap_or(f64::NAN),
         lat.len()
     );
-    drop(b);
+    // A dropped connection: the engine stops; the page says so.
     assert_eq!(post(&addr, &state, "/pause", "").0, 200);
     stop(daemon);
+    b.wait_for(
+        "the lost connection is shown",
+        20,
+        "document.getElementById('conn').textContent",
+        |v| v.as_str().is_some_and(|s| s.contains("connection lost")),
+    );
 }
 
 /// Mask the live parts, screenshot, compare with the golden image.
