@@ -14,6 +14,7 @@ use glam::{DVec3, IVec3};
 use indicatif::ProgressBar;
 
 fn main() {
+    let lod: Option<f32> = std::env::var("LOD").ok().map(|v| v.parse().expect("LOD"));
     let args: Vec<String> = std::env::args().filter(|a| a != "--all").collect();
     let all = std::env::args().any(|a| a == "--all");
     let spec: SceneSpec = args
@@ -26,7 +27,11 @@ fn main() {
     let h = w * 3 / 4;
     let world = build_scene(
         &spec,
-        IVec3::new(size, 128, size),
+        IVec3::new(
+            size,
+            std::env::var("HEIGHT").map_or(128, |v| v.parse().expect("HEIGHT")),
+            size,
+        ),
         1,
         &ProgressBar::hidden(),
     )
@@ -64,8 +69,9 @@ fn main() {
             for _ in 0..3 {
                 let t0 = Instant::now();
                 hits = 0;
+                let k = lod.map_or(0.0, |c| c * cam.pixel_angle() as f32);
                 for r in &rays {
-                    hits += t.trace(r, f32::INFINITY).is_some() as usize;
+                    hits += t.trace_lod(r, f32::INFINITY, k).is_some() as usize;
                 }
                 best = best.min(t0.elapsed().as_secs_f64());
             }

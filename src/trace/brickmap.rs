@@ -27,6 +27,18 @@ pub struct BrickmapTracer<'w> {
 
 const OCC_VOXEL_SHIFT: i32 = OCC_SHIFT + BRICK_SHIFT;
 
+/// How [`BrickmapTracer::walk_exact`] ended.
+pub(super) enum ExactEnd {
+    /// The first solid voxel.
+    Hit(Hit),
+    /// The ray left the grid (or met a dangling pointer) before `t_max`.
+    Miss,
+    /// Nothing up to `t_max`: an exact state of the walk no later than
+    /// `t_max` (or, if the ray enters the grid after `t_max`, the entry
+    /// state), from which `advance_to(t_max)` restores the state there.
+    Beyond(DdaState),
+}
+
 impl<'w> BrickmapTracer<'w> {
     /// Trace `grid`, whose mixed-brick pointers index `pool`.
     pub fn new(grid: &'w BrickGrid, pool: &'w BrickPool) -> Self {
@@ -59,14 +71,23 @@ impl<'w> BrickmapTracer<'w> {
     /// a distance before which the ray meets nothing (a beam start): the
     /// exact state there is restored, so the answer is the walk's from 0.
     pub fn trace_exact_from(&self, ray: &Ray, t_start: f32, t_max: f32) -> Option<Hit> {
-        let (r, mut st) = self.start(ray, t_start)?;
+        let (r, st) = self.start(ray, t_start)?;
+        match self.walk_exact(&r, st, t_max) {
+            ExactEnd::Hit(hit) => Some(hit),
+            ExactEnd::Miss | ExactEnd::Beyond(_) => None,
+        }
+    }
+
+    /// The exact walk of `r` from the exact state `st` up to `t_max`.
+    #[inline(always)]
+    pub(super) fn walk_exact(&self, r: &DdaRay, mut st: DdaState, t_max: f32) -> ExactEnd {
         // `st` is the exact voxel state whenever a cell's content is read.
         // Across empty space only the coarse cell is stepped: its next
         // crossing depends on the coarse cell alone, so no voxel state is
         // kept there, and `advance_to` restores it exactly on descent.
         'occupancy: loop {
             if st.t > t_max {
-                return None;
+                return ExactEnd::Beyond(st);
             }
             let mut oc = st.cell.map(|v| v >> OCC_VOXEL_SHIFT);
             if !self.grid.occupied(IVec3::from(oc)) {
@@ -75,10 +96,10 @@ impl<'w> BrickmapTracer<'w> {
                 loop {
                     let t = r.coarse_step(&mut oc, &mut ot, shift);
                     if t > t_max {
-                        return None;
+                        return ExactEnd::Beyond(st);
                     }
                     if !self.inside_occ(oc) {
-                        return None;
+                        return ExactEnd::Miss;
                     }
                     if self.grid.occupied(IVec3::from(oc)) {
                         r.advance_to(&mut st, t);
@@ -95,13 +116,13 @@ impl<'w> BrickmapTracer<'w> {
                     loop {
                         let t = r.coarse_step(&mut bc, &mut bt, shift);
                         if t > t_max {
-                            return None;
+                            return ExactEnd::Beyond(st);
                         }
                         if bc.map(|v| v >> OCC_SHIFT) != oc {
                             // Left the occupancy cell: resume one level up.
                             r.advance_to(&mut st, t);
                             if !self.inside(st.cell) {
-                                return None;
+                                return ExactEnd::Miss;
                             }
                             continue 'occupancy;
                         }
@@ -113,26 +134,30 @@ impl<'w> BrickmapTracer<'w> {
                     continue;
                 }
                 if p & UNIFORM != 0 {
-                    return Some(self.hit(&r, &st, p as u8));
+                    return ExactEnd::Hit(self.hit(r, &st, p as u8));
                 }
-                let brick = self.pool.slot(p - 1)?;
+                let Some(brick) = self.pool.slot(p - 1) else {
+                    return ExactEnd::Miss;
+                };
                 let mask = brick.mask();
                 loop {
                     let l = st.cell.map(|v| v & 7);
                     let i = voxel_index(l[0], l[1], l[2]);
                     if (mask[i >> 6] >> (i & 63)) & 1 != 0 {
-                        return Some(self.hit(&r, &st, brick.material_index(i)));
+                        return ExactEnd::Hit(self.hit(r, &st, brick.material_index(i)));
+                    }
+                    // Stop before a step past `t_max`, so that the state
+                    // handed on has crossed nothing later than `t_max`.
+                    if st.tmax[0].min(st.tmax[1]).min(st.tmax[2]) > t_max {
+                        return ExactEnd::Beyond(st);
                     }
                     r.step_fine(&mut st);
-                    if st.t > t_max {
-                        return None;
-                    }
                     if st.cell.map(|v| v >> BRICK_SHIFT) != bc {
                         break;
                     }
                 }
                 if !self.inside(st.cell) {
-                    return None;
+                    return ExactEnd::Miss;
                 }
                 if st.cell.map(|v| v >> OCC_VOXEL_SHIFT) != oc {
                     continue 'occupancy;

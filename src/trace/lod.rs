@@ -20,7 +20,7 @@
 
 use glam::IVec3;
 
-use super::brickmap::BrickmapTracer;
+use super::brickmap::{BrickmapTracer, ExactEnd};
 use super::ray::{Hit, Ray};
 use crate::world::{BrickRef, TOP_LEVEL, UNIFORM, block_solid, voxel_index};
 
@@ -49,6 +49,18 @@ fn voxels_only_until(k: f32) -> f32 {
     if k <= 0.0 {
         return f32::INFINITY;
     }
+    // Every ray of a frame asks with the same `k`: remember the last answer.
+    thread_local!(static LAST: std::cell::Cell<(u32, f32)> = const { std::cell::Cell::new((0, 0.0)) });
+    let (bits, t) = LAST.get();
+    if bits == k.to_bits() {
+        return t;
+    }
+    let t = search_voxels_only_until(k);
+    LAST.set((k.to_bits(), t));
+    t
+}
+
+fn search_voxels_only_until(k: f32) -> f32 {
     let mut t = 2.0 / k;
     while t > 0.0 && t * k >= 2.0 {
         t = t.next_down();
@@ -76,41 +88,50 @@ impl BrickmapTracer<'_> {
         // A beam start past that point would restart the level walk where
         // the walk from the eye makes different (if rare) decisions: the
         // levels always start from the same place, so beams change nothing.
-        let mut t_start = t_start.min(voxels_until);
-        let mut first = false;
-        if t_start <= voxels_until {
-            if let Some(hit) = self.trace_exact_from(ray, t_start, voxels_until.min(t_max)) {
-                return Some(hit);
-            }
-            if t_max <= voxels_until || voxels_until == f32::INFINITY {
-                return None;
-            }
-            // Left the grid before the levels could matter: a miss.
-            if self.exit_time(ray)? <= voxels_until {
-                return None;
-            }
-            t_start = voxels_until;
-            first = true;
+        let t_start = t_start.min(voxels_until);
+        let (r, st) = self.start(ray, t_start)?;
+        // The exact walk hands its state over: no second set-up.
+        let mut st = match self.walk_exact(&r, st, voxels_until.min(t_max)) {
+            ExactEnd::Hit(hit) => return Some(hit),
+            ExactEnd::Miss => return None,
+            ExactEnd::Beyond(st) => st,
+        };
+        if t_max <= voxels_until || voxels_until == f32::INFINITY {
+            return None;
         }
-        self.level_walk(ray, t_start, t_max, k, first)
-    }
-
-    /// When the ray leaves the grid (`None` if it cannot be traced).
-    fn exit_time(&self, ray: &Ray) -> Option<f32> {
-        let r = super::dda::DdaRay::new(ray)?;
-        let step = r.step();
-        Some((0..3).fold(f32::INFINITY, |t, a| {
-            let out = if step[a] > 0 { self.dims[a] } else { -1 };
-            t.min(r.crossing_into(a, out))
-        }))
+        // The state `start` would restore at `voxels_until`; a ray that
+        // enters the grid later enters its cells then.
+        if voxels_until > st.t {
+            r.advance_to(&mut st, voxels_until);
+            if !self.inside(st.cell) {
+                return None;
+            }
+        }
+        let first = st.t <= voxels_until;
+        self.walk_levels(&r, st, t_max, k, first)
     }
 
     /// The level walk from `t_start`; `first`: the cells holding the start
     /// were entered earlier with a footprint that allowed voxels only.
+    #[cfg(test)]
     fn level_walk(&self, ray: &Ray, t_start: f32, t_max: f32, k: f32, first: bool) -> Option<Hit> {
-        let (r, mut st) = self.start(ray, t_start)?;
+        let (r, st) = self.start(ray, t_start)?;
         // A ray that enters the grid after `t_start` enters its cells then.
-        let mut first = first && st.t <= t_start;
+        let first = first && st.t <= t_start;
+        self.walk_levels(&r, st, t_max, k, first)
+    }
+
+    /// The level walk of `r` from the exact state `st`; `first`: the cells
+    /// holding `st` were entered earlier with a footprint that allowed
+    /// voxels only.
+    fn walk_levels(
+        &self,
+        r: &super::dda::DdaRay,
+        mut st: super::dda::DdaState,
+        t_max: f32,
+        k: f32,
+        mut first: bool,
+    ) -> Option<Hit> {
         let ring = self.grid.ring().to_array();
         let coarse = self.grid.coarse();
         let mut top = TOP_LEVEL;
