@@ -169,11 +169,11 @@ impl BrickmapTracer<'_> {
             first = false;
             let mut level = top;
             let solid_at = loop {
-                if let Some((t, _, l)) = lazy {
-                    if level < l {
-                        r.advance_to(&mut st, t);
-                        lazy = None;
-                    }
+                if let Some((t, _, l)) = lazy
+                    && level < l
+                {
+                    r.advance_to(&mut st, t);
+                    lazy = None;
                 }
                 // A voxel of the current cell at this level (its low
                 // corner while the state is lazy).
