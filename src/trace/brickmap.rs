@@ -36,6 +36,7 @@ pub(super) enum ExactEnd {
     /// Nothing up to `t_max`: an exact state of the walk no later than
     /// `t_max` (or, if the ray enters the grid after `t_max`, the entry
     /// state), from which `advance_to(t_max)` restores the state there.
+    /// Its `t` is `-inf` when it is not known (see [`DdaRay::step_back`]).
     Beyond(DdaState),
 }
 
@@ -146,12 +147,12 @@ impl<'w> BrickmapTracer<'w> {
                     if (mask[i >> 6] >> (i & 63)) & 1 != 0 {
                         return ExactEnd::Hit(self.hit(r, &st, brick.material_index(i)));
                     }
-                    // Stop before a step past `t_max`, so that the state
-                    // handed on has crossed nothing later than `t_max`.
-                    if st.tmax[0].min(st.tmax[1]).min(st.tmax[2]) > t_max {
-                        return ExactEnd::Beyond(st);
-                    }
                     r.step_fine(&mut st);
+                    if st.t > t_max {
+                        // Hand on the state before this step, which crossed
+                        // nothing later than `t_max`.
+                        return ExactEnd::Beyond(r.step_back(&st));
+                    }
                     if st.cell.map(|v| v >> BRICK_SHIFT) != bc {
                         break;
                     }
