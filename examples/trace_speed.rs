@@ -3,6 +3,8 @@
 //! overhead; `--all` adds the dense grid and the octree.
 //!
 //! `cargo run --release --example trace_speed -- [SCENE] [SIZE] [WIDTH] [--all]`
+//! (environment: `LOD=C` traces with level of detail, `HEIGHT=H` sets the
+//! procedural height (default 128), `REPS=N` takes the best of N, default 3)
 //! (SCENE as `bench tracers --scene`, default `terrain`; SIZE is the
 //! procedural side, default 512; WIDTH default 1024, height ¾ of it).
 
@@ -66,7 +68,8 @@ fn main() {
         for &t in &tracers {
             let mut best = f64::INFINITY;
             let mut hits = 0usize;
-            for _ in 0..3 {
+            let reps: usize = std::env::var("REPS").map_or(3, |v| v.parse().expect("REPS"));
+            for _ in 0..reps {
                 let t0 = Instant::now();
                 hits = 0;
                 let k = lod.map_or(0.0, |c| c * cam.pixel_angle() as f32);
