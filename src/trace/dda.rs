@@ -46,6 +46,16 @@ pub fn floor_i32(x: f32) -> i32 {
     if (i as f32) > x { i - 1 } else { i }
 }
 
+/// The least of three crossing times, which are never NaN (a switched-off
+/// axis's is `+inf`): one `minss` each, where `f32::min` adds the code
+/// that IEEE's NaN rules need. On ties of `+0` and `−0`, which compare equal,
+/// the first wins.
+#[inline(always)]
+pub fn min3(t: [f32; 3]) -> f32 {
+    let a = if t[1] < t[0] { t[1] } else { t[0] };
+    if t[2] < a { t[2] } else { a }
+}
+
 /// The walk's state: the current cell and the next crossing on each axis.
 #[derive(Clone, Copy, Debug)]
 pub struct DdaState {
@@ -129,7 +139,7 @@ impl DdaRay {
     /// (ties together); returns the crossing time.
     #[inline(always)]
     pub fn coarse_step(&self, c: &mut [i32; 3], ct: &mut [f32; 3], shift: u32) -> f32 {
-        let t = ct[0].min(ct[1]).min(ct[2]);
+        let t = min3(*ct);
         for a in 0..3 {
             if ct[a] == t {
                 c[a] += self.step[a];
@@ -266,7 +276,7 @@ impl DdaRay {
     /// Advance one cell (every axis whose crossing is next steps together).
     #[inline(always)]
     pub fn step_fine(&self, st: &mut DdaState) {
-        let t = st.tmax[0].min(st.tmax[1]).min(st.tmax[2]);
+        let t = min3(st.tmax);
         let mut axes = 0u8;
         for a in 0..3 {
             if st.tmax[a] == t {

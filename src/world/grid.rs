@@ -52,6 +52,9 @@ pub struct BrickGrid {
     dims: IVec3,
     /// Physical cell of local brick (0, 0, 0); a multiple of [`OCC_EDGE`].
     ring: IVec3,
+    /// Whether `ring` is zero: lookups then skip the wrap (tracers read the
+    /// grid once per coarse step).
+    flat: bool,
     cells: Vec<u32>,
     occ_dims: IVec3,
     occ: Vec<u64>,
@@ -97,6 +100,7 @@ impl BrickGrid {
             origin,
             dims,
             ring: IVec3::ZERO,
+            flat: true,
             cells: vec![0; cells_n as usize],
             occ_dims,
             occ: vec![0; occ_n.div_ceil(64)],
@@ -163,6 +167,7 @@ impl BrickGrid {
         }
         self.origin = origin;
         self.ring = (self.ring + d).rem_euclid(self.dims);
+        self.flat = self.ring == IVec3::ZERO;
         let dims = self.dims;
         // The entering slab of each axis, as local ranges.
         for axis in 0..3 {
@@ -249,7 +254,11 @@ impl BrickGrid {
 
     #[inline(always)]
     fn occ_index(&self, o: IVec3) -> usize {
-        let p = Self::wrap(o, self.ring >> OCC_SHIFT, self.occ_dims);
+        let p = if self.flat {
+            o
+        } else {
+            Self::wrap(o, self.ring >> OCC_SHIFT, self.occ_dims)
+        };
         (p.x + self.occ_dims.x * (p.y + self.occ_dims.y * p.z)) as usize
     }
 
@@ -295,7 +304,11 @@ impl BrickGrid {
     /// Pointer of local brick `l`, which must be inside the grid.
     #[inline(always)]
     pub fn pointer(&self, l: IVec3) -> u32 {
-        let p = Self::wrap(l, self.ring, self.dims);
+        let p = if self.flat {
+            l
+        } else {
+            Self::wrap(l, self.ring, self.dims)
+        };
         self.cells[(p.x + self.dims.x * (p.y + self.dims.y * p.z)) as usize]
     }
 
