@@ -36,7 +36,10 @@ pub(super) enum ExactEnd {
     /// Nothing up to `t_max`: an exact state of the walk no later than
     /// `t_max` (or, if the ray enters the grid after `t_max`, the entry
     /// state), from which `advance_to(t_max)` restores the state there.
-    /// Its `t` is `-inf` when it is not known (see [`DdaRay::step_back`]).
+    /// Its `t` is `-inf` when it is not known (see [`DdaRay::step_back`]);
+    /// then the restored state's `axes` (and so a normal there) are 0 even
+    /// if a crossing fell exactly at `t_max`. The level walk never reads
+    /// them: the cell there is voxels-only and already known empty.
     Beyond(DdaState),
 }
 

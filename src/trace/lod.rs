@@ -226,7 +226,8 @@ impl BrickmapTracer<'_> {
             }
             // The level-`level` cell is empty: walk that level's cells as a
             // coarse DDA (the exact crossing formula, no voxel state) while
-            // they are empty, then restore the exact state. The walk climbs
+            // they are empty; the exact state is restored later, when needed
+            // (see `lazy` above). The walk climbs
             // (breaks) when it leaves its brick (levels 0–2, whose cells
             // come from the brick) or its 32³ cell (levels 3, 4), or when it
             // enters a new parent cell that the footprint may now take whole.
