@@ -1,6 +1,7 @@
 //! Criterion benchmarks of the traversal inner loops: a fixed batch of
 //! primary rays over a small terrain, per tracer (brickmap is the one the
-//! engine renders with; dense and svo are for comparison).
+//! engine renders with; dense and svo are for comparison), and the
+//! brickmap's level-of-detail walk at C = 1 and 4 pixels.
 //!
 //! `cargo bench --bench brickmap_trace`
 
@@ -12,14 +13,16 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DVec3, IVec3};
 use indicatif::ProgressBar;
 
-fn rays(world: &brickworld::scene::SceneWorld, view: usize) -> Vec<Ray> {
+/// The view's primary rays and its pixel angle.
+fn rays(world: &brickworld::scene::SceneWorld, view: usize) -> (Vec<Ray>, f32) {
     let v = world.default_views()[view];
     let cam = Camera::new(DVec3::from(v.eye), DVec3::from(v.target), v.fov, 256, 192).unwrap();
     let o = world.frame().to_local(cam.eye);
-    (0..192)
+    let rays = (0..192)
         .flat_map(|j| (0..256).map(move |i| (i, j)))
         .map(|(i, j)| Ray::new(o, cam.direction(i, j).as_vec3()))
-        .collect()
+        .collect();
+    (rays, cam.pixel_angle() as f32)
 }
 
 fn bench(c: &mut Criterion) {
@@ -36,7 +39,7 @@ fn bench(c: &mut Criterion) {
     let tracers: [&dyn Tracer; 3] = [&bm, &svo, &dense];
     let mut g = c.benchmark_group("primary_rays_terrain_256");
     for (view, name) in [(0, "overview"), (2, "closeup")] {
-        let batch = rays(&world, view);
+        let (batch, pixel_angle) = rays(&world, view);
         g.throughput(Throughput::Elements(batch.len() as u64));
         for t in tracers {
             g.bench_function(format!("{}/{name}", t.name()), |b| {
@@ -44,6 +47,18 @@ fn bench(c: &mut Criterion) {
                     let mut hits = 0u32;
                     for r in &batch {
                         hits += t.trace(black_box(r), f32::INFINITY).is_some() as u32;
+                    }
+                    hits
+                })
+            });
+        }
+        for c in [1.0f32, 4.0] {
+            let k = c * pixel_angle;
+            g.bench_function(format!("brickmap_lod{c}/{name}"), |b| {
+                b.iter(|| {
+                    let mut hits = 0u32;
+                    for r in &batch {
+                        hits += bm.trace_lod(black_box(r), f32::INFINITY, k).is_some() as u32;
                     }
                     hits
                 })
