@@ -248,8 +248,19 @@ impl BrickGrid {
         if l.cmplt(IVec3::ZERO).any() || l.cmpge(self.dims).any() {
             return None;
         }
-        let p = Self::wrap(l, self.ring, self.dims);
-        Some((p.x + self.dims.x * (p.y + self.dims.y * p.z)) as usize)
+        Some(self.brick_index(l))
+    }
+
+    /// Index in `cells` of local brick `l` (inside): the ring's wrap,
+    /// skipped while the grid has not slid.
+    #[inline(always)]
+    fn brick_index(&self, l: IVec3) -> usize {
+        let p = if self.flat {
+            l
+        } else {
+            Self::wrap(l, self.ring, self.dims)
+        };
+        (p.x + self.dims.x * (p.y + self.dims.y * p.z)) as usize
     }
 
     #[inline(always)]
@@ -304,12 +315,7 @@ impl BrickGrid {
     /// Pointer of local brick `l`, which must be inside the grid.
     #[inline(always)]
     pub fn pointer(&self, l: IVec3) -> u32 {
-        let p = if self.flat {
-            l
-        } else {
-            Self::wrap(l, self.ring, self.dims)
-        };
-        self.cells[(p.x + self.dims.x * (p.y + self.dims.y * p.z)) as usize]
+        self.cells[self.brick_index(l)]
     }
 
     /// Occupancy bit of local occupancy cell `o`, which must be inside.
