@@ -3,9 +3,16 @@
 //! one-sample image and of LOD images against a 16-sample reference, split
 //! into the pixels that LOD (C = 1) draws from a coarse level and the rest.
 //!
+//! Then two baselines that bound what one ray a pixel can do:
+//! - exact images of 2, 4 and 8 jittered samples (R2 samples 100 on, so
+//!   none is one of the reference's), the error that *n* rays buy;
+//! - LOD images of 4 samples: what is left when LOD's noise is averaged
+//!   away is its bias against the reference, and a brightness gain on the
+//!   coarse pixels shows how much of that bias is mere darkening.
+//!
 //! `cargo run --release --example lod_error_map` (about a minute).
 use brickworld::scene::{SceneSpec, build_scene};
-use brickworld::trace::{Camera, RenderOptions, render, supersample};
+use brickworld::trace::{Camera, RenderOptions, jitter_sample, render, supersample};
 use glam::{DVec3, IVec3};
 
 fn main() {
@@ -75,6 +82,53 @@ fn main() {
             (far + near) / n,
             coarse.iter().filter(|&&c| c).count() as f64 / n * 100.0,
             far / (far + near) * 100.0
+        );
+    }
+
+    // Baselines: n exact rays a pixel, and LOD's bias.
+    let mean = |e: Vec<f32>| e.iter().map(|&x| x as f64).sum::<f64>() / n;
+    let exact1 = mean(flip(&exact.rgb));
+    let jittered = |samples: u32, lod: f32| {
+        let mut acc = vec![0u32; exact.rgb.len()];
+        for k in 100..100 + samples {
+            let o = RenderOptions {
+                jitter: Some(jitter_sample(k)),
+                lod,
+                ..Default::default()
+            };
+            for (a, &c) in acc.iter_mut().zip(&render(&bm, &cam, pal, &o).rgb) {
+                *a += c as u32;
+            }
+        }
+        acc.iter()
+            .map(|&a| ((a + samples / 2) / samples) as u8)
+            .collect::<Vec<u8>>()
+    };
+    for samples in [2, 4, 8] {
+        let e = mean(flip(&jittered(samples, 0.0)));
+        println!(
+            "exact, {samples} samples: mean FLIP {e:.4} ({:.2}x one sample)",
+            e / exact1
+        );
+    }
+    let e = mean(flip(&jittered(4, 1.0)));
+    println!(
+        "LOD C = 1, 4 samples: mean FLIP {e:.4} ({:.2}x exact one sample)",
+        e / exact1
+    );
+    for gain in [1.01f32, 1.02, 1.03, 1.04] {
+        let mut img = lod1.rgb.clone();
+        for (px, h) in lod1.hits.iter().enumerate() {
+            if h.is_some_and(|h| h.level > 0) {
+                for c in &mut img[px * 3..px * 3 + 3] {
+                    *c = (*c as f32 * gain).min(255.0) as u8;
+                }
+            }
+        }
+        let e = mean(flip(&img));
+        println!(
+            "LOD C = 1, coarse pixels x{gain}: mean FLIP {e:.4} ({:.2}x exact one sample)",
+            e / exact1
         );
     }
 }
