@@ -503,3 +503,76 @@ fn a_heightmap_world_is_imported_once_and_resumes_without_its_file() {
     );
     assert_eq!(resumed, hash_at(&cfg2, &state2, 40));
 }
+
+/// A column script that fails on its first ticks (so it is suspended on
+/// its third failure) and would write its channel from then on.
+const FLAKY: &str = "return { channels = { \"flaky_v\" }, passes = { { name = \"p\", reads = {}, writes = { \"flaky_v\" },\n\
+    kernel = function(c) if c.tick >= 1 and c.tick < 4 then error(\"flaky\") end buffer.writef64(c.w.flaky_v, 0, c.tick) end } } }\n";
+
+/// The daemon's small world with the flaky script beside water, in a
+/// scripts folder of its own.
+fn flaky_world(name: &str) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+    let (cfg, state, _) = setup(name);
+    let dir = cfg.parent().unwrap().join("scripts");
+    std::fs::create_dir_all(&dir).unwrap();
+    let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+    std::fs::copy(repo.join("water.lua"), dir.join("water.lua")).unwrap();
+    std::fs::write(dir.join("flaky.lua"), FLAKY).unwrap();
+    edit_config(
+        &cfg,
+        &format!("scripts_dir = \"{}\"", repo.display()),
+        &format!("scripts_dir = \"{}\"", dir.display()),
+    );
+    edit_config(
+        &cfg,
+        "[render]",
+        "[[scripts]]\nfile = \"flaky.lua\"\n[render]",
+    );
+    (cfg, state, dir)
+}
+
+/// Regression (review of issue 10): a script suspended after repeated
+/// failures ran again after a resume, so a resumed world could differ from
+/// one that never stopped. Its health is now part of the committed state.
+/// A script changed while the engine was stopped is a reload: it runs
+/// again, with a warning.
+#[test]
+fn a_suspended_script_stays_suspended_across_a_resume() {
+    // Run to tick `end`: the world hash it reports, and its stderr.
+    let until = |cfg: &std::path::Path, state: &std::path::Path, end: u64| {
+        let (out, err) = run_ok(cfg, state, "--until-tick", end);
+        let line = out
+            .lines()
+            .find(|l| l.starts_with(&format!("stopped at tick {end} ")))
+            .unwrap_or_else(|| panic!("{out}"))
+            .to_string();
+        let hash = line.split("world hash ").nth(1).unwrap();
+        (hash.trim_end_matches(')').to_string(), err)
+    };
+    let (cfg, state, _) = flaky_world("flakya");
+    let (straight, said) = until(&cfg, &state, 12);
+    assert!(said.contains("flaky"), "the script never failed: {said}");
+    let (cfg, state, dir) = flaky_world("flakyb");
+    until(&cfg, &state, 6);
+    let (resumed, said) = until(&cfg, &state, 12);
+    assert_eq!(
+        resumed, straight,
+        "a resumed run differs from a straight one"
+    );
+    assert!(!said.contains("runs again"), "{said}");
+
+    // Run on to tick 16 twice: as stored, and with the script changed.
+    let (cfg2, state2, _) = flaky_world("flakyc");
+    until(&cfg2, &state2, 12);
+    let (kept, said) = until(&cfg2, &state2, 16);
+    assert!(!said.contains("runs again"), "{said}");
+    std::fs::write(dir.join("flaky.lua"), format!("-- fixed\n{FLAKY}")).unwrap();
+    let (changed, said) = until(&cfg, &state, 16);
+    assert!(
+        said.contains(
+            "flaky.lua changed while the engine was stopped: it was suspended, and runs again"
+        ),
+        "{said}"
+    );
+    assert_ne!(changed, kept, "the changed script did not run");
+}

@@ -155,6 +155,33 @@ pub struct SimExtras {
     /// The camera set through `/camera`, if any (an optional trailing
     /// section: states without one read as before).
     pub camera: Option<CameraOverride>,
+    /// Scripts that were failing or suspended (an optional trailing
+    /// section; empty when every script was healthy).
+    pub health: Vec<ScriptHealth>,
+}
+
+/// A failing or suspended script's health at a commit. A resume restores
+/// it, so a suspended script stays suspended and a failing one goes on
+/// counting, as in a run that never stopped; but only if the script's
+/// source is unchanged: a changed source is a reload, which clears it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScriptHealth {
+    /// Script name.
+    pub script: String,
+    /// [`source_hash`] of the source it ran.
+    pub source: u64,
+    /// Failed steps in a row.
+    pub failures: u32,
+    /// Why it is suspended (the error's text), if it is.
+    pub suspended: Option<String>,
+}
+
+/// FNV-1a of a script's source text: stable across runs and builds, so a
+/// stored [`ScriptHealth`] can tell whether the script changed meanwhile.
+pub fn source_hash(text: &str) -> u64 {
+    text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+    })
 }
 
 /// Everything a checkpoint holds.
@@ -334,14 +361,35 @@ pub(crate) fn encode(state: WorldRef<'_>) -> Vec<u8> {
             }
         }
     }
+    // Optional trailing sections, each behind its tag.
     if let Some(c) = &state.extras.camera {
-        w.u32(1);
+        w.u32(SECTION_CAMERA);
         for v in c.eye.iter().chain(&c.target).chain([&c.fov]) {
             w.f64(*v);
         }
     }
+    if !state.extras.health.is_empty() {
+        w.u32(SECTION_HEALTH);
+        w.u32(state.extras.health.len() as u32);
+        for h in &state.extras.health {
+            w.str(&h.script);
+            w.u64(h.source);
+            w.u32(h.failures);
+            match &h.suspended {
+                None => w.u8(0),
+                Some(why) => {
+                    w.u8(1);
+                    w.str(why);
+                }
+            }
+        }
+    }
     w.0
 }
+
+/// Tags of the optional sections that may follow a state.
+const SECTION_CAMERA: u32 = 1;
+const SECTION_HEALTH: u32 = 2;
 
 /// Decode a decompressed payload of format `version` (1 or 2). Never
 /// panics, whatever the bytes: every count is checked against what is left.
@@ -456,22 +504,18 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
             }
             extras.voxel_sleep = Some((active, quiet));
         }
-        if r.at < payload.len() && r.u32()? == 1 {
-            let mut v = [0f64; 7];
-            for x in v.iter_mut() {
-                *x = r.f64()?;
+        while r.at < payload.len() {
+            match r.u32()? {
+                SECTION_CAMERA if extras.camera.is_none() => {
+                    extras.camera = Some(read_camera(&mut r)?)
+                }
+                SECTION_HEALTH if extras.health.is_empty() => extras.health = read_health(&mut r)?,
+                tag => {
+                    return Err(format!(
+                        "section {tag} after the state is unknown or repeated"
+                    ));
+                }
             }
-            if v.iter().any(|x| !x.is_finite()) || !(v[6] > 0.0 && v[6] < 180.0) {
-                return Err(
-                    "the stored camera is not finite or its field of view is outside (0, 180)"
-                        .into(),
-                );
-            }
-            extras.camera = Some(CameraOverride {
-                eye: [v[0], v[1], v[2]],
-                target: [v[3], v[4], v[5]],
-                fov: v[6],
-            });
         }
     }
     if r.at != payload.len() {
@@ -489,6 +533,49 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
         identity: None,
         extras,
     })
+}
+
+fn read_camera(r: &mut Reader) -> Result<CameraOverride, String> {
+    let mut v = [0f64; 7];
+    for x in v.iter_mut() {
+        *x = r.f64()?;
+    }
+    if v.iter().any(|x| !x.is_finite()) || !(v[6] > 0.0 && v[6] < 180.0) {
+        return Err(
+            "the stored camera is not finite or its field of view is outside (0, 180)".into(),
+        );
+    }
+    Ok(CameraOverride {
+        eye: [v[0], v[1], v[2]],
+        target: [v[3], v[4], v[5]],
+        fov: v[6],
+    })
+}
+
+fn read_health(r: &mut Reader) -> Result<Vec<ScriptHealth>, String> {
+    let n = r.count(1024, "script health")?;
+    let mut health = Vec::with_capacity(n);
+    for _ in 0..n {
+        let script = r.str()?;
+        let source = r.u64()?;
+        let failures = r.u32()?;
+        let suspended = match r.u8()? {
+            0 => None,
+            1 => Some(r.str()?),
+            f => {
+                return Err(format!(
+                    "script {script}'s suspension flag is {f}, not 0 or 1"
+                ));
+            }
+        };
+        health.push(ScriptHealth {
+            script,
+            source,
+            failures,
+            suspended,
+        });
+    }
+    Ok(health)
 }
 
 fn file_name(tick: u64) -> String {

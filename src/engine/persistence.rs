@@ -115,6 +115,7 @@ pub fn sim_state(world: &SceneWorld, ws: &WorldSim) -> (ScriptParams, SimExtras)
         voxel_sleep: Some(ws.vox.sleep_state(world.store())),
         materials: world.materials.entries(),
         camera: None,
+        health: script_health(ws),
     };
     (params, extras)
 }
@@ -336,11 +337,49 @@ fn whole(data: &crate::persist::ColumnData) -> bool {
         .any(|(name, tiles)| name == "ground" && tiles.len() == 64)
 }
 
+/// The failing and suspended scripts' health, for the state blob.
+fn script_health(ws: &WorldSim) -> Vec<checkpoint::ScriptHealth> {
+    (0..ws.script_count())
+        .filter(|&i| ws.failures(i) > 0 || ws.suspended(i).is_some())
+        .map(|i| checkpoint::ScriptHealth {
+            script: ws.spec(i).name.clone(),
+            source: checkpoint::source_hash(&ws.source(i).text),
+            failures: ws.failures(i),
+            suspended: ws.suspended(i).map(|e| e.to_string()),
+        })
+        .collect()
+}
+
 /// Apply a restored state blob once the scripts are loaded: tick, sleep
-/// states, the drained total and the parameters. Returns warnings
-/// (parameters a changed script no longer accepts).
+/// states, the drained total, the parameters and the scripts' health.
+/// Returns warnings (parameters a changed script no longer accepts, a
+/// suspension lifted because its script changed).
 pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
     let mut warnings = Vec::new();
+    // Health: a script that failed or was suspended when the state was
+    // committed is so again, unless its source changed (a reload).
+    for h in &st.extras.health {
+        let Some(i) = ws.script_index(&h.script) else {
+            continue;
+        };
+        if checkpoint::source_hash(&ws.source(i).text) != h.source {
+            if h.suspended.is_some() {
+                warnings.push(format!(
+                    "{}.lua changed while the engine was stopped: it was suspended, and runs again",
+                    h.script
+                ));
+            }
+            continue;
+        }
+        let suspended = h
+            .suspended
+            .as_ref()
+            .map(|msg| crate::sim::SimError::Recorded {
+                script: h.script.clone(),
+                msg: msg.clone(),
+            });
+        ws.set_health(i, h.failures, suspended);
+    }
     // Parameters first: setting one wakes everything, and the sleep states
     // restored after it must be the stored ones.
     for (script, values) in &st.params {

@@ -86,3 +86,87 @@ pub fn decode(blob: &[u8]) -> Result<WorldState, String> {
     checkpoint::decode(tick, PAYLOAD_VERSION, &payload)
         .map_err(|e| format!("the simulation state: {e}"))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::checkpoint::{CameraOverride, ScriptHealth, source_hash};
+
+    fn extras() -> SimExtras {
+        SimExtras {
+            camera: Some(CameraOverride {
+                eye: [1.0, 2.0, 3.0],
+                target: [0.0; 3],
+                fov: 60.0,
+            }),
+            health: vec![
+                ScriptHealth {
+                    script: "flaky".into(),
+                    source: source_hash("return {}"),
+                    failures: 3,
+                    suspended: Some("flaky.lua:1: boom".into()),
+                },
+                ScriptHealth {
+                    script: "wobbly".into(),
+                    source: 7,
+                    failures: 1,
+                    suspended: None,
+                },
+            ],
+            ..Default::default()
+        }
+    }
+
+    fn blob(extras: &SimExtras) -> Vec<u8> {
+        let bounds = (IVec3::ZERO, IVec3::splat(64));
+        encode(9, &Palette::grey_ramp(), bounds, &[], extras)
+    }
+
+    /// The optional sections (camera, scripts' health) round-trip, alone
+    /// and together, and a state without them reads as before.
+    #[test]
+    fn the_camera_and_the_scripts_health_round_trip() {
+        let full = extras();
+        let only_health = SimExtras {
+            camera: None,
+            ..full.clone()
+        };
+        for e in [full, only_health, SimExtras::default()] {
+            let st = decode(&blob(&e)).unwrap();
+            assert_eq!(st.extras.camera, e.camera);
+            assert_eq!(st.extras.health, e.health);
+        }
+    }
+
+    /// A section repeated or unknown, or a bad suspension flag, is refused
+    /// with a message, never read as something else.
+    #[test]
+    fn a_repeated_or_unknown_section_is_refused() {
+        let payload = |e: &SimExtras| {
+            let b = blob(e);
+            lz4_flex::decompress_size_prepended(&b[20..]).unwrap()
+        };
+        let base = payload(&SimExtras::default());
+        let with = payload(&extras());
+        let health = with.len() - (base.len() + 4 + 56);
+        let tail = with[with.len() - health..].to_vec();
+        for (bytes, needle) in [
+            ([with.clone(), tail.clone()].concat(), "unknown or repeated"),
+            (
+                [base.clone(), 9u32.to_le_bytes().to_vec()].concat(),
+                "section 9",
+            ),
+        ] {
+            let e = checkpoint::decode(9, PAYLOAD_VERSION, &bytes).unwrap_err();
+            assert!(e.contains(needle), "{e}");
+        }
+        // The first script's flag byte (after the tag, count, name, source
+        // and failures) set to 2.
+        let mut bad = with.clone();
+        let flag = with.len() - health + 4 + 4 + (4 + 5) + 8 + 4;
+        assert_eq!(bad[flag], 1);
+        bad[flag] = 2;
+        let e = checkpoint::decode(9, PAYLOAD_VERSION, &bad).unwrap_err();
+        assert!(e.contains("flag is 2"), "{e}");
+    }
+}

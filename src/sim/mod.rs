@@ -127,4 +127,13 @@ pub enum SimError {
     /// Unexpected failure inside the runtime.
     #[error("simulation runtime: {0}")]
     Internal(String),
+    /// A failure recorded before the engine stopped, restored with the
+    /// script's health on a resume: the original error, as text.
+    #[error("{msg}")]
+    Recorded {
+        /// Script name.
+        script: String,
+        /// The original error's message.
+        msg: String,
+    },
 }

@@ -127,6 +127,16 @@ struct ScriptNotes {
     idle_steps: u64,
 }
 
+/// The script a step's error names ("" for errors of no one script).
+fn error_script(e: &SimError) -> &str {
+    match e {
+        SimError::Runtime { script, .. }
+        | SimError::Unstable { script, .. }
+        | SimError::OutOfBounds { script, .. } => script.as_str(),
+        _ => "",
+    }
+}
+
 /// The running engine.
 pub struct Engine {
     cfg: WorldConfig,
@@ -310,20 +320,34 @@ impl Engine {
         }
         let region = self.sim_region();
         self.ws.sim.set_region(region);
+        let was_suspended: Vec<bool> = (0..self.ws.script_count())
+            .map(|i| self.ws.suspended(i).is_some())
+            .collect();
         let (r, _) = self.ws.step_within_cfl(&mut self.world, self.cfg.dt, 0.5);
+        // Say so on stderr once a streak of failures begins, and once it
+        // suspends the script (a headless run has no viewer to show it).
+        for (i, &was) in was_suspended.iter().enumerate() {
+            let name = &self.ws.spec(i).name;
+            match self.ws.suspended(i) {
+                Some(e) if !was => eprintln!(
+                    "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it): {e}",
+                    self.ws.failures(i)
+                ),
+                None if self.ws.failures(i) == 1 => {
+                    if let Some(e) = r.errors.iter().find(|e| error_script(e) == name) {
+                        eprintln!("warning: {name}.lua failed a step: {e}");
+                    }
+                }
+                _ => {}
+            }
+        }
         for (i, n) in self.notes.iter_mut().enumerate() {
             if self.ws.failures(i) == 0 && self.ws.suspended(i).is_none() {
                 n.step_error = None;
             }
         }
         for e in &r.errors {
-            let name = match e {
-                SimError::Runtime { script, .. }
-                | SimError::Unstable { script, .. }
-                | SimError::OutOfBounds { script, .. } => script.as_str(),
-                _ => "",
-            };
-            if let Some(i) = self.ws.script_index(name) {
+            if let Some(i) = self.ws.script_index(error_script(e)) {
                 self.notes[i].step_error = Some(e.to_string());
             }
         }

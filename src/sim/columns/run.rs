@@ -190,6 +190,23 @@ impl WorldSim {
         Ok(())
     }
 
+    /// Give script `i` a health restored from a stored state (see
+    /// [`rebuild_scripts`](Self::rebuild_scripts) for a rebuild's).
+    pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
+        match self.route(i) {
+            Ok(c) => self.sim.set_health(c, failures, suspended),
+            Err(v) => self.vox.set_health(v, failures, suspended),
+        }
+    }
+
+    /// The source script `i` runs now (hot reloads included).
+    pub fn source(&self, i: usize) -> crate::sim::ScriptSource {
+        match self.route(i) {
+            Ok(c) => self.sim.script_state(c).src,
+            Err(v) => self.vox.script_state(v).src,
+        }
+    }
+
     fn route(&self, i: usize) -> Result<usize, usize> {
         let n = self.sim.script_count();
         if i < n { Ok(i) } else { Err(i - n) }
