@@ -422,3 +422,33 @@ fn log_lines_are_kept_per_script_and_rate_limited() {
             .all(|(s, _)| s != "logger")
     );
 }
+
+/// Regression (review of issue 10): a script could declare any number of
+/// channels, past what a stored blob may carry and past the column
+/// registry's 16-bit ids. More than `MAX_SCRIPT_CHANNELS` is a
+/// declaration error that names the field.
+#[test]
+fn a_script_declaring_too_many_channels_is_refused() {
+    let declare = |n: usize| {
+        let names: Vec<String> = (0..n).map(|i| format!("\"c{i}\"")).collect();
+        src(
+            "many",
+            &format!(
+                "return {{ channels = {{ {} }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"c0\" }},\n\
+                 kernel = function(c) end }} }} }}",
+                names.join(", ")
+            ),
+        )
+    };
+    let max = brickworld::sim::runtime::script::MAX_SCRIPT_CHANNELS;
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(declare(max), Kernel::Lua, small()).unwrap();
+    let e = Simulation::new(IVec2::ZERO, IVec2::new(1, 1))
+        .add_script(declare(max + 1), Kernel::Lua, small())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("many.lua") && e.contains(&format!("declares {} channels", max + 1)),
+        "{e}"
+    );
+}

@@ -170,6 +170,46 @@ fn a_corrupt_chunk_is_reported_with_its_coordinates_and_only_it_is_regenerated()
     assert!(!err.contains("is corrupt"), "{err}");
 }
 
+/// Regression (review of issue 10): channel names found in stored blobs
+/// were registered without a limit, so a store of many blobs, each naming
+/// new channels, grew the registries without end (and 16-bit column
+/// channel ids would wrap). A blob that would take a registry past
+/// `MAX_CHANNELS` is now a corrupt blob: reported and regenerated.
+#[test]
+fn a_column_naming_too_many_new_channels_is_refused_and_regenerated() {
+    use redb::TableDefinition;
+    const COLUMNS: TableDefinition<&[u8], &[u8]> = TableDefinition::new("columns");
+    let (cfg, state, _) = setup("channelflood");
+    hash_at(&cfg, &state, 5);
+    let key = ColumnKey(IVec2::ZERO);
+    let mut flood = ChannelStore::default();
+    for i in 0..chunk::MAX_CHANNELS {
+        let id = flood.channel(&format!("flood{i}"));
+        flood.set(key.tile(0), id, &[1.0; brickworld::sim::tile::TILE_CELLS]);
+    }
+    let blob = chunk::encode_column(key, &flood);
+    chunk::decode_column(key, &blob).expect("the blob alone is well formed");
+    {
+        let db = redb::Database::open(state.join("world.redb")).unwrap();
+        let tx = db.begin_write().unwrap();
+        tx.open_table(COLUMNS)
+            .unwrap()
+            .insert(&key.to_bytes()[..], &blob[..])
+            .unwrap();
+        tx.commit().unwrap();
+    }
+    let err = stderr_of_ticks(&cfg, &state, 2);
+    assert!(
+        err.contains(&format!("{key} is corrupt"))
+            && err.contains("more than 256")
+            && err.contains("regenerated"),
+        "{err}"
+    );
+    // Regenerated and committed again: the next start is clean.
+    let err = stderr_of_ticks(&cfg, &state, 1);
+    assert!(!err.contains("is corrupt"), "{err}");
+}
+
 #[test]
 fn a_store_of_another_format_version_is_refused_and_left_alone() {
     let (cfg, state, _) = setup("formatversion");

@@ -273,7 +273,13 @@ pub fn restore_chunks(
         let mut n = 0;
         for k in &keys {
             let Some(blob) = db.chunk(*k)? else { continue };
-            match chunk::decode_chunk(*k, &blob, store.palette()) {
+            let decoded = chunk::decode_chunk(*k, &blob, store.palette()).and_then(|d| {
+                let v = ws.vox.channels();
+                let names = d.voxel.iter().map(|(n, _)| n.as_str());
+                chunk::check_channel_room(names, |n| v.find(n).is_some(), v.names().len())
+                    .map(|()| d)
+            });
+            match decoded {
                 Ok(data) => {
                     chunk::apply_chunk(*k, &data, store, ws.vox.channels_mut());
                     n += 1;
@@ -293,7 +299,13 @@ pub fn restore_chunks(
         let mut bad_columns = Vec::new();
         for k in column_keys.into_iter().filter(in_sim) {
             let Some(blob) = db.column(k)? else { continue };
-            match chunk::decode_column(k, &blob) {
+            let decoded = chunk::decode_column(k, &blob).and_then(|d| {
+                let c = ws.sim.channels();
+                let names = d.channels.iter().map(|(n, _)| n.as_str());
+                chunk::check_channel_room(names, |n| c.find(n).is_some(), c.channels().count())
+                    .map(|()| d)
+            });
+            match decoded {
                 Ok(data) if scope.whole_columns && !whole(&data) => {}
                 Ok(data) => {
                     chunk::apply_column(k, &data, ws.sim.channels_mut());

@@ -43,8 +43,10 @@ pub const CHUNK_BRICKS: i32 = 8;
 pub const CHUNK_SHIFT: i32 = 3;
 /// Bricks in a chunk.
 pub const CHUNK_CELLS: usize = 512;
-/// Voxel channels one chunk may carry (more is a corrupt blob).
-const MAX_CHANNELS: usize = 256;
+/// Channels one chunk or column blob may carry (more is a corrupt blob),
+/// and channels a world's registry may take from all its blobs together
+/// ([`check_channel_room`]).
+pub const MAX_CHANNELS: usize = 256;
 /// The largest payload a chunk blob can decompress to: every brick mixed
 /// and every channel present, with room for names.
 const MAX_CHUNK_PAYLOAD: usize = 8
@@ -345,6 +347,36 @@ pub fn decode_chunk_payload(
     }
     r.finish()?;
     Ok(data)
+}
+
+/// Refuse a blob whose channel `names` would take a registry of
+/// `registered` names, of which `known` tells which exist, past
+/// [`MAX_CHANNELS`]. Each blob is bounded alone; without this, a store of
+/// many blobs that each name new channels grows the registries without
+/// end (and the column registry's 16-bit ids would wrap).
+///
+/// ```
+/// use brickworld::persist::chunk::{MAX_CHANNELS, check_channel_room};
+/// let full = MAX_CHANNELS - 1;
+/// assert!(check_channel_room(["water"], |_| false, full).is_ok());
+/// assert!(check_channel_room(["water", "lava"], |n| n == "water", full).is_ok());
+/// assert!(check_channel_room(["sand", "lava"], |_| false, full).is_err());
+/// // Known names never count, even in a registry already past the bound.
+/// assert!(check_channel_room(["water"], |n| n == "water", MAX_CHANNELS + 9).is_ok());
+/// ```
+pub fn check_channel_room<'a>(
+    names: impl IntoIterator<Item = &'a str>,
+    known: impl Fn(&str) -> bool,
+    registered: usize,
+) -> Result<(), String> {
+    let new = names.into_iter().filter(|n| !known(n)).count();
+    if new > 0 && registered + new > MAX_CHANNELS {
+        return Err(format!(
+            "its {new} new channel names would give the world {}, more than {MAX_CHANNELS}",
+            registered + new
+        ));
+    }
+    Ok(())
 }
 
 /// Replace chunk `key` of `store` and `voxel` by `data` (bricks and channel

@@ -304,6 +304,10 @@ fn declaration(src: &ScriptSource, needle: Option<&str>, msg: impl Into<String>)
     }
 }
 
+/// The most channels one script may declare (the stored blobs' bound: a
+/// chunk or column blob carries at most as many).
+pub const MAX_SCRIPT_CHANNELS: usize = 256;
+
 fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<String>, SimError> {
     let v: Value = t
         .get(field)
@@ -532,6 +536,16 @@ impl ScriptVm {
 
     fn parse_spec(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimError> {
         let channels = strings(src, def, "channels")?;
+        if channels.len() > MAX_SCRIPT_CHANNELS {
+            return Err(declaration(
+                src,
+                Some("channels"),
+                format!(
+                    "the script declares {} channels, more than {MAX_SCRIPT_CHANNELS}",
+                    channels.len()
+                ),
+            ));
+        }
         let voxel_grid = matches!(def.get::<Value>("grid"), Ok(Value::String(ref g)) if g.to_str().is_ok_and(|g| g == "voxels"));
         if channels.is_empty() && !voxel_grid {
             return Err(declaration(
