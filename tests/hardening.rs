@@ -369,10 +369,16 @@ fn fault_14_another_worlds_store_is_refused_and_left_alone() {
             .output()
             .unwrap(),
     );
-    let before = crc32fast::hash(&std::fs::read(state.join("world.redb")).unwrap());
-    // The same state directory, another world (seed 4): refused, untouched.
-    edit_config(&cfg, "seed = 3", "seed = 4");
-    let out = run_cmd(&cfg, &state)
+    refused_as_another_world(&cfg, &state);
+}
+
+/// Start the world of `cfg` as another world (seed 4 for 3) on `state`:
+/// it must be refused in one line, with the store's file untouched.
+fn refused_as_another_world(cfg: &Path, state: &Path) {
+    let path = state.join("world.redb");
+    let before = crc32fast::hash(&std::fs::read(&path).unwrap());
+    edit_config(cfg, "seed = 3", "seed = 4");
+    let out = run_cmd(cfg, state)
         .arg("--ticks")
         .arg("2")
         .output()
@@ -383,9 +389,37 @@ fn fault_14_another_worlds_store_is_refused_and_left_alone() {
     assert!(!err.contains("panicked"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
     assert_eq!(
-        crc32fast::hash(&std::fs::read(state.join("world.redb")).unwrap()),
-        before
+        crc32fast::hash(&std::fs::read(&path).unwrap()),
+        before,
+        "the refused store was changed"
     );
+}
+
+/// Regression (review of issue 10): a store that cannot be opened
+/// read-only (a daemon killed with -9 leaves it needing redb's repair) was
+/// opened writable, and so repaired, before its world was checked: another
+/// world's store was changed before it was refused. The manifest.json
+/// beside it is now checked first.
+#[test]
+fn fault_14_another_worlds_store_left_by_a_kill_is_refused_unrepaired() {
+    let (cfg, state, addr) = setup("f14kill");
+    let mut child = start(&cfg, &state);
+    wait_ready(&addr);
+    let t = std::time::Instant::now();
+    while status(&addr)["last_commit"].is_null() && t.elapsed() < Duration::from_secs(30) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let path = state.join("world.redb");
+    assert!(
+        redb::ReadOnlyDatabase::open(&path).is_err(),
+        "the killed daemon's store opens read-only: this test needs one that does not"
+    );
+    refused_as_another_world(&cfg, &state);
+    // Its own world still resumes it (repairing it then).
+    edit_config(&cfg, "seed = 4", "seed = 3");
+    stderr_of_ticks(&cfg, &state, 1);
 }
 
 #[test]

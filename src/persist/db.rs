@@ -331,10 +331,20 @@ impl WorldDb {
         identity: &WorldIdentity,
     ) -> Result<(WorldDb, Vec<String>), StoreError> {
         let path = dir.join(DB_FILE);
+        let manifest_path = dir.join(MANIFEST_FILE);
         // A store that will be refused is checked read-only first, so the
         // refusal leaves its file exactly as it was.
         if let Some(bytes) = read_only_meta(&path, "manifest") {
             check_manifest(&path, &bytes, identity)?;
+        } else if path.is_file()
+            && let Ok(text) = std::fs::read(&manifest_path)
+            && serde_json::from_slice::<Manifest>(&text).is_ok()
+        {
+            // Not readable read-only (after a kill -9 redb must repair it,
+            // which writes): the manifest.json kept beside it must be this
+            // world's before the store is opened writable. An unreadable
+            // manifest.json is only a copy: the stored one is checked next.
+            check_manifest(&manifest_path, &text, identity)?;
         }
         let db_err = |e: redb::Error| StoreError::Db {
             path: path.clone(),
@@ -348,7 +358,6 @@ impl WorldDb {
         };
         let mut warnings = Vec::new();
         let stored = this.meta("manifest")?;
-        let manifest_path = dir.join(MANIFEST_FILE);
         let mine = Manifest {
             format: FORMAT,
             world: identity.clone(),
