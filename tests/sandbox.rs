@@ -451,4 +451,26 @@ fn a_script_declaring_too_many_channels_is_refused() {
         e.contains("many.lua") && e.contains(&format!("declares {} channels", max + 1)),
         "{e}"
     );
+    // The world's registry is bounded too (review): a second script with
+    // one new channel would make 257, and is refused; one that only uses
+    // registered channels loads.
+    let one = |name: &str, ch: &str| {
+        src(
+            name,
+            &format!(
+                "return {{ channels = {{ \"{ch}\" }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"{ch}\" }},\n\
+                 kernel = function(c) end }} }} }}"
+            ),
+        )
+    };
+    let e = sim
+        .add_script(one("extra", "new_one"), Kernel::Lua, small())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("extra.lua") && e.contains("would give the world 257 channels"),
+        "{e}"
+    );
+    sim.add_script(one("reuse", "c7"), Kernel::Lua, small())
+        .unwrap();
 }

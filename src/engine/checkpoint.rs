@@ -52,7 +52,8 @@ use crate::sim::tile::TILE_CELLS;
 use crate::world::{BRICK_VOXELS, BrickContent, BrickStore, Palette};
 
 const MAGIC: &[u8; 4] = b"BWCK";
-const VERSION: u32 = 3;
+/// 4: a trailing section with the scripts' health (tag 2) may follow.
+const VERSION: u32 = 4;
 /// Largest LZ4 expansion (LZ4's worst-case ratio is about 255:1): a size
 /// prefix claiming more is corrupt, refused before anything is allocated.
 const MAX_LZ4_RATIO: usize = 255;
@@ -411,7 +412,7 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
     }
     store.take_modified();
     let mut channels = ChannelStore::default();
-    let n = r.count(4096, "channel")?;
+    let n = r.count(crate::sim::MAX_CHANNELS, "channel")?;
     let ids: Vec<crate::sim::ChannelId> = (0..n)
         .map(|_| r.str().map(|s| channels.channel(&s)))
         .collect::<Result<_, _>>()?;
@@ -461,7 +462,7 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
         }
     }
     if version >= 3 {
-        let n = r.count(4096, "voxel channel")?;
+        let n = r.count(crate::sim::MAX_CHANNELS, "voxel channel")?;
         for _ in 0..n {
             let name = r.str()?;
             let id = extras.voxel_channels.channel(&name);
@@ -504,12 +505,17 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
             }
             extras.voxel_sleep = Some((active, quiet));
         }
+        let (mut camera, mut health) = (false, false);
         while r.at < payload.len() {
             match r.u32()? {
-                SECTION_CAMERA if extras.camera.is_none() => {
+                SECTION_CAMERA if !camera => {
+                    camera = true;
                     extras.camera = Some(read_camera(&mut r)?)
                 }
-                SECTION_HEALTH if extras.health.is_empty() => extras.health = read_health(&mut r)?,
+                SECTION_HEALTH if !health && version >= 4 => {
+                    health = true;
+                    extras.health = read_health(&mut r)?
+                }
                 tag => {
                     return Err(format!(
                         "section {tag} after the state is unknown or repeated"
@@ -552,9 +558,13 @@ fn read_camera(r: &mut Reader) -> Result<CameraOverride, String> {
     })
 }
 
+/// The most failures in a row a stored health may claim (a script is
+/// suspended after a few; far more is a damaged or forged state).
+const MAX_STORED_FAILURES: u32 = 1 << 20;
+
 fn read_health(r: &mut Reader) -> Result<Vec<ScriptHealth>, String> {
     let n = r.count(1024, "script health")?;
-    let mut health = Vec::with_capacity(n);
+    let mut health: Vec<ScriptHealth> = Vec::with_capacity(n);
     for _ in 0..n {
         let script = r.str()?;
         let source = r.u64()?;
@@ -568,6 +578,24 @@ fn read_health(r: &mut Reader) -> Result<Vec<ScriptHealth>, String> {
                 ));
             }
         };
+        // Only failing or suspended scripts are stored, once each; a
+        // streak long enough to suspend is stored suspended.
+        let limit =
+            crate::sim::columns::step::SUSPEND_AFTER.min(crate::sim::voxels::step::SUSPEND_AFTER);
+        if failures == 0
+            || failures > MAX_STORED_FAILURES
+            || (suspended.is_none() && failures >= limit)
+            || health.iter().any(|h| h.script == script)
+        {
+            return Err(format!(
+                "script {script}'s stored health ({failures} failures in a row, {}) is not one a run can leave",
+                if suspended.is_some() {
+                    "suspended"
+                } else {
+                    "not suspended"
+                }
+            ));
+        }
         health.push(ScriptHealth {
             script,
             source,

@@ -273,14 +273,14 @@ pub fn restore_chunks(
         let mut n = 0;
         for k in &keys {
             let Some(blob) = db.chunk(*k)? else { continue };
-            let decoded = chunk::decode_chunk(*k, &blob, store.palette()).and_then(|d| {
-                let v = ws.vox.channels();
-                let names = d.voxel.iter().map(|(n, _)| n.as_str());
-                chunk::check_channel_room(names, |n| v.find(n).is_some(), v.names().len())
-                    .map(|()| d)
-            });
-            match decoded {
-                Ok(data) => {
+            match chunk::decode_chunk(*k, &blob, store.palette()) {
+                Ok(mut data) => {
+                    let v = ws.vox.channels();
+                    let (known, n_known) = (|n: &str| v.find(n).is_some(), v.names().len());
+                    let dropped = chunk::fit_channels(&mut data.voxel, known, n_known);
+                    if !dropped.is_empty() {
+                        corrupt.push(too_many_channels(&k.to_string(), &dropped));
+                    }
                     chunk::apply_chunk(*k, &data, store, ws.vox.channels_mut());
                     n += 1;
                 }
@@ -299,15 +299,15 @@ pub fn restore_chunks(
         let mut bad_columns = Vec::new();
         for k in column_keys.into_iter().filter(in_sim) {
             let Some(blob) = db.column(k)? else { continue };
-            let decoded = chunk::decode_column(k, &blob).and_then(|d| {
-                let c = ws.sim.channels();
-                let names = d.channels.iter().map(|(n, _)| n.as_str());
-                chunk::check_channel_room(names, |n| c.find(n).is_some(), c.channels().count())
-                    .map(|()| d)
-            });
-            match decoded {
+            match chunk::decode_column(k, &blob) {
                 Ok(data) if scope.whole_columns && !whole(&data) => {}
-                Ok(data) => {
+                Ok(mut data) => {
+                    let c = ws.sim.channels();
+                    let (known, n_known) = (|n: &str| c.find(n).is_some(), c.channels().count());
+                    let dropped = chunk::fit_channels(&mut data.channels, known, n_known);
+                    if !dropped.is_empty() {
+                        corrupt.push(too_many_channels(&k.to_string(), &dropped));
+                    }
                     chunk::apply_column(k, &data, ws.sim.channels_mut());
                     n += 1;
                 }
@@ -339,6 +339,23 @@ pub fn restore_chunks(
         chunks: n,
         corrupt,
     }))
+}
+
+/// The warning for channels of a stored blob left out because the world
+/// has its [`chunk::MAX_CHANNELS`] channels already.
+fn too_many_channels(blob: &str, dropped: &[String]) -> String {
+    let shown: Vec<&str> = dropped.iter().take(3).map(|s| s.as_str()).collect();
+    format!(
+        "{blob} names {} channels the world has no room for ({}{}; the world holds {} channels at most): they are left out of this run, and the stored blob keeps them until the {blob} is written again",
+        dropped.len(),
+        shown.join(", "),
+        if dropped.len() > shown.len() {
+            ", …"
+        } else {
+            ""
+        },
+        chunk::MAX_CHANNELS
+    )
 }
 
 /// Whether a stored column holds the ground of all its 64 tiles (what a

@@ -43,10 +43,9 @@ pub const CHUNK_BRICKS: i32 = 8;
 pub const CHUNK_SHIFT: i32 = 3;
 /// Bricks in a chunk.
 pub const CHUNK_CELLS: usize = 512;
-/// Channels one chunk or column blob may carry (more is a corrupt blob),
-/// and channels a world's registry may take from all its blobs together
-/// ([`check_channel_room`]).
-pub const MAX_CHANNELS: usize = 256;
+/// Channels one chunk or column blob may carry (more is a corrupt blob):
+/// the world registry's bound, so every blob the engine writes reads back.
+pub const MAX_CHANNELS: usize = crate::sim::MAX_CHANNELS;
 /// The largest payload a chunk blob can decompress to: every brick mixed
 /// and every channel present, with room for names.
 const MAX_CHUNK_PAYLOAD: usize = 8
@@ -349,34 +348,39 @@ pub fn decode_chunk_payload(
     Ok(data)
 }
 
-/// Refuse a blob whose channel `names` would take a registry of
-/// `registered` names, of which `known` tells which exist, past
-/// [`MAX_CHANNELS`]. Each blob is bounded alone; without this, a store of
-/// many blobs that each name new channels grows the registries without
-/// end (and the column registry's 16-bit ids would wrap).
+/// Keep, of a blob's channels `(name, data)`, those whose names the
+/// registry knows (`known`) and as many new ones as fit beside its
+/// `registered` names under [`MAX_CHANNELS`]; returns the names dropped.
+/// Each blob is bounded alone; this bounds them together, so that a store
+/// of many blobs, each naming new channels, cannot grow a registry
+/// without end (the column registry's ids are 16-bit).
 ///
 /// ```
-/// use brickworld::persist::chunk::{MAX_CHANNELS, check_channel_room};
-/// let full = MAX_CHANNELS - 1;
-/// assert!(check_channel_room(["water"], |_| false, full).is_ok());
-/// assert!(check_channel_room(["water", "lava"], |n| n == "water", full).is_ok());
-/// assert!(check_channel_room(["sand", "lava"], |_| false, full).is_err());
-/// // Known names never count, even in a registry already past the bound.
-/// assert!(check_channel_room(["water"], |n| n == "water", MAX_CHANNELS + 9).is_ok());
+/// use brickworld::persist::chunk::{MAX_CHANNELS, fit_channels};
+/// let mut ch = vec![("water".to_string(), 1), ("lava".to_string(), 2), ("sand".to_string(), 3)];
+/// let dropped = fit_channels(&mut ch, |n| n == "water", MAX_CHANNELS - 1);
+/// assert_eq!(dropped, ["sand"]);
+/// assert_eq!(ch.iter().map(|c| c.1).collect::<Vec<_>>(), [1, 2]);
 /// ```
-pub fn check_channel_room<'a>(
-    names: impl IntoIterator<Item = &'a str>,
+pub fn fit_channels<T>(
+    channels: &mut Vec<(String, T)>,
     known: impl Fn(&str) -> bool,
     registered: usize,
-) -> Result<(), String> {
-    let new = names.into_iter().filter(|n| !known(n)).count();
-    if new > 0 && registered + new > MAX_CHANNELS {
-        return Err(format!(
-            "its {new} new channel names would give the world {}, more than {MAX_CHANNELS}",
-            registered + new
-        ));
-    }
-    Ok(())
+) -> Vec<String> {
+    let mut room = MAX_CHANNELS.saturating_sub(registered);
+    let mut dropped = Vec::new();
+    channels.retain(|(name, _)| {
+        if known(name) {
+            true
+        } else if room > 0 {
+            room -= 1;
+            true
+        } else {
+            dropped.push(name.clone());
+            false
+        }
+    });
+    dropped
 }
 
 /// Replace chunk `key` of `store` and `voxel` by `data` (bricks and channel

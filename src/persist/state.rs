@@ -18,7 +18,8 @@ use crate::sim::ChannelStore;
 use crate::world::{BrickStore, Palette};
 
 const MAGIC: &[u8; 4] = b"BWST";
-const PAYLOAD_VERSION: u32 = 3;
+/// 4: a trailing section with the scripts' health may follow (3 is read).
+const PAYLOAD_VERSION: u32 = 4;
 /// The largest state a blob may decompress to (a 64k×64k-tile world's sleep
 /// lists fit many times over).
 const MAX_STATE: usize = 1 << 30;
@@ -63,9 +64,9 @@ pub fn decode(blob: &[u8]) -> Result<WorldState, String> {
         return Err("the simulation state is not a brickworld state blob".into());
     }
     let version = u32::from_le_bytes(blob[4..8].try_into().expect("4"));
-    if version != PAYLOAD_VERSION {
+    if !(3..=PAYLOAD_VERSION).contains(&version) {
         return Err(format!(
-            "the simulation state has version {version}, not {PAYLOAD_VERSION}"
+            "the simulation state has version {version}; this build reads 3 to {PAYLOAD_VERSION}"
         ));
     }
     let tick = u64::from_le_bytes(blob[8..16].try_into().expect("8"));
@@ -83,8 +84,7 @@ pub fn decode(blob: &[u8]) -> Result<WorldState, String> {
     }
     let payload = lz4_flex::decompress_size_prepended(packed)
         .map_err(|e| format!("the simulation state: LZ4: {e}"))?;
-    checkpoint::decode(tick, PAYLOAD_VERSION, &payload)
-        .map_err(|e| format!("the simulation state: {e}"))
+    checkpoint::decode(tick, version, &payload).map_err(|e| format!("the simulation state: {e}"))
 }
 
 #[cfg(test)]
@@ -168,5 +168,41 @@ mod tests {
         bad[flag] = 2;
         let e = checkpoint::decode(9, PAYLOAD_VERSION, &bad).unwrap_err();
         assert!(e.contains("flag is 2"), "{e}");
+        // A version-3 state has no health section.
+        let e = checkpoint::decode(9, 3, &with).unwrap_err();
+        assert!(e.contains("section 2"), "{e}");
+    }
+
+    /// Health no run can leave (review: u32::MAX failures overflowed the
+    /// next failure's count; "suspended after 0 failed steps"; a long
+    /// streak not suspended; one script twice) is refused.
+    #[test]
+    fn impossible_health_is_refused() {
+        let with = |h: Vec<ScriptHealth>| SimExtras {
+            health: h,
+            ..Default::default()
+        };
+        let one = |failures: u32, suspended: bool, name: &str| ScriptHealth {
+            script: name.into(),
+            source: 1,
+            failures,
+            suspended: suspended.then(|| "why".to_string()),
+        };
+        for h in [
+            vec![one(0, true, "a")],
+            vec![one(0, false, "a")],
+            vec![one(u32::MAX, true, "a")],
+            vec![one(3, false, "a")],
+            vec![one(1, false, "a"), one(2, false, "a")],
+        ] {
+            let e = decode(&blob(&with(h.clone()))).unwrap_err();
+            assert!(e.contains("is not one a run can leave"), "{h:?}: {e}");
+        }
+        for h in [
+            vec![one(2, false, "a"), one(3, true, "b")],
+            vec![one(1, true, "a")],
+        ] {
+            assert_eq!(decode(&blob(&with(h.clone()))).unwrap().extras.health, h);
+        }
     }
 }

@@ -44,6 +44,29 @@ pub struct ScriptState {
     pub suspended: Option<SimError>,
 }
 
+/// The most channel names a world's registry holds, built-ins included
+/// (column and voxel registries each). It is also the most a stored chunk
+/// or column blob may carry, so the engine never writes a blob that its own
+/// reader refuses.
+pub const MAX_CHANNELS: usize = 256;
+
+/// Refuse script `script` if its `new` channel names (those not yet
+/// registered) would take a registry of `registered` names past
+/// [`MAX_CHANNELS`].
+pub(crate) fn channel_room(script: &str, registered: usize, new: usize) -> Result<(), SimError> {
+    if new > 0 && registered + new > MAX_CHANNELS {
+        return Err(SimError::Declaration {
+            script: script.to_string(),
+            line: None,
+            msg: format!(
+                "its {new} new channels would give the world {} channels, more than {MAX_CHANNELS}",
+                registered + new
+            ),
+        });
+    }
+    Ok(())
+}
+
 /// A number for a message: plain when moderate, in scientific notation
 /// when huge or tiny (a 1e300 is not printed as 301 digits).
 pub fn fmt_num(v: f64) -> String {

@@ -125,7 +125,12 @@ struct ScriptNotes {
     /// Steps in a row in which the script did no work (nothing awake for
     /// it, or not its tick).
     idle_steps: u64,
+    /// When the log last said that it began to fail.
+    announced: Option<Instant>,
 }
+
+/// How often the log may say that one script began to fail again.
+const ANNOUNCE_EVERY: std::time::Duration = std::time::Duration::from_secs(60);
 
 /// The script a step's error names ("" for errors of no one script).
 fn error_script(e: &SimError) -> &str {
@@ -320,27 +325,11 @@ impl Engine {
         }
         let region = self.sim_region();
         self.ws.sim.set_region(region);
-        let was_suspended: Vec<bool> = (0..self.ws.script_count())
-            .map(|i| self.ws.suspended(i).is_some())
+        let before: Vec<(u32, bool)> = (0..self.ws.script_count())
+            .map(|i| (self.ws.failures(i), self.ws.suspended(i).is_some()))
             .collect();
         let (r, _) = self.ws.step_within_cfl(&mut self.world, self.cfg.dt, 0.5);
-        // Say so on stderr once a streak of failures begins, and once it
-        // suspends the script (a headless run has no viewer to show it).
-        for (i, &was) in was_suspended.iter().enumerate() {
-            let name = &self.ws.spec(i).name;
-            match self.ws.suspended(i) {
-                Some(e) if !was => eprintln!(
-                    "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it): {e}",
-                    self.ws.failures(i)
-                ),
-                None if self.ws.failures(i) == 1 => {
-                    if let Some(e) = r.errors.iter().find(|e| error_script(e) == name) {
-                        eprintln!("warning: {name}.lua failed a step: {e}");
-                    }
-                }
-                _ => {}
-            }
-        }
+        self.announce_failures(&before, &r);
         for (i, n) in self.notes.iter_mut().enumerate() {
             if self.ws.failures(i) == 0 && self.ws.suspended(i).is_none() {
                 n.step_error = None;
@@ -372,6 +361,36 @@ impl Engine {
             eprintln!("[{script}] {line}");
         }
         r
+    }
+
+    /// Say on stderr when a script begins to fail (at most once a minute per
+    /// script, however it alternates) and when failures suspend it: a
+    /// headless run has no viewer to show it. `before` is each script's
+    /// (failures in a row, suspended) before the step.
+    fn announce_failures(&mut self, before: &[(u32, bool)], r: &StepReport) {
+        for (i, &(failed, suspended)) in before.iter().enumerate() {
+            let name = &self.ws.spec(i).name;
+            if let Some(e) = self.ws.suspended(i) {
+                if !suspended {
+                    eprintln!(
+                        "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it): {e}",
+                        self.ws.failures(i)
+                    );
+                }
+                continue;
+            }
+            let began = failed == 0 && self.ws.failures(i) > 0;
+            let quiet = self.notes[i]
+                .announced
+                .is_none_or(|t| t.elapsed() >= ANNOUNCE_EVERY);
+            if began
+                && quiet
+                && let Some(e) = r.errors.iter().find(|e| error_script(e) == name)
+            {
+                eprintln!("warning: {name}.lua failed a step: {e}");
+                self.notes[i].announced = Some(Instant::now());
+            }
+        }
     }
 
     /// The step's changed bricks, in one hop each into the renderer's
@@ -587,9 +606,16 @@ impl Engine {
                     sim.failures(i)
                 )),
             ),
-            None if sim.failures(i) > 0 && note.step_error.is_some() => {
-                ("failing", note.step_error)
-            }
+            // A streak restored by a resume has no error text of this run.
+            None if sim.failures(i) > 0 => (
+                "failing",
+                note.step_error.or_else(|| {
+                    Some(format!(
+                        "{} failed steps in a row before the engine stopped",
+                        sim.failures(i)
+                    ))
+                }),
+            ),
             // Nothing awake for it for longer than two of its intervals.
             None if note.reload_error.is_none() && note.idle_steps >= 2 * sim.every(i) => {
                 ("sleeping", None)

@@ -442,6 +442,12 @@ impl Simulation {
                 msg: "a voxel script (grid = \"voxels\") cannot run on the column grid".into(),
             });
         }
+        let new = spec
+            .channels
+            .iter()
+            .filter(|c| self.channels.find(c).is_none())
+            .count();
+        crate::sim::channel_room(&spec.name, self.channels.channels().count(), new)?;
         let ids: Vec<ChannelId> = spec
             .channels
             .iter()
@@ -643,7 +649,7 @@ impl Simulation {
                     }
                 }
                 Err(e) => {
-                    script.failures += 1;
+                    script.failures = script.failures.saturating_add(1);
                     if script.failures >= SUSPEND_AFTER {
                         script.suspended = Some(e.clone());
                     }

@@ -478,6 +478,12 @@ impl VoxelSim {
         };
         let only = (!spec.only.is_empty()).then(|| id_of(&spec.only));
         let keep_awake = id_of(&spec.keep_awake);
+        let new = spec
+            .channels
+            .iter()
+            .filter(|c| self.channels.find(c).is_none())
+            .count();
+        crate::sim::channel_room(&spec.name, self.channels.names().len(), new)?;
         let channel_ids = spec
             .channels
             .iter()
@@ -762,7 +768,7 @@ impl VoxelSim {
                     }
                 }
                 Err(e) => {
-                    s.failures += 1;
+                    s.failures = s.failures.saturating_add(1);
                     if s.failures >= SUSPEND_AFTER {
                         s.suspended = Some(e.clone());
                     }
