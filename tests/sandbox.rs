@@ -474,3 +474,43 @@ fn a_script_declaring_too_many_channels_is_refused() {
     sim.add_script(one("reuse", "c7"), Kernel::Lua, small())
         .unwrap();
 }
+
+/// A suspension is committed with the state so a resume keeps it (see
+/// `a_suspended_script_stays_suspended_across_a_resume`), except one for
+/// the wall-clock limit: that depends on the machine's load at the time,
+/// and would otherwise outlive every restart (review).
+#[test]
+fn a_suspension_for_the_time_budget_is_not_kept_across_a_restart() {
+    use brickworld::engine::persistence::sim_state;
+    use brickworld::scene::{SceneSpec, build_scene};
+    use brickworld::sim::WorldSim;
+    let mut world = build_scene(
+        &SceneSpec::Terrain { caves: false },
+        glam::IVec3::new(16, 16, 16),
+        1,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut ws = WorldSim::new(&mut world);
+    // Spins until a tick's kernel is stopped: by the clock, or by the
+    // instruction count.
+    let spin = |name: &str| script(name, "while true do end");
+    let by_clock = Limits {
+        time: Duration::from_millis(20),
+        instructions: u64::MAX,
+        ..small()
+    };
+    ws.add_script(&world, spin("slow"), by_clock).unwrap();
+    ws.add_script(&world, spin("stuck"), small()).unwrap();
+    for _ in 0..=brickworld::sim::step::SUSPEND_AFTER {
+        ws.sim.wake_all();
+        ws.step(&mut world, 0.1);
+    }
+    let slow = ws.suspended(0).expect("suspended by the clock");
+    assert!(slow.is_time_budget(), "{slow}");
+    let stuck = ws.suspended(1).expect("suspended by the count");
+    assert!(!stuck.is_time_budget(), "{stuck}");
+    let (_, extras) = sim_state(&world, &ws);
+    let kept: Vec<&str> = extras.health.iter().map(|h| h.script.as_str()).collect();
+    assert_eq!(kept, ["stuck"]);
+}

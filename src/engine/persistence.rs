@@ -276,11 +276,9 @@ pub fn restore_chunks(
             match chunk::decode_chunk(*k, &blob, store.palette()) {
                 Ok(mut data) => {
                     let v = ws.vox.channels();
-                    let (known, n_known) = (|n: &str| v.find(n).is_some(), v.names().len());
-                    let dropped = chunk::fit_channels(&mut data.voxel, known, n_known);
-                    if !dropped.is_empty() {
-                        corrupt.push(too_many_channels(&k.to_string(), &dropped));
-                    }
+                    let known = |n: &str| v.find(n).is_some();
+                    let dropped = chunk::fit_channels(&mut data.voxel, known, v.names().len());
+                    corrupt.extend(too_many_channels(&k.to_string(), &dropped));
                     chunk::apply_chunk(*k, &data, store, ws.vox.channels_mut());
                     n += 1;
                 }
@@ -303,11 +301,9 @@ pub fn restore_chunks(
                 Ok(data) if scope.whole_columns && !whole(&data) => {}
                 Ok(mut data) => {
                     let c = ws.sim.channels();
-                    let (known, n_known) = (|n: &str| c.find(n).is_some(), c.channels().count());
-                    let dropped = chunk::fit_channels(&mut data.channels, known, n_known);
-                    if !dropped.is_empty() {
-                        corrupt.push(too_many_channels(&k.to_string(), &dropped));
-                    }
+                    let known = |n: &str| c.find(n).is_some();
+                    let dropped = chunk::fit_channels(&mut data.channels, known, c.channels().count());
+                    corrupt.extend(too_many_channels(&k.to_string(), &dropped));
                     chunk::apply_column(k, &data, ws.sim.channels_mut());
                     n += 1;
                 }
@@ -342,10 +338,13 @@ pub fn restore_chunks(
 }
 
 /// The warning for channels of a stored blob left out because the world
-/// has its [`chunk::MAX_CHANNELS`] channels already.
-fn too_many_channels(blob: &str, dropped: &[String]) -> String {
+/// has its [`chunk::MAX_CHANNELS`] channels already (none if none were).
+fn too_many_channels(blob: &str, dropped: &[String]) -> Option<String> {
+    if dropped.is_empty() {
+        return None;
+    }
     let shown: Vec<&str> = dropped.iter().take(3).map(|s| s.as_str()).collect();
-    format!(
+    Some(format!(
         "{blob} names {} channels the world has no room for ({}{}; the world holds {} channels at most): they are left out of this run, and the stored blob keeps them until the {blob} is written again",
         dropped.len(),
         shown.join(", "),
@@ -355,7 +354,7 @@ fn too_many_channels(blob: &str, dropped: &[String]) -> String {
             ""
         },
         chunk::MAX_CHANNELS
-    )
+    ))
 }
 
 /// Whether a stored column holds the ground of all its 64 tiles (what a
@@ -366,10 +365,13 @@ fn whole(data: &crate::persist::ColumnData) -> bool {
         .any(|(name, tiles)| name == "ground" && tiles.len() == 64)
 }
 
-/// The failing and suspended scripts' health, for the state blob.
+/// The failing and suspended scripts' health, for the state blob. A
+/// suspension for the wall-clock limit is not kept: it depends on the
+/// machine's load when it happened, and a restart is the way to try again.
 fn script_health(ws: &WorldSim) -> Vec<checkpoint::ScriptHealth> {
     (0..ws.script_count())
         .filter(|&i| ws.failures(i) > 0 || ws.suspended(i).is_some())
+        .filter(|&i| !ws.suspended(i).is_some_and(|e| e.is_time_budget()))
         .map(|i| checkpoint::ScriptHealth {
             script: ws.spec(i).name.clone(),
             source: checkpoint::source_hash(&ws.source(i).text),

@@ -44,16 +44,30 @@ pub struct ScriptState {
     pub suspended: Option<SimError>,
 }
 
+impl SimError {
+    /// Whether this is a kernel stopped by its wall-clock limit: a matter
+    /// of the machine's load at the time, not of the world.
+    pub fn is_time_budget(&self) -> bool {
+        matches!(self, SimError::Runtime { msg, .. }
+            if msg.contains(&format!("{} exceeded", runtime::interrupt::TIME_BUDGET)))
+    }
+}
+
 /// The most channel names a world's registry holds, built-ins included
 /// (column and voxel registries each). It is also the most a stored chunk
 /// or column blob may carry, so the engine never writes a blob that its own
 /// reader refuses.
 pub const MAX_CHANNELS: usize = 256;
 
-/// Refuse script `script` if its `new` channel names (those not yet
-/// registered) would take a registry of `registered` names past
-/// [`MAX_CHANNELS`].
-pub(crate) fn channel_room(script: &str, registered: usize, new: usize) -> Result<(), SimError> {
+/// Refuse script `script` if its channel `names`, those not yet `known`,
+/// would take a registry of `registered` names past [`MAX_CHANNELS`].
+pub(crate) fn channel_room(
+    script: &str,
+    names: &[String],
+    known: impl Fn(&str) -> bool,
+    registered: usize,
+) -> Result<(), SimError> {
+    let new = names.iter().filter(|n| !known(n)).count();
     if new > 0 && registered + new > MAX_CHANNELS {
         return Err(SimError::Declaration {
             script: script.to_string(),

@@ -442,12 +442,8 @@ impl Simulation {
                 msg: "a voxel script (grid = \"voxels\") cannot run on the column grid".into(),
             });
         }
-        let new = spec
-            .channels
-            .iter()
-            .filter(|c| self.channels.find(c).is_none())
-            .count();
-        crate::sim::channel_room(&spec.name, self.channels.channels().count(), new)?;
+        let (ch, n) = (&self.channels, self.channels.channels().count());
+        crate::sim::channel_room(&spec.name, &spec.channels, |c| ch.find(c).is_some(), n)?;
         let ids: Vec<ChannelId> = spec
             .channels
             .iter()

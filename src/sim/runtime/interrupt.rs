@@ -74,6 +74,9 @@ pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
     });
 }
 
+/// The wall-clock limit's name in a budget error ("time budget exceeded").
+pub const TIME_BUDGET: &str = "time budget";
+
 /// Which limit, if any, the running kernel has exceeded (counts one tick).
 #[inline(always)]
 fn exceeded(l: *mut ffi::lua_State) -> Option<&'static str> {
@@ -103,7 +106,7 @@ fn slow_check(l: *mut ffi::lua_State) -> Option<&'static str> {
         if b.ticks > b.limit {
             what = Some("instruction budget");
         } else if Instant::now() > b.deadline {
-            what = Some("time budget");
+            what = Some(TIME_BUDGET);
         } else {
             // SAFETY: `l` is the live state Luau passed to the interrupt
             // hook; LUA_GCCOUNT only reads the allocator's counter.

@@ -478,12 +478,8 @@ impl VoxelSim {
         };
         let only = (!spec.only.is_empty()).then(|| id_of(&spec.only));
         let keep_awake = id_of(&spec.keep_awake);
-        let new = spec
-            .channels
-            .iter()
-            .filter(|c| self.channels.find(c).is_none())
-            .count();
-        crate::sim::channel_room(&spec.name, self.channels.names().len(), new)?;
+        let (ch, n) = (&self.channels, self.channels.names().len());
+        crate::sim::channel_room(&spec.name, &spec.channels, |c| ch.find(c).is_some(), n)?;
         let channel_ids = spec
             .channels
             .iter()
