@@ -98,6 +98,11 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[[scripts]]\nfile = \"w.lua\"\nevery = 0\n",
             "scripts[0].every",
         ),
+        // Regression (review): one file twice was two scripts of one name.
+        (
+            "[world]\nsource = \"terrain\"\n[[scripts]]\nfile = \"w.lua\"\n[[scripts]]\nfile = \"w.lua\"\n",
+            "scripts[1].file: 'w.lua' is already listed as scripts[0]",
+        ),
         (
             "[world]\nsource = \"terrain\"\n[camera]\nfov = 200.0\n",
             "camera.fov",

@@ -641,6 +641,17 @@ impl WorldConfig {
                     ),
                 ));
             }
+            // Scripts are known by name (parameters, health, status): one
+            // file listed twice would be two scripts sharing one name.
+            if let Some(j) = scripts
+                .iter()
+                .position(|o: &ScriptSettings| o.file == s.file)
+            {
+                return Err(err(
+                    &field("file"),
+                    format!("'{}' is already listed as scripts[{j}]", s.file),
+                ));
+            }
             let every = s.every.unwrap_or(1);
             if !(1..=1_000_000).contains(&every) {
                 return Err(err(
