@@ -206,6 +206,19 @@ fn the_viewer_works_in_a_real_browser() {
         |v| v.as_str().is_some_and(|s| s.contains("applied")),
     );
 
+    // A range of six decades gets a logarithmic slider (regression: linear
+    // steps of a thousandth of 0.001..1000 could not reach dx = 0.5): one
+    // step left from dx = 1 is 0.9863, not 0.001.
+    b.eval("document.querySelector('[data-param=\"dx\"] input[type=range]').focus()");
+    b.key("ArrowLeft", 37);
+    wait_status(&addr, "the log slider changed dx", |s| {
+        s["scripts"][0]["params"]
+            .as_array()
+            .and_then(|ps| ps.iter().find(|p| p["name"] == "dx"))
+            .and_then(|p| p["value"].as_f64())
+            .is_some_and(|v| (v - 0.9863).abs() < 1e-9)
+    });
+
     // A refused value shows the refusal; a non-number is refused in the page.
     type_into(&mut b, "[data-param=\"rain\"] input[type=number]", "50");
     b.wait_for(
