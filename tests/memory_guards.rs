@@ -181,3 +181,82 @@ fn a_daemon_with_frames_larger_than_memory_is_refused_naming_the_fields() {
         "render.width/render.height: not enough memory",
     );
 }
+
+/// A .vox whose scene graph is a chain of `levels` groups, each with two
+/// children that are the next group, ending in a shape of model `model`:
+/// 2^levels paths from a file of a few KB.
+fn doubling_vox(levels: u32, model: u32, voxels: Vec<dot_vox::Voxel>) -> PathBuf {
+    use dot_vox::{DotVoxData, Frame, Model, SceneNode, ShapeModel, Size};
+    let mut scenes = vec![SceneNode::Transform {
+        attributes: Default::default(),
+        frames: vec![Frame::new(Default::default())],
+        child: 1,
+        layer_id: 0,
+    }];
+    for l in 0..levels {
+        scenes.push(SceneNode::Group {
+            attributes: Default::default(),
+            children: vec![l + 2, l + 2],
+        });
+    }
+    scenes.push(SceneNode::Shape {
+        attributes: Default::default(),
+        models: vec![ShapeModel {
+            model_id: model,
+            attributes: Default::default(),
+        }],
+    });
+    let data = DotVoxData {
+        version: 150,
+        index_map: Vec::new(),
+        models: vec![Model {
+            size: Size { x: 8, y: 8, z: 8 },
+            voxels,
+        }],
+        palette: dot_vox::DEFAULT_PALETTE.to_vec(),
+        materials: Vec::new(),
+        scenes,
+        layers: Vec::new(),
+    };
+    let path = tmp("mem", &format!("doubling-{levels}-{model}.vox"));
+    let mut f = std::fs::File::create(&path).unwrap();
+    data.write_vox(&mut f).unwrap();
+    path
+}
+
+/// Regression (hostile probe): a scene graph that places no voxel (an
+/// empty or a missing model) along 2^60 paths passed the voxel count and
+/// then hung or aborted out of memory while it expanded.
+#[test]
+fn a_vox_scene_graph_of_many_empty_paths_is_refused() {
+    for model in [0, 7] {
+        let path = doubling_vox(60, model, Vec::new());
+        let out = render_capped(&format!("vox:{}", path.display()), None);
+        assert_clear_failure(&out, "2^60 empty paths", "node visits");
+    }
+}
+
+/// Regression (hostile probe): a .vox model whose voxels all lie below
+/// y = 0 panicked `sim` (and `run`) in the column write-back's clamp.
+#[test]
+fn a_vox_world_below_zero_runs_its_column_scripts() {
+    let plate: Vec<dot_vox::Voxel> = (0..64)
+        .map(|i| dot_vox::Voxel {
+            x: i % 8,
+            y: i / 8,
+            z: 0,
+            i: 1,
+        })
+        .collect();
+    let path = doubling_vox(0, 0, plate);
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/water.lua");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["sim", "--scene"])
+        .arg(format!("vox:{}", path.display()))
+        .arg("--script")
+        .arg(&script)
+        .args(["--steps", "2"])
+        .output()
+        .unwrap();
+    common::cli::assert_success(&out);
+}

@@ -637,3 +637,41 @@ fn a_script_failing_every_other_tick_is_announced_once() {
     assert_eq!(lines, 1, "{said}");
     assert!(!said.contains("suspended"), "{said}");
 }
+
+/// Regression (hostile probe): `export STATE/world.redb` replaced the live
+/// world store with the backup (the next start found no redb database),
+/// and `export /dev/full` replaced the device with a regular file. An
+/// export into the state directory, or onto anything but a regular file,
+/// is refused and writes nothing.
+#[test]
+fn export_never_replaces_the_world_store_or_a_special_file() {
+    let (cfg, state, _) = setup("exporttarget");
+    hash_at(&cfg, &state, 3);
+    let store = state.join("world.redb");
+    let before = crc32fast::hash(&std::fs::read(&store).unwrap());
+    let export = |out: &std::path::Path| {
+        bin()
+            .arg("export")
+            .arg(out)
+            .arg("--world")
+            .arg(&cfg)
+            .arg("--state")
+            .arg(&state)
+            .output()
+            .unwrap()
+    };
+    let inside = state.join("frames").join("..").join("world.redb");
+    for (out, needle) in [
+        (store.clone(), "inside the state directory"),
+        (inside, "inside the state directory"),
+        (state.join("backup.bwc"), "inside the state directory"),
+        (state.parent().unwrap().to_path_buf(), "not a regular file"),
+    ] {
+        let o = export(&out);
+        common::cli::assert_clear_failure(&o, "export onto a bad target", needle);
+    }
+    assert_eq!(crc32fast::hash(&std::fs::read(&store).unwrap()), before);
+    assert!(!state.join("backup.bwc").exists());
+    // The world still resumes.
+    hash_at(&cfg, &state, 4);
+}

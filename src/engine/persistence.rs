@@ -569,6 +569,36 @@ pub fn export(
     Ok(hash)
 }
 
+/// Refuse an export whose file would replace something that is not a
+/// backup: a file of the state directory (the world store itself, before
+/// this was checked), or anything but a regular file (a device, a pipe,
+/// a directory: the write replaces the path with a new file).
+fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
+    if let Ok(meta) = std::fs::metadata(out)
+        && !meta.is_file()
+    {
+        bail!(
+            "{} exists and is not a regular file: export writes a new file there, so name another path (nothing was written)",
+            out.display()
+        );
+    }
+    // Where the file would land: its parent resolved, plus its name.
+    let parent = match out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if let (Ok(state), Ok(parent)) = (dir.canonicalize(), parent.canonicalize())
+        && parent.starts_with(&state)
+    {
+        bail!(
+            "{} lies inside the state directory {}: export there could replace the world it reads; write the backup elsewhere (nothing was written)",
+            out.display(),
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
 /// `brickworld export`: open the store of state directory `dir` (locked, so
 /// a running engine is a clear error), restore its world, and write it to
 /// `out`. Returns the tick and the world hash.
@@ -576,6 +606,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
     if !dir.join(crate::persist::db::DB_FILE).is_file() {
         bail!("{} holds no world store (nothing to export)", dir.display());
     }
+    check_export_target(dir, out)?;
     if cfg.stream.is_some()
         && matches!(
             cfg.sim_region,

@@ -109,11 +109,19 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
         // Count first (memoised per node, so a graph that shares nodes is
         // counted in time linear in its size), then expand.
         let mut memo = vec![None; data.scenes.len()];
-        let n = count(data, 0, 0, &mut memo)?;
+        let (n, visits) = count(data, 0, 0, &mut memo)?;
         if n > MAX_PLACED_VOXELS {
             return Err(format!(
                 "the scene graph places {n} voxels (about {} while building); the limit is {MAX_PLACED_VOXELS}",
                 super::budget::human(n.saturating_mul(16))
+            ));
+        }
+        // The expansion's own work: a graph can place nothing (an empty or
+        // missing model) along 2^60 paths (regression: a hang or an
+        // out-of-memory abort from a 2 KB file).
+        if visits > MAX_NODE_VISITS {
+            return Err(format!(
+                "the scene graph expands to {visits} node visits; the limit is {MAX_NODE_VISITS}"
             ));
         }
         walk(data, 0, Xform::IDENTITY, 0, &mut placed)?;
@@ -144,13 +152,18 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
     Ok((out, palette))
 }
 
-/// Voxels placed under `node` (saturating), memoised per node.
+/// Nodes the expansion of a scene graph may visit (each instance of a
+/// shared node counts).
+pub const MAX_NODE_VISITS: u64 = 1 << 24;
+
+/// Voxels placed under `node`, and nodes the expansion visits there (both
+/// saturating), memoised per node.
 fn count(
     data: &dot_vox::DotVoxData,
     node: u32,
     depth: u32,
-    memo: &mut Vec<Option<u64>>,
-) -> Result<u64, String> {
+    memo: &mut Vec<Option<(u64, u64)>>,
+) -> Result<(u64, u64), String> {
     if depth > MAX_DEPTH {
         return Err(format!(
             "scene graph deeper than {MAX_DEPTH} levels (a cycle?)"
@@ -166,22 +179,29 @@ fn count(
         )
     })?;
     let total = match n {
-        dot_vox::SceneNode::Transform { child, .. } => count(data, *child, depth + 1, memo)?,
+        dot_vox::SceneNode::Transform { child, .. } => {
+            let (v, w) = count(data, *child, depth + 1, memo)?;
+            (v, w.saturating_add(1))
+        }
         dot_vox::SceneNode::Group { children, .. } => {
-            let mut t = 0u64;
+            let mut t = (0u64, 1u64);
             for c in children {
-                t = t.saturating_add(count(data, *c, depth + 1, memo)?);
+                let (v, w) = count(data, *c, depth + 1, memo)?;
+                t = (t.0.saturating_add(v), t.1.saturating_add(w));
             }
             t
         }
-        dot_vox::SceneNode::Shape { models, .. } => models
-            .iter()
-            .map(|m| {
-                data.models
-                    .get(m.model_id as usize)
-                    .map_or(0, |m| m.voxels.len() as u64)
-            })
-            .fold(0u64, u64::saturating_add),
+        dot_vox::SceneNode::Shape { models, .. } => (
+            models
+                .iter()
+                .map(|m| {
+                    data.models
+                        .get(m.model_id as usize)
+                        .map_or(0, |m| m.voxels.len() as u64)
+                })
+                .fold(0u64, u64::saturating_add),
+            1,
+        ),
     };
     memo[node as usize] = Some(total);
     Ok(total)

@@ -82,7 +82,9 @@ pub const MIN_WATER_DRAWN: f64 = 0.5;
 /// The surfaces (ground top, snow top, water top) of a column with ground
 /// `g`, snow `s` and water `w`, each clamped into `[0, top]`.
 pub fn levels(g: f64, s: f64, w: f64, top: i32) -> [i32; 3] {
-    let clamp = |v: f64| v.clamp(0.0, top as f64) as i32;
+    // A world whose voxels all lie below 0 has a negative top (a .vox
+    // model can): its surfaces stay at 0 (regression: `clamp` panicked).
+    let clamp = |v: f64| v.clamp(0.0, top.max(0) as f64) as i32;
     let gt = clamp(g.floor());
     let st = clamp((g + s).floor()).max(gt);
     let wt = if w >= MIN_WATER_DRAWN {
