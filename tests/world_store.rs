@@ -675,3 +675,55 @@ fn export_never_replaces_the_world_store_or_a_special_file() {
     // The world still resumes.
     hash_at(&cfg, &state, 4);
 }
+
+/// Regression (hostile probe): a backup with valid checksums but forged
+/// bounds panicked `import` (i32::MIN .. i32::MAX) or aborted it out of
+/// memory (a grid of 2^30 bricks). Bounds are checked before anything is
+/// built: inverted or overflowing ones are refused, and so is a box larger
+/// than the memory there is (here under a 3 GB address-space limit).
+#[test]
+fn a_backup_with_forged_bounds_is_refused_clearly() {
+    use brickworld::engine::checkpoint::{SimExtras, WorldRef, write_at};
+    let (cfg, state, _) = setup("forgedbounds");
+    let identity = brickworld::engine::world_config::WorldConfig::load(&cfg)
+        .unwrap()
+        .identity();
+    let store = BrickStore::new(Palette::grey_ramp());
+    let (channels, extras) = (ChannelStore::default(), SimExtras::default());
+    let cases = [
+        (
+            IVec3::splat(i32::MIN),
+            IVec3::splat(i32::MAX),
+            "which no world has",
+        ),
+        (IVec3::splat(5), IVec3::splat(5), "which no world has"),
+        (IVec3::ZERO, IVec3::new(16384, 2048, 16384), "needs about"),
+    ];
+    for (i, (lo, hi, needle)) in cases.into_iter().enumerate() {
+        let file = state.parent().unwrap().join(format!("forged{i}.bwc"));
+        let world = WorldRef {
+            tick: 3,
+            store: &store,
+            bounds: (lo, hi),
+            channels: &channels,
+            params: &[],
+            identity: Some(&identity),
+            extras: &extras,
+        };
+        write_at(&file, world).unwrap();
+        let into = state.parent().unwrap().join(format!("into{i}"));
+        let out = std::process::Command::new("bash")
+            .arg("-c")
+            .arg(format!(
+                "ulimit -v 3000000 && exec '{}' import '{}' --world '{}' --state '{}'",
+                env!("CARGO_BIN_EXE_brickworld"),
+                file.display(),
+                cfg.display(),
+                into.display()
+            ))
+            .output()
+            .unwrap();
+        common::cli::assert_clear_failure(&out, "a forged backup", needle);
+        assert!(!into.join("world.redb").exists(), "case {i} wrote a store");
+    }
+}

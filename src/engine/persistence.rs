@@ -493,6 +493,20 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
             file.display()
         ),
     }
+    // The bounds a backup claims decide the grid built from it: an inverted,
+    // overflowing or larger-than-memory box is refused before anything is
+    // allocated (regression: forged bounds panicked in the grid, or
+    // aborted it out of memory).
+    let (lo, hi) = st.bounds;
+    let extent = hi.as_i64vec3() - lo.as_i64vec3();
+    if extent.cmple(glam::I64Vec3::ZERO).any() || extent.cmpgt(glam::I64Vec3::splat(1 << 24)).any()
+    {
+        bail!(
+            "{} claims world bounds {lo} .. {hi}, which no world has (nothing was changed)",
+            file.display()
+        );
+    }
+    crate::scene::budget::check_world("the imported world", extent.as_ivec3())?;
     let store_file = dir.join(crate::persist::db::DB_FILE);
     if store_file.exists() && !WorldDb::readable(dir) {
         bail!(
