@@ -37,6 +37,20 @@ pub enum GpuError {
         /// The device limit.
         limit: u64,
     },
+    /// A frame's per-pixel buffer does not fit the device's limits.
+    #[error(
+        "a {width}x{height} frame needs {needed} bytes of GPU pixel buffer, over this device's limit of {limit}: render a smaller image"
+    )]
+    FrameTooLarge {
+        /// Frame width.
+        width: u32,
+        /// Frame height.
+        height: u32,
+        /// Bytes needed.
+        needed: u64,
+        /// The device limit.
+        limit: u64,
+    },
     /// The device was lost or a transfer failed.
     #[error("GPU failure: {0}")]
     Runtime(String),

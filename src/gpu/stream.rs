@@ -448,19 +448,28 @@ mod tests {
         assert_eq!(cfg.pool_slots, (1 << 20) / 64);
         assert_eq!(cfg.arena_bytes, 1 << 20);
         let v = w.default_views()[1];
-        let cam = crate::trace::Camera::new(
-            glam::DVec3::from(v.eye),
-            glam::DVec3::from(v.target),
-            v.fov,
-            32,
-            24,
-        )
-        .unwrap();
+        let cam_of = |width, height| {
+            let (eye, target) = (glam::DVec3::from(v.eye), glam::DVec3::from(v.target));
+            crate::trace::Camera::new(eye, target, v.fov, width, height).unwrap()
+        };
+        let cam = cam_of(32, 24);
         let opts = crate::trace::RenderOptions::default();
         for _ in 0..4 {
             g.render(&ctx, &cam, &opts, w.grid(), w.store().pool())
                 .unwrap();
         }
         assert!(g.resident() > 0);
+        // A frame whose pixel buffer passes the limit is an error with the
+        // figures, not a wgpu validation panic (regression: 3840×2160 on
+        // lavapipe); the tracer goes on drawing smaller frames.
+        let Err(e) = g.render(&ctx, &cam_of(256, 256), &opts, w.grid(), w.store().pool()) else {
+            panic!("a 256x256 frame fitted a 1 MiB buffer limit");
+        };
+        assert!(
+            e.to_string().contains("a 256x256 frame needs") && e.to_string().contains("1048576"),
+            "{e}"
+        );
+        g.render(&ctx, &cam, &opts, w.grid(), w.store().pool())
+            .unwrap();
     }
 }

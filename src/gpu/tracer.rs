@@ -484,8 +484,22 @@ impl GpuBrickmap {
         };
         ctx.queue
             .write_buffer(&self.feedback, 0, bytemuck::bytes_of(&0u32));
-        let pixels = (w * h) as u64;
+        let pixels = w as u64 * h as u64;
         let out_size = pixels * std::mem::size_of::<PixelOut>() as u64;
+        // Checked before any buffer exists: past the binding limit wgpu
+        // fails validation with a panic (regression: 3840×2160 on lavapipe).
+        let limit = ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size);
+        if out_size > limit {
+            return Err(GpuError::FrameTooLarge {
+                width: w,
+                height: h,
+                needed: out_size,
+                limit,
+            });
+        }
         let fb_size = self.feedback.size();
         let ls_size = self.last_seen.size();
         let uniform = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
