@@ -2,14 +2,53 @@
 
 use std::process::ExitCode;
 
-use clap::Parser;
+use clap::error::ErrorKind;
+use clap::{CommandFactory, FromArgMatches};
+
+/// The command line as `Cli` derives it, with negative numbers taken as
+/// values everywhere (`--fov -1` reached the validator, which names the
+/// flag, instead of clap's "unexpected argument '-1'").
+fn command() -> clap::Command {
+    fn negatives(c: clap::Command) -> clap::Command {
+        c.allow_negative_numbers(true).mut_subcommands(negatives)
+    }
+    negatives(brickworld::cli::Cli::command())
+}
+
+/// Parse the command line. Help and version print as clap prints them; any
+/// other error is one line on stderr and exit code 1, as all bad input is.
+fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
+    let parsed = command()
+        .try_get_matches()
+        .and_then(|m| brickworld::cli::Cli::from_arg_matches(&m));
+    parsed.map_err(|e| match e.kind() {
+        ErrorKind::DisplayHelp
+        | ErrorKind::DisplayVersion
+        | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
+        _ => {
+            // clap's message up to its first blank line (what is wrong, and
+            // any names it lists), joined into one line; no usage or tips.
+            let text = e.to_string();
+            let what: Vec<&str> = text
+                .lines()
+                .take_while(|l| !l.trim().is_empty())
+                .map(str::trim)
+                .collect();
+            eprintln!("{} (see --help)", what.join(" "));
+            ExitCode::FAILURE
+        }
+    })
+}
 
 fn main() -> ExitCode {
     brickworld::install_panic_hook();
     // Mesa prints "XDG_RUNTIME_DIR is invalid" (twice) when the variable is
     // missing, which reads like a failure: give it a private directory.
     brickworld::runtime_dir::ensure();
-    let cli = brickworld::cli::Cli::parse();
+    let cli = match parse() {
+        Ok(cli) => cli,
+        Err(code) => return code,
+    };
     match brickworld::app::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

@@ -128,6 +128,25 @@ fn bad_input_gets_a_clear_error_and_nonzero_exit() {
         &["render", "--out", o, "--frobnicate"],
         "unexpected argument",
     );
+    // Regression (hostile probe): clap's own errors were several lines
+    // (usage, tips) with exit code 2, and a negative number was "an
+    // unexpected argument". Now one line, exit 1, and negative values reach
+    // the validator, which names the flag.
+    for (args, needle) in [
+        (
+            &["render", "--frobnicate"][..],
+            "unexpected argument '--frobnicate'",
+        ),
+        (&["bench", "lod"][..], "not provided: --json"),
+        (&["render", "--fov", "-1"][..], "invalid --fov '-1'"),
+        (&["render", "--threads", "-2"][..], "invalid --threads '-2'"),
+    ] {
+        let out = bin().args(args).output().unwrap();
+        assert_clear_failure(&out, &format!("{args:?}"), needle);
+        assert_eq!(out.status.code(), Some(1), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(err.trim().lines().count(), 1, "{args:?}: {err}");
+    }
     expect_failure(
         &[
             "render",
