@@ -260,3 +260,21 @@ fn a_vox_world_below_zero_runs_its_column_scripts() {
         .unwrap();
     common::cli::assert_success(&out);
 }
+
+/// Regression (hostile probe): a dense grid under `--dense-limit-mib`
+/// (8 GiB by default) but over the memory there is aborted the process.
+/// It is refused with both figures (here under a 700 MB address space).
+#[test]
+fn a_dense_grid_over_the_memory_there_is_is_refused() {
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 700000 && exec '{}' render --scene balls --size 768x768x768 --structure dense --width 16 --height 16 --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            tmp("mem", "dense.png").display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(&out, "a dense grid over memory", "needs 486 MiB");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("is available"));
+}

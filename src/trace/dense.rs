@@ -39,6 +39,16 @@ impl DenseGrid {
         if bytes > limit {
             return Err(TraceError::DenseTooLarge { dims, bytes, limit });
         }
+        // Under the limit is not enough (regression: a grid under the
+        // default 8 GiB limit aborted a machine with less).
+        let available = crate::scene::budget::available_bytes();
+        if bytes > available {
+            return Err(TraceError::DenseOutOfMemory {
+                dims,
+                bytes,
+                available,
+            });
+        }
         let (dx, dy, dz) = (dims.x as usize, dims.y as usize, dims.z as usize);
         let row_words = dx.div_ceil(64);
         let mut bits = vec![0u64; row_words * dy * dz];

@@ -43,7 +43,7 @@ pub use svo::Svo;
 #[derive(Debug, Error)]
 pub enum TraceError {
     /// The dense grid would exceed its memory limit.
-    #[error("dense grid of {}x{}x{} voxels needs {} MiB, over the limit of {} MiB (raise --dense-limit-mib or use svo/brickmap)", dims.x, dims.y, dims.z, bytes >> 20, limit >> 20)]
+    #[error("dense grid of {}x{}x{} voxels needs {}, over the limit of {} (raise --dense-limit-mib or use svo/brickmap)", dims.x, dims.y, dims.z, crate::scene::budget::human(*bytes), crate::scene::budget::human(*limit))]
     DenseTooLarge {
         /// Grid size in voxels.
         dims: IVec3,
@@ -51,6 +51,16 @@ pub enum TraceError {
         bytes: u64,
         /// Limit in bytes.
         limit: u64,
+    },
+    /// The dense grid is under its limit but over the memory there is.
+    #[error("dense grid of {}x{}x{} voxels needs {}; {} is available (use svo/brickmap)", dims.x, dims.y, dims.z, crate::scene::budget::human(*bytes), crate::scene::budget::human(*available))]
+    DenseOutOfMemory {
+        /// Grid size in voxels.
+        dims: IVec3,
+        /// Bytes needed.
+        bytes: u64,
+        /// Bytes available.
+        available: u64,
     },
     /// The brick grid could not be built.
     #[error(transparent)]
