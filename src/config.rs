@@ -256,7 +256,7 @@ pub fn lod_c(flag: &'static str, c: f64) -> Result<f32, ConfigError> {
     } else {
         Err(bad(
             flag,
-            &c.to_string(),
+            &crate::sim::fmt_num(c),
             format!(
                 "expected a cell footprint in pixels from {MIN_LOD} to {MAX_LOD} (leave it out for exact tracing)"
             ),
@@ -272,6 +272,16 @@ pub const BENCH_DEFAULT_SIZE: IVec3 = IVec3::new(512, 128, 512);
 impl RenderSettings {
     /// Validate `render` arguments.
     pub fn from_args(a: &RenderArgs) -> Result<Self, ConfigError> {
+        // One path for both would leave only the depth (regression).
+        if let Some(d) = &a.depth_out
+            && d == &a.out
+        {
+            return Err(bad(
+                "--depth-out",
+                &d.display().to_string(),
+                "is also --out: the depth would overwrite the image; name two files",
+            ));
+        }
         Ok(RenderSettings {
             scene: SceneSettings::from_args(&a.scene, RENDER_DEFAULT_SIZE)?,
             view: ViewSettings::from_args(&a.view, 960, 540)?,
@@ -292,7 +302,7 @@ impl RenderSettings {
             } else {
                 return Err(bad(
                     "--fog",
-                    &a.fog.to_string(),
+                    &crate::sim::fmt_num(a.fog as f64),
                     "expected a distance in 0..=1000000 voxels (0: no fog)",
                 ));
             },

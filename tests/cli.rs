@@ -140,6 +140,17 @@ fn bad_input_gets_a_clear_error_and_nonzero_exit() {
         (&["bench", "lod"][..], "not provided: --json"),
         (&["render", "--fov", "-1"][..], "invalid --fov '-1'"),
         (&["render", "--threads", "-2"][..], "invalid --threads '-2'"),
+        (&["render", "--lod", "1e-40"][..], "invalid --lod '1e-40'"),
+        (
+            &[
+                "render",
+                "--out",
+                "/tmp/same.x",
+                "--depth-out",
+                "/tmp/same.x",
+            ][..],
+            "would overwrite the image",
+        ),
     ] {
         let out = bin().args(args).output().unwrap();
         assert_clear_failure(&out, &format!("{args:?}"), needle);

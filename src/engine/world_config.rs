@@ -566,7 +566,10 @@ impl WorldConfig {
         };
         let dt = raw.sim.dt.unwrap_or(0.05);
         if !(dt > 0.0 && dt <= 10.0) {
-            return Err(err("sim.dt", format!("{dt} is outside (0, 10]")));
+            return Err(err(
+                "sim.dt",
+                format!("{} is outside (0, 10]", crate::sim::fmt_num(dt)),
+            ));
         }
         let scripts_dir = base.join(raw.sim.scripts_dir.unwrap_or_else(|| "scripts".into()));
         let sim_region = match (raw.sim.region, raw.sim.radius) {
@@ -803,7 +806,10 @@ impl WorldConfig {
             Some(f) => {
                 return Err(err(
                     "render.fog",
-                    format!("{f} is outside 0..=1000000 voxels (0 is no fog)"),
+                    format!(
+                        "{} is outside 0..=1000000 voxels (0 is no fog)",
+                        crate::sim::fmt_num(f)
+                    ),
                 ));
             }
             None => stream.map_or(0.0, |s| (s.view_distance * 0.5) as f32),
