@@ -302,7 +302,7 @@ impl RenderSettings {
             } else {
                 return Err(bad(
                     "--fog",
-                    &crate::sim::fmt_num(a.fog as f64),
+                    &crate::sim::fmt_num(a.fog),
                     "expected a distance in 0..=1000000 voxels (0: no fog)",
                 ));
             },
