@@ -664,14 +664,20 @@ fn export_never_replaces_the_world_store_or_a_special_file() {
     for (out, needle) in [
         (store.clone(), "inside the state directory"),
         (inside, "inside the state directory"),
-        (state.join("backup.bwc"), "inside the state directory"),
+        (state.join("manifest.json"), "inside the state directory"),
+        (
+            state.join("ckpt-0000000000000003.bwc"),
+            "not a NAME.bwc backup",
+        ),
         (state.parent().unwrap().to_path_buf(), "not a regular file"),
     ] {
         let o = export(&out);
         common::cli::assert_clear_failure(&o, "export onto a bad target", needle);
     }
     assert_eq!(crc32fast::hash(&std::fs::read(&store).unwrap()), before);
-    assert!(!state.join("backup.bwc").exists());
+    assert!(!state.join("ckpt-0000000000000003.bwc").exists());
+    // A backup may still be written beside the store, under its own name.
+    common::cli::assert_success(&export(&state.join("backup.bwc")));
     // The world still resumes.
     hash_at(&cfg, &state, 4);
 }

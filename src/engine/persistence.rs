@@ -584,9 +584,10 @@ pub fn export(
 }
 
 /// Refuse an export whose file would replace something that is not a
-/// backup: a file of the state directory (the world store itself, before
-/// this was checked), or anything but a regular file (a device, a pipe,
-/// a directory: the write replaces the path with a new file).
+/// backup: a file of the state directory other than a `NAME.bwc` backup
+/// (the world store itself, before this was checked), or anything but a
+/// regular file (a device, a pipe, a directory: the write replaces the
+/// path with a new file).
 fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
     if let Ok(meta) = std::fs::metadata(out)
         && !meta.is_file()
@@ -601,11 +602,18 @@ fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
+    // Inside the state directory only a backup's own kind of name may be
+    // written: every other file there is the engine's.
+    let name = out.file_name().map(|n| n.to_string_lossy().to_string());
+    let backup_name = name
+        .as_deref()
+        .is_some_and(|n| n.ends_with(".bwc") && !n.starts_with("ckpt-"));
     if let (Ok(state), Ok(parent)) = (dir.canonicalize(), parent.canonicalize())
         && parent.starts_with(&state)
+        && !backup_name
     {
         bail!(
-            "{} lies inside the state directory {}: export there could replace the world it reads; write the backup elsewhere (nothing was written)",
+            "{} lies inside the state directory {} and is not a NAME.bwc backup: export there could replace the world it reads; name a .bwc file or write elsewhere (nothing was written)",
             out.display(),
             dir.display()
         );
