@@ -127,6 +127,10 @@ fn fault_20_worlds_larger_than_memory_are_refused_with_the_need() {
     }
     let out = render_capped("terrain", Some("65536x4096x65536"));
     assert_clear_failure(&out, "a 65536x4096x65536 terrain", "needs about");
+    // Regression (hostile probe): a tall world's columns were costed as a
+    // 256-voxel one's, so 1024x4096x8192 passed (768 MiB) and aborted.
+    let out = render_capped("terrain", Some("1024x4096x8192"));
+    assert_clear_failure(&out, "a 1024x4096x8192 terrain", "needs about");
 }
 
 /// Images whose colour, depth and hit buffers would not fit are refused

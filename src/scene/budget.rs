@@ -7,7 +7,10 @@
 //! - A world's need is estimated from its size: the dense brick grid (4
 //!   bytes per brick cell) plus [`BYTES_PER_COLUMN`] for each 8×8 column's
 //!   surface bricks (measured: the 8192×256×8192 terrain peaked at 3.79 GB,
-//!   about 3.6 KiB a column).
+//!   about 3.6 KiB a column), per 256 voxels of height: a taller world's
+//!   columns hold more stored bricks (a 1024×4096×8192 terrain, estimated
+//!   at 768 MiB with one column cost whatever the height, needed over
+//!   2.7 GB and aborted).
 //! - What there is: the least of the memory the kernel reports available,
 //!   the cgroup's limit less its usage, and the address-space limit.
 
@@ -58,7 +61,8 @@ pub fn world_bytes(size: IVec3) -> u64 {
             .saturating_mul(s.y.div_ceil(8))
             .saturating_mul(s.z.div_ceil(8));
     let columns = s.x.div_ceil(8).saturating_mul(s.z.div_ceil(8));
-    bricks.saturating_mul(4) + columns.saturating_mul(BYTES_PER_COLUMN)
+    let per_column = BYTES_PER_COLUMN.saturating_mul(s.y.div_ceil(256));
+    bricks.saturating_mul(4) + columns.saturating_mul(per_column)
 }
 
 /// Bytes this process may still allocate, as far as the OS says.
