@@ -43,7 +43,7 @@ fn write_gray_png(path: &Path, w: u32, h: u32) {
 /// `levels` levels, all sharing one child: fan^levels instances of a
 /// one-voxel model from a file of a few KB.
 fn exploding_vox(fan: u32, levels: u32) -> PathBuf {
-    use dot_vox::{DotVoxData, Frame, Model, SceneNode, ShapeModel, Size, Voxel};
+    use dot_vox::{Frame, SceneNode};
     let mut scenes = Vec::new();
     // node 2k: transform -> 2k+1; node 2k+1: group of `fan` × node 2k+2.
     for l in 0..levels {
@@ -65,10 +65,35 @@ fn exploding_vox(fan: u32, levels: u32) -> PathBuf {
         child: 2 * levels + 1,
         layer_id: 0,
     });
+    let one = dot_vox::Voxel {
+        x: 0,
+        y: 0,
+        z: 0,
+        i: 1,
+    };
+    write_vox(
+        &format!("explode-{fan}-{levels}.vox"),
+        scenes,
+        0,
+        1,
+        vec![one],
+    )
+}
+
+/// Close `scenes` with a shape of model `model` (the next node id), give
+/// the file one `size`³ model holding `voxels`, and write it.
+fn write_vox(
+    name: &str,
+    mut scenes: Vec<dot_vox::SceneNode>,
+    model: u32,
+    size: u32,
+    voxels: Vec<dot_vox::Voxel>,
+) -> PathBuf {
+    use dot_vox::{DotVoxData, Model, SceneNode, ShapeModel, Size};
     scenes.push(SceneNode::Shape {
         attributes: Default::default(),
         models: vec![ShapeModel {
-            model_id: 0,
+            model_id: model,
             attributes: Default::default(),
         }],
     });
@@ -76,20 +101,19 @@ fn exploding_vox(fan: u32, levels: u32) -> PathBuf {
         version: 150,
         index_map: Vec::new(),
         models: vec![Model {
-            size: Size { x: 1, y: 1, z: 1 },
-            voxels: vec![Voxel {
-                x: 0,
-                y: 0,
-                z: 0,
-                i: 1,
-            }],
+            size: Size {
+                x: size,
+                y: size,
+                z: size,
+            },
+            voxels,
         }],
         palette: dot_vox::DEFAULT_PALETTE.to_vec(),
         materials: Vec::new(),
         scenes,
         layers: Vec::new(),
     };
-    let path = tmp("mem", &format!("explode-{fan}-{levels}.vox"));
+    let path = tmp("mem", name);
     let mut f = std::fs::File::create(&path).unwrap();
     data.write_vox(&mut f).unwrap();
     path
@@ -190,7 +214,7 @@ fn a_daemon_with_frames_larger_than_memory_is_refused_naming_the_fields() {
 /// children that are the next group, ending in a shape of model `model`:
 /// 2^levels paths from a file of a few KB.
 fn doubling_vox(levels: u32, model: u32, voxels: Vec<dot_vox::Voxel>) -> PathBuf {
-    use dot_vox::{DotVoxData, Frame, Model, SceneNode, ShapeModel, Size};
+    use dot_vox::{Frame, SceneNode};
     let mut scenes = vec![SceneNode::Transform {
         attributes: Default::default(),
         frames: vec![Frame::new(Default::default())],
@@ -203,29 +227,13 @@ fn doubling_vox(levels: u32, model: u32, voxels: Vec<dot_vox::Voxel>) -> PathBuf
             children: vec![l + 2, l + 2],
         });
     }
-    scenes.push(SceneNode::Shape {
-        attributes: Default::default(),
-        models: vec![ShapeModel {
-            model_id: model,
-            attributes: Default::default(),
-        }],
-    });
-    let data = DotVoxData {
-        version: 150,
-        index_map: Vec::new(),
-        models: vec![Model {
-            size: Size { x: 8, y: 8, z: 8 },
-            voxels,
-        }],
-        palette: dot_vox::DEFAULT_PALETTE.to_vec(),
-        materials: Vec::new(),
+    write_vox(
+        &format!("doubling-{levels}-{model}.vox"),
         scenes,
-        layers: Vec::new(),
-    };
-    let path = tmp("mem", &format!("doubling-{levels}-{model}.vox"));
-    let mut f = std::fs::File::create(&path).unwrap();
-    data.write_vox(&mut f).unwrap();
-    path
+        model,
+        8,
+        voxels,
+    )
 }
 
 /// Regression (hostile probe): a scene graph that places no voxel (an

@@ -169,20 +169,12 @@ pub struct SimExtras {
 pub struct ScriptHealth {
     /// Script name.
     pub script: String,
-    /// [`source_hash`] of the source it ran.
+    /// [`fnv1a`](crate::persist::bytes::fnv1a) of the source it ran.
     pub source: u64,
     /// Failed steps in a row.
     pub failures: u32,
     /// Why it is suspended (the error's text), if it is.
     pub suspended: Option<String>,
-}
-
-/// FNV-1a of a script's source text: stable across runs and builds, so a
-/// stored [`ScriptHealth`] can tell whether the script changed meanwhile.
-pub fn source_hash(text: &str) -> u64 {
-    text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
-    })
 }
 
 /// Everything a checkpoint holds.

@@ -374,7 +374,7 @@ fn script_health(ws: &WorldSim) -> Vec<checkpoint::ScriptHealth> {
         .filter(|&i| !ws.suspended(i).is_some_and(|e| e.is_time_budget()))
         .map(|i| checkpoint::ScriptHealth {
             script: ws.spec(i).name.clone(),
-            source: checkpoint::source_hash(&ws.source(i).text),
+            source: crate::persist::bytes::fnv1a(ws.source(i).text.as_bytes()),
             failures: ws.failures(i),
             suspended: ws.suspended(i).map(|e| e.to_string()),
         })
@@ -393,7 +393,7 @@ pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
         let Some(i) = ws.script_index(&h.script) else {
             continue;
         };
-        if checkpoint::source_hash(&ws.source(i).text) != h.source {
+        if crate::persist::bytes::fnv1a(ws.source(i).text.as_bytes()) != h.source {
             if h.suspended.is_some() {
                 warnings.push(format!(
                     "{}.lua changed while the engine was stopped: it was suspended, and runs again",

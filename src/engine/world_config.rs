@@ -835,9 +835,7 @@ impl WorldConfig {
                 format!("'{addr_text}' is not HOST:PORT (an IP address and a port)"),
             )
         })?;
-        let config_hash = text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-            (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
-        });
+        let config_hash = crate::persist::bytes::fnv1a(text.as_bytes());
         let mut place = Vec::new();
         for (i, p) in raw.place.iter().enumerate() {
             let size = p.size.unwrap_or([1, 1, 1]);

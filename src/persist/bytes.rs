@@ -1,6 +1,22 @@
 //! Little-endian byte writing and bounds-checked reading, shared by the
 //! chunk blobs, the simulation-state blob and the legacy checkpoint files.
 //! The reader never panics: every read is checked against what is left.
+//! Also the one stable hash of bytes that stored and pinned values use.
+
+/// FNV-1a of `bytes`: stable across runs, builds and platforms, so it may
+/// be stored (a config's hash in the manifest, a script source's in the
+/// state blob) or feed pinned results (a script's random stream).
+///
+/// ```
+/// use brickworld::persist::bytes::fnv1a;
+/// assert_eq!(fnv1a(b""), 0xcbf2_9ce4_8422_2325);
+/// assert_eq!(fnv1a(b"a"), 0xaf63_dc4c_8601_ec8c);
+/// ```
+pub fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+    })
+}
 
 /// An append-only little-endian writer.
 #[derive(Debug, Default)]

@@ -90,7 +90,8 @@ pub fn decode(blob: &[u8]) -> Result<WorldState, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::checkpoint::{CameraOverride, ScriptHealth, source_hash};
+    use crate::engine::checkpoint::{CameraOverride, ScriptHealth};
+    use crate::persist::bytes::fnv1a;
 
     fn extras() -> SimExtras {
         SimExtras {
@@ -102,7 +103,7 @@ mod tests {
             health: vec![
                 ScriptHealth {
                     script: "flaky".into(),
-                    source: source_hash("return {}"),
+                    source: fnv1a(b"return {}"),
                     failures: 3,
                     suspended: Some("flaky.lua:1: boom".into()),
                 },

@@ -198,9 +198,7 @@ fn mix64(mut z: u64) -> u64 {
 impl StepKey {
     /// The key of `script` at `tick` in a world of `seed`.
     pub fn new(seed: u64, tick: u64, script: &str) -> Self {
-        let script = script.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-            (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
-        });
+        let script = crate::persist::bytes::fnv1a(script.as_bytes());
         StepKey { seed, tick, script }
     }
 
