@@ -170,8 +170,12 @@ fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
     if a.uploads == 0 {
         anyhow::bail!("invalid --uploads 0: at least one brick per frame");
     }
-    if a.pool == 0 || a.pool > 1 << 24 {
-        anyhow::bail!("invalid --pool {}: must be in 1..=16777216 slots", a.pool);
+    if a.pool == 0 || a.pool > crate::gpu::MAX_POOL_SLOTS {
+        anyhow::bail!(
+            "invalid --pool {}: must be in 1..={} slots (the pool's cap)",
+            a.pool,
+            crate::gpu::MAX_POOL_SLOTS
+        );
     }
     let lod = a
         .lod
@@ -438,7 +442,16 @@ pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
     if let Some(n) = threads {
         b = b.num_threads(n);
     }
-    b.build().context("cannot start the worker threads")
+    // The build error's text already holds the OS error, which is also its
+    // source: as a context chain it printed twice (regression).
+    b.build().map_err(|e| {
+        let lower = if threads.is_some() {
+            " (ask for fewer with --threads)"
+        } else {
+            ""
+        };
+        anyhow::anyhow!("cannot start the worker threads: {e}{lower}")
+    })
 }
 
 /// Build the scene with a progress bar.

@@ -1,7 +1,7 @@
 //! Second stage of argument handling: raw CLI strings become validated,
 //! typed settings. Every error names the flag at fault.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use glam::{DVec3, IVec3};
 use thiserror::Error;
@@ -89,11 +89,32 @@ fn parse_num<T>(flag: &'static str, s: &str, lo: T, hi: T) -> Result<T, ConfigEr
 where
     T: std::str::FromStr + PartialOrd + std::fmt::Display + Copy,
 {
-    let v: T = s.trim().parse().map_err(|_| bad(flag, s, "not a number"))?;
+    let v: T = s.trim().parse().map_err(|_| {
+        // A number the type cannot hold (4294967296 for a u32, 1.5 for a
+        // count) is out of range, not "not a number" (regression).
+        match s.trim().parse::<f64>() {
+            Ok(x) if x.is_finite() => bad(flag, s, format!("must be in {lo}..={hi}")),
+            _ => bad(flag, s, "not a number"),
+        }
+    })?;
     if !(v >= lo && v <= hi) {
         return Err(bad(flag, s, format!("must be in {lo}..={hi}")));
     }
     Ok(v)
+}
+
+/// Refuse an output name whose extension promises another format than the
+/// one written (`--out view.jpg` used to get PNG bytes). A name without an
+/// extension is accepted.
+pub fn check_extension(flag: &'static str, path: &Path, ext: &str) -> Result<(), ConfigError> {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some(e) if !e.eq_ignore_ascii_case(ext) => Err(bad(
+            flag,
+            &path.display().to_string(),
+            format!("only .{ext} is written here: name the file with .{ext}"),
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// Validated scene choice.
@@ -282,6 +303,10 @@ impl RenderSettings {
                 "is also --out: the depth would overwrite the image; name two files",
             ));
         }
+        check_extension("--out", &a.out, "png")?;
+        if let Some(d) = &a.depth_out {
+            check_extension("--depth-out", d, "npy")?;
+        }
         Ok(RenderSettings {
             scene: SceneSettings::from_args(&a.scene, RENDER_DEFAULT_SIZE)?,
             view: ViewSettings::from_args(&a.view, 960, 540)?,
@@ -469,6 +494,7 @@ impl SimSettings {
                 value,
             });
         }
+        check_extension("--out", &a.out, "png")?;
         Ok(SimSettings {
             scene: SceneSettings::from_args(&a.scene, SIM_DEFAULT_SIZE)?,
             view: ViewSettings::from_args(&a.view, 960, 540)?,

@@ -503,3 +503,93 @@ fn no_xdg_runtime_dir_noise_when_the_variable_is_missing() {
         assert_success(&out);
     }
 }
+
+#[test]
+fn a_number_too_big_for_its_flag_is_out_of_range_not_not_a_number() {
+    let o = tmp("range.png");
+    let o = o.to_str().unwrap();
+    expect_failure(
+        &["render", "--out", o, "--width", "4294967296"],
+        "invalid --width '4294967296': must be in 1..=16384",
+    );
+    expect_failure(
+        &["render", "--out", o, "--threads", "2.5"],
+        "invalid --threads '2.5': must be in 1..=1024",
+    );
+    expect_failure(
+        &["bench", "stream", "--json", o, "--pool", "16777216"],
+        "invalid --pool 16777216: must be in 1..=1048576",
+    );
+    expect_failure(
+        &["render", "--out", o, "--width", "wide"],
+        "invalid --width 'wide': not a number",
+    );
+}
+
+#[test]
+fn an_output_named_for_another_format_is_refused_before_any_work() {
+    let jpg = tmp("view.jpg");
+    let _ = std::fs::remove_file(&jpg);
+    expect_failure(
+        &[
+            "render",
+            "--out",
+            jpg.to_str().unwrap(),
+            "--size",
+            "16x16x16",
+        ],
+        "invalid --out",
+    );
+    assert!(!jpg.exists(), "no PNG bytes under a .jpg name");
+    let png = tmp("view-ok.png");
+    let depth = tmp("depth.png");
+    expect_failure(
+        &[
+            "render",
+            "--out",
+            png.to_str().unwrap(),
+            "--depth-out",
+            depth.to_str().unwrap(),
+            "--size",
+            "16x16x16",
+        ],
+        "invalid --depth-out",
+    );
+    expect_failure(
+        &[
+            "sim",
+            "--out",
+            jpg.to_str().unwrap(),
+            "--script",
+            "water.lua",
+            "--steps",
+            "1",
+        ],
+        "invalid --out",
+    );
+}
+
+/// Regression (hostile probe): when the OS refused the worker threads, its
+/// error was printed twice in one line.
+#[cfg(target_os = "linux")]
+#[test]
+fn threads_the_os_refuses_get_one_clear_error() {
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 1048576; exec '{}' render --size 16x16x16 --threads 1024 --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            tmp("refused.png").display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "1024 threads in 1 GiB",
+        "cannot start the worker threads",
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("os error").count(), 1, "{err}");
+    assert!(err.contains("ask for fewer with --threads"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+}

@@ -708,3 +708,18 @@ fn a_voxel_world_resumes_bit_identically() {
     let resumed = final_hash("v40b", &[15, 25]);
     assert_eq!(straight, resumed);
 }
+
+#[test]
+fn until_tick_at_or_below_the_world_tick_runs_nothing() {
+    let (cfg, state, _) = setup("until0");
+    // A fresh world and `--until-tick 0`: no tick runs (one used to).
+    let (said, err) = run_ok(&cfg, &state, "--until-tick", 0);
+    assert!(said.contains("stopped at tick 0 "), "{said}");
+    assert!(err.contains("already at tick 0: nothing to run"), "{err}");
+    let (said, _) = run_ok(&cfg, &state, "--until-tick", 5);
+    assert!(said.contains("stopped at tick 5 "), "{said}");
+    // A target behind the restored tick leaves the world where it is.
+    let (said, err) = run_ok(&cfg, &state, "--until-tick", 3);
+    assert!(said.contains("stopped at tick 5 "), "{said}");
+    assert!(err.contains("already at tick 5"), "{err}");
+}

@@ -514,3 +514,24 @@ fn a_suspension_for_the_time_budget_is_not_kept_across_a_restart() {
     let kept: Vec<&str> = extras.health.iter().map(|h| h.script.as_str()).collect();
     assert_eq!(kept, ["stuck"]);
 }
+
+/// Regression (hostile probe): on a flat world one voxel high the default
+/// bound was ±4, and snow stopped `bench stream` at 4.4. The world height
+/// behind the bound is now at least `MIN_BOUND_HEIGHT` voxels.
+#[test]
+fn a_flat_world_bounds_channels_by_at_least_the_minimum_height() {
+    use brickworld::sim::columns::step::{DEFAULT_BOUND_HEIGHTS, MIN_BOUND_HEIGHT};
+    // Writes tick × 100: 100 passes, then 1e4 (past ±256) is refused.
+    let text = "return { channels = { \"h\" }, passes = { { name = \"p\", reads = {}, writes = { \"h\" },\n\
+        kernel = function(c) buffer.writef64(c.w.h, 0, c.tick * 100) end } } }";
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.set_world_height(1.0);
+    sim.add_script(src("h", text), Kernel::Lua, small())
+        .unwrap();
+    assert!(sim.step(0.1).errors.is_empty()); // 0
+    assert!(sim.step(0.1).errors.is_empty()); // 100 > 4
+    assert!(sim.step(0.1).errors.is_empty()); // 200
+    let e = sim.step(0.1).errors[0].to_string(); // 300
+    let b = MIN_BOUND_HEIGHT * DEFAULT_BOUND_HEIGHTS;
+    assert!(e.contains(&format!("outside its bound [-{b}, {b}]")), "{e}");
+}

@@ -107,6 +107,11 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[camera]\nfov = 200.0\n",
             "camera.fov",
         ),
+        // Regression (hostile probe): the command line caps --eye at 1e9.
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\neye = [1e30, 0.0, 0.0]\ntarget = [0.0, 0.0, 1.0]\n",
+            "camera.eye: [1e30, 0.0, 0.0] must be finite and within ±1e9 voxels",
+        ),
         (
             "[world]\nsource = \"terrain\"\n[camera]\nmode = \"spin\"\n",
             "camera.mode",

@@ -384,9 +384,21 @@ pub(crate) fn encode(state: WorldRef<'_>) -> Vec<u8> {
 const SECTION_CAMERA: u32 = 1;
 const SECTION_HEALTH: u32 = 2;
 
-/// Decode a decompressed payload of format `version` (1 or 2). Never
-/// panics, whatever the bytes: every count is checked against what is left.
+/// Highest tick a stored state may claim: 2^53, where a tick stops being
+/// exact as the `f64` of simulated time (285 000 years at 1 000 ticks a
+/// second). A larger one is forged or corrupt.
+pub const MAX_TICK: u64 = 1 << 53;
+
+/// Decode a decompressed payload of format `version` (1 to 4). Never
+/// panics, whatever the bytes: every count is checked against what is left,
+/// and a tick past [`MAX_TICK`] is refused.
 pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, String> {
+    if tick > MAX_TICK {
+        // A forged tick near u64::MAX wrapped on the next step (regression).
+        return Err(format!(
+            "tick {tick} is past 2^53, which no world reaches: the file is forged or corrupt"
+        ));
+    }
     let mut r = Reader::new(payload);
     let mut colors = [[0u8; 3]; 256];
     for c in colors.iter_mut() {

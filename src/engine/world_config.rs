@@ -141,6 +141,8 @@ pub const DEFAULT_FRAMES_MB: f64 = 256.0;
 /// Level-of-detail `C` of the daemon's frames when `render.lod` is not set
 /// (see README, "Level of detail", for the measurement behind it).
 pub const DEFAULT_LOD: f32 = 1.0;
+/// Largest camera coordinate, in voxels: the command line's `--eye` bound.
+const MAX_COORD: f64 = 1e9;
 
 /// Parse a byte size: a number of bytes, or a number with a unit (`512MiB`,
 /// `1.5GiB`, `2GB`, `800M`…).
@@ -709,11 +711,13 @@ impl WorldConfig {
                     ));
                 }
                 let to = match cam.fly_to {
-                    Some(a) if a.iter().all(|x| x.is_finite()) => DVec3::from(a),
+                    Some(a) if a.iter().all(|x| x.is_finite() && x.abs() <= MAX_COORD) => {
+                        DVec3::from(a)
+                    }
                     Some(a) => {
                         return Err(err(
                             "camera.fly_to",
-                            format!("{a:?} has a NaN or infinite coordinate"),
+                            format!("{a:?} must be finite and within ±1e9 voxels (as --eye)"),
                         ));
                     }
                     None => {
@@ -755,8 +759,13 @@ impl WorldConfig {
         };
         let vec = |v: Option<[f64; 3]>, f: &str| -> Result<Option<DVec3>, WorldConfigError> {
             match v {
-                Some(a) if a.iter().all(|x| x.is_finite()) => Ok(Some(DVec3::from(a))),
-                Some(a) => Err(err(f, format!("{a:?} has a NaN or infinite coordinate"))),
+                Some(a) if a.iter().all(|x| x.is_finite() && x.abs() <= MAX_COORD) => {
+                    Ok(Some(DVec3::from(a)))
+                }
+                Some(a) => Err(err(
+                    f,
+                    format!("{a:?} must be finite and within ±1e9 voxels (as --eye)"),
+                )),
                 None => Ok(None),
             }
         };

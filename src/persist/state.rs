@@ -123,6 +123,21 @@ mod tests {
         encode(9, &Palette::grey_ramp(), bounds, &[], extras)
     }
 
+    /// Regression (hostile probe): a forged tick near `u64::MAX` wrapped.
+    #[test]
+    fn a_forged_tick_past_2_pow_53_is_refused() {
+        let bounds = (IVec3::ZERO, IVec3::splat(64));
+        let e = SimExtras::default();
+        for tick in [u64::MAX, crate::engine::checkpoint::MAX_TICK + 1] {
+            let b = encode(tick, &Palette::grey_ramp(), bounds, &[], &e);
+            let err = decode(&b).expect_err("refused");
+            assert!(err.contains("forged or corrupt"), "{err}");
+        }
+        let max = crate::engine::checkpoint::MAX_TICK;
+        let b = encode(max, &Palette::grey_ramp(), bounds, &[], &e);
+        assert_eq!(decode(&b).unwrap().tick, max);
+    }
+
     /// The optional sections (camera, scripts' health) round-trip, alone
     /// and together, and a state without them reads as before.
     #[test]

@@ -187,8 +187,16 @@ pub struct Engine {
 impl Engine {
     /// The loop: stages in order until stopped, then [`finish`](Self::finish).
     pub fn run(mut self) -> Result<()> {
+        if self.reached_stop() {
+            // `--until-tick` at or below the restored tick: nothing to run
+            // (regression: one tick ran before the check).
+            eprintln!(
+                "the world is already at tick {}: nothing to run",
+                self.ws.sim.tick()
+            );
+        }
         loop {
-            if self.shared.shutdown.load(Ordering::Relaxed) {
+            if self.shared.shutdown.load(Ordering::Relaxed) || self.reached_stop() {
                 break;
             }
             self.hot_reload();
@@ -203,14 +211,19 @@ impl Engine {
                 std::thread::sleep(std::time::Duration::from_millis(5));
             }
             self.publish_status();
-            let tick = self.ws.sim.tick();
-            if self.max_ticks.is_some_and(|m| tick - self.start_tick >= m)
-                || self.until_tick.is_some_and(|t| tick >= t)
-            {
+            if self.reached_stop() {
                 break;
             }
         }
         self.finish()
+    }
+
+    /// Whether `--ticks` or `--until-tick` says to stop now.
+    fn reached_stop(&self) -> bool {
+        let tick = self.ws.sim.tick();
+        self.max_ticks
+            .is_some_and(|m| tick.saturating_sub(self.start_tick) >= m)
+            || self.until_tick.is_some_and(|t| tick >= t)
     }
 
     /// Swap in scripts changed on disk (a broken one keeps the old version).

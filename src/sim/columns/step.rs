@@ -34,6 +34,9 @@ pub const SUSPEND_AFTER: u32 = 3;
 /// heights (a script that copies the halo's wall value into `ground`, say,
 /// is stopped before the write-back allocates bricks up to it).
 pub const DEFAULT_BOUND_HEIGHTS: f64 = 4.0;
+/// The world height that bound uses is at least this many voxels: a flat
+/// world one voxel high would otherwise stop snow at 4 (regression).
+pub const MIN_BOUND_HEIGHT: f64 = 64.0;
 
 /// A kernel implemented in Rust, with the same contract as a Lua pass.
 pub trait NativeKernel: Send + Sync {
@@ -284,10 +287,10 @@ impl Simulation {
         self.seed = seed;
     }
 
-    /// Bound channels without a declared range to ±`height` ×
-    /// [`DEFAULT_BOUND_HEIGHTS`].
+    /// Bound channels without a declared range to ±`height` (at least
+    /// [`MIN_BOUND_HEIGHT`]) × [`DEFAULT_BOUND_HEIGHTS`].
     pub fn set_world_height(&mut self, height: f64) {
-        self.default_bound = height.abs().max(1.0) * DEFAULT_BOUND_HEIGHTS;
+        self.default_bound = height.abs().max(MIN_BOUND_HEIGHT) * DEFAULT_BOUND_HEIGHTS;
     }
 
     /// The active set and quiet counters (sorted, for checkpoints).
@@ -780,7 +783,9 @@ fn run_script(
             None => (
                 -ctx.default_bound,
                 ctx.default_bound,
-                format!("{DEFAULT_BOUND_HEIGHTS} world heights; declare `ranges` to change it"),
+                format!(
+                    "{DEFAULT_BOUND_HEIGHTS} world heights of at least {MIN_BOUND_HEIGHT}; declare `ranges` to change it"
+                ),
             ),
         };
         let d = |w: u32| &data[w as usize * n + i];
