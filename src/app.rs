@@ -152,6 +152,7 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
         state: a.state.clone(),
         max_ticks: a.ticks,
         until_tick: a.until_tick,
+        paused: a.paused,
     })
 }
 

@@ -123,6 +123,10 @@ pub struct RunArgs {
     /// Stop with a commit once the world reaches this tick
     #[arg(long)]
     pub until_tick: Option<u64>,
+    /// Start paused: the world is loaded and served, and steps only on
+    /// `ctl resume` or `ctl step N`
+    #[arg(long)]
+    pub paused: bool,
     /// Memory budget of a streamed world (overrides [stream] memory_budget), e.g. 1.5GiB
     #[arg(long)]
     pub memory_budget: Option<String>,

@@ -723,3 +723,72 @@ fn until_tick_at_or_below_the_world_tick_runs_nothing() {
     assert!(said.contains("stopped at tick 5 "), "{said}");
     assert!(err.contains("already at tick 5"), "{err}");
 }
+
+/// A failure streak committed with the state shows as "failing" after a
+/// resume, before the script has run again in this process (seen with
+/// `--paused`, which starts the engine without stepping), and the streak
+/// goes on counting from where it stopped.
+#[test]
+fn a_restored_failure_streak_shows_as_failing_before_any_step() {
+    let (cfg, state, addr) = setup("streak");
+    let scripts = cfg.parent().unwrap().join("scripts");
+    std::fs::create_dir_all(&scripts).unwrap();
+    std::fs::copy(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
+        scripts.join("water.lua"),
+    )
+    .unwrap();
+    std::fs::write(
+        scripts.join("flaky.lua"),
+        "return { channels = { \"f\" }, passes = { { name = \"p\", reads = {}, writes = { \"f\" },\n\
+         kernel = function(c) if c.tick >= 1 then error(\"boom\") end end } } }",
+    )
+    .unwrap();
+    edit_config(
+        &cfg,
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
+        scripts.to_str().unwrap(),
+    );
+    edit_config(
+        &cfg,
+        "[render]",
+        "[[scripts]]\nfile = \"flaky.lua\"\n[render]",
+    );
+    // Ticks 1 and 2 fail: a streak of 2, one short of suspension.
+    let (said, _) = run_ok(&cfg, &state, "--ticks", 3);
+    assert!(said.contains("stopped at tick 3 "), "{said}");
+    let d = Daemon(Some(
+        run_cmd(&cfg, &state)
+            .arg("--paused")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    ));
+    wait_ready(&addr);
+    let s = status(&addr);
+    assert_eq!(s["paused"], true, "{s}");
+    assert_eq!(s["scripts"][1]["state"], "failing", "{s}");
+    assert!(
+        s["scripts"][1]["error"]
+            .as_str()
+            .unwrap()
+            .contains("2 failed steps in a row before the engine stopped"),
+        "{s}"
+    );
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(status(&addr)["tick"], 3, "paused means no step");
+    // One more failure makes three in a row: suspended.
+    assert_eq!(post(&addr, &state, "/step", "1").0, 200);
+    let t = Instant::now();
+    loop {
+        let s = status(&addr);
+        if s["scripts"][1]["state"] == "suspended" {
+            assert_eq!(s["tick"], 4, "{s}");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "{s}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_success(&stop(d));
+}

@@ -58,6 +58,8 @@ pub struct DaemonOptions {
     pub max_ticks: Option<u64>,
     /// Stop (with a commit) once the world reaches this tick.
     pub until_tick: Option<u64>,
+    /// Start paused (steps only on resume or step commands).
+    pub paused: bool,
 }
 
 /// Run the engine until stopped.

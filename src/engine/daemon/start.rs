@@ -163,6 +163,12 @@ impl Engine {
             server.addr,
             token_path.display()
         );
+        if opts.paused {
+            eprintln!(
+                "paused at tick {}: `brickworld ctl resume` or `ctl step N` runs it",
+                ws.sim.tick()
+            );
+        }
         let n = ws.script_count();
         let mut engine = Engine {
             camera,
@@ -184,7 +190,7 @@ impl Engine {
             dirty_pending: FxHashSet::default(),
             dirty_chunks,
             mirror_sent: false,
-            paused: false,
+            paused: opts.paused,
             steps_left: 0,
             notes: vec![ScriptNotes::default(); n],
             last_commit: None,
