@@ -130,14 +130,16 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &At
                     e.map_or(Ok(u64::MAX), |v| v).unwrap_or(u64::MAX),
                 ),
             };
-            json(
-                200,
-                &shared
-                    .timeline
-                    .lock()
-                    .expect("timeline lock")
-                    .since(since, epoch),
-            )
+            // Copy the rows out and let go of the lock before encoding: the
+            // engine pushes a row every tick under the same lock, and an open
+            // route must not make it wait on a client's megabytes of JSON.
+            let rows = shared
+                .timeline
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .since(since, epoch);
+            let body = serde_json::to_string(&rows).unwrap_or_else(|_| "{}".into());
+            reply(200, "application/json", body)
         }
         (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
         (&Method::POST, _) => post(req, &path, shared).await,
