@@ -519,10 +519,7 @@ fn run_render(s: RenderSettings) -> Result<()> {
             let mut gpu = crate::gpu::GpuBrickmap::preloaded(&ctx, world.grid(), world.store().pool(), world.store().palette())?;
             let (out, _) = gpu.render(&ctx, &camera, &opts, world.grid(), world.store().pool())?;
             let traced = t1.elapsed();
-            write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
-            if let Some(d) = &s.depth_out {
-                write_npy(d, out.width, out.height, &out.depth).with_context(|| format!("cannot write {}", d.display()))?;
-            }
+            write_image_files(&s.out, s.depth_out.as_deref(), out.width, out.height, &out.rgb, &out.depth)?;
             eprintln!(
                 "rendered {}x{} on the GPU ({}) in {:.3} s, upload included (scene built in {:.2} s) -> {}",
                 out.width,
@@ -549,12 +546,14 @@ fn run_render(s: RenderSettings) -> Result<()> {
             }
         };
         let traced = t1.elapsed();
-        write_png(&s.out, out.width, out.height, &out.rgb)
-            .with_context(|| format!("cannot write {}", s.out.display()))?;
-        if let Some(d) = &s.depth_out {
-            write_npy(d, out.width, out.height, &out.depth)
-                .with_context(|| format!("cannot write {}", d.display()))?;
-        }
+        write_image_files(
+            &s.out,
+            s.depth_out.as_deref(),
+            out.width,
+            out.height,
+            &out.rgb,
+            &out.depth,
+        )?;
         eprintln!(
             "rendered {}x{} with {} in {:.3} s (scene built in {:.2} s; {:.1}% of rays hit) -> {}",
             out.width,
@@ -567,4 +566,35 @@ fn run_render(s: RenderSettings) -> Result<()> {
         );
         Ok(())
     })
+}
+
+/// Write the image and, if asked, the depth: each to a temporary file
+/// first, so that a failure leaves both destinations as they were
+/// (regression: a depth path in a missing folder failed after the PNG had
+/// already replaced an existing one).
+fn write_image_files(
+    png: &std::path::Path,
+    depth: Option<&std::path::Path>,
+    width: u32,
+    height: u32,
+    rgb: &[u8],
+    z: &[f32],
+) -> Result<()> {
+    use crate::files::Staged;
+    let cannot = |p: &std::path::Path| format!("cannot write {}", p.display());
+    let img = Staged::new(png).with_context(|| cannot(png))?;
+    write_png(img.path(), width, height, rgb).with_context(|| cannot(png))?;
+    let dep = match depth {
+        Some(d) => {
+            let st = Staged::new(d).with_context(|| cannot(d))?;
+            write_npy(st.path(), width, height, z).with_context(|| cannot(d))?;
+            Some((st, d))
+        }
+        None => None,
+    };
+    img.commit().with_context(|| cannot(png))?;
+    if let Some((st, d)) = dep {
+        st.commit().with_context(|| cannot(d))?;
+    }
+    Ok(())
 }

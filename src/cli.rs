@@ -133,7 +133,7 @@ pub struct RunArgs {
 }
 
 /// `brickworld ctl`.
-#[derive(Debug, Args)]
+#[derive(Clone, Debug, Args)]
 pub struct CtlArgs {
     /// Engine address HOST:PORT
     #[arg(long, default_value = "127.0.0.1:7878")]

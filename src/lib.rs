@@ -14,6 +14,7 @@ pub mod bench;
 pub mod cli;
 pub mod config;
 pub mod engine;
+pub mod files;
 pub mod gpu;
 pub mod persist;
 pub mod progress;

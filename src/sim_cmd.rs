@@ -110,7 +110,9 @@ pub fn run(s: &SimSettings) -> Result<()> {
             ..Default::default()
         };
         let out = render(&world.brickmap(), &cam, world.store().palette(), &opts);
-        write_png(&s.out, out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
+        let staged = crate::files::Staged::new(&s.out).with_context(|| format!("cannot write {}", s.out.display()))?;
+        write_png(staged.path(), out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
+        staged.commit().with_context(|| format!("cannot write {}", s.out.display()))?;
         eprintln!("-> {}", s.out.display());
         if let Some(e) = failed.first() {
             bail!("a script failed during the run (first error: {e})");

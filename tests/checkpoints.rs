@@ -110,13 +110,26 @@ fn truncated_or_foreign_files_are_reported_not_loaded() {
 fn a_failed_write_leaves_the_previous_checkpoints_untouched() {
     let d = dir("fail");
     checkpoint::write(&d, &state(1, 3)).unwrap();
-    // A directory squatting on the temp file's name makes the write fail,
-    // like a full disk would, before anything is renamed.
-    std::fs::create_dir_all(d.join(".ckpt-0000000000000002.bwc.tmp")).unwrap();
+    // A directory squatting on the final name makes the rename fail, like
+    // a full disk would, after the temp file was written. (Its twin
+    // `*.corrupt` keeps retention from setting the squatter aside.)
+    for name in [
+        "ckpt-0000000000000002.bwc",
+        "ckpt-0000000000000002.bwc.corrupt",
+    ] {
+        std::fs::create_dir_all(d.join(name).join("x")).unwrap();
+    }
     let e = checkpoint::write(&d, &state(2, 4)).unwrap_err();
     assert!(matches!(e, CheckpointError::Io { .. }), "{e}");
     let found = checkpoint::latest(&d).unwrap().found;
     assert_eq!(found.unwrap().1.tick, 1);
+    // The temp file went with the failure.
+    let temps = std::fs::read_dir(&d)
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
+        .count();
+    assert_eq!(temps, 0);
 }
 
 /// Checkpoints of format versions 1 and 2 (no identity, fewer sections)
@@ -139,4 +152,39 @@ fn version_1_and_2_payloads_still_load() {
     }
     // The current version refuses a payload cut short.
     assert!(checkpoint::decode(9, 3, &raw[..raw.len() - 12]).is_err());
+}
+
+/// Regression (hostile probe): a backup written into a user's folder reused
+/// `.NAME.tmp` and deleted every `.ckpt-*.tmp` there.
+#[test]
+fn a_backup_leaves_the_files_beside_it_alone() {
+    let d = dir("beside");
+    std::fs::create_dir_all(&d).unwrap();
+    for decoy in [".keep.bwc.tmp", ".ckpt-9.tmp"] {
+        std::fs::write(d.join(decoy), "precious").unwrap();
+    }
+    let s = state(5, 1);
+    checkpoint::write_at(
+        &d.join("keep.bwc"),
+        checkpoint::WorldRef {
+            tick: s.tick,
+            store: &s.store,
+            bounds: s.bounds,
+            channels: &s.channels,
+            params: &s.params,
+            identity: None,
+            extras: &s.extras,
+        },
+    )
+    .unwrap();
+    assert_eq!(checkpoint::read(&d.join("keep.bwc")).unwrap().tick, 5);
+    for decoy in [".keep.bwc.tmp", ".ckpt-9.tmp"] {
+        assert_eq!(
+            std::fs::read_to_string(d.join(decoy)).unwrap(),
+            "precious",
+            "{decoy}"
+        );
+    }
+    let n = std::fs::read_dir(&d).unwrap().count();
+    assert_eq!(n, 3, "the backup and the two decoys, no temp left");
 }

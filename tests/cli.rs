@@ -593,3 +593,144 @@ fn threads_the_os_refuses_get_one_clear_error() {
     assert!(err.contains("ask for fewer with --threads"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "{err}");
 }
+
+/// Regression (hostile probe): the PNG replaced an existing file, then the
+/// depth failed: a failed command must leave both destinations alone.
+#[test]
+fn a_failed_render_leaves_an_existing_output_untouched() {
+    let keep = tmp("keep.png");
+    std::fs::write(&keep, "keep").unwrap();
+    let missing = tmp("no-such-folder").join("d.npy");
+    expect_failure(
+        &[
+            "render",
+            "--size",
+            "16x16x16",
+            "--width",
+            "16",
+            "--height",
+            "12",
+            "--out",
+            keep.to_str().unwrap(),
+            "--depth-out",
+            missing.to_str().unwrap(),
+        ],
+        "cannot write",
+    );
+    assert_eq!(std::fs::read_to_string(&keep).unwrap(), "keep");
+    let strays: Vec<_> = std::fs::read_dir(keep.parent().unwrap())
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(".keep.png"))
+        .collect();
+    assert!(strays.is_empty(), "{strays:?}");
+}
+
+/// A one-connection server on a free port that answers with `answer`
+/// (called with the stream after the request was read).
+fn fake_server(answer: fn(&mut std::net::TcpStream)) -> String {
+    use std::io::Read;
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = l.local_addr().unwrap().to_string();
+    std::thread::spawn(move || {
+        if let Ok((mut s, _)) = l.accept() {
+            // Read the whole request (a GET has no body), so closing does
+            // not reset the connection under the answer.
+            let mut got = Vec::new();
+            let mut buf = [0u8; 4096];
+            while !got.windows(4).any(|w| w == b"\r\n\r\n") {
+                match s.read(&mut buf) {
+                    Ok(0) | Err(_) => break,
+                    Ok(n) => got.extend_from_slice(&buf[..n]),
+                }
+            }
+            answer(&mut s);
+            let _ = s.shutdown(std::net::Shutdown::Write);
+        }
+    });
+    addr
+}
+
+/// Regression (hostile probe): `ctl` printed whatever a non-engine server
+/// sent with exit 0, and read an endless answer until memory ran out.
+#[test]
+fn ctl_refuses_answers_that_are_not_a_brickworld_engines() {
+    use std::io::Write;
+    let not_http = fake_server(|s| {
+        let _ = s.write_all(b"hello\n");
+    });
+    expect_failure(
+        &["ctl", "--addr", &not_http, "status"],
+        "did not answer in HTTP",
+    );
+    let not_json = fake_server(|s| {
+        let _ = s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 5\r\n\r\nhello");
+    });
+    expect_failure(&["ctl", "--addr", &not_json, "status"], "not JSON");
+    let endless = fake_server(|s| {
+        let chunk = vec![b'x'; 1 << 20];
+        let _ = s.write_all(b"HTTP/1.1 200 OK\r\n\r\n");
+        while s.write_all(&chunk).is_ok() {}
+    });
+    expect_failure(&["ctl", "--addr", &endless, "status"], "sent more than");
+    // A value that is not a finite number is named as such.
+    for v in ["nan", "inf", "1e999"] {
+        expect_failure(&["ctl", "param", "water", "rain", v], "not a finite number");
+    }
+}
+
+/// Regression (hostile probe): a config or script named as a FIFO hung, and
+/// `/dev/zero` filled memory until the OOM killer came.
+#[cfg(target_os = "linux")]
+#[test]
+fn configs_and_scripts_must_be_regular_files() {
+    let fifo = tmp("world-fifo.toml");
+    let _ = std::fs::remove_file(&fifo);
+    assert!(
+        std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let state = tmp("fifo-state");
+    for cfg in [fifo.to_str().unwrap(), "/dev/zero"] {
+        expect_failure(
+            &[
+                "run",
+                cfg,
+                "--state",
+                state.to_str().unwrap(),
+                "--ticks",
+                "1",
+            ],
+            "is not a regular file",
+        );
+    }
+    expect_failure(
+        &[
+            "sim",
+            "--script",
+            "/dev/zero",
+            "--steps",
+            "1",
+            "--size",
+            "16x16x16",
+        ],
+        "is not a regular file",
+    );
+    let big = tmp("big.lua");
+    std::fs::write(&big, vec![b'-'; (4 << 20) + 1]).unwrap();
+    expect_failure(
+        &[
+            "sim",
+            "--script",
+            big.to_str().unwrap(),
+            "--steps",
+            "1",
+            "--size",
+            "16x16x16",
+        ],
+        "larger than the 4194304-byte limit",
+    );
+}

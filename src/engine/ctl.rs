@@ -13,7 +13,15 @@ use anyhow::{Context, Result, bail};
 
 use crate::cli::CtlArgs;
 
-/// Send one request; returns (status code, body).
+/// The longest a request may take, all reads together.
+pub const DEADLINE: Duration = Duration::from_secs(60);
+/// The largest answer read (a `/status` of many scripts is a few MB).
+pub const MAX_RESPONSE: u64 = 64 << 20;
+
+/// Send one request; returns (status code, body). The answer must be HTTP,
+/// arrive within [`DEADLINE`] and be at most [`MAX_RESPONSE`] bytes: a
+/// server that trickles or streams for ever, or is not HTTP, is an error
+/// (regression: `ctl` waited for ever or filled memory).
 pub fn request(
     addr: &str,
     method: &str,
@@ -24,7 +32,9 @@ pub fn request(
     let mut s = TcpStream::connect(addr).with_context(|| {
         format!("cannot reach the engine at {addr} (is `brickworld run` running?)")
     })?;
-    s.set_read_timeout(Some(Duration::from_secs(30)))?;
+    let start = std::time::Instant::now();
+    s.set_read_timeout(Some(DEADLINE))?;
+    s.set_write_timeout(Some(DEADLINE))?;
     let auth = token
         .map(|t| format!("Authorization: Bearer {t}\r\n"))
         .unwrap_or_default();
@@ -33,28 +43,69 @@ pub fn request(
         "{method} {path} HTTP/1.1\r\nHost: {addr}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
         body.len()
     )?;
-    let mut resp = String::new();
-    s.read_to_string(&mut resp)?;
-    let code = resp
-        .split_whitespace()
-        .nth(1)
+    let mut raw = Vec::new();
+    let mut buf = [0u8; 64 << 10];
+    loop {
+        let left = DEADLINE.saturating_sub(start.elapsed());
+        if left.is_zero() {
+            bail!("{addr} did not answer within {} s", DEADLINE.as_secs());
+        }
+        s.set_read_timeout(Some(left))?;
+        let n = match s.read(&mut buf) {
+            Ok(n) => n,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) =>
+            {
+                bail!("{addr} did not answer within {} s", DEADLINE.as_secs());
+            }
+            Err(e) => return Err(e).with_context(|| format!("reading the answer from {addr}")),
+        };
+        if n == 0 {
+            break;
+        }
+        raw.extend_from_slice(&buf[..n]);
+        if raw.len() as u64 > MAX_RESPONSE {
+            bail!("{addr} sent more than {MAX_RESPONSE} bytes: not a brickworld engine's answer");
+        }
+    }
+    let resp = String::from_utf8_lossy(&raw);
+    let not_http = || anyhow::anyhow!("{addr} did not answer in HTTP: is it a brickworld engine?");
+    let (head, body) = resp.split_once("\r\n\r\n").ok_or_else(not_http)?;
+    let mut status = head.split_whitespace();
+    if !status.next().is_some_and(|v| v.starts_with("HTTP/1.")) {
+        return Err(not_http());
+    }
+    let code: u16 = status
+        .next()
         .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = resp
-        .split_once("\r\n\r\n")
-        .map_or("", |(_, b)| b)
-        .to_string();
-    Ok((code, body))
+        .filter(|c| (100..600).contains(c))
+        .ok_or_else(not_http)?;
+    Ok((code, body.to_string()))
 }
 
 /// Run `brickworld ctl`.
 pub fn run(a: &CtlArgs) -> Result<()> {
     let token_path = a.state.join("control.token");
     let token = || {
-        std::fs::read_to_string(&token_path)
+        crate::files::read_text(&token_path, 4096)
             .with_context(|| format!("cannot read the control token {}", token_path.display()))
     };
-    let words: Vec<&str> = a.command.iter().map(|s| s.as_str()).collect();
+    // `--no-follow` may also come after the command words (`ctl log
+    // --no-follow water`), which take hyphenated values.
+    let no_follow = a.no_follow || a.command.iter().any(|w| w == "--no-follow");
+    let words: Vec<&str> = a
+        .command
+        .iter()
+        .map(|s| s.as_str())
+        .filter(|w| *w != "--no-follow")
+        .collect();
+    let a = &CtlArgs {
+        no_follow,
+        ..a.clone()
+    };
     match words.as_slice() {
         ["params"] => return params(&a.addr, None),
         ["params", script] => return params(&a.addr, Some(script)),
@@ -67,13 +118,15 @@ pub fn run(a: &CtlArgs) -> Result<()> {
         ["status"] => ("GET", "/status".to_string(), String::new()),
         ["pause"] => ("POST", "/pause".into(), String::new()),
         ["resume"] => ("POST", "/resume".into(), String::new()),
-        ["checkpoint"] => ("POST", "/checkpoint".into(), String::new()),
+        ["checkpoint"] | ["commit"] => ("POST", "/checkpoint".into(), String::new()),
         ["step"] => ("POST", "/step".into(), "1".into()),
         ["step", n] => ("POST", "/step".into(), n.to_string()),
         ["param", script, name, value] => {
             let v: f64 = value
                 .parse()
-                .map_err(|_| anyhow::anyhow!("invalid VALUE '{value}': not a number"))?;
+                .ok()
+                .filter(|v: &f64| v.is_finite())
+                .ok_or_else(|| anyhow::anyhow!("invalid VALUE '{value}': not a finite number"))?;
             (
                 "POST",
                 format!("/scripts/{script}/params"),
@@ -81,7 +134,7 @@ pub fn run(a: &CtlArgs) -> Result<()> {
             )
         }
         _ => bail!(
-            "unknown ctl command {:?}: expected status, pause, resume, step [N], checkpoint, param SCRIPT NAME VALUE, params [SCRIPT], log [SCRIPT] or camera path",
+            "unknown ctl command {:?}: expected status, pause, resume, step [N], commit (or checkpoint), param SCRIPT NAME VALUE, params [SCRIPT], log [SCRIPT] or camera path",
             a.command
         ),
     };
@@ -91,6 +144,13 @@ pub fn run(a: &CtlArgs) -> Result<()> {
         None
     };
     let (code, body) = request(&a.addr, method, &path, tok.as_deref().map(str::trim), &body)?;
+    // Every answer of the engine, errors too, is JSON.
+    if serde_json::from_str::<serde_json::Value>(&body).is_err() {
+        bail!(
+            "{} answered {code} with something that is not JSON: is it a brickworld engine?",
+            a.addr
+        );
+    }
     println!("{}", body.trim());
     if !(200..300).contains(&code) {
         bail!("the engine answered {code}");

@@ -141,6 +141,8 @@ pub const DEFAULT_FRAMES_MB: f64 = 256.0;
 /// Level-of-detail `C` of the daemon's frames when `render.lod` is not set
 /// (see README, "Level of detail", for the measurement behind it).
 pub const DEFAULT_LOD: f32 = 1.0;
+/// Largest world config file.
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
 /// Largest camera coordinate, in voxels: the command line's `--eye` bound.
 const MAX_COORD: f64 = 1e9;
 
@@ -422,11 +424,17 @@ impl WorldConfig {
     /// Read and validate a config file.
     pub fn load(path: &Path) -> Result<Self, WorldConfigError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|e| WorldConfigError {
-            file: file.clone(),
-            field: "(file)".into(),
-            reason: format!("cannot read: {e}"),
-        })?;
+        // Only a regular file of at most 1 MiB: a FIFO or /dev/zero named as
+        // the config hung or filled memory (regression).
+        let text =
+            crate::files::read_text(path, MAX_CONFIG_BYTES).map_err(|e| WorldConfigError {
+                file: file.clone(),
+                field: "(file)".into(),
+                reason: match e {
+                    crate::files::FileError::Io { source, .. } => format!("cannot read: {source}"),
+                    e => e.to_string(),
+                },
+            })?;
         Self::parse(&file, &text, path.parent().unwrap_or(Path::new(".")))
     }
 

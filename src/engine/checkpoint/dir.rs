@@ -184,6 +184,18 @@ fn write_file(dir: &Path, state: WorldRef<'_>) -> Result<(PathBuf, u64), Checkpo
     fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
     let path = dir.join(file_name(state.tick));
     let hash = write_at(&path, state)?;
+    // Temp files left in the state directory by a process killed mid-write
+    // never load; drop them. Only here: an export's folder is the user's
+    // (regression: export deleted a user's `.ckpt-9.tmp`).
+    if let Ok(rd) = fs::read_dir(dir) {
+        for e in rd.flatten() {
+            let n = e.file_name();
+            let n = n.to_string_lossy();
+            if n.starts_with(".ckpt-") && n.ends_with(".tmp") && e.path() != path {
+                let _ = fs::remove_file(e.path());
+            }
+        }
+    }
     Ok((path, hash))
 }
 

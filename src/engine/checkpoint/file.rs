@@ -20,10 +20,6 @@ pub fn write_at(path: &Path, state: WorldRef<'_>) -> Result<u64, CheckpointError
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_else(|| "backup.bwc".into());
     let hash = world_hash(state.store, state.channels);
     let payload = lz4_flex::compress_prepend_size(&encode(state));
     let mut header = Vec::with_capacity(HEADER);
@@ -39,9 +35,10 @@ pub fn write_at(path: &Path, state: WorldRef<'_>) -> Result<u64, CheckpointError
     header.extend_from_slice(&(id.len() as u32).to_le_bytes());
     header.extend_from_slice(&id);
     header.extend_from_slice(&crc32fast::hash(&id).to_le_bytes());
-    let tmp = dir.join(format!(".{name}.tmp"));
+    // A fresh temp name: a file already there is never reused or removed
+    // (regression: export overwrote a user's `.NAME.tmp`).
+    let (tmp, mut f) = crate::files::fresh_temp_beside(path).map_err(|e| io(path, e))?;
     let result = (|| -> std::io::Result<()> {
-        let mut f = File::create(&tmp)?;
         f.write_all(&header)?;
         f.write_all(&payload)?;
         f.sync_all()?;
@@ -59,16 +56,6 @@ pub fn write_at(path: &Path, state: WorldRef<'_>) -> Result<u64, CheckpointError
             "warning: checkpoint {} written, but syncing its directory failed: {e}",
             path.display()
         );
-    }
-    // Temp files left by a process killed mid-write never load; drop them.
-    if let Ok(rd) = fs::read_dir(dir) {
-        for e in rd.flatten() {
-            let n = e.file_name();
-            let n = n.to_string_lossy();
-            if n.starts_with(".ckpt-") && n.ends_with(".tmp") {
-                let _ = fs::remove_file(e.path());
-            }
-        }
     }
     Ok(hash)
 }

@@ -29,17 +29,24 @@ pub struct WorldSim {
     pub drained: f64,
 }
 
-/// Read a script file into a source named after its stem.
+/// Largest script file (a script is code, not data).
+pub const MAX_SCRIPT_BYTES: u64 = 4 << 20;
+
+/// Read a script file (a regular file of at most [`MAX_SCRIPT_BYTES`]) into
+/// a source named after its stem.
 pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
     let name = path
         .file_stem()
         .map(|s| s.to_string_lossy().to_string())
         .unwrap_or_else(|| "script".into());
-    let text = std::fs::read_to_string(path).map_err(|e| SimError::Declaration {
-        script: name.clone(),
-        line: None,
-        msg: format!("cannot read {}: {e}", path.display()),
-    })?;
+    // Only a regular file of bounded size: a FIFO hung the engine and a
+    // link to /dev/zero filled memory (regression).
+    let text =
+        crate::files::read_text(path, MAX_SCRIPT_BYTES).map_err(|e| SimError::Declaration {
+            script: name.clone(),
+            line: None,
+            msg: e.to_string(),
+        })?;
     Ok(ScriptSource {
         name,
         text: text.into(),

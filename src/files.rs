@@ -1,0 +1,277 @@
+//! Guarded access to the files a user names.
+//!
+//! - **Reading** ([`read_bounded`], [`read_text`]) takes only a regular file
+//!   (after following links) of at most a stated size: a FIFO would block
+//!   for ever, `/dev/zero` would fill memory, and a file that grows while
+//!   read is cut at the bound. Each refusal is one line naming the file.
+//! - **Writing** ([`Staged`]) goes to a fresh temporary file beside the
+//!   destination, created with `create_new` so it never reuses a file that
+//!   is already there, and replaces the destination only on
+//!   [`Staged::commit`]. A command that fails half-way leaves every file it
+//!   was going to replace as it was. A link is followed (the file it names
+//!   is replaced), and a destination that is not a regular file (`/dev/null`,
+//!   a FIFO) is written directly, never replaced.
+//!
+//! ```
+//! use brickworld::files::{Staged, read_text};
+//! let dir = std::env::temp_dir().join(format!("bw-files-doc-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir).unwrap();
+//! let dest = dir.join("note.txt");
+//! let staged = Staged::new(&dest).unwrap();
+//! std::fs::write(staged.path(), "hello").unwrap();
+//! assert!(!dest.exists()); // nothing replaced before the commit
+//! staged.commit().unwrap();
+//! assert_eq!(read_text(&dest, 1 << 10).unwrap(), "hello");
+//! # std::fs::remove_dir_all(&dir).unwrap();
+//! ```
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use thiserror::Error;
+
+/// Why a file could not be read.
+#[derive(Debug, Error)]
+pub enum FileError {
+    /// The OS refused.
+    #[error("cannot read {}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// A directory, FIFO, socket or device.
+    #[error("{} is not a regular file", path.display())]
+    NotAFile {
+        /// The file.
+        path: PathBuf,
+    },
+    /// Larger than the caller's bound.
+    #[error("{} is larger than the {max}-byte limit ({size} bytes)", path.display())]
+    TooLarge {
+        /// The file.
+        path: PathBuf,
+        /// Its size (or the bytes read before the bound was passed).
+        size: u64,
+        /// The bound.
+        max: u64,
+    },
+    /// Not UTF-8 text.
+    #[error("{} is not UTF-8 text", path.display())]
+    NotText {
+        /// The file.
+        path: PathBuf,
+    },
+}
+
+/// The whole of a regular file of at most `max` bytes.
+pub fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, FileError> {
+    let io = |source| FileError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let meta = std::fs::metadata(path).map_err(io)?;
+    if !meta.is_file() {
+        return Err(FileError::NotAFile {
+            path: path.to_path_buf(),
+        });
+    }
+    let too_large = |size| FileError::TooLarge {
+        path: path.to_path_buf(),
+        size,
+        max,
+    };
+    if meta.len() > max {
+        return Err(too_large(meta.len()));
+    }
+    let f = std::fs::File::open(path).map_err(io)?;
+    // Opened after the check: a file swapped for a FIFO in between would
+    // still block, so the type is checked again on the open handle.
+    if !f.metadata().map_err(io)?.is_file() {
+        return Err(FileError::NotAFile {
+            path: path.to_path_buf(),
+        });
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    f.take(max + 1).read_to_end(&mut bytes).map_err(io)?;
+    if bytes.len() as u64 > max {
+        return Err(too_large(bytes.len() as u64));
+    }
+    Ok(bytes)
+}
+
+/// [`read_bounded`] as UTF-8 text.
+pub fn read_text(path: &Path, max: u64) -> Result<String, FileError> {
+    String::from_utf8(read_bounded(path, max)?).map_err(|_| FileError::NotText {
+        path: path.to_path_buf(),
+    })
+}
+
+/// A new, empty file `.NAME.PID-N.tmp` beside `dest`, opened for writing;
+/// created with `create_new`, so it is never a file that was already there.
+pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File)> {
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    let dir = match dest.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let name = dest
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| "out".into());
+    loop {
+        let n = NEXT.fetch_add(1, Ordering::Relaxed);
+        let tmp = dir.join(format!(".{name}.{}-{n}.tmp", std::process::id()));
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+        {
+            Ok(f) => return Ok((tmp, f)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+/// A file being written beside its destination, which it replaces only on
+/// [`commit`](Self::commit); dropped uncommitted, it is removed.
+#[derive(Debug)]
+pub struct Staged {
+    tmp: PathBuf,
+    dest: PathBuf,
+    /// Committed, or written in place (a device or FIFO): nothing to undo.
+    done: bool,
+}
+
+impl Staged {
+    /// Create a fresh, empty temporary file beside `dest` (never one that
+    /// exists already).
+    pub fn new(dest: &Path) -> std::io::Result<Self> {
+        let mut dest = dest.to_path_buf();
+        if let Ok(meta) = std::fs::metadata(&dest) {
+            if !meta.is_file() {
+                // `/dev/null` or a FIFO: written in place, never replaced
+                // (renaming over a device node would remove it).
+                return Ok(Staged {
+                    tmp: dest.clone(),
+                    dest,
+                    done: true,
+                });
+            }
+            // Through a link to the file it names.
+            dest = std::fs::canonicalize(&dest)?;
+        }
+        let (tmp, _) = fresh_temp_beside(&dest)?;
+        Ok(Staged {
+            tmp,
+            dest,
+            done: false,
+        })
+    }
+
+    /// Where to write the content.
+    pub fn path(&self) -> &Path {
+        &self.tmp
+    }
+
+    /// Flush the content to disk and move it over the destination.
+    pub fn commit(mut self) -> std::io::Result<()> {
+        if self.done {
+            return Ok(());
+        }
+        std::fs::File::open(&self.tmp)?.sync_all()?;
+        std::fs::rename(&self.tmp, &self.dest)?;
+        self.done = true;
+        Ok(())
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if !self.done {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("bw-files-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn special_and_oversized_files_are_refused_before_reading() {
+        let d = dir("read");
+        let e = read_bounded(Path::new("/dev/zero"), 1 << 20).unwrap_err();
+        assert!(matches!(e, FileError::NotAFile { .. }), "{e}");
+        let e = read_bounded(&d, 1 << 20).unwrap_err();
+        assert!(e.to_string().ends_with("is not a regular file"), "{e}");
+        let f = d.join("big");
+        std::fs::write(&f, [0u8; 100]).unwrap();
+        let e = read_bounded(&f, 99).unwrap_err();
+        assert!(
+            e.to_string().contains("larger than the 99-byte limit"),
+            "{e}"
+        );
+        assert_eq!(read_bounded(&f, 100).unwrap().len(), 100);
+        std::fs::write(&f, [0xffu8; 4]).unwrap();
+        assert!(matches!(
+            read_text(&f, 10).unwrap_err(),
+            FileError::NotText { .. }
+        ));
+    }
+
+    #[test]
+    fn a_staged_write_replaces_only_on_commit_and_never_reuses_a_file() {
+        let d = dir("stage");
+        let dest = d.join("a.png");
+        std::fs::write(&dest, "old").unwrap();
+        // A file that looks like a temp name is left alone.
+        let decoy = d.join(format!(".a.png.{}-0.tmp", std::process::id()));
+        std::fs::write(&decoy, "keep").unwrap();
+        {
+            let s = Staged::new(&dest).unwrap();
+            assert_ne!(s.path(), decoy.as_path());
+            std::fs::write(s.path(), "new").unwrap();
+            // Dropped without a commit: the destination keeps "old".
+        }
+        assert_eq!(std::fs::read_to_string(&dest).unwrap(), "old");
+        assert_eq!(std::fs::read_to_string(&decoy).unwrap(), "keep");
+        let s = Staged::new(&dest).unwrap();
+        std::fs::write(s.path(), "new").unwrap();
+        s.commit().unwrap();
+        assert_eq!(std::fs::read_to_string(&dest).unwrap(), "new");
+        let left: Vec<_> = std::fs::read_dir(&d).unwrap().flatten().collect();
+        assert_eq!(left.len(), 2, "only a.png and the decoy: {left:?}");
+        // A device is written in place, not replaced.
+        let s = Staged::new(Path::new("/dev/null")).unwrap();
+        assert_eq!(s.path(), Path::new("/dev/null"));
+        s.commit().unwrap();
+        assert!(!std::fs::metadata("/dev/null").unwrap().is_file());
+        // A link: the file it names is replaced, the link stays a link.
+        #[cfg(unix)]
+        {
+            let link = d.join("link.png");
+            std::os::unix::fs::symlink(&dest, &link).unwrap();
+            let s = Staged::new(&link).unwrap();
+            std::fs::write(s.path(), "via link").unwrap();
+            s.commit().unwrap();
+            assert!(
+                std::fs::symlink_metadata(&link)
+                    .unwrap()
+                    .file_type()
+                    .is_symlink()
+            );
+            assert_eq!(std::fs::read_to_string(&dest).unwrap(), "via link");
+        }
+    }
+}
