@@ -62,7 +62,7 @@ pub enum Command {
         /// World config (default: the embedded default world)
         #[arg(long)]
         world: Option<PathBuf>,
-        /// State directory for the run (wiped first)
+        /// State directory for the run (new, empty, or one an earlier soak made: emptied first)
         #[arg(long, default_value = "soak-state")]
         state: PathBuf,
     },
@@ -265,7 +265,7 @@ pub struct BenchStoreArgs {
     /// Commits to time
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
-    /// Scratch directory for the store (removed afterwards)
+    /// Scratch directory for the store (new, empty, or made by an earlier run; removed afterwards)
     #[arg(long, default_value = "bench-store")]
     pub dir: PathBuf,
 }

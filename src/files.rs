@@ -109,6 +109,44 @@ pub fn read_text(path: &Path, max: u64) -> Result<String, FileError> {
     })
 }
 
+/// The file that marks a directory as scratch space this program made.
+pub const SCRATCH_MARKER: &str = ".brickworld-scratch";
+
+/// Make `dir` a fresh, empty scratch directory (holding only
+/// [`SCRATCH_MARKER`]): create it, or empty it if it is empty already or
+/// carries the marker. Any other directory, or a file, is refused and left
+/// untouched (regression: `bench store --dir` and `soak --state` deleted
+/// whatever directory they were given).
+pub fn fresh_scratch_dir(dir: &Path) -> Result<(), String> {
+    let shown = dir.display();
+    match std::fs::symlink_metadata(dir) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(format!("cannot use {shown}: {e}")),
+        Ok(m) if !m.is_dir() => {
+            return Err(format!("{shown} exists and is not a directory"));
+        }
+        Ok(_) => {
+            let empty = std::fs::read_dir(dir)
+                .map_err(|e| format!("cannot read {shown}: {e}"))?
+                .next()
+                .is_none();
+            if !empty && !dir.join(SCRATCH_MARKER).is_file() {
+                return Err(format!(
+                    "{shown} already exists and was not made by brickworld (no {SCRATCH_MARKER} in it): \
+                     name a new or empty directory, or remove it yourself"
+                ));
+            }
+            std::fs::remove_dir_all(dir).map_err(|e| format!("cannot empty {shown}: {e}"))?;
+        }
+    }
+    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {shown}: {e}"))?;
+    std::fs::write(
+        dir.join(SCRATCH_MARKER),
+        "scratch space of brickworld: emptied without asking by the next run\n",
+    )
+    .map_err(|e| format!("cannot write in {shown}: {e}"))
+}
+
 /// A new, empty file `.NAME.PID-N.tmp` beside `dest`, opened for writing;
 /// created with `create_new`, so it is never a file that was already there.
 pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File)> {
@@ -228,6 +266,35 @@ mod tests {
             read_text(&f, 10).unwrap_err(),
             FileError::NotText { .. }
         ));
+    }
+
+    #[test]
+    fn only_scratch_directories_are_emptied() {
+        let d = dir("scratch");
+        let mine = d.join("mine");
+        fresh_scratch_dir(&mine).unwrap();
+        std::fs::write(mine.join("world.redb"), "x").unwrap();
+        fresh_scratch_dir(&mine).unwrap();
+        assert!(!mine.join("world.redb").exists(), "emptied");
+        let theirs = d.join("theirs");
+        std::fs::create_dir_all(&theirs).unwrap();
+        std::fs::write(theirs.join("precious.txt"), "keep").unwrap();
+        let e = fresh_scratch_dir(&theirs).unwrap_err();
+        assert!(e.contains("was not made by brickworld"), "{e}");
+        assert_eq!(
+            std::fs::read_to_string(theirs.join("precious.txt")).unwrap(),
+            "keep"
+        );
+        let file = d.join("file");
+        std::fs::write(&file, "keep").unwrap();
+        assert!(
+            fresh_scratch_dir(&file)
+                .unwrap_err()
+                .contains("not a directory")
+        );
+        let empty = d.join("empty");
+        std::fs::create_dir_all(&empty).unwrap();
+        fresh_scratch_dir(&empty).unwrap();
     }
 
     #[test]

@@ -734,3 +734,29 @@ fn configs_and_scripts_must_be_regular_files() {
         "larger than the 4194304-byte limit",
     );
 }
+
+/// Regression (hostile probe): `bench store --dir` and `soak --state`
+/// deleted any directory they were given.
+#[test]
+fn scratch_directories_that_brickworld_did_not_make_are_not_deleted() {
+    let canary = tmp("canary");
+    std::fs::create_dir_all(&canary).unwrap();
+    std::fs::write(canary.join("precious.txt"), "keep").unwrap();
+    let json = tmp("canary.json");
+    let c = canary.to_str().unwrap();
+    let j = json.to_str().unwrap();
+    expect_failure(
+        &[
+            "bench", "store", "--json", j, "--size", "64x32x64", "--dir", c,
+        ],
+        "was not made by brickworld",
+    );
+    expect_failure(
+        &["soak", "--minutes", "0.01", "--json", j, "--state", c],
+        "was not made by brickworld",
+    );
+    assert_eq!(
+        std::fs::read_to_string(canary.join("precious.txt")).unwrap(),
+        "keep"
+    );
+}

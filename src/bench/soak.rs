@@ -74,7 +74,7 @@ pub fn run(
         .local_addr()?
         .port();
     let addr = format!("127.0.0.1:{port}");
-    let _ = std::fs::remove_dir_all(state);
+    crate::files::fresh_scratch_dir(state).map_err(|e| anyhow::anyhow!("invalid --state: {e}"))?;
     let exe = std::env::current_exe().context("cannot find the brickworld executable")?;
     let mut cmd = Command::new(exe);
     cmd.arg("run");

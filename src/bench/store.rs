@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use glam::IVec3;
 use serde::Serialize;
 
@@ -53,8 +53,7 @@ pub fn run(size: IVec3, chunks: usize, repeats: usize, dir: &Path) -> Result<Sto
         seed: 1,
         config_hash: 0,
     };
-    let _ = std::fs::remove_dir_all(dir);
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    crate::files::fresh_scratch_dir(dir).map_err(|e| anyhow::anyhow!("invalid --dir: {e}"))?;
     let hidden = indicatif::ProgressBar::hidden();
     let t = Instant::now();
     let mut world = build_scene(&spec, size, 1, &hidden)?;
