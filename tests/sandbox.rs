@@ -535,3 +535,30 @@ fn a_flat_world_bounds_channels_by_at_least_the_minimum_height() {
     let b = MIN_BOUND_HEIGHT * DEFAULT_BOUND_HEIGHTS;
     assert!(e.contains(&format!("outside its bound [-{b}, {b}]")), "{e}");
 }
+
+/// Regression (hostile probe): `c`, `c.r` and `c.w` were writable tables
+/// reused by every tile a VM ran, so a kernel could count tiles in them and
+/// its result depended on the thread count. Now each is read-only.
+#[test]
+fn a_kernel_cannot_keep_state_in_its_context_tables() {
+    for (name, body) in [
+        ("inw", "local w = c.w; w.n = (w.n or 0) + 1"),
+        ("inr", "c.r.n = 1"),
+        ("inc", "c.n = 1"),
+        ("drop", "c.w.drop_v = nil"),
+        ("meta", "setmetatable(c.w, {})"),
+    ] {
+        let mut sim = sim_with(&[script(name, body)]);
+        let e = runtime_error(&mut sim);
+        assert!(e.contains("readonly"), "{name}: {e}");
+    }
+}
+
+/// Regression (hostile probe): a 10 MB error text was one 10 MB line.
+#[test]
+fn a_scripts_error_text_is_cut_to_a_readable_length() {
+    let mut sim = sim_with(&[script("loud", "error(string.rep(\"E\", 1e6))")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.len() < 1000, "{} bytes", e.len());
+    assert!(e.contains("cut at 500 characters"), "{e}");
+}

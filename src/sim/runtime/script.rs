@@ -271,6 +271,9 @@ fn line_in(text: &str, needle: &str) -> Option<usize> {
     text.lines().position(|l| l.contains(needle)).map(|i| i + 1)
 }
 
+/// Longest error text kept from a script, in characters.
+pub const MAX_ERROR_CHARS: usize = 500;
+
 /// A sandboxed VM with a script loaded and its buffers ready.
 pub struct ScriptVm {
     lua: Lua,
@@ -944,6 +947,11 @@ impl ScriptVm {
                 let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
                 w.set(name.as_str(), self.writes[i].clone())?;
             }
+            // Read-only, as `c` is: a table that kept what a kernel stored
+            // in it would carry state from tile to tile on one VM, and the
+            // result would depend on the thread count (regression).
+            r.set_readonly(true);
+            w.set_readonly(true);
             self.read_tables.push(r);
             self.write_tables.push(w);
         }
@@ -987,6 +995,7 @@ impl ScriptVm {
                 c.set("m", m.clone())?;
                 c.set("r", r.clone())?;
                 c.set("w", w.clone())?;
+                c.set_readonly(true);
                 out.push(c);
             }
             Ok(out)
@@ -1083,8 +1092,13 @@ impl ScriptVm {
                 .lines()
                 .next()
                 .unwrap_or("")
-                .trim_start_matches("runtime error: ")
-                .to_string();
+                .trim_start_matches("runtime error: ");
+            // A script's own error text is cut to a readable length
+            // (regression: `error(string.rep("E", 1e7))` was one 10 MB line).
+            let msg = match msg.char_indices().nth(MAX_ERROR_CHARS) {
+                Some((i, _)) => format!("{}… (cut at {MAX_ERROR_CHARS} characters)", &msg[..i]),
+                None => msg.to_string(),
+            };
             let line =
                 line_of(&msg).or_else(|| msg.rsplit("line ").next().and_then(|s| s.parse().ok()));
             SimError::Runtime {
