@@ -122,7 +122,9 @@ fn draw_xy(
         series
             .iter()
             .flat_map(|s| s.points.iter())
-            .filter(|p| p.0 > 0.0 && p.1 > 0.0 && p.0.is_finite() && p.1.is_finite())
+            // Within 1e±300, so the axes' margins stay finite (regression:
+            // a value of 1.7e308 made an infinite axis and a hang).
+            .filter(|p| (1e-300..1e300).contains(&p.0) && (1e-300..1e300).contains(&p.1))
     };
     if pts().next().is_none() {
         return Err("nothing to plot".into());

@@ -228,12 +228,14 @@ impl Table {
     }
 }
 
-/// Read a timeline CSV.
+/// Read a timeline CSV: a regular file of at most 4 × [`ROTATE_BYTES`]
+/// (the engine rotates its own at one; regression: a link to /dev/zero
+/// filled memory).
 pub fn read(path: &Path) -> Result<Table> {
-    let f = File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let text = crate::files::read_bounded(path, 4 * ROTATE_BYTES)?;
+    let text = String::from_utf8_lossy(&text);
     let mut t = Table::default();
-    for (i, line) in BufReader::new(f).lines().enumerate() {
-        let line = line?;
+    for (i, line) in text.lines().enumerate() {
         if i == 0 {
             t.columns = line.trim().split(',').map(str::to_string).collect();
             continue;
@@ -276,16 +278,24 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
         RGBColor(30, 160, 170),
         RGBColor(220, 150, 30),
     ];
-    let series = |name: &str, color: RGBColor| -> Series<'_> {
-        let c = table.col(name).expect("known column");
-        Series {
+    if table.columns.first().map(String::as_str) != Some("tick") {
+        anyhow::bail!(
+            "{} is not a brickworld timeline: its first column is not 'tick'",
+            state.join("timeline.csv").display()
+        );
+    }
+    // A column a hand-made or older file lacks leaves its line out
+    // (regression: it was a panic).
+    let series = |name: &str, color: RGBColor| -> Option<Series<'_>> {
+        let c = table.col(name)?;
+        Some(Series {
             name: table.columns[c].as_str(),
             color,
             points: rows
                 .iter()
                 .map(|r| (r[0].max(1.0), r[c].abs().max(1e-9)))
                 .collect(),
-        }
+        })
     };
     let with_prefix = |prefix: &str| -> Vec<Series<'_>> {
         table
@@ -293,15 +303,18 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             .iter()
             .filter(|c| c.starts_with(prefix))
             .enumerate()
-            .map(|(i, c)| series(c, palette[i % palette.len()]))
+            .filter_map(|(i, c)| series(c, palette[i % palette.len()]))
             .collect()
     };
-    let mut totals = vec![
+    let mut totals: Vec<Series<'_>> = [
         series("water", palette[0]),
         series("ground_plus_sediment", palette[3]),
         series("snow", palette[4]),
         series("drained", palette[1]),
-    ];
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
     totals.extend(with_prefix("total:"));
     let mut out = Vec::new();
     for (file, title, y, list) in [
@@ -309,25 +322,31 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             "rate.svg",
             "Steps per second and frame time",
             "value (log)",
-            vec![
+            [
                 series("steps_per_s", palette[0]),
                 series("frame_ms", palette[1]),
-            ],
+            ]
+            .into_iter()
+            .flatten()
+            .collect(),
         ),
         (
             "memory.svg",
             "Resident memory (KiB)",
             "KiB (log)",
-            vec![series("rss_kb", palette[2])],
+            series("rss_kb", palette[2]).into_iter().collect(),
         ),
         (
             "work.svg",
             "Active tiles and dirty bricks",
             "count (log)",
-            vec![
+            [
                 series("active_bricks", palette[0]),
                 series("dirty_bricks", palette[1]),
-            ],
+            ]
+            .into_iter()
+            .flatten()
+            .collect(),
         ),
         ("totals.svg", "Conserved totals", "total (log)", totals),
         (
@@ -357,6 +376,38 @@ mod tests {
             script_ms: vec![1.5],
             conserved: vec![42.0],
             ..Row::default()
+        }
+    }
+
+    /// Regression (hostile probe): a hand-made timeline lacking a column
+    /// panicked, a huge value hung the axis, and a link to /dev/zero filled
+    /// memory.
+    #[test]
+    fn chart_survives_hand_made_timelines() {
+        let dir = std::env::temp_dir().join(format!("bw-chart-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let csv = dir.join("timeline.csv");
+        std::fs::write(&csv, "tick,water,rss_kb\n1,1,100\n2,1.7e308,200\n3,2,300\n").unwrap();
+        let drawn = chart(&dir).unwrap();
+        let names: Vec<String> = drawn
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
+            .collect();
+        assert_eq!(names, ["memory.svg", "totals.svg"]);
+        std::fs::write(&csv, "a,b\n1,2\n3,4\n").unwrap();
+        assert!(
+            chart(&dir)
+                .unwrap_err()
+                .to_string()
+                .contains("not a brickworld timeline")
+        );
+        std::fs::remove_file(&csv).unwrap();
+        #[cfg(unix)]
+        {
+            std::os::unix::fs::symlink("/dev/zero", &csv).unwrap();
+            let e = chart(&dir).unwrap_err().to_string();
+            assert!(e.contains("not a regular file"), "{e}");
         }
     }
 
