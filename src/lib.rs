@@ -30,20 +30,34 @@ pub mod runtime_dir;
 /// Replace Rust's panic message with a one-line report (no backtrace unless
 /// `RUST_BACKTRACE` is set): a panic is a bug, but users should not see a
 /// wall of frames.
+///
+/// Standard output that is closed (`brickworld chart S | head -1`) or full
+/// (`> /dev/full`) is not a bug: `println!` panics there, and the hook
+/// ends the process as ripgrep does, quietly with status 0 for a closed
+/// pipe, and with one line and status 1 for any other write error.
 pub fn install_panic_hook() {
-    if std::env::var_os("RUST_BACKTRACE").is_some() {
-        return;
-    }
-    std::panic::set_hook(Box::new(|info| {
-        if QUIET_PANICS.with(|q| q.get()) {
-            return;
-        }
+    let verbose = std::env::var_os("RUST_BACKTRACE").is_some();
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
         let msg = info
             .payload()
             .downcast_ref::<&str>()
             .map(|s| s.to_string())
             .or_else(|| info.payload().downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "unknown panic".into());
+        if let Some(why) = msg.strip_prefix("failed printing to stdout: ") {
+            if why.contains("Broken pipe") {
+                std::process::exit(0);
+            }
+            eprintln!("error: cannot write to standard output: {why}");
+            std::process::exit(1);
+        }
+        if verbose {
+            return default(info);
+        }
+        if QUIET_PANICS.with(|q| q.get()) {
+            return;
+        }
         let at = info
             .location()
             .map(|l| format!(" at {}:{}", l.file(), l.line()))

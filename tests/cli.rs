@@ -760,3 +760,35 @@ fn scratch_directories_that_brickworld_did_not_make_are_not_deleted() {
         "keep"
     );
 }
+
+/// Regression (hostile probe): `println!` on a closed pipe or a full disk
+/// was a panic with a backtrace.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_closed_or_full_standard_output_is_not_a_panic() {
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let dir = tmp("init-full");
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = bin()
+        .args(["init", dir.to_str().unwrap()])
+        .stdout(full)
+        .output()
+        .unwrap();
+    assert_clear_failure(&out, "init > /dev/full", "cannot write to standard output");
+    // A pipe whose reader is gone: quiet, status 0 (as ripgrep does).
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let dir = tmp("init-pipe");
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = bin()
+        .args(["init", dir.to_str().unwrap()])
+        .stdout(writer)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(!err.contains("panicked") && !err.contains("bug"), "{err}");
+}

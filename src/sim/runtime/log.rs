@@ -32,8 +32,24 @@ fn logs() -> &'static Mutex<FxHashMap<String, ScriptLog>> {
     LOGS.get_or_init(Default::default)
 }
 
-/// Record a line from `script` (rate-limited, truncated).
-pub fn push(script: &str, mut line: String) {
+/// Record a line from `script` (rate-limited, truncated, one line).
+pub fn push(script: &str, line: String) {
+    // Control characters are written as escapes: a script's newline, CR or
+    // terminal escape must not forge daemon log lines or drive the
+    // terminal (regression).
+    let mut line = if line.chars().any(char::is_control) {
+        line.chars()
+            .map(|c| {
+                if c.is_control() {
+                    c.escape_default().to_string()
+                } else {
+                    c.to_string()
+                }
+            })
+            .collect()
+    } else {
+        line
+    };
     if line.chars().count() > MAX_LINE {
         line = line.chars().take(MAX_LINE).collect::<String>() + "…";
     }
@@ -88,4 +104,18 @@ pub fn take_unprinted() -> Vec<(String, String)> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression (hostile probe): a script's newline, CR, ANSI escape and
+    /// NUL went raw to the daemon's stderr.
+    #[test]
+    fn control_characters_are_escaped_into_one_line() {
+        push("escapes-test", "first\nsecond\r\u{1b}[31mRED\u{0}".into());
+        let (lines, _, _) = recent("escapes-test");
+        assert_eq!(lines, ["first\\nsecond\\r\\u{1b}[31mRED\\u{0}"]);
+    }
 }
