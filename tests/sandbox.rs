@@ -562,3 +562,22 @@ fn a_scripts_error_text_is_cut_to_a_readable_length() {
     assert!(e.len() < 1000, "{} bytes", e.len());
     assert!(e.contains("cut at 500 characters"), "{e}");
 }
+
+/// Regression (hostile probe): 50 000 parameters were accepted and slowed
+/// every `/status` and step.
+#[test]
+fn a_script_declares_at_most_256_parameters() {
+    let params: String = (0..257)
+        .map(|i| format!("p{i} = {{ default = 0, min = 0, max = 1 }}"))
+        .collect::<Vec<_>>()
+        .join(", ");
+    let text = format!(
+        "return {{ channels = {{ \"h\" }}, params = {{ {params} }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"h\" }}, kernel = function(c) end }} }} }}"
+    );
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    let e = sim
+        .add_script(src("many", &text), Kernel::Lua, small())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("more than 256 parameters"), "{e}");
+}

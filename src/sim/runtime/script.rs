@@ -308,6 +308,8 @@ fn declaration(src: &ScriptSource, needle: Option<&str>, msg: impl Into<String>)
 /// The most channels one script may declare (the stored blobs' bound: a
 /// chunk or column blob carries at most as many).
 pub const MAX_SCRIPT_CHANNELS: usize = 256;
+/// The most parameters one script may declare.
+pub const MAX_SCRIPT_PARAMS: usize = 256;
 
 fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<String>, SimError> {
     let v: Value = t
@@ -738,6 +740,15 @@ impl ScriptVm {
             Ok(Value::Nil) => {}
             Ok(Value::Table(t)) => {
                 for pair in t.pairs::<String, Value>() {
+                    // Every parameter is in each `/status` and each step's
+                    // context: 50 000 of them slowed the engine fourfold.
+                    if params.len() == MAX_SCRIPT_PARAMS {
+                        return Err(declaration(
+                            src,
+                            Some("params"),
+                            format!("more than {MAX_SCRIPT_PARAMS} parameters"),
+                        ));
+                    }
                     let (name, v) =
                         pair.map_err(|e| declaration(src, Some("params"), format!("params: {e}")))?;
                     let Value::Table(p) = v else {
