@@ -581,3 +581,28 @@ fn a_script_declares_at_most_256_parameters() {
         .to_string();
     assert!(e.contains("more than 256 parameters"), "{e}");
 }
+
+/// Regression (hostile probe): a reload rejected by its smoke test left
+/// its channels registered, and the next good reload hit the channel bound.
+#[test]
+fn a_rejected_reload_registers_no_channels() {
+    let decl = |prefix: &str, n: usize, body: &str| {
+        let names: Vec<String> = (0..n).map(|i| format!("\"{prefix}{i}\"")).collect();
+        format!(
+            "return {{ channels = {{ {} }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"{prefix}0\" }}, kernel = function(c) {body} end }} }} }}",
+            names.join(", ")
+        )
+    };
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(src("s", &decl("a", 200, "")), Kernel::Lua, small())
+        .unwrap();
+    let before = sim.channels().channels().count();
+    let e = sim
+        .replace_script(0, src("s", &decl("b", 50, "error(\"boom\")")))
+        .unwrap_err();
+    assert!(e.to_string().contains("boom"), "{e}");
+    assert_eq!(sim.channels().channels().count(), before);
+    // 200 + 50 fits the bound of 256; with the rejected 50 it would not.
+    sim.replace_script(0, src("s", &decl("c", 50, ""))).unwrap();
+    assert_eq!(sim.channels().channels().count(), before + 50);
+}

@@ -447,11 +447,6 @@ impl Simulation {
         }
         let (ch, n) = (&self.channels, self.channels.channels().count());
         crate::sim::channel_room(&spec.name, &spec.channels, |c| ch.find(c).is_some(), n)?;
-        let ids: Vec<ChannelId> = spec
-            .channels
-            .iter()
-            .map(|c| self.channels.channel(c))
-            .collect();
         let boundary: Vec<f64> = spec
             .channels
             .iter()
@@ -481,6 +476,14 @@ impl Simulation {
                 vm.run(pi, &pass.name, 0, 0)?;
             }
         }
+        // Registered only once the script has passed every check: a
+        // rejected reload must leave the world's registry as it was
+        // (regression: its channels stayed and filled the bound).
+        let ids: Vec<ChannelId> = spec
+            .channels
+            .iter()
+            .map(|c| self.channels.channel(c))
+            .collect();
         Ok(Loaded {
             uid: NEXT_UID.fetch_add(1, Ordering::Relaxed),
             src,
