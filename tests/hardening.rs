@@ -792,3 +792,52 @@ fn a_restored_failure_streak_shows_as_failing_before_any_step() {
     }
     assert_success(&stop(d));
 }
+
+/// Regression (hostile probe): kernels just under their time budget made a
+/// step of minutes, and SIGTERM waited for all of it. Now a step still
+/// running `STOP_GRACE` after the signal is interrupted and dropped, and
+/// the world stays as last committed.
+#[test]
+fn sigterm_interrupts_a_step_that_runs_for_minutes() {
+    let (cfg, state, addr) = setup("slowstep");
+    let scripts = cfg.parent().unwrap().join("scripts");
+    std::fs::create_dir_all(&scripts).unwrap();
+    std::fs::copy(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
+        scripts.join("water.lua"),
+    )
+    .unwrap();
+    // About 1.5 s a tile from tick 1 on: some 30 s a step on two cores.
+    std::fs::write(
+        scripts.join("slow.lua"),
+        "return { channels = { \"s\" }, passes = { { name = \"p\", reads = {}, writes = { \"s\" },\n\
+         kernel = function(c) if c.tick >= 1 then for i = 1, 1000 do local x = string.rep(\"x\", 1000000) end end end } } }",
+    )
+    .unwrap();
+    edit_config(
+        &cfg,
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
+        scripts.to_str().unwrap(),
+    );
+    edit_config(
+        &cfg,
+        "[render]",
+        "[[scripts]]\nfile = \"slow.lua\"\n[render]",
+    );
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let t = Instant::now();
+    while status(&addr)["tick"].as_u64().unwrap() < 1 {
+        assert!(t.elapsed() < Duration::from_secs(30));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let t = Instant::now();
+    let out = stop(d);
+    let took = t.elapsed();
+    assert_success(&out);
+    assert!(took < Duration::from_secs(15), "took {took:?}");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("its scripts were interrupted"), "{err}");
+    assert!(stored_tick(&cfg, &state).unwrap_or(0) <= 1);
+}

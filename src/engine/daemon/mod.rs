@@ -47,6 +47,10 @@ use crate::scene::SceneWorld;
 use crate::sim::{ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, read_script};
 use crate::trace::Camera;
 
+/// How long a stop waits for the step in flight before interrupting its
+/// scripts.
+pub const STOP_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// Options of `brickworld run`.
 #[derive(Clone, Debug)]
 pub struct DaemonOptions {
@@ -184,6 +188,8 @@ pub struct Engine {
     script_ms: Vec<f64>,
     /// A streamed world's region that follows the camera.
     follow: Option<follow::Follow>,
+    /// The stop interrupted a step: no final commit.
+    step_cut: bool,
 }
 
 impl Engine {
@@ -205,6 +211,12 @@ impl Engine {
             self.apply_commands();
             if self.should_step() && self.follow_camera() {
                 let report = self.step();
+                if crate::sim::interrupt::stopping() {
+                    // The step may have been cut half-way: it is neither
+                    // shown nor committed.
+                    self.step_cut = true;
+                    break;
+                }
                 self.collect_dirty(&report);
                 self.offer_frame();
                 self.periodic_commit();
@@ -739,7 +751,14 @@ impl Engine {
 
     /// Stop: a final commit, the frame in flight, then the server.
     fn finish(mut self) -> Result<()> {
-        self.commit();
+        if self.step_cut {
+            eprintln!(
+                "a step was still running {} s after the stop request: its scripts were interrupted and the step is dropped; the world stays as last committed",
+                STOP_GRACE.as_secs()
+            );
+        } else {
+            self.commit();
+        }
         self.renderer.finish(std::time::Duration::from_secs(3));
         self.shared.shutdown.store(true, Ordering::Relaxed);
         if let Some(s) = self.server.take() {
@@ -747,6 +766,16 @@ impl Engine {
         }
         if let Some(e) = &self.commit_error {
             bail!("the final {e}");
+        }
+        if self.step_cut {
+            // The state in memory is half a step: no hash of it is shown.
+            match &self.last_commit {
+                Some(c) => println!("stopped; the world store holds tick {}", c.tick),
+                None => println!(
+                    "stopped; nothing was committed in this run (the world store holds what it held)"
+                ),
+            }
+            return Ok(());
         }
         let hash = persistence::engine_hash(&self.world, &self.ws);
         println!(

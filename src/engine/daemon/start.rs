@@ -45,14 +45,19 @@ impl Engine {
         let token_path = state_dir::write_token(&opts.state, &token)?;
         {
             // The first SIGINT/SIGTERM stops after the step in flight, with
-            // a final checkpoint; a second one exits at once (the last
-            // checkpoint on disk stays good).
+            // a final checkpoint; a step still running after STOP_GRACE is
+            // interrupted (and not committed). A second signal exits at
+            // once (the last checkpoint on disk stays good).
             let s = shared.clone();
             ctrlc::set_handler(move || {
                 if s.shutdown.swap(true, Ordering::Relaxed) {
                     eprintln!("second signal: exiting now, without a final checkpoint");
                     std::process::exit(130);
                 }
+                std::thread::spawn(|| {
+                    std::thread::sleep(super::STOP_GRACE);
+                    crate::sim::interrupt::stop_all();
+                });
             })
             .context("cannot install the SIGINT/SIGTERM handler")?;
         }
@@ -202,6 +207,7 @@ impl Engine {
             steps_per_s: 0.0,
             script_ms: vec![0.0; n],
             follow,
+            step_cut: false,
         };
         // Publish the loaded world in one go: a client that sees the scripts
         // also sees the tick and where it was resumed from (regression: a

@@ -77,6 +77,25 @@ pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
 /// The wall-clock limit's name in a budget error ("time budget exceeded").
 pub const TIME_BUDGET: &str = "time budget";
 
+/// The name of a stop request in place of a limit.
+pub const STOPPING: &str = "engine stop";
+
+/// Set once the process is stopping and a step in flight has to give way.
+static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Make every running and later kernel call fail at its next check (within
+/// [`BATCH`] interrupts): for a stop that cannot wait for a long step
+/// (regression: kernels just under their budget made a step of minutes,
+/// and SIGTERM waited for it).
+pub fn stop_all() {
+    STOP.store(true, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// Whether [`stop_all`] was called.
+pub fn stopping() -> bool {
+    STOP.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 /// Which limit, if any, the running kernel has exceeded (counts one tick).
 #[inline(always)]
 fn exceeded(l: *mut ffi::lua_State) -> Option<&'static str> {
@@ -103,7 +122,9 @@ fn slow_check(l: *mut ffi::lua_State) -> Option<&'static str> {
         }
         b.ticks = b.ticks.saturating_add(b.batch);
         let mut what = None;
-        if b.ticks > b.limit {
+        if stopping() {
+            what = Some(STOPPING);
+        } else if b.ticks > b.limit {
             what = Some("instruction budget");
         } else if Instant::now() > b.deadline {
             what = Some(TIME_BUDGET);
@@ -155,7 +176,9 @@ unsafe extern "C-unwind" fn interrupt(l: *mut ffi::lua_State, gc: c_int) {
             break;
         }
     }
-    let msg = if line > 0 {
+    let msg = if what == STOPPING {
+        "interrupted: the engine is stopping".to_string()
+    } else if line > 0 {
         format!("{what} exceeded at line {line}")
     } else {
         format!("{what} exceeded")
