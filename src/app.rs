@@ -90,11 +90,16 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Sim(a) => crate::sim_cmd::run(&crate::config::SimSettings::from_args(&a)?),
-        Command::Verify(VerifyCommand::Sims(a)) => crate::verify::run_sims(
-            &a.json,
-            a.chart.as_deref(),
-            a.conservation_steps.clamp(1, 10_000_000),
-        ),
+        Command::Verify(VerifyCommand::Sims(a)) => {
+            // Refused, not clamped (regression: 2^64-1 ran for ever).
+            if !(1..=1_000_000).contains(&a.conservation_steps) {
+                anyhow::bail!(
+                    "invalid --conservation-steps {}: must be in 1..=1000000 (10000 is the full check)",
+                    a.conservation_steps
+                );
+            }
+            crate::verify::run_sims(&a.json, a.chart.as_deref(), a.conservation_steps)
+        }
         Command::Bench(BenchCommand::Sim(a)) => run_bench_sim(&a),
         Command::Bench(BenchCommand::Stream(a)) => run_bench_stream(&a),
         Command::Bench(BenchCommand::Voxels(a)) => run_bench_voxels(&a),

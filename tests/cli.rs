@@ -520,6 +520,12 @@ fn a_number_too_big_for_its_flag_is_out_of_range_not_not_a_number() {
         &["bench", "stream", "--json", o, "--pool", "16777216"],
         "invalid --pool 16777216: must be in 1..=1048576",
     );
+    for steps in ["0", "18446744073709551615"] {
+        expect_failure(
+            &["verify", "sims", "--json", o, "--conservation-steps", steps],
+            "invalid --conservation-steps",
+        );
+    }
     expect_failure(
         &["render", "--out", o, "--width", "wide"],
         "invalid --width 'wide': not a number",

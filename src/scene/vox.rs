@@ -139,10 +139,30 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
             (model.size.z / 2) as f64,
         );
         for v in &model.voxels {
+            // Regression (hostile probe): a SIZE of zero or "negative" (a
+            // huge u32) was accepted whatever the voxels said.
+            if v.x as u32 >= model.size.x
+                || v.y as u32 >= model.size.y
+                || v.z as u32 >= model.size.z
+            {
+                return Err(format!(
+                    "model {model_id} has a voxel at ({}, {}, {}) outside its size {}x{}x{}",
+                    v.x, v.y, v.z, model.size.x, model.size.y, model.size.z
+                ));
+            }
             let c = DVec3::new(v.x as f64, v.y as f64, v.z as f64) + 0.5 - half;
             let w = xf.apply(c);
-            let p = DVec3::new(w.x, w.z, -w.y).floor().as_ivec3();
-            out.push((p, v.i.saturating_add(1)));
+            let w = DVec3::new(w.x, w.z, -w.y).floor();
+            // Within ±2^30, so that bounds, bricks and `hi + 1` never
+            // overflow (regression: a translation of -2^20 on a huge size
+            // saturated at i32::MAX and three voxels became one).
+            if !(w.abs().max_element() <= MAX_COORD) {
+                return Err(format!(
+                    "model {model_id} places a voxel at ({}, {}, {}), beyond ±2^30",
+                    w.x, w.y, w.z
+                ));
+            }
+            out.push((w.as_ivec3(), v.i.saturating_add(1)));
         }
     }
     let mut palette = Palette::grey_ramp();
@@ -151,6 +171,9 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
     }
     Ok((out, palette))
 }
+
+/// The largest voxel coordinate a file may place, in absolute value.
+pub const MAX_COORD: f64 = (1u32 << 30) as f64;
 
 /// Nodes the expansion of a scene graph may visit (each instance of a
 /// shared node counts).
@@ -324,5 +347,47 @@ mod tests {
         assert!(parse_rotation("x").is_err());
         assert!(parse_translation("1 2").is_err());
         assert_eq!(parse_translation("-1 2 3").unwrap(), [-1, 2, 3]);
+    }
+
+    fn one_model(size: [u32; 3], at: &[[u8; 3]]) -> dot_vox::DotVoxData {
+        dot_vox::DotVoxData {
+            version: 150,
+            index_map: Vec::new(),
+            models: vec![dot_vox::Model {
+                size: dot_vox::Size {
+                    x: size[0],
+                    y: size[1],
+                    z: size[2],
+                },
+                voxels: at
+                    .iter()
+                    .map(|p| dot_vox::Voxel {
+                        x: p[0],
+                        y: p[1],
+                        z: p[2],
+                        i: 1,
+                    })
+                    .collect(),
+            }],
+            palette: Vec::new(),
+            materials: Vec::new(),
+            scenes: Vec::new(),
+            layers: Vec::new(),
+        }
+    }
+
+    /// Regression (hostile probe): voxels past the i32 range were clamped
+    /// (three became one, and the bounds wrapped), and a model's size was
+    /// never checked against its voxels.
+    #[test]
+    fn voxels_beyond_range_or_outside_their_model_are_refused() {
+        let far = one_model([1, u32::MAX - 1, 1], &[[0, 0, 0], [0, 1, 0], [0, 2, 0]]);
+        let e = voxels(&far).unwrap_err();
+        assert!(e.contains("beyond ±2^30"), "{e}");
+        let zero = one_model([0, 0, 0], &[[0, 0, 0]]);
+        let e = voxels(&zero).unwrap_err();
+        assert!(e.contains("outside its size 0x0x0"), "{e}");
+        let ok = one_model([2, 2, 2], &[[0, 0, 0], [1, 1, 1]]);
+        assert_eq!(voxels(&ok).unwrap().0.len(), 2);
     }
 }
