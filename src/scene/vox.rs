@@ -156,7 +156,7 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
             // Within ±2^30, so that bounds, bricks and `hi + 1` never
             // overflow (regression: a translation of -2^20 on a huge size
             // saturated at i32::MAX and three voxels became one).
-            if !(w.abs().max_element() <= MAX_COORD) {
+            if !w.is_finite() || w.abs().max_element() > MAX_COORD {
                 return Err(format!(
                     "model {model_id} places a voxel at ({}, {}, {}), beyond ±2^30",
                     w.x, w.y, w.z
