@@ -798,3 +798,17 @@ fn a_closed_or_full_standard_output_is_not_a_panic() {
     assert!(out.status.success(), "{err}");
     assert!(!err.contains("panicked") && !err.contains("bug"), "{err}");
 }
+
+/// Regression (hostile probe): a refused import still created `--state`
+/// and its lock file, though its error said nothing was changed.
+#[test]
+fn a_refused_import_leaves_no_state_directory_behind() {
+    let state = tmp("import-refused");
+    let _ = std::fs::remove_dir_all(&state);
+    let s = state.to_str().unwrap();
+    expect_failure(&["import", "/dev/zero", "--state", s], "cannot import");
+    assert!(!state.exists(), "created by a refused import");
+    std::fs::create_dir_all(&state).unwrap();
+    expect_failure(&["import", "/dev/zero", "--state", s], "cannot import");
+    assert_eq!(std::fs::read_dir(&state).unwrap().count(), 0, "left files");
+}

@@ -678,7 +678,22 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
 
 /// `brickworld import`: lock state directory `dir` and [`import`] `file`.
 pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<CommitStats> {
+    // A failed import leaves the directory as it found it (regression: it
+    // created `--state` and its lock file even when refusing the backup).
+    let created = !dir.exists();
+    let lock_file = dir.join("engine.lock");
+    let had_lock = lock_file.exists();
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let _lock = super::state_dir::lock(dir)?;
-    import(file, dir, &cfg.identity())
+    let result = (|| {
+        let _lock = super::state_dir::lock(dir)?;
+        import(file, dir, &cfg.identity())
+    })();
+    if result.is_err() {
+        if created {
+            let _ = std::fs::remove_dir_all(dir);
+        } else if !had_lock {
+            let _ = std::fs::remove_file(&lock_file);
+        }
+    }
+    result
 }
