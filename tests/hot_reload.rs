@@ -83,3 +83,52 @@ fn edited_scripts_reload_and_broken_saves_keep_the_last_good_version() {
     let _ = std::fs::remove_dir_all(&dir);
     let _ = TILE_CELLS;
 }
+
+/// Regression (hostile probe): after the scripts directory was replaced,
+/// hot reload stopped without a word; after it was moved away, edits to the
+/// old one were read from the new one.
+#[test]
+fn a_replaced_scripts_directory_is_watched_anew() {
+    let root = std::env::temp_dir().join(format!("bw-rewatch-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let dir = root.join("scripts");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("heat.lua"), V1).unwrap();
+    let mut w = ScriptWatcher::new(&dir, Duration::from_millis(50)).unwrap();
+    // Moved away, and a new directory put in its place.
+    std::fs::rename(&dir, root.join("scripts.gone")).unwrap();
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("other.lua"), V1).unwrap();
+    let t = Instant::now();
+    let (mut seen, mut notes) = (Vec::new(), Vec::new());
+    while t.elapsed() < Duration::from_secs(10)
+        && !seen
+            .iter()
+            .any(|p: &std::path::PathBuf| p.ends_with("other.lua"))
+    {
+        seen.extend(w.poll());
+        notes.extend(w.take_notes());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(
+        seen.iter().any(|p| p.ends_with("other.lua")),
+        "{seen:?} {notes:?}"
+    );
+    assert!(
+        notes.iter().any(|n| n.contains("was replaced")),
+        "{notes:?}"
+    );
+    // The old directory's edits are no longer reported.
+    seen.clear();
+    save_like_an_editor(&root.join("scripts.gone").join("heat.lua"), V1);
+    std::thread::sleep(Duration::from_millis(300));
+    seen.extend(w.poll());
+    assert!(seen.is_empty(), "{seen:?}");
+    // And the new one's are.
+    save_like_an_editor(&dir.join("other.lua"), V1);
+    assert!(
+        wait_for_change(&mut w)
+            .iter()
+            .any(|p| p.ends_with("other.lua"))
+    );
+}

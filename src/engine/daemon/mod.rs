@@ -245,7 +245,11 @@ impl Engine {
         let Some(w) = self.watcher.as_mut() else {
             return;
         };
-        for path in w.poll() {
+        let changed = w.poll();
+        for note in w.take_notes() {
+            eprintln!("{note}");
+        }
+        for path in changed {
             let name = path
                 .file_stem()
                 .map(|s| s.to_string_lossy().to_string())

@@ -16,44 +16,138 @@ use rustc_hash::FxHashMap;
 
 use crate::sim::SimError;
 
-/// A debounced watcher of one directory's `.lua` files.
+/// A debounced watcher of one directory's `.lua` files. A directory that
+/// is replaced (removed and made again, or another moved into its place)
+/// is watched anew within [`RECHECK`], and its scripts are reported as
+/// changed (regression: hot reload stopped silently, and a moved-away
+/// directory's edits were read from the new one).
 pub struct ScriptWatcher {
-    _watcher: notify::RecommendedWatcher,
+    watcher: Option<notify::RecommendedWatcher>,
     events: Receiver<PathBuf>,
+    tx: crossbeam_channel::Sender<PathBuf>,
     pending: FxHashMap<PathBuf, Instant>,
     debounce: Duration,
+    dir: PathBuf,
+    /// The watched directory's identity (device, inode), if known.
+    identity: Option<(u64, u64)>,
+    checked: Instant,
+    notes: Vec<String>,
+}
+
+/// How often the watched directory's identity is checked.
+pub const RECHECK: Duration = Duration::from_secs(1);
+
+fn identity(dir: &Path) -> Option<(u64, u64)> {
+    let m = std::fs::metadata(dir).ok().filter(|m| m.is_dir())?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        Some((m.dev(), m.ino()))
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = m;
+        Some((0, 0))
+    }
+}
+
+fn watch(
+    dir: &Path,
+    tx: crossbeam_channel::Sender<PathBuf>,
+) -> Result<notify::RecommendedWatcher, SimError> {
+    let mut watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| {
+        if let Ok(ev) = res
+            && matches!(ev.kind, EventKind::Create(_) | EventKind::Modify(_))
+        {
+            for p in ev.paths {
+                if p.extension().is_some_and(|e| e == "lua") {
+                    let _ = tx.send(p);
+                }
+            }
+        }
+    })
+    .map_err(|e| SimError::Internal(format!("cannot watch {}: {e}", dir.display())))?;
+    watcher
+        .watch(dir, RecursiveMode::NonRecursive)
+        .map_err(|e| SimError::Internal(format!("cannot watch {}: {e}", dir.display())))?;
+    Ok(watcher)
 }
 
 impl ScriptWatcher {
     /// Watch `dir`; a file is reported `debounce` after its last event.
     pub fn new(dir: &Path, debounce: Duration) -> Result<Self, SimError> {
         let (tx, events) = unbounded();
-        let mut watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| {
-            if let Ok(ev) = res
-                && matches!(ev.kind, EventKind::Create(_) | EventKind::Modify(_))
-            {
-                for p in ev.paths {
-                    if p.extension().is_some_and(|e| e == "lua") {
-                        let _ = tx.send(p);
+        let watcher = watch(dir, tx.clone())?;
+        Ok(ScriptWatcher {
+            watcher: Some(watcher),
+            events,
+            tx,
+            pending: FxHashMap::default(),
+            debounce,
+            dir: dir.to_path_buf(),
+            identity: identity(dir),
+            checked: Instant::now(),
+            notes: Vec::new(),
+        })
+    }
+
+    /// What happened to the watched directory since the last call (a
+    /// replacement, a removal), as lines for the log.
+    pub fn take_notes(&mut self) -> Vec<String> {
+        std::mem::take(&mut self.notes)
+    }
+
+    /// Watch the directory anew if it was replaced or removed.
+    fn recheck(&mut self, now: Instant) {
+        if now.duration_since(self.checked) < RECHECK {
+            return;
+        }
+        self.checked = now;
+        let id = identity(&self.dir);
+        if id == self.identity {
+            return;
+        }
+        let shown = self.dir.display();
+        self.identity = id;
+        // The old watcher's events name paths in a directory that is not
+        // this one any more: drop it and them.
+        self.watcher = None;
+        while self.events.try_recv().is_ok() {}
+        self.pending.clear();
+        if id.is_none() {
+            self.notes.push(format!(
+                "warning: the scripts directory {shown} is gone: hot reload resumes when it is back"
+            ));
+            return;
+        }
+        match watch(&self.dir, self.tx.clone()) {
+            Ok(w) => {
+                self.watcher = Some(w);
+                self.notes.push(format!(
+                    "the scripts directory {shown} was replaced: watching the new one and reloading its scripts"
+                ));
+                if let Ok(rd) = std::fs::read_dir(&self.dir) {
+                    for e in rd.flatten() {
+                        let p = e.path();
+                        if p.extension().is_some_and(|e| e == "lua") {
+                            self.pending.insert(p, now);
+                        }
                     }
                 }
             }
-        })
-        .map_err(|e| SimError::Internal(format!("cannot watch {}: {e}", dir.display())))?;
-        watcher
-            .watch(dir, RecursiveMode::NonRecursive)
-            .map_err(|e| SimError::Internal(format!("cannot watch {}: {e}", dir.display())))?;
-        Ok(ScriptWatcher {
-            _watcher: watcher,
-            events,
-            pending: FxHashMap::default(),
-            debounce,
-        })
+            Err(e) => {
+                // Checked again at the next recheck.
+                self.identity = None;
+                self.notes
+                    .push(format!("warning: {e}: hot reload is paused"));
+            }
+        }
     }
 
     /// Files whose changes have settled since the last call, sorted.
     pub fn poll(&mut self) -> Vec<PathBuf> {
         let now = Instant::now();
+        self.recheck(now);
         for p in self.events.try_iter() {
             self.pending.insert(p, now);
         }
