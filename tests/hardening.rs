@@ -183,6 +183,33 @@ fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothin
     assert!(body.contains("outside"), "{body}");
     let (code, body) = post(&addr, &state, "/scripts/water/params", "{\"nope\": 1}");
     assert_eq!(code, 400, "{body}");
+    // Regression (hostile probe): a key given twice was applied, last wins.
+    let (code, body) = post(
+        &addr,
+        &state,
+        "/scripts/water/params",
+        "{\"rain\": 0.1, \"rain\": 0.2}",
+    );
+    assert_eq!(code, 400, "{body}");
+    assert!(body.contains("duplicate parameter 'rain'"), "{body}");
+    // The scheme name is case-insensitive (RFC 9110); the token is not.
+    let tok = std::fs::read_to_string(state.join("control.token")).unwrap();
+    let tok = tok.trim();
+    let line = raw(
+        &addr,
+        format!("POST /pause HTTP/1.1\r\nHost: x\r\nauthorization: bearer {tok}\r\nContent-Length: 0\r\n\r\n").as_bytes(),
+    );
+    assert!(line.contains("200"), "{line}");
+    let line = raw(
+        &addr,
+        format!(
+            "POST /resume HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {}\r\nContent-Length: 0\r\n\r\n",
+            tok.to_uppercase()
+        )
+        .as_bytes(),
+    );
+    assert!(line.contains("401"), "{line}");
+    assert_eq!(post(&addr, &state, "/resume", "").0, 200);
     // 2 000 long unknown names: refused, and memory stays flat.
     let before = rss_kb(d.id());
     let long = "x".repeat(8_000);
@@ -840,4 +867,19 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("its scripts were interrupted"), "{err}");
     assert!(stored_tick(&cfg, &state).unwrap_or(0) <= 1);
+}
+
+/// Regression (hostile probe): frames that could not be written (a full
+/// disk, a frames.dir that takes no files) were dropped without a word.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_frame_that_cannot_be_written_is_reported_once() {
+    let (cfg, state, _) = setup("framefail");
+    edit_config(&cfg, "[frames]\n", "[frames]\ndir = \"/proc/self\"\n");
+    let (_, err) = run_ok(&cfg, &state, "--ticks", 30);
+    assert_eq!(
+        err.matches("warning: cannot write frame").count(),
+        1,
+        "{err}"
+    );
 }

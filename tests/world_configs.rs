@@ -107,6 +107,11 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[camera]\nfov = 200.0\n",
             "camera.fov",
         ),
+        // Regression (hostile probe): a subnormal period drew no frames.
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nmode = \"orbit\"\norbit_period_s = 5e-324\n",
+            "camera.orbit_period_s: 5e-324 must be from 0.01 to 1e9 seconds",
+        ),
         // Regression (hostile probe): the command line caps --eye at 1e9.
         (
             "[world]\nsource = \"terrain\"\n[camera]\neye = [1e30, 0.0, 0.0]\ntarget = [0.0, 0.0, 1.0]\n",

@@ -14,7 +14,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::thread::JoinHandle;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Sender, TrySendError, bounded};
 use glam::IVec3;
@@ -136,6 +136,8 @@ impl RenderThread {
                 let mut gpu: Option<(GpuContext, GpuBrickmap)> = None;
                 let mut gpu_tried = false;
                 let mut written = FrameFiles::scan(&settings.frames_dir);
+                // When a frame file last failed to be written, if the last one did.
+                let mut frame_error: Option<Instant> = None;
                 // The render thread's own copy of the world, kept current by
                 // the jobs' deltas: the engine never copies the world again.
                 let mut mirror: Option<SceneWorld> = None;
@@ -236,13 +238,26 @@ impl RenderThread {
                     let tmp = settings
                         .frames_dir
                         .join(format!(".frame-{:08}.png.tmp", job.tick));
-                    if std::fs::write(&tmp, &png)
-                        .and_then(|_| std::fs::rename(&tmp, &path))
-                        .is_ok()
-                    {
-                        written.push(path, png.len() as u64);
-                    } else {
-                        let _ = std::fs::remove_file(&tmp);
+                    match std::fs::write(&tmp, &png).and_then(|_| std::fs::rename(&tmp, &path)) {
+                        Ok(()) => {
+                            written.push(path, png.len() as u64);
+                            if frame_error.take().is_some() {
+                                eprintln!("frames are written again to {}", settings.frames_dir.display());
+                            }
+                        }
+                        Err(e) => {
+                            let _ = std::fs::remove_file(&tmp);
+                            // Said once a minute, not silently dropped
+                            // (regression: a full disk or a bad frames.dir
+                            // left no trace); the live frame still serves.
+                            if frame_error.is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60)) {
+                                eprintln!(
+                                    "warning: cannot write frame {}: {e} (the live view goes on; said at most once a minute)",
+                                    path.display()
+                                );
+                                frame_error = Some(Instant::now());
+                            }
+                        }
                     }
                     written.prune(settings.keep, settings.max_bytes);
                     if let Ok(mut f) = shared.frame.lock() {

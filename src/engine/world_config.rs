@@ -702,20 +702,30 @@ impl WorldConfig {
             "fixed" => CameraMode::Fixed,
             "orbit" => {
                 let p = cam.orbit_period_s.unwrap_or(60.0);
-                if !(p > 0.0 && p.is_finite()) {
+                // At least 10 ms: a subnormal period made the camera's
+                // phase infinite and no frame was drawn (regression).
+                if !(0.01..=1e9).contains(&p) {
                     return Err(err(
                         "camera.orbit_period_s",
-                        format!("{p} must be a positive number of seconds"),
+                        format!(
+                            "{} must be from 0.01 to 1e9 seconds",
+                            crate::sim::fmt_num(p)
+                        ),
                     ));
                 }
                 CameraMode::Orbit { period_s: p }
             }
             "fly" => {
                 let p = cam.fly_period_s.unwrap_or(60.0);
-                if !(p > 0.0 && p.is_finite()) {
+                // At least 10 ms: a subnormal period made the camera's
+                // phase infinite and no frame was drawn (regression).
+                if !(0.01..=1e9).contains(&p) {
                     return Err(err(
                         "camera.fly_period_s",
-                        format!("{p} must be a positive number of seconds"),
+                        format!(
+                            "{} must be from 0.01 to 1e9 seconds",
+                            crate::sim::fmt_num(p)
+                        ),
                     ));
                 }
                 let to = match cam.fly_to {

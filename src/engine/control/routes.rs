@@ -148,11 +148,14 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &At
 }
 
 async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
-    let expected = format!("Bearer {}", shared.token);
-    let authorized = req
-        .headers()
-        .get(AUTHORIZATION)
-        .is_some_and(|v| same_secret(v.as_bytes(), expected.as_bytes()));
+    // The scheme's name is case-insensitive (RFC 9110 §11.1); the token
+    // is compared in constant time.
+    let authorized = req.headers().get(AUTHORIZATION).is_some_and(|v| {
+        let v = v.as_bytes();
+        v.len() > 7
+            && v[..7].eq_ignore_ascii_case(b"bearer ")
+            && same_secret(&v[7..], shared.token.as_bytes())
+    });
     if !authorized {
         return error(
             401,
@@ -336,8 +339,9 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
                     loaded.join(", ")
                 )));
             };
-            let map: std::collections::BTreeMap<String, f64> = serde_json::from_str(body)
-                .map_err(|e| bad(format!("params JSON (an object of numbers): {e}")))?;
+            let map = serde_json::from_str::<UniqueNumbers>(body)
+                .map_err(|e| bad(format!("params JSON (an object of numbers): {e}")))?
+                .0;
             if map.is_empty() {
                 return Err(bad("params JSON names no parameter".into()));
             }
@@ -366,5 +370,39 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             })
         }
         other => Err((404, format!("no route POST {}", shown(other)))),
+    }
+}
+
+/// A JSON object of numbers whose keys are all different (regression:
+/// `{"rain":0.1,"rain":0.2}` was applied, last one winning, while
+/// `/camera` refused duplicate fields).
+struct UniqueNumbers(std::collections::BTreeMap<String, f64>);
+
+impl<'de> serde::Deserialize<'de> for UniqueNumbers {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visit;
+        impl<'de> serde::de::Visitor<'de> for Visit {
+            type Value = UniqueNumbers;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("an object of numbers")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut m: A,
+            ) -> Result<UniqueNumbers, A::Error> {
+                let mut out = std::collections::BTreeMap::new();
+                while let Some((k, v)) = m.next_entry::<String, f64>()? {
+                    if out.contains_key(&k) {
+                        return Err(serde::de::Error::custom(format!(
+                            "duplicate parameter '{}'",
+                            shown(&k)
+                        )));
+                    }
+                    out.insert(k, v);
+                }
+                Ok(UniqueNumbers(out))
+            }
+        }
+        d.deserialize_map(Visit)
     }
 }
