@@ -812,3 +812,25 @@ fn a_refused_import_leaves_no_state_directory_behind() {
     expect_failure(&["import", "/dev/zero", "--state", s], "cannot import");
     assert_eq!(std::fs::read_dir(&state).unwrap().count(), 0, "left files");
 }
+
+/// Regression (hostile probe): `init DIR` wrote through a dangling link at
+/// DIR/world.toml (creating a file outside DIR), and a dangling
+/// DIR/scripts link gave a misleading "File exists".
+#[cfg(unix)]
+#[test]
+fn init_never_writes_through_a_link() {
+    let dir = tmp("init-links");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let outside = tmp("init-outside.toml");
+    let _ = std::fs::remove_file(&outside);
+    std::os::unix::fs::symlink(&outside, dir.join("world.toml")).unwrap();
+    expect_failure(&["init", dir.to_str().unwrap()], "already exists");
+    assert!(!outside.exists(), "written through the link");
+    std::fs::remove_file(dir.join("world.toml")).unwrap();
+    std::os::unix::fs::symlink(tmp("nowhere"), dir.join("scripts")).unwrap();
+    expect_failure(
+        &["init", dir.to_str().unwrap()],
+        "exists and is not a directory",
+    );
+}
