@@ -1,11 +1,15 @@
-//! The script runtime shared by both grids: sandboxed Luau VMs, declarations,
-//! budgets that cannot be caught, deterministic randomness ([`script::StepKey`]),
-//! hot reload, and the scripts built into the binary.
+//! The script runtime shared by both grids: what a script declares
+//! ([`spec`], read by [`declare`]), the sandboxed Luau VMs that run it under
+//! budgets that cannot be caught ([`script`]), deterministic randomness
+//! ([`random`]), hot reload, and the scripts built into the binary.
 
+pub mod declare;
 pub mod embedded;
 pub(crate) mod interrupt;
 pub mod log;
 pub mod materials;
+pub mod random;
 pub mod reload;
 pub mod script;
+pub mod spec;
 pub mod vms;

@@ -1,0 +1,155 @@
+//! What a script declares, as validated data: its grid, channels,
+//! parameters, passes and the rest of the table it returns. Reading that
+//! table is [`super::declare`]; the VMs that run it are [`super::script`].
+//!
+//! A script returns a table:
+//!
+//! ```lua
+//! return {
+//!   channels = { "water", "ground" },               -- every channel it touches
+//!   nonnegative = { "water" },                      -- checked after each step
+//!   params = { gravity = { default = 9.81, min = 0, max = 100 } },
+//!   passes = {
+//!     { name = "flux", reads = { "water", "ground" }, writes = { "water" },
+//!       kernel = function(c, tx, tz) ... end },
+//!   },
+//! }
+//! ```
+
+use std::sync::Arc;
+
+/// A parameter a script declares.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamSpec {
+    /// Name.
+    pub name: String,
+    /// Default value.
+    pub default: f64,
+    /// Smallest allowed value.
+    pub min: f64,
+    /// Largest allowed value.
+    pub max: f64,
+}
+
+/// One pass: channels read (with halo) and written (own tile).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PassSpec {
+    /// Name.
+    pub name: String,
+    /// Channels read with a one-cell halo.
+    pub reads: Vec<String>,
+    /// Channels written.
+    pub writes: Vec<String>,
+}
+
+/// Which grid a script runs over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Grid {
+    /// 8×8 column tiles of `f64` channels (`grid = "columns"`, the default).
+    #[default]
+    Columns,
+    /// 8³ bricks of materials and `f32` per-voxel channels (`grid = "voxels"`).
+    Voxels,
+}
+
+/// The material buffer's name in a voxel kernel's `c.r` / `c.w`.
+pub const MAT: &str = "mat";
+
+/// Voxels in a brick with its one-voxel halo (10³).
+pub const VOXEL_HALO: usize = 1000;
+/// Voxels in a brick.
+pub const VOXEL_CELLS: usize = 512;
+
+/// A column script's CFL declaration: which channel is the depth, which
+/// are velocities, which parameters are gravity and the cell size.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CflSpec {
+    /// Depth channel.
+    pub depth: String,
+    /// Velocity channels.
+    pub velocities: Vec<String>,
+    /// Gravity parameter.
+    pub gravity: String,
+    /// Cell-size parameter.
+    pub dx: String,
+}
+
+/// Parameter values for a reloaded script: each parameter that still
+/// exists keeps its value, clamped into a narrowed range (with a warning);
+/// new ones start at their defaults.
+pub fn carry_params(
+    old: &ScriptSpec,
+    old_values: &[f64],
+    new: &ScriptSpec,
+) -> (Vec<f64>, Vec<String>) {
+    let mut values: Vec<f64> = new.params.iter().map(|p| p.default).collect();
+    let mut warnings = Vec::new();
+    for (i, p) in new.params.iter().enumerate() {
+        if let Some(j) = old.params.iter().position(|q| q.name == p.name) {
+            let v = old_values[j];
+            let kept = v.clamp(p.min, p.max);
+            if kept != v {
+                warnings.push(format!(
+                    "{}.lua: parameter '{}' = {v} is outside its new range [{}, {}]; clamped to {kept}",
+                    new.name, p.name, p.min, p.max
+                ));
+            }
+            values[i] = kept;
+        }
+    }
+    (values, warnings)
+}
+
+/// What a script declares, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScriptSpec {
+    /// Script name (file stem).
+    pub name: String,
+    /// The grid it runs over.
+    pub grid: Grid,
+    /// Materials it names (`c.m.NAME` holds each id), voxel scripts only.
+    pub materials: Vec<String>,
+    /// Run only on bricks that hold one of these materials (empty: all
+    /// active bricks), voxel scripts only.
+    pub only: Vec<String>,
+    /// Bricks holding one of these materials never sleep (a lava source).
+    pub keep_awake: Vec<String>,
+    /// Channels whose total the runtime reports and checks stays constant
+    /// (to round-off) across the script's step.
+    pub conserved: Vec<String>,
+    /// Also run on the world's top layer of bricks, awake or not (rain).
+    pub sky: bool,
+    /// Halo values outside the world, per channel (default 0): a wall of
+    /// `ground` is `boundary = { ground = 1e9 }`.
+    pub boundary: Vec<(String, f64)>,
+    /// Column scripts: the gravity-wave CFL limit the runtime sub-steps
+    /// for, `cfl = { depth = "water", velocities = { "u", "v" }, gravity =
+    /// "gravity", dx = "dx" }` (channel and parameter names).
+    pub cfl: Option<CflSpec>,
+    /// Column scripts: channels drained into the moat at the world's edges
+    /// (counted, so world + drained is conserved).
+    pub drains: Vec<String>,
+    /// Initial conditions of a freshly built world: (channel, material):
+    /// the channel is set to 1 in every voxel of the material.
+    pub fills: Vec<(String, String)>,
+    /// Channels used.
+    pub channels: Vec<String>,
+    /// Channels that must stay ≥ 0.
+    pub nonnegative: Vec<String>,
+    /// Parameters.
+    pub params: Vec<ParamSpec>,
+    /// Declared value ranges: (channel, min, max). A step that writes a
+    /// value outside is rejected; undeclared channels get a default bound.
+    pub ranges: Vec<(String, f64, f64)>,
+    /// Passes, run in order each step.
+    pub passes: Vec<PassSpec>,
+}
+
+/// Source of a script.
+#[derive(Clone, Debug)]
+pub struct ScriptSource {
+    /// Script name (file stem), used in every error.
+    pub name: String,
+    /// Source text.
+    pub text: Arc<str>,
+}
