@@ -36,11 +36,13 @@ fn logs() -> &'static Mutex<FxHashMap<String, ScriptLog>> {
 pub fn push(script: &str, line: String) {
     // Control characters are written as escapes: a script's newline, CR or
     // terminal escape must not forge daemon log lines or drive the
-    // terminal (regression).
-    let mut line = if line.chars().any(char::is_control) {
+    // terminal (regression). Tab stays: it separates `log`'s arguments and
+    // cannot break a line.
+    let escaped = |c: char| c.is_control() && c != '\t';
+    let mut line = if line.chars().any(escaped) {
         line.chars()
             .map(|c| {
-                if c.is_control() {
+                if escaped(c) {
                     c.escape_default().to_string()
                 } else {
                     c.to_string()
@@ -114,8 +116,13 @@ mod tests {
     /// NUL went raw to the daemon's stderr.
     #[test]
     fn control_characters_are_escaped_into_one_line() {
-        push("escapes-test", "first\nsecond\r\u{1b}[31mRED\u{0}".into());
+        push(
+            "escapes-test",
+            "first\nsecond\r\u{1b}[31mRED\u{0}\tok".into(),
+        );
         let (lines, _, _) = recent("escapes-test");
-        assert_eq!(lines, ["first\\nsecond\\r\\u{1b}[31mRED\\u{0}"]);
+        // The tab between `log`'s arguments is kept (regression: the escape
+        // turned every separator into a literal "\t").
+        assert_eq!(lines, ["first\\nsecond\\r\\u{1b}[31mRED\\u{0}\tok"]);
     }
 }
