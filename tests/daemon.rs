@@ -105,7 +105,11 @@ fn status_pause_step_and_control_errors() {
     assert_eq!(code, 400, "{body}");
     assert!(body.contains("outside [0, 10]"), "{body}");
     assert_eq!(request(&addr, "GET", "/", None, "").unwrap().0, 200);
-    assert_eq!(post(&addr, &state, "/commit", "").0, 200);
+    // 200 means written: the answer waits for the commit.
+    let (code, body) = post(&addr, &state, "/commit", "");
+    assert_eq!(code, 200, "{body}");
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(v["applied"], true, "{body}");
     std::thread::sleep(Duration::from_millis(500));
     let c = &status(&addr)["last_commit"];
     assert!(c["tick"].is_u64() && c["ms"].is_f64(), "{c}");

@@ -859,6 +859,12 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
         std::thread::sleep(Duration::from_millis(50));
     }
     std::thread::sleep(Duration::from_millis(500));
+    // A commit asked for while the step runs is not claimed done
+    // (regression: `POST /commit` answered 200 on queueing).
+    let (code, body) = post(&addr, &state, "/commit", "");
+    assert_eq!(code, 202, "{body}");
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(v["applied"], false, "{body}");
     let t = Instant::now();
     let out = stop(d);
     let took = t.elapsed();

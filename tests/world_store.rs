@@ -473,6 +473,41 @@ fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
     );
 }
 
+/// Regression: `POST /commit` answered 200 on queueing, so a commit that
+/// then failed (a full disk) looked written. Now the answer waits for the
+/// commit and a failure is a 500 with the reason.
+#[test]
+fn a_commit_that_fails_answers_500_with_the_reason() {
+    let (cfg, state, addr) = setup("commit500");
+    edit_config(&cfg, "rain = 0.2", "rain = 2.0");
+    hash_at(&cfg, &state, 20);
+    let size = std::fs::metadata(state.join("world.redb")).unwrap().len();
+    let d = Daemon(Some(
+        run_cmd(&cfg, &state)
+            .env("BRICKWORLD_TEST_DISK_LIMIT", size.to_string())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap(),
+    ));
+    wait_ready(&addr);
+    // Let the rain change the world, so the commit has something to write.
+    let t = std::time::Instant::now();
+    while status(&addr)["tick"].as_u64().unwrap() < 25 {
+        assert!(t.elapsed() < std::time::Duration::from_secs(60));
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let (code, body) = post(&addr, &state, "/commit", "");
+    assert_eq!(code, 500, "{body}");
+    assert!(
+        body.contains("the commit failed") && body.contains("No space left on device"),
+        "{body}"
+    );
+    // The final commit fails as well: the stop reports it.
+    let out = stop(d);
+    assert!(!out.status.success());
+}
+
 /// Regression: a resume set the scripts' parameters after restoring which
 /// tiles sleep, and setting a parameter wakes every tile, so a resumed world
 /// woke up entirely (same results, but not the same work). The active tiles

@@ -184,7 +184,10 @@ pub enum Command {
     /// Run N steps, then stay paused (pauses first if running).
     Step(u64),
     /// Commit what changed to the world store now.
-    Checkpoint,
+    Checkpoint {
+        /// Where the engine says whether the commit was written.
+        verdict: live::VerdictSlot,
+    },
     /// Go back to the world's configured camera (path).
     CameraPath,
     /// Set a camera.

@@ -7,7 +7,9 @@
 //! time). `POST /auth` only checks the token (the viewer's login).
 //! `POST /scripts/NAME/params` waits up to [`VERDICT_WAIT`] for the
 //! engine's verdict and answers 409 with the reason when the engine refuses
-//! (202 if it has not decided yet). `POST /camera` from a viewer (a
+//! (202 if it has not decided yet). `POST /commit` (or `/checkpoint`) waits
+//! as long for the commit: 200 once written, 500 with the reason if it
+//! failed, 202 if the engine is still busy. `POST /camera` from a viewer (a
 //! `viewer` id in the body) holds the camera lease; another viewer's move
 //! meanwhile gets 409.
 //! Unknown routes get 404, malformed requests or refused values 400, a
@@ -35,7 +37,7 @@ use super::{Command, MAX_BODY, MAX_QUEUED_COMMANDS, Shared, Status};
 /// A response: a whole body, or an event stream.
 pub type Reply = Response<BoxBody<Bytes, Infallible>>;
 
-/// Longest a parameter change waits for the engine's verdict.
+/// Longest a parameter change or a commit waits for the engine's verdict.
 pub const VERDICT_WAIT: Duration = Duration::from_secs(3);
 
 fn reply(code: u16, content_type: &'static str, body: impl Into<Bytes>) -> Reply {
@@ -208,11 +210,12 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
     match cmd {
         Ok(mut cmd) => {
             let mut wait = None;
-            if let Command::Params { verdict, .. } = &mut cmd {
+            if let Command::Params { verdict, .. } | Command::Checkpoint { verdict } = &mut cmd {
                 let (slot, rx) = VerdictSlot::new();
                 *verdict = slot;
                 wait = Some(rx);
             }
+            let commit = matches!(cmd, Command::Checkpoint { .. });
             // One decision under the queue's lock: a full queue refuses
             // before the camera lease is taken or renewed.
             let refused = {
@@ -245,6 +248,11 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
             };
             match tokio::time::timeout(VERDICT_WAIT, rx).await {
                 Ok(Ok(Ok(()))) => json(200, &serde_json::json!({ "ok": true, "applied": true })),
+                // A commit that failed (a full disk): the server's fault,
+                // not the request's; the engine retries at every commit.
+                Ok(Ok(Err(reason))) if commit => {
+                    error(500, &format!("the commit failed: {reason}"))
+                }
                 Ok(Ok(Err(reason))) => error(409, &reason),
                 // The engine is busy (a long step) or stopping: queued.
                 _ => json(
@@ -265,7 +273,9 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
     match path {
         "/pause" => Ok(Command::Pause),
         "/resume" => Ok(Command::Resume),
-        "/checkpoint" | "/commit" => Ok(Command::Checkpoint),
+        "/checkpoint" | "/commit" => Ok(Command::Checkpoint {
+            verdict: VerdictSlot::default(),
+        }),
         "/step" => {
             let t = body.trim();
             let n = if t.is_empty() {

@@ -34,6 +34,7 @@ use super::control::{
     CheckpointRef, Command, CommitRef, ControlServer, ParamStatus, ScriptStatus, Shared, Status,
 };
 mod follow;
+mod rate;
 mod start;
 
 use super::checkpoint::CameraOverride;
@@ -181,8 +182,7 @@ pub struct Engine {
     commit_error: Option<String>,
     snapshot_ms: f64,
     active_bricks: usize,
-    rate_window: (Instant, u64),
-    steps_per_s: f64,
+    rate: rate::StepRate,
     start_tick: u64,
     /// Milliseconds each script took in the last step (script id order).
     script_ms: Vec<f64>,
@@ -299,7 +299,15 @@ impl Engine {
                     self.paused = true;
                     self.steps_left = (self.steps_left + n).min(100_000);
                 }
-                Command::Checkpoint => self.commit(),
+                Command::Checkpoint { verdict } => {
+                    self.commit();
+                    // The caller learns whether it was written (regression:
+                    // 200 was answered on queueing, before any commit).
+                    verdict.send(match &self.commit_error {
+                        None => Ok(()),
+                        Some(e) => Err(e.clone()),
+                    });
+                }
                 Command::Camera {
                     eye, target, fov, ..
                 } => {
@@ -371,12 +379,7 @@ impl Engine {
                 self.notes[i].step_error = Some(e.to_string());
             }
         }
-        self.rate_window.1 += 1;
-        let elapsed = self.rate_window.0.elapsed().as_secs_f64();
-        if elapsed >= 1.0 {
-            self.steps_per_s = self.rate_window.1 as f64 / elapsed;
-            self.rate_window = (Instant::now(), 0);
-        }
+        self.rate.step(Instant::now());
         self.active_bricks = r.active_tiles;
         self.script_ms = (0..self.ws.script_count())
             .map(|i| self.ws.script_ms(&r, i))
@@ -593,7 +596,7 @@ impl Engine {
         let stats = &self.renderer.stats;
         let row = Row {
             tick,
-            steps_per_s: self.steps_per_s,
+            steps_per_s: self.rate.per_s(),
             active_bricks: r.active_tiles,
             dirty_bricks: self.dirty_pending.len(),
             frame_ms: stats.frame_ms(),
@@ -656,7 +659,7 @@ impl Engine {
         };
         ScriptStatus {
             name: spec.name.clone(),
-            steps_per_s: self.steps_per_s,
+            steps_per_s: self.rate.per_s(),
             state: state.into(),
             error,
             failures_in_a_row: sim.failures(i),
