@@ -4,6 +4,7 @@
 //! terrain, the Ritter dam break and the lake at rest.
 
 pub mod channels;
+mod exec;
 pub mod native;
 pub mod run;
 pub mod step;

@@ -12,6 +12,9 @@
 //! **Active set.** A tile that did not change for [`SLEEP_AFTER`] steps
 //! sleeps; a change wakes its neighbourhood; edits wake tiles explicitly.
 //! Cost therefore grows with the active tiles, not the world.
+//!
+//! One script's step over the work set (gather, passes, validation) is
+//! [`super::exec`].
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -20,10 +23,11 @@ use glam::IVec2;
 use rayon::prelude::*;
 use rustc_hash::{FxHashMap, FxHashSet};
 
+use super::exec::{StepContext, StepScratch, WorkSet, run_script};
 use crate::sim::SimError;
 use crate::sim::channels::{ChannelId, ChannelStore};
 use crate::sim::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
-use crate::sim::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, neighbourhood};
+use crate::sim::tile::{HALO_CELLS, TILE_CELLS, TileCoord, neighbourhood};
 
 /// Steps without change before a tile sleeps.
 pub const SLEEP_AFTER: u8 = 2;
@@ -65,22 +69,23 @@ pub enum Kernel {
 static NEXT_UID: AtomicU64 = AtomicU64::new(1);
 static STEP_SERIAL: AtomicU64 = AtomicU64::new(1);
 
-struct Loaded {
-    uid: u64,
-    src: ScriptSource,
-    spec: ScriptSpec,
-    params: Vec<f64>,
-    ids: Vec<ChannelId>,
-    boundary: Vec<f64>,
-    nonneg: Vec<usize>,
-    kernel: Kernel,
-    limits: Limits,
+/// A loaded script: its declarations, channel ids, parameters and health.
+pub(super) struct Loaded {
+    pub(super) uid: u64,
+    pub(super) src: ScriptSource,
+    pub(super) spec: ScriptSpec,
+    pub(super) params: Vec<f64>,
+    pub(super) ids: Vec<ChannelId>,
+    pub(super) boundary: Vec<f64>,
+    pub(super) nonneg: Vec<usize>,
+    pub(super) kernel: Kernel,
+    pub(super) limits: Limits,
     /// Run on ticks that are multiples of this.
-    every: u64,
+    pub(super) every: u64,
     /// Failed steps in a row.
-    failures: u32,
+    pub(super) failures: u32,
     /// Why the script is suspended, if it is.
-    suspended: Option<SimError>,
+    pub(super) suspended: Option<SimError>,
 }
 
 /// What one step did.
@@ -123,18 +128,6 @@ pub struct Simulation {
     scratch: StepScratch,
 }
 
-/// A step's dense working buffers, kept between steps.
-#[derive(Default)]
-struct StepScratch {
-    /// The running script's channels over the work set, tile-major (all of
-    /// a tile's channels side by side, so a tile's halo reads nine short
-    /// runs of memory instead of 9 × channels scattered ones): channel `i`
-    /// of work-set tile `w` is `data[w * channels + i]`.
-    data: Vec<[f64; TILE_CELLS]>,
-    /// One pass's outputs, per active tile and written channel.
-    outs: Vec<[f64; TILE_CELLS]>,
-}
-
 /// Which tiles sleep and how close the awake ones are to sleeping: part of
 /// what defines a world's future, so checkpoints save it.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -143,118 +136,6 @@ pub struct SleepState {
     pub active: Vec<TileCoord>,
     /// Awake tiles' quiet-step counters, sorted by tile.
     pub quiet: Vec<(TileCoord, u8)>,
-}
-
-/// The tiles a step touches: the active ones and their neighbours, densely
-/// indexed, with each active tile's 3×3 neighbourhood as indices.
-struct WorkSet {
-    tiles: Vec<TileCoord>,
-    active: Vec<u32>,
-    nbr: Vec<[u32; 9]>,
-}
-
-const OUTSIDE: u32 = u32::MAX;
-
-impl WorkSet {
-    fn new(active: &[TileCoord], min: TileCoord, max: TileCoord) -> Self {
-        let inside = |t: TileCoord| t.cmpge(min).all() && t.cmplt(max).all();
-        let mut tiles: Vec<TileCoord> = active
-            .iter()
-            .flat_map(|&t| neighbourhood(t))
-            .filter(|&t| inside(t))
-            .collect();
-        tiles.sort_by_key(|t| (t.y, t.x));
-        tiles.dedup();
-        let index: FxHashMap<TileCoord, u32> = tiles
-            .iter()
-            .enumerate()
-            .map(|(i, t)| (*t, i as u32))
-            .collect();
-        let active_idx = active.iter().map(|t| index[t]).collect();
-        let nbr = active
-            .iter()
-            .map(|&t| {
-                let mut n = [OUTSIDE; 9];
-                for (k, nt) in neighbourhood(t).enumerate() {
-                    if let Some(&i) = index.get(&nt) {
-                        n[k] = i;
-                    }
-                }
-                n
-            })
-            .collect();
-        WorkSet {
-            tiles,
-            active: active_idx,
-            nbr,
-        }
-    }
-
-    /// Gather the halo of active tile `k` from dense `data`: rows and
-    /// columns copied as slices, outside-world neighbours filled with
-    /// `boundary`.
-    /// `data` is tile-major: channel `ch` of work-set tile `w` is
-    /// `data[w * stride + ch]`.
-    fn gather(
-        &self,
-        k: usize,
-        (data, stride, ch): (&[[f64; TILE_CELLS]], usize, usize),
-        boundary: f64,
-        out: &mut [f64; HALO_CELLS],
-    ) {
-        let n = &self.nbr[k];
-        let get = |i: usize| {
-            if n[i] == OUTSIDE {
-                None
-            } else {
-                Some(&data[n[i] as usize * stride + ch])
-            }
-        };
-        let t = TILE as usize;
-        // The −z row, the tile's own rows, the +z row.
-        fn row(
-            out: &mut [f64; HALO_CELLS],
-            hz: usize,
-            src: Option<&[f64; TILE_CELLS]>,
-            sz: usize,
-            boundary: f64,
-        ) {
-            let t = TILE as usize;
-            let dst = &mut out[hz * 10 + 1..hz * 10 + 1 + t];
-            match src {
-                Some(d) => dst.copy_from_slice(&d[sz * t..sz * t + t]),
-                None => dst.fill(boundary),
-            }
-        }
-        row(out, 0, get(1), t - 1, boundary);
-        for z in 0..t {
-            row(out, z + 1, get(4), z, boundary);
-        }
-        row(out, t + 1, get(7), 0, boundary);
-        // −x and +x columns, and the corners.
-        for (hz, sz, left, right) in [(0usize, t - 1, 0usize, 2usize), (t + 1, 0, 6, 8)] {
-            out[hz * 10] = get(left).map_or(boundary, |d| d[sz * t + t - 1]);
-            out[hz * 10 + 9] = get(right).map_or(boundary, |d| d[sz * t]);
-        }
-        let (l, r) = (get(3), get(5));
-        for z in 0..t {
-            out[(z + 1) * 10] = l.map_or(boundary, |d| d[z * t + t - 1]);
-            out[(z + 1) * 10 + 9] = r.map_or(boundary, |d| d[z * t]);
-        }
-    }
-}
-
-/// `v` as little-endian bytes: the values themselves on a little-endian
-/// machine, else converted into `scratch`.
-fn le_bytes<'a>(v: &'a [f64], scratch: &'a mut [u8]) -> &'a [u8] {
-    if cfg!(target_endian = "little") {
-        bytemuck::cast_slice(v)
-    } else {
-        for (i, x) in v.iter().enumerate() {
-            scratch[i * 8..i * 8 + 8].copy_from_slice(&x.to_le_bytes());
-        }
-        &scratch[..v.len() * 8]
-    }
 }
 
 impl Simulation {
@@ -692,191 +573,4 @@ impl Simulation {
             ..Default::default()
         }
     }
-}
-
-/// What every tile of a step shares.
-struct StepContext {
-    dt: f64,
-    /// Identifies the step to the per-thread VMs (prepared once per step).
-    serial: u64,
-    seed: u64,
-    tick: u64,
-    default_bound: f64,
-}
-
-/// Run one script's passes over the work set. Returns, for each channel it
-/// wrote (index in its spec), the dense data after the step.
-fn run_script(
-    s: &Loaded,
-    base: &ChannelStore,
-    ws: &WorkSet,
-    ctx: &StepContext,
-    scratch: &mut StepScratch,
-) -> Result<Vec<usize>, SimError> {
-    let (dt, serial) = (ctx.dt, ctx.serial);
-    let key = StepKey::new(ctx.seed, ctx.tick, &s.spec.name);
-    let n = s.spec.channels.len();
-    // Dense previous generation of every channel this script uses, gathered
-    // in parallel into the reused buffers.
-    let StepScratch { data, outs } = scratch;
-    data.resize(ws.tiles.len() * n, [0.0; TILE_CELLS]);
-    data.par_chunks_mut(n)
-        .zip(ws.tiles.par_iter())
-        .for_each(|(d, &t)| {
-            for (d, &id) in d.iter_mut().zip(&s.ids) {
-                *d = base.get(t, id).copied().unwrap_or([0.0; TILE_CELLS]);
-            }
-        });
-    let mut written = vec![false; n];
-    for (pi, pass) in s.spec.passes.iter().enumerate() {
-        let read_idx: Vec<usize> = pass
-            .reads
-            .iter()
-            .map(|r| s.spec.channels.iter().position(|c| c == r).unwrap_or(0))
-            .collect();
-        let write_idx: Vec<usize> = pass
-            .writes
-            .iter()
-            .map(|w| s.spec.channels.iter().position(|c| c == w).unwrap_or(0))
-            .collect();
-        let data_ref = &*data;
-        let nw = write_idx.len();
-        outs.resize(ws.active.len() * nw, [0.0; TILE_CELLS]);
-        outs.par_chunks_mut(nw).enumerate().try_for_each_init(
-            || (vec![[0.0f64; HALO_CELLS]; n], vec![[0.0f64; TILE_CELLS]; n]),
-            |(reads, writes), (k, out)| -> Result<(), SimError> {
-                for &i in &read_idx {
-                    ws.gather(k, (data_ref, n, i), s.boundary[i], &mut reads[i]);
-                }
-                let w = ws.active[k] as usize;
-                for &i in &write_idx {
-                    writes[i] = data_ref[w * n + i];
-                }
-                let t = ws.tiles[w];
-                match &s.kernel {
-                    Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
-                    Kernel::Lua => run_lua(
-                        s, pi, t, dt, serial, key, &read_idx, &write_idx, reads, writes,
-                    )?,
-                }
-                for (j, &i) in write_idx.iter().enumerate() {
-                    out[j] = writes[i];
-                }
-                Ok(())
-            },
-        )?;
-        // Commit the pass into the dense generation (double buffering: every
-        // tile of this pass read the previous values).
-        for (k, out) in outs.chunks(nw).enumerate() {
-            let w = ws.active[k] as usize;
-            for (j, &i) in write_idx.iter().enumerate() {
-                data[w * n + i] = out[j];
-            }
-        }
-        for &i in &write_idx {
-            written[i] = true;
-        }
-    }
-    // Reject blow-ups and out-of-bound values before they reach the world.
-    for i in (0..n).filter(|&i| written[i]) {
-        let nonneg = s.nonneg.contains(&i);
-        let name = &s.spec.channels[i];
-        let (lo, hi, why) = match s.spec.ranges.iter().find(|r| &r.0 == name) {
-            Some(r) => (r.1, r.2, "its declared range".to_string()),
-            None => (
-                -ctx.default_bound,
-                ctx.default_bound,
-                format!(
-                    "{DEFAULT_BOUND_HEIGHTS} world heights of at least {MIN_BOUND_HEIGHT}; declare `ranges` to change it"
-                ),
-            ),
-        };
-        let d = |w: u32| &data[w as usize * n + i];
-        let out_of_bounds = ws.active.par_iter().find_map_first(|&w| {
-            match d(w).iter().enumerate().find(|(_, x)| **x < lo || **x > hi) {
-                Some((c, x)) if x.is_finite() => Some((w, c, *x)),
-                _ => None,
-            }
-        });
-        if let Some((w, c, x)) = out_of_bounds {
-            let t = ws.tiles[w as usize];
-            return Err(SimError::OutOfBounds {
-                script: s.spec.name.clone(),
-                channel: name.clone(),
-                column: (
-                    t.x * TILE + (c as i32 % TILE),
-                    t.y * TILE + (c as i32 / TILE),
-                ),
-                value: x,
-                bound: (lo, hi),
-                why,
-            });
-        }
-        let unstable = ws.active.par_iter().find_map_first(|&w| {
-            d(w).iter()
-                .enumerate()
-                .find(|(_, x)| !x.is_finite() || (nonneg && **x < -1e-9))
-                .map(|(c, x)| (w, c, *x))
-        });
-        if let Some((w, c, x)) = unstable {
-            let t = ws.tiles[w as usize];
-            return Err(SimError::Unstable {
-                script: s.spec.name.clone(),
-                msg: format!(
-                    "channel '{}' = {x} at column ({}, {}); reduce dt (or enable sub-stepping)",
-                    s.spec.channels[i],
-                    t.x * TILE + (c as i32 % TILE),
-                    t.y * TILE + (c as i32 / TILE)
-                ),
-            });
-        }
-    }
-    Ok((0..n).filter(|&i| written[i]).collect())
-}
-
-/// One tile of one pass in this thread's VM of the script (loaded on first
-/// use, prepared once per step).
-#[allow(clippy::too_many_arguments)]
-fn run_lua(
-    s: &Loaded,
-    pass: usize,
-    t: TileCoord,
-    dt: f64,
-    serial: u64,
-    key: StepKey,
-    read_idx: &[usize],
-    write_idx: &[usize],
-    reads: &[[f64; HALO_CELLS]],
-    writes: &mut [[f64; TILE_CELLS]],
-) -> Result<(), SimError> {
-    crate::sim::runtime::vms::with_vm(s.uid, &s.src, s.limits, |vm, prepared| {
-        if *prepared != serial {
-            vm.begin_step(dt, &s.spec, &s.params, key, &[])?;
-            *prepared = serial;
-        }
-        // Luau buffers hold little-endian f64s: on a little-endian machine
-        // the values' own bytes are copied straight in and out.
-        let mut rb = [0u8; HALO_CELLS * 8];
-        for &i in read_idx {
-            vm.read_buffer(i)
-                .write_bytes(0, le_bytes(&reads[i], &mut rb));
-        }
-        let mut wb = [0u8; TILE_CELLS * 8];
-        for &i in write_idx {
-            vm.write_buffer(i)
-                .write_bytes(0, le_bytes(&writes[i], &mut wb));
-        }
-        vm.run(pass, &s.spec.passes[pass].name, t.x, t.y)?;
-        for &i in write_idx {
-            let bytes: [u8; TILE_CELLS * 8] = vm.write_buffer(i).read_bytes(0);
-            if cfg!(target_endian = "little") {
-                bytemuck::cast_slice_mut::<f64, u8>(&mut writes[i]).copy_from_slice(&bytes);
-            } else {
-                for (k, w) in writes[i].iter_mut().enumerate() {
-                    *w = f64::from_le_bytes(bytes[k * 8..k * 8 + 8].try_into().expect("8 bytes"));
-                }
-            }
-        }
-        Ok(())
-    })
 }
