@@ -148,6 +148,19 @@ fn bad_files_give_clear_errors() {
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
     expect_error(SceneSpec::Heightmap(cut), "not a valid PNG heightmap");
 
+    // A chunk before IHDR: the decoder's debug text of the chunk type is
+    // turned into its name (regression: `ChunkType { type: AGEG, critical:
+    // true, private: false, … }`).
+    let early = tmp("early-chunk.png");
+    std::fs::write(&early, b"\x89PNG\r\n\x1a\nGARBAGEGARBAGE").unwrap();
+    let e = build(SceneSpec::Heightmap(early))
+        .expect_err("must fail")
+        .to_string();
+    assert!(
+        e.contains("chunk 'AGEG'") && !e.contains("ChunkType"),
+        "{e}"
+    );
+
     // Truncated .vox: the documented placeholder cut short.
     let vox = std::fs::read(dot_vox_dir().join("src/resources/placeholder.vox")).unwrap();
     let cut = tmp("cut.vox");

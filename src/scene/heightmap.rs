@@ -22,6 +22,23 @@ const RAMP: u8 = 200; // materials 1..=200: height ramp
 const ROCK: u8 = 201; // 201..=240: steep slopes by height
 const DEEP: u8 = 255;
 
+/// A PNG decoder error as one readable line: the decoder prints a chunk's
+/// type as its debug struct (`ChunkType { type: AGEG, critical: true, … }`),
+/// which becomes `chunk 'AGEG'` (regression).
+fn png_message(e: png::DecodingError) -> String {
+    let mut msg = e.to_string();
+    while let Some(i) = msg.find("ChunkType { type: ") {
+        let rest = &msg[i + "ChunkType { type: ".len()..];
+        let name: String = rest
+            .chars()
+            .take_while(|c| c.is_ascii_alphanumeric())
+            .collect();
+        let end = msg[i..].find('}').map_or(msg.len(), |j| i + j + 1);
+        msg.replace_range(i..end, &format!("chunk '{name}'"));
+    }
+    msg.trim_end_matches('.').to_string()
+}
+
 /// A decoded heightmap.
 #[derive(Clone, Debug)]
 pub struct Heightmap {
@@ -61,7 +78,7 @@ impl Heightmap {
     pub fn decode(bytes: &[u8]) -> Result<Self, String> {
         let mut decoder = png::Decoder::new(Cursor::new(bytes));
         decoder.set_limits(png::Limits { bytes: 1 << 30 });
-        let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
+        let mut reader = decoder.read_info().map_err(png_message)?;
         let info = reader.info();
         let (w, h) = (info.width, info.height);
         if w > MAX_SIDE || h > MAX_SIDE {
@@ -80,7 +97,7 @@ impl Heightmap {
         }
         let size = reader.output_buffer_size().ok_or("image too large")?;
         let mut buf = vec![0u8; size];
-        let frame = reader.next_frame(&mut buf).map_err(|e| e.to_string())?;
+        let frame = reader.next_frame(&mut buf).map_err(png_message)?;
         let stride = frame.line_size;
         let mut heights = Vec::with_capacity((w * h) as usize);
         for v in 0..h as usize {
