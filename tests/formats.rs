@@ -157,7 +157,7 @@ fn bad_files_give_clear_errors() {
         .expect_err("must fail")
         .to_string();
     assert!(
-        e.contains("chunk 'AGEG'") && !e.contains("ChunkType"),
+        e.contains("'AGEG' chunk appeared") && !e.contains("ChunkType"),
         "{e}"
     );
 

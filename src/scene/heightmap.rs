@@ -24,7 +24,7 @@ const DEEP: u8 = 255;
 
 /// A PNG decoder error as one readable line: the decoder prints a chunk's
 /// type as its debug struct (`ChunkType { type: AGEG, critical: true, … }`),
-/// which becomes `chunk 'AGEG'` (regression).
+/// which becomes `'AGEG'` (regression).
 fn png_message(e: png::DecodingError) -> String {
     let mut msg = e.to_string();
     while let Some(i) = msg.find("ChunkType { type: ") {
@@ -34,7 +34,7 @@ fn png_message(e: png::DecodingError) -> String {
             .take_while(|c| c.is_ascii_alphanumeric())
             .collect();
         let end = msg[i..].find('}').map_or(msg.len(), |j| i + j + 1);
-        msg.replace_range(i..end, &format!("chunk '{name}'"));
+        msg.replace_range(i..end, &format!("'{name}'"));
     }
     msg.trim_end_matches('.').to_string()
 }
