@@ -235,6 +235,18 @@ fn bad_configs_name_the_file_field_and_reason() {
             "checkpoint.every",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[frames]\nevery = 0\n",
+            "frames.every: 0 is outside 1..=100000000 ticks",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[frames]\nkeep = 0\n",
+            "frames.keep: 0 is outside 1..=1000000",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[[place]]\nmaterial = \"lava\"\nat = [0, 0, 0]\nsize = [0, 1, 1]\n",
+            "place[0]: at [0, 0, 0] size [0, 1, 1]: sizes must be 1..=65536",
+        ),
+        (
             "[world]\nsource = \"terrain\"\n[control]\naddr = \"localhost\"\n",
             "control.addr",
         ),
