@@ -132,3 +132,45 @@ fn a_replaced_scripts_directory_is_watched_anew() {
             .any(|p| p.ends_with("other.lua"))
     );
 }
+
+/// Regression (review): a scripts directory removed and made again at once
+/// (`rm -rf scripts && cp -r backup scripts`) often gets its inode back on
+/// ext4, so the (device, inode) check saw no change, the dead watch was kept,
+/// and later edits were never reloaded. The watch now notices that its
+/// directory itself went away.
+#[test]
+fn a_scripts_directory_removed_and_made_again_is_watched_anew() {
+    let root = std::env::temp_dir().join(format!("bw-remade-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let dir = root.join("scripts");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("heat.lua"), V1).unwrap();
+    let mut w = ScriptWatcher::new(&dir, Duration::from_millis(50)).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+    std::fs::create_dir(&dir).unwrap();
+    std::fs::write(dir.join("heat.lua"), V1).unwrap();
+    // Past the identity recheck: the watcher has had its chance to re-watch.
+    let t = Instant::now();
+    let mut notes = Vec::new();
+    while t.elapsed() < brickworld::sim::reload::RECHECK * 3 {
+        w.poll();
+        notes.extend(w.take_notes());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(
+        notes.iter().any(|n| n.contains("was replaced")),
+        "{notes:?}"
+    );
+    // An edit in the new directory is reported.
+    save_like_an_editor(
+        &dir.join("heat.lua"),
+        &V1.replace("+ c.p.rate", "+ 3 * c.p.rate"),
+    );
+    assert!(
+        wait_for_change(&mut w)
+            .iter()
+            .any(|p| p.ends_with("heat.lua")),
+        "{notes:?}"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}

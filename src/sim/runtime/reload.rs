@@ -8,9 +8,12 @@
 //! step boundary; a broken save leaves the last good version running.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, unbounded};
+use notify::event::ModifyKind;
 use notify::{EventKind, RecursiveMode, Watcher};
 use rustc_hash::FxHashMap;
 
@@ -22,7 +25,7 @@ use crate::sim::SimError;
 /// changed (regression: hot reload stopped silently, and a moved-away
 /// directory's edits were read from the new one).
 pub struct ScriptWatcher {
-    watcher: Option<notify::RecommendedWatcher>,
+    watcher: Option<Watch>,
     events: Receiver<PathBuf>,
     tx: crossbeam_channel::Sender<PathBuf>,
     pending: FxHashMap<PathBuf, Instant>,
@@ -51,14 +54,32 @@ fn identity(dir: &Path) -> Option<(u64, u64)> {
     }
 }
 
-fn watch(
-    dir: &Path,
-    tx: crossbeam_channel::Sender<PathBuf>,
-) -> Result<notify::RecommendedWatcher, SimError> {
+/// A watch on one directory, and whether it was lost: the directory itself
+/// was removed or moved (its watch then ends), or events were dropped.
+struct Watch {
+    _watcher: notify::RecommendedWatcher,
+    lost: Arc<AtomicBool>,
+}
+
+fn watch(dir: &Path, tx: crossbeam_channel::Sender<PathBuf>) -> Result<Watch, SimError> {
+    let lost = Arc::new(AtomicBool::new(false));
+    let flag = lost.clone();
+    let own = dir.to_path_buf();
     let mut watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| {
-        if let Ok(ev) = res
-            && matches!(ev.kind, EventKind::Create(_) | EventKind::Modify(_))
+        let Ok(ev) = res else { return };
+        // The directory itself removed or renamed: its inode may come back
+        // at once for a new directory made in its place (`rm -rf scripts &&
+        // cp -r backup scripts` on ext4), so identity alone cannot tell
+        // (regression).
+        if ev.need_rescan()
+            || (matches!(
+                ev.kind,
+                EventKind::Remove(_) | EventKind::Modify(ModifyKind::Name(_))
+            ) && ev.paths.iter().any(|p| p == &own))
         {
+            flag.store(true, Ordering::Relaxed);
+        }
+        if matches!(ev.kind, EventKind::Create(_) | EventKind::Modify(_)) {
             for p in ev.paths {
                 if p.extension().is_some_and(|e| e == "lua") {
                     let _ = tx.send(p);
@@ -70,7 +91,10 @@ fn watch(
     watcher
         .watch(dir, RecursiveMode::NonRecursive)
         .map_err(|e| SimError::Internal(format!("cannot watch {}: {e}", dir.display())))?;
-    Ok(watcher)
+    Ok(Watch {
+        _watcher: watcher,
+        lost,
+    })
 }
 
 impl ScriptWatcher {
@@ -104,7 +128,11 @@ impl ScriptWatcher {
         }
         self.checked = now;
         let id = identity(&self.dir);
-        if id == self.identity {
+        let lost = self
+            .watcher
+            .as_ref()
+            .is_some_and(|w| w.lost.load(Ordering::Relaxed));
+        if id == self.identity && !lost {
             return;
         }
         let shown = self.dir.display();
