@@ -66,6 +66,20 @@ pub enum FileError {
     },
 }
 
+/// Open `path` to read it, with `O_NONBLOCK` on Unix: opening a FIFO
+/// returns at once instead of waiting for a writer (a regular file reads as
+/// always).
+pub fn open_for_reading(path: &Path) -> std::io::Result<std::fs::File> {
+    let mut o = std::fs::OpenOptions::new();
+    o.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        o.custom_flags(libc::O_NONBLOCK);
+    }
+    o.open(path)
+}
+
 /// The whole of a regular file of at most `max` bytes.
 pub fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, FileError> {
     let io = |source| FileError::Io {
@@ -86,9 +100,10 @@ pub fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, FileError> {
     if meta.len() > max {
         return Err(too_large(meta.len()));
     }
-    let f = std::fs::File::open(path).map_err(io)?;
-    // Opened after the check: a file swapped for a FIFO in between would
-    // still block, so the type is checked again on the open handle.
+    let f = open_for_reading(path).map_err(io)?;
+    // Opened after the check, without blocking (a file swapped for a FIFO in
+    // between would block in `open` itself), and the type checked again on
+    // the open handle before anything is read.
     if !f.metadata().map_err(io)?.is_file() {
         return Err(FileError::NotAFile {
             path: path.to_path_buf(),
@@ -266,6 +281,24 @@ mod tests {
             read_text(&f, 10).unwrap_err(),
             FileError::NotText { .. }
         ));
+    }
+
+    /// Regression (review): opening a FIFO blocked in `open` itself, before
+    /// the handle's type could be checked.
+    #[cfg(unix)]
+    #[test]
+    fn opening_a_fifo_does_not_wait_for_a_writer() {
+        let fifo = dir("fifo").join("pipe");
+        let made = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap();
+        assert!(made.success());
+        // Returns at once (a blocking open would hang this test).
+        let f = open_for_reading(&fifo).unwrap();
+        assert!(!f.metadata().unwrap().is_file());
+        let e = read_bounded(&fifo, 1 << 20).unwrap_err();
+        assert!(matches!(e, FileError::NotAFile { .. }), "{e}");
     }
 
     #[test]

@@ -9,10 +9,10 @@
 //! running for days keeps a bounded timeline.
 
 use std::fs::{File, OpenOptions};
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::Path;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 
 /// Column names, in order.
 pub const COLUMNS: [&str; 11] = [
@@ -83,6 +83,9 @@ impl Row {
     }
 }
 
+/// The most of a timeline's first line read to compare headers.
+const MAX_HEADER_BYTES: u64 = 1 << 20;
+
 /// A timeline file is rotated to `timeline.1.csv` past this size.
 pub const ROTATE_BYTES: u64 = 32 << 20;
 
@@ -111,9 +114,20 @@ impl Timeline {
             .chain(extra.iter().cloned())
             .collect::<Vec<_>>()
             .join(",");
-        if let Ok(f) = File::open(path) {
+        // Only a regular file is read or appended to: a FIFO there hung the
+        // engine at start (and it ignored SIGTERM), a link to /dev/zero
+        // filled memory looking for a newline (regression).
+        if let Ok(m) = std::fs::metadata(path)
+            && !m.is_file()
+        {
+            bail!(
+                "{} is not a regular file: move it away (the engine writes its timeline there)",
+                path.display()
+            );
+        }
+        if let Ok(f) = crate::files::open_for_reading(path) {
             let mut first = String::new();
-            let _ = BufReader::new(f).read_line(&mut first);
+            let _ = BufReader::new(f.take(MAX_HEADER_BYTES)).read_line(&mut first);
             if first.trim_end() != header {
                 let secs = std::time::SystemTime::now()
                     .duration_since(std::time::UNIX_EPOCH)
@@ -409,6 +423,29 @@ mod tests {
             let e = chart(&dir).unwrap_err().to_string();
             assert!(e.contains("not a regular file"), "{e}");
         }
+    }
+
+    /// Regression (review): a FIFO at `STATE/timeline.csv` hung the engine
+    /// at start (deaf to SIGTERM); a link to /dev/zero filled memory.
+    #[cfg(unix)]
+    #[test]
+    fn a_timeline_that_is_not_a_regular_file_is_refused() {
+        let dir = std::env::temp_dir().join(format!("bw-timeline-fifo-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let fifo = dir.join("timeline.csv");
+        let made = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap();
+        assert!(made.success());
+        let e = Timeline::open(&fifo, &[]).err().unwrap().to_string();
+        assert!(e.contains("is not a regular file"), "{e}");
+        let zero = dir.join("zero.csv");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        let e = Timeline::open(&zero, &[]).err().unwrap().to_string();
+        assert!(e.contains("is not a regular file"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
