@@ -889,3 +889,54 @@ fn a_frame_that_cannot_be_written_is_reported_once() {
         "{err}"
     );
 }
+
+/// Regression (hostile probe and review): a FIFO at `STATE/timeline.csv`,
+/// `engine.lock` or `manifest.json` hung the engine at start (deaf to a
+/// single SIGTERM); one at `world.redb` gave "Invalid argument". Each is
+/// refused in one line, at once.
+#[cfg(target_os = "linux")]
+#[test]
+fn special_files_in_the_state_directory_are_refused_not_waited_on() {
+    for name in ["timeline.csv", "engine.lock", "manifest.json", "world.redb"] {
+        let (cfg, state, _) = setup(&format!("fifo-{}", name.replace('.', "-")));
+        // A world that has run: manifest.json is only read beside a store.
+        if name == "manifest.json" {
+            run_ok(&cfg, &state, "--ticks", 1);
+            std::fs::remove_file(state.join(name)).unwrap();
+        } else {
+            std::fs::create_dir_all(&state).unwrap();
+        }
+        let made = std::process::Command::new("mkfifo")
+            .arg(state.join(name))
+            .status()
+            .unwrap();
+        assert!(made.success());
+        let mut child = Daemon(Some(
+            run_cmd(&cfg, &state)
+                .arg("--ticks")
+                .arg("1")
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap(),
+        ));
+        let t = Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            assert!(
+                t.elapsed() < Duration::from_secs(60),
+                "{name}: the engine waits on the FIFO"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let out = child.0.take().unwrap().wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        if name == "manifest.json" {
+            // Only a copy: the store's own manifest decides; the run goes on.
+            assert!(out.status.success(), "{name}: {err}");
+        } else {
+            assert!(!out.status.success(), "{name}: {err}");
+            assert!(err.contains("not a regular file"), "{name}: {err}");
+            assert!(!err.contains("panicked"), "{name}: {err}");
+        }
+    }
+}

@@ -52,12 +52,22 @@ pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
     };
     std::fs::create_dir_all(dir).map_err(ioe(dir))?;
     let path = dir.join("engine.lock");
-    let file = OpenOptions::new()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&path)
-        .map_err(ioe(&path))?;
+    let not_a_file = || ioe(&path)(std::io::Error::other("not a regular file: move it away"));
+    if std::fs::metadata(&path).is_ok_and(|m| !m.is_file()) {
+        return Err(not_a_file());
+    }
+    let mut options = OpenOptions::new();
+    options.create(true).truncate(false).write(true);
+    // Without blocking: a FIFO named engine.lock hung the start (regression).
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options.open(&path).map_err(ioe(&path))?;
+    if !file.metadata().map_err(ioe(&path))?.is_file() {
+        return Err(not_a_file());
+    }
     match file.try_lock() {
         Ok(()) => {}
         Err(std::fs::TryLockError::WouldBlock) => {

@@ -184,6 +184,12 @@ fn disk_limit() -> Option<u64> {
 
 /// Open (or create) the database file, on a limited disk under the test
 /// hook.
+/// The `manifest.json` beside a store, if it is a regular file of sane size
+/// (a FIFO there hung the engine at start; regression).
+fn read_manifest(path: &Path) -> Option<Vec<u8>> {
+    crate::files::read_bounded(path, 1 << 20).ok()
+}
+
 fn open_db(path: &Path) -> Result<redb::Database, redb::Error> {
     match disk_limit() {
         None => Ok(redb::Builder::new()
@@ -332,12 +338,22 @@ impl WorldDb {
     ) -> Result<(WorldDb, Vec<String>), StoreError> {
         let path = dir.join(DB_FILE);
         let manifest_path = dir.join(MANIFEST_FILE);
+        // A FIFO or device named world.redb: one clear line (redb said
+        // "Invalid argument").
+        if let Ok(m) = std::fs::metadata(&path)
+            && !m.is_file()
+        {
+            return Err(StoreError::Db {
+                path: path.clone(),
+                msg: "not a regular file: move it away".into(),
+            });
+        }
         // A store that will be refused is checked read-only first, so the
         // refusal leaves its file exactly as it was.
         if let Some(bytes) = read_only_meta(&path, "manifest") {
             check_manifest(&path, &bytes, identity)?;
         } else if path.is_file()
-            && let Ok(text) = std::fs::read(&manifest_path)
+            && let Some(text) = read_manifest(&manifest_path)
             && serde_json::from_slice::<Manifest>(&text).is_ok()
         {
             // Not readable read-only (after a kill -9 redb must repair it,
@@ -380,7 +396,8 @@ impl WorldDb {
             None => {
                 // A store without a manifest is new: a manifest.json left
                 // beside it by another world is refused all the same.
-                if let Ok(text) = std::fs::read_to_string(&manifest_path)
+                if let Some(text) =
+                    read_manifest(&manifest_path).and_then(|b| String::from_utf8(b).ok())
                     && let Ok(m) = serde_json::from_str::<Manifest>(&text)
                     && !m.world.same_world(identity)
                 {
@@ -399,7 +416,7 @@ impl WorldDb {
         if stored.as_deref() != Some(&json[..]) {
             this.put_meta("manifest", &json)?;
         }
-        if std::fs::read(&manifest_path).ok().as_deref() != Some(&json[..]) {
+        if read_manifest(&manifest_path).as_deref() != Some(&json[..]) {
             write_atomic(&manifest_path, &json).map_err(|e| StoreError::Manifest {
                 path: manifest_path.clone(),
                 msg: e.to_string(),
