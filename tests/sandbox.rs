@@ -563,6 +563,35 @@ fn a_scripts_error_text_is_cut_to_a_readable_length() {
     assert!(e.contains("cut at 500 characters"), "{e}");
 }
 
+/// Regression (hostile probe and review): a script's error text reached the
+/// daemon's stderr with its CR and terminal escapes raw (only `log()` lines
+/// were escaped), at run time, at load time and in declared names.
+#[test]
+fn a_scripts_error_text_carries_no_control_characters() {
+    let mut sim = sim_with(&[script("evil", "error(\"boom\\rFAKE \\27[31mRED\")")]);
+    let e = runtime_error(&mut sim);
+    assert!(!e.chars().any(char::is_control), "{e:?}");
+    assert!(e.contains("boom\\rFAKE \\u{1b}[31mRED"), "{e}");
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
+    for text in [
+        "error(\"at load\\27[2J\")",
+        "return { channels = { \"a\\27[2J\" }, passes = { { name = \"p\", reads = {}, writes = { \"b\" }, kernel = function() end } } }",
+        "return 1\r\u{1b}[2J",
+    ] {
+        let e = sim
+            .add_script(src("evil", text), Kernel::Lua, small())
+            .unwrap_err()
+            .to_string();
+        assert!(!e.chars().any(char::is_control), "{e:?}");
+    }
+    // And the article is right: "returned an integer", not "a integer".
+    let e = sim
+        .add_script(src("int", "return 3"), Kernel::Lua, small())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("it returned an integer"), "{e}");
+}
+
 /// Regression (hostile probe): 50 000 parameters were accepted and slowed
 /// every `/status` and step.
 #[test]

@@ -26,7 +26,16 @@ pub(super) fn declaration(
     SimError::Declaration {
         script: src.name.clone(),
         line: needle.and_then(|n| line_in(&src.text, n)),
-        msg: msg.into(),
+        // Names in it come from the script: no raw control characters.
+        msg: super::log::escape_controls(&msg.into(), false).into_owned(),
+    }
+}
+
+/// A Lua type name with its article ("a table", "an integer").
+pub(super) fn a(type_name: &str) -> String {
+    match type_name.chars().next() {
+        Some('a' | 'e' | 'i' | 'o' | 'u') => format!("an {type_name}"),
+        _ => format!("a {type_name}"),
     }
 }
 
@@ -47,7 +56,10 @@ fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<String>, Si
                         return Err(declaration(
                             src,
                             Some(field),
-                            format!("'{field}' must list strings, found a {}", other.type_name()),
+                            format!(
+                                "'{field}' must list strings, found {}",
+                                a(other.type_name())
+                            ),
                         ));
                     }
                     Err(e) => return Err(declaration(src, Some(field), e.to_string())),
@@ -59,8 +71,8 @@ fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<String>, Si
             src,
             Some(field),
             format!(
-                "'{field}' must be a list of strings, found a {}",
-                other.type_name()
+                "'{field}' must be a list of strings, found {}",
+                a(other.type_name())
             ),
         )),
     }
@@ -74,8 +86,8 @@ fn number(src: &ScriptSource, t: &Table, field: &str, param: &str) -> Result<f64
             src,
             Some(param),
             format!(
-                "parameter '{param}': '{field}' must be a number, found a {}",
-                other.type_name()
+                "parameter '{param}': '{field}' must be a number, found {}",
+                a(other.type_name())
             ),
         )),
         Err(e) => Err(declaration(src, Some(param), e.to_string())),
@@ -334,7 +346,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             return Err(declaration(
                 src,
                 Some("params"),
-                format!("'params' must be a table, found a {}", other.type_name()),
+                format!("'params' must be a table, found {}", a(other.type_name())),
             ));
         }
         Err(e) => return Err(declaration(src, Some("params"), e.to_string())),
@@ -370,7 +382,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             return Err(declaration(
                 src,
                 Some("ranges"),
-                format!("'ranges' must be a table, found a {}", other.type_name()),
+                format!("'ranges' must be a table, found {}", a(other.type_name())),
             ));
         }
         Err(e) => return Err(declaration(src, Some("ranges"), e.to_string())),

@@ -32,15 +32,17 @@ fn logs() -> &'static Mutex<FxHashMap<String, ScriptLog>> {
     LOGS.get_or_init(Default::default)
 }
 
-/// Record a line from `script` (rate-limited, truncated, one line).
-pub fn push(script: &str, line: String) {
-    // Control characters are written as escapes: a script's newline, CR or
-    // terminal escape must not forge daemon log lines or drive the
-    // terminal (regression). Tab stays: it separates `log`'s arguments and
-    // cannot break a line.
-    let escaped = |c: char| c.is_control() && c != '\t';
-    let mut line = if line.chars().any(escaped) {
-        line.chars()
+/// Text from a script (a `log` line, an error message) made safe for one
+/// line of the daemon's log: control characters become escapes (`\n`,
+/// `\u{1b}`), so a script cannot forge log lines or drive the terminal.
+/// `keep_tab` keeps tabs (they separate `log`'s arguments).
+pub fn escape_controls(text: &str, keep_tab: bool) -> std::borrow::Cow<'_, str> {
+    let escaped = |c: char| c.is_control() && !(keep_tab && c == '\t');
+    if !text.chars().any(escaped) {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    std::borrow::Cow::Owned(
+        text.chars()
             .map(|c| {
                 if escaped(c) {
                     c.escape_default().to_string()
@@ -48,9 +50,19 @@ pub fn push(script: &str, line: String) {
                     c.to_string()
                 }
             })
-            .collect()
-    } else {
-        line
+            .collect(),
+    )
+}
+
+/// Record a line from `script` (rate-limited, truncated, one line).
+pub fn push(script: &str, line: String) {
+    // Control characters are written as escapes: a script's newline, CR or
+    // terminal escape must not forge daemon log lines or drive the
+    // terminal (regression). Tab stays: it separates `log`'s arguments and
+    // cannot break a line.
+    let mut line = match escape_controls(&line, true) {
+        std::borrow::Cow::Borrowed(_) => line,
+        std::borrow::Cow::Owned(escaped) => escaped,
     };
     if line.chars().count() > MAX_LINE {
         line = line.chars().take(MAX_LINE).collect::<String>() + "…";

@@ -79,6 +79,18 @@ fn strip_location(msg: &str) -> String {
 /// Longest error text kept from a script, in characters.
 pub const MAX_ERROR_CHARS: usize = 500;
 
+/// A script's own error text made fit for one line of the log: cut to
+/// [`MAX_ERROR_CHARS`] (regression: `error(string.rep("E", 1e7))` was one
+/// 10 MB line), its control characters escaped (regression: a CR or a
+/// terminal escape in `error(...)` reached stderr raw).
+fn one_line(msg: &str) -> String {
+    let cut = match msg.char_indices().nth(MAX_ERROR_CHARS) {
+        Some((i, _)) => format!("{}… (cut at {MAX_ERROR_CHARS} characters)", &msg[..i]),
+        None => msg.to_string(),
+    };
+    super::log::escape_controls(&cut, false).into_owned()
+}
+
 /// A sandboxed VM with a script loaded and its buffers ready.
 pub struct ScriptVm {
     lua: Lua,
@@ -200,17 +212,17 @@ impl ScriptVm {
                 mlua::Error::SyntaxError { .. } => SimError::Syntax {
                     script: src.name.clone(),
                     line: line_of(&msg),
-                    msg: strip_location(msg.lines().next().unwrap_or("")),
+                    msg: one_line(&strip_location(msg.lines().next().unwrap_or(""))),
                 },
                 _ => SimError::Declaration {
                     script: src.name.clone(),
                     line: line_of(&msg),
-                    msg: strip_location(
+                    msg: one_line(&strip_location(
                         msg.lines()
                             .next()
                             .unwrap_or("")
                             .trim_start_matches("runtime error: "),
-                    ),
+                    )),
                 },
             }
         })?;
@@ -219,8 +231,8 @@ impl ScriptVm {
                 src,
                 None,
                 format!(
-                    "the script must return a table, it returned a {}",
-                    def.type_name()
+                    "the script must return a table, it returned {}",
+                    super::declare::a(def.type_name())
                 ),
             ));
         };
@@ -465,20 +477,14 @@ impl ScriptVm {
                 .next()
                 .unwrap_or("")
                 .trim_start_matches("runtime error: ");
-            // A script's own error text is cut to a readable length
-            // (regression: `error(string.rep("E", 1e7))` was one 10 MB line).
-            let msg = match msg.char_indices().nth(MAX_ERROR_CHARS) {
-                Some((i, _)) => format!("{}… (cut at {MAX_ERROR_CHARS} characters)", &msg[..i]),
-                None => msg.to_string(),
-            };
             let line =
-                line_of(&msg).or_else(|| msg.rsplit("line ").next().and_then(|s| s.parse().ok()));
+                line_of(msg).or_else(|| msg.rsplit("line ").next().and_then(|s| s.parse().ok()));
             SimError::Runtime {
                 script: self.name.clone(),
                 pass: pass_name.to_string(),
                 tile: (tx, tz),
                 line,
-                msg: strip_location(&msg),
+                msg: one_line(&strip_location(msg)),
             }
         })
     }
