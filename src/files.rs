@@ -35,12 +35,14 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum FileError {
     /// The OS refused.
-    #[error("cannot read {}: {source}", path.display())]
+    // Not a `source`: the text already says it, and an error chain
+    // (`anyhow`'s context) printed it twice (regression).
+    #[error("cannot read {}: {error}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// What the OS said.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A directory, FIFO, socket or device.
     #[error("{} is not a regular file", path.display())]
@@ -82,9 +84,9 @@ pub fn open_for_reading(path: &Path) -> std::io::Result<std::fs::File> {
 
 /// The whole of a regular file of at most `max` bytes.
 pub fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, FileError> {
-    let io = |source| FileError::Io {
+    let io = |error| FileError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     };
     let meta = std::fs::metadata(path).map_err(io)?;
     if !meta.is_file() {

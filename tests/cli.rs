@@ -679,6 +679,39 @@ fn ctl_refuses_answers_that_are_not_a_brickworld_engines() {
         while s.write_all(&chunk).is_ok() {}
     });
     expect_failure(&["ctl", "--addr", &endless, "status"], "sent more than");
+    // Accepted but not applied (202): not a success a script may build on
+    // (regression: `ctl commit && backup` went ahead with nothing written).
+    let state = tmp("ctl-202-state");
+    std::fs::create_dir_all(&state).unwrap();
+    std::fs::write(state.join("control.token"), "t0k3n").unwrap();
+    let queued = fake_server(|s| {
+        let body = "{\"ok\":true,\"applied\":false}";
+        let _ = write!(
+            s,
+            "HTTP/1.1 202 Accepted\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        );
+    });
+    expect_failure(
+        &[
+            "ctl",
+            "--addr",
+            &queued,
+            "--state",
+            state.to_str().unwrap(),
+            "commit",
+        ],
+        "has not applied it yet",
+    );
+    // A missing token: the OS's reason once (it was printed twice).
+    let none = tmp("ctl-no-state");
+    let out = bin()
+        .args(["ctl", "--state", none.to_str().unwrap(), "commit"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
     // A value that is not a finite number is named as such.
     for v in ["nan", "inf", "1e999"] {
         expect_failure(&["ctl", "param", "water", "rain", v], "not a finite number");

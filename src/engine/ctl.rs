@@ -90,8 +90,14 @@ pub fn request(
 pub fn run(a: &CtlArgs) -> Result<()> {
     let token_path = a.state.join("control.token");
     let token = || {
-        crate::files::read_text(&token_path, 4096)
-            .with_context(|| format!("cannot read the control token {}", token_path.display()))
+        crate::files::read_text(&token_path, 4096).map_err(|e| match e {
+            crate::files::FileError::Io { error, .. } => anyhow::anyhow!(
+                "cannot read the control token {}: {error} (is the engine running with --state {}?)",
+                token_path.display(),
+                a.state.display()
+            ),
+            e => anyhow::anyhow!("the control token: {e}"),
+        })
     };
     // `--no-follow` may also come after the command words (`ctl log
     // --no-follow water`), which take hyphenated values.
@@ -154,6 +160,14 @@ pub fn run(a: &CtlArgs) -> Result<()> {
     println!("{}", body.trim());
     if !(200..300).contains(&code) {
         bail!("the engine answered {code}");
+    }
+    // Accepted but not yet applied (the engine is busy in a step): not a
+    // success a script may build on (regression: `ctl commit && backup`
+    // went ahead with nothing written).
+    if code == 202 {
+        bail!(
+            "the engine has not applied it yet (it is busy in a step); it will at the next step boundary: see ctl status"
+        );
     }
     Ok(())
 }

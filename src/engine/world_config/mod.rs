@@ -313,7 +313,7 @@ impl WorldConfig {
                 file: file.clone(),
                 field: "(file)".into(),
                 reason: match e {
-                    crate::files::FileError::Io { source, .. } => format!("cannot read: {source}"),
+                    crate::files::FileError::Io { error, .. } => format!("cannot read: {error}"),
                     e => e.to_string(),
                 },
             })?;
