@@ -834,11 +834,13 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
         scripts.join("water.lua"),
     )
     .unwrap();
-    // About 1.5 s a tile from tick 1 on: some 30 s a step on two cores.
+    // Tick 1: some 3 s a step on two cores (a slow step, committed at
+    // once). From tick 2 on: ten times as long, some 30 s a step.
     std::fs::write(
         scripts.join("slow.lua"),
         "return { channels = { \"s\" }, passes = { { name = \"p\", reads = {}, writes = { \"s\" },\n\
-         kernel = function(c) if c.tick >= 1 then for i = 1, 1000 do local x = string.rep(\"x\", 1000000) end end end } } }",
+         kernel = function(c) local n = 0; if c.tick == 1 then n = 400 elseif c.tick >= 2 then n = 4000 end\n\
+         for i = 1, n do local x = string.rep(\"x\", 1000000) end end } } }",
     )
     .unwrap();
     edit_config(
@@ -855,7 +857,25 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
     wait_ready(&addr);
     let t = Instant::now();
     while status(&addr)["tick"].as_u64().unwrap() < 1 {
-        assert!(t.elapsed() < Duration::from_secs(30));
+        assert!(t.elapsed() < Duration::from_secs(60));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // During the slow tick-1 step: pause, and queue five steps.
+    assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    assert_eq!(post(&addr, &state, "/step", "5").0, 200);
+    while status(&addr)["tick"].as_u64().unwrap() < 2 {
+        assert!(t.elapsed() < Duration::from_secs(60));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // The commands show in /status while the next (30 s) step runs
+    // (regression: status was published only after that step).
+    let t = Instant::now();
+    loop {
+        let s = status(&addr);
+        if s["paused"] == true && s["steps_pending"].as_u64().unwrap_or(0) > 0 {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(3), "stale status: {s}");
         std::thread::sleep(Duration::from_millis(50));
     }
     std::thread::sleep(Duration::from_millis(500));
@@ -871,8 +891,15 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
     assert_success(&out);
     assert!(took < Duration::from_secs(15), "took {took:?}");
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("its scripts were interrupted"), "{err}");
-    assert!(stored_tick(&cfg, &state).unwrap_or(0) <= 1);
+    assert!(
+        err.contains("its scripts were interrupted"),
+        "{err} / {}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    // The slow step before it was committed as soon as it finished
+    // (regression: a cut lost every tick since the last periodic commit);
+    // the cut one was not.
+    assert_eq!(stored_tick(&cfg, &state), Some(2), "stored tick; {err}");
 }
 
 /// Regression (hostile probe): frames that could not be written (a full

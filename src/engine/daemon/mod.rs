@@ -52,6 +52,12 @@ use crate::trace::Camera;
 /// scripts.
 pub const STOP_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
 
+/// A step that took at least this long is committed at once, whatever
+/// `checkpoint.every` says: the next one may be cut by a stop, which drops
+/// it, and would otherwise lose every tick since the last commit
+/// (regression: 169 finished ticks of a slow world were lost).
+pub const SLOW_STEP: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Options of `brickworld run`.
 #[derive(Clone, Debug)]
 pub struct DaemonOptions {
@@ -185,8 +191,20 @@ impl Engine {
                 break;
             }
             self.hot_reload();
-            self.apply_commands();
+            if self.apply_commands() {
+                // What the commands changed shows at once, not after the
+                // next step (regression: a step of 40 s kept a paused
+                // engine showing as running).
+                self.publish_status();
+            }
+            // A stop that came during the reload or the commands: the step
+            // would start already interrupted and be dropped, with its
+            // final commit (regression).
+            if self.shared.shutdown.load(Ordering::Relaxed) {
+                break;
+            }
             if self.should_step() && self.follow_camera() {
+                let started = Instant::now();
                 let report = self.step();
                 if crate::sim::interrupt::stopping() {
                     // The step may have been cut half-way: it is neither
@@ -196,7 +214,7 @@ impl Engine {
                 }
                 self.collect_dirty(&report);
                 self.offer_frame();
-                self.periodic_commit();
+                self.periodic_commit(started.elapsed());
                 self.record_timeline(&report);
             } else {
                 std::thread::sleep(std::time::Duration::from_millis(5));
@@ -258,9 +276,11 @@ impl Engine {
     }
 
     /// Apply the control server's commands, in order.
-    fn apply_commands(&mut self) {
+    /// Apply the commands clients queued; whether there were any.
+    fn apply_commands(&mut self) -> bool {
         let commands: Vec<Command> =
             std::mem::take(&mut *self.shared.commands.lock().expect("command lock"));
+        let any = !commands.is_empty();
         for c in commands {
             match c {
                 Command::Pause => {
@@ -328,6 +348,7 @@ impl Engine {
                 }
             }
         }
+        any
     }
 
     fn should_step(&self) -> bool {
@@ -514,8 +535,8 @@ impl Engine {
         Camera::new(eye, target, c.fov, self.cfg.width, self.cfg.height)
     }
 
-    fn periodic_commit(&mut self) {
-        if self.ws.sim.tick().is_multiple_of(self.cfg.checkpoint_every) {
+    fn periodic_commit(&mut self, step_took: std::time::Duration) {
+        if self.ws.sim.tick().is_multiple_of(self.cfg.checkpoint_every) || step_took >= SLOW_STEP {
             self.commit();
         }
     }
