@@ -284,6 +284,16 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
             .is_some_and(|e| e.contains("v2 is running"))
     });
 
+    // A version without the parameter the config sets: it runs, with a
+    // warning that the next start would refuse the config (regression: it
+    // was said nowhere).
+    save_like_an_editor(&water, &original.replace("rain", "drizzle"));
+    wait_for_script(&addr, |s| {
+        s["warning"].as_str().is_some_and(|w| {
+            w.contains("sets parameter 'rain'") && w.contains("no longer declares")
+        })
+    });
+
     // And the original back: the error clears.
     save_like_an_editor(&water, &original);
     wait_for_script(&addr, |s| s["error"].is_null());

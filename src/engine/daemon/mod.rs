@@ -251,8 +251,22 @@ impl Engine {
                 .unwrap_or_default();
             let index = self.ws.script_index(&name);
             match self.ws.reload(&self.world, &path) {
-                Ok(Some((i, warnings))) => {
+                Ok(Some((i, mut warnings))) => {
                     eprintln!("reloaded {}", path.display());
+                    // A parameter the config sets and the new version does
+                    // not declare: running on is fine, but the next start
+                    // refuses the config (regression: said nowhere).
+                    let file = format!("{}.lua", self.ws.spec(i).name);
+                    if let Some(set) = self.cfg.scripts.iter().find(|s| s.file == file) {
+                        let spec = self.ws.spec(i);
+                        for k in set.params.keys() {
+                            if !spec.params.iter().any(|p| &p.name == k) {
+                                warnings.push(format!(
+                                    "the world config sets parameter '{k}' of {file}, which it no longer declares: the next start will refuse the config until one of them changes"
+                                ));
+                            }
+                        }
+                    }
                     for w in &warnings {
                         eprintln!("warning: {w}");
                     }
@@ -275,8 +289,7 @@ impl Engine {
         }
     }
 
-    /// Apply the control server's commands, in order.
-    /// Apply the commands clients queued; whether there were any.
+    /// Apply the commands clients queued, in order; whether there were any.
     fn apply_commands(&mut self) -> bool {
         let commands: Vec<Command> =
             std::mem::take(&mut *self.shared.commands.lock().expect("command lock"));
