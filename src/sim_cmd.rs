@@ -103,6 +103,11 @@ pub fn run(s: &SimSettings) -> Result<()> {
         if s.drain {
             eprintln!("  water drained over the edges: {:.6}", ws.drained);
         }
+        // A failed run writes no image: an existing --out stays as it was
+        // (regression: it was replaced, then the run exited 1).
+        if let Some(e) = failed.first() {
+            bail!("a script failed during the run, so no image was written (first error: {e})");
+        }
         let view = s.view.view.unwrap_or_else(|| world.default_views()[1]);
         let cam = Camera::new(DVec3::from(view.eye), DVec3::from(view.target), view.fov, s.view.width, s.view.height)?;
         let opts = RenderOptions {
@@ -114,9 +119,6 @@ pub fn run(s: &SimSettings) -> Result<()> {
         write_png(staged.path(), out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
         staged.commit().with_context(|| format!("cannot write {}", s.out.display()))?;
         eprintln!("-> {}", s.out.display());
-        if let Some(e) = failed.first() {
-            bail!("a script failed during the run (first error: {e})");
-        }
         Ok(())
     })
 }

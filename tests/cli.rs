@@ -774,6 +774,36 @@ fn configs_and_scripts_must_be_regular_files() {
     );
 }
 
+/// Regression (review): a `sim` whose script failed replaced an existing
+/// `--out`, then exited 1. A failed run writes no image.
+#[test]
+fn a_failed_sim_leaves_its_out_file_alone() {
+    let script = tmp("fails.lua");
+    std::fs::write(
+        &script,
+        "return { channels = { \"f\" }, passes = { { name = \"p\", reads = {}, writes = { \"f\" },\n\
+         kernel = function(c) if c.tick >= 1 then error(\"always\") end end } } }",
+    )
+    .unwrap();
+    let out = tmp("kept.png");
+    std::fs::write(&out, "not overwritten").unwrap();
+    expect_failure(
+        &[
+            "sim",
+            "--script",
+            script.to_str().unwrap(),
+            "--steps",
+            "2",
+            "--size",
+            "16x16x16",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        "no image was written",
+    );
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), "not overwritten");
+}
+
 /// Regression (hostile probe): `bench store --dir` and `soak --state`
 /// deleted any directory they were given.
 #[test]
