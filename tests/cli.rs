@@ -874,6 +874,20 @@ fn a_refused_import_leaves_no_state_directory_behind() {
     std::fs::create_dir_all(&state).unwrap();
     expect_failure(&["import", "/dev/zero", "--state", s], "cannot import");
     assert_eq!(std::fs::read_dir(&state).unwrap().count(), 0, "left files");
+    // A directory another process holds (here, this test): refused, and
+    // nothing of it removed. (The review found an import that lost the lock
+    // race for a directory it thought it made removing it; the directory is
+    // now made with `create_dir`, and nothing is removed without the lock.)
+    let held = tmp("import-held");
+    let _ = std::fs::remove_dir_all(&held);
+    let lock = brickworld::engine::state_dir::lock(&held).unwrap();
+    std::fs::write(held.join("theirs"), "x").unwrap();
+    expect_failure(
+        &["import", "/dev/zero", "--state", held.to_str().unwrap()],
+        "in use",
+    );
+    assert!(held.join("theirs").exists() && held.join("engine.lock").exists());
+    drop(lock);
 }
 
 /// Regression (hostile probe): `init DIR` wrote through a dangling link at

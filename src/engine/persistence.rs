@@ -680,14 +680,32 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
 pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<CommitStats> {
     // A failed import leaves the directory as it found it (regression: it
     // created `--state` and its lock file even when refusing the backup).
-    let created = !dir.exists();
+    // Whether this import made the directory is decided by `create_dir`
+    // itself, and nothing is removed unless this import holds the lock
+    // (regression: an import that lost the lock to another removed the
+    // directory the other was importing into).
+    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("cannot create {}", parent.display()))?;
+    }
+    let created = match std::fs::create_dir(dir) {
+        Ok(()) => true,
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => false,
+        Err(e) => return Err(e).with_context(|| format!("cannot create {}", dir.display())),
+    };
     let lock_file = dir.join("engine.lock");
     let had_lock = lock_file.exists();
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let result = (|| {
-        let _lock = super::state_dir::lock(dir)?;
-        import(file, dir, &cfg.identity())
-    })();
+    let lock = match super::state_dir::lock(dir) {
+        Ok(l) => l,
+        Err(e) => {
+            if created {
+                // Only if still empty: another process's lock file stays.
+                let _ = std::fs::remove_dir(dir);
+            }
+            return Err(e.into());
+        }
+    };
+    let result = import(file, dir, &cfg.identity());
     if result.is_err() {
         if created {
             let _ = std::fs::remove_dir_all(dir);
@@ -695,5 +713,6 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
             let _ = std::fs::remove_file(&lock_file);
         }
     }
+    drop(lock);
     result
 }
