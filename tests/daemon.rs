@@ -94,6 +94,22 @@ fn status_pause_step_and_control_errors() {
     }
     assert_eq!(post(&addr, &state, "/nowhere", "").0, 404);
     assert_eq!(request(&addr, "GET", "/nowhere", None, "").unwrap().0, 404);
+    // A known route with the wrong method is 405, not 404 (regression).
+    let (code, body) = request(&addr, "GET", "/pause", None, "").unwrap();
+    assert_eq!(code, 405, "{body}");
+    assert!(body.contains("use POST"), "{body}");
+    // HEAD answers as GET does, without the body.
+    {
+        use std::io::{Read, Write};
+        let mut s = std::net::TcpStream::connect(&addr).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        s.write_all(b"HEAD /status HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            .unwrap();
+        let mut got = String::new();
+        s.read_to_string(&mut got).unwrap();
+        assert!(got.starts_with("HTTP/1.1 200"), "{got}");
+        assert!(got.ends_with("\r\n\r\n"), "a body was sent: {got}");
+    }
     assert_eq!(post(&addr, &state, "/step", &"9".repeat(70_000)).0, 413);
     assert_eq!(
         post(&addr, &state, "/scripts/water/params", "{\"rain\": 0.5}").0,

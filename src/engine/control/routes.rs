@@ -12,7 +12,9 @@
 //! failed, 202 if the engine is still busy. `POST /camera` from a viewer (a
 //! `viewer` id in the body) holds the camera lease; another viewer's move
 //! meanwhile gets 409.
-//! Unknown routes get 404, malformed requests or refused values 400, a
+//! Unknown routes get 404, a known route asked with the wrong method 405
+//! (with `Allow`; `HEAD` works wherever `GET` does, except `/events`),
+//! malformed requests or refused values 400, a
 //! wrong token 401, a body over [`MAX_BODY`] 413 (decided from the declared
 //! length, before the body is read), a body too slow 408, and a full command
 //! queue 503.
@@ -79,7 +81,11 @@ fn shown(name: &str) -> String {
 pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &AtomicBool) -> Reply {
     let path = req.uri().path().to_string();
     let method = req.method().clone();
-    match (&method, path.as_str()) {
+    // HEAD is GET without the body (hyper leaves the body out); an event
+    // stream is not opened for it.
+    let as_get = method == Method::HEAD && path != "/events";
+    let routed = if as_get { &Method::GET } else { &method };
+    match (routed, path.as_str()) {
         (&Method::GET, "/status") => json(200, &*shared.status.lock().expect("status lock")),
         (&Method::GET, "/frame.png") => match shared.frame.lock().expect("frame lock").clone() {
             Some(png) => {
@@ -145,7 +151,33 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &At
         }
         (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
         (&Method::POST, _) => post(req, &path, shared).await,
-        _ => error(404, &format!("no route {method} {}", shown(&path))),
+        // A known route asked with the wrong method: 405 naming the right
+        // one (it was 404, as if the route did not exist).
+        _ => match allowed_method(&path) {
+            Some(allowed) => {
+                let mut r = error(
+                    405,
+                    &format!("{method} is not allowed on {}: use {allowed}", shown(&path)),
+                );
+                r.headers_mut().insert(
+                    hyper::header::ALLOW,
+                    hyper::header::HeaderValue::from_static(allowed),
+                );
+                r
+            }
+            None => error(404, &format!("no route {method} {}", shown(&path))),
+        },
+    }
+}
+
+/// The method a known route takes, if `path` is one.
+fn allowed_method(path: &str) -> Option<&'static str> {
+    match path {
+        "/status" | "/frame.png" | "/events" | "/timeline" | "/" => Some("GET"),
+        "/pause" | "/resume" | "/step" | "/commit" | "/checkpoint" | "/camera" | "/camera/path"
+        | "/auth" => Some("POST"),
+        p if p.starts_with("/scripts/") && p.ends_with("/params") => Some("POST"),
+        _ => None,
     }
 }
 

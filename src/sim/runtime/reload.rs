@@ -35,6 +35,8 @@ pub struct ScriptWatcher {
     identity: Option<(u64, u64)>,
     checked: Instant,
     notes: Vec<String>,
+    /// The last failure to watch the directory anew, said once.
+    last_failure: Option<String>,
 }
 
 /// How often the watched directory's identity is checked.
@@ -112,6 +114,7 @@ impl ScriptWatcher {
             identity: identity(dir),
             checked: Instant::now(),
             notes: Vec::new(),
+            last_failure: None,
         })
     }
 
@@ -151,6 +154,7 @@ impl ScriptWatcher {
         match watch(&self.dir, self.tx.clone()) {
             Ok(w) => {
                 self.watcher = Some(w);
+                self.last_failure = None;
                 self.notes.push(format!(
                     "the scripts directory {shown} was replaced: watching the new one and reloading its scripts"
                 ));
@@ -164,10 +168,15 @@ impl ScriptWatcher {
                 }
             }
             Err(e) => {
-                // Checked again at the next recheck.
+                // Checked again at the next recheck; said once per distinct
+                // failure (regression: at the inotify limit it was said
+                // every second for ever).
                 self.identity = None;
-                self.notes
-                    .push(format!("warning: {e}: hot reload is paused"));
+                let note = format!("warning: {e}: hot reload is paused");
+                if self.last_failure.as_deref() != Some(note.as_str()) {
+                    self.notes.push(note.clone());
+                    self.last_failure = Some(note);
+                }
             }
         }
     }
