@@ -310,6 +310,15 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
         })
     });
 
+    // A deleted script: the loaded version runs on, and /status says why
+    // it was not reloaded (regression: said nowhere).
+    std::fs::remove_file(&water).unwrap();
+    wait_for_script(&addr, |s| {
+        s["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("water.lua") && e.contains("No such file"))
+    });
+
     // And the original back: the error clears.
     save_like_an_editor(&water, &original);
     wait_for_script(&addr, |s| s["error"].is_null());

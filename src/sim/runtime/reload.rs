@@ -81,7 +81,13 @@ fn watch(dir: &Path, tx: crossbeam_channel::Sender<PathBuf>) -> Result<Watch, Si
         {
             flag.store(true, Ordering::Relaxed);
         }
-        if matches!(ev.kind, EventKind::Create(_) | EventKind::Modify(_)) {
+        // Removals too: a deleted script is then reported (its reload
+        // fails, the loaded version runs on, and /status says why);
+        // regression: it was said nowhere.
+        if matches!(
+            ev.kind,
+            EventKind::Create(_) | EventKind::Modify(_) | EventKind::Remove(_)
+        ) {
             for p in ev.paths {
                 if p.extension().is_some_and(|e| e == "lua") {
                     let _ = tx.send(p);
