@@ -98,6 +98,9 @@ fn status_pause_step_and_control_errors() {
     let (code, body) = request(&addr, "GET", "/pause", None, "").unwrap();
     assert_eq!(code, 405, "{body}");
     assert!(body.contains("use POST"), "{body}");
+    let (code, body) = post(&addr, &state, "/status", "");
+    assert_eq!(code, 405, "{body}");
+    assert!(body.contains("use GET"), "{body}");
     // HEAD answers as GET does, without the body.
     {
         use std::io::{Read, Write};
@@ -310,6 +313,12 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
         })
     });
 
+    // A .lua that is not a loaded script, made and deleted: none of the
+    // engine's business (checked in the log below).
+    std::fs::write(scripts.join("other.lua"), "return {}").unwrap();
+    std::thread::sleep(Duration::from_millis(400));
+    std::fs::remove_file(scripts.join("other.lua")).unwrap();
+
     // A deleted script: the loaded version runs on, and /status says why
     // it was not reloaded (regression: said nowhere).
     std::fs::remove_file(&water).unwrap();
@@ -328,6 +337,7 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
     let log = String::from_utf8_lossy(&out.stderr);
     assert!(log.contains("reloaded"), "{log}");
     assert!(!log.contains("panicked"), "{log}");
+    assert!(!log.contains("other.lua"), "{log}");
 }
 
 fn set_commit_every(cfg: &Path, every: u64) {

@@ -835,11 +835,12 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
     )
     .unwrap();
     // Tick 1: some 3 s a step on two cores (a slow step, committed at
-    // once). From tick 2 on: ten times as long, some 30 s a step.
+    // once). From tick 2 on: about 1.4 s a tile (well under the 5 s a call
+    // allows), some 25 s a step.
     std::fs::write(
         scripts.join("slow.lua"),
         "return { channels = { \"s\" }, passes = { { name = \"p\", reads = {}, writes = { \"s\" },\n\
-         kernel = function(c) local n = 0; if c.tick == 1 then n = 400 elseif c.tick >= 2 then n = 4000 end\n\
+         kernel = function(c) local n = 0; if c.tick == 1 then n = 400 elseif c.tick >= 2 then n = 2500 end\n\
          for i = 1, n do local x = string.rep(\"x\", 1000000) end end } } }",
     )
     .unwrap();

@@ -140,7 +140,10 @@ fn a_replaced_scripts_directory_is_watched_anew() {
 /// directory itself went away.
 #[test]
 fn a_scripts_directory_removed_and_made_again_is_watched_anew() {
-    let root = std::env::temp_dir().join(format!("bw-remade-{}", std::process::id()));
+    // A relative path, as a world config's scripts dir usually is (notify
+    // reports the directory's own events under its absolute path; the
+    // first version of this fix compared them with the relative one).
+    let root = std::path::PathBuf::from(format!("target/bw-remade-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
     let dir = root.join("scripts");
     std::fs::create_dir_all(&dir).unwrap();

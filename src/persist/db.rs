@@ -182,14 +182,14 @@ fn disk_limit() -> Option<u64> {
         .and_then(|v| v.parse().ok())
 }
 
-/// Open (or create) the database file, on a limited disk under the test
-/// hook.
 /// The `manifest.json` beside a store, if it is a regular file of sane size
 /// (a FIFO there hung the engine at start; regression).
 fn read_manifest(path: &Path) -> Option<Vec<u8>> {
     crate::files::read_bounded(path, 1 << 20).ok()
 }
 
+/// Open (or create) the database file, on a limited disk under the test
+/// hook.
 fn open_db(path: &Path) -> Result<redb::Database, redb::Error> {
     match disk_limit() {
         None => Ok(redb::Builder::new()

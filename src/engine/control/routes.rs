@@ -150,24 +150,30 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &At
             reply(200, "application/json", body)
         }
         (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
+        (&Method::POST, p) if allowed_method(p) == Some("GET") => {
+            method_not_allowed(&method, p, "GET")
+        }
         (&Method::POST, _) => post(req, &path, shared).await,
         // A known route asked with the wrong method: 405 naming the right
         // one (it was 404, as if the route did not exist).
         _ => match allowed_method(&path) {
-            Some(allowed) => {
-                let mut r = error(
-                    405,
-                    &format!("{method} is not allowed on {}: use {allowed}", shown(&path)),
-                );
-                r.headers_mut().insert(
-                    hyper::header::ALLOW,
-                    hyper::header::HeaderValue::from_static(allowed),
-                );
-                r
-            }
+            Some(allowed) => method_not_allowed(&method, &path, allowed),
             None => error(404, &format!("no route {method} {}", shown(&path))),
         },
     }
+}
+
+/// 405 for a known route asked with the wrong method, with `Allow`.
+fn method_not_allowed(method: &Method, path: &str, allowed: &'static str) -> Reply {
+    let mut r = error(
+        405,
+        &format!("{method} is not allowed on {}: use {allowed}", shown(path)),
+    );
+    r.headers_mut().insert(
+        hyper::header::ALLOW,
+        hyper::header::HeaderValue::from_static(allowed),
+    );
+    r
 }
 
 /// The method a known route takes, if `path` is one.

@@ -334,10 +334,17 @@ impl WorldSim {
         world: &SceneWorld,
         path: &Path,
     ) -> Result<Option<(usize, Vec<String>)>, SimError> {
-        let src = read_script(path)?;
-        let Some(index) = self.script_index(&src.name) else {
+        // Matched before reading: a file that is not a loaded script (a
+        // deleted `old.lua`, an editor's lock file) is none of our business
+        // (regression: its removal printed "kept the last good version").
+        let name = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_default();
+        let Some(index) = self.script_index(&name) else {
             return Ok(None);
         };
+        let src = read_script(path)?;
         let warnings = match self.route(index) {
             Ok(c) => self.sim.replace_script(c, src)?,
             Err(v) => self.vox.replace_script(v, src, &world.materials)?,

@@ -34,7 +34,8 @@ pub(super) fn declaration(
 /// A Lua type name with its article ("a table", "an integer").
 pub(super) fn a(type_name: &str) -> String {
     match type_name.chars().next() {
-        Some('a' | 'e' | 'i' | 'o' | 'u') => format!("an {type_name}"),
+        // Not 'u': "a userdata".
+        Some('a' | 'e' | 'i' | 'o') => format!("an {type_name}"),
         _ => format!("a {type_name}"),
     }
 }

@@ -66,7 +66,11 @@ struct Watch {
 fn watch(dir: &Path, tx: crossbeam_channel::Sender<PathBuf>) -> Result<Watch, SimError> {
     let lost = Arc::new(AtomicBool::new(false));
     let flag = lost.clone();
-    let own = dir.to_path_buf();
+    // notify reports the directory's own events under the absolute path
+    // it watches (a relative `dir` is joined to the working directory):
+    // compare with that (regression: a relative scripts dir, the usual
+    // case, never matched).
+    let own = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
     let mut watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| {
         let Ok(ev) = res else { return };
         // The directory itself removed or renamed: its inode may come back
