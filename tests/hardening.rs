@@ -968,3 +968,31 @@ fn special_files_in_the_state_directory_are_refused_not_waited_on() {
         }
     }
 }
+
+/// Regression (hostile probe): a start refused for a missing script left a
+/// state directory it had made (a lock, a token and an empty store) behind.
+/// A directory that was there before is kept, with what it held.
+#[test]
+fn a_refused_start_removes_only_the_state_directory_it_made() {
+    let (cfg, state, _) = setup("refused-start");
+    edit_config(&cfg, "file = \"water.lua\"", "file = \"missing.lua\"");
+    let out = run_cmd(&cfg, &state)
+        .arg("--ticks")
+        .arg("1")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    // No line known: no `:?` after the name (it printed `missing.lua:?:`).
+    assert!(err.contains("missing.lua: cannot read"), "{err}");
+    assert!(!state.exists(), "left behind: {err}");
+    std::fs::create_dir_all(&state).unwrap();
+    std::fs::write(state.join("notes.txt"), "mine").unwrap();
+    let out = run_cmd(&cfg, &state)
+        .arg("--ticks")
+        .arg("1")
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(state.join("notes.txt").exists());
+}

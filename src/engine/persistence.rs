@@ -684,15 +684,7 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
     // itself, and nothing is removed unless this import holds the lock
     // (regression: an import that lost the lock to another removed the
     // directory the other was importing into).
-    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("cannot create {}", parent.display()))?;
-    }
-    let created = match std::fs::create_dir(dir) {
-        Ok(()) => true,
-        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => false,
-        Err(e) => return Err(e).with_context(|| format!("cannot create {}", dir.display())),
-    };
+    let created = super::state_dir::make(dir)?;
     let lock_file = dir.join("engine.lock");
     let had_lock = lock_file.exists();
     let lock = match super::state_dir::lock(dir) {

@@ -44,6 +44,37 @@ pub struct StateLock {
     _file: File,
 }
 
+impl StateLock {
+    /// A second handle on the same lock: the lock lasts until both are
+    /// dropped.
+    pub fn try_clone(&self) -> Result<StateLock, StateDirError> {
+        Ok(StateLock {
+            _file: self._file.try_clone().map_err(|error| StateDirError::Io {
+                path: PathBuf::from("engine.lock"),
+                error,
+            })?,
+        })
+    }
+}
+
+/// Create the state directory `dir` (and its parents); whether this call
+/// made it, decided by `create_dir` itself, so two processes cannot both
+/// think they did.
+pub fn make(dir: &Path) -> Result<bool, StateDirError> {
+    let ioe = |path: &Path| {
+        let path = path.to_path_buf();
+        move |error| StateDirError::Io { path, error }
+    };
+    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(ioe(parent))?;
+    }
+    match std::fs::create_dir(dir) {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
+        Err(e) => Err(ioe(dir)(e)),
+    }
+}
+
 /// Create `dir` if needed and lock it (`flock`, non-blocking).
 pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
     let ioe = |path: &Path| {

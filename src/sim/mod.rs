@@ -91,11 +91,17 @@ pub fn fmt_num(v: f64) -> String {
     }
 }
 
+/// `:LINE` after a script's file name, or nothing when the line is not
+/// known (it printed `water.lua:?:`).
+fn at_line(line: Option<usize>) -> String {
+    line.map_or(String::new(), |l| format!(":{l}"))
+}
+
 /// Errors of the simulation subsystem. Every variant names the script.
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum SimError {
     /// The script does not compile.
-    #[error("{script}.lua:{}: syntax error: {msg}", line.map_or("?".into(), |l| l.to_string()))]
+    #[error("{script}.lua{}: syntax error: {msg}", at_line(*line))]
     Syntax {
         /// Script name.
         script: String,
@@ -105,7 +111,7 @@ pub enum SimError {
         msg: String,
     },
     /// The script's declarations are invalid.
-    #[error("{script}.lua:{}: {msg}", line.map_or("?".into(), |l| l.to_string()))]
+    #[error("{script}.lua{}: {msg}", at_line(*line))]
     Declaration {
         /// Script name.
         script: String,
@@ -115,7 +121,7 @@ pub enum SimError {
         msg: String,
     },
     /// A kernel failed (error, budget, memory) during a step.
-    #[error("{script}.lua:{}: pass '{pass}' on tile {tile:?}: {msg}", line.map_or("?".into(), |l| l.to_string()))]
+    #[error("{script}.lua{}: pass '{pass}' on tile {tile:?}: {msg}", at_line(*line))]
     Runtime {
         /// Script name.
         script: String,

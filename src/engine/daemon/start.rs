@@ -26,12 +26,38 @@ use crate::scene::{SceneWorld, build_scene};
 use crate::sim::{Limits, ScriptWatcher, WorldSim};
 
 impl Engine {
-    /// Lock, listen, resume or build, load the scripts, start rendering.
+    /// Lock, listen, resume or build, load the scripts, start rendering. A
+    /// start that fails removes the state directory if it made it
+    /// (regression: a missing script left a directory with a lock, a token
+    /// and an empty store behind).
     pub fn start(opts: DaemonOptions) -> Result<Engine> {
-        let cfg = opts.world;
+        let state = opts.state.clone();
+        let made = state_dir::make(&state)?;
         // The lock comes first: a second engine on this directory must not
         // touch its token or checkpoints.
-        let lock = state_dir::lock(&opts.state)?;
+        let lock = match state_dir::lock(&state) {
+            Ok(l) => l,
+            Err(e) => {
+                if made {
+                    // Only if still empty: another engine's lock file stays.
+                    let _ = std::fs::remove_dir(&state);
+                }
+                return Err(e.into());
+            }
+        };
+        // Held through a failed start's clean-up, so no other engine can
+        // have taken the directory meanwhile (one lock, two handles).
+        let held = lock.try_clone()?;
+        let started = Self::start_locked(opts, lock);
+        if started.is_err() && made {
+            let _ = std::fs::remove_dir_all(&state);
+        }
+        drop(held);
+        started
+    }
+
+    fn start_locked(opts: DaemonOptions, lock: state_dir::StateLock) -> Result<Engine> {
+        let cfg = opts.world;
         // A frame (and an anti-aliased frame's sums) must fit in memory.
         crate::scene::budget::check_images(
             "render.width/render.height",
