@@ -23,7 +23,9 @@
 //! nothing). The engine and the render thread only ever store values
 //! ([`tokio::sync::watch`], a mutex held for a copy); they never wait for a
 //! viewer. A client that has read nothing for [`STALL_LIMIT`] is
-//! disconnected, and at most [`MAX_VIEWERS`] streams are served at once.
+//! disconnected, and at most [`MAX_VIEWERS`] streams are served at once;
+//! past that a new viewer takes the longest-connected one's slot
+//! ([`Viewers`]).
 
 use std::collections::VecDeque;
 use std::convert::Infallible;
@@ -226,12 +228,89 @@ fn event(kind: &str, data: &impl Serialize) -> Bytes {
     Bytes::from(format!("event: {kind}\ndata: {json}\n\n"))
 }
 
-/// Start an event stream for one viewer (the caller holds its viewer slot
-/// in `permit` for as long as the stream lives).
-pub fn stream(shared: Arc<Shared>, permit: tokio::sync::OwnedSemaphorePermit) -> EventBody {
+/// The viewer slots: at most [`MAX_VIEWERS`] event streams at once. When
+/// all are taken, a new viewer takes the slot of the longest-connected one,
+/// whose stream ends (a browser's `EventSource` reconnects by itself), so
+/// clients that open streams and never read cannot shut viewers out
+/// (regression: sixteen of them got every later viewer a 503 for minutes,
+/// and for ever while the engine was paused, as nothing was sent to fill
+/// their buffers).
+pub struct Viewers {
+    slots: Arc<tokio::sync::Semaphore>,
+    /// The streams' ids and stop signals, oldest first.
+    order: std::sync::Mutex<VecDeque<(u64, Arc<tokio::sync::Notify>)>>,
+    next: std::sync::atomic::AtomicU64,
+}
+
+/// How long a new viewer waits for an evicted stream's slot.
+pub const EVICT_WAIT: Duration = Duration::from_secs(2);
+
+impl Default for Viewers {
+    fn default() -> Self {
+        Viewers {
+            slots: Arc::new(tokio::sync::Semaphore::new(MAX_VIEWERS)),
+            order: std::sync::Mutex::new(VecDeque::new()),
+            next: std::sync::atomic::AtomicU64::new(0),
+        }
+    }
+}
+
+impl Viewers {
+    /// A slot for a new stream: a free one, or the longest-connected
+    /// stream's, which is told to end. `None` if no slot came free within
+    /// [`EVICT_WAIT`].
+    pub async fn admit(self: &Arc<Self>) -> Option<ViewerSlot> {
+        let permit = match self.slots.clone().try_acquire_owned() {
+            Ok(p) => p,
+            Err(_) => {
+                let oldest = self.order.lock().ok().and_then(|mut o| o.pop_front());
+                if let Some((_, stop)) = oldest {
+                    stop.notify_one();
+                }
+                tokio::time::timeout(EVICT_WAIT, self.slots.clone().acquire_owned())
+                    .await
+                    .ok()?
+                    .ok()?
+            }
+        };
+        let id = self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let stop = Arc::new(tokio::sync::Notify::new());
+        if let Ok(mut o) = self.order.lock() {
+            o.push_back((id, stop.clone()));
+        }
+        Some(ViewerSlot {
+            _permit: permit,
+            id,
+            stop,
+            viewers: self.clone(),
+        })
+    }
+}
+
+/// One stream's slot, freed when dropped.
+pub struct ViewerSlot {
+    _permit: tokio::sync::OwnedSemaphorePermit,
+    id: u64,
+    /// Told when a newer viewer takes the slot.
+    stop: Arc<tokio::sync::Notify>,
+    viewers: Arc<Viewers>,
+}
+
+impl Drop for ViewerSlot {
+    fn drop(&mut self) {
+        if let Ok(mut o) = self.viewers.order.lock() {
+            o.retain(|(id, _)| *id != self.id);
+        }
+    }
+}
+
+/// Start an event stream for one viewer, holding its `slot` for as long as
+/// the stream lives.
+pub fn stream(shared: Arc<Shared>, slot: ViewerSlot) -> EventBody {
     let (tx, rx) = mpsc::channel::<Bytes>(QUEUE);
     tokio::spawn(async move {
-        let _permit = permit;
+        let stop = slot.stop.clone();
+        let _slot = slot;
         let mut frames = shared.frame_events.subscribe();
         let mut last_status = String::new();
         let (mut since, mut epoch) = (0u64, u64::MAX);
@@ -262,6 +341,8 @@ pub fn stream(shared: Arc<Shared>, permit: tokio::sync::OwnedSemaphorePermit) ->
                 return;
             }
             tokio::select! {
+                // A newer viewer took this slot.
+                _ = stop.notified() => return,
                 changed = frames.changed() => {
                     if changed.is_err() {
                         return;

@@ -231,7 +231,7 @@ pub struct Shared {
     /// Which viewer holds the camera.
     pub camera_lease: Mutex<live::CameraLease>,
     /// Slots for live viewers' event streams.
-    pub viewers: std::sync::Arc<tokio::sync::Semaphore>,
+    pub viewers: std::sync::Arc<live::Viewers>,
 }
 
 impl Shared {
@@ -246,7 +246,7 @@ impl Shared {
             frame_events: tokio::sync::watch::Sender::new(live::FrameEvent::default()),
             timeline: Mutex::new(live::TimelineRing::default()),
             camera_lease: Mutex::new(live::CameraLease::default()),
-            viewers: std::sync::Arc::new(tokio::sync::Semaphore::new(live::MAX_VIEWERS)),
+            viewers: std::sync::Arc::new(live::Viewers::default()),
         }
     }
 }

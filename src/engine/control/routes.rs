@@ -99,7 +99,7 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &At
             None => error(404, "no frame rendered yet"),
         },
         (&Method::GET, "/events") => {
-            let Ok(permit) = shared.viewers.clone().try_acquire_owned() else {
+            let Some(slot) = shared.viewers.admit().await else {
                 return error(
                     503,
                     &format!(
@@ -109,7 +109,7 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &At
                 );
             };
             streaming.store(true, Ordering::Relaxed);
-            let mut r = Response::new(live::stream(shared.clone(), permit).boxed());
+            let mut r = Response::new(live::stream(shared.clone(), slot).boxed());
             let h = r.headers_mut();
             h.insert(
                 CONTENT_TYPE,
