@@ -68,18 +68,28 @@ pub enum FileError {
     },
 }
 
-/// Open `path` to read it, with `O_NONBLOCK` on Unix: opening a FIFO
-/// returns at once instead of waiting for a writer (a regular file reads as
-/// always).
-pub fn open_for_reading(path: &Path) -> std::io::Result<std::fs::File> {
-    let mut o = std::fs::OpenOptions::new();
-    o.read(true);
+/// `options` with `O_NONBLOCK` on Unix: opening a FIFO then returns at
+/// once instead of waiting for the other end (a regular file reads and
+/// writes as always).
+pub fn without_waiting(options: &mut std::fs::OpenOptions) -> &mut std::fs::OpenOptions {
     #[cfg(unix)]
     {
         use std::os::unix::fs::OpenOptionsExt;
-        o.custom_flags(libc::O_NONBLOCK);
+        options.custom_flags(libc::O_NONBLOCK);
     }
-    o.open(path)
+    options
+}
+
+/// Whether something other than a regular file (a FIFO, a device, a
+/// directory) is at `path`: a file the engine reads or appends to there
+/// would block or never end.
+pub fn is_there_but_not_a_file(path: &Path) -> bool {
+    std::fs::metadata(path).is_ok_and(|m| !m.is_file())
+}
+
+/// Open `path` to read it, [`without_waiting`].
+pub fn open_for_reading(path: &Path) -> std::io::Result<std::fs::File> {
+    without_waiting(std::fs::OpenOptions::new().read(true)).open(path)
 }
 
 /// The whole of a regular file of at most `max` bytes.
@@ -252,6 +262,16 @@ impl Drop for Staged {
     }
 }
 
+/// Make a FIFO at `path`, for the unit tests of inputs that must not block.
+#[cfg(all(test, unix))]
+pub(crate) fn mkfifo(path: &Path) {
+    let made = std::process::Command::new("mkfifo")
+        .arg(path)
+        .status()
+        .unwrap();
+    assert!(made.success(), "mkfifo {}", path.display());
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -291,11 +311,7 @@ mod tests {
     #[test]
     fn opening_a_fifo_does_not_wait_for_a_writer() {
         let fifo = dir("fifo").join("pipe");
-        let made = std::process::Command::new("mkfifo")
-            .arg(&fifo)
-            .status()
-            .unwrap();
-        assert!(made.success());
+        mkfifo(&fifo);
         // Returns at once (a blocking open would hang this test).
         let f = open_for_reading(&fifo).unwrap();
         assert!(!f.metadata().unwrap().is_file());

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 mod common;
-use common::cli::{assert_clear_failure, assert_success, bin, read_json};
+use common::cli::{assert_clear_failure, assert_success, bin, mkfifo, read_json};
 
 fn tmp(name: &str) -> PathBuf {
     common::cli::tmp("cli", name)
@@ -725,13 +725,7 @@ fn ctl_refuses_answers_that_are_not_a_brickworld_engines() {
 fn configs_and_scripts_must_be_regular_files() {
     let fifo = tmp("world-fifo.toml");
     let _ = std::fs::remove_file(&fifo);
-    assert!(
-        std::process::Command::new("mkfifo")
-            .arg(&fifo)
-            .status()
-            .unwrap()
-            .success()
-    );
+    mkfifo(&fifo);
     let state = tmp("fifo-state");
     for cfg in [fifo.to_str().unwrap(), "/dev/zero"] {
         expect_failure(

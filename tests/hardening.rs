@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use brickworld::engine::ctl::request;
 
 mod common;
-use common::cli::assert_success;
+use common::cli::{assert_success, mkfifo};
 use common::daemon::*;
 
 /// Send raw bytes; return the response's status line (or "" if the server
@@ -271,28 +271,11 @@ fn fault_06_pause_cancels_queued_steps() {
 #[test]
 fn fault_07_a_script_that_catches_its_budget_error_is_suspended_and_the_daemon_stays_responsive() {
     let (cfg, state, addr) = setup("f07");
-    let scripts = cfg.parent().unwrap().join("scripts");
-    std::fs::create_dir_all(&scripts).unwrap();
-    std::fs::copy(
-        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
-        scripts.join("water.lua"),
-    )
-    .unwrap();
-    std::fs::write(
-        scripts.join("evil.lua"),
+    add_script(
+        &cfg,
+        "evil.lua",
         "return { channels = { \"e\" }, passes = { { name = \"p\", reads = {}, writes = { \"e\" },\n\
          kernel = function(c) if c.tick > 3 then pcall(function() while true do end end) while true do end end end } } }",
-    )
-    .unwrap();
-    edit_config(
-        &cfg,
-        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
-        scripts.to_str().unwrap(),
-    );
-    edit_config(
-        &cfg,
-        "[render]",
-        "[[scripts]]\nfile = \"evil.lua\"\n[render]",
     );
     let d = start(&cfg, &state);
     wait_ready(&addr);
@@ -758,28 +741,11 @@ fn until_tick_at_or_below_the_world_tick_runs_nothing() {
 #[test]
 fn a_restored_failure_streak_shows_as_failing_before_any_step() {
     let (cfg, state, addr) = setup("streak");
-    let scripts = cfg.parent().unwrap().join("scripts");
-    std::fs::create_dir_all(&scripts).unwrap();
-    std::fs::copy(
-        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
-        scripts.join("water.lua"),
-    )
-    .unwrap();
-    std::fs::write(
-        scripts.join("flaky.lua"),
+    add_script(
+        &cfg,
+        "flaky.lua",
         "return { channels = { \"f\" }, passes = { { name = \"p\", reads = {}, writes = { \"f\" },\n\
          kernel = function(c) if c.tick >= 1 then error(\"boom\") end end } } }",
-    )
-    .unwrap();
-    edit_config(
-        &cfg,
-        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
-        scripts.to_str().unwrap(),
-    );
-    edit_config(
-        &cfg,
-        "[render]",
-        "[[scripts]]\nfile = \"flaky.lua\"\n[render]",
     );
     // Ticks 1 and 2 fail: a streak of 2, one short of suspension.
     let (said, _) = run_ok(&cfg, &state, "--ticks", 3);
@@ -827,32 +793,15 @@ fn a_restored_failure_streak_shows_as_failing_before_any_step() {
 #[test]
 fn sigterm_interrupts_a_step_that_runs_for_minutes() {
     let (cfg, state, addr) = setup("slowstep");
-    let scripts = cfg.parent().unwrap().join("scripts");
-    std::fs::create_dir_all(&scripts).unwrap();
-    std::fs::copy(
-        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
-        scripts.join("water.lua"),
-    )
-    .unwrap();
     // Tick 1: some 3 s a step on two cores (a slow step, committed at
     // once). From tick 2 on: about 1.4 s a tile (well under the 5 s a call
     // allows), some 25 s a step.
-    std::fs::write(
-        scripts.join("slow.lua"),
+    add_script(
+        &cfg,
+        "slow.lua",
         "return { channels = { \"s\" }, passes = { { name = \"p\", reads = {}, writes = { \"s\" },\n\
          kernel = function(c) local n = 0; if c.tick == 1 then n = 400 elseif c.tick >= 2 then n = 2500 end\n\
          for i = 1, n do local x = string.rep(\"x\", 1000000) end end } } }",
-    )
-    .unwrap();
-    edit_config(
-        &cfg,
-        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
-        scripts.to_str().unwrap(),
-    );
-    edit_config(
-        &cfg,
-        "[render]",
-        "[[scripts]]\nfile = \"slow.lua\"\n[render]",
     );
     let d = start(&cfg, &state);
     wait_ready(&addr);
@@ -934,11 +883,7 @@ fn special_files_in_the_state_directory_are_refused_not_waited_on() {
         } else {
             std::fs::create_dir_all(&state).unwrap();
         }
-        let made = std::process::Command::new("mkfifo")
-            .arg(state.join(name))
-            .status()
-            .unwrap();
-        assert!(made.success());
+        mkfifo(&state.join(name));
         let mut child = Daemon(Some(
             run_cmd(&cfg, &state)
                 .arg("--ticks")

@@ -684,19 +684,9 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
     // itself, and nothing is removed unless this import holds the lock
     // (regression: an import that lost the lock to another removed the
     // directory the other was importing into).
-    let created = super::state_dir::make(dir)?;
     let lock_file = dir.join("engine.lock");
     let had_lock = lock_file.exists();
-    let lock = match super::state_dir::lock(dir) {
-        Ok(l) => l,
-        Err(e) => {
-            if created {
-                // Only if still empty: another process's lock file stays.
-                let _ = std::fs::remove_dir(dir);
-            }
-            return Err(e.into());
-        }
-    };
+    let (lock, created) = super::state_dir::claim(dir)?;
     let result = import(file, dir, &cfg.identity());
     if result.is_err() {
         if created {

@@ -75,6 +75,24 @@ pub fn make(dir: &Path) -> Result<bool, StateDirError> {
     }
 }
 
+/// Make (if needed) and lock the state directory `dir`; also whether this
+/// call made it. If the lock is refused, a directory this call made is
+/// removed again while still empty (another process's lock file keeps it).
+/// A caller that fails later and made the directory may remove it while it
+/// holds the lock.
+pub fn claim(dir: &Path) -> Result<(StateLock, bool), StateDirError> {
+    let made = make(dir)?;
+    match lock(dir) {
+        Ok(l) => Ok((l, made)),
+        Err(e) => {
+            if made {
+                let _ = std::fs::remove_dir(dir);
+            }
+            Err(e)
+        }
+    }
+}
+
 /// Create `dir` if needed and lock it (`flock`, non-blocking).
 pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
     let ioe = |path: &Path| {
@@ -84,18 +102,14 @@ pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
     std::fs::create_dir_all(dir).map_err(ioe(dir))?;
     let path = dir.join("engine.lock");
     let not_a_file = || ioe(&path)(std::io::Error::other("not a regular file: move it away"));
-    if std::fs::metadata(&path).is_ok_and(|m| !m.is_file()) {
+    if crate::files::is_there_but_not_a_file(&path) {
         return Err(not_a_file());
     }
-    let mut options = OpenOptions::new();
-    options.create(true).truncate(false).write(true);
-    // Without blocking: a FIFO named engine.lock hung the start (regression).
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::OpenOptionsExt;
-        options.custom_flags(libc::O_NONBLOCK);
-    }
-    let file = options.open(&path).map_err(ioe(&path))?;
+    // Without waiting: a FIFO named engine.lock hung the start (regression).
+    let file =
+        crate::files::without_waiting(OpenOptions::new().create(true).truncate(false).write(true))
+            .open(&path)
+            .map_err(ioe(&path))?;
     if !file.metadata().map_err(ioe(&path))?.is_file() {
         return Err(not_a_file());
     }

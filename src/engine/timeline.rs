@@ -117,9 +117,7 @@ impl Timeline {
         // Only a regular file is read or appended to: a FIFO there hung the
         // engine at start (and it ignored SIGTERM), a link to /dev/zero
         // filled memory looking for a newline (regression).
-        if let Ok(m) = std::fs::metadata(path)
-            && !m.is_file()
-        {
+        if crate::files::is_there_but_not_a_file(path) {
             bail!(
                 "{} is not a regular file: move it away (the engine writes its timeline there)",
                 path.display()
@@ -434,11 +432,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         let fifo = dir.join("timeline.csv");
-        let made = std::process::Command::new("mkfifo")
-            .arg(&fifo)
-            .status()
-            .unwrap();
-        assert!(made.success());
+        crate::files::mkfifo(&fifo);
         let e = Timeline::open(&fifo, &[]).err().unwrap().to_string();
         assert!(e.contains("is not a regular file"), "{e}");
         let zero = dir.join("zero.csv");

@@ -340,9 +340,7 @@ impl WorldDb {
         let manifest_path = dir.join(MANIFEST_FILE);
         // A FIFO or device named world.redb: one clear line (redb said
         // "Invalid argument").
-        if let Ok(m) = std::fs::metadata(&path)
-            && !m.is_file()
-        {
+        if crate::files::is_there_but_not_a_file(&path) {
             return Err(StoreError::Db {
                 path: path.clone(),
                 msg: "not a regular file: move it away".into(),

@@ -43,3 +43,13 @@ pub fn assert_clear_failure(out: &Output, what: &str, needle: &str) {
         "{what}: '{err}' should mention '{needle}'"
     );
 }
+
+/// Make a FIFO at `path` (the tests of inputs that must not block).
+#[allow(dead_code)]
+pub fn mkfifo(path: &Path) {
+    let made = std::process::Command::new("mkfifo")
+        .arg(path)
+        .status()
+        .unwrap();
+    assert!(made.success(), "mkfifo {}", path.display());
+}

@@ -75,6 +75,31 @@ pub fn edit_config(cfg: &Path, from: &str, to: &str) {
     std::fs::write(cfg, text.replace(from, to)).unwrap();
 }
 
+/// Give the world of `setup` its own scripts directory (a copy of
+/// `water.lua`) with one more script, `name`, whose source is `text`, run
+/// after water.
+#[allow(dead_code)]
+pub fn add_script(cfg: &Path, name: &str, text: &str) {
+    let scripts = cfg.parent().unwrap().join("scripts");
+    std::fs::create_dir_all(&scripts).unwrap();
+    std::fs::copy(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
+        scripts.join("water.lua"),
+    )
+    .unwrap();
+    std::fs::write(scripts.join(name), text).unwrap();
+    edit_config(
+        cfg,
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
+        scripts.to_str().unwrap(),
+    );
+    edit_config(
+        cfg,
+        "[render]",
+        &format!("[[scripts]]\nfile = \"{name}\"\n[render]"),
+    );
+}
+
 pub fn start(cfg: &Path, state: &Path) -> Daemon {
     Daemon(Some(
         run_cmd(cfg, state)

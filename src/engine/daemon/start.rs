@@ -32,19 +32,9 @@ impl Engine {
     /// and an empty store behind).
     pub fn start(opts: DaemonOptions) -> Result<Engine> {
         let state = opts.state.clone();
-        let made = state_dir::make(&state)?;
         // The lock comes first: a second engine on this directory must not
         // touch its token or checkpoints.
-        let lock = match state_dir::lock(&state) {
-            Ok(l) => l,
-            Err(e) => {
-                if made {
-                    // Only if still empty: another engine's lock file stays.
-                    let _ = std::fs::remove_dir(&state);
-                }
-                return Err(e.into());
-            }
-        };
+        let (lock, made) = state_dir::claim(&state)?;
         // Held through a failed start's clean-up, so no other engine can
         // have taken the directory meanwhile (one lock, two handles).
         let held = lock.try_clone()?;
