@@ -80,6 +80,23 @@ pub fn without_waiting(options: &mut std::fs::OpenOptions) -> &mut std::fs::Open
     options
 }
 
+/// Make a write past the process's file size limit (`ulimit -f`,
+/// `RLIMIT_FSIZE`) fail with "File too large" instead of killing the
+/// process: the kernel sends `SIGXFSZ`, whose default action ends the
+/// process without a word, and with the signal blocked the write returns
+/// `EFBIG`, which every writer reports as the error it is (a daemon's
+/// commit keeps the last good checkpoint). Call it first in `main`, before
+/// any thread starts: threads inherit the mask. A no-op off Unix.
+pub fn no_signal_past_file_size_limit() {
+    #[cfg(unix)]
+    {
+        use nix::sys::signal::{SigSet, Signal};
+        // Blocking a signal cannot fail with a valid set; if it did, the
+        // default (a silent kill past the limit) is what remains.
+        let _ = SigSet::from(Signal::SIGXFSZ).thread_block();
+    }
+}
+
 /// Whether something other than a regular file (a FIFO, a device, a
 /// directory) is at `path`: a file the engine reads or appends to there
 /// would block or never end.

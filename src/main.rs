@@ -42,6 +42,7 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
 
 fn main() -> ExitCode {
     brickworld::install_panic_hook();
+    brickworld::files::no_signal_past_file_size_limit();
     // Mesa prints "XDG_RUNTIME_DIR is invalid" (twice) when the variable is
     // missing, which reads like a failure: give it a private directory.
     brickworld::runtime_dir::ensure();

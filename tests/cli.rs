@@ -600,6 +600,34 @@ fn threads_the_os_refuses_get_one_clear_error() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
 }
 
+/// Regression (hostile probe): past `ulimit -f` the kernel's SIGXFSZ killed
+/// the process without a word (exit 153, and a daemon lost its final
+/// commit); a write past the limit is now an error like any other.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_file_size_limit_fails_the_write_instead_of_killing_the_process() {
+    let out_png = tmp("fsize.png");
+    let _ = std::fs::remove_file(&out_png);
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -f 2; exec '{}' render --size 64x64x64 --width 160 --height 120 --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            out_png.display()
+        ))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    assert_clear_failure(&out, "render past ulimit -f", "File too large");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        err.lines().filter(|l| l.starts_with("error")).count(),
+        1,
+        "{err}"
+    );
+    assert!(!out_png.exists(), "a partial image was left");
+}
+
 /// Regression (hostile probe): the PNG replaced an existing file, then the
 /// depth failed: a failed command must leave both destinations alone.
 #[test]

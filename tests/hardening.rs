@@ -51,13 +51,14 @@ fn fault_01_a_huge_content_length_is_refused_before_reading() {
         // Without the token: 401, the body is never read.
         let line = raw(
             &addr,
-            format!("POST /step HTTP/1.1\r\nHost: x\r\nContent-Length: {len}\r\n\r\n").as_bytes(),
+            format!("POST /step HTTP/1.1\r\nHost: localhost\r\nContent-Length: {len}\r\n\r\n")
+                .as_bytes(),
         );
         assert!(line.starts_with("HTTP/1.1 4"), "{len}: {line}");
         // With it: 413 (or 400 for a length that is not a number).
         let line = raw(
             &addr,
-            format!("POST /step HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {tok}\r\nContent-Length: {len}\r\n\r\n").as_bytes(),
+            format!("POST /step HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {tok}\r\nContent-Length: {len}\r\n\r\n").as_bytes(),
         );
         assert!(line.starts_with("HTTP/1.1 4"), "{len}: {line}");
         assert!(alive(&mut d), "the daemon died on Content-Length {len}");
@@ -74,7 +75,7 @@ fn fault_02_an_idle_body_blocks_no_one_and_sigterm_still_stops() {
     let tok = token(&state);
     let mut idle = TcpStream::connect(&addr).unwrap();
     idle.write_all(
-        format!("POST /step HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {tok}\r\nContent-Length: 2000\r\n\r\n").as_bytes(),
+        format!("POST /step HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {tok}\r\nContent-Length: 2000\r\n\r\n").as_bytes(),
     )
     .unwrap();
     for _ in 0..20 {
@@ -145,7 +146,7 @@ fn fault_04_huge_headers_are_refused_and_cost_no_memory() {
     for _ in 0..3 {
         let mut s = TcpStream::connect(&addr).unwrap();
         s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-        let _ = s.write_all(b"GET /status HTTP/1.1\r\nHost: x\r\nX-Big: ");
+        let _ = s.write_all(b"GET /status HTTP/1.1\r\nHost: localhost\r\nX-Big: ");
         // 100 MB of header, in 1 MB pieces, until the server cuts us off.
         let chunk = vec![b'a'; 1 << 20];
         let mut sent = 0;
@@ -197,13 +198,13 @@ fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothin
     let tok = tok.trim();
     let line = raw(
         &addr,
-        format!("POST /pause HTTP/1.1\r\nHost: x\r\nauthorization: bearer {tok}\r\nContent-Length: 0\r\n\r\n").as_bytes(),
+        format!("POST /pause HTTP/1.1\r\nHost: localhost\r\nauthorization: bearer {tok}\r\nContent-Length: 0\r\n\r\n").as_bytes(),
     );
     assert!(line.contains("200"), "{line}");
     let line = raw(
         &addr,
         format!(
-            "POST /resume HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {}\r\nContent-Length: 0\r\n\r\n",
+            "POST /resume HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {}\r\nContent-Length: 0\r\n\r\n",
             tok.to_uppercase()
         )
         .as_bytes(),
@@ -226,7 +227,7 @@ fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothin
     let line = raw(
         &addr,
         format!(
-            "POST /scripts/{}/params HTTP/1.1\r\nHost: x\r\n\r\n",
+            "POST /scripts/{}/params HTTP/1.1\r\nHost: localhost\r\n\r\n",
             "y".repeat(40_000)
         )
         .as_bytes(),
@@ -667,6 +668,79 @@ fn a_checkpoint_claiming_more_memory_than_there_is_is_set_aside() {
         "{err}"
     );
     assert!(state.join("ckpt-0000000000000099.bwc.corrupt").exists());
+}
+
+/// Regression (hostile probe): a daemon under `ulimit -f` was killed by
+/// SIGXFSZ without a word when its store grew past the limit (exit 153);
+/// now the write fails, and the start says why in one line.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_file_size_limit_is_an_error_not_a_silent_kill() {
+    let (cfg, state, _) = setup("fsize");
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -f 200 && exec '{}' run '{}' --state '{}' --ticks 2",
+            env!("CARGO_BIN_EXE_brickworld"),
+            cfg.display(),
+            state.display()
+        ))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    assert!(err.contains("File too large"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+/// Regression (hostile probe): the `Host` header was not checked, so a web
+/// page whose DNS name was rebound to 127.0.0.1 could read `/status` and
+/// frames through its visitor's browser. Names other than IPs, localhost
+/// and `[control] hosts` now get 403, on every route.
+#[test]
+fn a_request_naming_a_foreign_host_is_refused() {
+    let (cfg, state, addr) = setup("host");
+    edit_config(&cfg, "[control]\n", "[control]\nhosts = [\"Box.Lan.\"]\n");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let port = addr.rsplit(':').next().unwrap();
+    let get = |host: &str, path: &str| {
+        raw(
+            &addr,
+            format!("GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n").as_bytes(),
+        )
+    };
+    for host in [
+        format!("rebound.example:{port}"),
+        "rebound.example".to_string(),
+        format!("127.0.0.1.evil.example:{port}"),
+        format!("localhost.evil.example:{port}"),
+        format!("box.lan:{port}:80"),
+    ] {
+        for path in ["/status", "/frame.png", "/", "/events", "/timeline"] {
+            let line = get(&host, path);
+            assert!(line.contains(" 403 "), "{host} {path}: {line}");
+        }
+    }
+    // Absolute-form targets are held to the same rule.
+    let line = raw(
+        &addr,
+        format!("GET http://rebound.example:{port}/status HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n").as_bytes(),
+    );
+    assert!(line.contains(" 403 "), "absolute form: {line}");
+    for host in [
+        addr.clone(),
+        format!("localhost:{port}"),
+        format!("LOCALHOST.:{port}"),
+        format!("viewer.localhost:{port}"),
+        format!("[::1]:{port}"),
+        format!("box.lan:{port}"),
+        format!("BOX.LAN.:{port}"),
+    ] {
+        let line = get(&host, "/status");
+        assert!(line.contains(" 200 "), "{host}: {line}");
+    }
+    assert_success(&stop(d));
 }
 
 #[test]

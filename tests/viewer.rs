@@ -109,7 +109,7 @@ fn the_event_stream_pushes_frames_status_and_timeline_rows() {
     let mut s = TcpStream::connect(&addr).unwrap();
     write!(
         s,
-        "GET /frame.png HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+        "GET /frame.png HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n"
     )
     .unwrap();
     let mut png = Vec::new();
@@ -322,7 +322,7 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
     let mut stalled = Vec::new();
     for _ in 0..16 {
         let mut s = TcpStream::connect(&addr).unwrap();
-        write!(s, "GET /events HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
+        write!(s, "GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n").unwrap();
         stalled.push(s);
     }
     std::thread::sleep(Duration::from_millis(500));
@@ -332,7 +332,7 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
     newer
         .set_read_timeout(Some(Duration::from_secs(10)))
         .unwrap();
-    write!(newer, "GET /events HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
+    write!(newer, "GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n").unwrap();
     let mut b = [0u8; 64];
     let n = newer.read(&mut b).unwrap_or(0);
     assert!(
@@ -352,7 +352,7 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
     loop {
         let mut s = TcpStream::connect(&addr).unwrap();
         s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-        write!(s, "GET /events HTTP/1.1\r\nHost: x\r\n\r\n").unwrap();
+        write!(s, "GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n").unwrap();
         let mut b = [0u8; 64];
         let n = s.read(&mut b).unwrap_or(0);
         if String::from_utf8_lossy(&b[..n]).starts_with("HTTP/1.1 200") {

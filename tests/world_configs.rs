@@ -251,6 +251,14 @@ fn bad_configs_name_the_file_field_and_reason() {
             "control.addr",
         ),
         (
+            "[world]\nsource = \"terrain\"\n[control]\nhosts = [\"box.lan:80\"]\n",
+            "control.hosts: \"box.lan:80\" is not a host name",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[control]\nhosts = [\"\"]\n",
+            "control.hosts: \"\" is not a host name",
+        ),
+        (
             "[world]\nsource = \"vox:m.vox\"\nsize = [8, 8, 8]\n",
             "world.size",
         ),

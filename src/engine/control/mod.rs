@@ -222,6 +222,9 @@ pub struct Shared {
     pub frame: Mutex<Option<Vec<u8>>>,
     /// The control token.
     pub token: String,
+    /// Host names requests may name besides IPs and `localhost`
+    /// (`[control] hosts`, lower-cased).
+    pub hosts: Vec<String>,
     /// Set to stop everything.
     pub shutdown: AtomicBool,
     /// The latest rendered frame, for live viewers.
@@ -235,13 +238,16 @@ pub struct Shared {
 }
 
 impl Shared {
-    /// Shared state for an engine whose control token is `token`.
-    pub fn new(token: String) -> Self {
+    /// Shared state for an engine whose control token is `token`, served
+    /// to requests whose `Host` is an IP address, `localhost` or one of
+    /// `hosts`.
+    pub fn new(token: String, hosts: Vec<String>) -> Self {
         Shared {
             status: Mutex::new(Status::default()),
             commands: Mutex::new(Vec::new()),
             frame: Mutex::new(None),
             token,
+            hosts,
             shutdown: AtomicBool::new(false),
             frame_events: tokio::sync::watch::Sender::new(live::FrameEvent::default()),
             timeline: Mutex::new(live::TimelineRing::default()),

@@ -12,6 +12,10 @@
 //! failed, 202 if the engine is still busy. `POST /camera` from a viewer (a
 //! `viewer` id in the body) holds the camera lease; another viewer's move
 //! meanwhile gets 409.
+//! A request whose `Host` names neither an IP address, `localhost` nor one
+//! of `[control] hosts` gets 403 before anything else ([`host_allowed`]):
+//! a web page cannot rebind its own DNS name to this machine and read the
+//! engine through the visitor's browser.
 //! Unknown routes get 404, a known route asked with the wrong method 405
 //! (with `Allow`; `HEAD` works wherever `GET` does, except `/events`),
 //! malformed requests or refused values 400, a
@@ -76,11 +80,74 @@ fn shown(name: &str) -> String {
     }
 }
 
+/// Whether a request naming `host` (a `Host` header: a name or IP, and
+/// perhaps a port) may be served: an IP literal (v4, or v6 in brackets),
+/// `localhost` or a name under `.localhost`, or one of `allowed`
+/// (lower-case names). DNS rebinding needs a DNS name that resolves to this
+/// machine, so every other name is refused.
+///
+/// ```
+/// use brickworld::engine::control::routes::host_allowed;
+/// assert!(host_allowed("127.0.0.1:7878", &[]));
+/// assert!(host_allowed("[::1]:7878", &[]));
+/// assert!(host_allowed("localhost:7878", &[]));
+/// assert!(!host_allowed("evil.example:7878", &[]));
+/// assert!(host_allowed("Box.LAN:7878", &["box.lan".to_string()]));
+/// ```
+pub fn host_allowed(host: &str, allowed: &[String]) -> bool {
+    let name = if let Some(rest) = host.strip_prefix('[') {
+        // [v6] or [v6]:port
+        return match rest.split_once(']') {
+            Some((ip, port)) => {
+                ip.parse::<std::net::Ipv6Addr>().is_ok()
+                    && (port.is_empty() || port.strip_prefix(':').is_some_and(is_port))
+            }
+            None => false,
+        };
+    } else {
+        match host.split_once(':') {
+            Some((name, port)) if is_port(port) => name,
+            Some(_) => return false,
+            None => host,
+        }
+    };
+    let name = name.strip_suffix('.').unwrap_or(name).to_ascii_lowercase();
+    name.parse::<std::net::Ipv4Addr>().is_ok()
+        || name == "localhost"
+        || name.ends_with(".localhost")
+        || allowed.contains(&name)
+}
+
+fn is_port(p: &str) -> bool {
+    !p.is_empty() && p.len() <= 5 && p.bytes().all(|b| b.is_ascii_digit())
+}
+
 /// Answer one request. `streaming` is set when the answer is an event
 /// stream (the server then lets the connection outlive its usual limit).
 pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &AtomicBool) -> Reply {
     let path = req.uri().path().to_string();
     let method = req.method().clone();
+    // Both the header and an absolute-form target's authority are checked;
+    // a request with neither (not a browser's) is served.
+    let named = [
+        req.headers()
+            .get(hyper::header::HOST)
+            .map(|h| h.to_str().unwrap_or("\u{fffd}")),
+        req.uri().authority().map(|a| a.as_str()),
+    ];
+    if let Some(bad) = named
+        .into_iter()
+        .flatten()
+        .find(|h| !host_allowed(h, &shared.hosts))
+    {
+        return error(
+            403,
+            &format!(
+                "Host '{}' is not served (a guard against DNS rebinding): use an IP address or localhost, or add the name to [control] hosts",
+                shown(&bad.escape_debug().to_string())
+            ),
+        );
+    }
     // HEAD is GET without the body (hyper leaves the body out); an event
     // stream is not opened for it.
     let as_get = method == Method::HEAD && path != "/events";

@@ -56,7 +56,7 @@ impl Engine {
             if cfg.aa > 1 { 3 } else { 2 },
         )?;
         let token = state_dir::new_token()?;
-        let shared = Arc::new(Shared::new(token.clone()));
+        let shared = Arc::new(Shared::new(token.clone(), cfg.hosts.clone()));
         // Listen before any work: a taken port is a clear error at once.
         let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
         let token_path = state_dir::write_token(&opts.state, &token)?;

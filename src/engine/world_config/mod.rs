@@ -59,6 +59,7 @@
 //!
 //! [control]
 //! addr = "127.0.0.1:7878"
+//! hosts = []                  # host names browsers may use besides IPs and localhost
 //!
 //! [[place]]                   # boxes placed into a freshly built world
 //! material = "lava_source"    # a material name (scene, simulation or materials.lua)
@@ -298,6 +299,9 @@ pub struct WorldConfig {
     pub checkpoint_every: u64,
     /// Control server address.
     pub addr: SocketAddr,
+    /// Host names (besides IP addresses and `localhost`) that requests may
+    /// name in their `Host` header; see [`crate::engine::control::routes::host_allowed`].
+    pub hosts: Vec<String>,
     /// Boxes of material placed into a freshly built world (a lava source).
     pub place: Vec<Placement>,
 }
@@ -358,6 +362,7 @@ impl WorldConfig {
         let frames = validate::frames(at, &raw.frames)?;
         let checkpoint_every = validate::every(at, raw.checkpoint.every, 500, "checkpoint.every")?;
         let addr = validate::addr(at, raw.control.addr)?;
+        let hosts = validate::hosts(at, raw.control.hosts)?;
         let place = validate::place(at, &raw.place)?;
         Ok(WorldConfig {
             place,
@@ -389,6 +394,7 @@ impl WorldConfig {
             frames_max_bytes: frames.max_bytes,
             checkpoint_every,
             addr,
+            hosts,
         })
     }
 }

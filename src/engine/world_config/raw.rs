@@ -125,4 +125,5 @@ pub(super) struct RawCheckpoint {
 #[serde(deny_unknown_fields)]
 pub(super) struct RawControl {
     pub(super) addr: Option<String>,
+    pub(super) hosts: Option<Vec<String>>,
 }

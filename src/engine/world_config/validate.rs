@@ -562,6 +562,34 @@ pub(super) fn addr(at: Fields, raw: Option<String>) -> Result<SocketAddr, WorldC
     })
 }
 
+/// `[control] hosts`: DNS names a browser may reach the control server by
+/// (lower-cased). At most 64, each a valid host name.
+pub(super) fn hosts(at: Fields, raw: Option<Vec<String>>) -> Result<Vec<String>, WorldConfigError> {
+    let raw = raw.unwrap_or_default();
+    if raw.len() > 64 {
+        return Err(at.err("control.hosts", format!("{} names; at most 64", raw.len())));
+    }
+    raw.into_iter()
+        .map(|h| {
+            let name = h.trim_end_matches('.').to_ascii_lowercase();
+            let label_ok = |l: &str| {
+                (1..=63).contains(&l.len())
+                    && l.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-')
+                    && !l.starts_with('-')
+                    && !l.ends_with('-')
+            };
+            if name.len() > 253 || !name.split('.').all(label_ok) {
+                Err(at.err(
+                    "control.hosts",
+                    format!("{h:?} is not a host name (letters, digits, '-' and '.', no port)"),
+                ))
+            } else {
+                Ok(name)
+            }
+        })
+        .collect()
+}
+
 /// `[[place]]`: boxes of material placed into a freshly built world.
 pub(super) fn place(at: Fields, raw: &[RawPlace]) -> Result<Vec<Placement>, WorldConfigError> {
     let mut place = Vec::new();
