@@ -295,6 +295,93 @@ fn pathological_patterns_and_huge_strings_are_stopped() {
     assert!(e.contains("memory") || e.contains("not enough"), "{e}");
 }
 
+/// Regression (hostile probe): `pcall` caught the allocator's "not enough
+/// memory" and the kernel went on, so whether a step failed depended on the
+/// garbage its VM had not collected yet. Out-of-memory errors now pass
+/// through `pcall` and `xpcall` (whose handler is not asked).
+#[test]
+fn running_out_of_memory_cannot_be_caught() {
+    for (name, body) in [
+        ("pc", "local ok = pcall(buffer.create, 64 * 1024 * 1024)"),
+        (
+            "xpc",
+            "local ok = xpcall(buffer.create, function(e) return \"fine\" end, 64 * 1024 * 1024)",
+        ),
+        (
+            "nested",
+            "local ok = pcall(function() return pcall(string.rep, \"x\", 64 * 1024 * 1024) end)",
+        ),
+    ] {
+        let mut sim = sim_with(&[script(name, body)]);
+        let e = runtime_error(&mut sim);
+        assert!(e.contains("not enough memory"), "{name}: {e}");
+    }
+    // Other errors are still caught as before.
+    let mut sim = sim_with(&[script(
+        "other",
+        "local ok, e = pcall(error, \"plain\") assert(not ok and e == \"plain\")\n\
+         local ok2, e2 = xpcall(error, function(m) return \"handled \" .. m end, \"x\") assert(e2 == \"handled x\")",
+    )]);
+    assert!(sim.step(0.1).errors.is_empty());
+}
+
+/// Regression (hostile probe): a kernel whose allocations fit the memory
+/// limit alone, but not beside the garbage earlier calls left in its VM,
+/// failed on some tiles in some runs: the world depended on the thread
+/// count and on the run. A call that runs out of memory now runs once more
+/// from collected garbage, so every run and thread count agrees.
+#[test]
+fn whether_an_allocation_fits_does_not_depend_on_garbage() {
+    // 16 MiB per VM: two 5 MiB buffers fit; three calls' garbage does not.
+    let text = "return { channels = { \"g\" }, passes = { { name = \"p\", reads = {}, writes = { \"g\" },\n\
+        kernel = function(c, tx, tz)\n\
+          local a = buffer.create(5 * 1024 * 1024)\n\
+          local ok = pcall(buffer.create, 5 * 1024 * 1024)\n\
+          buffer.writef64(c.w.g, 0, buffer.len(a) + (ok and 1 or 2))\n\
+        end } } }";
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(4, 4));
+            sim.add_script(src("g", text), Kernel::Lua, small())
+                .unwrap();
+            for _ in 0..4 {
+                let r = sim.step(0.1);
+                assert!(r.errors.is_empty(), "{threads} threads: {:?}", r.errors);
+                sim.wake_all();
+            }
+            sim.channels().hash()
+        })
+    };
+    let h1 = run(1);
+    assert_eq!(h1, run(2));
+    assert_eq!(h1, run(4));
+}
+
+/// Regression (hostile probe): `tostring({})` and `string.format("%s", t)`
+/// gave the object's address, which differs between runs, so a kernel that
+/// branched on it made a different world each run. Objects now show as
+/// their type name (or their `__tostring`).
+#[test]
+fn kernels_never_see_an_address() {
+    let mut sim = sim_with(&[script(
+        "addr",
+        "assert(tostring({}) == \"table\", tostring({}))\n\
+         assert(tostring(tostring) == \"function\")\n\
+         assert(tostring(buffer.create(1)) == \"buffer\")\n\
+         assert(string.format(\"%s|%*\", {}, buffer.create(1)) == \"table|buffer\")\n\
+         assert((\"%s\"):format(c) == \"table\")\n\
+         assert(tostring(setmetatable({}, { __tostring = function() return \"me\" end })) == \"me\")\n\
+         assert(string.format(\"%d %s %.1f\", 3, \"x\", 0.25) == \"3 x 0.2\" or string.format(\"%d %s %.1f\", 3, \"x\", 0.25) == \"3 x 0.3\")\n\
+         assert(tostring(nil) == \"nil\" and tostring(1.5) == \"1.5\" and tostring(true) == \"true\")",
+    )]);
+    let r = sim.step(0.1);
+    assert!(r.errors.is_empty(), "{:?}", r.errors);
+}
+
 #[test]
 fn fault_08_state_kept_in_upvalues_is_refused() {
     // A counter in a local of the chunk, changed directly or by a helper.

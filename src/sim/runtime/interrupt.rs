@@ -77,6 +77,9 @@ pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
 /// The wall-clock limit's name in a budget error ("time budget exceeded").
 pub const TIME_BUDGET: &str = "time budget";
 
+/// The memory limit's name in a budget error.
+pub const MEMORY_LIMIT: &str = "memory limit";
+
 /// The name of a stop request in place of a limit.
 pub const STOPPING: &str = "engine stop";
 
@@ -133,7 +136,7 @@ fn slow_check(l: *mut ffi::lua_State) -> Option<&'static str> {
             // hook; LUA_GCCOUNT only reads the allocator's counter.
             let kb = unsafe { ffi::lua_gc(l, ffi::LUA_GCCOUNT, 0) };
             if kb > b.memory_soft_kb {
-                what = Some("memory limit");
+                what = Some(MEMORY_LIMIT);
             }
         }
         b.tripped = what;

@@ -17,7 +17,9 @@
 //! that are a pure function of (world seed, tick, script, x, y, z, k). Each VM has a memory limit, and
 //! every kernel call an instruction budget and a wall-clock deadline checked
 //! from Luau's interrupt; a script that exceeds them is stopped with an error
-//! naming the script and line.
+//! naming the script and line. Out-of-memory errors pass through `pcall`,
+//! and a call that ran out is run once more from collected garbage
+//! ([`ScriptVm::failed_on_memory`]); `tostring` never shows an address.
 
 use std::time::{Duration, Instant};
 
@@ -112,7 +114,81 @@ pub struct ScriptVm {
     ctx: Vec<Table>,
     name: String,
     limits: Limits,
+    /// Whether the last call failed for want of memory (the soft limit or
+    /// the allocator's).
+    memory_failure: bool,
 }
+
+/// Luau's text for an allocation the memory limit refused.
+pub const OUT_OF_MEMORY: &str = "not enough memory";
+
+/// `pcall` and `xpcall` that let an out-of-memory error through. Whether
+/// an allocation fits the limit depends on how much garbage the VM has not
+/// collected yet, which depends on which tiles it ran before: a script that
+/// caught the error and went on gave different worlds on different runs
+/// and thread counts (regression). Uncaught, the failure reaches the
+/// runtime, which collects all garbage and runs the call once more
+/// ([`ScriptVm::failed_on_memory`]), so the verdict is the same whatever
+/// ran before. `error(MEM, 0)` re-raises without allocating.
+const UNCATCHABLE_MEMORY_ERRORS: &str = r#"
+local MEM = "not enough memory"
+local rawpcall, rawxpcall, error = pcall, xpcall, error
+local function pass(ok, ...)
+    if not ok and (...) == MEM then
+        error(MEM, 0)
+    end
+    return ok, ...
+end
+pcall = function(f, ...)
+    return pass(rawpcall(f, ...))
+end
+xpcall = function(f, handler, ...)
+    return pass(rawxpcall(f, function(e)
+        if e == MEM then
+            return MEM
+        end
+        return handler(e)
+    end, ...))
+end
+"#;
+
+/// `tostring` and `string.format` that show a table, function, buffer or
+/// userdata by its type name (or its `__tostring`), never its address:
+/// addresses differ between VMs and runs, so a kernel that branched on one
+/// (or on a string holding one) made worlds that differed from run to run
+/// (regression).
+const NO_ADDRESSES: &str = r##"
+local rawtostring, rawformat, type, getmetatable, rawget, select, unpack =
+    tostring, string.format, type, getmetatable, rawget, select, table.unpack
+local objects = { table = true, userdata = true, ["function"] = true, buffer = true, thread = true }
+local function shown(v)
+    local kind = type(v)
+    if objects[kind] then
+        local mt = getmetatable(v)
+        if type(mt) == "table" and rawget(mt, "__tostring") ~= nil then
+            return rawtostring(v)
+        end
+        return kind
+    end
+    return rawtostring(v)
+end
+tostring = shown
+string.format = function(fmt, ...)
+    local n = select("#", ...)
+    for i = 1, n do
+        if objects[type((select(i, ...)))] then
+            local args = { ... }
+            for j = 1, n do
+                if objects[type(args[j])] then
+                    args[j] = shown(args[j])
+                end
+            end
+            return rawformat(fmt, unpack(args, 1, n))
+        end
+    end
+    return rawformat(fmt, ...)
+end
+"##;
 
 /// A fresh Luau VM with the sandbox every script runs in: only `math`,
 /// `string`, `table`, `buffer`, `bit32` and `utf8`; no module loading,
@@ -175,6 +251,12 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     lua.globals()
         .raw_set("log", log)
         .map_err(|e| SimError::Internal(e.to_string()))?;
+    for prelude in [UNCATCHABLE_MEMORY_ERRORS, NO_ADDRESSES] {
+        lua.load(prelude)
+            .set_name("=sandbox")
+            .exec()
+            .map_err(|e| SimError::Internal(e.to_string()))?;
+    }
     lua.sandbox(true)
         .map_err(|e| SimError::Internal(e.to_string()))?;
     // Luau's sandbox gives each thread a writable proxy of the frozen
@@ -250,6 +332,7 @@ impl ScriptVm {
             ctx: Vec::new(),
             name: src.name.clone(),
             limits,
+            memory_failure: false,
         };
         let passes: Table = def
             .get("passes")
@@ -431,6 +514,21 @@ impl ScriptVm {
         self.call(pass, pass_name, (tx, tz, None))
     }
 
+    /// Whether the last kernel call failed for want of memory. How much
+    /// garbage was still uncollected decides that as much as the kernel
+    /// does, so a caller runs such a call once more after
+    /// [`collect_garbage`](Self::collect_garbage), with its buffers filled
+    /// again, and takes that verdict: it starts from the VM's live data
+    /// only, the same whichever tiles the VM ran before.
+    pub fn failed_on_memory(&self) -> bool {
+        self.memory_failure
+    }
+
+    /// A full garbage collection of the VM (between kernel calls).
+    pub fn collect_garbage(&self) {
+        let _ = self.lua.gc_collect();
+    }
+
     fn call(
         &mut self,
         pass: usize,
@@ -467,7 +565,16 @@ impl ScriptVm {
             }
             Ok(())
         };
-        run().map_err(|e| {
+        let result = run();
+        self.memory_failure = match &result {
+            Ok(()) => false,
+            Err(e) => {
+                crate::sim::interrupt::tripped() == Some(crate::sim::interrupt::MEMORY_LIMIT)
+                    || matches!(e, mlua::Error::MemoryError(_))
+                    || e.to_string().contains(OUT_OF_MEMORY)
+            }
+        };
+        result.map_err(|e| {
             let msg = match &e {
                 mlua::Error::CallbackError { cause, .. } => cause.to_string(),
                 other => other.to_string(),

@@ -356,21 +356,31 @@ fn run_lua(
             vm.begin_step(dt, job.spec, job.params, key, job.material_ids)?;
             *prepared = serial;
         }
-        let (mr, mw) = vm
-            .material_buffers()
-            .expect("a voxel VM has material buffers");
-        mr.write_bytes(0, &sc.mat);
-        mw.write_bytes(0, &out.mat);
-        for &i in ridx {
-            to_le_bytes(&sc.chans[i], &mut sc.bytes);
-            vm.read_buffer(i).write_bytes(0, &sc.bytes);
+        // A call that ran out of memory runs once more from collected
+        // garbage, its buffers filled again (see `failed_on_memory`).
+        for attempt in 0.. {
+            let (mr, mw) = vm
+                .material_buffers()
+                .expect("a voxel VM has material buffers");
+            mr.write_bytes(0, &sc.mat);
+            mw.write_bytes(0, &out.mat);
+            for &i in ridx {
+                to_le_bytes(&sc.chans[i], &mut sc.bytes);
+                vm.read_buffer(i).write_bytes(0, &sc.bytes);
+            }
+            for (j, &i) in widx.iter().enumerate() {
+                let bytes = &mut sc.bytes[..VOXEL_CELLS * 4];
+                to_le_bytes(&out.chans[j], bytes);
+                vm.write_buffer(i).write_bytes(0, bytes);
+            }
+            match vm.run_voxel(pi, &pass.name, b.to_array()) {
+                Err(_) if attempt == 0 && vm.failed_on_memory() => vm.collect_garbage(),
+                done => {
+                    done?;
+                    break;
+                }
+            }
         }
-        for (j, &i) in widx.iter().enumerate() {
-            let bytes = &mut sc.bytes[..VOXEL_CELLS * 4];
-            to_le_bytes(&out.chans[j], bytes);
-            vm.write_buffer(i).write_bytes(0, bytes);
-        }
-        vm.run_voxel(pi, &pass.name, b.to_array())?;
         if writes_mat {
             let (_, mw) = vm.material_buffers().expect("voxel VM");
             out.mat = mw.read_bytes::<VOXEL_CELLS>(0);
