@@ -6,7 +6,7 @@
 use std::time::Duration;
 
 use brickworld::sim::tile::TILE_CELLS;
-use brickworld::sim::{Kernel, Limits, ScriptSource, SimError, Simulation, StepKey};
+use brickworld::sim::{Kernel, Limits, ScriptSource, ScriptVm, SimError, Simulation, StepKey};
 use glam::IVec2;
 
 fn src(name: &str, text: &str) -> ScriptSource {
@@ -380,6 +380,36 @@ fn kernels_never_see_an_address() {
     )]);
     let r = sim.step(0.1);
     assert!(r.errors.is_empty(), "{:?}", r.errors);
+}
+
+/// Regression (hostile probe): pass, parameter and material names were not
+/// checked, so one holding a newline and a terminal escape forged a line
+/// in the daemon's log, in `/status` and in `ctl params`. They are plain
+/// names now, like channels, and the refusal is one escaped line.
+#[test]
+fn names_a_script_declares_are_plain() {
+    let voxel = |pass: &str, mat: &str, param: &str| {
+        format!(
+            "return {{ grid = \"voxels\", materials = {{ \"{mat}\" }}, params = {{ [\"{param}\"] = {{ default = 0, min = 0, max = 1 }} }},\n\
+             passes = {{ {{ name = \"{pass}\", reads = {{}}, writes = {{ \"mat\" }}, kernel = function() end }} }} }}"
+        )
+    };
+    let evil = "p\\nwarning: FAKE\\27[2J";
+    for (what, text) in [
+        ("pass", voxel(evil, "sand", "x")),
+        ("material", voxel("p", evil, "x")),
+        ("parameter", voxel("p", "sand", evil)),
+        ("parameter", voxel("p", "sand", &"x".repeat(65))),
+        ("pass", voxel("", "sand", "x")),
+    ] {
+        let e = match ScriptVm::load(&src("names", &text), small()) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("{what}: accepted {text}"),
+        };
+        assert!(e.contains(&format!("{what} name")), "{what}: {e}");
+        assert!(!e.contains('\n') && !e.contains('\u{1b}'), "{what}: {e:?}");
+    }
+    assert!(ScriptVm::load(&src("names", &voxel("fall_2", "sand", "rate_1")), small()).is_ok());
 }
 
 #[test]

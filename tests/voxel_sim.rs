@@ -141,11 +141,31 @@ fn bad_voxel_scripts_are_refused_clearly() {
         e.contains("unknown material 'magma'") && e.contains("magma.lua:1"),
         "{e}"
     );
-    // Writing a material id that does not exist: the step is rejected.
+    // Regression (hostile probe): voxel kernels were not smoke-tested at
+    // load, so a broken save (an error, or a material id that does not
+    // exist) replaced the working version on hot reload. Now refused.
+    for (kernel, needle) in [
+        ("error(\"broken save\")", "broken save"),
+        ("buffer.writeu8(c.w.mat, 0, 77)", "wrote material id 77"),
+    ] {
+        let e = sim
+            .add_script(
+                ScriptSource {
+                    name: "broken".into(),
+                    text: format!("return {{ grid = \"voxels\", passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"mat\" }}, kernel = function(c) {kernel} end }} }} }}").into(),
+                },
+                Limits::default(),
+                &reg,
+            )
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(needle) && e.contains("broken.lua"), "{e}");
+    }
+    // Writing a material id that does not exist in a step: rejected.
     sim.add_script(
         ScriptSource {
             name: "bad".into(),
-            text: "return { grid = \"voxels\", passes = { { name = \"p\", reads = {}, writes = { \"mat\" }, kernel = function(c) buffer.writeu8(c.w.mat, 0, 77) end } } }".into(),
+            text: "return { grid = \"voxels\", passes = { { name = \"p\", reads = {}, writes = { \"mat\" }, kernel = function(c, bx) if bx > 0 then buffer.writeu8(c.w.mat, 0, 77) end end } } }".into(),
         },
         Limits::default(),
         &reg,
@@ -164,6 +184,30 @@ fn bad_voxel_scripts_are_refused_clearly() {
         before,
         "rolled back"
     );
+}
+
+/// Regression (hostile probe): a hot reload of a voxel script whose kernel
+/// fails replaced the working version, which was then suspended. The
+/// reload is refused now, and the old version runs on.
+#[test]
+fn a_broken_voxel_reload_keeps_the_working_version() {
+    let (reg, sand) = registry();
+    let mut store = poured(20, sand);
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 48, 32), 1);
+    let i = sim.add_script(sand_src(), Limits::default(), &reg).unwrap();
+    let broken = ScriptSource {
+        name: "sand".into(),
+        text: "return { grid = \"voxels\", materials = { \"sand\" }, passes = { { name = \"fall\", reads = {}, writes = { \"mat\" }, kernel = function(c) error(\"broken save\") end } } }".into(),
+    };
+    let e = sim.replace_script(i, broken, &reg).unwrap_err().to_string();
+    assert!(e.contains("broken save"), "{e}");
+    let top = |s: &BrickStore| height_at(s, sand, 16, 16);
+    let before = top(&store);
+    for _ in 0..10 {
+        let r = sim.step(&mut store, &reg, 0.05);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+    }
+    assert!(top(&store) < before, "the working sand.lua still runs");
 }
 
 /// Communicating vessels (the `verify sims` case): two basins joined by a

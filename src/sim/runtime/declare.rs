@@ -17,6 +17,31 @@ pub const MAX_SCRIPT_CHANNELS: usize = 256;
 /// The most parameters one script may declare.
 pub const MAX_SCRIPT_PARAMS: usize = 256;
 
+/// Longest name of a pass, parameter or channel.
+pub const MAX_NAME_LEN: usize = 64;
+
+/// Whether `name` is 1 to [`MAX_NAME_LEN`] letters, digits and `_`: the
+/// names of channels, passes and parameters, which reach error messages,
+/// `/status`, `ctl` and URLs (regression: a pass named with a newline and a
+/// terminal escape forged a line in the daemon's log).
+pub fn is_plain_name(name: &str) -> bool {
+    (1..=MAX_NAME_LEN).contains(&name.len())
+        && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_')
+}
+
+/// `Err` naming `what` unless `name` [`is_plain_name`].
+fn plain(src: &ScriptSource, what: &str, name: &str) -> Result<(), SimError> {
+    if is_plain_name(name) {
+        Ok(())
+    } else {
+        Err(declaration(
+            src,
+            Some(name),
+            format!("{what} name {name:?} must be 1 to {MAX_NAME_LEN} letters, digits and '_'"),
+        ))
+    }
+}
+
 /// A declaration error in `src`, at the line of `needle` if given.
 pub(super) fn declaration(
     src: &ScriptSource,
@@ -262,6 +287,9 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             }
         }
     }
+    for m in &materials {
+        plain(src, "material", m)?;
+    }
     for m in only.iter().chain(&keep_awake) {
         if !materials.contains(m) {
             return Err(declaration(
@@ -279,13 +307,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 "'mat' is the material buffer; name the channel otherwise",
             ));
         }
-        if c.is_empty() || !c.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_') {
-            return Err(declaration(
-                src,
-                Some(c),
-                format!("channel name '{c}' must be letters, digits and '_'"),
-            ));
-        }
+        plain(src, "channel", c)?;
     }
     let nonnegative = strings(src, def, "nonnegative")?;
     for c in &nonnegative {
@@ -310,6 +332,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 }
                 let (name, v) =
                     pair.map_err(|e| declaration(src, Some("params"), format!("params: {e}")))?;
+                plain(src, "parameter", &name)?;
                 let Value::Table(p) = v else {
                     return Err(declaration(
                         src,
@@ -412,6 +435,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             Ok(Value::String(s)) => s.to_str().map(|s| s.to_string()).unwrap_or_default(),
             _ => format!("pass{}", i + 1),
         };
+        plain(src, "pass", &name)?;
         let reads = strings(src, &p, "reads")?;
         let writes = strings(src, &p, "writes")?;
         let is_mat = |c: &str| grid == Grid::Voxels && c == MAT;

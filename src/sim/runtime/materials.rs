@@ -21,7 +21,8 @@ fn err(src: &ScriptSource, name: Option<&str>, msg: String) -> SimError {
     SimError::Declaration {
         script: src.name.clone(),
         line: name.and_then(|n| src.text.lines().position(|l| l.contains(n)).map(|i| i + 1)),
-        msg,
+        // Names in it come from the script: no raw control characters.
+        msg: super::log::escape_controls(&msg, false).into_owned(),
     }
 }
 

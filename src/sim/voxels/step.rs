@@ -445,7 +445,7 @@ impl VoxelSim {
         limits: Limits,
         registry: &MaterialRegistry,
     ) -> Result<usize, SimError> {
-        let (_, spec) = ScriptVm::load(&src, limits)?;
+        let (mut vm, spec) = ScriptVm::load(&src, limits)?;
         if spec.grid != Grid::Voxels {
             return Err(SimError::Declaration {
                 script: spec.name.clone(),
@@ -476,6 +476,39 @@ impl VoxelSim {
                     .map(|i| material_ids[i])
             }))
         };
+        // Smoke test, as for column scripts: every pass once on an empty
+        // brick (air, channels at 0) at tick 0, in this fresh VM, so a
+        // broken save is refused at load and a hot reload keeps the version
+        // that works (regression: it replaced it and failed every step).
+        let defaults: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
+        vm.begin_step(
+            0.01,
+            &spec,
+            &defaults,
+            StepKey::new(self.seed, 0, &spec.name),
+            &material_ids,
+        )?;
+        for (pi, pass) in spec.passes.iter().enumerate() {
+            vm.run_voxel(pi, &pass.name, [0, 0, 0])?;
+            let (_, written) = vm
+                .material_buffers()
+                .expect("a voxel VM has material buffers");
+            let written: [u8; VOXEL_CELLS] = written.read_bytes(0);
+            if let Some(&bad) = written
+                .iter()
+                .find(|&&m| m != 0 && (m == BOUNDARY || registry.get(m).is_none()))
+            {
+                return Err(SimError::Runtime {
+                    script: spec.name.clone(),
+                    pass: pass.name.clone(),
+                    tile: (0, 0),
+                    line: None,
+                    msg: format!(
+                        "on an empty brick at load: wrote material id {bad}, which is not registered"
+                    ),
+                });
+            }
+        }
         let only = (!spec.only.is_empty()).then(|| id_of(&spec.only));
         let keep_awake = id_of(&spec.keep_awake);
         let (ch, n) = (&self.channels, self.channels.names().len());
@@ -485,7 +518,7 @@ impl VoxelSim {
             .iter()
             .map(|c| self.channels.channel(c))
             .collect();
-        let params = spec.params.iter().map(|p| p.default).collect();
+        let params = defaults;
         self.scripts.push(Loaded {
             uid: NEXT_UID.fetch_add(1, Ordering::Relaxed),
             src,
