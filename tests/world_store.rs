@@ -247,6 +247,51 @@ fn a_store_of_another_format_version_is_refused_and_left_alone() {
     );
 }
 
+/// Regression (hostile probe): with `world.redb` deleted or emptied, a
+/// start beside the manifest of a stored world began again from tick 0
+/// without a word. Now it is refused in one line and nothing is created;
+/// removing the manifest too starts afresh, as the message says.
+#[test]
+fn a_lost_store_is_refused_not_silently_restarted() {
+    let (cfg, state, _) = setup("loststore");
+    hash_at(&cfg, &state, 5);
+    let db = state.join("world.redb");
+    let run = || {
+        run_cmd(&cfg, &state)
+            .arg("--ticks")
+            .arg("1")
+            .output()
+            .unwrap()
+    };
+    let stored = std::fs::read(&db).unwrap();
+    for state_word in ["missing", "empty"] {
+        if state_word == "missing" {
+            std::fs::remove_file(&db).unwrap();
+        } else {
+            std::fs::write(&db, b"").unwrap();
+        }
+        let before = std::fs::metadata(&db).ok().map(|m| m.len());
+        let out = run();
+        assert!(!out.status.success(), "{state_word}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains(&format!("is {state_word}")) && err.contains("manifest.json"),
+            "{err}"
+        );
+        assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+        assert_eq!(
+            std::fs::metadata(&db).ok().map(|m| m.len()),
+            before,
+            "{state_word}"
+        );
+        std::fs::write(&db, &stored).unwrap();
+    }
+    // As the message says: without the manifest, the world starts afresh.
+    std::fs::remove_file(&db).unwrap();
+    std::fs::remove_file(state.join("manifest.json")).unwrap();
+    assert_success(&run());
+}
+
 #[test]
 fn a_commit_writes_only_what_changed_and_the_state_blob_round_trips() {
     let (cfg, state, _) = setup("commitsize");

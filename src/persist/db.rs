@@ -92,6 +92,23 @@ pub enum StoreError {
         /// What is wrong.
         msg: String,
     },
+    /// The store is missing, empty or replaced, but the manifest beside it
+    /// says this world was stored here: starting afresh would silently
+    /// throw the world away.
+    #[error(
+        "the world store {} is {state}, but {} says this world was stored here: restore the store (or `brickworld import` a backup into a new --state directory), or remove {} to start the world afresh",
+        path.display(),
+        manifest.display(),
+        manifest.display()
+    )]
+    Lost {
+        /// The store's file.
+        path: PathBuf,
+        /// "missing", "empty" or "not this world's store".
+        state: &'static str,
+        /// The manifest beside it.
+        manifest: PathBuf,
+    },
     /// A commit failed; nothing of it is on disk.
     #[error("commit failed (the previous commit is kept): {0}")]
     Commit(String),
@@ -346,6 +363,25 @@ impl WorldDb {
                 msg: "not a regular file: move it away".into(),
             });
         }
+        // A manifest.json is written only after the store holds its
+        // manifest: with one there, a missing or empty store was lost
+        // (regression: the world restarted from tick 0 without a word).
+        let recorded = || {
+            read_manifest(&manifest_path)
+                .is_some_and(|t| serde_json::from_slice::<Manifest>(&t).is_ok())
+        };
+        let lost = |state| StoreError::Lost {
+            path: path.clone(),
+            state,
+            manifest: manifest_path.clone(),
+        };
+        match std::fs::metadata(&path) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound && recorded() => {
+                return Err(lost("missing"));
+            }
+            Ok(m) if m.len() == 0 && recorded() => return Err(lost("empty")),
+            _ => {}
+        }
         // A store that will be refused is checked read-only first, so the
         // refusal leaves its file exactly as it was.
         if let Some(bytes) = read_only_meta(&path, "manifest") {
@@ -404,6 +440,9 @@ impl WorldDb {
                         found: Box::new(m.world),
                         expected: Box::new(identity.clone()),
                     });
+                }
+                if recorded() {
+                    return Err(lost("not this world's store (it holds no manifest)"));
                 }
                 mine
             }
