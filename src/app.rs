@@ -3,7 +3,7 @@
 
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use glam::DVec3;
 
 use crate::cli::{BenchCommand, Cli, Command, VerifyCommand};
@@ -21,10 +21,13 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Export { out, world, state } => {
             let cfg = load_world_config(world.as_deref())?;
             let (tick, hash) = crate::engine::persistence::export_world(&cfg, &state, &out)?;
-            println!(
-                "exported tick {tick} to {} (world hash {hash:#018x})",
-                out.display()
-            );
+            match hash {
+                Some(hash) => println!(
+                    "exported tick {tick} to {} (world hash {hash:#018x})",
+                    out.display()
+                ),
+                None => println!("exported tick {tick} to {}", out.display()),
+            }
             Ok(())
         }
         Command::Import { file, world, state } => {
@@ -442,10 +445,51 @@ fn run_bench_voxels(a: &crate::cli::BenchVoxelsArgs) -> Result<()> {
     })
 }
 
+/// Address space one worker thread takes: its 2 MiB stack, guard and
+/// signal stack, with room for what it allocates.
+const THREAD_ADDRESS_SPACE: u64 = (2 << 20) + (256 << 10);
+
+/// Address space the process may still map under `ulimit -v`, if limited.
+fn address_space_left() -> Option<u64> {
+    #[cfg(target_os = "linux")]
+    {
+        let (soft, _) =
+            nix::sys::resource::getrlimit(nix::sys::resource::Resource::RLIMIT_AS).ok()?;
+        if soft == nix::sys::resource::RLIM_INFINITY {
+            return None;
+        }
+        let status = std::fs::read_to_string("/proc/self/status").ok()?;
+        let kb: u64 = status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmSize:"))?
+            .trim()
+            .trim_end_matches("kB")
+            .trim()
+            .parse()
+            .ok()?;
+        Some(soft.saturating_sub(kb * 1024))
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
 /// A rayon pool of `threads` workers (all cores when `None`).
 pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
     let mut b = rayon::ThreadPoolBuilder::new();
     if let Some(n) = threads {
+        // Threads that start in the last of the address space fail inside
+        // the runtime (an abort, now and then) rather than at creation:
+        // refuse a count that cannot fit before starting any (regression).
+        let need = n as u64 * THREAD_ADDRESS_SPACE;
+        if let Some(left) = address_space_left()
+            && need > left / 2
+        {
+            bail!(
+                "cannot start the worker threads: {n} threads need about {} MiB of address space, and the limit (ulimit -v) leaves {} MiB (ask for fewer with --threads)",
+                need >> 20,
+                left >> 20
+            );
+        }
         b = b.num_threads(n);
     }
     // The build error's text already holds the OS error, which is also its

@@ -52,6 +52,18 @@ pub fn install_panic_hook() {
             eprintln!("error: cannot write to standard output: {why}");
             std::process::exit(1);
         }
+        // std panics in a new thread whose signal stack cannot be mapped
+        // (address space used up, as under `ulimit -v` with many threads):
+        // out of memory, not a bug, and one line like the pool's own error
+        // (regression: a backtrace, or a second line, now and then).
+        if msg.starts_with("failed to allocate an alternative stack")
+            || msg.starts_with("failed to set up alternative stack guard page")
+        {
+            eprintln!(
+                "error: cannot start the worker threads: out of memory ({msg}) (ask for fewer with --threads)"
+            );
+            std::process::exit(1);
+        }
         if verbose {
             return default(info);
         }

@@ -88,6 +88,11 @@ pub fn run(s: &SimSettings) -> Result<()> {
             last_active,
             bricks
         );
+        if max_sub >= crate::sim::columns::run::MAX_SUBSTEPS {
+            eprintln!(
+                "warning: some steps needed the most sub-steps there are ({max_sub}); the CFL limit may not have been met there: use a smaller --dt or a larger --cfl"
+            );
+        }
         for (i, t) in script_ms.iter().enumerate() {
             eprintln!("  {}: {:.3} ms per step", ws.spec(i).name, t / s.steps.max(1) as f64);
             for (name, total) in ws.conserved_totals(i) {

@@ -120,6 +120,32 @@ fn heightmap_png_gives_exactly_the_columns_it_encodes() {
     }
 }
 
+/// Regression (hostile probe): a heightmap whose compressed data was
+/// damaged, with its chunk CRCs made to match, was read as other terrain:
+/// the zlib stream's Adler-32 was not checked. Here only that checksum is
+/// wrong, so nothing else could catch it.
+#[test]
+fn a_heightmap_with_a_wrong_zlib_checksum_is_refused() {
+    let path = tmp("adler.png");
+    write_gray_png(&path, 4, 4, png::BitDepth::Eight, &[9u8; 16]);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Chunks from byte 8: length, type, data, CRC over type and data.
+    let mut at = 8;
+    loop {
+        let len = u32::from_be_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+        if &bytes[at + 4..at + 8] == b"IDAT" {
+            let end = at + 8 + len; // the zlib stream ends with its Adler-32
+            bytes[end - 1] ^= 0x5a;
+            let crc = crc32fast::hash(&bytes[at + 4..end]);
+            bytes[end..end + 4].copy_from_slice(&crc.to_be_bytes());
+            break;
+        }
+        at += 12 + len;
+    }
+    std::fs::write(&path, &bytes).unwrap();
+    expect_error(SceneSpec::Heightmap(path), "PNG");
+}
+
 fn expect_error(spec: SceneSpec, needle: &str) {
     let e = build(spec).expect_err("must fail").to_string();
     assert!(e.contains(needle), "error '{e}' should mention '{needle}'");

@@ -317,7 +317,7 @@ fn a_commit_writes_only_what_changed_and_the_state_blob_round_trips() {
 #[test]
 fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     let (cfg, state, _) = setup("export");
-    hash_at(&cfg, &state, 30);
+    let ran = hash_at(&cfg, &state, 30);
     let backup = state.parent().unwrap().join("world.bwc");
     let out = bin()
         .args(["export", backup.to_str().unwrap(), "--world"])
@@ -327,7 +327,14 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
         .output()
         .unwrap();
     assert_success(&out);
-    assert!(String::from_utf8_lossy(&out.stdout).contains("exported tick 30"));
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.contains("exported tick 30"), "{said}");
+    // Regression (hostile probe): export printed the checkpoint file's own
+    // hash, which differs from the one `run` prints for the same world.
+    assert!(
+        said.contains(&format!("(world hash {ran})")),
+        "{said} vs {ran}"
+    );
     let copy = state.parent().unwrap().join("copy");
     let import = |dir: &std::path::Path, world: &std::path::Path| {
         bin()
@@ -348,6 +355,22 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
         crc32fast::hash(&std::fs::read(copy.join("world.redb")).unwrap()),
         before
     );
+    // A directory holding anything else is refused and left as it was.
+    let busy = state.parent().unwrap().join("busy");
+    std::fs::create_dir_all(&busy).unwrap();
+    std::fs::write(busy.join("precious.txt"), "keep").unwrap();
+    let out = import(&busy, &cfg);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("is not empty") && err.contains("precious.txt"),
+        "{err}"
+    );
+    let left: Vec<_> = std::fs::read_dir(&busy)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(left, vec![std::ffi::OsString::from("precious.txt")]);
     // Another world's config is refused.
     let other = state.parent().unwrap().join("other.toml");
     std::fs::write(
@@ -363,6 +386,33 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     assert!(err.contains("another world"), "{err}");
     // Both go on identically.
     assert_eq!(hash_at(&cfg, &copy, 60), hash_at(&cfg, &state, 60));
+    // A world whose scripts no longer load is exported all the same, with a
+    // warning and without a hash that would not match run's.
+    let moved = state.parent().unwrap().join("moved.toml");
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    let scripts_line = text.lines().find(|l| l.starts_with("scripts_dir")).unwrap();
+    std::fs::write(
+        &moved,
+        text.replace(scripts_line, "scripts_dir = \"/nonexistent\""),
+    )
+    .unwrap();
+    let out = bin()
+        .args(["export", backup.to_str().unwrap(), "--world"])
+        .arg(&moved)
+        .arg("--state")
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let (said, err) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(
+        said.contains("exported tick 60") && !said.contains("hash"),
+        "{said}"
+    );
+    assert!(err.contains("exported all the same"), "{err}");
     // Exporting a directory with no world is a clear error.
     let out = bin()
         .args(["export", "/tmp/never.bwc", "--world"])

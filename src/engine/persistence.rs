@@ -514,6 +514,20 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
             store_file.display()
         );
     }
+    // Only the lock this import holds may be there (regression: a
+    // directory holding other files was imported into, against the docs).
+    if !store_file.exists()
+        && let Some(other) = std::fs::read_dir(dir)
+            .with_context(|| format!("cannot list {}", dir.display()))?
+            .filter_map(|e| e.ok().map(|e| e.file_name()))
+            .find(|n| n != "engine.lock")
+    {
+        bail!(
+            "{} is not empty (it holds {:?}): import into a new or empty --state directory (nothing was changed)",
+            dir.display(),
+            other
+        );
+    }
     if WorldDb::has_state(dir) {
         bail!(
             "{} already holds this world; import into an empty --state directory (nothing was changed)",
@@ -623,8 +637,9 @@ fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
 
 /// `brickworld export`: open the store of state directory `dir` (locked, so
 /// a running engine is a clear error), restore its world, and write it to
-/// `out`. Returns the tick and the world hash.
-pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u64)> {
+/// `out`. Returns the tick and the world hash ([`engine_hash`], as `run`
+/// prints it), unless the world's scripts no longer load.
+pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, Option<u64>)> {
     if !dir.join(crate::persist::db::DB_FILE).is_file() {
         bail!("{} holds no world store (nothing to export)", dir.display());
     }
@@ -660,6 +675,24 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
         }
     };
     let mut ws = WorldSim::with_edges(&mut world, true);
+    ws.sim.channels_mut().take_dirty();
+    ws.set_seed(cfg.seed);
+    // The scripts register their channels before the stored chunks go
+    // over the world, as at start, so channel ids and the world hash are
+    // those `run` prints. A world whose scripts no longer load is still
+    // exported (its data is stored by channel name); only the hash is
+    // left out.
+    let comparable = match super::daemon::load_scripts(cfg, &mut world, &mut ws) {
+        Ok(()) => true,
+        Err(e) => {
+            eprintln!(
+                "warning: {e:#}: exported all the same; the world hash is left out, as it would not match run's"
+            );
+            ws = WorldSim::with_edges(&mut world, true);
+            ws.sim.channels_mut().take_dirty();
+            false
+        }
+    };
     let mut dirty = DirtyChunks::default();
     let scope = RestoreScope {
         regenerable: cfg.source.is_procedural(),
@@ -672,8 +705,10 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, u
     for c in &r.corrupt {
         eprintln!("warning: {c}");
     }
-    let hash = export(&world, &ws, &r.state, &identity, out)?;
-    Ok((r.state.tick, hash))
+    export(&world, &ws, &r.state, &identity, out)?;
+    // The hash `run` prints when it stops and `resumed` at start (the
+    // file's own hash, which its reader checks, covers less).
+    Ok((r.state.tick, comparable.then(|| engine_hash(&world, &ws))))
 }
 
 /// `brickworld import`: lock state directory `dir` and [`import`] `file`.

@@ -76,7 +76,12 @@ impl Heightmap {
 
     /// Decode PNG bytes.
     pub fn decode(bytes: &[u8]) -> Result<Self, String> {
-        let mut decoder = png::Decoder::new(Cursor::new(bytes));
+        // The zlib stream's Adler-32 is checked too (the crate skips it by
+        // default): a heightmap damaged inside its compressed data, with
+        // its chunk CRCs made to match, was read as other terrain.
+        let mut options = png::DecodeOptions::default();
+        options.set_ignore_adler32(false);
+        let mut decoder = png::Decoder::new_with_options(Cursor::new(bytes), options);
         decoder.set_limits(png::Limits { bytes: 1 << 30 });
         let mut reader = decoder.read_info().map_err(png_message)?;
         let info = reader.info();

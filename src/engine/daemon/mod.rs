@@ -37,6 +37,8 @@ mod rate;
 mod report;
 mod start;
 
+pub(crate) use start::load_scripts;
+
 use super::checkpoint::CameraOverride;
 use super::persistence::{self, DirtyChunks};
 use super::render_thread::{FrameJob, FrameWorld, RenderThread};

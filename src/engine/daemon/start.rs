@@ -321,7 +321,11 @@ fn initial_eye(cfg: &WorldConfig) -> glam::DVec3 {
 
 /// `materials.lua`, then the config's scripts with their rates and
 /// parameters.
-fn load_scripts(cfg: &WorldConfig, world: &mut SceneWorld, ws: &mut WorldSim) -> Result<()> {
+pub(crate) fn load_scripts(
+    cfg: &WorldConfig,
+    world: &mut SceneWorld,
+    ws: &mut WorldSim,
+) -> Result<()> {
     // materials.lua (optional) names the materials voxel scripts use.
     if let Some(src) = materials_source(cfg)? {
         ws.load_materials(world, &src)

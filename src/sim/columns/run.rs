@@ -13,6 +13,10 @@ use crate::sim::writeback::{
 use crate::sim::{Limits, ScriptSource, SimError};
 use crate::sim::{ScriptSpec, ScriptVm};
 
+/// Most column sub-steps one step is split into for the CFL limit; a step
+/// that needs more runs at this many, and the limit is not met.
+pub const MAX_SUBSTEPS: u32 = 256;
+
 /// A simulation coupled to a scene's voxels.
 pub struct WorldSim {
     /// The column simulation.
@@ -366,7 +370,7 @@ impl WorldSim {
 
     /// Sub-steps needed to keep one step of `dt` within the gravity-wave
     /// CFL limit `dt · (|u| + sqrt(g h)) / dx ≤ cfl` of every script that
-    /// declares `cfl` (1 if none does; at most 256).
+    /// declares `cfl` (1 if none does; at most [`MAX_SUBSTEPS`]).
     pub fn substeps_for(&self, dt: f64, cfl: f64) -> u32 {
         let mut n = 1;
         for i in 0..self.sim.script_count() {
@@ -385,7 +389,7 @@ impl WorldSim {
             let m = |name: &str| ch.find(name).map_or(0.0, |id| ch.max_abs(id));
             let speed =
                 c.velocities.iter().map(|v| m(v)).fold(0.0, f64::max) + (g * m(&c.depth)).sqrt();
-            n = n.max(((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, 256));
+            n = n.max(((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, MAX_SUBSTEPS));
         }
         n
     }

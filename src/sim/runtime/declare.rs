@@ -345,12 +345,16 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                     number(src, &p, "min", &name)?,
                     number(src, &p, "max", &name)?,
                 );
-                if min.is_nan()
-                    || max.is_nan()
-                    || min > max
-                    || !(min..=max).contains(&default)
-                    || !default.is_finite()
-                {
+                if !default.is_finite() || min.is_nan() || max.is_nan() {
+                    return Err(declaration(
+                        src,
+                        Some(&name),
+                        format!(
+                            "parameter '{name}': default {default}, min {min} and max {max} must be numbers, and the default finite"
+                        ),
+                    ));
+                }
+                if min > max || !(min..=max).contains(&default) {
                     return Err(declaration(
                         src,
                         Some(&name),
