@@ -304,10 +304,16 @@ impl Engine {
                     self.steps_left = 0;
                 }
                 Command::Resume => {
+                    if !self.should_step() {
+                        self.rate.restart(Instant::now());
+                    }
                     self.paused = false;
                     self.steps_left = 0;
                 }
                 Command::Step(n) => {
+                    if !self.should_step() {
+                        self.rate.restart(Instant::now());
+                    }
                     self.paused = true;
                     self.steps_left = (self.steps_left + n).min(100_000);
                 }

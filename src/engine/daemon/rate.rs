@@ -45,6 +45,15 @@ impl StepRate {
         }
     }
 
+    /// Open a new window at `now`, keeping what is shown until it fills:
+    /// for a resume, so the time spent paused is not counted as time the
+    /// steps took (regression: the first window after a minute's pause
+    /// showed a fraction of a step per second).
+    pub(super) fn restart(&mut self, now: Instant) {
+        self.started = now;
+        self.steps = 0;
+    }
+
     /// Steps per second: the last full window's, or the first window's so far.
     pub(super) fn per_s(&self) -> f64 {
         self.shown
@@ -65,6 +74,22 @@ mod tests {
             r.step(t0 + Duration::from_millis(100 * i));
         }
         assert!((r.per_s() - 10.0).abs() < 1e-9, "{}", r.per_s());
+    }
+
+    #[test]
+    fn time_spent_paused_is_not_counted_after_a_resume() {
+        let t0 = Instant::now();
+        let mut r = StepRate::new(t0);
+        for i in 1..=5 {
+            r.step(t0 + Duration::from_millis(200 * i));
+        }
+        // Paused for a minute, then resumed: 5 steps a second again.
+        let t1 = t0 + Duration::from_secs(61);
+        r.restart(t1);
+        for i in 1..=5 {
+            r.step(t1 + Duration::from_millis(200 * i));
+        }
+        assert!((r.per_s() - 5.0).abs() < 1e-9, "{}", r.per_s());
     }
 
     #[test]
