@@ -97,7 +97,7 @@ pub fn run(
     w.settle(Duration::from_secs(60));
     w.measure_overhead();
     let opts = RenderOptions {
-        shadows: cfg.shadows,
+        shadows: cfg.look.shadows,
         ..Default::default()
     };
     let steps = (distance / step).ceil() as u64;

@@ -88,24 +88,12 @@ impl RenderStats {
 /// Settings the render thread keeps for its whole life.
 #[derive(Clone, Debug)]
 pub struct RenderSettings {
-    /// Where to trace (`auto` says which it chose, and why, at the first
-    /// frame).
-    pub tracer: crate::gpu::TracerChoice,
+    /// How frames are drawn, as the world config says (`auto` says which
+    /// tracer it chose, and why, at the first frame).
+    pub look: crate::engine::world_config::FrameLook,
     /// A streamed world: the jobs' world is the simulated region, and the
     /// frames show a window around the camera streamed from this plan.
     pub stream: Option<StreamPlan>,
-    /// Shadow rays.
-    pub shadows: bool,
-    /// Distance fog extent in voxels (0: none).
-    pub fog: f32,
-    /// Level of detail `C` in pixels (0: exact).
-    pub lod: f32,
-    /// Ambient occlusion.
-    pub ao: bool,
-    /// Jittered samples per pixel (1: none).
-    pub aa: u32,
-    /// Beam starts.
-    pub beam: bool,
     /// Where frame PNGs go.
     pub frames_dir: PathBuf,
     /// Frames kept on disk; older ones are deleted.
@@ -187,7 +175,7 @@ impl RenderThread {
                                     // later ones show stand-ins until then.
                                     w.settle(std::time::Duration::from_secs(30));
                                     w.measure_overhead();
-                                    if settings.tracer != crate::gpu::TracerChoice::Cpu {
+                                    if settings.look.tracer != crate::gpu::TracerChoice::Cpu {
                                         w.track_changes();
                                     }
                                     window = Some(w);
@@ -207,7 +195,7 @@ impl RenderThread {
                     }
                     if !gpu_tried {
                         gpu_tried = true;
-                        gpu = start_gpu(world, settings.tracer);
+                        gpu = start_gpu(world, settings.look.tracer);
                     } else if let Some((ctx, g)) = gpu.as_mut() {
                         // A streamed world's window reports what changed in
                         // it (slides too); a resident one, the job's bricks.
@@ -218,15 +206,8 @@ impl RenderThread {
                         };
                         g.apply_edits(ctx, world.grid(), world.store().pool(), changed);
                     }
-                    let opts = RenderOptions {
-                        shadows: settings.shadows,
-                        fog: settings.fog,
-                        lod: settings.lod,
-                        ao: settings.ao,
-                        beam: settings.beam,
-                        ..Default::default()
-                    };
-                    let rgb = supersample(settings.aa, &opts, |o| {
+                    let opts = settings.look.options();
+                    let rgb = supersample(settings.look.aa, &opts, |o| {
                         draw(&mut gpu, world, &job.camera, o, &st)
                     });
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);

@@ -53,7 +53,7 @@ impl Engine {
             "render.width/render.height",
             cfg.width,
             cfg.height,
-            if cfg.aa > 1 { 3 } else { 2 },
+            if cfg.look.aa > 1 { 3 } else { 2 },
         )?;
         let token = state_dir::new_token()?;
         let shared = Arc::new(Shared::new(token.clone(), cfg.hosts.clone()));
@@ -147,14 +147,8 @@ impl Engine {
             .with_context(|| format!("cannot create {}", frames_dir.display()))?;
         let renderer = RenderThread::spawn(
             RenderSettings {
-                tracer: cfg.tracer,
+                look: cfg.look,
                 stream: stream_plan,
-                shadows: cfg.shadows,
-                fog: cfg.fog,
-                lod: cfg.lod,
-                ao: cfg.ao,
-                aa: cfg.aa,
-                beam: cfg.beam,
                 frames_dir,
                 keep: cfg.frames_keep,
                 max_bytes: cfg.frames_max_bytes,

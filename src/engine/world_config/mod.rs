@@ -271,22 +271,8 @@ pub struct WorldConfig {
     pub width: u32,
     /// Frame size.
     pub height: u32,
-    /// Where frames are traced (`auto`: the GPU unless it is a software
-    /// rasterizer).
-    pub tracer: crate::gpu::TracerChoice,
-    /// Hard shadows.
-    pub shadows: bool,
-    /// Distance fog extent in voxels (0: none).
-    pub fog: f32,
-    /// Level of detail `C` in pixels (0: exact).
-    pub lod: f32,
-    /// Ambient occlusion in frames.
-    pub ao: bool,
-    /// Jittered anti-aliasing samples per pixel in frames (1: none).
-    pub aa: u32,
-    /// Beam starts in frames (the same image; off by default: on this
-    /// machine they bought under 10 %).
-    pub beam: bool,
+    /// How frames are drawn (the rest of `[render]`).
+    pub look: FrameLook,
     /// Frame directory, relative to the state directory.
     pub frames_dir: PathBuf,
     /// Write a frame every this many ticks.
@@ -304,6 +290,43 @@ pub struct WorldConfig {
     pub hosts: Vec<String>,
     /// Boxes of material placed into a freshly built world (a lava source).
     pub place: Vec<Placement>,
+}
+
+/// How the daemon draws its frames: `[render]` less the frame size. The
+/// config holds it and the render thread takes it as is, so a setting
+/// is declared once.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameLook {
+    /// Where frames are traced (`auto`: the GPU unless it is a software
+    /// rasterizer).
+    pub tracer: crate::gpu::TracerChoice,
+    /// Hard shadows.
+    pub shadows: bool,
+    /// Distance fog extent in voxels (0: none).
+    pub fog: f32,
+    /// Level of detail `C` in pixels (0: exact).
+    pub lod: f32,
+    /// Ambient occlusion.
+    pub ao: bool,
+    /// Jittered anti-aliasing samples per pixel (1: none).
+    pub aa: u32,
+    /// Beam starts (the same image; off by default: on this machine they
+    /// bought under 10 %).
+    pub beam: bool,
+}
+
+impl FrameLook {
+    /// The tracer options of one sample (anti-aliasing jitters them).
+    pub fn options(&self) -> crate::trace::RenderOptions {
+        crate::trace::RenderOptions {
+            shadows: self.shadows,
+            fog: self.fog,
+            lod: self.lod,
+            ao: self.ao,
+            beam: self.beam,
+            ..Default::default()
+        }
+    }
 }
 
 impl WorldConfig {
@@ -381,13 +404,7 @@ impl WorldConfig {
             camera,
             width: render.width,
             height: render.height,
-            tracer: render.tracer,
-            shadows: render.shadows,
-            ao: render.ao,
-            beam: render.beam,
-            aa: render.aa,
-            fog: render.fog,
-            lod: render.lod,
+            look: render.look,
             frames_dir: frames.dir,
             frames_every: frames.every,
             frames_keep: frames.keep,

@@ -434,13 +434,7 @@ pub(super) fn camera(
 pub(super) struct Render {
     pub(super) width: u32,
     pub(super) height: u32,
-    pub(super) tracer: crate::gpu::TracerChoice,
-    pub(super) shadows: bool,
-    pub(super) ao: bool,
-    pub(super) beam: bool,
-    pub(super) aa: u32,
-    pub(super) fog: f32,
-    pub(super) lod: f32,
+    pub(super) look: super::FrameLook,
 }
 
 /// `[render]`: frame size, tracer and shading. A streamed world's window
@@ -477,9 +471,9 @@ pub(super) fn render(
         .unwrap_or("auto")
         .parse()
         .map_err(|e| err("render.tracer", e))?;
-    Ok(Render {
-        width: dim(r.width, 640, "render.width")?,
-        height: dim(r.height, 360, "render.height")?,
+    let width = dim(r.width, 640, "render.width")?;
+    let height = dim(r.height, 360, "render.height")?;
+    let look = super::FrameLook {
         tracer,
         shadows: r.shadows.unwrap_or(true),
         ao: r.ao.unwrap_or(true),
@@ -509,6 +503,11 @@ pub(super) fn render(
                 ));
             }
         },
+    };
+    Ok(Render {
+        width,
+        height,
+        look,
     })
 }
 
