@@ -9,6 +9,8 @@
 //! - [`native`]: native (Rust) reference kernels of shipped scripts.
 //! - `exec`: one script's step: the dense working set, the parallel
 //!   passes (Lua or native kernels) and their validated commit.
+//! - `scripts`: loading, smoke-testing and replacing voxel scripts, and
+//!   their rates, parameters and health.
 //! - [`step`]: scheduling (material filters, rates, sleep), the parallel
 //!   double-buffered step, validation and commit.
 
@@ -16,6 +18,7 @@ pub mod channels;
 mod exec;
 pub mod halo;
 pub mod native;
+mod scripts;
 pub mod step;
 
 pub use channels::{VoxelChannelId, VoxelChannels};

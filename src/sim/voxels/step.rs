@@ -19,17 +19,18 @@
 //! is rejected with the script, brick and value named.
 
 use std::sync::atomic::{AtomicU64, Ordering};
+
+use super::scripts::Loaded;
 use std::time::Instant;
 
 use glam::IVec3;
 use rustc_hash::{FxHashMap, FxHashSet};
 
-use super::channels::{VoxelChannelId, VoxelChannels};
-use super::exec::{Job, VoxelKernel, run_script};
+use super::channels::VoxelChannels;
+use super::exec::{Job, run_script};
 use super::halo::{SELF, neighbour_offset};
-use super::native::VoxelNativeKernel;
-use crate::sim::script::{Grid, VOXEL_CELLS};
-use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
+use crate::sim::script::VOXEL_CELLS;
+use crate::sim::{SimError, StepKey};
 use crate::world::{BRICK_EDGE, BrickStore, MaterialRegistry};
 
 /// Steps without change before a brick sleeps.
@@ -39,13 +40,12 @@ pub const SUSPEND_AFTER: u32 = 3;
 /// The material kernels see outside the world's bounds (a wall).
 pub const BOUNDARY: u8 = 255;
 
-static NEXT_UID: AtomicU64 = AtomicU64::new(1 << 40);
 static STEP_SERIAL: AtomicU64 = AtomicU64::new(1 << 40);
 
 /// A 256-bit set of material ids.
-type MatSet = [u64; 4];
+pub(super) type MatSet = [u64; 4];
 
-fn set_of(ids: impl IntoIterator<Item = u8>) -> MatSet {
+pub(super) fn set_of(ids: impl IntoIterator<Item = u8>) -> MatSet {
     let mut s = [0u64; 4];
     for i in ids {
         s[i as usize >> 6] |= 1 << (i & 63);
@@ -59,22 +59,6 @@ fn presence_of(d: &[u8; VOXEL_CELLS]) -> MatSet {
 
 fn meets(a: &MatSet, b: &MatSet) -> bool {
     a.iter().zip(b).any(|(x, y)| x & y != 0)
-}
-
-struct Loaded {
-    uid: u64,
-    src: ScriptSource,
-    spec: ScriptSpec,
-    params: Vec<f64>,
-    channel_ids: Vec<VoxelChannelId>,
-    material_ids: Vec<u8>,
-    only: Option<MatSet>,
-    keep_awake: MatSet,
-    limits: Limits,
-    kernel: VoxelKernel,
-    every: u64,
-    failures: u32,
-    suspended: Option<SimError>,
 }
 
 /// What one voxel step did.
@@ -92,22 +76,22 @@ pub struct VoxelStepReport {
 
 /// The voxel simulation: per-voxel channels, voxel scripts, the active set.
 pub struct VoxelSim {
-    channels: VoxelChannels,
-    scripts: Vec<Loaded>,
+    pub(super) channels: VoxelChannels,
+    pub(super) scripts: Vec<Loaded>,
     /// Brick bounds `[min, max)`.
-    lo: IVec3,
-    hi: IVec3,
-    active: FxHashSet<IVec3>,
-    quiet: FxHashMap<IVec3, u8>,
-    presence: FxHashMap<IVec3, MatSet>,
+    pub(super) lo: IVec3,
+    pub(super) hi: IVec3,
+    pub(super) active: FxHashSet<IVec3>,
+    pub(super) quiet: FxHashMap<IVec3, u8>,
+    pub(super) presence: FxHashMap<IVec3, MatSet>,
     /// A parameter changed or a script was replaced: wake every brick that
     /// holds something at the next step. Decided from the world then, not
     /// from the presence cache, whose contents depend on the run's history
     /// (regression: after a resume, a parameter change woke fewer bricks
     /// than in a run that never stopped).
-    wake_pending: bool,
-    tick: u64,
-    seed: u64,
+    pub(super) wake_pending: bool,
+    pub(super) tick: u64,
+    pub(super) seed: u64,
 }
 
 /// Brick coordinates covering the voxel box `[lo, hi)`.
@@ -248,21 +232,6 @@ impl VoxelSim {
         self.tick = tick;
     }
 
-    /// Number of scripts.
-    pub fn script_count(&self) -> usize {
-        self.scripts.len()
-    }
-
-    /// Declarations of script `i`.
-    pub fn spec(&self, i: usize) -> &ScriptSpec {
-        &self.scripts[i].spec
-    }
-
-    /// Why script `i` is suspended, if it is.
-    pub fn suspended(&self, i: usize) -> Option<&SimError> {
-        self.scripts[i].suspended.as_ref()
-    }
-
     /// Replace every channel (a resume); scripts find theirs again by name.
     pub fn set_channels(&mut self, channels: VoxelChannels) {
         self.channels = channels;
@@ -296,116 +265,7 @@ impl VoxelSim {
         }
     }
 
-    /// Current parameter values of script `i` (spec order).
-    pub fn params(&self, i: usize) -> &[f64] {
-        &self.scripts[i].params
-    }
-
-    /// Failed steps in a row of script `i`.
-    pub fn failures(&self, i: usize) -> u32 {
-        self.scripts[i].failures
-    }
-
-    /// Replace script `i` with a new version (its materials must be
-    /// registered), keeping parameter values, clamped into narrowed ranges
-    /// with a warning. A suspended script runs again.
-    pub fn replace_script(
-        &mut self,
-        i: usize,
-        src: ScriptSource,
-        registry: &MaterialRegistry,
-    ) -> Result<Vec<String>, SimError> {
-        let mut trial = VoxelSim {
-            channels: self.channels.clone(),
-            scripts: Vec::new(),
-            lo: self.lo,
-            hi: self.hi,
-            active: FxHashSet::default(),
-            quiet: FxHashMap::default(),
-            presence: FxHashMap::default(),
-            wake_pending: false,
-            tick: self.tick,
-            seed: self.seed,
-        };
-        trial.add_script(src, self.scripts[i].limits, registry)?;
-        let mut new = trial.scripts.pop().expect("added");
-        for name in trial
-            .channels
-            .names()
-            .iter()
-            .skip(self.channels.names().len())
-        {
-            self.channels.channel(name);
-        }
-        new.channel_ids = new
-            .spec
-            .channels
-            .iter()
-            .map(|c| self.channels.channel(c))
-            .collect();
-        let old = &self.scripts[i];
-        new.every = old.every;
-        let (values, warnings) =
-            crate::sim::script::carry_params(&old.spec, &old.params, &new.spec);
-        new.params = values;
-        self.scripts[i] = new;
-        self.wake_all_known();
-        Ok(warnings)
-    }
-
-    /// Script `i`'s source, limits, rate and health, for a rebuild.
-    pub fn script_state(&self, i: usize) -> crate::sim::ScriptState {
-        let s = &self.scripts[i];
-        crate::sim::ScriptState {
-            src: s.src.clone(),
-            limits: s.limits,
-            every: s.every,
-            failures: s.failures,
-            suspended: s.suspended.clone(),
-        }
-    }
-
-    /// Give script `i` the health a rebuilt simulation carries over.
-    pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
-        self.scripts[i].failures = failures;
-        self.scripts[i].suspended = suspended;
-    }
-
-    /// Run script `i` on ticks that are multiples of `every`.
-    pub fn set_every(&mut self, i: usize, every: u64) {
-        self.scripts[i].every = every.max(1);
-    }
-
-    /// The tick interval of script `i`.
-    pub fn every(&self, i: usize) -> u64 {
-        self.scripts[i].every
-    }
-
-    /// Set a parameter (refused outside its declared range).
-    pub fn set_param(&mut self, i: usize, name: &str, value: f64) -> Result<(), SimError> {
-        let s = &mut self.scripts[i];
-        let Some(k) = s.spec.params.iter().position(|p| p.name == name) else {
-            return Err(SimError::Param {
-                script: s.spec.name.clone(),
-                msg: format!("no parameter '{name}'"),
-            });
-        };
-        let p = &s.spec.params[k];
-        if !(p.min..=p.max).contains(&value) {
-            return Err(SimError::Param {
-                script: s.spec.name.clone(),
-                msg: format!(
-                    "parameter '{name}' = {value} is outside [{}, {}]",
-                    p.min, p.max
-                ),
-            });
-        }
-        s.params[k] = value;
-        self.wake_all_known();
-        Ok(())
-    }
-
-    fn wake_all_known(&mut self) {
+    pub(super) fn wake_all_known(&mut self) {
         self.wake_pending = true;
     }
 
@@ -436,144 +296,6 @@ impl VoxelSim {
                 self.quiet.remove(&nb);
             }
         }
-    }
-
-    /// Load a voxel script. Its materials must be registered.
-    pub fn add_script(
-        &mut self,
-        src: ScriptSource,
-        limits: Limits,
-        registry: &MaterialRegistry,
-    ) -> Result<usize, SimError> {
-        let (mut vm, spec) = ScriptVm::load(&src, limits)?;
-        if spec.grid != Grid::Voxels {
-            return Err(SimError::Declaration {
-                script: spec.name.clone(),
-                line: None,
-                msg: "a column script cannot run on the voxel grid".into(),
-            });
-        }
-        let material_ids = spec
-            .materials
-            .iter()
-            .map(|m| {
-                registry.id(m).ok_or_else(|| SimError::Declaration {
-                    script: spec.name.clone(),
-                    line: src
-                        .text
-                        .lines()
-                        .position(|l| l.contains(m.as_str()))
-                        .map(|i| i + 1),
-                    msg: format!("unknown material '{m}' (declare it in materials.lua)"),
-                })
-            })
-            .collect::<Result<Vec<u8>, SimError>>()?;
-        let id_of = |names: &[String]| {
-            set_of(names.iter().filter_map(|n| {
-                spec.materials
-                    .iter()
-                    .position(|m| m == n)
-                    .map(|i| material_ids[i])
-            }))
-        };
-        // Smoke test, as for column scripts: every pass once on an empty
-        // brick (air, channels at 0) at tick 0, in this fresh VM, so a
-        // broken save is refused at load and a hot reload keeps the version
-        // that works (regression: it replaced it and failed every step).
-        let defaults: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
-        vm.begin_step(
-            0.01,
-            &spec,
-            &defaults,
-            StepKey::new(self.seed, 0, &spec.name),
-            &material_ids,
-        )?;
-        for (pi, pass) in spec.passes.iter().enumerate() {
-            vm.run_voxel(pi, &pass.name, [0, 0, 0])?;
-            let (_, written) = vm
-                .material_buffers()
-                .expect("a voxel VM has material buffers");
-            let written: [u8; VOXEL_CELLS] = written.read_bytes(0);
-            if let Some(&bad) = written
-                .iter()
-                .find(|&&m| m != 0 && (m == BOUNDARY || registry.get(m).is_none()))
-            {
-                return Err(SimError::Runtime {
-                    script: spec.name.clone(),
-                    pass: pass.name.clone(),
-                    tile: (0, 0),
-                    line: None,
-                    msg: format!(
-                        "on an empty brick at load: wrote material id {bad}, which is not registered"
-                    ),
-                });
-            }
-        }
-        let only = (!spec.only.is_empty()).then(|| id_of(&spec.only));
-        let keep_awake = id_of(&spec.keep_awake);
-        let (ch, n) = (&self.channels, self.channels.names().len());
-        crate::sim::channel_room(&spec.name, &spec.channels, |c| ch.find(c).is_some(), n)?;
-        let channel_ids = spec
-            .channels
-            .iter()
-            .map(|c| self.channels.channel(c))
-            .collect();
-        let params = defaults;
-        self.scripts.push(Loaded {
-            uid: NEXT_UID.fetch_add(1, Ordering::Relaxed),
-            src,
-            spec,
-            params,
-            channel_ids,
-            material_ids,
-            only,
-            keep_awake,
-            limits,
-            kernel: VoxelKernel::Lua,
-            every: 1,
-            failures: 0,
-            suspended: None,
-        });
-        Ok(self.scripts.len() - 1)
-    }
-
-    /// Load a voxel script for its declarations but run `kernel`, a native
-    /// reference of the same rule, in place of its Lua kernels.
-    pub fn add_native(
-        &mut self,
-        src: ScriptSource,
-        limits: Limits,
-        registry: &MaterialRegistry,
-        kernel: std::sync::Arc<dyn VoxelNativeKernel>,
-    ) -> Result<usize, SimError> {
-        let i = self.add_script(src, limits, registry)?;
-        let spec = &self.scripts[i].spec;
-        let same = |declared: &[String], expected: &[&str]| {
-            declared
-                .iter()
-                .map(String::as_str)
-                .eq(expected.iter().copied())
-        };
-        let params: Vec<String> = spec.params.iter().map(|p| p.name.clone()).collect();
-        let mismatch = [
-            ("parameters", params.clone(), kernel.params()),
-            ("channels", spec.channels.clone(), kernel.channels()),
-            ("materials", spec.materials.clone(), kernel.materials()),
-        ]
-        .into_iter()
-        .find(|(_, declared, expected)| !same(declared, expected));
-        if let Some((what, declared, expected)) = mismatch {
-            let s = self.scripts.pop().expect("added");
-            return Err(SimError::Declaration {
-                script: s.spec.name,
-                line: None,
-                msg: format!(
-                    "the native kernel expects {what} {expected:?}, the script declares {declared:?}"
-                ),
-            });
-        }
-        self.scripts[i].kernel = VoxelKernel::Native(kernel);
-        Ok(i)
     }
 
     fn presence(&mut self, store: &BrickStore, b: IVec3) -> MatSet {

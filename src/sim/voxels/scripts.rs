@@ -1,0 +1,299 @@
+//! Voxel scripts in a [`VoxelSim`]: loading one (declarations checked
+//! against the material registry, then a smoke test on an empty brick),
+//! replacing it on hot reload (parameters kept), native reference kernels,
+//! and each script's rate, parameters and health.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use rustc_hash::{FxHashMap, FxHashSet};
+
+use super::channels::VoxelChannelId;
+use super::exec::VoxelKernel;
+use super::native::VoxelNativeKernel;
+use super::step::{BOUNDARY, MatSet, VoxelSim, set_of};
+use crate::sim::script::{Grid, VOXEL_CELLS};
+use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
+use crate::world::MaterialRegistry;
+
+static NEXT_UID: AtomicU64 = AtomicU64::new(1 << 40);
+
+/// A loaded voxel script and its state.
+pub(super) struct Loaded {
+    pub(super) uid: u64,
+    pub(super) src: ScriptSource,
+    pub(super) spec: ScriptSpec,
+    pub(super) params: Vec<f64>,
+    pub(super) channel_ids: Vec<VoxelChannelId>,
+    pub(super) material_ids: Vec<u8>,
+    pub(super) only: Option<MatSet>,
+    pub(super) keep_awake: MatSet,
+    pub(super) limits: Limits,
+    pub(super) kernel: VoxelKernel,
+    pub(super) every: u64,
+    pub(super) failures: u32,
+    pub(super) suspended: Option<SimError>,
+}
+
+impl VoxelSim {
+    /// Number of scripts.
+    pub fn script_count(&self) -> usize {
+        self.scripts.len()
+    }
+
+    /// Declarations of script `i`.
+    pub fn spec(&self, i: usize) -> &ScriptSpec {
+        &self.scripts[i].spec
+    }
+
+    /// Why script `i` is suspended, if it is.
+    pub fn suspended(&self, i: usize) -> Option<&SimError> {
+        self.scripts[i].suspended.as_ref()
+    }
+
+    /// Current parameter values of script `i` (spec order).
+    pub fn params(&self, i: usize) -> &[f64] {
+        &self.scripts[i].params
+    }
+
+    /// Failed steps in a row of script `i`.
+    pub fn failures(&self, i: usize) -> u32 {
+        self.scripts[i].failures
+    }
+
+    /// Replace script `i` with a new version (its materials must be
+    /// registered), keeping parameter values, clamped into narrowed ranges
+    /// with a warning. A suspended script runs again.
+    pub fn replace_script(
+        &mut self,
+        i: usize,
+        src: ScriptSource,
+        registry: &MaterialRegistry,
+    ) -> Result<Vec<String>, SimError> {
+        let mut trial = VoxelSim {
+            channels: self.channels.clone(),
+            scripts: Vec::new(),
+            lo: self.lo,
+            hi: self.hi,
+            active: FxHashSet::default(),
+            quiet: FxHashMap::default(),
+            presence: FxHashMap::default(),
+            wake_pending: false,
+            tick: self.tick,
+            seed: self.seed,
+        };
+        trial.add_script(src, self.scripts[i].limits, registry)?;
+        let mut new = trial.scripts.pop().expect("added");
+        for name in trial
+            .channels
+            .names()
+            .iter()
+            .skip(self.channels.names().len())
+        {
+            self.channels.channel(name);
+        }
+        new.channel_ids = new
+            .spec
+            .channels
+            .iter()
+            .map(|c| self.channels.channel(c))
+            .collect();
+        let old = &self.scripts[i];
+        new.every = old.every;
+        let (values, warnings) =
+            crate::sim::script::carry_params(&old.spec, &old.params, &new.spec);
+        new.params = values;
+        self.scripts[i] = new;
+        self.wake_all_known();
+        Ok(warnings)
+    }
+
+    /// Script `i`'s source, limits, rate and health, for a rebuild.
+    pub fn script_state(&self, i: usize) -> crate::sim::ScriptState {
+        let s = &self.scripts[i];
+        crate::sim::ScriptState {
+            src: s.src.clone(),
+            limits: s.limits,
+            every: s.every,
+            failures: s.failures,
+            suspended: s.suspended.clone(),
+        }
+    }
+
+    /// Give script `i` the health a rebuilt simulation carries over.
+    pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
+        self.scripts[i].failures = failures;
+        self.scripts[i].suspended = suspended;
+    }
+
+    /// Run script `i` on ticks that are multiples of `every`.
+    pub fn set_every(&mut self, i: usize, every: u64) {
+        self.scripts[i].every = every.max(1);
+    }
+
+    /// The tick interval of script `i`.
+    pub fn every(&self, i: usize) -> u64 {
+        self.scripts[i].every
+    }
+
+    /// Set a parameter (refused outside its declared range).
+    pub fn set_param(&mut self, i: usize, name: &str, value: f64) -> Result<(), SimError> {
+        let s = &mut self.scripts[i];
+        let Some(k) = s.spec.params.iter().position(|p| p.name == name) else {
+            return Err(SimError::Param {
+                script: s.spec.name.clone(),
+                msg: format!("no parameter '{name}'"),
+            });
+        };
+        let p = &s.spec.params[k];
+        if !(p.min..=p.max).contains(&value) {
+            return Err(SimError::Param {
+                script: s.spec.name.clone(),
+                msg: format!(
+                    "parameter '{name}' = {value} is outside [{}, {}]",
+                    p.min, p.max
+                ),
+            });
+        }
+        s.params[k] = value;
+        self.wake_all_known();
+        Ok(())
+    }
+
+    /// Load a voxel script. Its materials must be registered.
+    pub fn add_script(
+        &mut self,
+        src: ScriptSource,
+        limits: Limits,
+        registry: &MaterialRegistry,
+    ) -> Result<usize, SimError> {
+        let (mut vm, spec) = ScriptVm::load(&src, limits)?;
+        if spec.grid != Grid::Voxels {
+            return Err(SimError::Declaration {
+                script: spec.name.clone(),
+                line: None,
+                msg: "a column script cannot run on the voxel grid".into(),
+            });
+        }
+        let material_ids = spec
+            .materials
+            .iter()
+            .map(|m| {
+                registry.id(m).ok_or_else(|| SimError::Declaration {
+                    script: spec.name.clone(),
+                    line: src
+                        .text
+                        .lines()
+                        .position(|l| l.contains(m.as_str()))
+                        .map(|i| i + 1),
+                    msg: format!("unknown material '{m}' (declare it in materials.lua)"),
+                })
+            })
+            .collect::<Result<Vec<u8>, SimError>>()?;
+        let id_of = |names: &[String]| {
+            set_of(names.iter().filter_map(|n| {
+                spec.materials
+                    .iter()
+                    .position(|m| m == n)
+                    .map(|i| material_ids[i])
+            }))
+        };
+        // Smoke test, as for column scripts: every pass once on an empty
+        // brick (air, channels at 0) at tick 0, in this fresh VM, so a
+        // broken save is refused at load and a hot reload keeps the version
+        // that works (regression: it replaced it and failed every step).
+        let defaults: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
+        vm.begin_step(
+            0.01,
+            &spec,
+            &defaults,
+            StepKey::new(self.seed, 0, &spec.name),
+            &material_ids,
+        )?;
+        for (pi, pass) in spec.passes.iter().enumerate() {
+            vm.run_voxel(pi, &pass.name, [0, 0, 0])?;
+            let (_, written) = vm
+                .material_buffers()
+                .expect("a voxel VM has material buffers");
+            let written: [u8; VOXEL_CELLS] = written.read_bytes(0);
+            if let Some(&bad) = written
+                .iter()
+                .find(|&&m| m != 0 && (m == BOUNDARY || registry.get(m).is_none()))
+            {
+                return Err(SimError::Runtime {
+                    script: spec.name.clone(),
+                    pass: pass.name.clone(),
+                    tile: (0, 0),
+                    line: None,
+                    msg: format!(
+                        "on an empty brick at load: wrote material id {bad}, which is not registered"
+                    ),
+                });
+            }
+        }
+        let only = (!spec.only.is_empty()).then(|| id_of(&spec.only));
+        let keep_awake = id_of(&spec.keep_awake);
+        let (ch, n) = (&self.channels, self.channels.names().len());
+        crate::sim::channel_room(&spec.name, &spec.channels, |c| ch.find(c).is_some(), n)?;
+        let channel_ids = spec
+            .channels
+            .iter()
+            .map(|c| self.channels.channel(c))
+            .collect();
+        let params = defaults;
+        self.scripts.push(Loaded {
+            uid: NEXT_UID.fetch_add(1, Ordering::Relaxed),
+            src,
+            spec,
+            params,
+            channel_ids,
+            material_ids,
+            only,
+            keep_awake,
+            limits,
+            kernel: VoxelKernel::Lua,
+            every: 1,
+            failures: 0,
+            suspended: None,
+        });
+        Ok(self.scripts.len() - 1)
+    }
+
+    /// Load a voxel script for its declarations but run `kernel`, a native
+    /// reference of the same rule, in place of its Lua kernels.
+    pub fn add_native(
+        &mut self,
+        src: ScriptSource,
+        limits: Limits,
+        registry: &MaterialRegistry,
+        kernel: std::sync::Arc<dyn VoxelNativeKernel>,
+    ) -> Result<usize, SimError> {
+        let i = self.add_script(src, limits, registry)?;
+        let spec = &self.scripts[i].spec;
+        let same = |declared: &[String], expected: &[&str]| {
+            declared
+                .iter()
+                .map(String::as_str)
+                .eq(expected.iter().copied())
+        };
+        let params: Vec<String> = spec.params.iter().map(|p| p.name.clone()).collect();
+        let mismatch = [
+            ("parameters", params.clone(), kernel.params()),
+            ("channels", spec.channels.clone(), kernel.channels()),
+            ("materials", spec.materials.clone(), kernel.materials()),
+        ]
+        .into_iter()
+        .find(|(_, declared, expected)| !same(declared, expected));
+        if let Some((what, declared, expected)) = mismatch {
+            let s = self.scripts.pop().expect("added");
+            return Err(SimError::Declaration {
+                script: s.spec.name,
+                line: None,
+                msg: format!(
+                    "the native kernel expects {what} {expected:?}, the script declares {declared:?}"
+                ),
+            });
+        }
+        self.scripts[i].kernel = VoxelKernel::Native(kernel);
+        Ok(i)
+    }
+}
