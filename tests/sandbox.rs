@@ -311,6 +311,10 @@ fn running_out_of_memory_cannot_be_caught() {
             "nested",
             "local ok = pcall(function() return pcall(string.rep, \"x\", 64 * 1024 * 1024) end)",
         ),
+        (
+            "handler",
+            "local ok = xpcall(function() error(\"x\") end, function(e) return string.rep(\"y\", 64 * 1024 * 1024) end)",
+        ),
     ] {
         let mut sim = sim_with(&[script(name, body)]);
         let e = runtime_error(&mut sim);
@@ -320,7 +324,9 @@ fn running_out_of_memory_cannot_be_caught() {
     let mut sim = sim_with(&[script(
         "other",
         "local ok, e = pcall(error, \"plain\") assert(not ok and e == \"plain\")\n\
-         local ok2, e2 = xpcall(error, function(m) return \"handled \" .. m end, \"x\") assert(e2 == \"handled x\")",
+         local ok2, e2 = xpcall(error, function(m) return \"handled \" .. m end, \"x\") assert(e2 == \"handled x\")\n\
+         assert(not pcall(xpcall, function() error(\"y\") end, nil))\n\
+         local ok3, e3 = xpcall(function() error(\"z\") end, function(m) error(\"again\") end) assert(not ok3)",
     )]);
     assert!(sim.step(0.1).errors.is_empty());
 }
@@ -361,6 +367,37 @@ fn whether_an_allocation_fits_does_not_depend_on_garbage() {
     assert_eq!(h1, run(4));
 }
 
+/// Regression (review): a call run once more after running out of memory
+/// logged its lines twice. Lines are held until the call's verdict.
+#[test]
+fn a_call_run_again_after_running_out_of_memory_logs_once() {
+    let text = "return { channels = { \"once_v\" }, passes = { { name = \"p\", reads = {}, writes = { \"once_v\" },\n\
+        kernel = function(c, tx, tz)\n\
+          log(\"call\", c.tick)\n\
+          local a = buffer.create(6 * 1024 * 1024)\n\
+          local b = buffer.create(6 * 1024 * 1024)\n\
+          buffer.writef64(c.w.once_v, 0, buffer.len(a) + buffer.len(b))\n\
+        end } } }";
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let steps = pool.install(|| {
+        let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+        sim.add_script(src("once", text), Kernel::Lua, small())
+            .unwrap();
+        for _ in 0..6 {
+            let r = sim.step(0.1);
+            assert!(r.errors.is_empty(), "{:?}", r.errors);
+            sim.wake_all();
+        }
+        6
+    });
+    let (_, dropped, accepted) = brickworld::sim::runtime::log::recent("once");
+    // The load-time smoke test's call and one per step.
+    assert_eq!(accepted + dropped, steps + 1);
+}
+
 /// Regression (hostile probe): `tostring({})` and `string.format("%s", t)`
 /// gave the object's address, which differs between runs, so a kernel that
 /// branched on it made a different world each run. Objects now show as
@@ -376,7 +413,13 @@ fn kernels_never_see_an_address() {
          assert((\"%s\"):format(c) == \"table\")\n\
          assert(tostring(setmetatable({}, { __tostring = function() return \"me\" end })) == \"me\")\n\
          assert(string.format(\"%d %s %.1f\", 3, \"x\", 0.25) == \"3 x 0.2\" or string.format(\"%d %s %.1f\", 3, \"x\", 0.25) == \"3 x 0.3\")\n\
-         assert(tostring(nil) == \"nil\" and tostring(1.5) == \"1.5\" and tostring(true) == \"true\")",
+         assert(tostring(nil) == \"nil\" and tostring(1.5) == \"1.5\" and tostring(true) == \"true\")\n\
+         local liar = setmetatable({}, { __metatable = { __tostring = true } })\n\
+         assert(tostring(liar) == \"table\" and string.format(\"%s\", liar) == \"table\", tostring(liar))\n\
+         local locked = setmetatable({}, { __metatable = \"locked\", __tostring = function() return \"mine\" end })\n\
+         assert(tostring(locked) == \"mine\")\n\
+         local ok, e = pcall(c.random, {})\n\
+         assert(not ok and tostring(e) ~= \"userdata\" and not string.find(tostring(e), \"0x\"), tostring(e))",
     )]);
     let r = sim.step(0.1);
     assert!(r.errors.is_empty(), "{:?}", r.errors);

@@ -210,6 +210,38 @@ fn a_broken_voxel_reload_keeps_the_working_version() {
     assert!(top(&store) < before, "the working sand.lua still runs");
 }
 
+/// Regression (review): the load-time smoke test ran every kernel on air,
+/// so a script with `only = { "sand" }` whose kernel counts on finding sand
+/// (it never runs where there is none) was refused. Its test brick is now
+/// of its first `only` material.
+#[test]
+fn the_smoke_test_brick_holds_an_only_scripts_material() {
+    let (reg, sand) = registry();
+    let store = poured(4, sand);
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 48, 32), 1);
+    let needs_sand = |only: &str| {
+        ScriptSource {
+        name: "needs_sand".into(),
+        text: format!(
+            "return {{ grid = \"voxels\", materials = {{ \"sand\" }}, {only}\n\
+             passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"mat\" }}, kernel = function(c)\n\
+               local first = buffer.readu8(c.r.mat, 111) == c.m.sand and 1 or nil\n\
+               local x = first % 2\n\
+             end }} }} }}"
+        )
+        .into(),
+    }
+    };
+    sim.add_script(needs_sand("only = { \"sand\" },"), Limits::default(), &reg)
+        .unwrap();
+    // Without `only` the kernel does meet air, and fails there.
+    let e = sim
+        .add_script(needs_sand(""), Limits::default(), &reg)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("at load, on a test brick of air"), "{e}");
+}
+
 /// Communicating vessels (the `verify sims` case): two basins joined by a
 /// tunnel under a wall, one filled, end within a voxel of one level with
 /// mass kept to round-off.

@@ -286,6 +286,17 @@ fn a_lost_store_is_refused_not_silently_restarted() {
         );
         std::fs::write(&db, &stored).unwrap();
     }
+    // A store replaced by another (one without this world's manifest).
+    std::fs::remove_file(&db).unwrap();
+    drop(redb::Database::create(&db).unwrap());
+    let out = run();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("not this world's store"),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    std::fs::write(&db, &stored).unwrap();
     // As the message says: without the manifest, the world starts afresh.
     std::fs::remove_file(&db).unwrap();
     std::fs::remove_file(state.join("manifest.json")).unwrap();

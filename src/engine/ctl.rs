@@ -38,9 +38,15 @@ pub fn request(
     let auth = token
         .map(|t| format!("Authorization: Bearer {t}\r\n"))
         .unwrap_or_default();
+    // The address connected to, not the name typed: the engine serves
+    // only IPs and localhost unless told other names (a guard against DNS
+    // rebinding that browsers need and `ctl` does not).
+    let host = s
+        .peer_addr()
+        .map_or_else(|_| addr.to_string(), |a| a.to_string());
     write!(
         s,
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        "{method} {path} HTTP/1.1\r\nHost: {host}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
         body.len()
     )?;
     let mut raw = Vec::new();
@@ -262,5 +268,38 @@ fn log(addr: &str, only: Option<&str>, follow: bool) -> Result<()> {
         use std::io::Write as _;
         let _ = std::io::stdout().flush();
         std::thread::sleep(Duration::from_millis(500));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression (review): `ctl --addr NAME:PORT` sent `Host: NAME:PORT`,
+    /// which the engine's guard against DNS rebinding refuses unless the
+    /// name is listed; `ctl` names the address it connected to.
+    #[test]
+    fn ctl_names_the_address_it_connected_to() {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let server = std::thread::spawn(move || {
+            let (mut s, _) = listener.accept().unwrap();
+            let mut buf = vec![0u8; 4096];
+            let mut got = Vec::new();
+            while !got.windows(4).any(|w| w == b"\r\n\r\n") {
+                let n = s.read(&mut buf).unwrap();
+                got.extend_from_slice(&buf[..n]);
+            }
+            s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}")
+                .unwrap();
+            String::from_utf8(got).unwrap()
+        });
+        let (code, _) = request(&format!("localhost:{port}"), "GET", "/status", None, "").unwrap();
+        assert_eq!(code, 200);
+        let head = server.join().unwrap();
+        assert!(
+            head.contains(&format!("Host: 127.0.0.1:{port}\r\n")),
+            "{head}"
+        );
     }
 }

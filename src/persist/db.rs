@@ -441,6 +441,9 @@ impl WorldDb {
                         expected: Box::new(identity.clone()),
                     });
                 }
+                // The one refusal decided only after a writable open (a
+                // store that needs repair reads as one without a manifest
+                // until then); what redb writes on opening is its header.
                 if recorded() {
                     return Err(lost("not this world's store (it holds no manifest)"));
                 }

@@ -90,6 +90,7 @@ fn shown(name: &str) -> String {
 /// use brickworld::engine::control::routes::host_allowed;
 /// assert!(host_allowed("127.0.0.1:7878", &[]));
 /// assert!(host_allowed("[::1]:7878", &[]));
+/// assert!(host_allowed("[fe80::1%2]:7878", &[]));
 /// assert!(host_allowed("localhost:7878", &[]));
 /// assert!(!host_allowed("evil.example:7878", &[]));
 /// assert!(host_allowed("Box.LAN:7878", &["box.lan".to_string()]));
@@ -99,6 +100,8 @@ pub fn host_allowed(host: &str, allowed: &[String]) -> bool {
         // [v6] or [v6]:port
         return match rest.split_once(']') {
             Some((ip, port)) => {
+                // A link-local address may carry its zone: `fe80::1%eth0`.
+                let ip = ip.split_once('%').map_or(ip, |(ip, _)| ip);
                 ip.parse::<std::net::Ipv6Addr>().is_ok()
                     && (port.is_empty() || port.strip_prefix(':').is_some_and(is_port))
             }

@@ -301,9 +301,7 @@ fn run_lua(
         // the values' own bytes are copied straight in and out.
         let mut rb = [0u8; HALO_CELLS * 8];
         let mut wb = [0u8; TILE_CELLS * 8];
-        // A call that ran out of memory runs once more from collected
-        // garbage, its buffers filled again (see `failed_on_memory`).
-        for attempt in 0.. {
+        vm.run(pass, &s.spec.passes[pass].name, t.x, t.y, |vm| {
             for &i in read_idx {
                 vm.read_buffer(i)
                     .write_bytes(0, le_bytes(&reads[i], &mut rb));
@@ -312,14 +310,7 @@ fn run_lua(
                 vm.write_buffer(i)
                     .write_bytes(0, le_bytes(&writes[i], &mut wb));
             }
-            match vm.run(pass, &s.spec.passes[pass].name, t.x, t.y) {
-                Err(_) if attempt == 0 && vm.failed_on_memory() => vm.collect_garbage(),
-                done => {
-                    done?;
-                    break;
-                }
-            }
-        }
+        })?;
         for &i in write_idx {
             let bytes: [u8; TILE_CELLS * 8] = vm.write_buffer(i).read_bytes(0);
             if cfg!(target_endian = "little") {

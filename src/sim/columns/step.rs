@@ -354,7 +354,7 @@ impl Simulation {
                 &[],
             )?;
             for (pi, pass) in spec.passes.iter().enumerate() {
-                vm.run(pi, &pass.name, 0, 0)?;
+                vm.run(pi, &pass.name, 0, 0, |_| {})?;
             }
         }
         // Registered only once the script has passed every check: a

@@ -119,6 +119,14 @@ pub struct ScriptVm {
     memory_failure: bool,
 }
 
+/// `log()` lines of the kernel call in flight, held back until its verdict:
+/// a call run again after running out of memory logs once, not twice.
+#[derive(Default)]
+struct HeldLog {
+    on: bool,
+    lines: Vec<String>,
+}
+
 /// Luau's text for an allocation the memory limit refused.
 pub const OUT_OF_MEMORY: &str = "not enough memory";
 
@@ -132,7 +140,7 @@ pub const OUT_OF_MEMORY: &str = "not enough memory";
 /// ran before. `error(MEM, 0)` re-raises without allocating.
 const UNCATCHABLE_MEMORY_ERRORS: &str = r#"
 local MEM = "not enough memory"
-local rawpcall, rawxpcall, error = pcall, xpcall, error
+local rawpcall, rawxpcall, error, type = pcall, xpcall, error, type
 local function pass(ok, ...)
     if not ok and (...) == MEM then
         error(MEM, 0)
@@ -143,11 +151,23 @@ pcall = function(f, ...)
     return pass(rawpcall(f, ...))
 end
 xpcall = function(f, handler, ...)
+    if type(handler) ~= "function" then
+        -- Luau's own check ("function expected").
+        return rawxpcall(f, handler, ...)
+    end
     return pass(rawxpcall(f, function(e)
         if e == MEM then
             return MEM
         end
-        return handler(e)
+        -- The handler running out of memory too (Luau would report
+        -- "error in error handling", which the script could catch).
+        local ok, r = rawpcall(handler, e)
+        if ok then
+            return r
+        elseif r == MEM then
+            return MEM
+        end
+        error(r, 0)
     end, ...))
 end
 "#;
@@ -158,19 +178,19 @@ end
 /// (or on a string holding one) made worlds that differed from run to run
 /// (regression).
 const NO_ADDRESSES: &str = r##"
-local rawtostring, rawformat, type, getmetatable, rawget, select, unpack =
-    tostring, string.format, type, getmetatable, rawget, select, table.unpack
+local rawtostring, rawformat, type, find, select, unpack =
+    tostring, string.format, type, string.find, select, table.unpack
 local objects = { table = true, userdata = true, ["function"] = true, buffer = true, thread = true }
 local function shown(v)
     local kind = type(v)
-    if objects[kind] then
-        local mt = getmetatable(v)
-        if type(mt) == "table" and rawget(mt, "__tostring") ~= nil then
-            return rawtostring(v)
-        end
+    local text = rawtostring(v)
+    -- Luau's own text for an object is "TYPE: 0xADDRESS"; what a
+    -- __tostring returns is kept (getmetatable cannot decide which it is:
+    -- __metatable can lie).
+    if objects[kind] and type(text) == "string" and find(text, ": 0x%x+$") then
         return kind
     end
-    return rawtostring(v)
+    return text
 end
 tostring = shown
 string.format = function(fmt, ...)
@@ -231,8 +251,9 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     }
     // log(...): rate-limited lines to the daemon log and /status.
     let who = name.to_string();
+    lua.set_app_data(HeldLog::default());
     let log = lua
-        .create_function(move |_, args: mlua::Variadic<Value>| {
+        .create_function(move |lua, args: mlua::Variadic<Value>| {
             let parts: Vec<String> = args
                 .iter()
                 .map(|v| match v {
@@ -244,7 +265,14 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
                     other => other.type_name().to_string(),
                 })
                 .collect();
-            crate::sim::runtime::log::push(&who, parts.join("\t"));
+            let line = parts.join("\t");
+            if let Some(mut held) = lua.app_data_mut::<HeldLog>()
+                && held.on
+            {
+                held.lines.push(line);
+                return Ok(());
+            }
+            crate::sim::runtime::log::push(&who, line);
             Ok(())
         })
         .map_err(|e| SimError::Internal(e.to_string()))?;
@@ -487,10 +515,17 @@ impl ScriptVm {
         self.mat.as_ref()
     }
 
-    /// Run pass `pass` of a voxel script on brick `b`. Buffers must be
-    /// filled beforehand.
-    pub fn run_voxel(&mut self, pass: usize, pass_name: &str, b: [i32; 3]) -> Result<(), SimError> {
-        self.call(pass, pass_name, (b[0], b[1], Some(b[2])))
+    /// Run pass `pass` of a voxel script on brick `b`, after `fill` has
+    /// filled its buffers (again, if the call runs twice: see
+    /// [`failed_on_memory`](Self::failed_on_memory)).
+    pub fn run_voxel(
+        &mut self,
+        pass: usize,
+        pass_name: &str,
+        b: [i32; 3],
+        fill: impl FnMut(&ScriptVm),
+    ) -> Result<(), SimError> {
+        self.call(pass, pass_name, (b[0], b[1], Some(b[2])), fill)
             .map_err(|e| match e {
                 SimError::Runtime {
                     script,
@@ -509,17 +544,63 @@ impl ScriptVm {
             })
     }
 
-    /// Run pass `pass` on tile (tx, tz). Buffers must be filled beforehand.
-    pub fn run(&mut self, pass: usize, pass_name: &str, tx: i32, tz: i32) -> Result<(), SimError> {
-        self.call(pass, pass_name, (tx, tz, None))
+    /// Run pass `pass` on tile (tx, tz), after `fill` has filled its
+    /// buffers (again, if the call runs twice).
+    pub fn run(
+        &mut self,
+        pass: usize,
+        pass_name: &str,
+        tx: i32,
+        tz: i32,
+        fill: impl FnMut(&ScriptVm),
+    ) -> Result<(), SimError> {
+        self.call(pass, pass_name, (tx, tz, None), fill)
+    }
+
+    /// One kernel call, run once more from collected garbage if it ran out
+    /// of memory (its log lines then count once).
+    fn call(
+        &mut self,
+        pass: usize,
+        pass_name: &str,
+        at: (i32, i32, Option<i32>),
+        mut fill: impl FnMut(&ScriptVm),
+    ) -> Result<(), SimError> {
+        self.hold_log(true);
+        let mut result = Ok(());
+        for attempt in 0..2 {
+            fill(self);
+            result = self.call_once(pass, pass_name, at);
+            if result.is_ok() || attempt == 1 || !self.memory_failure {
+                break;
+            }
+            let _discarded = self.hold_log(true);
+            self.collect_garbage();
+        }
+        for line in self.hold_log(false) {
+            crate::sim::runtime::log::push(&self.name, line);
+        }
+        result
+    }
+
+    /// Hold back `log()` lines (`on`) or stop; returns and forgets the
+    /// lines held so far.
+    fn hold_log(&self, on: bool) -> Vec<String> {
+        match self.lua.app_data_mut::<HeldLog>() {
+            Some(mut held) => {
+                held.on = on;
+                std::mem::take(&mut held.lines)
+            }
+            None => Vec::new(),
+        }
     }
 
     /// Whether the last kernel call failed for want of memory. How much
     /// garbage was still uncollected decides that as much as the kernel
-    /// does, so a caller runs such a call once more after
-    /// [`collect_garbage`](Self::collect_garbage), with its buffers filled
-    /// again, and takes that verdict: it starts from the VM's live data
-    /// only, the same whichever tiles the VM ran before.
+    /// does, so [`run`](Self::run) and [`run_voxel`](Self::run_voxel) run
+    /// such a call once more after [`collect_garbage`](Self::collect_garbage),
+    /// with its buffers filled again, and take that verdict: it starts from
+    /// the VM's live data only, the same whichever tiles the VM ran before.
     pub fn failed_on_memory(&self) -> bool {
         self.memory_failure
     }
@@ -529,7 +610,7 @@ impl ScriptVm {
         let _ = self.lua.gc_collect();
     }
 
-    fn call(
+    fn call_once(
         &mut self,
         pass: usize,
         pass_name: &str,

@@ -356,9 +356,7 @@ fn run_lua(
             vm.begin_step(dt, job.spec, job.params, key, job.material_ids)?;
             *prepared = serial;
         }
-        // A call that ran out of memory runs once more from collected
-        // garbage, its buffers filled again (see `failed_on_memory`).
-        for attempt in 0.. {
+        vm.run_voxel(pi, &pass.name, b.to_array(), |vm| {
             let (mr, mw) = vm
                 .material_buffers()
                 .expect("a voxel VM has material buffers");
@@ -373,14 +371,7 @@ fn run_lua(
                 to_le_bytes(&out.chans[j], bytes);
                 vm.write_buffer(i).write_bytes(0, bytes);
             }
-            match vm.run_voxel(pi, &pass.name, b.to_array()) {
-                Err(_) if attempt == 0 && vm.failed_on_memory() => vm.collect_garbage(),
-                done => {
-                    done?;
-                    break;
-                }
-            }
-        }
+        })?;
         if writes_mat {
             let (_, mw) = vm.material_buffers().expect("voxel VM");
             out.mat = mw.read_bytes::<VOXEL_CELLS>(0);

@@ -11,7 +11,7 @@ use super::channels::VoxelChannelId;
 use super::exec::VoxelKernel;
 use super::native::VoxelNativeKernel;
 use super::step::{BOUNDARY, MatSet, VoxelSim, set_of};
-use crate::sim::script::{Grid, VOXEL_CELLS};
+use crate::sim::script::{Grid, VOXEL_CELLS, VOXEL_HALO};
 use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
 use crate::world::MaterialRegistry;
 
@@ -197,10 +197,20 @@ impl VoxelSim {
                     .map(|i| material_ids[i])
             }))
         };
-        // Smoke test, as for column scripts: every pass once on an empty
-        // brick (air, channels at 0) at tick 0, in this fresh VM, so a
-        // broken save is refused at load and a hot reload keeps the version
-        // that works (regression: it replaced it and failed every step).
+        // Smoke test, as for column scripts: every pass once on a test
+        // brick at tick 0, in this fresh VM, so a broken save is refused at
+        // load and a hot reload keeps the version that works (regression:
+        // it replaced it and failed every step). The brick is air, or the
+        // first `only` material for a script that runs only where it is
+        // (regression: such kernels met air they never see in a step).
+        // Channels are 0.
+        let (sample, sample_name) = spec
+            .only
+            .first()
+            .and_then(|n| spec.materials.iter().position(|m| m == n))
+            .map_or((0, "air".to_string()), |i| {
+                (material_ids[i], format!("'{}'", spec.materials[i]))
+            });
         let defaults: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
         vm.begin_step(
             0.01,
@@ -210,7 +220,29 @@ impl VoxelSim {
             &material_ids,
         )?;
         for (pi, pass) in spec.passes.iter().enumerate() {
-            vm.run_voxel(pi, &pass.name, [0, 0, 0])?;
+            vm.run_voxel(pi, &pass.name, [0, 0, 0], |vm| {
+                let (halo, own) = vm
+                    .material_buffers()
+                    .expect("a voxel VM has material buffers");
+                halo.write_bytes(0, &[sample; VOXEL_HALO]);
+                own.write_bytes(0, &[sample; VOXEL_CELLS]);
+            })
+            .map_err(|e| match e {
+                SimError::Runtime {
+                    script,
+                    pass,
+                    tile,
+                    line,
+                    msg,
+                } => SimError::Runtime {
+                    script,
+                    pass,
+                    tile,
+                    line,
+                    msg: format!("at load, on a test brick of {sample_name}: {msg}"),
+                },
+                other => other,
+            })?;
             let (_, written) = vm
                 .material_buffers()
                 .expect("a voxel VM has material buffers");
@@ -225,7 +257,7 @@ impl VoxelSim {
                     tile: (0, 0),
                     line: None,
                     msg: format!(
-                        "on an empty brick at load: wrote material id {bad}, which is not registered"
+                        "at load, on a test brick of {sample_name}: wrote material id {bad}, which is not registered"
                     ),
                 });
             }
