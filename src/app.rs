@@ -20,7 +20,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Ctl(a) => crate::engine::ctl::run(&a),
         Command::Export { out, world, state } => {
             let cfg = load_world_config(world.as_deref())?;
-            let (tick, hash) = crate::engine::persistence::export_world(&cfg, &state, &out)?;
+            let (tick, hash) = crate::engine::backup::export_world(&cfg, &state, &out)?;
             match hash {
                 Some(hash) => println!(
                     "exported tick {tick} to {} (world hash {hash:#018x})",
@@ -32,7 +32,7 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Import { file, world, state } => {
             let cfg = load_world_config(world.as_deref())?;
-            let st = crate::engine::persistence::import_world(&cfg, &state, &file)?;
+            let st = crate::engine::backup::import_world(&cfg, &state, &file)?;
             println!(
                 "imported {} into {} ({} chunks, {} chunk columns, {} bytes)",
                 file.display(),

@@ -2,6 +2,7 @@
 //! single-file backups (checkpoints), the
 //! control server, the daemon loop and its command-line client.
 
+pub mod backup;
 pub mod checkpoint;
 pub mod control;
 pub mod ctl;

@@ -1,9 +1,7 @@
 //! The engine's side of the world store ([`crate::persist`]): which chunks
 //! changed ([`DirtyChunks`]), restoring a world from the store
-//! ([`restore_chunks`], [`apply_state`]), committing ([`commit`]), and the
-//! single-file backups: [`export`], [`import`] and the migration of a
-//! state directory written by the whole-world checkpoints of earlier
-//! versions ([`migrate_legacy`]).
+//! ([`restore_chunks`], [`apply_state`]) and committing ([`commit`]).
+//! Single-file backups are [`super::backup`]'s.
 //!
 //! **Restoring** regenerates the world from its source, then overlays every
 //! stored chunk and chunk column (a stored chunk replaces the generated one
@@ -12,15 +10,11 @@
 //! from the source (and rewritten at the next commit); the rest of the world
 //! loads as stored.
 
-use std::path::Path;
-
-use anyhow::{Context, Result, bail};
 use glam::{IVec2, IVec3};
 use rayon::prelude::*;
 use rustc_hash::FxHashSet;
 
-use super::checkpoint::{self, CameraOverride, SimExtras, WorldIdentity, WorldRef, WorldState};
-use super::world_config::WorldConfig;
+use super::checkpoint::{self, CameraOverride, SimExtras, WorldState};
 use crate::persist::chunk::{self, CHUNK_SHIFT};
 use crate::persist::{ChunkKey, ColumnKey, CommitStats, StoreError, WorldDb, state};
 use crate::scene::SceneWorld;
@@ -35,7 +29,26 @@ pub struct DirtyChunks {
     columns: FxHashSet<ColumnKey>,
 }
 
+/// Encoded chunk and chunk-column blobs, ready for one commit.
+pub type Blobs = (Vec<(ChunkKey, Vec<u8>)>, Vec<(ColumnKey, Vec<u8>)>);
+
 impl DirtyChunks {
+    /// Every chunk and chunk column recorded, encoded (in parallel).
+    pub fn encode(&self, world: &SceneWorld, ws: &WorldSim) -> Blobs {
+        let (store, voxel, columns) = (world.store(), ws.vox.channels(), ws.sim.channels());
+        let chunks = self
+            .chunks
+            .par_iter()
+            .map(|k| (*k, chunk::encode_chunk(*k, store, voxel)))
+            .collect();
+        let cols = self
+            .columns
+            .par_iter()
+            .map(|k| (*k, chunk::encode_column(*k, columns)))
+            .collect();
+        (chunks, cols)
+    }
+
     /// Record changed bricks.
     pub fn bricks(&mut self, bricks: &[IVec3]) {
         self.chunks
@@ -130,19 +143,7 @@ pub fn commit(
     camera: Option<CameraOverride>,
 ) -> Result<CommitStats, StoreError> {
     dirty.collect(ws);
-    let store = world.store();
-    let voxel = ws.vox.channels();
-    let columns = ws.sim.channels();
-    let chunks: Vec<(ChunkKey, Vec<u8>)> = dirty
-        .chunks
-        .par_iter()
-        .map(|k| (*k, chunk::encode_chunk(*k, store, voxel)))
-        .collect();
-    let cols: Vec<(ColumnKey, Vec<u8>)> = dirty
-        .columns
-        .par_iter()
-        .map(|k| (*k, chunk::encode_column(*k, columns)))
-        .collect();
+    let (chunks, cols) = dirty.encode(world, ws);
     let (params, mut extras) = sim_state(world, ws);
     extras.camera = camera;
     let blob = state::encode(
@@ -442,294 +443,4 @@ pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
 pub fn engine_hash(world: &SceneWorld, ws: &WorldSim) -> u64 {
     checkpoint::world_hash(world.store(), ws.sim.channels())
         ^ ws.vox.channels().hash().rotate_left(17)
-}
-
-/// Write the whole of a store's world into a fresh store: every chunk and
-/// chunk column of its bounds (an empty chunk overrides the source's) and
-/// the state. Used by [`import`] and [`migrate_legacy`].
-fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
-    let mut world = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)
-        .context("the imported world does not fit a brick grid")?;
-    if !st.extras.materials.is_empty() {
-        world.materials = crate::world::MaterialRegistry::from_entries(
-            &st.extras.materials,
-            world.store().palette(),
-        );
-    }
-    let mut ws = WorldSim::with_edges(&mut world, true);
-    ws.sim.set_channels(st.channels);
-    ws.vox.set_channels(st.extras.voxel_channels.clone());
-    let mut dirty = DirtyChunks::default();
-    dirty.everything(&world, &ws);
-    let (params, extras) = (st.params, st.extras);
-    let store = world.store();
-    let chunks: Vec<(ChunkKey, Vec<u8>)> = dirty
-        .chunks
-        .par_iter()
-        .map(|k| (*k, chunk::encode_chunk(*k, store, ws.vox.channels())))
-        .collect();
-    let cols: Vec<(ColumnKey, Vec<u8>)> = dirty
-        .columns
-        .par_iter()
-        .map(|k| (*k, chunk::encode_column(*k, ws.sim.channels())))
-        .collect();
-    let blob = state::encode(st.tick, store.palette(), world.bounds(), &params, &extras);
-    Ok(db.commit(&chunks, &cols, &blob)?)
-}
-
-/// `brickworld import`: load a single-file backup (a checkpoint file) into
-/// the empty store of state directory `dir`. The file must belong to the
-/// world `identity` describes; a store that already holds a world is refused.
-pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<CommitStats> {
-    let st = checkpoint::read(file).with_context(|| format!("cannot import {}", file.display()))?;
-    match &st.identity {
-        Some(id) if !id.same_world(identity) => bail!(
-            "{} is a backup of another world ({id}); the config describes {identity}",
-            file.display()
-        ),
-        Some(_) => {}
-        None => bail!(
-            "{} does not say which world it belongs to (a checkpoint from before world identities); it cannot be checked against {identity}, so it is not imported",
-            file.display()
-        ),
-    }
-    // The bounds a backup claims decide the grid built from it: an inverted,
-    // overflowing or larger-than-memory box is refused before anything is
-    // allocated (regression: forged bounds panicked in the grid, or
-    // aborted it out of memory).
-    let (lo, hi) = st.bounds;
-    let extent = hi.as_i64vec3() - lo.as_i64vec3();
-    if extent.cmple(glam::I64Vec3::ZERO).any() || extent.cmpgt(glam::I64Vec3::splat(1 << 24)).any()
-    {
-        bail!(
-            "{} claims world bounds {lo} .. {hi}, which no world has (nothing was changed)",
-            file.display()
-        );
-    }
-    crate::scene::budget::check_world("the imported world", extent.as_ivec3())?;
-    let store_file = dir.join(crate::persist::db::DB_FILE);
-    if store_file.exists() && !WorldDb::readable(dir) {
-        bail!(
-            "{} exists but cannot be read (locked by a running engine, or damaged); import into an empty --state directory (nothing was changed)",
-            store_file.display()
-        );
-    }
-    // Only the lock this import holds may be there (regression: a
-    // directory holding other files was imported into, against the docs).
-    if !store_file.exists()
-        && let Some(other) = std::fs::read_dir(dir)
-            .with_context(|| format!("cannot list {}", dir.display()))?
-            .filter_map(|e| e.ok().map(|e| e.file_name()))
-            .find(|n| n != "engine.lock")
-    {
-        bail!(
-            "{} is not empty (it holds {:?}): import into a new or empty --state directory (nothing was changed)",
-            dir.display(),
-            other
-        );
-    }
-    if WorldDb::has_state(dir) {
-        bail!(
-            "{} already holds this world; import into an empty --state directory (nothing was changed)",
-            dir.display()
-        );
-    }
-    let (mut db, _) = WorldDb::open(dir, identity)?;
-    // Checked again on the open store: nothing may be overwritten.
-    if db.state()?.is_some() {
-        bail!(
-            "{} already holds this world; import into an empty --state directory (nothing was changed)",
-            dir.display()
-        );
-    }
-    write_everything(&mut db, st)
-}
-
-/// A state directory of an earlier version holds whole-world checkpoints
-/// and no store: write the newest good one into the store. Returns what was
-/// migrated (None: nothing to migrate). The old files are left in place.
-pub fn migrate_legacy(
-    db: &mut WorldDb,
-    dir: &Path,
-    identity: &WorldIdentity,
-) -> Result<Option<(std::path::PathBuf, u64)>> {
-    if db.state()?.is_some() || checkpoint::list(dir)?.is_empty() {
-        return Ok(None);
-    }
-    let (_, found, warnings) = checkpoint::Checkpoints::open(dir, identity.clone())?;
-    for w in warnings {
-        eprintln!("warning: {w}");
-    }
-    let Some((path, st)) = found else {
-        return Ok(None);
-    };
-    let tick = st.tick;
-    write_everything(db, st)?;
-    Ok(Some((path, tick)))
-}
-
-/// `brickworld export`: the world as restored from the store (regenerated,
-/// overlaid, with the state blob `st`) as one checkpoint file at `out`.
-/// Returns the world hash.
-pub fn export(
-    world: &SceneWorld,
-    ws: &WorldSim,
-    st: &WorldState,
-    identity: &WorldIdentity,
-    out: &Path,
-) -> Result<u64> {
-    let extras = SimExtras {
-        voxel_channels: ws.vox.channels().clone(),
-        ..st.extras.clone()
-    };
-    let hash = checkpoint::write_at(
-        out,
-        WorldRef {
-            tick: st.tick,
-            store: world.store(),
-            bounds: world.bounds(),
-            channels: ws.sim.channels(),
-            params: &st.params,
-            identity: Some(identity),
-            extras: &extras,
-        },
-    )?;
-    Ok(hash)
-}
-
-/// Refuse an export whose file would replace something that is not a
-/// backup: a file of the state directory other than a `NAME.bwc` backup
-/// (the world store itself, before this was checked), or anything but a
-/// regular file (a device, a pipe, a directory: the write replaces the
-/// path with a new file).
-fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
-    if let Ok(meta) = std::fs::metadata(out)
-        && !meta.is_file()
-    {
-        bail!(
-            "{} exists and is not a regular file: export writes a new file there, so name another path (nothing was written)",
-            out.display()
-        );
-    }
-    // Where the file would land: its parent resolved, plus its name.
-    let parent = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    // Inside the state directory only a backup's own kind of name may be
-    // written: every other file there is the engine's.
-    let name = out.file_name().map(|n| n.to_string_lossy().to_string());
-    let backup_name = name
-        .as_deref()
-        .is_some_and(|n| n.ends_with(".bwc") && !n.starts_with("ckpt-"));
-    if let (Ok(state), Ok(parent)) = (dir.canonicalize(), parent.canonicalize())
-        && parent.starts_with(&state)
-        && !backup_name
-    {
-        bail!(
-            "{} lies inside the state directory {} and is not a NAME.bwc backup: export there could replace the world it reads; name a .bwc file or write elsewhere (nothing was written)",
-            out.display(),
-            dir.display()
-        );
-    }
-    Ok(())
-}
-
-/// `brickworld export`: open the store of state directory `dir` (locked, so
-/// a running engine is a clear error), restore its world, and write it to
-/// `out`. Returns the tick and the world hash ([`engine_hash`], as `run`
-/// prints it), unless the world's scripts no longer load.
-pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, Option<u64>)> {
-    if !dir.join(crate::persist::db::DB_FILE).is_file() {
-        bail!("{} holds no world store (nothing to export)", dir.display());
-    }
-    check_export_target(dir, out)?;
-    if cfg.stream.is_some()
-        && matches!(
-            cfg.sim_region,
-            super::world_config::SimRegion::AroundCamera { .. }
-        )
-    {
-        bail!(
-            "export writes one region, and this world's simulated region follows the camera: its store holds every place the region has been. Back it up by copying {} and {} while the engine is stopped (nothing was written)",
-            dir.join(crate::persist::db::DB_FILE).display(),
-            dir.join(crate::persist::db::MANIFEST_FILE).display()
-        );
-    }
-    let _lock = super::state_dir::lock(dir)?;
-    let identity = cfg.identity();
-    let (db, _) = WorldDb::open(dir, &identity)?;
-    let mut world = match &cfg.stream {
-        // A streamed world's backup is its fixed simulated region.
-        Some(_) => {
-            let (gen_, rule) = super::streaming::generator(cfg)?;
-            let columns = rule.around(glam::DVec3::ZERO);
-            super::streaming::build_columns(&gen_, columns)?
-        }
-        None => {
-            let pb = crate::progress::bar("scene", 0);
-            let w = crate::scene::build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
-                .context("cannot build the world")?;
-            pb.finish_and_clear();
-            w
-        }
-    };
-    let mut ws = WorldSim::with_edges(&mut world, true);
-    ws.sim.channels_mut().take_dirty();
-    ws.set_seed(cfg.seed);
-    // The scripts register their channels before the stored chunks go
-    // over the world, as at start, so channel ids and the world hash are
-    // those `run` prints. A world whose scripts no longer load is still
-    // exported (its data is stored by channel name); only the hash is
-    // left out.
-    let comparable = match super::daemon::load_scripts(cfg, &mut world, &mut ws) {
-        Ok(()) => true,
-        Err(e) => {
-            eprintln!(
-                "warning: {e:#}: exported all the same; the world hash is left out, as it would not match run's"
-            );
-            ws = WorldSim::with_edges(&mut world, true);
-            ws.sim.channels_mut().take_dirty();
-            false
-        }
-    };
-    let mut dirty = DirtyChunks::default();
-    let scope = RestoreScope {
-        regenerable: cfg.source.is_procedural(),
-        region: cfg.stream.is_some(),
-        whole_columns: false,
-    };
-    let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty, scope)? else {
-        bail!("{} was never committed (nothing to export)", dir.display());
-    };
-    for c in &r.corrupt {
-        eprintln!("warning: {c}");
-    }
-    export(&world, &ws, &r.state, &identity, out)?;
-    // The hash `run` prints when it stops and `resumed` at start (the
-    // file's own hash, which its reader checks, covers less).
-    Ok((r.state.tick, comparable.then(|| engine_hash(&world, &ws))))
-}
-
-/// `brickworld import`: lock state directory `dir` and [`import`] `file`.
-pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<CommitStats> {
-    // A failed import leaves the directory as it found it (regression: it
-    // created `--state` and its lock file even when refusing the backup).
-    // Whether this import made the directory is decided by `create_dir`
-    // itself, and nothing is removed unless this import holds the lock
-    // (regression: an import that lost the lock to another removed the
-    // directory the other was importing into).
-    let lock_file = dir.join("engine.lock");
-    let had_lock = lock_file.exists();
-    let (lock, created) = super::state_dir::claim(dir)?;
-    let result = import(file, dir, &cfg.identity());
-    if result.is_err() {
-        if created {
-            let _ = std::fs::remove_dir_all(dir);
-        } else if !had_lock {
-            let _ = std::fs::remove_file(&lock_file);
-        }
-    }
-    drop(lock);
-    result
 }

@@ -8,7 +8,7 @@
 //! as the **single-file backup** of `brickworld export` / `import`, as the
 //! payload of the store's simulation-state blob (with no bricks), and as the
 //! state directories of earlier versions, which are migrated into the store
-//! on their first start (`engine::persistence::migrate_legacy`).
+//! on their first start (`engine::backup::migrate_legacy`).
 //!
 //! **File format** (`ckpt-<tick>.bwc`, little-endian):
 //!

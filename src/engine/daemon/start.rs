@@ -235,7 +235,7 @@ fn open_store(state: &Path, cfg: &WorldConfig) -> Result<WorldDb> {
     for w in &warnings {
         eprintln!("warning: {w}");
     }
-    if let Some((path, tick)) = persistence::migrate_legacy(&mut db, state, &identity)? {
+    if let Some((path, tick)) = super::super::backup::migrate_legacy(&mut db, state, &identity)? {
         eprintln!(
             "migrated the checkpoint {} (tick {tick}) into the world store {}; the old checkpoint files are no longer read and can be deleted",
             path.display(),
