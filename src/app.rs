@@ -59,8 +59,12 @@ pub fn run(cli: Cli) -> Result<()> {
             world,
             state,
         } => {
-            if !(minutes > 0.0 && minutes <= 24.0 * 60.0) {
-                anyhow::bail!("invalid --minutes {minutes}: must be in (0, 1440]");
+            // The report compares fifths of one-second samples: shorter
+            // runs printed NaN and -100 % as if they were results.
+            if !(0.5..=24.0 * 60.0).contains(&minutes) {
+                anyhow::bail!(
+                    "invalid --minutes {minutes}: must be in 0.5..=1440 (the report compares fifths of one-second samples)"
+                );
             }
             let pb = bar("soak (s)", 0);
             let r = crate::bench::soak::run(world.as_deref(), minutes, &state, &pb)?;
@@ -179,6 +183,7 @@ fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
     if a.uploads == 0 {
         anyhow::bail!("invalid --uploads 0: at least one brick per frame");
     }
+    crate::config::check_bench_outputs(&a.json, a.chart.as_deref())?;
     if a.pool == 0 || a.pool > crate::gpu::MAX_POOL_SLOTS {
         anyhow::bail!(
             "invalid --pool {}: must be in 1..={} slots (the pool's cap)",

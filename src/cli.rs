@@ -118,7 +118,7 @@ pub struct RunArgs {
     #[arg(long)]
     pub scripts: Option<PathBuf>,
     /// Stop with a commit after this many ticks
-    #[arg(long)]
+    #[arg(long, conflicts_with = "until_tick")]
     pub ticks: Option<u64>,
     /// Stop with a commit once the world reaches this tick
     #[arg(long)]

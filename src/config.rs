@@ -117,6 +117,40 @@ pub fn check_extension(flag: &'static str, path: &Path, ext: &str) -> Result<(),
     }
 }
 
+/// A benchmark's `--json` and `--chart` outputs, checked before any work:
+/// two distinct files (regression: one path for both left only the chart,
+/// with exit 0), a chart named `.svg`, and each in a folder that exists and
+/// not itself a folder (regression: found only after the whole run).
+pub fn check_bench_outputs(json: &Path, chart: Option<&Path>) -> Result<(), ConfigError> {
+    let placed = |flag: &'static str, p: &Path| -> Result<(), ConfigError> {
+        let shown = p.display().to_string();
+        if p.is_dir() {
+            return Err(bad(flag, &shown, "is a folder: name a file"));
+        }
+        match p.parent() {
+            Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => Err(bad(
+                flag,
+                &shown,
+                format!("its folder {} does not exist", dir.display()),
+            )),
+            _ => Ok(()),
+        }
+    };
+    placed("--json", json)?;
+    if let Some(chart) = chart {
+        if chart == json {
+            return Err(bad(
+                "--chart",
+                &chart.display().to_string(),
+                "is also --json: the chart would overwrite the results; name two files",
+            ));
+        }
+        check_extension("--chart", chart, "svg")?;
+        placed("--chart", chart)?;
+    }
+    Ok(())
+}
+
 /// Validated scene choice.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneSettings {
@@ -383,6 +417,7 @@ impl BenchLodSettings {
         }
         lods.sort_by(f32::total_cmp);
         lods.dedup();
+        check_bench_outputs(&a.json, a.chart.as_deref())?;
         Ok(BenchLodSettings {
             scene: SceneSettings::from_args(&a.scene, BENCH_LOD_DEFAULT_SIZE)?,
             view: ViewSettings::from_args(&a.view, 960, 540)?,
@@ -418,6 +453,7 @@ impl BenchTracersSettings {
         if a.repeat == 0 || a.repeat > 100 {
             return Err(bad("--repeat", &a.repeat.to_string(), "must be in 1..=100"));
         }
+        check_bench_outputs(&a.json, a.chart.as_deref())?;
         Ok(BenchTracersSettings {
             scene: SceneSettings::from_args(&a.scene, BENCH_DEFAULT_SIZE)?,
             view: ViewSettings::from_args(&a.view, 1024, 768)?,

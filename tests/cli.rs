@@ -606,6 +606,60 @@ fn threads_the_os_refuses_get_one_clear_error() {
     }
 }
 
+/// Regressions (second hostile probe of the day), each refused in one line
+/// before any work: a bench's `--chart` on its own `--json` (the chart
+/// replaced the results, exit 0), a chart that is not `.svg` or whose
+/// folder is missing (found after the whole run), the same script twice in
+/// `sim` (it ran twice a step), `run --ticks` with `--until-tick` (one was
+/// ignored), and a `soak` too short to take its samples (NaN results).
+#[test]
+fn conflicting_or_useless_outputs_and_flags_are_refused_up_front() {
+    let j = tmp("same.json");
+    let j = j.to_str().unwrap();
+    for bench in ["tracers", "lod", "stream"] {
+        let mut args = vec!["bench", bench, "--scene", "terrain", "--size", "32x16x32"];
+        args.extend(["--width", "16", "--height", "16", "--json", j]);
+        let mut same = args.clone();
+        same.extend(["--chart", j]);
+        expect_failure(&same, "is also --json");
+        let mut png = args.clone();
+        png.extend(["--chart", "c.png"]);
+        expect_failure(&png, "only .svg is written here");
+        let mut lost = args.clone();
+        lost.extend(["--chart", "/nonexistent-folder/c.svg"]);
+        expect_failure(&lost, "does not exist");
+        assert!(!std::path::Path::new(j).exists(), "{bench} wrote its JSON");
+    }
+    let water = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua");
+    let out = tmp("twice.png");
+    expect_failure(
+        &[
+            "sim",
+            "--scene",
+            "terrain",
+            "--size",
+            "32x16x32",
+            "--script",
+            water,
+            "--script",
+            water,
+            "--steps",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        "a script named 'water' is already loaded",
+    );
+    expect_failure(
+        &["run", "--ticks", "5", "--until-tick", "3"],
+        "cannot be used with",
+    );
+    expect_failure(
+        &["soak", "--minutes", "0.001", "--json", j],
+        "must be in 0.5..=1440",
+    );
+}
+
 /// Regression (hostile probe): past `ulimit -f` the kernel's SIGXFSZ killed
 /// the process without a word (exit 153, and a daemon lost its final
 /// commit); a write past the limit is now an error like any other.
@@ -849,7 +903,7 @@ fn scratch_directories_that_brickworld_did_not_make_are_not_deleted() {
         "was not made by brickworld",
     );
     expect_failure(
-        &["soak", "--minutes", "0.01", "--json", j, "--state", c],
+        &["soak", "--minutes", "1", "--json", j, "--state", c],
         "was not made by brickworld",
     );
     assert_eq!(

@@ -184,6 +184,29 @@ fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothin
     assert!(body.contains("outside"), "{body}");
     let (code, body) = post(&addr, &state, "/scripts/water/params", "{\"nope\": 1}");
     assert_eq!(code, 400, "{body}");
+    // Regression (hostile probe): `ctl param` put the script name into the
+    // request line raw (a space or CR/LF broke it, `?` made a query); it is
+    // percent-encoded, and the engine decodes it.
+    for name in ["wa ter", "water?x", "wa\r\nter", "wat%er"] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .args(["ctl", "--addr", &addr, "--state"])
+            .arg(&state)
+            .args(["param", name, "rain", "0.1"])
+            .output()
+            .unwrap();
+        let (said, err) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        assert!(!out.status.success(), "{name:?}");
+        assert!(said.contains("no script named"), "{name:?}: {said}");
+        assert!(
+            err.contains("answered 400") && err.trim().lines().count() == 1,
+            "{name:?}: {err}"
+        );
+    }
+    let (code, body) = post(&addr, &state, "/scripts/wa%2/params", "{\"rain\": 0.1}");
+    assert_eq!(code, 400, "{body}");
     // Regression (hostile probe): a key given twice was applied, last wins.
     let (code, body) = post(
         &addr,

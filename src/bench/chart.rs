@@ -17,13 +17,26 @@ fn color(name: &str) -> RGBColor {
 /// Memory (MiB, log scale) against speed (Mrays/s), one point per structure
 /// and scene, labelled `scene/structure`.
 pub fn memory_vs_speed(path: &Path, reports: &[&BenchReport]) -> Result<(), ChartError> {
-    draw(path, reports).map_err(|e| ChartError(e.to_string()))
+    draw(path, reports).map_err(|e| ChartError::new(path, e))
 }
 
 /// A chart could not be drawn or written.
 #[derive(Debug, thiserror::Error)]
-#[error("cannot draw the chart: {0}")]
-pub struct ChartError(String);
+#[error("cannot draw the chart {}: {msg}", path.display())]
+pub struct ChartError {
+    /// The chart's file (regression: a failed write did not say which).
+    path: std::path::PathBuf,
+    msg: String,
+}
+
+impl ChartError {
+    fn new(path: &Path, e: Box<dyn std::error::Error>) -> Self {
+        ChartError {
+            path: path.to_path_buf(),
+            msg: e.to_string(),
+        }
+    }
+}
 
 fn draw(path: &Path, reports: &[&BenchReport]) -> Result<(), Box<dyn std::error::Error>> {
     let mut pts: Vec<(String, &'static str, f64, f64)> = Vec::new();
@@ -108,7 +121,7 @@ pub fn xy_chart(
     y_desc: &str,
     series: &[Series],
 ) -> Result<(), ChartError> {
-    draw_xy(path, title, x_desc, y_desc, series).map_err(|e| ChartError(e.to_string()))
+    draw_xy(path, title, x_desc, y_desc, series).map_err(|e| ChartError::new(path, e))
 }
 
 fn draw_xy(

@@ -93,6 +93,19 @@ pub fn run(
         fetchers: stream.fetchers,
     };
     let baseline_kb = rss_kb();
+    // What the process holds already, and the margin the engine keeps, is
+    // a floor no budget can be under (regression: 1 byte was accepted and
+    // the report compared 117 MiB with a budget of 0 KiB).
+    let floor = baseline_kb * 1024 + crate::engine::streaming::RUNTIME_MARGIN;
+    if stream.memory_budget < floor {
+        bail!(
+            "memory budget {} is too small: the process already holds {} and keeps a margin of {}; give at least {} (--memory-budget)",
+            crate::scene::budget::human(stream.memory_budget),
+            crate::scene::budget::human(baseline_kb * 1024),
+            crate::scene::budget::human(crate::engine::streaming::RUNTIME_MARGIN),
+            crate::scene::budget::human(floor)
+        );
+    }
     let mut w = RenderWindow::new(gen_, None, settings, eye0, None, None)?;
     w.settle(Duration::from_secs(60));
     w.measure_overhead();

@@ -164,8 +164,7 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
             "mean FLIP vs 16-spp reference (log)",
             "Mrays/s (log)",
             &series,
-        )
-        .with_context(|| format!("cannot write {}", path.display()))?;
+        )?;
     }
     Ok(())
 }

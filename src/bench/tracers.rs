@@ -111,8 +111,7 @@ pub fn run(s: &BenchTracersSettings) -> Result<()> {
         .with_context(|| format!("cannot write {}", s.json.display()))?;
     print_table(&report);
     if let Some(path) = &s.chart {
-        super::chart::memory_vs_speed(path, &[&report])
-            .with_context(|| format!("cannot write {}", path.display()))?;
+        super::chart::memory_vs_speed(path, &[&report])?;
     }
     if report.agree.mismatches > 0 {
         anyhow::bail!(

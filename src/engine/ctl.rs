@@ -18,6 +18,21 @@ pub const DEADLINE: Duration = Duration::from_secs(60);
 /// The largest answer read (a `/status` of many scripts is a few MB).
 pub const MAX_RESPONSE: u64 = 64 << 20;
 
+/// `text` with every byte but letters, digits and `-_.~` as `%XX`, for a
+/// path segment (regression: a script name with a space or CR/LF went into
+/// the request line raw; `water?x` became a query).
+pub fn percent_encoded(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for b in text.bytes() {
+        if b.is_ascii_alphanumeric() || b"-_.~".contains(&b) {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
+}
+
 /// Send one request; returns (status code, body). The answer must be HTTP,
 /// arrive within [`DEADLINE`] and be at most [`MAX_RESPONSE`] bytes: a
 /// server that trickles or streams for ever, or is not HTTP, is an error
@@ -141,7 +156,7 @@ pub fn run(a: &CtlArgs) -> Result<()> {
                 .ok_or_else(|| anyhow::anyhow!("invalid VALUE '{value}': not a finite number"))?;
             (
                 "POST",
-                format!("/scripts/{script}/params"),
+                format!("/scripts/{}/params", percent_encoded(script)),
                 serde_json::json!({ *name: v }).to_string(),
             )
         }

@@ -325,22 +325,35 @@ pub struct FrameFiles {
     bytes: u64,
 }
 
+/// The tick of a frame file's name, if it is one the engine writes:
+/// `frame-` then at least 8 digits, then `.png`. Anything else in the
+/// frames directory is the user's and is never pruned (regression: every
+/// `frame-*.png` was, a user's `frame-holiday.png` included).
+pub fn frame_tick(name: &str) -> Option<u64> {
+    let digits = name.strip_prefix("frame-")?.strip_suffix(".png")?;
+    if digits.len() < 8 || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    digits.parse().ok()
+}
+
 impl FrameFiles {
-    /// The frames already in `dir` (a missing directory has none).
+    /// The frames already in `dir` (a missing directory has none), oldest
+    /// first by tick (a tick past 8 digits sorts after, not before).
     pub fn scan(dir: &std::path::Path) -> Self {
-        let mut v: Vec<(PathBuf, u64)> = std::fs::read_dir(dir)
+        let mut v: Vec<(u64, PathBuf, u64)> = std::fs::read_dir(dir)
             .map(|rd| {
                 rd.flatten()
-                    .filter(|e| {
-                        e.file_name()
-                            .to_str()
-                            .is_some_and(|n| n.starts_with("frame-") && n.ends_with(".png"))
+                    .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+                    .filter_map(|e| {
+                        let tick = frame_tick(e.file_name().to_str()?)?;
+                        Some((tick, e.path(), e.metadata().map_or(0, |m| m.len())))
                     })
-                    .map(|e| (e.path(), e.metadata().map_or(0, |m| m.len())))
                     .collect()
             })
             .unwrap_or_default();
         v.sort();
+        let v: Vec<(PathBuf, u64)> = v.into_iter().map(|(_, p, b)| (p, b)).collect();
         let bytes = v.iter().map(|f| f.1).sum();
         FrameFiles {
             files: v.into(),
@@ -465,6 +478,40 @@ mod tests {
         f.prune(100, 10);
         assert_eq!(f.totals(), (1, 250));
         assert!(name(5).exists() && dir.join("notes.txt").exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Regression (hostile probe): pruning took every `frame-*.png`, so a
+    /// user's `frame-holiday.png` in the frames directory was deleted; and
+    /// a tick past 8 digits sorted before the older ones.
+    #[test]
+    fn only_the_engines_own_frames_are_pruned_oldest_tick_first() {
+        let dir = std::env::temp_dir().join(format!("bw-frames-own-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let theirs = [
+            "frame-holiday.png",
+            "frame-.png",
+            "frame-1.png",
+            "frame-0000001x.png",
+            "frame-00000001.png.bak",
+        ];
+        for n in theirs {
+            std::fs::write(dir.join(n), "precious").unwrap();
+        }
+        std::fs::create_dir(dir.join("frame-00000009.png")).unwrap();
+        for t in [99_999_999u64, 100_000_000, 100_000_001] {
+            std::fs::write(dir.join(format!("frame-{t:08}.png")), [0u8; 10]).unwrap();
+        }
+        let mut f = FrameFiles::scan(&dir);
+        assert_eq!(f.totals(), (3, 30));
+        f.prune(1, u64::MAX);
+        for n in theirs {
+            assert!(dir.join(n).exists(), "{n} was deleted");
+        }
+        assert!(dir.join("frame-100000001.png").exists());
+        assert!(!dir.join("frame-99999999.png").exists());
+        assert!(!dir.join("frame-100000000.png").exists());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -262,7 +262,7 @@ pub fn store_overlay(reader: StoreReader, gen_: &ChunkGen) -> ColumnOverlay {
 /// Memory the scripts, their Luau VMs and the simulation's channels are
 /// allowed for in the start-up check (they are measured, not estimated,
 /// once the first window is exact).
-const RUNTIME_MARGIN: u64 = 64 << 20;
+pub const RUNTIME_MARGIN: u64 = 64 << 20;
 
 /// Check that `budget`, the process's resident-memory target, holds what
 /// the process holds now (the engine's simulated region among it), the

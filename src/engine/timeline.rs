@@ -231,6 +231,8 @@ pub struct Table {
     pub columns: Vec<String>,
     /// Rows (only those with every column).
     pub rows: Vec<Vec<f64>>,
+    /// Lines left out: a field count other than the header's.
+    pub skipped: usize,
 }
 
 impl Table {
@@ -261,6 +263,8 @@ pub fn read(path: &Path) -> Result<Table> {
             .collect();
         if vals.len() == t.columns.len() {
             t.rows.push(vals);
+        } else {
+            t.skipped += 1;
         }
     }
     Ok(t)
@@ -272,10 +276,28 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
     use plotters::style::RGBColor;
     let table = read(&state.join("timeline.csv"))?;
     let rows = &table.rows;
+    let file = state.join("timeline.csv");
+    // Rows that do not fit the header are not the engine's (regression:
+    // a file of nothing else was said to need a longer run).
+    if rows.len() < 2 && table.skipped > 0 {
+        anyhow::bail!(
+            "{} has {} lines whose fields do not match its header's {} columns: it is not a timeline the engine wrote",
+            file.display(),
+            table.skipped,
+            table.columns.len()
+        );
+    }
     if rows.len() < 2 {
         anyhow::bail!(
             "{} has fewer than two rows: let the engine run a little longer",
-            state.join("timeline.csv").display()
+            file.display()
+        );
+    }
+    if table.skipped > 0 {
+        eprintln!(
+            "warning: {} left out {} lines whose fields do not match its header",
+            file.display(),
+            table.skipped
         );
     }
     let dir = state.join("charts");
@@ -414,6 +436,11 @@ mod tests {
                 .to_string()
                 .contains("not a brickworld timeline")
         );
+        // Regression (hostile probe): a file of nothing but malformed rows
+        // was said to need a longer run.
+        std::fs::write(&csv, "tick,water\n\"1\",\"2\",x\n3\n").unwrap();
+        let e = chart(&dir).unwrap_err().to_string();
+        assert!(e.contains("not a timeline the engine wrote"), "{e}");
         std::fs::remove_file(&csv).unwrap();
         #[cfg(unix)]
         {

@@ -241,6 +241,13 @@ impl GpuBrickmap {
                         .is_none_or(|(off, len)| off + len <= cap);
                 if fits {
                     let slot = id.index();
+                    // Requested by this frame's rays: as needed as a brick
+                    // they saw, so later admits of the same frame evict
+                    // neither it nor each other, and a pool that this
+                    // frame's bricks fill grows (regression: a small pool
+                    // thrashed on its own uploads and stopped growing, so
+                    // `bench stream --pool 1` failed now and then).
+                    res.last_seen[slot as usize] = frame_no;
                     res.owner.insert(slot, index);
                     res.slot_of.insert(index, id);
                     let (masks, meta, arena) = res.mirror.raw();

@@ -71,6 +71,28 @@ pub fn same_secret(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
+/// A path segment with its `%XX` escapes decoded (None if one is
+/// malformed or the result is not UTF-8).
+fn percent_decoded(segment: &str) -> Option<String> {
+    let b = segment.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%' {
+            let hex = std::str::from_utf8(b.get(i + 1..i + 3)?).ok()?;
+            if !hex.bytes().all(|c| c.is_ascii_hexdigit()) {
+                return None;
+            }
+            out.push(u8::from_str_radix(hex, 16).ok()?);
+            i += 3;
+        } else {
+            out.push(b[i]);
+            i += 1;
+        }
+    }
+    String::from_utf8(out).ok()
+}
+
 /// A name from a request, shortened for an error message.
 fn shown(name: &str) -> String {
     if name.chars().count() > 64 {
@@ -418,7 +440,10 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
                 return Err(bad("camera coordinates must be within ±1e9".into()));
             }
             if !(0.01..=179.0).contains(&fov) {
-                return Err(bad(format!("fov {fov} is outside 0.01..=179 degrees")));
+                return Err(bad(format!(
+                    "fov {} is outside 0.01..=179 degrees",
+                    crate::sim::fmt_num(fov)
+                )));
             }
             crate::trace::Camera::new(c.eye.into(), c.target.into(), fov, 8, 8)
                 .map_err(|e| bad(e.to_string()))?;
@@ -445,15 +470,22 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             && p.ends_with("/params")
             && p.len() > "/scripts//params".len() - 1 =>
         {
-            let script = &p["/scripts/".len()..p.len() - "/params".len()];
-            if script.is_empty() || script.contains('/') {
+            let raw = &p["/scripts/".len()..p.len() - "/params".len()];
+            if raw.is_empty() || raw.contains('/') {
                 return Err((404, format!("no route POST {}", shown(p))));
             }
+            let Some(script) = percent_decoded(raw) else {
+                return Err(bad(format!(
+                    "the script name '{}' is not valid percent-encoded UTF-8",
+                    shown(raw)
+                )));
+            };
+            let script = script.as_str();
             let Some(s) = status.scripts.iter().find(|s| s.name == script) else {
                 let loaded: Vec<&str> = status.scripts.iter().map(|s| s.name.as_str()).collect();
                 return Err(bad(format!(
                     "no script named '{}' (loaded: {})",
-                    shown(script),
+                    shown(&script.escape_debug().to_string()),
                     loaded.join(", ")
                 )));
             };

@@ -139,6 +139,19 @@ impl WorldSim {
         src: ScriptSource,
         limits: Limits,
     ) -> Result<usize, SimError> {
+        // A script is known by its name (its file's stem): parameters,
+        // logs and `/status` address it so (regression: `sim --script W
+        // --script W` ran water twice a step, one copy deaf to --param).
+        if self.script_index(&src.name).is_some() {
+            return Err(SimError::Declaration {
+                script: src.name.to_string(),
+                line: None,
+                msg: format!(
+                    "a script named '{}' is already loaded: each script needs a name (file name) of its own",
+                    src.name
+                ),
+            });
+        }
         let (_, spec) = ScriptVm::load(&src, limits)?;
         match spec.grid {
             Grid::Columns => {
