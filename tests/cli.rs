@@ -658,6 +658,19 @@ fn conflicting_or_useless_outputs_and_flags_are_refused_up_front() {
         &["soak", "--minutes", "0.001", "--json", j],
         "must be in 0.5..=1440",
     );
+    expect_failure(
+        &[
+            "bench",
+            "flight",
+            "--json",
+            j,
+            "--distance",
+            "64",
+            "--memory-budget",
+            "1B",
+        ],
+        "is too small: the process already holds",
+    );
 }
 
 /// Regression (hostile probe): past `ulimit -f` the kernel's SIGXFSZ killed
