@@ -622,6 +622,14 @@ fn conflicting_or_useless_outputs_and_flags_are_refused_up_front() {
         let mut same = args.clone();
         same.extend(["--chart", j]);
         expect_failure(&same, "is also --json");
+        // However it is spelled.
+        let dotted = format!(
+            "{}/./same.json",
+            std::path::Path::new(j).parent().unwrap().display()
+        );
+        let mut same = args.clone();
+        same.extend(["--chart", &dotted]);
+        expect_failure(&same, "is also --json");
         let mut png = args.clone();
         png.extend(["--chart", "c.png"]);
         expect_failure(&png, "only .svg is written here");

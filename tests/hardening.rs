@@ -207,6 +207,21 @@ fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothin
     }
     let (code, body) = post(&addr, &state, "/scripts/wa%2/params", "{\"rain\": 0.1}");
     assert_eq!(code, 400, "{body}");
+    for bad in ["wa%zz", "wa%+1", "wa%ff"] {
+        let (code, body) = post(
+            &addr,
+            &state,
+            &format!("/scripts/{bad}/params"),
+            "{\"rain\": 0.1}",
+        );
+        assert!(
+            code == 400 && body.contains("percent-encoded"),
+            "{bad}: {code} {body}"
+        );
+    }
+    // An encoded name reaches its script.
+    let (code, body) = post(&addr, &state, "/scripts/wat%65r/params", "{\"rain\": 0.1}");
+    assert_eq!(code, 200, "{body}");
     // Regression (hostile probe): a key given twice was applied, last wins.
     let (code, body) = post(
         &addr,

@@ -317,7 +317,7 @@ impl RenderThread {
     }
 }
 
-/// The frames on disk, oldest first (by name: the tick), with their sizes,
+/// The frames on disk, oldest first (by tick), with their sizes,
 /// pruned to a count and a byte total (`[frames] keep` and `max_mb`).
 #[derive(Debug, Default)]
 pub struct FrameFiles {
@@ -326,7 +326,7 @@ pub struct FrameFiles {
 }
 
 /// The tick of a frame file's name, if it is one the engine writes:
-/// `frame-` then at least 8 digits, then `.png`. Anything else in the
+/// `frame-`, the tick as `{:08}` writes it, `.png`. Anything else in the
 /// frames directory is the user's and is never pruned (regression: every
 /// `frame-*.png` was, a user's `frame-holiday.png` included).
 pub fn frame_tick(name: &str) -> Option<u64> {
@@ -334,7 +334,8 @@ pub fn frame_tick(name: &str) -> Option<u64> {
     if digits.len() < 8 || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
-    digits.parse().ok()
+    let tick: u64 = digits.parse().ok()?;
+    (format!("{tick:08}") == digits).then_some(tick)
 }
 
 impl FrameFiles {
@@ -495,6 +496,7 @@ mod tests {
             "frame-1.png",
             "frame-0000001x.png",
             "frame-00000001.png.bak",
+            "frame-000000001.png",
         ];
         for n in theirs {
             std::fs::write(dir.join(n), "precious").unwrap();

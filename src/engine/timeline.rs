@@ -249,7 +249,15 @@ pub fn read(path: &Path) -> Result<Table> {
     let text = crate::files::read_bounded(path, 4 * ROTATE_BYTES)?;
     let text = String::from_utf8_lossy(&text);
     let mut t = Table::default();
-    for (i, line) in text.lines().enumerate() {
+    // A last line without its newline was cut off (a kill or a full disk
+    // in the middle of an append): not a row, and not a sign of a foreign
+    // file either.
+    let complete = if text.ends_with('\n') {
+        &text[..]
+    } else {
+        text.rsplit_once('\n').map_or("", |(head, _)| head)
+    };
+    for (i, line) in complete.lines().enumerate() {
         if i == 0 {
             t.columns = line.trim().split(',').map(str::to_string).collect();
             continue;
@@ -441,6 +449,10 @@ mod tests {
         std::fs::write(&csv, "tick,water\n\"1\",\"2\",x\n3\n").unwrap();
         let e = chart(&dir).unwrap_err().to_string();
         assert!(e.contains("not a timeline the engine wrote"), "{e}");
+        // One row and a last line cut off by a kill: the engine's, short.
+        std::fs::write(&csv, "tick,water\n1,2\n2,").unwrap();
+        let e = chart(&dir).unwrap_err().to_string();
+        assert!(e.contains("fewer than two rows"), "{e}");
         std::fs::remove_file(&csv).unwrap();
         #[cfg(unix)]
         {
