@@ -346,6 +346,21 @@ impl FrameFiles {
             .map(|rd| {
                 rd.flatten()
                     .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+                    .filter(|e| {
+                        // A frame half-written when the engine was killed
+                        // (`.frame-NNNNNNNN.png.tmp`, the engine's own name):
+                        // removed, not kept for ever.
+                        let temp = e.file_name().to_str().is_some_and(|n| {
+                            n.strip_prefix('.')
+                                .and_then(|n| n.strip_suffix(".tmp"))
+                                .and_then(frame_tick)
+                                .is_some()
+                        });
+                        if temp {
+                            let _ = std::fs::remove_file(e.path());
+                        }
+                        !temp
+                    })
                     .filter_map(|e| {
                         let tick = frame_tick(e.file_name().to_str()?)?;
                         Some((tick, e.path(), e.metadata().map_or(0, |m| m.len())))
@@ -502,6 +517,8 @@ mod tests {
             std::fs::write(dir.join(n), "precious").unwrap();
         }
         std::fs::create_dir(dir.join("frame-00000009.png")).unwrap();
+        std::fs::write(dir.join(".frame-00000007.png.tmp"), "half").unwrap();
+        std::fs::write(dir.join(".frame-holiday.png.tmp"), "theirs").unwrap();
         for t in [99_999_999u64, 100_000_000, 100_000_001] {
             std::fs::write(dir.join(format!("frame-{t:08}.png")), [0u8; 10]).unwrap();
         }
@@ -512,6 +529,11 @@ mod tests {
             assert!(dir.join(n).exists(), "{n} was deleted");
         }
         assert!(dir.join("frame-100000001.png").exists());
+        assert!(
+            !dir.join(".frame-00000007.png.tmp").exists(),
+            "a half-written frame stayed"
+        );
+        assert!(dir.join(".frame-holiday.png.tmp").exists());
         assert!(!dir.join("frame-99999999.png").exists());
         assert!(!dir.join("frame-100000000.png").exists());
         std::fs::remove_dir_all(&dir).unwrap();

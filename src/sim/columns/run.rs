@@ -128,20 +128,14 @@ impl WorldSim {
     /// Load a column Lua script (see [`add_script`](Self::add_script) for
     /// either grid).
     pub fn add_lua(&mut self, src: ScriptSource, limits: Limits) -> Result<usize, SimError> {
+        self.unique_name(&src)?;
         self.sim.add_script(src, Kernel::Lua, limits)
     }
 
-    /// Load a script on the grid it declares; returns its id (column
-    /// scripts first, then voxel scripts, each in load order).
-    pub fn add_script(
-        &mut self,
-        world: &SceneWorld,
-        src: ScriptSource,
-        limits: Limits,
-    ) -> Result<usize, SimError> {
-        // A script is known by its name (its file's stem): parameters,
-        // logs and `/status` address it so (regression: `sim --script W
-        // --script W` ran water twice a step, one copy deaf to --param).
+    /// A script is known by its name (its file's stem): parameters, logs
+    /// and `/status` address it so (regression: `sim --script W --script
+    /// W` ran water twice a step, one copy deaf to --param).
+    fn unique_name(&self, src: &ScriptSource) -> Result<(), SimError> {
         if self.script_index(&src.name).is_some() {
             return Err(SimError::Declaration {
                 script: src.name.to_string(),
@@ -152,6 +146,18 @@ impl WorldSim {
                 ),
             });
         }
+        Ok(())
+    }
+
+    /// Load a script on the grid it declares; returns its id (column
+    /// scripts first, then voxel scripts, each in load order).
+    pub fn add_script(
+        &mut self,
+        world: &SceneWorld,
+        src: ScriptSource,
+        limits: Limits,
+    ) -> Result<usize, SimError> {
+        self.unique_name(&src)?;
         let (_, spec) = ScriptVm::load(&src, limits)?;
         match spec.grid {
             Grid::Columns => {

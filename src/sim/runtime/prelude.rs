@@ -1,0 +1,84 @@
+//! Lua run in every script VM before the sandbox freezes its globals:
+//! `pcall`/`xpcall` that let out-of-memory through, and `tostring` /
+//! `string.format` that never show an address. Both keep a script's
+//! outcome independent of which VM ran it and what ran there before.
+
+/// `pcall` and `xpcall` that let an out-of-memory error through. Whether
+/// an allocation fits the limit depends on how much garbage the VM has not
+/// collected yet, which depends on which tiles it ran before: a script that
+/// caught the error and went on gave different worlds on different runs
+/// and thread counts (regression). Uncaught, the failure reaches the
+/// runtime, which collects all garbage and runs the call once more
+/// ([`super::script::ScriptVm::failed_on_memory`]), so the verdict is the same whatever
+/// ran before. `error(MEM, 0)` re-raises without allocating.
+pub(super) const UNCATCHABLE_MEMORY_ERRORS: &str = r#"
+local MEM = "not enough memory"
+local rawpcall, rawxpcall, error, type = pcall, xpcall, error, type
+local function pass(ok, ...)
+    if not ok and (...) == MEM then
+        error(MEM, 0)
+    end
+    return ok, ...
+end
+pcall = function(f, ...)
+    return pass(rawpcall(f, ...))
+end
+xpcall = function(f, handler, ...)
+    if type(handler) ~= "function" then
+        -- Luau's own check ("function expected").
+        return rawxpcall(f, handler, ...)
+    end
+    return pass(rawxpcall(f, function(e)
+        if e == MEM then
+            return MEM
+        end
+        -- The handler running out of memory too (Luau would report
+        -- "error in error handling", which the script could catch).
+        local ok, r = rawpcall(handler, e)
+        if ok then
+            return r
+        elseif r == MEM then
+            return MEM
+        end
+        error(r, 0)
+    end, ...))
+end
+"#;
+
+/// `tostring` and `string.format` that show a table, function, buffer or
+/// userdata by its type name (or its `__tostring`), never its address:
+/// addresses differ between VMs and runs, so a kernel that branched on one
+/// (or on a string holding one) made worlds that differed from run to run
+/// (regression).
+pub(super) const NO_ADDRESSES: &str = r##"
+local rawtostring, rawformat, type, find, select, unpack =
+    tostring, string.format, type, string.find, select, table.unpack
+local objects = { table = true, userdata = true, ["function"] = true, buffer = true, thread = true }
+local function shown(v)
+    local kind = type(v)
+    local text = rawtostring(v)
+    -- Luau's own text for an object is "TYPE: 0xADDRESS"; what a
+    -- __tostring returns is kept (getmetatable cannot decide which it is:
+    -- __metatable can lie).
+    if objects[kind] and type(text) == "string" and find(text, ": 0x%x+$") then
+        return kind
+    end
+    return text
+end
+tostring = shown
+string.format = function(fmt, ...)
+    local n = select("#", ...)
+    for i = 1, n do
+        if objects[type((select(i, ...)))] then
+            local args = { ... }
+            for j = 1, n do
+                if objects[type(args[j])] then
+                    args[j] = shown(args[j])
+                end
+            end
+            return rawformat(fmt, unpack(args, 1, n))
+        end
+    end
+    return rawformat(fmt, ...)
+end
+"##;
