@@ -9,6 +9,7 @@ use brickworld::sim::tile::TILE_CELLS;
 use brickworld::sim::{Kernel, Limits, ScriptSource, ScriptVm, SimError, Simulation, StepKey};
 use glam::IVec2;
 
+mod common;
 fn src(name: &str, text: &str) -> ScriptSource {
     ScriptSource {
         name: name.into(),
@@ -138,11 +139,7 @@ fn fault_09_math_random_is_gone_and_c_random_is_deterministic() {
     let text = "return { channels = { \"r\" }, passes = { { name = \"p\", reads = {}, writes = { \"r\" },\n\
         kernel = function(c, tx, tz) for i = 0, 63 do buffer.writef64(c.w.r, i * 8, c.random(tx * 8 + i % 8, 0, tz * 8 + i // 8)) end end } } }";
     let run = |threads: usize, seed: u64| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        common::on_threads(threads, || {
             let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(4, 4));
             sim.set_seed(seed);
             sim.add_script(src("r", text), Kernel::Lua, Limits::default())
@@ -346,11 +343,7 @@ fn whether_an_allocation_fits_does_not_depend_on_garbage() {
           buffer.writef64(c.w.g, 0, buffer.len(a) + (ok and 1 or 2))\n\
         end } } }";
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        common::on_threads(threads, || {
             let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(4, 4));
             sim.add_script(src("g", text), Kernel::Lua, small())
                 .unwrap();
@@ -378,11 +371,7 @@ fn a_call_run_again_after_running_out_of_memory_logs_once() {
           local b = buffer.create(6 * 1024 * 1024)\n\
           buffer.writef64(c.w.once_v, 0, buffer.len(a) + buffer.len(b))\n\
         end } } }";
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap();
-    let steps = pool.install(|| {
+    let steps = common::on_threads(1, || {
         let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
         sim.add_script(src("once", text), Kernel::Lua, small())
             .unwrap();

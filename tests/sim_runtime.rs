@@ -10,6 +10,7 @@ use brickworld::sim::tile::{TILE_CELLS, cell};
 use brickworld::sim::{Kernel, Limits, ScriptSource, SimError, Simulation};
 use glam::IVec2;
 
+mod common;
 fn water_src() -> ScriptSource {
     ScriptSource {
         name: "water".into(),
@@ -80,11 +81,7 @@ fn lua_water_matches_the_native_reference_bit_for_bit() {
 fn steps_are_bit_identical_for_1_2_and_8_threads() {
     let mut hashes = Vec::new();
     for threads in [1, 2, 8] {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        let h = pool.install(|| {
+        let h = common::on_threads(threads, || {
             let mut sim = dam_break(Kernel::Lua);
             run(&mut sim, 40, 0.02);
             sim.channels().hash()

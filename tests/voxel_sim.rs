@@ -9,6 +9,8 @@ use glam::IVec3;
 
 use brickworld::verify::voxels::{STONE, count, registry as shipped_registry};
 
+mod common;
+
 /// The shipped materials (stone, grass, dirt, water and `materials.lua`'s),
 /// with sand's id.
 fn registry() -> (MaterialRegistry, u8) {
@@ -44,11 +46,7 @@ fn height_at(s: &BrickStore, m: u8, x: i32, z: i32) -> i32 {
 
 fn run(threads: usize, steps: usize) -> (BrickStore, u64, Vec<usize>) {
     let (reg, sand) = registry();
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| {
+    common::on_threads(threads, || {
         let mut store = poured(40, sand);
         let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 48, 32), 1);
         sim.add_script(sand_src(), Limits::default(), &reg).unwrap();
@@ -271,11 +269,7 @@ fn shipped(name: &str) -> ScriptSource {
 }
 
 fn lava_run(threads: usize) -> (u64, usize, usize, f64) {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| {
+    common::on_threads(threads, || {
         let (mut store, mut sim, reg) = brickworld::verify::voxels::lava_world().unwrap();
         let (lava, basalt) = (reg.id("lava").unwrap(), reg.id("basalt").unwrap());
         for _ in 0..300 {
@@ -307,11 +301,7 @@ fn grass_spreads_by_chance_deterministically_and_its_bricks_stay_awake() {
     let reg = shipped_registry();
     let (grass, dirt) = (reg.id("grass").unwrap(), reg.id("dirt").unwrap());
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        common::on_threads(threads, || {
             let mut store = BrickStore::new(Palette::grey_ramp());
             store.fill_box(IVec3::ZERO, IVec3::new(32, 2, 32), dirt);
             store.set_voxel(IVec3::new(16, 1, 16), grass);
@@ -377,11 +367,7 @@ fn voxel_scripts_hash_is_pinned_and_thread_independent() {
 fn water3d_native_reference_matches_lua_bit_for_bit() {
     use brickworld::verify::voxels::u_tube_world;
     let run = |native: bool, threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("pool");
-        pool.install(|| {
+        common::on_threads(threads, || {
             let (mut store, mut sim, reg) = u_tube_world(native).expect("loads");
             let mut changed = 0;
             for _ in 0..150 {

@@ -138,3 +138,13 @@ pub fn gpu_context() -> Option<brickworld::gpu::GpuContext> {
         Err(e) => panic!("GPU required but unavailable: {e}"),
     }
 }
+
+/// Run `f` on a rayon pool of `threads` workers (the tests that pin a
+/// result for 1, 2 and N threads).
+pub fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a thread pool")
+        .install(f)
+}

@@ -438,26 +438,7 @@ impl Simulation {
     /// at the next step, with no restart.
     pub fn set_param(&mut self, index: usize, name: &str, value: f64) -> Result<(), SimError> {
         let s = &mut self.scripts[index];
-        let err = |msg: String| SimError::Param {
-            script: s.spec.name.clone(),
-            msg,
-        };
-        let Some(i) = s.spec.params.iter().position(|p| p.name == name) else {
-            let known: Vec<&str> = s.spec.params.iter().map(|p| p.name.as_str()).collect();
-            return Err(err(format!(
-                "no parameter '{name}' (known: {})",
-                known.join(", ")
-            )));
-        };
-        let p = &s.spec.params[i];
-        if !(p.min..=p.max).contains(&value) {
-            return Err(err(format!(
-                "parameter '{name}' = {} is outside [{}, {}]",
-                crate::sim::fmt_num(value),
-                crate::sim::fmt_num(p.min),
-                crate::sim::fmt_num(p.max)
-            )));
-        }
+        let i = s.spec.param_index(name, value)?;
         s.params[i] = value;
         self.wake_all();
         Ok(())

@@ -145,6 +145,35 @@ pub struct ScriptSpec {
     pub passes: Vec<PassSpec>,
 }
 
+impl ScriptSpec {
+    /// The index of parameter `name` if `value` may be set: the one check
+    /// both grids' `set_param` make (the voxel grid's had drifted: no list
+    /// of known names, numbers unformatted).
+    pub fn param_index(&self, name: &str, value: f64) -> Result<usize, crate::sim::SimError> {
+        let err = |msg: String| crate::sim::SimError::Param {
+            script: self.name.clone(),
+            msg,
+        };
+        let Some(i) = self.params.iter().position(|p| p.name == name) else {
+            let known: Vec<&str> = self.params.iter().map(|p| p.name.as_str()).collect();
+            return Err(err(format!(
+                "no parameter '{name}' (known: {})",
+                known.join(", ")
+            )));
+        };
+        let p = &self.params[i];
+        if !(p.min..=p.max).contains(&value) {
+            return Err(err(format!(
+                "parameter '{name}' = {} is outside [{}, {}]",
+                crate::sim::fmt_num(value),
+                crate::sim::fmt_num(p.min),
+                crate::sim::fmt_num(p.max)
+            )));
+        }
+        Ok(i)
+    }
+}
+
 /// Source of a script.
 #[derive(Clone, Debug)]
 pub struct ScriptSource {

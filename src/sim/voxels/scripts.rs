@@ -138,22 +138,7 @@ impl VoxelSim {
     /// Set a parameter (refused outside its declared range).
     pub fn set_param(&mut self, i: usize, name: &str, value: f64) -> Result<(), SimError> {
         let s = &mut self.scripts[i];
-        let Some(k) = s.spec.params.iter().position(|p| p.name == name) else {
-            return Err(SimError::Param {
-                script: s.spec.name.clone(),
-                msg: format!("no parameter '{name}'"),
-            });
-        };
-        let p = &s.spec.params[k];
-        if !(p.min..=p.max).contains(&value) {
-            return Err(SimError::Param {
-                script: s.spec.name.clone(),
-                msg: format!(
-                    "parameter '{name}' = {value} is outside [{}, {}]",
-                    p.min, p.max
-                ),
-            });
-        }
+        let k = s.spec.param_index(name, value)?;
         s.params[k] = value;
         self.wake_all_known();
         Ok(())
