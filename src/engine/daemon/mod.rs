@@ -5,14 +5,15 @@
 //!    write the token, open the world store, build the world (or a streamed
 //!    world's simulated region), load the scripts, resume from the store or
 //!    place the config's boxes, start the render thread.
-//! 2. Each turn of [`Engine::run`]: [`hot_reload`](Engine::hot_reload),
-//!    [`apply_commands`](Engine::apply_commands), [`step`](Engine::step),
-//!    [`collect_dirty`](Engine::collect_dirty),
-//!    [`offer_frame`](Engine::offer_frame),
+//! 2. Each turn of [`Engine::run`]: [`hot_reload`](Engine::hot_reload) and
+//!    [`apply_commands`](Engine::apply_commands) (`inputs.rs`),
+//!    [`step`](Engine::step), [`collect_dirty`](Engine::collect_dirty),
+//!    [`offer_frame`](Engine::offer_frame) (`view.rs`, with the camera),
 //!    [`periodic_commit`](Engine::periodic_commit),
 //!    [`record_timeline`](Engine::record_timeline) and
 //!    [`publish_status`](Engine::publish_status) (`report.rs`); the step
 //!    rate (`rate.rs`) and a region that follows the camera (`follow.rs`).
+//!    `brickworld init` lives in `init.rs`.
 //! 3. [`Engine::finish`]: a final commit, the frame in flight, then the
 //!    control server (which waits for no client).
 //!
@@ -22,33 +23,37 @@
 //! dirty brick ids between frames are coalesced in a set (bounded by the
 //! world's brick count).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use glam::{DVec3, IVec3};
+use glam::IVec3;
 use rustc_hash::FxHashSet;
 
-use super::control::{CheckpointRef, Command, CommitRef, ControlServer, Shared};
+use super::control::{CheckpointRef, CommitRef, ControlServer, Shared};
 mod follow;
+mod init;
+mod inputs;
 mod rate;
 mod report;
 mod start;
+mod view;
+
+pub use init::init;
 
 pub(crate) use start::load_scripts;
 
 use super::checkpoint::CameraOverride;
 use super::persistence::{self, DirtyChunks};
-use super::render_thread::{FrameJob, FrameWorld, RenderThread};
+use super::render_thread::RenderThread;
 use super::state_dir::StateLock;
 use super::timeline::Timeline;
-use super::world_config::{CameraMode, CameraSettings, SimRegion, WorldConfig};
+use super::world_config::{CameraSettings, WorldConfig};
 use crate::persist::WorldDb;
 use crate::scene::SceneWorld;
 use crate::sim::{ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, read_script};
-use crate::trace::Camera;
 
 /// How long a stop waits for the step in flight before interrupting its
 /// scripts.
@@ -237,141 +242,6 @@ impl Engine {
             || self.until_tick.is_some_and(|t| tick >= t)
     }
 
-    /// Swap in scripts changed on disk (a broken one keeps the old version).
-    fn hot_reload(&mut self) {
-        let Some(w) = self.watcher.as_mut() else {
-            return;
-        };
-        let changed = w.poll();
-        for note in w.take_notes() {
-            eprintln!("{note}");
-        }
-        for path in changed {
-            let name = path
-                .file_stem()
-                .map(|s| s.to_string_lossy().to_string())
-                .unwrap_or_default();
-            let index = self.ws.script_index(&name);
-            match self.ws.reload(&self.world, &path) {
-                Ok(Some((i, mut warnings))) => {
-                    eprintln!("reloaded {}", path.display());
-                    // A parameter the config sets and the new version does
-                    // not declare: running on is fine, but the next start
-                    // refuses the config (regression: said nowhere).
-                    let file = format!("{}.lua", self.ws.spec(i).name);
-                    if let Some(set) = self.cfg.scripts.iter().find(|s| s.file == file) {
-                        let spec = self.ws.spec(i);
-                        for k in set.params.keys() {
-                            if !spec.params.iter().any(|p| &p.name == k) {
-                                warnings.push(format!(
-                                    "the world config sets parameter '{k}' of {file}, which it no longer declares: the next start will refuse the config until one of them changes"
-                                ));
-                            }
-                        }
-                    }
-                    for w in &warnings {
-                        eprintln!("warning: {w}");
-                    }
-                    let reloads = self.notes[i].reloads + 1;
-                    self.notes[i] = ScriptNotes {
-                        warning: warnings.last().cloned(),
-                        reloads,
-                        reloaded_at: self.ws.sim.tick(),
-                        ..Default::default()
-                    };
-                }
-                Ok(None) => {}
-                Err(e) => {
-                    eprintln!("warning: kept the last good version: {e}");
-                    if let Some(i) = index {
-                        self.notes[i].reload_error = Some(e.to_string());
-                    }
-                }
-            }
-        }
-    }
-
-    /// Apply the commands clients queued, in order; whether there were any.
-    fn apply_commands(&mut self) -> bool {
-        let commands: Vec<Command> =
-            std::mem::take(&mut *self.shared.commands.lock().expect("command lock"));
-        let any = !commands.is_empty();
-        for c in commands {
-            match c {
-                Command::Pause => {
-                    self.paused = true;
-                    // Queued single steps are cancelled too: paused means still.
-                    self.steps_left = 0;
-                }
-                Command::Resume => {
-                    if !self.should_step() {
-                        self.rate.restart(Instant::now());
-                    }
-                    self.paused = false;
-                    self.steps_left = 0;
-                }
-                Command::Step(n) => {
-                    if !self.should_step() {
-                        self.rate.restart(Instant::now());
-                    }
-                    self.paused = true;
-                    self.steps_left = (self.steps_left + n).min(100_000);
-                }
-                Command::Checkpoint { verdict } => {
-                    self.commit();
-                    // The caller learns whether it was written (regression:
-                    // 200 was answered on queueing, before any commit).
-                    verdict.send(match &self.commit_error {
-                        None => Ok(()),
-                        Some(e) => Err(e.clone()),
-                    });
-                }
-                Command::Camera {
-                    eye, target, fov, ..
-                } => {
-                    self.camera.mode = CameraMode::Fixed;
-                    self.camera.eye = Some(DVec3::from(eye));
-                    self.camera.target = Some(DVec3::from(target));
-                    self.camera.fov = fov;
-                    // Committed with the state: a region that follows the
-                    // camera must follow it after a resume too.
-                    self.camera_override = Some(CameraOverride { eye, target, fov });
-                }
-                Command::Params {
-                    script,
-                    values,
-                    verdict,
-                } => {
-                    // The server validated against /status; a reload in
-                    // between may still refuse: the caller is told, and the
-                    // refusal is shown per script.
-                    let Some(i) = self.ws.script_index(&script) else {
-                        verdict.send(Err(format!("no script named '{script}' any more")));
-                        continue;
-                    };
-                    let mut refused = Vec::new();
-                    for (k, v) in values {
-                        if let Err(e) = self.ws.set_param(i, &k, v) {
-                            refused.push(e.to_string());
-                        }
-                    }
-                    if refused.is_empty() {
-                        verdict.send(Ok(()));
-                    } else {
-                        let msg = format!("refused: {}", refused.join("; "));
-                        self.notes[i].warning = Some(msg.clone());
-                        verdict.send(Err(msg));
-                    }
-                }
-                Command::CameraPath => {
-                    self.camera = self.cfg.camera;
-                    self.camera_override = None;
-                }
-            }
-        }
-        any
-    }
-
     fn should_step(&self) -> bool {
         !self.paused || self.steps_left > 0
     }
@@ -453,109 +323,6 @@ impl Engine {
         self.dirty_pending.extend(report.bricks.iter().copied());
     }
 
-    /// Every `frames.every` ticks: hand the renderer a snapshot if it is
-    /// idle, else count a skipped frame.
-    fn offer_frame(&mut self) {
-        let tick = self.ws.sim.tick();
-        if !tick.is_multiple_of(self.cfg.frames_every) {
-            return;
-        }
-        if !self.renderer.ready() {
-            self.renderer.skip();
-            return;
-        }
-        let Ok(cam) = self.camera_at(tick) else {
-            return;
-        };
-        // The render thread keeps its own copy: the first job carries the
-        // world, every later one only the bricks that changed since.
-        let copy = Instant::now();
-        let dirty: Vec<IVec3> = self.dirty_pending.drain().collect();
-        let full = !self.mirror_sent;
-        let world = if full {
-            FrameWorld::Full(Box::new(self.world.clone()))
-        } else {
-            FrameWorld::Delta(self.world.delta(&dirty))
-        };
-        self.snapshot_ms = copy.elapsed().as_secs_f64() * 1e3;
-        let left = match (&self.follow, full) {
-            (Some(f), true) => f.left(),
-            _ => Vec::new(),
-        };
-        let job = FrameJob {
-            tick,
-            world,
-            dirty,
-            camera: cam,
-            left,
-        };
-        match self.renderer.offer(job) {
-            Ok(()) => {
-                self.mirror_sent |= full;
-                if let (Some(f), true) = (self.follow.as_mut(), full) {
-                    f.delivered();
-                }
-            }
-            Err(back) => self.dirty_pending.extend(back),
-        }
-    }
-
-    /// The tiles the column scripts run on this tick (`[sim] region` or
-    /// `radius` around the camera's eye), None for everywhere.
-    fn sim_region(&self) -> Option<(glam::IVec2, glam::IVec2)> {
-        let tile = |x: f64| (x.floor() as i64).div_euclid(8).clamp(-(1 << 28), 1 << 28) as i32;
-        if self.cfg.stream.is_some() {
-            // The engine's world is the region (whole chunk columns).
-            return None;
-        }
-        match self.cfg.sim_region {
-            SimRegion::Everywhere => None,
-            SimRegion::Box { min, max } => Some((
-                glam::IVec2::new(tile(min.x as f64), tile(min.y as f64)),
-                glam::IVec2::new(tile(max.x as f64 - 1.0) + 1, tile(max.y as f64 - 1.0) + 1),
-            )),
-            SimRegion::AroundCamera { radius } => {
-                let eye = self.camera_at(self.ws.sim.tick()).ok()?.eye;
-                Some((
-                    glam::IVec2::new(tile(eye.x - radius), tile(eye.z - radius)),
-                    glam::IVec2::new(tile(eye.x + radius) + 1, tile(eye.z + radius) + 1),
-                ))
-            }
-        }
-    }
-
-    fn camera_at(&self, tick: u64) -> Result<Camera, crate::trace::CameraError> {
-        let views = self.world.default_views();
-        let c = &self.camera;
-        let (mut eye, mut target) = match (c.eye, c.target) {
-            (Some(e), Some(t)) => (e, t),
-            _ => (DVec3::from(views[1].eye), DVec3::from(views[1].target)),
-        };
-        let phase = |period_s: f64| tick as f64 * self.cfg.dt / period_s;
-        match c.mode {
-            CameraMode::Fixed => {}
-            CameraMode::Orbit { period_s } => {
-                let angle = phase(period_s) * std::f64::consts::TAU;
-                let d = eye - target;
-                let (s, co) = angle.sin_cos();
-                eye = target + DVec3::new(d.x * co - d.z * s, d.y, d.x * s + d.z * co);
-            }
-            CameraMode::Fly { to, period_s } => {
-                // 0 → 1 → 0 over one period.
-                let f = 1.0 - (phase(period_s).fract() * 2.0 - 1.0).abs();
-                let step = (to - eye) * f;
-                eye += step;
-                target += step;
-            }
-            CameraMode::Line { velocity } => {
-                let step = velocity * (tick as f64 * self.cfg.dt);
-                eye += step;
-                target += step;
-            }
-        }
-        Camera::new(eye, target, c.fov, self.cfg.width, self.cfg.height)
-    }
-
     fn periodic_commit(&mut self, step_took: std::time::Duration) {
         if self.ws.sim.tick().is_multiple_of(self.cfg.checkpoint_every) || step_took >= SLOW_STEP {
             self.commit();
@@ -634,46 +401,4 @@ impl Engine {
         );
         Ok(())
     }
-}
-
-/// Write the default world and its scripts into `dir` for a modder to edit:
-/// `dir/world.toml` and `dir/scripts/*.lua`. Existing files are never
-/// overwritten.
-pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
-    let scripts = dir.join("scripts");
-    let mut files: Vec<(PathBuf, String)> = crate::sim::embedded::SCRIPTS
-        .iter()
-        .map(|(f, text)| (scripts.join(f), text.to_string()))
-        .collect();
-    let world = super::world_config::DEFAULT_WORLD
-        .replace("scripts_dir = \"../scripts\"", "scripts_dir = \"scripts\"");
-    files.push((dir.join("world.toml"), world));
-    // `symlink_metadata`: a dangling link counts as there (regression: init
-    // wrote through it, outside DIR).
-    let there = |p: &Path| std::fs::symlink_metadata(p).is_ok();
-    if let Some((p, _)) = files.iter().find(|(p, _)| there(p)) {
-        bail!(
-            "{} already exists; brickworld init never overwrites files (choose an empty directory)",
-            p.display()
-        );
-    }
-    if there(&scripts) && !scripts.is_dir() {
-        bail!(
-            "{} exists and is not a directory (choose an empty directory)",
-            scripts.display()
-        );
-    }
-    std::fs::create_dir_all(&scripts)
-        .with_context(|| format!("cannot create {}", scripts.display()))?;
-    for (p, text) in &files {
-        // `create_new` never follows a link or replaces a file that
-        // appeared meanwhile.
-        std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(p)
-            .and_then(|mut f| std::io::Write::write_all(&mut f, text.as_bytes()))
-            .with_context(|| format!("cannot write {}", p.display()))?;
-    }
-    Ok(files.into_iter().map(|(p, _)| p).collect())
 }

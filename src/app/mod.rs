@@ -1,0 +1,237 @@
+//! The binary's edge: turns parsed arguments into work and reports errors
+//! with context (anyhow lives here and in `main`, nowhere else).
+
+mod bench;
+mod render;
+
+use anyhow::{Context, Result, bail};
+
+use crate::cli::{BenchCommand, Cli, Command, VerifyCommand};
+use crate::config::{BenchTracersSettings, RenderSettings, SceneSettings};
+use crate::progress::bar;
+use crate::scene::{SceneWorld, build_scene};
+use bench::{run_bench_flight, run_bench_sim, run_bench_store, run_bench_stream, run_bench_voxels};
+use render::run_render;
+
+/// Run a parsed command line.
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
+        Command::Run(a) => run_daemon(&a),
+        Command::Ctl(a) => crate::engine::ctl::run(&a),
+        Command::Export { out, world, state } => {
+            let cfg = load_world_config(world.as_deref())?;
+            let (tick, hash) = crate::engine::backup::export_world(&cfg, &state, &out)?;
+            match hash {
+                Some(hash) => println!(
+                    "exported tick {tick} to {} (world hash {hash:#018x})",
+                    out.display()
+                ),
+                None => println!("exported tick {tick} to {}", out.display()),
+            }
+            Ok(())
+        }
+        Command::Import { file, world, state } => {
+            let cfg = load_world_config(world.as_deref())?;
+            let st = crate::engine::backup::import_world(&cfg, &state, &file)?;
+            println!(
+                "imported {} into {} ({} chunks, {} chunk columns, {} bytes)",
+                file.display(),
+                state.display(),
+                st.chunks,
+                st.columns,
+                st.bytes
+            );
+            Ok(())
+        }
+        Command::Init { dir } => {
+            for p in crate::engine::daemon::init(&dir)? {
+                println!("wrote {}", p.display());
+            }
+            println!(
+                "run it with: brickworld run {} (scripts reload when saved)",
+                dir.join("world.toml").display()
+            );
+            Ok(())
+        }
+        Command::Soak {
+            minutes,
+            json,
+            world,
+            state,
+        } => {
+            // The report compares fifths of one-second samples: shorter
+            // runs printed NaN and -100 % as if they were results.
+            if !(0.5..=24.0 * 60.0).contains(&minutes) {
+                anyhow::bail!(
+                    "invalid --minutes {minutes}: must be in 0.5..=1440 (the report compares fifths of one-second samples)"
+                );
+            }
+            let pb = bar("soak (s)", 0);
+            let r = crate::bench::soak::run(world.as_deref(), minutes, &state, &pb)?;
+            pb.finish_and_clear();
+            std::fs::write(&json, serde_json::to_string_pretty(&r)? + "\n")
+                .with_context(|| format!("cannot write {}", json.display()))?;
+            println!(
+                "{:.1} min, {} ticks ({:.1}/s); RSS growth after warm-up {:+.2} % (end points), {:+.2} % (peak), {:+.2} % (median); max dirty queue {}; frames {} ({} skipped); /status p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; frame {:.1} ms; ground+sediment drift {:.2e}",
+                r.minutes,
+                r.ticks,
+                r.ticks_per_s,
+                r.rss_growth_after_warmup_pct,
+                r.rss_peak_growth_pct,
+                r.rss_median_growth_pct,
+                r.max_dirty_queue,
+                r.frames,
+                r.frames_skipped,
+                r.status_ms_p50,
+                r.status_ms_p99,
+                r.status_ms_max,
+                r.frame_ms_mean,
+                r.ground_plus_sediment_drift
+            );
+            Ok(())
+        }
+        Command::Chart { state } => {
+            for p in crate::engine::timeline::chart(&state)? {
+                println!("{}", p.display());
+            }
+            Ok(())
+        }
+        Command::Sim(a) => crate::sim_cmd::run(&crate::config::SimSettings::from_args(&a)?),
+        Command::Verify(VerifyCommand::Sims(a)) => {
+            // Refused, not clamped (regression: 2^64-1 ran for ever).
+            if !(1..=1_000_000).contains(&a.conservation_steps) {
+                anyhow::bail!(
+                    "invalid --conservation-steps {}: must be in 1..=1000000 (10000 is the full check)",
+                    a.conservation_steps
+                );
+            }
+            crate::verify::run_sims(&a.json, a.chart.as_deref(), a.conservation_steps)
+        }
+        Command::Bench(BenchCommand::Sim(a)) => run_bench_sim(&a),
+        Command::Bench(BenchCommand::Stream(a)) => run_bench_stream(&a),
+        Command::Bench(BenchCommand::Voxels(a)) => run_bench_voxels(&a),
+        Command::Bench(BenchCommand::Store(a)) => run_bench_store(&a),
+        Command::Bench(BenchCommand::Flight(a)) => run_bench_flight(&a),
+        Command::Bench(BenchCommand::Lod(a)) => {
+            crate::bench::lod::run(&crate::config::BenchLodSettings::from_args(&a)?)
+        }
+        Command::Bench(BenchCommand::Tracers(a)) => {
+            crate::bench::tracers::run(&BenchTracersSettings::from_args(&a)?)
+        }
+    }
+}
+
+fn load_world_config(
+    path: Option<&std::path::Path>,
+) -> Result<crate::engine::world_config::WorldConfig> {
+    use crate::engine::world_config::WorldConfig;
+    Ok(match path {
+        Some(p) => WorldConfig::load(p)?,
+        None => WorldConfig::default_world(),
+    })
+}
+
+fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
+    use crate::engine::world_config::WorldConfig;
+    let mut world = match &a.world {
+        Some(p) => WorldConfig::load(p)?,
+        None => WorldConfig::default_world(),
+    };
+    if let Some(addr) = &a.addr {
+        world.addr = addr.parse().map_err(|_| {
+            anyhow::anyhow!("invalid --addr '{addr}': expected HOST:PORT, e.g. 127.0.0.1:7878")
+        })?;
+    }
+    if let Some(text) = &a.memory_budget {
+        let bytes = crate::engine::world_config::parse_bytes(text)
+            .map_err(|e| anyhow::anyhow!("invalid --memory-budget: {e}"))?;
+        match world.stream.as_mut() {
+            Some(st) => st.memory_budget = bytes,
+            None => anyhow::bail!(
+                "--memory-budget applies to streamed worlds; this world is resident whole (add a [stream] table to its config to stream it)"
+            ),
+        }
+    }
+    if let Some(dir) = &a.scripts {
+        world.scripts_dir = dir.clone();
+        world.scripts_embedded = false;
+    }
+    if a.ticks == Some(0) {
+        anyhow::bail!("invalid --ticks 0: at least one tick");
+    }
+    crate::engine::daemon::run(crate::engine::daemon::DaemonOptions {
+        world,
+        state: a.state.clone(),
+        max_ticks: a.ticks,
+        until_tick: a.until_tick,
+        paused: a.paused,
+    })
+}
+
+/// Address space one worker thread takes: its 2 MiB stack, guard and
+/// signal stack, with room for what it allocates.
+const THREAD_ADDRESS_SPACE: u64 = (2 << 20) + (256 << 10);
+
+/// Address space the process may still map under `ulimit -v`, if limited.
+fn address_space_left() -> Option<u64> {
+    #[cfg(target_os = "linux")]
+    {
+        let (soft, _) =
+            nix::sys::resource::getrlimit(nix::sys::resource::Resource::RLIMIT_AS).ok()?;
+        if soft == nix::sys::resource::RLIM_INFINITY {
+            return None;
+        }
+        let status = std::fs::read_to_string("/proc/self/status").ok()?;
+        let kb: u64 = status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmSize:"))?
+            .trim()
+            .trim_end_matches("kB")
+            .trim()
+            .parse()
+            .ok()?;
+        Some(soft.saturating_sub(kb * 1024))
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
+/// A rayon pool of `threads` workers (all cores when `None`).
+pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
+    let mut b = rayon::ThreadPoolBuilder::new();
+    if let Some(n) = threads {
+        // Threads that start in the last of the address space fail inside
+        // the runtime (an abort, now and then) rather than at creation:
+        // refuse a count that cannot fit before starting any (regression).
+        let need = n as u64 * THREAD_ADDRESS_SPACE;
+        if let Some(left) = address_space_left()
+            && need > left / 2
+        {
+            bail!(
+                "cannot start the worker threads: {n} threads need about {} MiB of address space, and the limit (ulimit -v) leaves {} MiB (ask for fewer with --threads)",
+                need >> 20,
+                left >> 20
+            );
+        }
+        b = b.num_threads(n);
+    }
+    // The build error's text already holds the OS error, which is also its
+    // source: as a context chain it printed twice (regression).
+    b.build().map_err(|e| {
+        let lower = if threads.is_some() {
+            " (ask for fewer with --threads)"
+        } else {
+            ""
+        };
+        anyhow::anyhow!("cannot start the worker threads: {e}{lower}")
+    })
+}
+
+/// Build the scene with a progress bar.
+pub fn build_world(s: &SceneSettings) -> Result<SceneWorld> {
+    let pb = bar("scene", 0);
+    let world = build_scene(&s.spec, s.size, s.seed, &pb).context("cannot build the scene")?;
+    pb.finish_and_clear();
+    Ok(world)
+}

@@ -1,0 +1,149 @@
+//! What reaches the engine from outside between steps: scripts changed on
+//! disk ([`Engine::hot_reload`]) and the commands clients queued through
+//! the control API ([`Engine::apply_commands`]).
+
+use std::time::Instant;
+
+use glam::DVec3;
+
+use super::{Engine, ScriptNotes};
+use crate::engine::checkpoint::CameraOverride;
+use crate::engine::control::Command;
+use crate::engine::world_config::CameraMode;
+
+impl Engine {
+    /// Swap in scripts changed on disk (a broken one keeps the old version).
+    pub(super) fn hot_reload(&mut self) {
+        let Some(w) = self.watcher.as_mut() else {
+            return;
+        };
+        let changed = w.poll();
+        for note in w.take_notes() {
+            eprintln!("{note}");
+        }
+        for path in changed {
+            let name = path
+                .file_stem()
+                .map(|s| s.to_string_lossy().to_string())
+                .unwrap_or_default();
+            let index = self.ws.script_index(&name);
+            match self.ws.reload(&self.world, &path) {
+                Ok(Some((i, mut warnings))) => {
+                    eprintln!("reloaded {}", path.display());
+                    // A parameter the config sets and the new version does
+                    // not declare: running on is fine, but the next start
+                    // refuses the config (regression: said nowhere).
+                    let file = format!("{}.lua", self.ws.spec(i).name);
+                    if let Some(set) = self.cfg.scripts.iter().find(|s| s.file == file) {
+                        let spec = self.ws.spec(i);
+                        for k in set.params.keys() {
+                            if !spec.params.iter().any(|p| &p.name == k) {
+                                warnings.push(format!(
+                                    "the world config sets parameter '{k}' of {file}, which it no longer declares: the next start will refuse the config until one of them changes"
+                                ));
+                            }
+                        }
+                    }
+                    for w in &warnings {
+                        eprintln!("warning: {w}");
+                    }
+                    let reloads = self.notes[i].reloads + 1;
+                    self.notes[i] = ScriptNotes {
+                        warning: warnings.last().cloned(),
+                        reloads,
+                        reloaded_at: self.ws.sim.tick(),
+                        ..Default::default()
+                    };
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    eprintln!("warning: kept the last good version: {e}");
+                    if let Some(i) = index {
+                        self.notes[i].reload_error = Some(e.to_string());
+                    }
+                }
+            }
+        }
+    }
+
+    /// Apply the commands clients queued, in order; whether there were any.
+    pub(super) fn apply_commands(&mut self) -> bool {
+        let commands: Vec<Command> =
+            std::mem::take(&mut *self.shared.commands.lock().expect("command lock"));
+        let any = !commands.is_empty();
+        for c in commands {
+            match c {
+                Command::Pause => {
+                    self.paused = true;
+                    // Queued single steps are cancelled too: paused means still.
+                    self.steps_left = 0;
+                }
+                Command::Resume => {
+                    if !self.should_step() {
+                        self.rate.restart(Instant::now());
+                    }
+                    self.paused = false;
+                    self.steps_left = 0;
+                }
+                Command::Step(n) => {
+                    if !self.should_step() {
+                        self.rate.restart(Instant::now());
+                    }
+                    self.paused = true;
+                    self.steps_left = (self.steps_left + n).min(100_000);
+                }
+                Command::Checkpoint { verdict } => {
+                    self.commit();
+                    // The caller learns whether it was written (regression:
+                    // 200 was answered on queueing, before any commit).
+                    verdict.send(match &self.commit_error {
+                        None => Ok(()),
+                        Some(e) => Err(e.clone()),
+                    });
+                }
+                Command::Camera {
+                    eye, target, fov, ..
+                } => {
+                    self.camera.mode = CameraMode::Fixed;
+                    self.camera.eye = Some(DVec3::from(eye));
+                    self.camera.target = Some(DVec3::from(target));
+                    self.camera.fov = fov;
+                    // Committed with the state: a region that follows the
+                    // camera must follow it after a resume too.
+                    self.camera_override = Some(CameraOverride { eye, target, fov });
+                }
+                Command::Params {
+                    script,
+                    values,
+                    verdict,
+                } => {
+                    // The server validated against /status; a reload in
+                    // between may still refuse: the caller is told, and the
+                    // refusal is shown per script.
+                    let Some(i) = self.ws.script_index(&script) else {
+                        verdict.send(Err(format!("no script named '{script}' any more")));
+                        continue;
+                    };
+                    let mut refused = Vec::new();
+                    for (k, v) in values {
+                        if let Err(e) = self.ws.set_param(i, &k, v) {
+                            refused.push(e.to_string());
+                        }
+                    }
+                    if refused.is_empty() {
+                        verdict.send(Ok(()));
+                    } else {
+                        let msg = format!("refused: {}", refused.join("; "));
+                        self.notes[i].warning = Some(msg.clone());
+                        verdict.send(Err(msg));
+                    }
+                }
+                Command::CameraPath => {
+                    self.camera = self.cfg.camera;
+                    self.camera_override = None;
+                }
+            }
+        }
+        any
+    }
+}
