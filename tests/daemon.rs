@@ -214,7 +214,7 @@ fn a_port_in_use_and_a_bad_config_are_clear_errors() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains(&format!("cannot listen on {addr}")), "{err}");
-    assert!(!err.contains("panicked"));
+    common::cli::assert_no_panic(&err, "the engine");
     std::fs::write(
         &cfg,
         "[world]\nsource = \"terrain\"\n[render]\nwidth = -4\n",
@@ -336,7 +336,7 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
     assert!(out.status.success());
     let log = String::from_utf8_lossy(&out.stderr);
     assert!(log.contains("reloaded"), "{log}");
-    assert!(!log.contains("panicked"), "{log}");
+    common::cli::assert_no_panic(&log, "the engine");
     assert!(!log.contains("other.lua"), "{log}");
 }
 

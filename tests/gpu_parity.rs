@@ -1,6 +1,8 @@
-//! GPU tracer against the CPU reference: the same voxel on ≥ 99.9 % of
-//! pixels, depths within 1e-3 relative, colours within a stated tolerance,
-//! over the standard scenes and the three bench views.
+//! GPU tracer against the CPU reference: the same voxel on every pixel of
+//! an exact walk and on ≥ 99.99 % with level of detail (on a software
+//! adapter, as in CI; ≥ 99.9 % on a hardware GPU), depths within 1e-3
+//! relative, colours within 2/255, over the standard scenes and the three
+//! bench views.
 //!
 //! Without a GPU adapter these tests report it and pass, unless
 //! `BRICKWORLD_REQUIRE_GPU=1` (set by `.ci/run` after installing lavapipe),
@@ -112,19 +114,33 @@ fn parity_with(name: &str, b: &common::Built, ctx: &GpuContext, opts: RenderOpti
             "{name} view {vi}: same voxel {:.4} %, depth off {depth_bad}, colour off {colour_bad}",
             frac * 100.0
         );
+        // The bounds the docs state: on a software adapter (lavapipe, what
+        // CI runs) every pixel of an exact walk hits the same voxel, a level
+        // walk the same cell on at least 99.99 %, and every same-voxel
+        // pixel's colour is within the tolerance. A hardware GPU may fuse
+        // or reorder f32 operations: 99.9 %, and 0.5 % of colours (a
+        // shadow ray resolving a near-tie the other way).
+        let strict = ctx.is_software();
+        let least = match (strict, lod > 0.0) {
+            (true, false) => 1.0,
+            (true, true) => 0.9999,
+            (false, _) => 0.999,
+        };
         assert!(
-            frac >= 0.999,
-            "{name} view {vi}: only {:.3} % of pixels hit the same voxel",
-            frac * 100.0
+            frac >= least,
+            "{name} view {vi}: only {:.4} % of pixels hit the same voxel (at least {} % required on {})",
+            frac * 100.0,
+            least * 100.0,
+            ctx.describe()
         );
         assert_eq!(
             depth_bad, 0,
             "{name} view {vi}: depths differ by more than 1e-3 relative"
         );
-        // Shadow rays may resolve near-ties differently: allow 0.5 % of pixels.
+        let colours_allowed = if strict { 0.0 } else { 0.005 * n as f64 };
         assert!(
-            colour_bad as f64 <= 0.005 * n as f64,
-            "{name} view {vi}: {colour_bad} pixels differ in colour"
+            colour_bad as f64 <= colours_allowed,
+            "{name} view {vi}: {colour_bad} pixels differ in colour by more than {COLOUR_TOLERANCE}/255"
         );
     }
 }

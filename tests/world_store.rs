@@ -544,7 +544,7 @@ fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
         !out.status.success(),
         "the final commit cannot succeed: {err}"
     );
-    assert!(!err.contains("panicked"), "{err}");
+    common::cli::assert_no_panic(&err, "the engine");
     assert_eq!(
         err.matches("No space left on device").count(),
         2,

@@ -16,12 +16,11 @@ pub fn tmp(tag: &str, name: &str) -> PathBuf {
 }
 
 /// Require a run to have succeeded, showing its stderr otherwise.
+/// A run that succeeded with a panic in some thread is a bug too.
 pub fn assert_success(out: &Output) {
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert_no_panic(&err, "the run");
 }
 
 /// Read a JSON file the binary wrote.
@@ -29,15 +28,25 @@ pub fn read_json(path: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
 }
 
+/// Require `text` (a run's stderr or log) to show no panic: the panic
+/// hook prints "internal bug" without `RUST_BACKTRACE` and Rust's own
+/// "panicked" with it, so both are looked for (regression: tests looked for
+/// "panicked" only, which CI's hook never prints).
+pub fn assert_no_panic(text: &str, what: &str) {
+    assert!(
+        !text.contains("panicked")
+            && !text.contains("internal bug")
+            && !text.contains("RUST_BACKTRACE"),
+        "{what} panicked: {text}"
+    );
+}
+
 /// A failed run must exit non-zero with one clear line mentioning `needle`,
 /// never a panic or a backtrace.
 pub fn assert_clear_failure(out: &Output, what: &str, needle: &str) {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{what} should fail");
-    assert!(
-        !err.contains("panicked") && !err.contains("RUST_BACKTRACE"),
-        "{what} panicked: {err}"
-    );
+    assert_no_panic(&err, what);
     assert!(
         err.contains(needle),
         "{what}: '{err}' should mention '{needle}'"

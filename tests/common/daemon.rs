@@ -149,7 +149,9 @@ pub fn stop(mut daemon: Daemon) -> std::process::Output {
     while t.elapsed() < Duration::from_secs(30) {
         if daemon.try_wait().unwrap().is_some() {
             let child = daemon.0.take().expect("running");
-            return child.wait_with_output().unwrap();
+            let out = child.wait_with_output().unwrap();
+            super::cli::assert_no_panic(&String::from_utf8_lossy(&out.stderr), "the engine");
+            return out;
         }
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -180,6 +182,7 @@ pub fn run_ok(cfg: &Path, state: &Path, flag: &str, n: u64) -> (String, String) 
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr).to_string();
     assert!(out.status.success(), "{err}");
+    super::cli::assert_no_panic(&err, "the engine");
     (String::from_utf8_lossy(&out.stdout).to_string(), err)
 }
 

@@ -41,7 +41,8 @@ use tokio::sync::mpsc;
 
 use super::Shared;
 
-/// Event streams served at once; more get 503.
+/// Event streams served at once; a newer one takes the longest-connected
+/// one's slot (503 only if none frees within [`EVICT_WAIT`]).
 pub const MAX_VIEWERS: usize = 16;
 /// Least time between two `status` events on one stream.
 pub const STATUS_EVERY: Duration = Duration::from_millis(250);
