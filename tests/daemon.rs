@@ -463,3 +463,57 @@ fn a_slow_renderer_skips_frames_and_never_holds_up_the_simulation() {
     assert!(s["dirty_queue"].as_u64().unwrap() <= 144, "{s}");
     assert!(stop(child).status.success());
 }
+
+/// Audit: SIGTERM and SIGINT end the engine with a final commit of the
+/// tick it stopped at (the periodic commit is every 40 ticks; the tick
+/// here is not a multiple of 40, so only the final commit can hold it).
+#[test]
+fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
+    let (cfg, state, addr) = setup("finalcommit");
+    for sig in ["-TERM", "-INT"] {
+        let mut d = start(&cfg, &state);
+        wait_ready(&addr);
+        let first = status(&addr)["tick"].as_u64().unwrap();
+        let t = Instant::now();
+        while status(&addr)["tick"].as_u64().unwrap() < first + 3 {
+            assert!(t.elapsed() < Duration::from_secs(30), "no steps");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+        let paused = |addr: &str| {
+            let t = Instant::now();
+            loop {
+                let s = status(addr);
+                if s["paused"] == true && s["steps_pending"] == 0 {
+                    break s["tick"].as_u64().unwrap();
+                }
+                assert!(t.elapsed() < Duration::from_secs(30), "{s}");
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        };
+        let mut tick = paused(&addr);
+        if tick.is_multiple_of(40) {
+            assert_eq!(post(&addr, &state, "/step", "1").0, 200);
+            while status(&addr)["tick"].as_u64().unwrap() == tick {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            tick = paused(&addr);
+        }
+        let _ = std::process::Command::new("kill")
+            .args([sig, &d.id().to_string()])
+            .status();
+        let t = Instant::now();
+        let code = loop {
+            if let Some(s) = d.try_wait().unwrap() {
+                break s;
+            }
+            assert!(
+                t.elapsed() < Duration::from_secs(30),
+                "{sig} did not stop it"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert!(code.success(), "{sig}: {code:?}");
+        assert_eq!(stored_tick(&cfg, &state), Some(tick), "after {sig}");
+    }
+}

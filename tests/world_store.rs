@@ -874,3 +874,102 @@ fn a_backup_with_forged_bounds_is_refused_clearly() {
         assert!(!into.join("world.redb").exists(), "case {i} wrote a store");
     }
 }
+
+/// The world of `setup`, widened to 4 × 2 chunks, with the column scripts
+/// confined to `[sim] region` (x in `0..max_x`, z in `0..48`): the chunks
+/// it touches are the ones that change.
+fn wide_world(name: &str, max_x: i32) -> (std::path::PathBuf, std::path::PathBuf, String) {
+    let (cfg, state, addr) = setup(name);
+    edit_config(&cfg, "size = [48, 32, 48]", "size = [256, 32, 128]");
+    edit_config(
+        &cfg,
+        "[sim]\n",
+        &format!("[sim]\nregion = {{ min = [0, 0], max = [{max_x}, 48] }}\n"),
+    );
+    (cfg, state, addr)
+}
+
+fn stored_keys(cfg: &std::path::Path, state: &std::path::Path) -> (WorldDb, Vec<ChunkKey>) {
+    let identity = brickworld::engine::world_config::WorldConfig::load(cfg)
+        .unwrap()
+        .identity();
+    let (db, _) = WorldDb::open(state, &identity).unwrap();
+    let mut keys = db.chunk_keys().unwrap();
+    keys.sort_by_key(|k| k.0.to_array());
+    (db, keys)
+}
+
+/// Regression (audit): "a commit writes only what changed" was tested on a
+/// world of one chunk, where writing every chunk passes too. Here the world
+/// has 8 chunks and 8 chunk columns, and rain falls on one of each.
+#[test]
+fn a_commit_of_a_world_of_many_chunks_writes_only_the_chunks_that_changed() {
+    let (cfg, state, _) = wide_world("commitpart", 48);
+    hash_at(&cfg, &state, 20);
+    let (db, keys) = stored_keys(&cfg, &state);
+    assert_eq!(
+        keys,
+        vec![ChunkKey(IVec3::ZERO)],
+        "only the rained-on chunk"
+    );
+    let columns = db.column_keys().unwrap();
+    assert_eq!(columns, vec![ColumnKey(IVec2::ZERO)], "{columns:?}");
+    drop(db);
+    // A resume and more ticks: still only that chunk.
+    hash_at(&cfg, &state, 40);
+    assert_eq!(stored_keys(&cfg, &state).1, vec![ChunkKey(IVec3::ZERO)]);
+}
+
+/// Regression (audit): "only the corrupt chunk is regenerated" was tested
+/// on a world of one chunk. With two stored chunks, the sound one is
+/// restored from the store (its blob is not rewritten, its water is kept)
+/// and only the corrupt one is regenerated and written again.
+#[test]
+fn of_two_stored_chunks_only_the_corrupt_one_is_regenerated() {
+    let (cfg, state, addr) = wide_world("corrupttwo", 112);
+    hash_at(&cfg, &state, 20);
+    let (db, keys) = stored_keys(&cfg, &state);
+    assert_eq!(
+        keys,
+        vec![ChunkKey(IVec3::ZERO), ChunkKey(IVec3::new(1, 0, 0))],
+        "the region spans two chunks"
+    );
+    let sound_before = db.chunk(keys[1]).unwrap().unwrap();
+    drop(db);
+    let bad = corrupt_first_chunk(&state);
+    assert_eq!(bad, keys[0]);
+    let (db, _) = stored_keys(&cfg, &state);
+    let corrupt = db.chunk(keys[0]).unwrap().unwrap();
+    drop(db);
+    // Start paused (no step changes a chunk), then stop: the final commit
+    // writes what the resume marked dirty.
+    let child = Daemon(Some(
+        run_cmd(&cfg, &state)
+            .arg("--paused")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap(),
+    ));
+    wait_ready(&addr);
+    let out = stop(child);
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("is corrupt").count(), 1, "{err}");
+    assert!(err.contains(&format!("{bad} is corrupt")), "{err}");
+    let (db, after) = stored_keys(&cfg, &state);
+    assert_eq!(after, keys);
+    assert_eq!(
+        db.chunk(keys[1]).unwrap().unwrap(),
+        sound_before,
+        "the sound chunk is neither regenerated nor rewritten"
+    );
+    assert_ne!(
+        db.chunk(keys[0]).unwrap().unwrap(),
+        corrupt,
+        "the corrupt chunk is regenerated and written again"
+    );
+    drop(db);
+    let err = stderr_of_ticks(&cfg, &state, 1);
+    assert!(!err.contains("is corrupt"), "{err}");
+}
