@@ -292,6 +292,17 @@ fn pathological_patterns_and_huge_strings_are_stopped() {
     assert!(e.contains("memory") || e.contains("not enough"), "{e}");
 }
 
+/// The sandbox's documented defaults (docs/lua-api.md): 64 MiB, 20 million
+/// instructions and 5 s per kernel call (audit: every other test uses
+/// smaller limits, so a changed default went unnoticed).
+#[test]
+fn the_default_limits_are_the_documented_ones() {
+    let l = Limits::default();
+    assert_eq!(l.memory, 64 << 20);
+    assert_eq!(l.instructions, 20_000_000);
+    assert_eq!(l.time, std::time::Duration::from_secs(5));
+}
+
 /// Regression (hostile probe): `pcall` caught the allocator's "not enough
 /// memory" and the kernel went on, so whether a step failed depended on the
 /// garbage its VM had not collected yet. Out-of-memory errors now pass
@@ -311,6 +322,12 @@ fn running_out_of_memory_cannot_be_caught() {
         (
             "handler",
             "local ok = xpcall(function() error(\"x\") end, function(e) return string.rep(\"y\", 64 * 1024 * 1024) end)",
+        ),
+        // The docs: `error("not enough memory")` is taken for the real
+        // thing (audit: no case).
+        (
+            "forged",
+            "local ok = pcall(error, \"not enough memory\") assert(false, \"caught\")",
         ),
     ] {
         let mut sim = sim_with(&[script(name, body)]);
@@ -694,6 +711,9 @@ fn a_kernel_cannot_keep_state_in_its_context_tables() {
         ("inw", "local w = c.w; w.n = (w.n or 0) + 1"),
         ("inr", "c.r.n = 1"),
         ("inc", "c.n = 1"),
+        // Audit: the parameter and material tables had no case.
+        ("inp", "c.p.n = 1"),
+        ("inm", "c.m.n = 1"),
         ("drop", "c.w.drop_v = nil"),
         ("meta", "setmetatable(c.w, {})"),
     ] {

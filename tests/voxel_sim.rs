@@ -507,3 +507,93 @@ fn a_native_kernel_is_refused_for_a_script_it_does_not_match() {
     assert!(e.to_string().contains("channels"), "{e}");
     assert_eq!(sim.script_count(), 0);
 }
+
+/// A voxel script `name` of one pass, reading `reads` and writing
+/// `writes`, with `decl` added to its declarations.
+fn one_pass(name: &str, decl: &str, reads: &str, writes: &str, body: &str) -> ScriptSource {
+    ScriptSource {
+        name: name.into(),
+        text: format!(
+            r#"return {{
+          grid = "voxels", {decl}
+          passes = {{ {{ name = "p", reads = {{ {reads} }}, writes = {{ {writes} }},
+            kernel = function(c, bx, by, bz)
+              {body}
+            end }} }},
+        }}"#
+        )
+        .into(),
+    }
+}
+
+/// Audit: `sky = true` runs on the top layer of bricks only, and outside
+/// the world the halo reads 255; neither had a test.
+#[test]
+fn a_sky_script_runs_on_the_top_layer_only_and_the_halo_outside_reads_255() {
+    let reg = shipped_registry();
+    let stone = reg.id("stone").unwrap();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.take_modified();
+    // 2 × 4 × 2 bricks of air.
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 32, 16), 1);
+    // Each brick it runs on marks its voxel (0, 0, 0) with stone if the
+    // halo beyond its x = -1 face reads 255, else its voxel (1, 0, 0).
+    let sky = one_pass(
+        "sky",
+        r#"sky = true, materials = { "stone" },"#,
+        r#""mat""#,
+        r#""mat""#,
+        r#"local i = buffer.readu8(c.r.mat, 0 + 1 * 10 + 1 * 100) == 255 and 0 or 1
+              buffer.writeu8(c.w.mat, i, c.m.stone)"#,
+    );
+    sim.add_script(sky, Limits::default(), &reg).unwrap();
+    let r = sim.step(&mut store, &reg, 0.05);
+    assert!(r.errors.is_empty(), "{:?}", r.errors);
+    for bx in 0..2 {
+        for by in 0..4 {
+            for bz in 0..2 {
+                let o = IVec3::new(bx, by, bz) * 8;
+                let marked = [store.voxel(o) == stone, store.voxel(o + IVec3::X) == stone];
+                let expect = match (by, bx) {
+                    (3, 0) => [true, false], // the world's edge: 255
+                    (3, _) => [false, true], // a neighbour brick: air
+                    _ => [false, false],     // not the top layer: not run
+                };
+                assert_eq!(marked, expect, "brick ({bx}, {by}, {bz})");
+            }
+        }
+    }
+}
+
+/// Audit: a step that changes a `conserved` channel's total is rejected,
+/// and `fills` sets the channel to 1 wherever its material is; neither had
+/// a test.
+#[test]
+fn conserved_channels_reject_a_step_that_changes_their_total_and_fills_fill() {
+    let reg = shipped_registry();
+    let water = reg.id("water").unwrap();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::new(2, 2, 2), IVec3::new(5, 4, 5), water);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 16, 16), 1);
+    let leak = one_pass(
+        "leak",
+        r#"channels = { "q" }, materials = { "water" }, conserved = { "q" }, fills = { q = "water" },"#,
+        r#""q""#,
+        r#""q""#,
+        r#"if bx == 0 and by == 0 and bz == 0 then
+                buffer.writef32(c.w.q, 0, buffer.readf32(c.r.q, (1 + 10 + 100) * 4) + 0.5)
+              end"#,
+    );
+    sim.add_script(leak, Limits::default(), &reg).unwrap();
+    sim.apply_fills(&store, &reg);
+    let q = sim.channels_mut().channel("q");
+    assert_eq!(sim.channels().total(q), 18.0, "3 × 2 × 3 water voxels");
+    let filled = sim.channels().get(q, IVec3::ZERO).copied().unwrap();
+    assert_eq!(filled[2 + 2 * 8 + 2 * 64], 1.0);
+    assert_eq!(filled[1 + 2 * 8 + 2 * 64], 0.0);
+    let r = sim.step(&mut store, &reg, 0.05);
+    let msg = format!("{:?}", r.errors);
+    assert!(!r.errors.is_empty() && msg.contains("q"), "{msg}");
+    assert_eq!(sim.channels().total(q), 18.0, "the step was not applied");
+}
