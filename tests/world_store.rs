@@ -973,3 +973,64 @@ fn of_two_stored_chunks_only_the_corrupt_one_is_regenerated() {
     let err = stderr_of_ticks(&cfg, &state, 1);
     assert!(!err.contains("is corrupt"), "{err}");
 }
+
+/// Audit: a state blob that fails its checksum stops the resume with a
+/// clear error (the chunks are intact, the state of their tick is gone),
+/// and leaves the store as it was; no test covered it.
+#[test]
+fn a_corrupt_state_blob_stops_the_resume_and_is_left_alone() {
+    use redb::{ReadableDatabase, TableDefinition};
+    const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
+    let (cfg, state, _) = setup("badstate");
+    hash_at(&cfg, &state, 20);
+    let path = state.join("world.redb");
+    let read_state = || {
+        let db = redb::Database::open(&path).unwrap();
+        let tx = db.begin_read().unwrap();
+        let t = tx.open_table(META).unwrap();
+        t.get("state")
+            .unwrap()
+            .expect("a state blob")
+            .value()
+            .to_vec()
+    };
+    let mut blob = read_state();
+    let n = blob.len();
+    blob[n / 2] ^= 0x55;
+    {
+        let db = redb::Database::open(&path).unwrap();
+        let tx = db.begin_write().unwrap();
+        tx.open_table(META)
+            .unwrap()
+            .insert("state", &blob[..])
+            .unwrap();
+        tx.commit().unwrap();
+    }
+    let chunks = stored_keys(&cfg, &state).1;
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "5"])
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(&out, "a corrupt state blob", "state");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    // Left as it was, for a backup or a repair: the same blob, the same
+    // chunks.
+    assert!(read_state() == blob, "the state blob was replaced");
+    assert_eq!(stored_keys(&cfg, &state).1, chunks);
+}
+
+/// Audit: a changed world config (not a different world) is reported and
+/// the world still resumes from its store; no test covered it.
+#[test]
+fn a_changed_config_is_reported_and_the_world_still_resumes() {
+    let (cfg, state, _) = setup("confchange");
+    hash_at(&cfg, &state, 20);
+    edit_config(&cfg, "every = 5", "every = 7");
+    let (said, err) = run_ok(&cfg, &state, "--ticks", 3);
+    assert!(
+        err.contains("the world config changed since this world was created"),
+        "{err}"
+    );
+    assert!(said.contains("stopped at tick 23 "), "{said}");
+}
