@@ -479,7 +479,18 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
             assert!(t.elapsed() < Duration::from_secs(30), "no steps");
             std::thread::sleep(Duration::from_millis(20));
         }
-        assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+        // Through `ctl`, which exits 0 once the engine applied it (audit:
+        // no test ran ctl's success path against an engine).
+        let ctl = |args: &[&str]| {
+            let out = common::cli::bin()
+                .args(["ctl", "--addr", &addr, "--state"])
+                .arg(&state)
+                .args(args)
+                .output()
+                .unwrap();
+            assert_success(&out);
+        };
+        ctl(&["pause"]);
         let paused = |addr: &str| {
             let t = Instant::now();
             loop {
@@ -493,7 +504,27 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
         };
         let mut tick = paused(&addr);
         if tick.is_multiple_of(40) {
-            assert_eq!(post(&addr, &state, "/step", "1").0, 200);
+            ctl(&["step", "1"]);
+            while status(&addr)["tick"].as_u64().unwrap() == tick {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            tick = paused(&addr);
+        }
+        ctl(&["param", "water", "rain", "0.3"]);
+        if sig == "-TERM" {
+            // `ctl commit` exits 0 once the commit is written.
+            ctl(&["commit"]);
+            // (/status shows it once the engine publishes, just after.)
+            let t = Instant::now();
+            while status(&addr)["last_commit"]["tick"] != tick {
+                assert!(
+                    t.elapsed() < Duration::from_secs(10),
+                    "ctl commit wrote nothing"
+                );
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            // One more step, so that only the final commit can hold it.
+            ctl(&["step", "1"]);
             while status(&addr)["tick"].as_u64().unwrap() == tick {
                 std::thread::sleep(Duration::from_millis(20));
             }

@@ -498,6 +498,18 @@ fn fault_15_a_second_daemon_on_one_state_directory_exits_clearly() {
     );
     assert!(String::from_utf8_lossy(&out.stderr).contains(&state.display().to_string()));
     assert_eq!(token(&state), tok, "the second daemon touched the token");
+    // So does an export while the engine runs (audit: no test), writing
+    // nothing.
+    let backup = state.parent().unwrap().join("live.bwc");
+    let out = common::cli::bin()
+        .args(["export", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&state)
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(&out, "an export", "in use by another brickworld engine");
+    assert!(!backup.exists(), "the export wrote a file");
     assert_success(&stop(d));
 }
 
@@ -1162,14 +1174,19 @@ fn a_full_command_queue_answers_503() {
     wait_ready(&addr);
     // The commit stalls the engine's loop; its verdict waits 3 s: 202.
     assert_eq!(post(&addr, &state, "/commit", "").0, 202);
+    // A parameter change the engine has not decided within 3 s: 202
+    // (audit: no test); it waits in the queue.
+    let (code, body) = post(&addr, &state, "/scripts/water/params", "{\"rain\": 0.5}");
+    assert_eq!(code, 202, "{body}");
     let mut codes = Vec::new();
     for _ in 0..1100 {
         codes.push(post(&addr, &state, "/pause", "").0);
     }
     let ok = codes.iter().filter(|&&c| c == 200).count();
     let full = codes.iter().filter(|&&c| c == 503).count();
-    // The commit's own command was taken off the queue before it stalled.
-    assert_eq!(ok, 1024, "{codes:?}");
-    assert_eq!(full, 1100 - 1024, "{codes:?}");
+    // The commit's own command was taken off the queue before it stalled;
+    // the parameter change holds one place.
+    assert_eq!(ok, 1023, "{codes:?}");
+    assert_eq!(full, 1100 - 1023, "{codes:?}");
     drop(d); // killed: the stalled commit never lands
 }

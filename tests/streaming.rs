@@ -267,6 +267,18 @@ fn the_store_overlay_shows_what_a_moving_region_left_behind() {
     // Heavy rain: water reaches a voxel within a few ticks.
     common::daemon::edit_config(&cfg, "rain = 0.5", "rain = 10.0");
     run_ok(&cfg, &state, "--until-tick", 40);
+    // Such a world cannot be exported: its backup is the store file
+    // (audit: the refusal had no test).
+    let backup = state.with_file_name("moving.bwc");
+    let out = common::cli::bin()
+        .args(["export", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert_clear_failure(&out, "an export of a moving region", "world.redb");
+    assert!(!backup.exists(), "the export wrote a file");
     let world = brickworld::engine::world_config::WorldConfig::load(&cfg).unwrap();
     let (db, _) = brickworld::persist::WorldDb::open(&state, &world.identity()).unwrap();
     let (gen_, _) = brickworld::engine::streaming::generator(&world).unwrap();
