@@ -890,8 +890,10 @@ fn a_failed_sim_leaves_its_out_file_alone() {
     .unwrap();
     let out = tmp("kept.png");
     std::fs::write(&out, "not overwritten").unwrap();
-    expect_failure(
-        &[
+    // Not bad input: the run happened, so its report comes before the one
+    // error line, and the exit status is 1.
+    let run = bin()
+        .args([
             "sim",
             "--script",
             script.to_str().unwrap(),
@@ -901,8 +903,16 @@ fn a_failed_sim_leaves_its_out_file_alone() {
             "16x16x16",
             "--out",
             out.to_str().unwrap(),
-        ],
-        "no image was written",
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{err}");
+    common::cli::assert_no_panic(&err, "sim");
+    let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error:")).collect();
+    assert!(
+        errors.len() == 1 && errors[0].contains("no image was written"),
+        "{err}"
     );
     assert_eq!(std::fs::read_to_string(&out).unwrap(), "not overwritten");
 }

@@ -310,6 +310,34 @@ fn ctl_params_reads_values_and_ctl_log_prints_a_scripts_lines_once() {
     stop(d);
 }
 
+/// Whether the event stream on `s` ends within `limit`: the connection
+/// closes, or the chunked body's last chunk arrives.
+fn stream_ended(s: &mut TcpStream, limit: Duration) -> bool {
+    let t = Instant::now();
+    let mut seen = Vec::new();
+    let mut b = [0u8; 4096];
+    while t.elapsed() < limit {
+        s.set_read_timeout(Some(Duration::from_millis(100)))
+            .unwrap();
+        match s.read(&mut b) {
+            Ok(0) => return true,
+            Ok(n) => {
+                seen.extend_from_slice(&b[..n]);
+                if seen.windows(5).any(|w| w == b"0\r\n\r\n") {
+                    return true;
+                }
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) => {}
+            Err(_) => return true,
+        }
+    }
+    false
+}
+
 /// Viewers that never read their stream do not slow the engine or shut out
 /// other requests or viewers: past the viewer limit a new stream takes the
 /// longest-connected one's slot (regression: sixteen streams that never read
@@ -340,13 +368,24 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
         "{}",
         String::from_utf8_lossy(&b[..n])
     );
+    // The longest-connected stream was ended (its chunked body closed or
+    // the connection dropped), a newer one was not (audit: not checked).
+    assert!(
+        stream_ended(&mut stalled[0], Duration::from_secs(10)),
+        "the oldest stream was not ended"
+    );
+    assert!(
+        !stream_ended(&mut stalled[1], Duration::from_millis(500)),
+        "a newer stream was ended"
+    );
     assert_eq!(post(&addr, &state, "/resume", "").0, 200);
     let t0 = status(&addr)["tick"].as_u64().unwrap();
     std::thread::sleep(Duration::from_secs(2));
     let t1 = status(&addr)["tick"].as_u64().unwrap();
     assert!(t1 > t0 + 5, "the engine stalled: tick {t0} then {t1}");
     assert_eq!(post(&addr, &state, "/pause", "").0, 200);
-    // Closing them frees the slots.
+    // A stream opens once they close (that their slots are freed, rather
+    // than taken by eviction, is `live`'s unit test).
     drop(stalled);
     let t = Instant::now();
     loop {

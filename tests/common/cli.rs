@@ -41,12 +41,20 @@ pub fn assert_no_panic(text: &str, what: &str) {
     );
 }
 
-/// A failed run must exit non-zero with one clear line mentioning `needle`,
-/// never a panic or a backtrace.
+/// A failed run must exit with status 1 and one clear error line mentioning
+/// `needle` (warnings before it allowed), never a panic or a backtrace, as
+/// the README promises (regression, audit: only a non-zero exit was
+/// checked).
 pub fn assert_clear_failure(out: &Output, what: &str, needle: &str) {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{what} should fail");
+    assert_eq!(out.status.code(), Some(1), "{what}: exit status, {err}");
     assert_no_panic(&err, what);
+    let lines: Vec<&str> = err
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.starts_with("warning:"))
+        .collect();
+    assert_eq!(lines.len(), 1, "{what}: one error line, got {err}");
     assert!(
         err.contains(needle),
         "{what}: '{err}' should mention '{needle}'"

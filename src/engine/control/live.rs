@@ -376,6 +376,62 @@ pub fn stream(shared: Arc<Shared>, slot: ViewerSlot) -> EventBody {
 mod tests {
     use super::*;
 
+    /// Whether `slot`'s stream was told to end (without waiting).
+    async fn told_to_end(slot: &ViewerSlot) -> bool {
+        tokio::time::timeout(Duration::from_millis(1), slot.stop.notified())
+            .await
+            .is_ok()
+    }
+
+    /// Audit: "closing a stream frees its slot" could not fail in the
+    /// viewer test, where a new stream takes the oldest one's slot anyway.
+    /// Here: a closed stream's slot is taken with no one told to end; past
+    /// the limit exactly the longest-connected stream is told.
+    #[test]
+    fn a_closed_streams_slot_is_free_and_past_the_limit_the_oldest_is_told_to_end() {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_time()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let viewers = Arc::new(Viewers::default());
+            let mut slots = Vec::new();
+            for _ in 0..MAX_VIEWERS {
+                slots.push(viewers.admit().await.expect("a free slot"));
+            }
+            // Two streams close: two new ones take their slots, and no
+            // stream is told to end.
+            slots.remove(3);
+            slots.remove(7);
+            for _ in 0..2 {
+                slots.push(viewers.admit().await.expect("a freed slot"));
+            }
+            for (i, s) in slots.iter().enumerate() {
+                assert!(!told_to_end(s).await, "stream {i} was told to end");
+            }
+            // One more: the longest-connected stream is told to end, and
+            // its slot passes on once it does.
+            let oldest_id = slots[0].id;
+            let next = {
+                let v = viewers.clone();
+                tokio::spawn(async move { v.admit().await.map(|s| s.id) })
+            };
+            tokio::task::yield_now().await;
+            assert!(told_to_end(&slots[0]).await, "the oldest was not told");
+            for s in &slots[1..] {
+                assert!(!told_to_end(s).await);
+            }
+            assert!(!next.is_finished(), "admitted before a slot was free");
+            let oldest = slots.remove(0);
+            assert_eq!(oldest.id, oldest_id);
+            drop(oldest);
+            assert!(
+                next.await.unwrap().is_some(),
+                "the freed slot was not taken"
+            );
+        });
+    }
+
     #[test]
     fn the_camera_lease_holds_off_other_viewers_until_it_lapses() {
         let mut l = CameraLease::default();
