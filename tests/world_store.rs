@@ -1034,3 +1034,73 @@ fn a_changed_config_is_reported_and_the_world_still_resumes() {
     );
     assert!(said.contains("stopped at tick 23 "), "{said}");
 }
+
+/// Audit: "writing resumes when there is room" had no test (the disk limit
+/// was fixed for the whole run). The limit is now read from a file at each
+/// write: the disk fills, the engine runs on and reports it, room is made,
+/// and the next commit writes everything since the last good one.
+#[test]
+fn writing_resumes_when_the_full_disk_has_room_again() {
+    let (cfg, state, addr) = setup("diskroom");
+    edit_config(&cfg, "rain = 0.2", "rain = 2.0");
+    edit_config(&cfg, "[checkpoint]\nevery = 40", "[checkpoint]\nevery = 10");
+    hash_at(&cfg, &state, 20);
+    let size = std::fs::metadata(state.join("world.redb")).unwrap().len();
+    let limit = state.with_file_name("disk-limit");
+    std::fs::write(&limit, size.to_string()).unwrap();
+    let d = Daemon(Some(
+        run_cmd(&cfg, &state)
+            .env(
+                "BRICKWORLD_TEST_DISK_LIMIT",
+                format!("@{}", limit.display()),
+            )
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap(),
+    ));
+    wait_ready(&addr);
+    let wait_for = |what: &str, ok: &dyn Fn(&serde_json::Value) -> bool| {
+        let t = std::time::Instant::now();
+        loop {
+            let s = status(&addr);
+            if ok(&s) {
+                return s;
+            }
+            assert!(
+                t.elapsed() < std::time::Duration::from_secs(60),
+                "{what}: {s}"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    };
+    let full = wait_for("the disk fills", &|s| s["commit_error"].is_string());
+    assert!(
+        full["commit_error"]
+            .as_str()
+            .unwrap()
+            .contains("No space left"),
+        "{full}"
+    );
+    let stuck = full["last_commit"]["tick"].as_u64().unwrap_or(20);
+    std::fs::write(&limit, u64::MAX.to_string()).unwrap();
+    let s = wait_for("writing resumes", &|s| {
+        s["commit_error"].is_null() && s["last_commit"]["tick"].as_u64().unwrap_or(0) > stuck
+    });
+    assert!(s["tick"].as_u64().unwrap() > stuck);
+    let out = stop(d);
+    let (said, err) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("committing again: nothing was lost"), "{err}");
+    // The final commit holds the tick the engine stopped at.
+    let stopped: u64 = said
+        .split("stopped at tick ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|t| t.parse().ok())
+        .unwrap_or_else(|| panic!("{said}"));
+    assert_eq!(stored_tick(&cfg, &state), Some(stopped));
+}

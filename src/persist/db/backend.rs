@@ -6,14 +6,39 @@ use std::path::Path;
 
 use super::STORE_CACHE_BYTES;
 
+/// Where the test disk's size comes from.
+#[derive(Debug)]
+enum Limit {
+    /// A fixed number of bytes.
+    Bytes(u64),
+    /// The number of bytes written in this file, read at every write, so a
+    /// test can make room while the engine runs (unreadable: no limit).
+    File(std::path::PathBuf),
+}
+
+impl Limit {
+    fn bytes(&self) -> u64 {
+        match self {
+            Limit::Bytes(b) => *b,
+            Limit::File(p) => std::fs::read_to_string(p)
+                .ok()
+                .and_then(|t| t.trim().parse().ok())
+                .unwrap_or(u64::MAX),
+        }
+    }
+}
+
 /// `BRICKWORLD_TEST_DISK_LIMIT`: the store's file cannot grow past this many
-/// bytes, as on a full disk (writes past it fail with "No space left on
-/// device"), so the tests can fill the disk without filling the machine's.
-/// Unset in normal use.
-fn disk_limit() -> Option<u64> {
-    std::env::var("BRICKWORLD_TEST_DISK_LIMIT")
-        .ok()
-        .and_then(|v| v.parse().ok())
+/// bytes (or, given as `@FILE`, the number FILE holds at each write), as on
+/// a full disk (writes past it fail with "No space left on device"), so the
+/// tests can fill the disk without filling the machine's, and make room
+/// again. Unset in normal use.
+fn disk_limit() -> Option<Limit> {
+    let v = std::env::var("BRICKWORLD_TEST_DISK_LIMIT").ok()?;
+    match v.strip_prefix('@') {
+        Some(file) => Some(Limit::File(file.into())),
+        None => v.parse().ok().map(Limit::Bytes),
+    }
 }
 
 /// Open (or create) the database file, on a limited disk under the test
@@ -42,12 +67,12 @@ pub(super) fn open_db(path: &Path) -> Result<redb::Database, redb::Error> {
 #[derive(Debug)]
 struct DiskLimit {
     inner: redb::backends::FileBackend,
-    limit: u64,
+    limit: Limit,
 }
 
 impl DiskLimit {
     fn check(&self, end: u64) -> std::io::Result<()> {
-        if end > self.limit {
+        if end > self.limit.bytes() {
             return Err(std::io::Error::new(
                 std::io::ErrorKind::StorageFull,
                 "No space left on device (test disk limit)",
