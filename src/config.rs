@@ -567,6 +567,16 @@ impl SimSettings {
 mod tests {
     use super::*;
 
+    /// The documented bounds of `C`, at their edges (audit: only 1e9 and
+    /// 1e-50 were tried).
+    #[test]
+    fn lod_c_accepts_its_bounds_and_refuses_just_past_them() {
+        assert!(lod_c("--lod", 0.01).is_ok());
+        assert!(lod_c("--lod", 256.0).is_ok());
+        assert!(lod_c("--lod", 0.0099).is_err());
+        assert!(lod_c("--lod", 256.001).is_err());
+    }
+
     #[test]
     fn sizes_parse_and_bad_ones_name_the_flag() {
         assert_eq!(

@@ -359,6 +359,8 @@ fn voxel_scripts_hash_is_pinned_and_thread_independent() {
     assert_eq!(four_scripts_hash(1), PINNED);
     assert_eq!(four_scripts_hash(2), PINNED);
     assert_eq!(four_scripts_hash(4), PINNED);
+    // The README's table says 8 too (audit).
+    assert_eq!(four_scripts_hash(8), PINNED);
 }
 
 /// water3d's native reference (`bench voxels` divides by it) is the same
