@@ -436,3 +436,54 @@ fn a_script_with_nothing_awake_is_shown_sleeping() {
     }
     stop(d);
 }
+
+/// Audit: "`status` events at most every 250 ms and only when it changed"
+/// had no test. A running engine's status changes every step: over 2 s a
+/// stream gets at most 2 / 0.25 + 1 of them (and a few at least). A paused
+/// engine's does not change: one event, then one only when the process's
+/// RSS moved, never the same status twice.
+#[test]
+fn status_events_come_at_most_every_250_ms_and_only_when_it_changed() {
+    let (cfg, state, addr) = setup("viewer-throttle");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let count =
+        |seen: &[(String, serde_json::Value)]| seen.iter().filter(|(k, _)| k == "status").count();
+    let t = Instant::now();
+    let running = count(&events(&addr, |_| t.elapsed() > Duration::from_secs(2)));
+    let most = (t.elapsed().as_millis() / 250 + 1) as usize;
+    assert!(
+        (3..=most).contains(&running),
+        "{running} status events (at most {most})"
+    );
+    assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    let settled = Instant::now();
+    while status(&addr)["paused"] != true && settled.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let t = Instant::now();
+    let seen = events(&addr, |_| t.elapsed() > Duration::from_millis(1500));
+    let shown: Vec<&serde_json::Value> = seen
+        .iter()
+        .filter(|(k, _)| k == "status")
+        .map(|(_, v)| v)
+        .collect();
+    // Sent once, then again only when something changed: while paused only
+    // the process's RSS can (it is sampled, not stepped).
+    assert!(!shown.is_empty() && shown.len() <= 7, "{shown:#?}");
+    for pair in shown.windows(2) {
+        assert_ne!(pair[0], pair[1], "the same status was sent twice");
+        let strip = |v: &serde_json::Value| {
+            let mut v = v.clone();
+            v.as_object_mut().unwrap().remove("rss_bytes");
+            v
+        };
+        assert_eq!(
+            strip(pair[0]),
+            strip(pair[1]),
+            "a paused engine's status changed"
+        );
+    }
+    stop(d);
+}

@@ -599,3 +599,32 @@ fn conserved_channels_reject_a_step_that_changes_their_total_and_fills_fill() {
     assert!(!r.errors.is_empty() && msg.contains("q"), "{msg}");
     assert_eq!(sim.channels().total(q), 18.0, "the step was not applied");
 }
+
+/// Audit: a voxel channel written outside its declared range rejects the
+/// step with an error naming the channel and the brick; no test covered it.
+#[test]
+fn a_voxel_channel_outside_its_range_is_refused_naming_the_brick() {
+    let reg = shipped_registry();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    // A stone voxel in brick (1, 0, 1), so that it is a brick that runs.
+    store.set_voxel(IVec3::new(9, 1, 9), STONE);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 16, 16), 1);
+    let over = one_pass(
+        "over",
+        r#"channels = { "q" }, ranges = { q = { 0, 1 } },"#,
+        r#""q""#,
+        r#""q""#,
+        r#"if bx == 1 and by == 0 and bz == 1 then buffer.writef32(c.w.q, 0, 2) end"#,
+    );
+    sim.add_script(over, Limits::default(), &reg).unwrap();
+    let r = sim.step(&mut store, &reg, 0.05);
+    assert_eq!(r.errors.len(), 1, "{:?}", r.errors);
+    let msg = r.errors[0].to_string();
+    assert!(
+        msg.contains("channel 'q' = 2") && msg.contains("brick (1, 0, 1)"),
+        "{msg}"
+    );
+    let q = sim.channels_mut().channel("q");
+    assert_eq!(sim.channels().total(q), 0.0, "the step was not applied");
+}
