@@ -6,6 +6,7 @@
 //! Vulkan). With no adapter at all, [`GpuContext::new`] returns
 //! [`GpuError::NoAdapter`] and callers fall back to the CPU tracer.
 
+mod frame;
 mod stream;
 mod tracer;
 

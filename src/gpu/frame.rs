@@ -1,0 +1,276 @@
+//! One GPU frame: the parameters block, the dispatch of the beam pass and
+//! the tracer, the readback of pixels and feedback, and (when streaming)
+//! the uploads the frame's rays asked for.
+
+use bytemuck::{Pod, Zeroable};
+use glam::{DVec3, IVec3};
+use wgpu::util::DeviceExt;
+
+use super::stream::FrameStats;
+use super::tracer::{GpuBrickmap, REQUESTED, STATE_MASK, l4_offset};
+use super::{GpuContext, GpuError, GpuFrame};
+use crate::trace::{Camera, Frame, RenderOptions};
+use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool};
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Params {
+    eye: [f32; 3],
+    tan_half: f32,
+    f: [f32; 3],
+    aspect: f32,
+    r: [f32; 3],
+    ambient: f32,
+    u: [f32; 3],
+    shadows: u32,
+    light: [f32; 3],
+    width: u32,
+    pub(super) dims: [i32; 3],
+    height: u32,
+    anchor: [i32; 3],
+    pub(super) frame: u32,
+    pub(super) feedback_capacity: u32,
+    /// The grid's ring (physical cell of local brick 0), for toroidal
+    /// addressing of a sliding grid.
+    ring: [i32; 3],
+    /// Distance fog extent in voxels (0: none).
+    fog: f32,
+    /// Level of detail: `C ·` pixel angle (0: exact).
+    lod_k: f32,
+    /// Word offset of level 4 in the coarse buffer (level 5 is first).
+    l4_offset: u32,
+    /// Ambient occlusion on (1) or off (0).
+    ao: u32,
+    /// Where primary rays pass in each pixel (0.5, 0.5: the centre).
+    jitter: [f32; 2],
+    /// Beam starts on (1) or off (0).
+    beam: u32,
+    pad2: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable, Debug)]
+struct PixelOut {
+    rgba: u32,
+    depth: f32,
+    vx: i32,
+    vy: i32,
+    vz: i32,
+    normal: u32,
+}
+
+impl GpuBrickmap {
+    /// Render one frame; when streaming, then upload what rays asked for.
+    /// `grid` and `pool` are the world's (the source of streamed bricks).
+    pub fn render(
+        &mut self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        opts: &RenderOptions,
+        grid: &BrickGrid,
+        pool: &BrickPool,
+    ) -> Result<(GpuFrame, FrameStats), GpuError> {
+        self.frame_no += 1;
+        // A sliding grid moves its origin; its buffers are addressed
+        // physically, through the ring.
+        self.frame = Frame {
+            anchor: grid.origin() << BRICK_SHIFT,
+        };
+        let dev = &ctx.device;
+        let (w, h) = (camera.width, camera.height);
+        let f = (camera.target - camera.eye).normalize();
+        let r = f.cross(DVec3::Y).normalize();
+        let u = r.cross(f);
+        let params = Params {
+            eye: self.frame.to_local(camera.eye).to_array(),
+            tan_half: (camera.fov_deg.to_radians() * 0.5).tan() as f32,
+            f: f.as_vec3().to_array(),
+            aspect: w as f32 / h as f32,
+            r: r.as_vec3().to_array(),
+            ambient: opts.shading.ambient,
+            u: u.as_vec3().to_array(),
+            shadows: opts.shadows as u32,
+            light: opts.shading.light.to_array(),
+            width: w,
+            dims: self.dims.to_array(),
+            height: h,
+            anchor: self.frame.anchor.to_array(),
+            frame: self.frame_no,
+            feedback_capacity: self.feedback_capacity,
+            ring: grid.ring().to_array(),
+            fog: opts.fog,
+            lod_k: opts.lod * camera.pixel_angle() as f32,
+            l4_offset: l4_offset(grid),
+            ao: opts.ao as u32,
+            jitter: opts.jitter.unwrap_or([0.5, 0.5]).map(|v| v as f32),
+            beam: opts.beam as u32,
+            pad2: 0,
+        };
+        ctx.queue
+            .write_buffer(&self.feedback, 0, bytemuck::bytes_of(&0u32));
+        let pixels = w as u64 * h as u64;
+        let out_size = pixels * std::mem::size_of::<PixelOut>() as u64;
+        // Checked before any buffer exists: past the binding limit wgpu
+        // fails validation with a panic (regression: 3840×2160 on lavapipe).
+        let limit = ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size);
+        if out_size > limit {
+            return Err(GpuError::FrameTooLarge {
+                width: w,
+                height: h,
+                needed: out_size,
+                limit,
+            });
+        }
+        let fb_size = self.feedback.size();
+        let ls_size = self.last_seen.size();
+        let uniform = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("params"),
+            contents: bytemuck::bytes_of(&params),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let out = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("pixels"),
+            size: out_size,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size: out_size + fb_size + ls_size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let (bw, bh) = (w.div_ceil(8), h.div_ceil(8));
+        let beams = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("beam starts"),
+            size: (bw * bh) as u64 * 4,
+            usage: wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
+        let buffers = [
+            &uniform,
+            &self.grid,
+            &self.coarse,
+            &self.masks,
+            &self.meta,
+            &self.arena,
+            &self.palette,
+            &out,
+            &self.feedback,
+            &self.last_seen,
+            &beams,
+        ];
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        let bind = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("brickmap"),
+            layout: &self.layout,
+            entries: &entries,
+        });
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("frame"),
+        });
+        if opts.beam {
+            // Its own pass, so that its writes are visible to the next.
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("beam starts"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.beam_pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(bw.div_ceil(8), bh.div_ceil(8), 1);
+        }
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("trace"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
+        }
+        enc.copy_buffer_to_buffer(&out, 0, &staging, 0, out_size);
+        enc.copy_buffer_to_buffer(&self.feedback, 0, &staging, out_size, fb_size);
+        enc.copy_buffer_to_buffer(&self.last_seen, 0, &staging, out_size + fb_size, ls_size);
+        ctx.queue.submit([enc.finish()]);
+        let slice = staging.slice(..);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        dev.poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Runtime(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| GpuError::Runtime(e.to_string()))?
+            .map_err(|e| GpuError::Runtime(e.to_string()))?;
+        let data = slice
+            .get_mapped_range()
+            .map_err(|e| GpuError::Runtime(e.to_string()))?;
+        let px: &[PixelOut] = bytemuck::cast_slice(&data[..out_size as usize]);
+        let fb: &[u32] =
+            bytemuck::cast_slice(&data[out_size as usize..(out_size + fb_size) as usize]);
+        let ls: &[u32] = bytemuck::cast_slice(&data[(out_size + fb_size) as usize..]);
+        let mut frame = GpuFrame {
+            width: w,
+            height: h,
+            rgb: Vec::with_capacity(pixels as usize * 3),
+            depth: Vec::with_capacity(pixels as usize),
+            hits: Vec::with_capacity(pixels as usize),
+            lod_pixels: 0,
+            lod: Vec::with_capacity(pixels as usize),
+        };
+        for p in px {
+            frame.lod.push(p.normal & 8 != 0);
+            frame
+                .rgb
+                .extend_from_slice(&[p.rgba as u8, (p.rgba >> 8) as u8, (p.rgba >> 16) as u8]);
+            if p.normal == 0 {
+                frame.depth.push(f32::INFINITY);
+                frame.hits.push(None);
+            } else {
+                let code = p.normal & 7;
+                frame.lod_pixels += (p.normal & 8 != 0) as u32;
+                frame.depth.push(p.depth);
+                let mut n = IVec3::ZERO;
+                if code != 7 {
+                    let axis = ((code - 1) / 2) as usize;
+                    n[axis] = if (code - 1) % 2 == 1 { 1 } else { -1 };
+                }
+                frame.hits.push(Some((IVec3::new(p.vx, p.vy, p.vz), n)));
+            }
+        }
+        let count = fb[0];
+        let requests: Vec<u32> = fb[1..1 + (count.min(self.feedback_capacity) as usize)].to_vec();
+        if let Some(res) = self.residency.as_mut() {
+            let n = res.last_seen.len();
+            res.last_seen.copy_from_slice(&ls[..n]);
+        }
+        drop(data);
+        staging.unmap();
+        let mut stats = FrameStats {
+            requests: requests.len() as u32,
+            overflowed: count.saturating_sub(self.feedback_capacity),
+            ..Default::default()
+        };
+        if self.residency.is_some() {
+            for &i in &requests {
+                let p = self.shadow[i as usize];
+                self.shadow[i as usize] = (p & !STATE_MASK) | REQUESTED;
+            }
+            self.serve(ctx, &requests, grid, pool, &mut stats)?;
+            stats.resident = self.resident();
+        } else {
+            stats.resident = self.slots;
+        }
+        Ok((frame, stats))
+    }
+}
