@@ -510,7 +510,32 @@ fn fault_15_a_second_daemon_on_one_state_directory_exits_clearly() {
         .unwrap();
     common::cli::assert_clear_failure(&out, "an export", "in use by another brickworld engine");
     assert!(!backup.exists(), "the export wrote a file");
+    // With the lock file deleted, a second engine gets past the lock and is
+    // refused by the store's own: it must not replace the running engine's
+    // token first (regression, hostile probe).
+    std::fs::remove_file(state.join("engine.lock")).unwrap();
+    let out = run_cmd(&cfg, &state)
+        .arg("--addr")
+        .arg(format!("127.0.0.1:{}", free_port()))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert_eq!(token(&state), tok, "the refused engine replaced the token");
     assert_success(&stop(d));
+}
+
+/// Regression (hostile probe): a symbolic link named `engine.lock` was
+/// followed, and the PID written into the lock truncated its target.
+#[test]
+fn a_linked_engine_lock_is_refused_and_its_target_left_alone() {
+    let (cfg, state, _) = setup("linklock");
+    std::fs::create_dir_all(&state).unwrap();
+    let victim = state.with_file_name("victim.txt");
+    std::fs::write(&victim, "precious").unwrap();
+    std::os::unix::fs::symlink(&victim, state.join("engine.lock")).unwrap();
+    let out = run_cmd(&cfg, &state).args(["--ticks", "2"]).output().unwrap();
+    common::cli::assert_clear_failure(&out, "a linked engine.lock", "engine.lock");
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious");
 }
 
 /// The pinned hash of the test world after 100 ticks (water at rain 0.2).

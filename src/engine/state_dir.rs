@@ -102,14 +102,29 @@ pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
     std::fs::create_dir_all(dir).map_err(ioe(dir))?;
     let path = dir.join("engine.lock");
     let not_a_file = || ioe(&path)(std::io::Error::other("not a regular file: move it away"));
-    if crate::files::is_there_but_not_a_file(&path) {
+    // A link is not followed: the PID written below truncated whatever a
+    // link named engine.lock pointed at (regression, hostile probe).
+    if crate::files::is_there_but_not_a_file(&path)
+        || std::fs::symlink_metadata(&path).is_ok_and(|m| m.file_type().is_symlink())
+    {
         return Err(not_a_file());
     }
     // Without waiting: a FIFO named engine.lock hung the start (regression).
-    let file =
-        crate::files::without_waiting(OpenOptions::new().create(true).truncate(false).write(true))
-            .open(&path)
-            .map_err(ioe(&path))?;
+    let mut options = OpenOptions::new();
+    options.create(true).truncate(false).write(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        // Non-blocking (a FIFO) and not through a link made meanwhile.
+        options.custom_flags(libc::O_NONBLOCK | libc::O_NOFOLLOW);
+    }
+    let file = options.open(&path).map_err(|e| {
+        if e.raw_os_error() == Some(libc::ELOOP) {
+            not_a_file()
+        } else {
+            ioe(&path)(e)
+        }
+    })?;
     if !file.metadata().map_err(ioe(&path))?.is_file() {
         return Err(not_a_file());
     }

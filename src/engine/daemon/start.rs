@@ -59,7 +59,6 @@ impl Engine {
         let shared = Arc::new(Shared::new(token.clone(), cfg.hosts.clone()));
         // Listen before any work: a taken port is a clear error at once.
         let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
-        let token_path = state_dir::write_token(&opts.state, &token)?;
         {
             // The first SIGINT/SIGTERM stops after the step in flight, with
             // a final checkpoint; a step still running after STOP_GRACE is
@@ -79,6 +78,10 @@ impl Engine {
             .context("cannot install the SIGINT/SIGTERM handler")?;
         }
         let mut db = open_store(&opts.state, &cfg)?;
+        // Written once the store is this engine's: a second engine refused
+        // by the store's own lock replaced the running engine's token
+        // (regression, hostile probe).
+        let token_path = state_dir::write_token(&opts.state, &token)?;
         let (mut world, stream_plan) = build_world(&cfg, &db)?;
         let follow = stream_plan
             .as_ref()
