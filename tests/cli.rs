@@ -748,7 +748,8 @@ fn fake_server(answer: fn(&mut std::net::TcpStream)) -> String {
     let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = l.local_addr().unwrap().to_string();
     std::thread::spawn(move || {
-        if let Ok((mut s, _)) = l.accept() {
+        // Each connection in turn, until the test process ends.
+        while let Ok((mut s, _)) = l.accept() {
             // Read the whole request (a GET has no body), so closing does
             // not reset the connection under the answer.
             let mut got = Vec::new();
@@ -812,6 +813,32 @@ fn ctl_refuses_answers_that_are_not_a_brickworld_engines() {
         ],
         "has not applied it yet",
     );
+    // Another server's 2xx JSON is not the engine saying it was done
+    // (regression, hostile probe: `{}` and `[]` exited 0, so `ctl commit &&
+    // backup` could back up nothing).
+    let empty_object: fn(&mut std::net::TcpStream) = |s| {
+        let _ = s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}");
+    };
+    let empty_array: fn(&mut std::net::TcpStream) = |s| {
+        let _ = s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n[]");
+    };
+    for answer in [empty_object, empty_array] {
+        let other = fake_server(answer);
+        let cmds: [&[&str]; 7] = [
+            &["commit"],
+            &["pause"],
+            &["step", "3"],
+            &["param", "water", "rain", "0.1"],
+            &["camera", "path"],
+            &["status"],
+            &["params"],
+        ];
+        for cmd in cmds {
+            let mut args = vec!["ctl", "--addr", &other, "--state", state.to_str().unwrap()];
+            args.extend_from_slice(cmd);
+            expect_failure(&args, "is it a brickworld engine");
+        }
+    }
     // A missing token: the OS's reason once (it was printed twice).
     let none = tmp("ctl-no-state");
     let out = bin()

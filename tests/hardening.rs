@@ -533,7 +533,10 @@ fn a_linked_engine_lock_is_refused_and_its_target_left_alone() {
     let victim = state.with_file_name("victim.txt");
     std::fs::write(&victim, "precious").unwrap();
     std::os::unix::fs::symlink(&victim, state.join("engine.lock")).unwrap();
-    let out = run_cmd(&cfg, &state).args(["--ticks", "2"]).output().unwrap();
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "2"])
+        .output()
+        .unwrap();
     common::cli::assert_clear_failure(&out, "a linked engine.lock", "engine.lock");
     assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious");
 }

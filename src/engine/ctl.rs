@@ -182,6 +182,24 @@ pub fn run(a: &CtlArgs) -> Result<()> {
     if !(200..300).contains(&code) {
         bail!("the engine answered {code}");
     }
+    // Only the engine's own words count as done (regression, hostile
+    // probe: any 2xx JSON, `{}` from another server, was taken for applied,
+    // so `ctl commit && backup` could back up nothing).
+    let answer: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+    let done = if method == "GET" {
+        answer.get("tick").is_some_and(|t| t.is_u64())
+    } else {
+        answer["ok"] == true
+            && (code == 202
+                || (!path.starts_with("/scripts/") && path != "/checkpoint")
+                || answer["applied"] == true)
+    };
+    if !done {
+        bail!(
+            "{} answered {code} without saying it was done: is it a brickworld engine?",
+            a.addr
+        );
+    }
     // Accepted but not yet applied (the engine is busy in a step): not a
     // success a script may build on (regression: `ctl commit && backup`
     // went ahead with nothing written).
@@ -193,13 +211,36 @@ pub fn run(a: &CtlArgs) -> Result<()> {
     Ok(())
 }
 
-/// `/status`, parsed.
+/// `/status`, parsed; it must list the scripts by name, as the engine's does.
 fn status(addr: &str) -> Result<serde_json::Value> {
     let (code, body) = request(addr, "GET", "/status", None, "")?;
     if code != 200 {
         bail!("the engine answered {code} to GET /status");
     }
-    serde_json::from_str(&body).context("the engine's /status is not JSON")
+    let st: serde_json::Value =
+        serde_json::from_str(&body).context("the engine's /status is not JSON")?;
+    let named = st["scripts"]
+        .as_array()
+        .is_some_and(|a| a.iter().all(|s| s["name"].is_string()));
+    if !named {
+        bail!("{addr}'s /status lists no scripts by name: is it a brickworld engine?");
+    }
+    Ok(st)
+}
+
+/// Text from the server as it may be printed: control characters but the
+/// tab (`log` joins its values with tabs; a terminal's escapes) shown escaped (regression, hostile probe: a name or
+/// log line could clear the screen or set the terminal's title).
+fn printable(text: &str) -> String {
+    text.chars()
+        .map(|c| {
+            if c.is_control() && c != '\t' {
+                c.escape_default().to_string()
+            } else {
+                c.to_string()
+            }
+        })
+        .collect()
 }
 
 /// The scripts in `st`, or only `only` (an unknown name is an error that
@@ -222,7 +263,7 @@ fn scripts<'a>(
 fn params(addr: &str, only: Option<&str>) -> Result<()> {
     let st = status(addr)?;
     for s in scripts(&st, only)? {
-        let name = s["name"].as_str().unwrap_or("?");
+        let name = printable(s["name"].as_str().unwrap_or("?"));
         let ps = s["params"]
             .as_array()
             .map(Vec::as_slice)
@@ -234,7 +275,7 @@ fn params(addr: &str, only: Option<&str>) -> Result<()> {
             let num = |k: &str| p[k].as_f64().map_or("?".into(), crate::sim::fmt_num);
             println!(
                 "{name}.{} = {} (default {}, range [{}, {}])",
-                p["name"].as_str().unwrap_or("?"),
+                printable(p["name"].as_str().unwrap_or("?")),
                 num("value"),
                 num("default"),
                 num("min"),
@@ -252,7 +293,7 @@ fn log(addr: &str, only: Option<&str>, follow: bool) -> Result<()> {
     loop {
         let st = status(addr)?;
         for s in scripts(&st, only)? {
-            let name = s["name"].as_str().unwrap_or("?").to_string();
+            let name = printable(s["name"].as_str().unwrap_or("?"));
             let seq = s["log_seq"].as_u64().unwrap_or(0);
             let lines: Vec<&str> = s["log"]
                 .as_array()
@@ -272,7 +313,7 @@ fn log(addr: &str, only: Option<&str>, follow: bool) -> Result<()> {
             }
             for (i, l) in lines.iter().enumerate() {
                 if first + i as u64 >= done {
-                    println!("[{name}] {l}");
+                    println!("[{name}] {}", printable(l));
                 }
             }
             printed.insert(name, seq);
@@ -289,6 +330,16 @@ fn log(addr: &str, only: Option<&str>, follow: bool) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Regression (hostile probe): names and log lines from the server
+    /// reached the terminal with their escapes.
+    #[test]
+    fn server_text_is_printed_without_its_control_characters() {
+        assert_eq!(
+            printable("a\u{1b}]0;pwn\u{7}b\tc\r"),
+            "a\\u{1b}]0;pwn\\u{7}b\tc\\r"
+        );
+    }
 
     /// Regression (review): `ctl --addr NAME:PORT` sent `Host: NAME:PORT`,
     /// which the engine's guard against DNS rebinding refuses unless the
