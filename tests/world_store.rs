@@ -1104,3 +1104,34 @@ fn writing_resumes_when_the_full_disk_has_room_again() {
         .unwrap_or_else(|| panic!("{said}"));
     assert_eq!(stored_tick(&cfg, &state), Some(stopped));
 }
+
+/// Regression (hostile probe): a state directory deleted while the engine
+/// ran went unnoticed: redb wrote every later commit into the unlinked
+/// file, `/status` showed them as made, and the stop said "stopped" with
+/// nothing on disk. The commit now fails, `/status` says why, and the stop
+/// fails with it.
+#[test]
+fn a_state_directory_deleted_while_the_engine_runs_fails_its_commits_loudly() {
+    let (cfg, state, addr) = setup("deleted");
+    edit_config(&cfg, "[checkpoint]\nevery = 40", "[checkpoint]\nevery = 5");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    std::fs::remove_dir_all(&state).unwrap();
+    let t = std::time::Instant::now();
+    loop {
+        let s = status(&addr);
+        if s["commit_error"]
+            .as_str()
+            .is_some_and(|e| e.contains("was deleted or replaced"))
+        {
+            break;
+        }
+        assert!(t.elapsed() < std::time::Duration::from_secs(30), "{s}");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let out = stop(d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains("the final commit failed"), "{err}");
+    assert!(!String::from_utf8_lossy(&out.stdout).contains("stopped at tick"));
+}

@@ -31,6 +31,7 @@ use std::collections::VecDeque;
 use std::convert::Infallible;
 use std::pin::Pin;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 
@@ -305,11 +306,34 @@ impl Drop for ViewerSlot {
     }
 }
 
+/// A connection's state as the server watches it: no event stream, a live
+/// one (which may outlive the connection lifetime), or one that ended.
+pub const STREAM_NONE: u8 = 0;
+/// See [`STREAM_NONE`].
+pub const STREAM_LIVE: u8 = 1;
+/// See [`STREAM_NONE`]: the server then closes the connection, even one
+/// whose client reads nothing (hyper would wait for ever to flush into its
+/// full socket: regression, hostile probe).
+pub const STREAM_ENDED: u8 = 2;
+
+/// Sets its connection's state to [`STREAM_ENDED`] when the stream's task
+/// ends, however it ends.
+struct Ended(Arc<AtomicU8>);
+
+impl Drop for Ended {
+    fn drop(&mut self) {
+        self.0.store(STREAM_ENDED, Ordering::Relaxed);
+    }
+}
+
 /// Start an event stream for one viewer, holding its `slot` for as long as
-/// the stream lives.
-pub fn stream(shared: Arc<Shared>, slot: ViewerSlot) -> EventBody {
+/// the stream lives; `state` is its connection's (set to
+/// [`STREAM_ENDED`] when the stream ends).
+pub fn stream(shared: Arc<Shared>, slot: ViewerSlot, state: Arc<AtomicU8>) -> EventBody {
     let (tx, rx) = mpsc::channel::<Bytes>(QUEUE);
+    state.store(STREAM_LIVE, Ordering::Relaxed);
     tokio::spawn(async move {
+        let _ended = Ended(state);
         let stop = slot.stop.clone();
         let _slot = slot;
         let mut frames = shared.frame_events.subscribe();

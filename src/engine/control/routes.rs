@@ -25,7 +25,7 @@
 
 use std::convert::Infallible;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicU8;
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
@@ -147,9 +147,10 @@ fn is_port(p: &str) -> bool {
     !p.is_empty() && p.len() <= 5 && p.bytes().all(|b| b.is_ascii_digit())
 }
 
-/// Answer one request. `streaming` is set when the answer is an event
-/// stream (the server then lets the connection outlive its usual limit).
-pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &AtomicBool) -> Reply {
+/// Answer one request. `stream` is the connection's stream state
+/// ([`live::STREAM_NONE`]…): an event stream sets it live (the server then
+/// lets the connection outlive its usual limit) and ended when it ends.
+pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<AtomicU8>) -> Reply {
     let path = req.uri().path().to_string();
     let method = req.method().clone();
     // Both the header and an absolute-form target's authority are checked;
@@ -200,8 +201,7 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, streaming: &At
                     ),
                 );
             };
-            streaming.store(true, Ordering::Relaxed);
-            let mut r = Response::new(live::stream(shared.clone(), slot).boxed());
+            let mut r = Response::new(live::stream(shared.clone(), slot, stream.clone()).boxed());
             let h = r.headers_mut();
             h.insert(
                 CONTENT_TYPE,

@@ -23,7 +23,7 @@
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::time::Duration;
 
 use hyper::server::conn::http1;
@@ -153,8 +153,8 @@ async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>) {
     let _ = stream.set_nodelay(true);
     // Set once this connection answers with an event stream: a live viewer
     // may stay longer than CONNECTION_LIFETIME (the stream has its own
-    // limits, see `live`).
-    let streaming = Arc::new(AtomicBool::new(false));
+    // limits, see `live`), and once the stream ends the connection closes.
+    let streaming = Arc::new(AtomicU8::new(super::live::STREAM_NONE));
     let flag = streaming.clone();
     let service = service_fn(move |req| {
         let (shared, flag) = (shared.clone(), flag.clone());
@@ -166,11 +166,24 @@ async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>) {
         .max_buf_size(MAX_HEADER_BYTES)
         .serve_connection(TokioIo::new(stream), service);
     tokio::pin!(conn);
+    let born = tokio::time::Instant::now();
     loop {
-        match tokio::time::timeout(CONNECTION_LIFETIME, &mut conn).await {
+        match tokio::time::timeout(WATCH_EVERY, &mut conn).await {
             Ok(_) => return,
-            Err(_) if streaming.load(Ordering::Relaxed) => continue,
-            Err(_) => return,
+            Err(_) => match streaming.load(Ordering::Relaxed) {
+                super::live::STREAM_LIVE => continue,
+                // The stream ended (its client stalled, left, or a newer
+                // viewer took its slot): close, rather than wait on hyper
+                // flushing into a socket nobody reads (regression, hostile
+                // probe: such connections stayed for ever, each holding a
+                // connection slot and megabytes of socket buffer).
+                super::live::STREAM_ENDED => return,
+                _ if born.elapsed() >= CONNECTION_LIFETIME => return,
+                _ => continue,
+            },
         }
     }
 }
+
+/// How often a connection's limits are looked at.
+const WATCH_EVERY: Duration = Duration::from_secs(1);

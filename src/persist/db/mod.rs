@@ -210,6 +210,22 @@ pub struct WorldDb {
     /// A commit failed: redb refuses every later write until the database
     /// is reopened, so the next commit reopens it first.
     failed: bool,
+    /// The file's identity (device, inode) when opened: a commit to a file
+    /// deleted or replaced since would go nowhere.
+    file_id: Option<(u64, u64)>,
+}
+
+/// The (device, inode) of the file at `path`, if there is one.
+fn file_id(path: &Path) -> Option<(u64, u64)> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
+    }
+    #[cfg(not(unix))]
+    {
+        std::fs::metadata(path).ok().map(|_| (0, 0))
+    }
 }
 
 impl std::fmt::Debug for WorldDb {
@@ -292,6 +308,7 @@ impl WorldDb {
             db: std::sync::Arc::new(std::sync::RwLock::new(Some(db))),
             path: path.clone(),
             failed: false,
+            file_id: file_id(&path),
         };
         let mut warnings = Vec::new();
         let stored = this.meta("manifest")?;
@@ -494,6 +511,15 @@ impl WorldDb {
         columns: &[(ColumnKey, Vec<u8>)],
         state: &[u8],
     ) -> Result<CommitStats, StoreError> {
+        // The file deleted (or its state directory) or replaced while the
+        // engine runs: redb would go on writing to the unlinked file, and
+        // every commit "succeeded" into nothing (regression, hostile probe).
+        if self.file_id.is_some() && file_id(&self.path) != self.file_id {
+            return Err(StoreError::Commit(format!(
+                "{} was deleted or replaced while the engine runs, so nothing can be committed to it; put it back, or stop the engine (what changed since the last commit is only in memory)",
+                self.path.display()
+            )));
+        }
         if self.failed {
             let mut slot = self.db.write().unwrap_or_else(|p| p.into_inner());
             *slot = None; // closes the file before it is opened again
