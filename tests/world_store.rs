@@ -1135,3 +1135,84 @@ fn a_state_directory_deleted_while_the_engine_runs_fails_its_commits_loudly() {
     assert!(err.contains("the final commit failed"), "{err}");
     assert!(!String::from_utf8_lossy(&out.stdout).contains("stopped at tick"));
 }
+
+/// Regression (hostile probe): an import killed after it created the store
+/// (with its manifest) and before it wrote the world left a directory that
+/// `run` took for a fresh world, starting at tick 0 without a word, and
+/// that a second import refused. An interrupted import now leaves its
+/// marker: `run` and `export` refuse the directory, and importing again
+/// replaces what it left.
+#[test]
+fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
+    let (cfg, state, _) = setup("halfimport");
+    hash_at(&cfg, &state, 30);
+    let backup = state.with_file_name("w.bwc");
+    let export = bin()
+        .args(["export", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert_success(&export);
+    // An import killed in its commit (held there by the test hook): the
+    // store and its manifest are made, the world is not in it.
+    let half = state.with_file_name("half");
+    let mut cut = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["import", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&half)
+        .env("BRICKWORLD_TEST_COMMIT_STALL_MS", "60000")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let t = std::time::Instant::now();
+    while !half.join("manifest.json").exists() {
+        assert!(
+            t.elapsed() < std::time::Duration::from_secs(30),
+            "the import never began"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    cut.kill().unwrap();
+    cut.wait().unwrap();
+    assert!(
+        half.join(brickworld::engine::backup::IMPORT_MARKER)
+            .exists()
+    );
+    let out = run_cmd(&cfg, &half)
+        .args(["--ticks", "1"])
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(&out, "run after a cut import", "was interrupted");
+    let out = bin()
+        .args([
+            "export",
+            state.with_file_name("x.bwc").to_str().unwrap(),
+            "--world",
+        ])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&half)
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(&out, "export after a cut import", "was interrupted");
+    let import = bin()
+        .args(["import", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&half)
+        .output()
+        .unwrap();
+    assert_success(&import);
+    assert!(
+        !half
+            .join(brickworld::engine::backup::IMPORT_MARKER)
+            .exists()
+    );
+    let err = stderr_of_ticks(&cfg, &half, 1);
+    assert!(err.contains("at tick 30 "), "{err}");
+}

@@ -43,9 +43,44 @@ fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
     Ok(db.commit(&chunks, &cols, &blob)?)
 }
 
+/// The file an import keeps in its state directory until the imported world
+/// is committed: the store is created (with its manifest) before the world
+/// is written into it, and a kill in between left a directory that `run`
+/// took for a fresh world, dropping the backup without a word (regression,
+/// hostile probe). `run` and `export` refuse a directory holding it; an
+/// import again replaces what the interrupted one left.
+pub const IMPORT_MARKER: &str = "import.incomplete";
+
+/// Refuse state directory `dir` if an import into it was interrupted.
+pub fn refuse_interrupted_import(dir: &Path) -> Result<()> {
+    let marker = dir.join(IMPORT_MARKER);
+    if std::fs::symlink_metadata(&marker).is_ok() {
+        bail!(
+            "an import into {} was interrupted ({} is there): import the backup again with brickworld import FILE --state {}, or remove the directory",
+            dir.display(),
+            marker.display(),
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// Write `path` empty and make it durable (the file, then its directory).
+fn write_durable_marker(path: &Path) -> std::io::Result<()> {
+    let f = std::fs::File::create(path)?;
+    f.sync_all()?;
+    if let Some(d) = path.parent()
+        && let Ok(d) = std::fs::File::open(d)
+    {
+        d.sync_all()?;
+    }
+    Ok(())
+}
+
 /// `brickworld import`: load a single-file backup (a checkpoint file) into
 /// the empty store of state directory `dir`. The file must belong to the
 /// world `identity` describes; a store that already holds a world is refused.
+/// What an interrupted import left ([`IMPORT_MARKER`]) is replaced.
 pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<CommitStats> {
     let st = checkpoint::read(file).with_context(|| format!("cannot import {}", file.display()))?;
     match &st.identity {
@@ -74,6 +109,21 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
     }
     crate::scene::budget::check_world("the imported world", extent.as_ivec3())?;
     let store_file = dir.join(crate::persist::db::DB_FILE);
+    let manifest_file = dir.join(crate::persist::db::MANIFEST_FILE);
+    let marker = dir.join(IMPORT_MARKER);
+    // An interrupted import's store and manifest hold no world yet: they
+    // are this import's to replace.
+    let partial = [&store_file, &manifest_file, &marker];
+    if std::fs::symlink_metadata(&marker).is_ok() {
+        for p in partial {
+            match std::fs::remove_file(p) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(e).with_context(|| format!("cannot remove {}", p.display()));
+                }
+                _ => {}
+            }
+        }
+    }
     if store_file.exists() && !WorldDb::readable(dir) {
         bail!(
             "{} exists but cannot be read (locked by a running engine, or damaged); import into an empty --state directory (nothing was changed)",
@@ -86,7 +136,7 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
         && let Some(other) = std::fs::read_dir(dir)
             .with_context(|| format!("cannot list {}", dir.display()))?
             .filter_map(|e| e.ok().map(|e| e.file_name()))
-            .find(|n| n != "engine.lock")
+            .find(|n| n != "engine.lock" && n != IMPORT_MARKER)
     {
         bail!(
             "{} is not empty (it holds {:?}): import into a new or empty --state directory (nothing was changed)",
@@ -100,15 +150,39 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
             dir.display()
         );
     }
-    let (mut db, _) = WorldDb::open(dir, identity)?;
-    // Checked again on the open store: nothing may be overwritten.
-    if db.state()?.is_some() {
-        bail!(
-            "{} already holds this world; import into an empty --state directory (nothing was changed)",
-            dir.display()
-        );
+    let made_store = std::fs::symlink_metadata(&store_file).is_err();
+    write_durable_marker(&marker).with_context(|| format!("cannot write {}", marker.display()))?;
+    let written = (|| {
+        let (mut db, _) = WorldDb::open(dir, identity)?;
+        // Checked again on the open store: nothing may be overwritten.
+        if db.state()?.is_some() {
+            bail!(
+                "{} already holds this world; import into an empty --state directory (nothing was changed)",
+                dir.display()
+            );
+        }
+        write_everything(&mut db, st)
+    })();
+    match written {
+        Ok(stats) => {
+            std::fs::remove_file(&marker)
+                .with_context(|| format!("cannot remove {}", marker.display()))?;
+            if let Ok(d) = std::fs::File::open(dir) {
+                let _ = d.sync_all();
+            }
+            Ok(stats)
+        }
+        Err(e) => {
+            // As it was found: a store and manifest this import made go
+            // (never one that was there before it).
+            if made_store {
+                let _ = std::fs::remove_file(&store_file);
+                let _ = std::fs::remove_file(&manifest_file);
+            }
+            let _ = std::fs::remove_file(&marker);
+            Err(e)
+        }
     }
-    write_everything(&mut db, st)
 }
 
 /// A state directory of an earlier version holds whole-world checkpoints
@@ -210,6 +284,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
         bail!("{} holds no world store (nothing to export)", dir.display());
     }
     check_export_target(dir, out)?;
+    refuse_interrupted_import(dir)?;
     if cfg.stream.is_some()
         && matches!(
             cfg.sim_region,

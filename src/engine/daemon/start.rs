@@ -233,6 +233,7 @@ impl Engine {
 /// Open (or create) the world store in `state`, refusing another world's,
 /// and migrate a legacy checkpoint directory into it.
 fn open_store(state: &Path, cfg: &WorldConfig) -> Result<WorldDb> {
+    super::super::backup::refuse_interrupted_import(state)?;
     let identity = cfg.identity();
     let (mut db, warnings) = WorldDb::open(state, &identity)?;
     for w in &warnings {
