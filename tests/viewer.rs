@@ -338,6 +338,28 @@ fn stream_ended(s: &mut TcpStream, limit: Duration) -> bool {
     false
 }
 
+/// Whether the server closes `s` within `limit` (what it sent is read and
+/// dropped).
+fn closed_within(s: &mut TcpStream, limit: Duration) -> bool {
+    let t = Instant::now();
+    let mut b = [0u8; 4096];
+    while t.elapsed() < limit {
+        s.set_read_timeout(Some(Duration::from_millis(100)))
+            .unwrap();
+        match s.read(&mut b) {
+            Ok(0) => return true,
+            Ok(_) => {}
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) => {}
+            Err(_) => return true,
+        }
+    }
+    false
+}
+
 /// Viewers that never read their stream do not slow the engine or shut out
 /// other requests or viewers: past the viewer limit a new stream takes the
 /// longest-connected one's slot (regression: sixteen streams that never read
@@ -373,6 +395,15 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
     assert!(
         stream_ended(&mut stalled[0], Duration::from_secs(10)),
         "the oldest stream was not ended"
+    );
+    // And its connection is closed at once (within the server's 1 s watch),
+    // not left to hyper, which waits to flush into a client that reads
+    // nothing (regression, hostile probe: such connections stayed for
+    // ever, each holding a slot and its socket buffer). A client that does
+    // read would see hyper close it only after the 5 s head limit.
+    assert!(
+        closed_within(&mut stalled[0], Duration::from_secs(4)),
+        "the ended stream's connection stayed open"
     );
     assert!(
         !stream_ended(&mut stalled[1], Duration::from_millis(500)),
