@@ -64,6 +64,25 @@ pub fn install_panic_hook() {
             );
             std::process::exit(1);
         }
+        // redb panics on some corrupt stores (a page's bytes not what its
+        // header says), and a second panic in its destructors then aborts:
+        // a damaged file, not a bug of ours, so one line and status 1, at
+        // once, before any destructor runs (regression, hostile probe:
+        // flipped bytes in world.redb's system pages crashed `run` at its
+        // first commit on every start, and `export` at its end).
+        if let Some(l) = info.location()
+            && l.file().contains("/redb-")
+        {
+            if verbose {
+                default(info);
+            }
+            eprintln!(
+                "error: the world store is damaged (redb failed reading it: {msg} at {}:{}): restore the state directory from a copy, or import a backup (brickworld import) into a new one",
+                l.file().rsplit("/src/").next().unwrap_or(l.file()),
+                l.line()
+            );
+            std::process::exit(1);
+        }
         if verbose {
             return default(info);
         }
