@@ -69,6 +69,20 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\nsize = [4, 8, 8]\n",
             "world.size",
         ),
+        // Arrays of another length (regression, hostile probe: the extra
+        // numbers were ignored).
+        (
+            "[world]\nsource = \"terrain\"\nsize = [64, 32, 64, 5]\n",
+            "line 3, column 8: expected an array of 3 numbers, found 4",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\neye = [1, 2]\n",
+            "expected an array of 3 numbers, found 2",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[sim]\nregion = { min = [0, 0, 0], max = [8, 8] }\n",
+            "expected an array of 2 numbers, found 3",
+        ),
         ("[world]\nsource = \"terrain\"\nsize = \"big\"\n", "line 3"),
         (
             "[world]\nsource = \"terrain\"\n[sim]\ndt = -1.0\n",

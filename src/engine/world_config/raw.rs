@@ -4,7 +4,31 @@
 
 use std::collections::BTreeMap;
 
-use serde::Deserialize;
+use serde::{Deserialize, Deserializer};
+
+/// An array of exactly `N` values: the TOML reader fills a fixed array from
+/// the first `N` and ignored the rest, so `size = [64, 32, 64, 5]` (or one
+/// of 200 000 numbers) was read as a size (regression, hostile probe).
+fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+where
+    D: Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    let v: Vec<T> = Vec::deserialize(d)?;
+    let n = v.len();
+    v.try_into().map_err(|_| {
+        serde::de::Error::custom(format!("expected an array of {N} numbers, found {n}"))
+    })
+}
+
+/// [`exact`] for an optional array.
+fn exact_opt<'de, D, T, const N: usize>(d: D) -> Result<Option<[T; N]>, D::Error>
+where
+    D: Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    exact(d).map(Some)
+}
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -40,7 +64,9 @@ pub(super) struct RawStream {
 #[serde(deny_unknown_fields)]
 pub(super) struct RawPlace {
     pub(super) material: String,
+    #[serde(deserialize_with = "exact")]
     pub(super) at: [i64; 3],
+    #[serde(default, deserialize_with = "exact_opt")]
     pub(super) size: Option<[i64; 3]>,
 }
 
@@ -48,6 +74,7 @@ pub(super) struct RawPlace {
 #[serde(deny_unknown_fields)]
 pub(super) struct RawWorld {
     pub(super) source: String,
+    #[serde(default, deserialize_with = "exact_opt")]
     pub(super) size: Option<[i64; 3]>,
     pub(super) height: Option<i64>,
     #[serde(default)]
@@ -66,7 +93,9 @@ pub(super) struct RawSim {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct RawRegion {
+    #[serde(deserialize_with = "exact")]
     pub(super) min: [i64; 2],
+    #[serde(deserialize_with = "exact")]
     pub(super) max: [i64; 2],
 }
 
@@ -83,12 +112,16 @@ pub(super) struct RawScript {
 #[serde(deny_unknown_fields)]
 pub(super) struct RawCamera {
     pub(super) mode: Option<String>,
+    #[serde(default, deserialize_with = "exact_opt")]
     pub(super) eye: Option<[f64; 3]>,
+    #[serde(default, deserialize_with = "exact_opt")]
     pub(super) target: Option<[f64; 3]>,
     pub(super) fov: Option<f64>,
     pub(super) orbit_period_s: Option<f64>,
+    #[serde(default, deserialize_with = "exact_opt")]
     pub(super) fly_to: Option<[f64; 3]>,
     pub(super) fly_period_s: Option<f64>,
+    #[serde(default, deserialize_with = "exact_opt")]
     pub(super) velocity: Option<[f64; 3]>,
 }
 
