@@ -548,3 +548,26 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
         assert_eq!(stored_tick(&cfg, &state), Some(tick), "after {sig}");
     }
 }
+
+/// Regression (hostile probe): after a kill -9 the resumed engine ran the
+/// ticks since its last commit again and appended their timeline rows a
+/// second time, so ticks repeated (and a row cut by the kill stayed torn).
+/// A resume now drops the rows after its tick, and a cut last row.
+#[test]
+fn a_resume_drops_the_timeline_rows_it_will_run_again() {
+    let (cfg, state, _) = setup("timelinecut");
+    hash_at(&cfg, &state, 50);
+    let path = state.join("timeline.csv");
+    // What a kill leaves: rows past the commit, the last one cut.
+    let mut text = std::fs::read_to_string(&path).unwrap();
+    let last = text.lines().last().unwrap().to_string();
+    let fields = last.split_once(',').unwrap().1;
+    text.push_str(&format!("55,{fields}\n60,{fields}\n65,1.5,3"));
+    std::fs::write(&path, text).unwrap();
+    hash_at(&cfg, &state, 70);
+    let table = brickworld::engine::timeline::read(&path).unwrap();
+    assert_eq!(table.skipped, 0, "a torn row is left");
+    let ticks: Vec<u64> = table.rows.iter().map(|r| r[0] as u64).collect();
+    assert!(ticks.windows(2).all(|w| w[0] < w[1]), "{ticks:?}");
+    assert_eq!(ticks.last(), Some(&70), "{ticks:?}");
+}

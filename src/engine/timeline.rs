@@ -220,7 +220,40 @@ impl Timeline {
         }
         if self.file.write_all(line.as_bytes()).is_ok() {
             self.written += line.len() as u64;
+        } else {
+            // A row cut by a full disk is taken back, so the next one does
+            // not start in its middle (regression, hostile probe: torn
+            // rows that `chart` then left out).
+            let _ = self.file.set_len(self.written);
         }
+    }
+
+    /// Drop the rows after `tick` and a last row cut short: a resumed
+    /// engine runs those ticks again from its last commit, and appended
+    /// them a second time (regression, hostile probe: ticks repeated after
+    /// each kill -9).
+    pub fn drop_rows_after(&mut self, tick: u64) -> Result<()> {
+        let cannot = || format!("cannot trim {}", self.path.display());
+        let text = crate::files::read_bounded(&self.path, ROTATE_BYTES * 2).with_context(cannot)?;
+        let mut keep = 0usize;
+        for (i, line) in text.split_inclusive(|&b| b == b'\n').enumerate() {
+            if !line.ends_with(b"\n") {
+                break;
+            }
+            let first = line.split(|&b| b == b',').next().unwrap_or_default();
+            let row_tick = std::str::from_utf8(first)
+                .ok()
+                .and_then(|t| t.trim().parse::<u64>().ok());
+            if i > 0 && row_tick.is_some_and(|t| t > tick) {
+                break;
+            }
+            keep += line.len();
+        }
+        if keep < text.len() {
+            self.file.set_len(keep as u64).with_context(cannot)?;
+            self.written = keep as u64;
+        }
+        Ok(())
     }
 }
 

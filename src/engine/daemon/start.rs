@@ -176,7 +176,9 @@ impl Engine {
                 }
             }
         };
-        let timeline = Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
+        let mut timeline =
+            Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
+        timeline.drop_rows_after(ws.sim.tick())?;
         println!(
             "brickworld is running: viewer http://{}/  (control token in {}: {token})",
             server.addr,
