@@ -819,6 +819,13 @@ fn a_request_naming_a_foreign_host_is_refused() {
         format!("GET http://rebound.example:{port}/status HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n").as_bytes(),
     );
     assert!(line.contains(" 403 "), "absolute form: {line}");
+    // Two Host headers, the first an allowed one: 400 (regression, hostile
+    // probe: only the first was checked).
+    let line = raw(
+        &addr,
+        format!("GET /status HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nHost: rebound.example\r\nConnection: close\r\n\r\n").as_bytes(),
+    );
+    assert!(line.contains(" 400 "), "two Host headers: {line}");
     for host in [
         addr.clone(),
         format!("localhost:{port}"),

@@ -153,6 +153,11 @@ fn is_port(p: &str) -> bool {
 pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<AtomicU8>) -> Reply {
     let path = req.uri().path().to_string();
     let method = req.method().clone();
+    // One Host at most (RFC 9112: 400); the first alone was checked, so
+    // `Host: 127.0.0.1` then a foreign name passed (hostile probe).
+    if req.headers().get_all(hyper::header::HOST).iter().count() > 1 {
+        return error(400, "more than one Host header");
+    }
     // Both the header and an absolute-form target's authority are checked;
     // a request with neither (not a browser's) is served.
     let named = [
