@@ -100,6 +100,73 @@ fn closed_edges_conserve_water_and_sub_steps_keep_the_cfl_limit() {
     );
 }
 
+/// Regression (hostile probe): on a world whose x or z is not a multiple
+/// of 8 the partial tiles' outer cells read as ground 0, the moat sank to
+/// 2 below that, and the shipped erosion failed ("sediment" negative in the
+/// moat) on every such world, whatever dt. Now the outer cells are moat,
+/// drained each step and never written into voxels: water and erosion run,
+/// world water plus drained water is conserved, and nothing is drawn
+/// outside the world.
+#[test]
+fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
+    let size = IVec3::new(37, 32, 44);
+    let mut world = build_scene(
+        &SceneSpec::Terrain { caves: false },
+        size,
+        7,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let before: Vec<u8> = (0..32)
+        .flat_map(|y| (37..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+        .map(|v| world.store().voxel(v))
+        .collect();
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    for name in ["water", "erosion"] {
+        let src = ScriptSource {
+            name: name.into(),
+            text: std::fs::read_to_string(format!(
+                "{}/scripts/{name}.lua",
+                env!("CARGO_MANIFEST_DIR")
+            ))
+            .unwrap()
+            .into(),
+        };
+        ws.add_lua(src, Limits::default()).unwrap();
+    }
+    let w = ws.sim.channels_mut().channel("water");
+    // 2 deep over the world's own columns.
+    for tz in 0..6 {
+        for tx in 0..5 {
+            let mut sheet = [0.0; 64];
+            for (c, v) in sheet.iter_mut().enumerate() {
+                let (x, z) = (tx * 8 + (c % 8) as i32, tz * 8 + (c / 8) as i32);
+                if x < size.x && z < size.z {
+                    *v = 2.0;
+                }
+            }
+            ws.sim.channels_mut().set(IVec2::new(tx, tz), w, &sheet);
+        }
+    }
+    let start = ws.sim.channels().total(w);
+    for step in 0..150 {
+        let (r, _) = ws.step_within_cfl(&mut world, 0.05, 0.5);
+        assert!(r.errors.is_empty(), "step {step}: {:?}", r.errors);
+    }
+    let now = ws.sim.channels().total(w);
+    assert!(ws.drained > 0.0, "nothing left over the edges");
+    assert!(
+        ((now + ws.drained) - start).abs() < 1e-9 * start,
+        "world {now} + drained {} != {start}",
+        ws.drained
+    );
+    let after: Vec<u8> = (0..32)
+        .flat_map(|y| (37..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+        .map(|v| world.store().voxel(v))
+        .collect();
+    assert!(before == after, "voxels outside the world were written");
+}
+
 mod common;
 use common::cli::{assert_clear_failure, assert_success, bin, read_json};
 

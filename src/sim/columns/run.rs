@@ -27,6 +27,9 @@ pub struct WorldSim {
     /// Voxel-world tiles `[min, max)`; with drained edges the simulation
     /// also covers a one-tile moat around them.
     world_tiles: (glam::IVec2, glam::IVec2),
+    /// World tiles only partly inside the world (its size is not a
+    /// multiple of the tile), with their outside cells (bit per cell).
+    partial: Vec<(glam::IVec2, u64)>,
     drain: bool,
     /// Water that left the world over its edges (rain falling on the moat
     /// itself is counted here too).
@@ -81,16 +84,48 @@ impl WorldSim {
         let mut sync = ColumnSync::new(hi.y);
         let g = sim.channels_mut().channel("ground");
         let mut lowest = f64::INFINITY;
+        let mut partial = Vec::new();
         for tz in tmin.y..tmax.y {
             for tx in tmin.x..tmax.x {
                 let t = glam::IVec2::new(tx, tz);
                 let ground = ground_of_tile(world.store(), t, hi.y);
-                lowest = ground.iter().fold(lowest, |m, v| m.min(*v));
+                let outside = super::writeback::outside_mask(t, lo, hi);
+                // Only the world's own columns: a partial tile's outer
+                // cells read as ground 0, which sank the moat far below
+                // the terrain, and erosion failed over the drop on every
+                // world whose size is not a multiple of 8 (regression,
+                // hostile probe).
+                lowest = ground
+                    .iter()
+                    .enumerate()
+                    .filter(|(c, _)| outside >> c & 1 == 0)
+                    .fold(lowest, |m, (_, v)| m.min(*v));
                 sim.channels_mut().set(t, g, &ground);
                 sync.record(t, &ground);
+                if outside != 0 {
+                    sync.set_outside(t, outside);
+                    partial.push((t, outside));
+                }
             }
         }
         if drain {
+            // A partial tile's outer cells are moat too: as low, and
+            // drained each step (they are never written into voxels).
+            for &(t, outside) in &partial {
+                // (A tile of ground 0 everywhere stores no array.)
+                let mut ground = sim
+                    .channels()
+                    .get(t, g)
+                    .copied()
+                    .unwrap_or([0.0; crate::sim::tile::TILE_CELLS]);
+                for (c, v) in ground.iter_mut().enumerate() {
+                    if outside >> c & 1 != 0 {
+                        *v = lowest - 2.0;
+                    }
+                }
+                sim.channels_mut().set(t, g, &ground);
+                sync.record(t, &ground);
+            }
             let moat = [lowest - 2.0; crate::sim::tile::TILE_CELLS];
             for tz in smin.y..smax.y {
                 for tx in smin.x..smax.x {
@@ -120,6 +155,7 @@ impl WorldSim {
             vox,
             sync,
             world_tiles: (tmin, tmax),
+            partial,
             drain,
             drained: 0.0,
         }
@@ -509,6 +545,22 @@ impl WorldSim {
                         self.sim
                             .channels_mut()
                             .set(*t, w, &[0.0; crate::sim::tile::TILE_CELLS]);
+                    }
+                }
+                for &(t, outside) in &self.partial {
+                    if let Some(d) = self.sim.channels().get(t, w) {
+                        let mut d = *d;
+                        let mut left = 0.0;
+                        for (c, v) in d.iter_mut().enumerate() {
+                            if outside >> c & 1 != 0 {
+                                left += *v;
+                                *v = 0.0;
+                            }
+                        }
+                        if left != 0.0 {
+                            self.drained += left;
+                            self.sim.channels_mut().set(t, w, &d);
+                        }
                     }
                 }
             }

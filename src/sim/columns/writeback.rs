@@ -74,6 +74,10 @@ pub struct ColumnSync {
     last: FxHashMap<TileCoord, [[i32; 3]; TILE_CELLS]>,
     /// The world's top (voxels); surfaces are clamped into `[0, top]`.
     top: i32,
+    /// Per tile, the cells outside the world (bit `cell(x, z)`): a world
+    /// whose size is not a multiple of the tile has partial tiles, whose
+    /// outer columns are simulated but never written into voxels.
+    outside: FxHashMap<TileCoord, u64>,
 }
 
 /// Water shallower than this many voxels is not drawn.
@@ -101,7 +105,14 @@ impl ColumnSync {
         ColumnSync {
             last: FxHashMap::default(),
             top,
+            outside: FxHashMap::default(),
         }
+    }
+
+    /// Mark the cells of tile `t` that lie outside the world (bit
+    /// `cell(x, z)` of `mask`): they are never written.
+    pub fn set_outside(&mut self, t: TileCoord, mask: u64) {
+        self.outside.insert(t, mask);
     }
 
     /// Remember the initial surfaces (the world as built) of tile `t`.
@@ -153,7 +164,11 @@ impl ColumnSync {
             let old = self.last.get(&t).copied().unwrap_or([[0; 3]; TILE_CELLS]);
             let mut new = old;
             let (mut lo, mut hi) = (i32::MAX, i32::MIN);
+            let outside = self.outside.get(&t).copied().unwrap_or(0);
             for c in 0..TILE_CELLS {
+                if outside >> c & 1 != 0 {
+                    continue;
+                }
                 let gv = g.map_or(old[c][0] as f64, |g| g[c]);
                 new[c] = levels(gv, s[c], w[c], self.top);
                 if new[c] != old[c] {
@@ -216,6 +231,21 @@ impl ColumnSync {
         }
         edited
     }
+}
+
+/// The cells of tile `t` whose columns lie outside the voxel box `[lo, hi)`
+/// (bit `cell(x, z)`; 0 for a tile wholly inside).
+pub fn outside_mask(t: TileCoord, lo: IVec3, hi: IVec3) -> u64 {
+    let mut m = 0u64;
+    for z in 0..TILE {
+        for x in 0..TILE {
+            let (wx, wz) = (t.x * TILE + x, t.y * TILE + z);
+            if wx < lo.x || wx >= hi.x || wz < lo.z || wz >= hi.z {
+                m |= 1 << cell(x, z);
+            }
+        }
+    }
+    m
 }
 
 /// Tiles covering the voxel box `[lo, hi)` (x and z).
