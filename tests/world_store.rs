@@ -1200,6 +1200,23 @@ fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
         .output()
         .unwrap();
     common::cli::assert_clear_failure(&out, "export after a cut import", "was interrupted");
+    // An import again that fails too (a full disk) still leaves the
+    // directory refused, not a fresh world (found by review: it removed
+    // the marker with the partial files).
+    let full = bin()
+        .args(["import", backup.to_str().unwrap(), "--world"])
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&half)
+        .env("BRICKWORLD_TEST_DISK_LIMIT", "20000")
+        .output()
+        .unwrap();
+    assert!(!full.status.success());
+    let out = run_cmd(&cfg, &half)
+        .args(["--ticks", "1"])
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(&out, "run after two cut imports", "was interrupted");
     let import = bin()
         .args(["import", backup.to_str().unwrap(), "--world"])
         .arg(&cfg)

@@ -52,11 +52,18 @@ fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
 pub const IMPORT_MARKER: &str = "import.incomplete";
 
 /// Refuse state directory `dir` if an import into it was interrupted.
+/// Call it holding the directory's lock: a running import holds it too.
+/// A store that holds its state with the marker beside it is a finished
+/// import cut before it removed the marker: the marker goes.
 pub fn refuse_interrupted_import(dir: &Path) -> Result<()> {
     let marker = dir.join(IMPORT_MARKER);
     if std::fs::symlink_metadata(&marker).is_ok() {
+        if WorldDb::has_state(dir) {
+            let _ = std::fs::remove_file(&marker);
+            return Ok(());
+        }
         bail!(
-            "an import into {} was interrupted ({} is there): import the backup again with brickworld import FILE --state {}, or remove the directory",
+            "an import into {} was interrupted ({} is there): run brickworld import FILE --state {} again",
             dir.display(),
             marker.display(),
             dir.display()
@@ -108,14 +115,43 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
         );
     }
     crate::scene::budget::check_world("the imported world", extent.as_ivec3())?;
+    let marker = dir.join(IMPORT_MARKER);
+    let had_marker = std::fs::symlink_metadata(&marker).is_ok();
+    if had_marker && WorldDb::has_state(dir) {
+        // The state is written in the same transaction as the world: the
+        // cut import had finished all but removing its marker.
+        let _ = std::fs::remove_file(&marker);
+        bail!(
+            "{} already holds this world (an earlier import into it had finished); import into an empty --state directory (nothing was changed)",
+            dir.display()
+        );
+    }
+    let result = import_into(dir, identity, st, had_marker);
+    if result.is_err() && had_marker {
+        // What the cut import left is gone, and this one failed too: the
+        // directory must still read as interrupted, never as a fresh world
+        // (found by review).
+        let _ = write_durable_marker(&marker);
+    }
+    result
+}
+
+/// [`import`] once the backup is checked: replace what an interrupted
+/// import left (`replace`), refuse a directory holding anything else,
+/// then write the world under the marker.
+fn import_into(
+    dir: &Path,
+    identity: &WorldIdentity,
+    st: WorldState,
+    replace: bool,
+) -> Result<CommitStats> {
     let store_file = dir.join(crate::persist::db::DB_FILE);
     let manifest_file = dir.join(crate::persist::db::MANIFEST_FILE);
     let marker = dir.join(IMPORT_MARKER);
-    // An interrupted import's store and manifest hold no world yet: they
-    // are this import's to replace.
-    let partial = [&store_file, &manifest_file, &marker];
-    if std::fs::symlink_metadata(&marker).is_ok() {
-        for p in partial {
+    // An interrupted import's store and manifest hold no world: they are
+    // this import's to replace.
+    if replace {
+        for p in [&store_file, &manifest_file, &marker] {
             match std::fs::remove_file(p) {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
                     return Err(e).with_context(|| format!("cannot remove {}", p.display()));
@@ -284,7 +320,6 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
         bail!("{} holds no world store (nothing to export)", dir.display());
     }
     check_export_target(dir, out)?;
-    refuse_interrupted_import(dir)?;
     if cfg.stream.is_some()
         && matches!(
             cfg.sim_region,
@@ -298,6 +333,9 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
         );
     }
     let _lock = super::state_dir::lock(dir)?;
+    // Under the lock: a running import holds it (found by review: export
+    // called a live import "interrupted").
+    refuse_interrupted_import(dir)?;
     let identity = cfg.identity();
     let (db, _) = WorldDb::open(dir, &identity)?;
     let mut world = match &cfg.stream {
