@@ -71,13 +71,13 @@ pub fn install_panic_hook() {
         // flipped bytes in world.redb's system pages crashed `run` at its
         // first commit on every start, and `export` at its end).
         if let Some(l) = info.location()
-            && l.file().contains("/redb-")
+            && is_redb_source(l.file())
         {
             if verbose {
                 default(info);
             }
             eprintln!(
-                "error: the world store is damaged (redb failed reading it: {msg} at {}:{}): restore the state directory from a copy, or import a backup (brickworld import) into a new one",
+                "error: the world store is damaged (redb failed on it: {msg} at {}:{}): restore the state directory from a copy, or import a backup (brickworld import) into a new one",
                 l.file().rsplit("/src/").next().unwrap_or(l.file()),
                 l.line()
             );
@@ -99,6 +99,14 @@ pub fn install_panic_hook() {
     }));
 }
 
+/// Whether a source path is redb's: a registry or git checkout
+/// (`redb-4.5.0/src/…`) or a vendored copy (`vendor/redb/src/…`), with
+/// either separator.
+fn is_redb_source(file: &str) -> bool {
+    file.split(['/', '\\'])
+        .any(|part| part == "redb" || part.starts_with("redb-"))
+}
+
 thread_local! {
     static QUIET_PANICS: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
@@ -115,4 +123,27 @@ pub fn catch_quietly<T>(f: impl FnOnce() -> T + std::panic::UnwindSafe) -> Resul
     let r = std::panic::catch_unwind(f);
     QUIET_PANICS.with(|q| q.set(false));
     r.map_err(|_| Panicked)
+}
+
+#[cfg(test)]
+mod panic_hook_tests {
+    /// The damaged-store exit takes redb's panics wherever redb was built
+    /// from (found by review: only `/redb-` paths were), and no others.
+    #[test]
+    fn redb_sources_are_recognised_in_every_layout() {
+        for f in [
+            "/root/.cargo/registry/src/index.crates.io-x/redb-4.5.0/src/types.rs",
+            "vendor/redb/src/tree_store/btree.rs",
+            "C:\\cargo\\registry\\src\\x\\redb-4.5.0\\src\\types.rs",
+        ] {
+            assert!(super::is_redb_source(f), "{f}");
+        }
+        for f in [
+            "src/persist/db/mod.rs",
+            "/x/redbox/src/a.rs",
+            "src/world.redb.rs",
+        ] {
+            assert!(!super::is_redb_source(f), "{f}");
+        }
+    }
 }

@@ -118,7 +118,8 @@ fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
     )
     .unwrap();
     let before: Vec<u8> = (0..32)
-        .flat_map(|y| (37..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+        .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+        .filter(|v| v.x >= 37 || v.z >= 44)
         .map(|v| world.store().voxel(v))
         .collect();
     let mut ws = WorldSim::with_edges(&mut world, true);
@@ -161,7 +162,8 @@ fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
         ws.drained
     );
     let after: Vec<u8> = (0..32)
-        .flat_map(|y| (37..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+        .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+        .filter(|v| v.x >= 37 || v.z >= 44)
         .map(|v| world.store().voxel(v))
         .collect();
     assert!(before == after, "voxels outside the world were written");

@@ -119,11 +119,11 @@ pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
         options.custom_flags(libc::O_NONBLOCK | libc::O_NOFOLLOW);
     }
     let file = options.open(&path).map_err(|e| {
+        #[cfg(unix)]
         if e.raw_os_error() == Some(libc::ELOOP) {
-            not_a_file()
-        } else {
-            ioe(&path)(e)
+            return not_a_file();
         }
+        ioe(&path)(e)
     })?;
     if !file.metadata().map_err(ioe(&path))?.is_file() {
         return Err(not_a_file());

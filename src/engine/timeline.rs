@@ -89,6 +89,22 @@ const MAX_HEADER_BYTES: u64 = 1 << 20;
 /// A timeline file is rotated to `timeline.1.csv` past this size.
 pub const ROTATE_BYTES: u64 = 32 << 20;
 
+/// A free name beside `path` for a timeline set aside:
+/// `timeline.<unix seconds>.csv` (a second one in the same second must not
+/// overwrite the first).
+fn aside_path(path: &Path) -> std::path::PathBuf {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let mut aside = path.with_extension(format!("{secs}.csv"));
+    let mut n = 1;
+    while aside.exists() {
+        aside = path.with_extension(format!("{secs}-{n}.csv"));
+        n += 1;
+    }
+    aside
+}
+
 /// An append-only CSV timeline.
 pub struct Timeline {
     file: File,
@@ -127,17 +143,7 @@ impl Timeline {
             let mut first = String::new();
             let _ = BufReader::new(f.take(MAX_HEADER_BYTES)).read_line(&mut first);
             if first.trim_end() != header {
-                let secs = std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map_or(0, |d| d.as_secs());
-                // A free name: a second move in the same second must not
-                // overwrite the first.
-                let mut aside = path.with_extension(format!("{secs}.csv"));
-                let mut n = 1;
-                while aside.exists() {
-                    aside = path.with_extension(format!("{secs}-{n}.csv"));
-                    n += 1;
-                }
+                let aside = aside_path(path);
                 std::fs::rename(path, &aside).with_context(|| {
                     format!(
                         "cannot move {} aside to {}",
@@ -213,10 +219,18 @@ impl Timeline {
         line.push('\n');
         if self.written + line.len() as u64 > ROTATE_BYTES
             && std::fs::rename(&self.path, self.path.with_extension("1.csv")).is_ok()
-            && let Ok(f) = Self::create(&self.path, &self.header)
         {
-            self.file = f;
-            self.written = self.header.len() as u64 + 1;
+            match Self::create(&self.path, &self.header) {
+                Ok(f) => {
+                    self.file = f;
+                    self.written = self.header.len() as u64 + 1;
+                }
+                // Rows go on into the file just moved (its handle is still
+                // open), and no rotation is tried until it grows again: a
+                // half-made new file renamed over it would destroy the
+                // history (found by review).
+                Err(_) => self.written = 0,
+            }
         }
         if self.file.write_all(line.as_bytes()).is_ok() {
             self.written += line.len() as u64;
@@ -231,8 +245,11 @@ impl Timeline {
     /// Drop the rows after `tick` and a last row cut short: a resumed
     /// engine runs those ticks again from its last commit, and appended
     /// them a second time (regression, hostile probe: ticks repeated after
-    /// each kill -9).
-    pub fn drop_rows_after(&mut self, tick: u64) -> Result<()> {
+    /// each kill -9). The file as it was is copied aside first
+    /// (`timeline.<unix seconds>.csv`), so a world restarted from an older
+    /// store (or afresh) loses no history (found by review). Returns where
+    /// it was copied, if anything was dropped.
+    pub fn drop_rows_after(&mut self, tick: u64) -> Result<Option<std::path::PathBuf>> {
         let cannot = || format!("cannot trim {}", self.path.display());
         let text = crate::files::read_bounded(&self.path, ROTATE_BYTES * 2).with_context(cannot)?;
         let mut keep = 0usize;
@@ -249,11 +266,16 @@ impl Timeline {
             }
             keep += line.len();
         }
-        if keep < text.len() {
-            self.file.set_len(keep as u64).with_context(cannot)?;
-            self.written = keep as u64;
+        if keep == text.len() {
+            return Ok(None);
         }
-        Ok(())
+        let aside = aside_path(&self.path);
+        std::fs::write(&aside, &text).with_context(|| {
+            format!("cannot copy {} to {}", self.path.display(), aside.display())
+        })?;
+        self.file.set_len(keep as u64).with_context(cannot)?;
+        self.written = keep as u64;
+        Ok(Some(aside))
     }
 }
 

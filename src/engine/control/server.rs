@@ -173,11 +173,18 @@ async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>) {
             Err(_) => match streaming.load(Ordering::Relaxed) {
                 super::live::STREAM_LIVE => continue,
                 // The stream ended (its client stalled, left, or a newer
-                // viewer took its slot): close, rather than wait on hyper
-                // flushing into a socket nobody reads (regression, hostile
-                // probe: such connections stayed for ever, each holding a
-                // connection slot and megabytes of socket buffer).
-                super::live::STREAM_ENDED => return,
+                // viewer took its slot): shut the connection down, letting
+                // a request already on it finish, but never wait longer
+                // than ENDED_GRACE on hyper flushing into a socket nobody
+                // reads (regression, hostile probe: such connections stayed
+                // for ever, each holding a connection slot and megabytes of
+                // socket buffer; review: closing at once cut a keep-alive
+                // request that followed the stream).
+                super::live::STREAM_ENDED => {
+                    conn.as_mut().graceful_shutdown();
+                    let _ = tokio::time::timeout(ENDED_GRACE, &mut conn).await;
+                    return;
+                }
                 _ if born.elapsed() >= CONNECTION_LIFETIME => return,
                 _ => continue,
             },
@@ -187,3 +194,7 @@ async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>) {
 
 /// How often a connection's limits are looked at.
 const WATCH_EVERY: Duration = Duration::from_secs(1);
+
+/// How long a connection whose event stream ended may finish what it is
+/// doing before it is dropped.
+const ENDED_GRACE: Duration = Duration::from_secs(2);

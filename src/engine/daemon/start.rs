@@ -178,7 +178,16 @@ impl Engine {
         };
         let mut timeline =
             Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
-        timeline.drop_rows_after(ws.sim.tick())?;
+        // The timeline never stops the engine: a trim that fails is said.
+        match timeline.drop_rows_after(ws.sim.tick()) {
+            Ok(Some(aside)) => eprintln!(
+                "timeline: rows after tick {} (to be run again) dropped; the timeline as it was is kept in {}",
+                ws.sim.tick(),
+                aside.display()
+            ),
+            Ok(None) => {}
+            Err(e) => eprintln!("warning: {e:#}"),
+        }
         println!(
             "brickworld is running: viewer http://{}/  (control token in {}: {token})",
             server.addr,

@@ -516,7 +516,7 @@ impl WorldDb {
         // every commit "succeeded" into nothing (regression, hostile probe).
         if self.file_id.is_some() && file_id(&self.path) != self.file_id {
             return Err(StoreError::Commit(format!(
-                "{} was deleted or replaced while the engine runs, so nothing can be committed to it; put it back, or stop the engine (what changed since the last commit is only in memory)",
+                "{} was deleted or replaced while the engine runs, so nothing can be committed to it: stop the engine and restore the state directory (what changed since the last commit is only in memory and will be lost)",
                 self.path.display()
             )));
         }
