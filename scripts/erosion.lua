@@ -68,7 +68,10 @@ return {
               local cap = p.capacity * sqrt(vx * vx + vz * vz) * max(sin, 0.05)
               local a
               if s < cap then
-                a = min(p.dissolve * (cap - s) * dt, g)
+                -- Ground below 0 (the moat around a world whose edge is
+                -- at height 0 or 1) has nothing to dissolve: a negative
+                -- amount drove sediment below 0 and failed the step.
+                a = min(p.dissolve * (cap - s) * dt, max(g, 0))
               else
                 a = -min(p.deposit * (s - cap) * dt, s)
               end

@@ -169,6 +169,47 @@ fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
     assert!(before == after, "voxels outside the world were written");
 }
 
+/// Regression (hostile probe): on a world whose edge columns are at height
+/// 0 or 1 (a heightmap with a black sea border) the moat lies below 0, and
+/// the shipped erosion "dissolved" a negative amount of ground there once
+/// it rained, driving sediment below 0 and failing every step.
+#[test]
+fn erosion_runs_on_a_world_whose_edge_is_at_height_0() {
+    use brickworld::world::{BrickStore, Palette};
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    for x in 0..32 {
+        for z in 0..32 {
+            let h = (x + z) / 4;
+            if h > 0 {
+                store.fill_box(IVec3::new(x, 0, z), IVec3::new(x + 1, h, z + 1), 1);
+            }
+        }
+    }
+    store.take_modified();
+    let mut world =
+        brickworld::scene::SceneWorld::new(store, IVec3::ZERO, IVec3::new(32, 32, 32)).unwrap();
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    for name in ["water", "erosion"] {
+        let src = ScriptSource {
+            name: name.into(),
+            text: std::fs::read_to_string(format!(
+                "{}/scripts/{name}.lua",
+                env!("CARGO_MANIFEST_DIR")
+            ))
+            .unwrap()
+            .into(),
+        };
+        ws.add_lua(src, Limits::default()).unwrap();
+    }
+    ws.set_param(0, "rain", 0.3).unwrap();
+    for step in 0..40 {
+        let (r, _) = ws.step_within_cfl(&mut world, 0.05, 0.5);
+        assert!(r.errors.is_empty(), "step {step}: {:?}", r.errors);
+    }
+    let s = ws.sim.channels().find("sediment").unwrap();
+    assert!(ws.sim.channels().total(s) >= 0.0);
+}
+
 mod common;
 use common::cli::{assert_clear_failure, assert_success, bin, read_json};
 
