@@ -290,3 +290,22 @@ fn a_dense_grid_over_the_memory_there_is_is_refused() {
     assert_clear_failure(&out, "a dense grid over memory", "needs 486 MiB");
     assert!(String::from_utf8_lossy(&out.stderr).contains("is available"));
 }
+
+/// Regression (hostile probe): `bench sim --sizes` had no memory check:
+/// 4096 and 8192, inside the documented range, aborted in the allocator
+/// (a backtrace, status 134). A size that cannot fit is refused first.
+#[test]
+fn bench_sim_sizes_larger_than_memory_are_refused_with_the_need() {
+    let json = std::env::temp_dir().join(format!("bw-benchsim-{}.json", std::process::id()));
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 3000000 && exec '{}' bench sim --sizes 8192 --steps 1 --json '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            json.display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(&out, "bench sim --sizes 8192", "needs about");
+    assert!(!json.exists(), "nothing is written");
+}

@@ -114,6 +114,20 @@ pub(super) fn run_bench_sim(a: &crate::cli::BenchSimArgs) -> Result<()> {
             a.sizes
         );
     }
+    // Measured: about 290 bytes a column at its peak (1024²: 317 MB), plus
+    // the process; refused before any work, not by the allocator's abort
+    // (regression, hostile probe: --sizes 4096 and 8192 aborted).
+    let have = crate::scene::budget::available_bytes();
+    for &size in &a.sizes {
+        let need = 320 * (size as u64).pow(2) + (64 << 20);
+        if need > have {
+            anyhow::bail!(
+                "bench sim --sizes {size} needs about {} of memory; {} is available (use a smaller size)",
+                crate::scene::budget::human(need),
+                crate::scene::budget::human(have)
+            );
+        }
+    }
     let pool = bench_pool(a.steps, a.threads)?;
     pool.install(|| {
         let pb = bar("bench sim", 0);
