@@ -1051,3 +1051,52 @@ fn init_never_writes_through_a_link() {
         "exists and is not a directory",
     );
 }
+
+/// Regression (hostile probe): a bench whose chart failed (here: nothing
+/// to plot, from a camera that sees nothing) had already replaced the
+/// previous JSON. The JSON and the chart now replace their files together
+/// or not at all, and nothing is left beside them.
+#[test]
+fn a_bench_whose_chart_fails_leaves_the_previous_results() {
+    let dir = tmp("chartfail");
+    std::fs::create_dir_all(&dir).unwrap();
+    let (json, svg) = (dir.join("l.json"), dir.join("l.svg"));
+    std::fs::write(&json, "precious").unwrap();
+    std::fs::write(&svg, "precious-svg").unwrap();
+    expect_failure(
+        &[
+            "bench",
+            "lod",
+            "--scene",
+            "terrain",
+            "--size",
+            "32x32x32",
+            "--width",
+            "16",
+            "--height",
+            "12",
+            "--spp",
+            "16",
+            "--repeat",
+            "1",
+            "--lod",
+            "1",
+            "--eye",
+            "1e9,1e9,1e9",
+            "--target",
+            "0,0,0",
+            "--json",
+            json.to_str().unwrap(),
+            "--chart",
+            svg.to_str().unwrap(),
+        ],
+        "nothing to plot",
+    );
+    assert_eq!(std::fs::read_to_string(&json).unwrap(), "precious");
+    assert_eq!(std::fs::read_to_string(&svg).unwrap(), "precious-svg");
+    let names: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names.len(), 2, "{names:?}");
+}

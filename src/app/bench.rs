@@ -54,15 +54,13 @@ pub(super) fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
         &pb,
     )?;
     pb.finish_and_clear();
-    std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
-        .with_context(|| format!("cannot write {}", a.json.display()))?;
-    if let Some(path) = &a.chart {
-        let pts: Vec<(f64, f64)> = r
-            .uploads_per_frame
-            .iter()
-            .enumerate()
-            .map(|(i, u)| ((i + 1) as f64, (*u).max(1) as f64))
-            .collect();
+    let pts: Vec<(f64, f64)> = r
+        .uploads_per_frame
+        .iter()
+        .enumerate()
+        .map(|(i, u)| ((i + 1) as f64, (*u).max(1) as f64))
+        .collect();
+    let draw = |path: &std::path::Path| {
         crate::bench::chart::xy_chart(
             path,
             "Bricks uploaded per frame from a cold pool",
@@ -71,10 +69,17 @@ pub(super) fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
             &[crate::bench::chart::Series {
                 name: "uploads",
                 color: plotters::style::RGBColor(60, 110, 200),
-                points: pts,
+                points: pts.clone(),
             }],
-        )?;
-    }
+        )
+    };
+    crate::bench::write_outputs(
+        &a.json,
+        &(serde_json::to_string_pretty(&r)? + "\n"),
+        a.chart
+            .as_deref()
+            .map(|p| (p, &draw as &dyn Fn(&std::path::Path) -> _)),
+    )?;
     println!("adapter: {}", r.adapter);
     println!(
         "converged after {} frames; uploads per frame {:?}",

@@ -36,6 +36,15 @@ impl ChartError {
             msg: e.to_string(),
         }
     }
+
+    /// The same error, naming `path` (the chart's destination, when it was
+    /// drawn into a temporary file beside it).
+    pub fn at(self, path: &Path) -> Self {
+        ChartError {
+            path: path.to_path_buf(),
+            ..self
+        }
+    }
 }
 
 fn draw(path: &Path, reports: &[&BenchReport]) -> Result<(), Box<dyn std::error::Error>> {

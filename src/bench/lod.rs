@@ -99,9 +99,15 @@ pub fn flip_mean(reference: &[u8], test: &[u8], w: u32, h: u32) -> f64 {
 pub fn run(s: &BenchLodSettings) -> Result<()> {
     let pool = thread_pool(s.view.threads)?;
     let report = pool.install(|| measure(s))?;
-    let json = serde_json::to_string_pretty(&report)?;
-    std::fs::write(&s.json, json + "\n")
-        .with_context(|| format!("cannot write {}", s.json.display()))?;
+    let json = serde_json::to_string_pretty(&report)? + "\n";
+    let draw = |path: &std::path::Path| draw_chart(path, &report);
+    super::write_outputs(
+        &s.json,
+        &json,
+        s.chart
+            .as_deref()
+            .map(|p| (p, &draw as &dyn Fn(&std::path::Path) -> _)),
+    )?;
     for (vi, v) in report.views.iter().enumerate() {
         eprintln!("view {vi} (reference {:.1} s):", v.reference_s);
         eprintln!(
@@ -130,43 +136,45 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
             if met { "met" } else { "missed" }
         );
     }
-    if let Some(path) = &s.chart {
-        const COLOURS: [plotters::style::RGBColor; 3] = [
-            plotters::style::RGBColor(31, 119, 180),
-            plotters::style::RGBColor(214, 39, 40),
-            plotters::style::RGBColor(44, 160, 44),
-        ];
-        let names: Vec<String> = (0..report.views.len())
-            .map(|i| match (report.views.len(), i) {
-                (3, 0) => "overview".to_string(),
-                (3, 1) => "medium".to_string(),
-                (3, 2) => "close-up".to_string(),
-                _ => format!("view {i}"),
-            })
-            .collect();
-        let series: Vec<Series> = report
-            .views
-            .iter()
-            .enumerate()
-            .map(|(i, v)| Series {
-                name: &names[i],
-                color: COLOURS[i % 3],
-                points: v.points.iter().map(|p| (p.flip, p.mrays_per_s)).collect(),
-            })
-            .collect();
-        let title = format!(
-            "{} {}x{}x{}: speed against FLIP over C (exact = leftmost speed)",
-            report.scene, report.size[0], report.size[1], report.size[2]
-        );
-        xy_chart(
-            path,
-            &title,
-            "mean FLIP vs 16-spp reference (log)",
-            "Mrays/s (log)",
-            &series,
-        )?;
-    }
     Ok(())
+}
+
+/// The chart of speed against FLIP over C, one series per view.
+fn draw_chart(path: &std::path::Path, report: &LodReport) -> Result<(), super::chart::ChartError> {
+    const COLOURS: [plotters::style::RGBColor; 3] = [
+        plotters::style::RGBColor(31, 119, 180),
+        plotters::style::RGBColor(214, 39, 40),
+        plotters::style::RGBColor(44, 160, 44),
+    ];
+    let names: Vec<String> = (0..report.views.len())
+        .map(|i| match (report.views.len(), i) {
+            (3, 0) => "overview".to_string(),
+            (3, 1) => "medium".to_string(),
+            (3, 2) => "close-up".to_string(),
+            _ => format!("view {i}"),
+        })
+        .collect();
+    let series: Vec<Series> = report
+        .views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| Series {
+            name: &names[i],
+            color: COLOURS[i % 3],
+            points: v.points.iter().map(|p| (p.flip, p.mrays_per_s)).collect(),
+        })
+        .collect();
+    let title = format!(
+        "{} {}x{}x{}: speed against FLIP over C (exact = leftmost speed)",
+        report.scene, report.size[0], report.size[1], report.size[2]
+    );
+    xy_chart(
+        path,
+        &title,
+        "mean FLIP vs 16-spp reference (log)",
+        "Mrays/s (log)",
+        &series,
+    )
 }
 
 fn measure(s: &BenchLodSettings) -> Result<LodReport> {

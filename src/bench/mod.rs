@@ -11,6 +11,39 @@ pub mod stream;
 pub mod tracers;
 pub mod voxels;
 
+/// Draws a chart into the file it is given.
+pub type DrawChart<'a> = &'a dyn Fn(&std::path::Path) -> Result<(), chart::ChartError>;
+
+/// Write a bench's JSON and, if asked, its chart, so that a failure leaves
+/// both files as they were: the chart is drawn into a temporary file beside
+/// its destination, the JSON written beside its own, and both replace
+/// their destinations only once both are written (regression, hostile
+/// probe: a chart that failed, on a full disk or with nothing to plot,
+/// after the JSON had replaced the previous results).
+pub fn write_outputs(
+    json: &std::path::Path,
+    text: &str,
+    chart: Option<(&std::path::Path, DrawChart<'_>)>,
+) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let cannot = |p: &std::path::Path| format!("cannot write {}", p.display());
+    let drawn = match chart {
+        Some((path, draw)) => {
+            let st = crate::files::Staged::new(path).with_context(|| cannot(path))?;
+            draw(st.path()).map_err(|e| e.at(path))?;
+            Some((st, path))
+        }
+        None => None,
+    };
+    let st = crate::files::Staged::new(json).with_context(|| cannot(json))?;
+    std::fs::write(st.path(), text).with_context(|| cannot(json))?;
+    st.commit().with_context(|| cannot(json))?;
+    if let Some((st, path)) = drawn {
+        st.commit().with_context(|| cannot(path))?;
+    }
+    Ok(())
+}
+
 /// The views a bench renders: the one given, or the scene's three default
 /// views (overview, medium, close-up) with the `--fov` override.
 pub(crate) fn views(

@@ -106,13 +106,16 @@ pub struct BeamFigures {
 pub fn run(s: &BenchTracersSettings) -> Result<()> {
     let pool = thread_pool(s.view.threads)?;
     let report = pool.install(|| measure(s))?;
-    let json = serde_json::to_string_pretty(&report)?;
-    std::fs::write(&s.json, json + "\n")
-        .with_context(|| format!("cannot write {}", s.json.display()))?;
+    let json = serde_json::to_string_pretty(&report)? + "\n";
+    let draw = |p: &std::path::Path| super::chart::memory_vs_speed(p, &[&report]);
+    super::write_outputs(
+        &s.json,
+        &json,
+        s.chart
+            .as_deref()
+            .map(|p| (p, &draw as &dyn Fn(&std::path::Path) -> _)),
+    )?;
     print_table(&report);
-    if let Some(path) = &s.chart {
-        super::chart::memory_vs_speed(path, &[&report])?;
-    }
     if report.agree.mismatches > 0 {
         anyhow::bail!(
             "tracers disagree on {} of {} rays: this is a bug",
