@@ -474,11 +474,9 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
         let mut d = start(&cfg, &state);
         wait_ready(&addr);
         let first = status(&addr)["tick"].as_u64().unwrap();
-        let t = Instant::now();
-        while status(&addr)["tick"].as_u64().unwrap() < first + 3 {
-            assert!(t.elapsed() < Duration::from_secs(30), "no steps");
-            std::thread::sleep(Duration::from_millis(20));
-        }
+        wait_status(&addr, "no steps", |s| {
+            s["tick"].as_u64().unwrap() >= first + 3
+        });
         // Through `ctl`, which exits 0 once the engine applied it (audit:
         // no test ran ctl's success path against an engine).
         let ctl = |args: &[&str]| {
@@ -491,44 +489,33 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
             assert_success(&out);
         };
         ctl(&["pause"]);
-        let paused = |addr: &str| {
-            let t = Instant::now();
-            loop {
-                let s = status(addr);
-                if s["paused"] == true && s["steps_pending"] == 0 {
-                    break s["tick"].as_u64().unwrap();
-                }
-                assert!(t.elapsed() < Duration::from_secs(30), "{s}");
-                std::thread::sleep(Duration::from_millis(20));
-            }
+        // Paused with no step queued: the tick the engine holds, after
+        // `before` (a step asked for has run).
+        let paused = |before: Option<u64>| {
+            wait_status(&addr, "pausing", |s| {
+                s["paused"] == true
+                    && s["steps_pending"] == 0
+                    && before.is_none_or(|t| s["tick"].as_u64() != Some(t))
+            })["tick"]
+                .as_u64()
+                .unwrap()
         };
-        let mut tick = paused(&addr);
+        let mut tick = paused(None);
         if tick.is_multiple_of(40) {
             ctl(&["step", "1"]);
-            while status(&addr)["tick"].as_u64().unwrap() == tick {
-                std::thread::sleep(Duration::from_millis(20));
-            }
-            tick = paused(&addr);
+            tick = paused(Some(tick));
         }
         ctl(&["param", "water", "rain", "0.3"]);
         if sig == "-TERM" {
             // `ctl commit` exits 0 once the commit is written.
             ctl(&["commit"]);
             // (/status shows it once the engine publishes, just after.)
-            let t = Instant::now();
-            while status(&addr)["last_commit"]["tick"] != tick {
-                assert!(
-                    t.elapsed() < Duration::from_secs(10),
-                    "ctl commit wrote nothing"
-                );
-                std::thread::sleep(Duration::from_millis(20));
-            }
+            wait_status(&addr, "ctl commit wrote nothing", |s| {
+                s["last_commit"]["tick"] == tick
+            });
             // One more step, so that only the final commit can hold it.
             ctl(&["step", "1"]);
-            while status(&addr)["tick"].as_u64().unwrap() == tick {
-                std::thread::sleep(Duration::from_millis(20));
-            }
-            tick = paused(&addr);
+            tick = paused(Some(tick));
         }
         let _ = std::process::Command::new("kill")
             .args([sig, &d.id().to_string()])

@@ -18,15 +18,8 @@ use common::daemon::*;
 /// closed without one). Write errors are fine: the server may cut us off.
 fn raw(addr: &str, bytes: &[u8]) -> String {
     let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
     let _ = s.write_all(bytes);
-    let mut buf = Vec::new();
-    let _ = s.read_to_end(&mut buf);
-    String::from_utf8_lossy(&buf)
-        .lines()
-        .next()
-        .unwrap_or("")
-        .to_string()
+    reply_line(&mut s, Duration::from_secs(10))
 }
 
 fn rss_kb(pid: u32) -> u64 {
@@ -369,11 +362,7 @@ fn fault_13_a_legacy_checkpoint_directory_is_migrated_from_its_newest_good_check
         let (cfg_a, state_a, _) = setup("f13a");
         hash_at(&cfg_a, &state_a, 45);
         let backup = state_a.join("backup.bwc");
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
-            .args(["export", backup.to_str().unwrap(), "--world"])
-            .arg(&cfg_a)
-            .arg("--state")
-            .arg(&state_a)
+        let out = backup_cmd("export", &backup, &cfg_a, &state_a)
             .output()
             .unwrap();
         assert_success(&out);
@@ -501,11 +490,7 @@ fn fault_15_a_second_daemon_on_one_state_directory_exits_clearly() {
     // So does an export while the engine runs (audit: no test), writing
     // nothing.
     let backup = state.parent().unwrap().join("live.bwc");
-    let out = common::cli::bin()
-        .args(["export", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
+    let out = backup_cmd("export", &backup, &cfg, &state)
         .output()
         .unwrap();
     common::cli::assert_clear_failure(&out, "an export", "in use by another brickworld engine");
@@ -684,14 +669,7 @@ fn a_second_signal_exits_at_once() {
     hash_at(&cfg, &state, 20);
     // Every commit stalls for 30 s (test hook): only a second signal can
     // end the process quickly.
-    let mut d = Daemon(Some(
-        run_cmd(&cfg, &state)
-            .env("BRICKWORLD_TEST_COMMIT_STALL_MS", "30000")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    ));
+    let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "30000"));
     wait_ready(&addr);
     let pid = d.id().to_string();
     let _ = std::process::Command::new("kill")
@@ -922,14 +900,7 @@ fn a_restored_failure_streak_shows_as_failing_before_any_step() {
     // Ticks 1 and 2 fail: a streak of 2, one short of suspension.
     let (said, _) = run_ok(&cfg, &state, "--ticks", 3);
     assert!(said.contains("stopped at tick 3 "), "{said}");
-    let d = Daemon(Some(
-        run_cmd(&cfg, &state)
-            .arg("--paused")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    ));
+    let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
     wait_ready(&addr);
     let s = status(&addr);
     assert_eq!(s["paused"], true, "{s}");
@@ -1056,15 +1027,7 @@ fn special_files_in_the_state_directory_are_refused_not_waited_on() {
             std::fs::create_dir_all(&state).unwrap();
         }
         mkfifo(&state.join(name));
-        let mut child = Daemon(Some(
-            run_cmd(&cfg, &state)
-                .arg("--ticks")
-                .arg("1")
-                .stdout(std::process::Stdio::null())
-                .stderr(std::process::Stdio::piped())
-                .spawn()
-                .unwrap(),
-        ));
+        let mut child = spawn(run_cmd(&cfg, &state).arg("--ticks").arg("1"));
         let t = Instant::now();
         while child.try_wait().unwrap().is_none() {
             assert!(
@@ -1198,14 +1161,7 @@ fn the_control_servers_connection_limits_hold_as_documented() {
 #[test]
 fn a_full_command_queue_answers_503() {
     let (cfg, state, addr) = setup("queue");
-    let d = Daemon(Some(
-        run_cmd(&cfg, &state)
-            .env("BRICKWORLD_TEST_COMMIT_STALL_MS", "60000")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    ));
+    let d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "60000"));
     wait_ready(&addr);
     // The commit stalls the engine's loop; its verdict waits 3 s: 202.
     assert_eq!(post(&addr, &state, "/commit", "").0, 202);

@@ -6,21 +6,34 @@ use brickworld::sim::{Limits, ScriptSource, WorldSim};
 use glam::{IVec2, IVec3};
 use indicatif::ProgressBar;
 
-#[test]
-fn water_drains_over_every_edge_and_world_plus_drained_is_conserved() {
-    let mut world = build_scene(
+/// The procedural terrain of `size` and `seed`, without caves.
+fn terrain(size: IVec3, seed: u64) -> brickworld::scene::SceneWorld {
+    build_scene(
         &SceneSpec::Terrain { caves: false },
-        IVec3::new(32, 32, 32),
-        2,
+        size,
+        seed,
         &ProgressBar::hidden(),
     )
-    .unwrap();
-    let mut ws = WorldSim::with_edges(&mut world, true);
+    .unwrap()
+}
+
+/// Load the shipped column script `scripts/NAME.lua` into `ws`; its index.
+fn add_shipped(ws: &mut WorldSim, name: &str) -> usize {
+    let text =
+        std::fs::read_to_string(format!("{}/scripts/{name}.lua", env!("CARGO_MANIFEST_DIR")))
+            .unwrap();
     let src = ScriptSource {
-        name: "water".into(),
-        text: include_str!("../scripts/water.lua").into(),
+        name: name.into(),
+        text: text.into(),
     };
-    ws.add_lua(src, Limits::default()).unwrap();
+    ws.add_lua(src, Limits::default()).unwrap()
+}
+
+#[test]
+fn water_drains_over_every_edge_and_world_plus_drained_is_conserved() {
+    let mut world = terrain(IVec3::new(32, 32, 32), 2);
+    let mut ws = WorldSim::with_edges(&mut world, true);
+    add_shipped(&mut ws, "water");
     let w = ws.sim.channels_mut().channel("water");
     // A uniform sheet of water 3 deep over the whole world, nothing else.
     for tz in 0..4 {
@@ -53,19 +66,9 @@ fn water_drains_over_every_edge_and_world_plus_drained_is_conserved() {
 /// the channels before each step.
 #[test]
 fn closed_edges_conserve_water_and_sub_steps_keep_the_cfl_limit() {
-    let mut world = build_scene(
-        &SceneSpec::Terrain { caves: false },
-        IVec3::new(32, 32, 32),
-        2,
-        &ProgressBar::hidden(),
-    )
-    .unwrap();
+    let mut world = terrain(IVec3::new(32, 32, 32), 2);
     let mut ws = WorldSim::with_edges(&mut world, false);
-    let src = ScriptSource {
-        name: "water".into(),
-        text: include_str!("../scripts/water.lua").into(),
-    };
-    ws.add_lua(src, Limits::default()).unwrap();
+    add_shipped(&mut ws, "water");
     let w = ws.sim.channels_mut().channel("water");
     // A dam break: 12 deep over the western half, dry to the east.
     for tz in 0..4 {
@@ -110,13 +113,7 @@ fn closed_edges_conserve_water_and_sub_steps_keep_the_cfl_limit() {
 #[test]
 fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
     let size = IVec3::new(37, 32, 44);
-    let mut world = build_scene(
-        &SceneSpec::Terrain { caves: false },
-        size,
-        7,
-        &ProgressBar::hidden(),
-    )
-    .unwrap();
+    let mut world = terrain(size, 7);
     let before: Vec<u8> = (0..32)
         .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
         .filter(|v| v.x >= 37 || v.z >= 44)
@@ -124,16 +121,7 @@ fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
         .collect();
     let mut ws = WorldSim::with_edges(&mut world, true);
     for name in ["water", "erosion"] {
-        let src = ScriptSource {
-            name: name.into(),
-            text: std::fs::read_to_string(format!(
-                "{}/scripts/{name}.lua",
-                env!("CARGO_MANIFEST_DIR")
-            ))
-            .unwrap()
-            .into(),
-        };
-        ws.add_lua(src, Limits::default()).unwrap();
+        add_shipped(&mut ws, name);
     }
     let w = ws.sim.channels_mut().channel("water");
     // 2 deep over the world's own columns.
@@ -190,16 +178,7 @@ fn erosion_runs_on_a_world_whose_edge_is_at_height_0() {
         brickworld::scene::SceneWorld::new(store, IVec3::ZERO, IVec3::new(32, 32, 32)).unwrap();
     let mut ws = WorldSim::with_edges(&mut world, true);
     for name in ["water", "erosion"] {
-        let src = ScriptSource {
-            name: name.into(),
-            text: std::fs::read_to_string(format!(
-                "{}/scripts/{name}.lua",
-                env!("CARGO_MANIFEST_DIR")
-            ))
-            .unwrap()
-            .into(),
-        };
-        ws.add_lua(src, Limits::default()).unwrap();
+        add_shipped(&mut ws, name);
     }
     ws.set_param(0, "rain", 0.3).unwrap();
     for step in 0..40 {
@@ -414,11 +393,7 @@ fn column_write_back_never_fills_a_cave_or_an_overhangs_underside() {
     store.fill_box(under.0, under.1, 0);
     let mut world = SceneWorld::new(store, IVec3::ZERO, IVec3::splat(32)).unwrap();
     let mut ws = WorldSim::with_edges(&mut world, true);
-    let src = ScriptSource {
-        name: "water".into(),
-        text: include_str!("../scripts/water.lua").into(),
-    };
-    let i = ws.add_lua(src, Limits::default()).unwrap();
+    let i = add_shipped(&mut ws, "water");
     ws.set_param(i, "rain", 4.0).unwrap();
     for _ in 0..300 {
         let (r, _) = ws.step_within_cfl(&mut world, 0.05, 0.5);
@@ -460,21 +435,9 @@ fn column_write_back_never_fills_a_cave_or_an_overhangs_underside() {
 /// all the water there is.
 #[test]
 fn a_simulation_region_steps_only_inside_and_its_edge_is_a_wall() {
-    use brickworld::scene::{SceneSpec, build_scene};
-    use brickworld::sim::{Limits, ScriptSource, WorldSim};
-    let mut world = build_scene(
-        &SceneSpec::Terrain { caves: false },
-        glam::IVec3::new(64, 48, 64),
-        5,
-        &indicatif::ProgressBar::hidden(),
-    )
-    .unwrap();
+    let mut world = terrain(IVec3::new(64, 48, 64), 5);
     let mut ws = WorldSim::with_edges(&mut world, true);
-    let src = ScriptSource {
-        name: "water".into(),
-        text: include_str!("../scripts/water.lua").into(),
-    };
-    let id = ws.add_lua(src, Limits::default()).unwrap();
+    let id = add_shipped(&mut ws, "water");
     ws.set_param(id, "rain", 0.5).unwrap();
     let (lo, hi) = (glam::IVec2::new(2, 1), glam::IVec2::new(6, 4));
     ws.sim.set_region(Some((lo, hi)));

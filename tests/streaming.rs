@@ -8,7 +8,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::cli::assert_clear_failure;
-use common::daemon::{hash_at, run_cmd, run_ok};
+use common::daemon::{backup_cmd, hash_at, run_cmd, run_ok};
 
 /// A streamed world: 2048² terrain (or unbounded with `height`), a 128²
 /// simulated region with rain, a small view, frames every 5 ticks.
@@ -77,11 +77,7 @@ fn a_streamed_world_stores_only_its_region_and_resumes_bit_identically() {
     // The backup of a streamed world is its region (regression: export
     // tried to build the whole world).
     let backup = state.with_file_name("backup.bwc");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .args(["export", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
+    let out = backup_cmd("export", &backup, &cfg, &state)
         .output()
         .unwrap();
     let said = String::from_utf8_lossy(&out.stdout);
@@ -270,11 +266,7 @@ fn the_store_overlay_shows_what_a_moving_region_left_behind() {
     // Such a world cannot be exported: its backup is the store file
     // (audit: the refusal had no test).
     let backup = state.with_file_name("moving.bwc");
-    let out = common::cli::bin()
-        .args(["export", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
+    let out = backup_cmd("export", &backup, &cfg, &state)
         .output()
         .unwrap();
     assert_clear_failure(&out, "an export of a moving region", "world.redb");

@@ -310,9 +310,9 @@ fn ctl_params_reads_values_and_ctl_log_prints_a_scripts_lines_once() {
     stop(d);
 }
 
-/// Whether the event stream on `s` ends within `limit`: the connection
-/// closes, or the chunked body's last chunk arrives.
-fn stream_ended(s: &mut TcpStream, limit: Duration) -> bool {
+/// Read `s` for at most `limit`: true once the server closes it, or once
+/// `done` says so of all read so far.
+fn read_until(s: &mut TcpStream, limit: Duration, done: impl Fn(&[u8]) -> bool) -> bool {
     let t = Instant::now();
     let mut seen = Vec::new();
     let mut b = [0u8; 4096];
@@ -323,7 +323,7 @@ fn stream_ended(s: &mut TcpStream, limit: Duration) -> bool {
             Ok(0) => return true,
             Ok(n) => {
                 seen.extend_from_slice(&b[..n]);
-                if seen.windows(5).any(|w| w == b"0\r\n\r\n") {
+                if done(&seen) {
                     return true;
                 }
             }
@@ -338,26 +338,16 @@ fn stream_ended(s: &mut TcpStream, limit: Duration) -> bool {
     false
 }
 
+/// Whether the event stream on `s` ends within `limit`: the connection
+/// closes, or the chunked body's last chunk arrives.
+fn stream_ended(s: &mut TcpStream, limit: Duration) -> bool {
+    read_until(s, limit, |seen| seen.windows(5).any(|w| w == b"0\r\n\r\n"))
+}
+
 /// Whether the server closes `s` within `limit` (what it sent is read and
 /// dropped).
 fn closed_within(s: &mut TcpStream, limit: Duration) -> bool {
-    let t = Instant::now();
-    let mut b = [0u8; 4096];
-    while t.elapsed() < limit {
-        s.set_read_timeout(Some(Duration::from_millis(100)))
-            .unwrap();
-        match s.read(&mut b) {
-            Ok(0) => return true,
-            Ok(_) => {}
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                ) => {}
-            Err(_) => return true,
-        }
-    }
-    false
+    read_until(s, limit, |_| false)
 }
 
 /// Viewers that never read their stream do not slow the engine or shut out

@@ -330,11 +330,7 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     let (cfg, state, _) = setup("export");
     let ran = hash_at(&cfg, &state, 30);
     let backup = state.parent().unwrap().join("world.bwc");
-    let out = bin()
-        .args(["export", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
+    let out = backup_cmd("export", &backup, &cfg, &state)
         .output()
         .unwrap();
     assert_success(&out);
@@ -348,13 +344,7 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     );
     let copy = state.parent().unwrap().join("copy");
     let import = |dir: &std::path::Path, world: &std::path::Path| {
-        bin()
-            .args(["import", backup.to_str().unwrap(), "--world"])
-            .arg(world)
-            .arg("--state")
-            .arg(dir)
-            .output()
-            .unwrap()
+        backup_cmd("import", &backup, world, dir).output().unwrap()
     };
     assert_success(&import(&copy, &cfg));
     // The same world twice is refused, and nothing changes.
@@ -407,11 +397,7 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
         text.replace(scripts_line, "scripts_dir = \"/nonexistent\""),
     )
     .unwrap();
-    let out = bin()
-        .args(["export", backup.to_str().unwrap(), "--world"])
-        .arg(&moved)
-        .arg("--state")
-        .arg(&state)
+    let out = backup_cmd("export", &backup, &moved, &state)
         .output()
         .unwrap();
     assert_success(&out);
@@ -425,13 +411,14 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     );
     assert!(err.contains("exported all the same"), "{err}");
     // Exporting a directory with no world is a clear error.
-    let out = bin()
-        .args(["export", "/tmp/never.bwc", "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(state.parent().unwrap().join("nothing-here"))
-        .output()
-        .unwrap();
+    let out = backup_cmd(
+        "export",
+        "/tmp/never.bwc",
+        &cfg,
+        state.parent().unwrap().join("nothing-here"),
+    )
+    .output()
+    .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no world store"));
     // A backup that does not say which world it is (an old checkpoint) is
@@ -455,13 +442,14 @@ fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     let (anon_file, _) =
         brickworld::engine::checkpoint::write(&state.parent().unwrap().join("anon"), &anon)
             .unwrap();
-    let out = bin()
-        .args(["import", anon_file.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(state.parent().unwrap().join("anon-import"))
-        .output()
-        .unwrap();
+    let out = backup_cmd(
+        "import",
+        anon_file.to_str().unwrap(),
+        &cfg,
+        state.parent().unwrap().join("anon-import"),
+    )
+    .output()
+    .unwrap();
     common::cli::assert_clear_failure(
         &out,
         "an anonymous backup",
@@ -588,14 +576,7 @@ fn a_commit_that_fails_answers_500_with_the_reason() {
     edit_config(&cfg, "rain = 0.2", "rain = 2.0");
     hash_at(&cfg, &state, 20);
     let size = std::fs::metadata(state.join("world.redb")).unwrap().len();
-    let d = Daemon(Some(
-        run_cmd(&cfg, &state)
-            .env("BRICKWORLD_TEST_DISK_LIMIT", size.to_string())
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap(),
-    ));
+    let d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_DISK_LIMIT", size.to_string()));
     wait_ready(&addr);
     // Let the rain change the world, so the commit has something to write.
     let t = std::time::Instant::now();
@@ -943,14 +924,7 @@ fn of_two_stored_chunks_only_the_corrupt_one_is_regenerated() {
     drop(db);
     // Start paused (no step changes a chunk), then stop: the final commit
     // writes what the resume marked dirty.
-    let child = Daemon(Some(
-        run_cmd(&cfg, &state)
-            .arg("--paused")
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap(),
-    ));
+    let child = spawn(run_cmd(&cfg, &state).arg("--paused"));
     wait_ready(&addr);
     let out = stop(child);
     assert!(out.status.success());
@@ -1060,21 +1034,7 @@ fn writing_resumes_when_the_full_disk_has_room_again() {
             .unwrap(),
     ));
     wait_ready(&addr);
-    let wait_for = |what: &str, ok: &dyn Fn(&serde_json::Value) -> bool| {
-        let t = std::time::Instant::now();
-        loop {
-            let s = status(&addr);
-            if ok(&s) {
-                return s;
-            }
-            assert!(
-                t.elapsed() < std::time::Duration::from_secs(60),
-                "{what}: {s}"
-            );
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
-    };
-    let full = wait_for("the disk fills", &|s| s["commit_error"].is_string());
+    let full = wait_status(&addr, "the disk fills", |s| s["commit_error"].is_string());
     assert!(
         full["commit_error"]
             .as_str()
@@ -1084,7 +1044,7 @@ fn writing_resumes_when_the_full_disk_has_room_again() {
     );
     let stuck = full["last_commit"]["tick"].as_u64().unwrap_or(20);
     std::fs::write(&limit, u64::MAX.to_string()).unwrap();
-    let s = wait_for("writing resumes", &|s| {
+    let s = wait_status(&addr, "writing resumes", |s| {
         s["commit_error"].is_null() && s["last_commit"]["tick"].as_u64().unwrap_or(0) > stuck
     });
     assert!(s["tick"].as_u64().unwrap() > stuck);
@@ -1117,18 +1077,11 @@ fn a_state_directory_deleted_while_the_engine_runs_fails_its_commits_loudly() {
     let d = start(&cfg, &state);
     wait_ready(&addr);
     std::fs::remove_dir_all(&state).unwrap();
-    let t = std::time::Instant::now();
-    loop {
-        let s = status(&addr);
-        if s["commit_error"]
+    wait_status(&addr, "no commit error", |s| {
+        s["commit_error"]
             .as_str()
             .is_some_and(|e| e.contains("was deleted or replaced"))
-        {
-            break;
-        }
-        assert!(t.elapsed() < std::time::Duration::from_secs(30), "{s}");
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
+    });
     let out = stop(d);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
@@ -1147,22 +1100,14 @@ fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
     let (cfg, state, _) = setup("halfimport");
     hash_at(&cfg, &state, 30);
     let backup = state.with_file_name("w.bwc");
-    let export = bin()
-        .args(["export", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&state)
+    let export = backup_cmd("export", &backup, &cfg, &state)
         .output()
         .unwrap();
     assert_success(&export);
     // An import killed in its commit (held there by the test hook): the
     // store and its manifest are made, the world is not in it.
     let half = state.with_file_name("half");
-    let mut cut = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .args(["import", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&half)
+    let mut cut = backup_cmd("import", &backup, &cfg, &half)
         .env("BRICKWORLD_TEST_COMMIT_STALL_MS", "60000")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
@@ -1188,26 +1133,19 @@ fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
         .output()
         .unwrap();
     common::cli::assert_clear_failure(&out, "run after a cut import", "was interrupted");
-    let out = bin()
-        .args([
-            "export",
-            state.with_file_name("x.bwc").to_str().unwrap(),
-            "--world",
-        ])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&half)
-        .output()
-        .unwrap();
+    let out = backup_cmd(
+        "export",
+        state.with_file_name("x.bwc").to_str().unwrap(),
+        &cfg,
+        &half,
+    )
+    .output()
+    .unwrap();
     common::cli::assert_clear_failure(&out, "export after a cut import", "was interrupted");
     // An import again that fails too (a full disk) still leaves the
     // directory refused, not a fresh world (found by review: it removed
     // the marker with the partial files).
-    let full = bin()
-        .args(["import", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&half)
+    let full = backup_cmd("import", &backup, &cfg, &half)
         .env("BRICKWORLD_TEST_DISK_LIMIT", "20000")
         .output()
         .unwrap();
@@ -1217,13 +1155,7 @@ fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
         .output()
         .unwrap();
     common::cli::assert_clear_failure(&out, "run after two cut imports", "was interrupted");
-    let import = bin()
-        .args(["import", backup.to_str().unwrap(), "--world"])
-        .arg(&cfg)
-        .arg("--state")
-        .arg(&half)
-        .output()
-        .unwrap();
+    let import = backup_cmd("import", &backup, &cfg, &half).output().unwrap();
     assert_success(&import);
     assert!(
         !half
@@ -1270,18 +1202,15 @@ fn damage_anywhere_in_the_store_file_is_one_line_never_a_panic_or_an_abort() {
             other => panic!("a flip at byte {off}: status {other:?}: {err}"),
         }
         if out.status.code() == Some(1) && err.contains("damaged") {
-            let export = bin()
-                .env_remove("RUST_BACKTRACE")
-                .args([
-                    "export",
-                    state.with_file_name("d.bwc").to_str().unwrap(),
-                    "--world",
-                ])
-                .arg(&cfg)
-                .arg("--state")
-                .arg(&state)
-                .output()
-                .unwrap();
+            let export = backup_cmd(
+                "export",
+                state.with_file_name("d.bwc").to_str().unwrap(),
+                &cfg,
+                &state,
+            )
+            .env_remove("RUST_BACKTRACE")
+            .output()
+            .unwrap();
             let err = String::from_utf8_lossy(&export.stderr);
             common::cli::assert_no_panic(&err, "export");
             assert!(matches!(export.status.code(), Some(0 | 1)), "{err}");

@@ -76,9 +76,8 @@ pub(super) fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
     crate::bench::write_outputs(
         &a.json,
         &(serde_json::to_string_pretty(&r)? + "\n"),
-        a.chart
-            .as_deref()
-            .map(|p| (p, &draw as &dyn Fn(&std::path::Path) -> _)),
+        a.chart.as_deref(),
+        draw,
     )?;
     println!("adapter: {}", r.adapter);
     println!(

@@ -101,13 +101,7 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
     let report = pool.install(|| measure(s))?;
     let json = serde_json::to_string_pretty(&report)? + "\n";
     let draw = |path: &std::path::Path| draw_chart(path, &report);
-    super::write_outputs(
-        &s.json,
-        &json,
-        s.chart
-            .as_deref()
-            .map(|p| (p, &draw as &dyn Fn(&std::path::Path) -> _)),
-    )?;
+    super::write_outputs(&s.json, &json, s.chart.as_deref(), draw)?;
     for (vi, v) in report.views.iter().enumerate() {
         eprintln!("view {vi} (reference {:.1} s):", v.reference_s);
         eprintln!(

@@ -11,10 +11,8 @@ pub mod stream;
 pub mod tracers;
 pub mod voxels;
 
-/// Draws a chart into the file it is given.
-pub type DrawChart<'a> = &'a dyn Fn(&std::path::Path) -> Result<(), chart::ChartError>;
-
-/// Write a bench's JSON and, if asked, its chart, so that a failure leaves
+/// Write a bench's JSON and, if asked, its chart (`draw` draws it into the
+/// file it is given), so that a failure leaves
 /// both files as they were: the chart is drawn into a temporary file beside
 /// its destination, the JSON written beside its own, and both replace
 /// their destinations only once both are written (regression, hostile
@@ -23,12 +21,13 @@ pub type DrawChart<'a> = &'a dyn Fn(&std::path::Path) -> Result<(), chart::Chart
 pub fn write_outputs(
     json: &std::path::Path,
     text: &str,
-    chart: Option<(&std::path::Path, DrawChart<'_>)>,
+    chart: Option<&std::path::Path>,
+    draw: impl Fn(&std::path::Path) -> Result<(), chart::ChartError>,
 ) -> anyhow::Result<()> {
     use anyhow::Context;
     let cannot = |p: &std::path::Path| format!("cannot write {}", p.display());
     let drawn = match chart {
-        Some((path, draw)) => {
+        Some(path) => {
             let st = crate::files::Staged::new(path).with_context(|| cannot(path))?;
             draw(st.path()).map_err(|e| e.at(path))?;
             Some((st, path))

@@ -108,13 +108,7 @@ pub fn run(s: &BenchTracersSettings) -> Result<()> {
     let report = pool.install(|| measure(s))?;
     let json = serde_json::to_string_pretty(&report)? + "\n";
     let draw = |p: &std::path::Path| super::chart::memory_vs_speed(p, &[&report]);
-    super::write_outputs(
-        &s.json,
-        &json,
-        s.chart
-            .as_deref()
-            .map(|p| (p, &draw as &dyn Fn(&std::path::Path) -> _)),
-    )?;
+    super::write_outputs(&s.json, &json, s.chart.as_deref(), draw)?;
     print_table(&report);
     if report.agree.mismatches > 0 {
         anyhow::bail!(

@@ -61,6 +61,25 @@ impl Drop for Daemon {
     }
 }
 
+/// `brickworld VERB FILE --world CFG --state STATE` (`export` or
+/// `import`), not yet run.
+#[allow(dead_code)]
+pub fn backup_cmd(
+    verb: &str,
+    file: impl AsRef<std::ffi::OsStr>,
+    cfg: impl AsRef<Path>,
+    state: impl AsRef<Path>,
+) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_brickworld"));
+    c.arg(verb)
+        .arg(file)
+        .arg("--world")
+        .arg(cfg.as_ref())
+        .arg("--state")
+        .arg(state.as_ref());
+    c
+}
+
 /// `brickworld run CFG --state STATE`, not yet started.
 pub fn run_cmd(cfg: &Path, state: &Path) -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_brickworld"));
@@ -101,9 +120,14 @@ pub fn add_script(cfg: &Path, name: &str, text: &str) {
 }
 
 pub fn start(cfg: &Path, state: &Path) -> Daemon {
+    spawn(&mut run_cmd(cfg, state))
+}
+
+/// Start `cmd` (a [`run_cmd`] with more flags or environment) as a daemon:
+/// stdout discarded, stderr kept for [`stop`].
+pub fn spawn(cmd: &mut Command) -> Daemon {
     Daemon(Some(
-        run_cmd(cfg, state)
-            .stdout(Stdio::null())
+        cmd.stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()
             .unwrap(),
@@ -114,6 +138,25 @@ pub fn status(addr: &str) -> serde_json::Value {
     let (code, body) = request(addr, "GET", "/status", None, "").unwrap();
     assert_eq!(code, 200, "{body}");
     serde_json::from_str(&body).unwrap()
+}
+
+/// `/status` once `ok` holds for it (polled every 20 ms); a panic naming
+/// `what` after 60 s.
+#[allow(dead_code)]
+pub fn wait_status(
+    addr: &str,
+    what: &str,
+    ok: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let t = Instant::now();
+    loop {
+        let s = status(addr);
+        if ok(&s) {
+            return s;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "{what}: {s}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }
 
 pub fn wait_ready(addr: &str) {
