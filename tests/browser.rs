@@ -329,6 +329,8 @@ fn check_golden(b: &mut Browser) {
         golden.display(),
         out.display()
     );
+    // Kept only when it differs, for the failure message to point at.
+    std::fs::remove_file(&out).unwrap();
 }
 
 fn write_png(path: &Path, w: u32, h: u32, rgba: &[u8]) {

@@ -309,3 +309,108 @@ fn bench_sim_sizes_larger_than_memory_are_refused_with_the_need() {
     assert_clear_failure(&out, "bench sim --sizes 8192", "needs about");
     assert!(!json.exists(), "nothing is written");
 }
+
+/// A .vox of `instances` copies, side by side along x, of one 256³ model
+/// whose 32³ voxels each lie in a brick of their own: few voxels, many
+/// bricks.
+fn scattered_vox(instances: u32) -> PathBuf {
+    use dot_vox::{Frame, SceneNode};
+    let mut scenes = vec![
+        SceneNode::Transform {
+            attributes: Default::default(),
+            frames: vec![Frame::new(Default::default())],
+            child: 1,
+            layer_id: 0,
+        },
+        SceneNode::Group {
+            attributes: Default::default(),
+            children: (0..instances).map(|i| 2 + i).collect(),
+        },
+    ];
+    let shape = 2 + instances;
+    for i in 0..instances {
+        let mut at = dot_vox::Dict::new();
+        at.insert("_t".to_string(), format!("{} 0 0", i * 256));
+        scenes.push(SceneNode::Transform {
+            attributes: Default::default(),
+            frames: vec![Frame::new(at)],
+            child: shape,
+            layer_id: 0,
+        });
+    }
+    let voxels = (0..32u32 * 32 * 32)
+        .map(|i| dot_vox::Voxel {
+            x: (i % 32 * 8) as u8,
+            y: (i / 32 % 32 * 8) as u8,
+            z: (i / 1024 * 8) as u8,
+            i: 1,
+        })
+        .collect();
+    write_vox(
+        &format!("scattered-{instances}.vox"),
+        scenes,
+        0,
+        256,
+        voxels,
+    )
+}
+
+/// A 16-bit heightmap of `side`² random heights up to 4000: every 8×8
+/// column holds walls the whole height, about 500 bricks with voxels.
+fn rough_heightmap(side: u32) -> PathBuf {
+    let path = tmp("mem", &format!("rough-{side}.png"));
+    let f = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
+    let mut enc = png::Encoder::new(f, side, side);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Sixteen);
+    let mut w = enc.write_header().unwrap();
+    let mut x = 0x9e37_79b9_7f4a_7c15u64;
+    let data: Vec<u8> = (0..side * side)
+        .flat_map(|_| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            ((x % 4001) as u16).to_be_bytes()
+        })
+        .collect();
+    w.write_image_data(&data).unwrap();
+    path
+}
+
+/// Regression (hostile probe): sources whose worlds pass the size estimate
+/// but store far more bricks than it allows for aborted out of memory
+/// while building: a rough 16-bit heightmap (walls 4000 voxels high in
+/// every column) and a .vox whose few million voxels each fill a brick of
+/// their own. Both are now counted before building, and a .vox is built
+/// one brick at a time.
+#[test]
+fn rough_heightmaps_and_scattered_vox_files_are_refused_not_aborted() {
+    let map = rough_heightmap(1448);
+    let out = render_capped(&format!("heightmap:{}", map.display()), None);
+    assert_clear_failure(
+        &out,
+        "a rough 1448² heightmap",
+        "bricks with voxels need about",
+    );
+    let vox = scattered_vox(400);
+    let out = render_capped(&format!("vox:{}", vox.display()), None);
+    assert_clear_failure(
+        &out,
+        "13 M scattered voxels",
+        "bricks with voxels need about",
+    );
+    // Smaller ones still build. 5 M scattered voxels took about 4 GB while
+    // a map of dense bricks was built (an abort under this cap) and take
+    // about 1.1 GB now.
+    for scene in [
+        format!("heightmap:{}", rough_heightmap(128).display()),
+        format!("vox:{}", scattered_vox(160).display()),
+    ] {
+        let out = render_capped(&scene, None);
+        assert!(
+            out.status.success(),
+            "{scene}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+}

@@ -56,13 +56,18 @@ pub fn read_file(path: &Path, max: u64) -> Result<Vec<u8>, SceneError> {
 /// Estimated bytes to build a world of `size` voxels.
 pub fn world_bytes(size: IVec3) -> u64 {
     let s = size.max(IVec3::ONE).as_u64vec3();
-    let bricks =
-        s.x.div_ceil(8)
-            .saturating_mul(s.y.div_ceil(8))
-            .saturating_mul(s.z.div_ceil(8));
     let columns = s.x.div_ceil(8).saturating_mul(s.z.div_ceil(8));
     let per_column = BYTES_PER_COLUMN.saturating_mul(s.y.div_ceil(256));
-    bricks.saturating_mul(4) + columns.saturating_mul(per_column)
+    grid_bytes(size).saturating_add(columns.saturating_mul(per_column))
+}
+
+/// Bytes of the dense brick grid over a world of `size` voxels (4 a cell).
+pub fn grid_bytes(size: IVec3) -> u64 {
+    let s = size.max(IVec3::ONE).as_u64vec3();
+    s.x.div_ceil(8)
+        .saturating_mul(s.y.div_ceil(8))
+        .saturating_mul(s.z.div_ceil(8))
+        .saturating_mul(4)
 }
 
 /// Bytes this process may still allocate, as far as the OS says.
@@ -123,6 +128,32 @@ pub fn check_world(what: &str, size: IVec3) -> Result<(), SceneError> {
                 size.x,
                 size.y,
                 size.z,
+                human(need),
+                human(have)
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Measured bytes a brick with per-voxel data costs once built (its mask,
+/// packed materials, coarse levels and the store's entry, with the build's
+/// transient copies): 280–300 on tall random heightmaps of 256² to 1024²,
+/// with a margin.
+pub const BYTES_PER_STORED_BRICK: u64 = 320;
+
+/// Refuse a source (`what`) whose `bricks` bricks with per-voxel data, on
+/// top of `base` bytes (its grid and other estimates), would not fit.
+pub fn check_stored_bricks(what: &str, bricks: u64, base: u64) -> Result<(), SceneError> {
+    let need = bricks
+        .saturating_mul(BYTES_PER_STORED_BRICK)
+        .saturating_add(base);
+    let have = available_bytes();
+    if need > have {
+        return Err(SceneError::OutOfMemory {
+            what: what.to_string(),
+            msg: format!(
+                "its {bricks} bricks with voxels need about {} to build; {} is available",
                 human(need),
                 human(have)
             ),

@@ -126,3 +126,74 @@ pub fn voxelize(field: &dyn Heightfield, palette: Palette, progress: &ProgressBa
     }
     store
 }
+
+/// The bricks [`voxelize`] may store with per-voxel data (neither empty nor
+/// uniform), counted from the heights alone, column by column, without
+/// voxelising: an upper bound, for memory checks before building. A brick
+/// column's stored bricks span from the deep level under its lowest column
+/// to the top of its highest one; a rough or tall field (walls thousands of
+/// voxels high between neighbours) stores all of them.
+pub fn stored_bricks(field: &dyn Heightfield) -> u64 {
+    let ext = field.extent();
+    let bx_n = (ext.x + BRICK_EDGE - 1) / BRICK_EDGE;
+    let bz_n = (ext.z + BRICK_EDGE - 1) / BRICK_EDGE;
+    (0..bz_n)
+        .into_par_iter()
+        .map(|bz| {
+            let mut n = 0u64;
+            for bx in 0..bx_n {
+                let (mut hmin, mut hmax) = (i32::MAX, i32::MIN);
+                for lz in 0..8 {
+                    for lx in 0..8 {
+                        let (x, z) = (bx * 8 + lx, bz * 8 + lz);
+                        let v = if x >= ext.x || z >= ext.z {
+                            0
+                        } else {
+                            field.height(x, z).clamp(0, ext.y)
+                        };
+                        hmin = hmin.min(v);
+                        hmax = hmax.max(v);
+                    }
+                }
+                let top = (hmax + field.margin_above()).min(ext.y);
+                let top_bricks = (top + BRICK_EDGE - 1).div_euclid(BRICK_EDGE);
+                // Bricks wholly below `hmin - depth` are uniform.
+                let deep_bricks = field
+                    .deep()
+                    .map_or(0, |(depth, _)| (hmin - depth).max(0).div_euclid(BRICK_EDGE));
+                n += (top_bricks - deep_bricks.min(top_bricks)) as u64;
+            }
+            n
+        })
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::terrain::Terrain;
+    use crate::world::Cell;
+
+    /// `stored_bricks` bounds what `voxelize` stores with voxels, and is
+    /// close to it: it is what the memory check before a build relies on.
+    #[test]
+    fn stored_bricks_bounds_the_mixed_bricks_voxelize_stores() {
+        for (size, caves) in [
+            (IVec3::new(64, 96, 40), false),
+            (IVec3::new(50, 64, 70), true),
+        ] {
+            let t = Terrain::new(size, 3, caves);
+            let store = voxelize(&t, Palette::grey_ramp(), &ProgressBar::hidden());
+            let mixed = store
+                .iter()
+                .filter(|(_, c)| matches!(c, Cell::Mixed(_)))
+                .count() as u64;
+            let bound = stored_bricks(&t);
+            assert!(mixed > 0 && mixed <= bound, "{mixed} mixed, bound {bound}");
+            assert!(
+                bound <= mixed * 3,
+                "{mixed} mixed, bound {bound}: too loose"
+            );
+        }
+    }
+}

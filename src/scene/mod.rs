@@ -457,7 +457,15 @@ pub fn build_scene(
         SceneSpec::Heightmap(path) => {
             let hm = Heightmap::load(path)?;
             let ext = hm.extent();
-            budget::check_world(&path.display().to_string(), ext)?;
+            let what = path.display().to_string();
+            budget::check_world(&what, ext)?;
+            // A rough or tall map stores far more bricks a column than
+            // the estimate above allows for: count them from the heights.
+            budget::check_stored_bricks(
+                &what,
+                heightfield::stored_bricks(&hm),
+                budget::grid_bytes(ext),
+            )?;
             (
                 voxelize(&hm, Heightmap::palette(), progress),
                 IVec3::ZERO,
