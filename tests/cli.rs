@@ -1100,3 +1100,51 @@ fn a_bench_whose_chart_fails_leaves_the_previous_results() {
         .collect();
     assert_eq!(names.len(), 2, "{names:?}");
 }
+
+/// Regression (hostile probe): `chart` past `ulimit -f` left a truncated
+/// SVG in place of the previous chart. Charts are drawn into a temporary
+/// file that replaces the chart only once it is whole.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_chart_that_fails_to_write_leaves_the_previous_chart() {
+    let state = tmp("chart-fsize");
+    let _ = std::fs::remove_dir_all(&state);
+    std::fs::create_dir_all(&state).unwrap();
+    let rows: String = (1..=40)
+        .map(|t| format!("{t},{},{}\n", 1000.0 + t as f64 * 0.5, 100_000 + t * 37))
+        .collect();
+    std::fs::write(
+        state.join("timeline.csv"),
+        format!("tick,water,rss_kb\n{rows}"),
+    )
+    .unwrap();
+    let chart = |limit: &str| {
+        std::process::Command::new("bash")
+            .arg("-c")
+            .arg(format!(
+                "{limit} exec '{}' chart '{}'",
+                env!("CARGO_BIN_EXE_brickworld"),
+                state.display()
+            ))
+            .output()
+            .unwrap()
+    };
+    assert_success(&chart(""));
+    let charts = state.join("charts");
+    let before: Vec<(std::path::PathBuf, Vec<u8>)> = std::fs::read_dir(&charts)
+        .unwrap()
+        .map(|e| {
+            let p = e.unwrap().path();
+            let b = std::fs::read(&p).unwrap();
+            (p, b)
+        })
+        .collect();
+    assert!(before.len() >= 2 && before.iter().all(|(_, b)| b.len() > 2048));
+    let out = chart("ulimit -f 2;");
+    assert_clear_failure(&out, "chart past ulimit -f", "File too large");
+    let after = std::fs::read_dir(&charts).unwrap().count();
+    assert_eq!(after, before.len(), "a temporary file was left");
+    for (p, b) in before {
+        assert!(std::fs::read(&p).unwrap() == b, "{} changed", p.display());
+    }
+}

@@ -17,7 +17,19 @@ fn color(name: &str) -> RGBColor {
 /// Memory (MiB, log scale) against speed (Mrays/s), one point per structure
 /// and scene, labelled `scene/structure`.
 pub fn memory_vs_speed(path: &Path, reports: &[&BenchReport]) -> Result<(), ChartError> {
-    draw(path, reports).map_err(|e| ChartError::new(path, e))
+    staged(path, |tmp| draw(tmp, reports))
+}
+
+/// Draw into a temporary file beside `path` that replaces it only once the
+/// chart is whole: a chart that fails (a full disk, a file-size limit)
+/// leaves the previous one as it was, never a truncated one.
+fn staged(
+    path: &Path,
+    draw: impl FnOnce(&Path) -> Result<(), Box<dyn std::error::Error>>,
+) -> Result<(), ChartError> {
+    let file = crate::files::Staged::new(path).map_err(|e| ChartError::new(path, e.into()))?;
+    draw(file.path()).map_err(|e| ChartError::new(path, e))?;
+    file.commit().map_err(|e| ChartError::new(path, e.into()))
 }
 
 /// A chart could not be drawn or written.
@@ -130,7 +142,7 @@ pub fn xy_chart(
     y_desc: &str,
     series: &[Series],
 ) -> Result<(), ChartError> {
-    draw_xy(path, title, x_desc, y_desc, series).map_err(|e| ChartError::new(path, e))
+    staged(path, |tmp| draw_xy(tmp, title, x_desc, y_desc, series))
 }
 
 fn draw_xy(
