@@ -35,6 +35,20 @@ pub const MAX_XZ: i32 = 65536;
 /// Largest procedural extent along y.
 pub const MAX_Y: i32 = 4096;
 
+/// A whole number in decimal, saturated to `i32` (so that one too large
+/// for it is refused as out of range, not as "not a whole number").
+fn whole_number(t: &str) -> Option<i32> {
+    let digits = t.strip_prefix(['-', '+']).unwrap_or(t);
+    if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    Some(match t.parse::<i32>() {
+        Ok(n) => n,
+        Err(_) if t.starts_with('-') => i32::MIN,
+        Err(_) => i32::MAX,
+    })
+}
+
 /// Parse `XxYxZ`.
 pub fn parse_size(s: &str) -> Result<IVec3, ConfigError> {
     let parts: Vec<&str> = s.split(['x', 'X']).collect();
@@ -43,10 +57,8 @@ pub fn parse_size(s: &str) -> Result<IVec3, ConfigError> {
     }
     let mut v = [0i32; 3];
     for (i, p) in parts.iter().enumerate() {
-        v[i] = p
-            .trim()
-            .parse::<i32>()
-            .map_err(|_| bad("--size", s, format!("'{p}' is not a whole number")))?;
+        v[i] = whole_number(p.trim())
+            .ok_or_else(|| bad("--size", s, format!("'{p}' is not a whole number")))?;
     }
     let v = IVec3::from(v);
     if v.min_element() < 8 {
@@ -540,6 +552,17 @@ impl SimSettings {
             if !value.is_finite() {
                 return Err(bad("--param", p, "the value must be finite"));
             }
+            // Two values for one parameter: the user meant one of them.
+            if params
+                .iter()
+                .any(|q: &ParamOverride| q.script == script && q.name == name)
+            {
+                return Err(bad(
+                    "--param",
+                    p,
+                    format!("{script}.{name} is given more than once"),
+                ));
+            }
             params.push(ParamOverride {
                 script: script.to_string(),
                 name: name.to_string(),
@@ -587,6 +610,23 @@ mod tests {
             let e = parse_size(s).unwrap_err();
             assert_eq!(e.flag, "--size", "{s}");
         }
+    }
+
+    /// Regression (hostile probe): a side too large for 32 bits was said
+    /// not to be a whole number.
+    #[test]
+    fn a_size_past_32_bits_is_out_of_range_not_malformed() {
+        for (s, says) in [
+            ("64x64x99999999999", "the limit is"),
+            ("64x64x99999999999999999999999", "the limit is"),
+            ("64x-99999999999x64", "at least 8"),
+            ("64x1e3x64", "'1e3' is not a whole number"),
+            ("64x+x64", "'+' is not a whole number"),
+        ] {
+            let e = parse_size(s).unwrap_err().to_string();
+            assert!(e.contains(says), "{s}: {e}");
+        }
+        assert_eq!(parse_size("+64x 64x64").unwrap(), IVec3::splat(64));
     }
 
     #[test]

@@ -256,6 +256,19 @@ fn sim_command_rejects_bad_input_clearly() {
             vec!["sim", "--script", &water, "--param", "water.rain"],
             "invalid --param",
         ),
+        // Regression (hostile probe): the second value silently won.
+        (
+            vec![
+                "sim",
+                "--script",
+                &water,
+                "--param",
+                "water.rain=1",
+                "--param",
+                "water.rain=2",
+            ],
+            "water.rain is given more than once",
+        ),
         (
             vec!["sim", "--script", &water, "--steps", "0"],
             "invalid --steps",

@@ -416,8 +416,17 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             let n = if t.is_empty() {
                 1
             } else {
-                t.parse::<u64>()
-                    .map_err(|_| bad(format!("step count '{}' is not a whole number", shown(t))))?
+                match t.parse::<u64>() {
+                    Ok(n) => n,
+                    // All digits, past u64: out of range, not malformed.
+                    Err(_) if t.bytes().all(|b| b.is_ascii_digit()) => u64::MAX,
+                    Err(_) => {
+                        return Err(bad(format!(
+                            "step count '{}' is not a whole number",
+                            shown(t)
+                        )));
+                    }
+                }
             };
             if !(1..=100_000).contains(&n) {
                 return Err(bad(format!("step count {n} is outside 1..=100000")));
@@ -559,5 +568,32 @@ impl<'de> serde::Deserialize<'de> for UniqueNumbers {
             }
         }
         d.deserialize_map(Visit)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression (hostile probe): a step count past 64 bits was said not
+    /// to be a whole number.
+    #[test]
+    fn a_step_count_past_64_bits_is_out_of_range_not_malformed() {
+        let status = Status::default();
+        for (body, says) in [
+            ("99999999999999999999999", "is outside 1..=100000"),
+            ("100001", "is outside 1..=100000"),
+            ("0", "is outside 1..=100000"),
+            ("-1", "'-1' is not a whole number"),
+            ("1e3", "'1e3' is not a whole number"),
+        ] {
+            let (code, msg) = parse_command("/step", body, &status).unwrap_err();
+            assert_eq!(code, 400, "{body}");
+            assert!(msg.contains(says), "{body}: {msg}");
+        }
+        assert!(matches!(
+            parse_command("/step", " 7 ", &status),
+            Ok(Command::Step(7))
+        ));
     }
 }
