@@ -526,6 +526,28 @@ fn a_number_too_big_for_its_flag_is_out_of_range_not_not_a_number() {
             "invalid --conservation-steps",
         );
     }
+    // Regression (hostile probe): verify's outputs were found wanting only
+    // after its minutes of work.
+    let missing = tmp("no-such-folder").join("v.json");
+    expect_failure(
+        &["verify", "sims", "--json", missing.to_str().unwrap()],
+        "its folder",
+    );
+    let file = tmp("a-file");
+    std::fs::write(&file, "").unwrap();
+    let json = tmp("v.json");
+    expect_failure(
+        &[
+            "verify",
+            "sims",
+            "--json",
+            json.to_str().unwrap(),
+            "--chart",
+            file.to_str().unwrap(),
+        ],
+        "is a file; name a folder for the charts",
+    );
+    assert!(!json.exists());
     expect_failure(
         &["render", "--out", o, "--width", "wide"],
         "invalid --width 'wide': not a number",

@@ -106,6 +106,19 @@ pub fn run(cli: Cli) -> Result<()> {
                     a.conservation_steps
                 );
             }
+            // Where the results go is checked before minutes of work
+            // (regression: a --json into a missing folder failed at the end).
+            crate::config::check_bench_outputs(&a.json, None)?;
+            if let Some(dir) = &a.chart {
+                if dir.exists() && !dir.is_dir() {
+                    bail!(
+                        "invalid --chart '{}': is a file; name a folder for the charts",
+                        dir.display()
+                    );
+                }
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("cannot create {}", dir.display()))?;
+            }
             crate::verify::run_sims(&a.json, a.chart.as_deref(), a.conservation_steps)
         }
         Command::Bench(BenchCommand::Sim(a)) => run_bench_sim(&a),

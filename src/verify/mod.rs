@@ -20,8 +20,8 @@ pub fn run_sims(json: &Path, chart_dir: Option<&Path>, conservation_steps: u64) 
     let (cases, charts) = sims::run_all(conservation_steps, &pb);
     pb.finish_and_clear();
     let report = serde_json::json!({ "cases": cases });
-    std::fs::write(json, serde_json::to_string_pretty(&report)? + "\n")
-        .with_context(|| format!("cannot write {}", json.display()))?;
+    let text = serde_json::to_string_pretty(&report)? + "\n";
+    crate::bench::write_outputs(json, &text, None, |_| Ok(()))?;
     for c in &cases {
         println!(
             "{:<18} {:<34} {}",
