@@ -267,7 +267,9 @@ fn a_vox_world_below_zero_runs_its_column_scripts() {
         .arg(format!("vox:{}", path.display()))
         .arg("--script")
         .arg(&script)
-        .args(["--steps", "2"])
+        .args(["--steps", "2", "--out"])
+        // Not the default sim.png in the working tree.
+        .arg(tmp("mem", "below-zero.png"))
         .output()
         .unwrap();
     common::cli::assert_success(&out);
