@@ -10,7 +10,9 @@
 //!   [`Staged::commit`]. A command that fails half-way leaves every file it
 //!   was going to replace as it was. A link is followed (the file it names
 //!   is replaced), and a destination that is not a regular file (`/dev/null`,
-//!   a FIFO) is written directly, never replaced.
+//!   a FIFO) is written directly, never replaced. Temporary files that a
+//!   killed or interrupted process left beside a destination are removed
+//!   by the next write to it, once a minute old.
 //!
 //! ```
 //! use brickworld::files::{Staged, read_text};
@@ -203,6 +205,7 @@ pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File
         .file_name()
         .map(|n| n.to_string_lossy().to_string())
         .unwrap_or_else(|| "out".into());
+    sweep_stale_temps(dir, &name);
     loop {
         let n = NEXT.fetch_add(1, Ordering::Relaxed);
         let tmp = dir.join(format!(".{name}.{}-{n}.tmp", std::process::id()));
@@ -214,6 +217,54 @@ pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File
             Ok(f) => return Ok((tmp, f)),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
             Err(e) => return Err(e),
+        }
+    }
+}
+
+/// Temporary files older than this, of a process that is gone, are removed.
+const STALE_TEMP: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// Remove `.NAME.PID-N.tmp` files in `dir` left by a process that no longer
+/// runs (killed, or stopped with Ctrl-C, mid-write), once a minute old:
+/// without this, every interrupted command left a hidden file for good.
+/// Only names of exactly that form are touched, and only where `/proc`
+/// says the process is gone.
+fn sweep_stale_temps(dir: &Path, name: &str) {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let prefix = format!(".{name}.");
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let file = e.file_name();
+        let Some(rest) = file
+            .to_str()
+            .and_then(|f| f.strip_prefix(&prefix))
+            .and_then(|f| f.strip_suffix(".tmp"))
+        else {
+            continue;
+        };
+        let Some((pid, n)) = rest.split_once('-') else {
+            continue;
+        };
+        let digits = |t: &str| !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit());
+        if !digits(pid) || !digits(n) || pid == std::process::id().to_string() {
+            continue;
+        }
+        if Path::new("/proc").join(pid).exists() {
+            continue;
+        }
+        let old = e
+            .metadata()
+            .ok()
+            .filter(|m| m.is_file())
+            .and_then(|m| m.modified().ok())
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|age| age > STALE_TEMP);
+        if old {
+            let _ = std::fs::remove_file(e.path());
         }
     }
 }
@@ -298,6 +349,45 @@ mod tests {
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
         d
+    }
+
+    /// Regression (hostile probe): a command killed or stopped with Ctrl-C
+    /// mid-write left its hidden temporary file for good. The next write to
+    /// the same destination removes those of gone processes, once a minute
+    /// old, and nothing else.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn temporaries_of_gone_processes_are_swept_by_the_next_write() {
+        let d = dir("sweep");
+        let dest = d.join("out.png");
+        // A pid no process has: past every live one in /proc.
+        let gone = (4_000_000u32..)
+            .find(|p| !Path::new("/proc").join(p.to_string()).exists())
+            .unwrap();
+        let alive = std::process::id(); // this process: never swept
+        let old = std::time::SystemTime::now() - std::time::Duration::from_secs(3600);
+        let make = |name: String, backdate: bool| {
+            let p = d.join(name);
+            let f = std::fs::File::create(&p).unwrap();
+            if backdate {
+                f.set_modified(old).unwrap();
+            }
+            p
+        };
+        let stale = make(format!(".out.png.{gone}-0.tmp"), true);
+        let recent = make(format!(".out.png.{gone}-1.tmp"), false);
+        let mine = make(format!(".out.png.{alive}-999.tmp"), true);
+        let other_dest = make(format!(".other.png.{gone}-0.tmp"), true);
+        let not_ours = make(format!(".out.png.{gone}-x.tmp"), true);
+        let st = Staged::new(&dest).unwrap();
+        std::fs::write(st.path(), "new").unwrap();
+        st.commit().unwrap();
+        assert!(!stale.exists(), "a stale temporary was kept");
+        for kept in [&recent, &mine, &other_dest, &not_ours] {
+            assert!(kept.exists(), "{} was removed", kept.display());
+        }
+        assert_eq!(std::fs::read_to_string(&dest).unwrap(), "new");
+        let _ = std::fs::remove_dir_all(&d);
     }
 
     #[test]
