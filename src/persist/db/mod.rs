@@ -32,8 +32,14 @@ use redb::{ReadableDatabase, ReadableTable, TableDefinition};
 use thiserror::Error;
 
 mod backend;
+mod manifest;
+mod reader;
 
 use self::backend::open_db;
+pub use self::manifest::Manifest;
+use self::manifest::{check_manifest, read_manifest, read_only_meta, write_atomic};
+pub use self::reader::StoreReader;
+use self::reader::{Shared, get_in, with_shared};
 use super::chunk::{ChunkKey, ColumnKey};
 use crate::engine::checkpoint::WorldIdentity;
 
@@ -117,18 +123,6 @@ pub enum StoreError {
     Commit(String),
 }
 
-/// What the manifest records.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Manifest {
-    /// The store's format version.
-    pub format: u32,
-    /// The world.
-    pub world: WorldIdentity,
-    /// The brickworld version that created the store.
-    pub created_by: String,
-}
-
 /// What one commit wrote.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CommitStats {
@@ -152,56 +146,6 @@ fn commit_stall() -> Option<std::time::Duration> {
         .and_then(|v| v.parse().ok())
         .map(std::time::Duration::from_millis)
 }
-
-/// `key` of the meta table, read through a read-only handle (None if the
-/// file is missing, needs repair after a crash, or lacks the key).
-fn read_only_meta(path: &Path, key: &str) -> Option<Vec<u8>> {
-    if !path.is_file() {
-        return None;
-    }
-    let db = redb::ReadOnlyDatabase::open(path).ok()?;
-    let tx = db.begin_read().ok()?;
-    let table = tx.open_table(META).ok()?;
-    let v = table.get(key).ok()??;
-    Some(v.value().to_vec())
-}
-
-/// Parse a stored manifest and refuse another format or another world.
-fn check_manifest(
-    path: &Path,
-    bytes: &[u8],
-    identity: &WorldIdentity,
-) -> Result<Manifest, StoreError> {
-    let m: Manifest = serde_json::from_slice(bytes).map_err(|e| StoreError::Manifest {
-        path: path.to_path_buf(),
-        msg: e.to_string(),
-    })?;
-    if m.format != FORMAT {
-        return Err(StoreError::Version {
-            path: path.to_path_buf(),
-            found: m.format,
-        });
-    }
-    if !m.world.same_world(identity) {
-        return Err(StoreError::Foreign {
-            path: path.to_path_buf(),
-            found: Box::new(m.world),
-            expected: Box::new(identity.clone()),
-        });
-    }
-    Ok(m)
-}
-
-/// The `manifest.json` beside a store, if it is a regular file of sane size
-/// (a FIFO there hung the engine at start; regression).
-fn read_manifest(path: &Path) -> Option<Vec<u8>> {
-    crate::files::read_bounded(path, 1 << 20).ok()
-}
-
-/// The database handle, shared with [`StoreReader`]s (the render window's
-/// fetcher threads): `None` only after a failed commit whose reopen failed
-/// too. The lock is taken for writing only to reopen after a failure.
-type Shared = std::sync::Arc<std::sync::RwLock<Option<redb::Database>>>;
 
 /// An open world store.
 pub struct WorldDb {
@@ -232,21 +176,6 @@ impl std::fmt::Debug for WorldDb {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("WorldDb").field("path", &self.path).finish()
     }
-}
-
-fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    use std::io::Write;
-    let tmp = path.with_extension("json.tmp");
-    let mut f = std::fs::File::create(&tmp)?;
-    f.write_all(bytes)?;
-    f.sync_all()?;
-    std::fs::rename(&tmp, path)?;
-    if let Some(dir) = path.parent()
-        && let Ok(d) = std::fs::File::open(dir)
-    {
-        let _ = d.sync_all();
-    }
-    Ok(())
 }
 
 impl WorldDb {
@@ -587,61 +516,5 @@ impl WorldDb {
     /// The store file's size in bytes.
     pub fn file_bytes(&self) -> u64 {
         std::fs::metadata(&self.path).map_or(0, |m| m.len())
-    }
-}
-
-fn with_shared<R>(
-    db: &Shared,
-    path: &Path,
-    f: impl FnOnce(&redb::Database) -> Result<R, StoreError>,
-) -> Result<R, StoreError> {
-    let slot = db.read().unwrap_or_else(|p| p.into_inner());
-    match slot.as_ref() {
-        Some(db) => f(db),
-        None => Err(StoreError::Db {
-            path: path.to_path_buf(),
-            msg: "the database could not be reopened after a failed commit".into(),
-        }),
-    }
-}
-
-fn get_in(
-    db: &redb::Database,
-    path: &Path,
-    def: TableDefinition<&[u8], &[u8]>,
-    key: &[u8],
-) -> Result<Option<Vec<u8>>, StoreError> {
-    let err = |e: redb::Error| StoreError::Db {
-        path: path.to_path_buf(),
-        msg: e.to_string(),
-    };
-    let tx = db.begin_read().map_err(|e| err(e.into()))?;
-    let table = tx.open_table(def).map_err(|e| err(e.into()))?;
-    let v = table.get(key).map_err(|e| err(e.into()))?;
-    Ok(v.map(|g| g.value().to_vec()))
-}
-
-/// A read-only handle on a [`WorldDb`]'s chunks for another thread (see
-/// [`WorldDb::reader`]). Cheap to clone.
-#[derive(Clone)]
-pub struct StoreReader {
-    db: Shared,
-    path: PathBuf,
-}
-
-impl std::fmt::Debug for StoreReader {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("StoreReader")
-            .field("path", &self.path)
-            .finish()
-    }
-}
-
-impl StoreReader {
-    /// Chunk `key`'s blob as last committed, if stored.
-    pub fn chunk(&self, key: ChunkKey) -> Result<Option<Vec<u8>>, StoreError> {
-        with_shared(&self.db, &self.path, |db| {
-            get_in(db, &self.path, CHUNKS, &key.to_bytes())
-        })
     }
 }
