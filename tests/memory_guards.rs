@@ -416,3 +416,34 @@ fn rough_heightmaps_and_scattered_vox_files_are_refused_not_aborted() {
         );
     }
 }
+
+/// Regression (hostile probe): a script under the 4 MiB limit, 3.9 MB of
+/// field accesses, was compiled to native code in every worker VM (about
+/// 1.3 GB a thread, outside the VMs' memory limit) and killed the process
+/// with SIGILL in Luau's code generator. Scripts over 64 KiB are now
+/// interpreted.
+#[test]
+fn a_huge_script_is_interpreted_not_compiled_to_native_code_per_thread() {
+    let script = tmp("mem", "fields4m.lua");
+    let body = "x.a.b.c=x.d.e.f\n".repeat(244_000);
+    std::fs::write(
+        &script,
+        format!(
+            "local function g(x)\n{body}return x end\n\
+             return {{channels={{\"water\"}},passes={{{{name=\"p\",reads={{\"water\"}},writes={{\"water\"}},kernel=function(c,tx,tz) end}}}}}}"
+        ),
+    )
+    .unwrap();
+    assert!(std::fs::metadata(&script).unwrap().len() < 4 << 20);
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 4000000 && exec '{}' sim --size 64x32x64 --threads 3 --steps 1 --script '{}' --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            script.display(),
+            tmp("mem", "fields4m.png").display()
+        ))
+        .output()
+        .unwrap();
+    common::cli::assert_success(&out);
+}

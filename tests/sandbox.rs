@@ -814,3 +814,36 @@ fn a_rejected_reload_registers_no_channels() {
     sim.replace_script(0, src("s", &decl("c", 50, ""))).unwrap();
     assert_eq!(sim.channels().channels().count(), before + 50);
 }
+
+/// Regression (hostile probe): each hot reload kept the replaced version's
+/// VMs in every worker's cache (up to 32 a thread), about 75 MB a reload
+/// of a script holding a large table, until the daemon aborted out of
+/// memory. A replaced script's VMs are freed at the worker's next use.
+#[test]
+fn a_replaced_scripts_vms_are_freed() {
+    let text = |n: usize| {
+        format!(
+            "local big = {{}} for i = 1, 20000 do big[i] = i end -- v{n}\n\
+             return {{ channels = {{ \"w\" }}, passes = {{ {{ name = \"p\", reads = {{ \"w\" }}, writes = {{ \"w\" }}, kernel = function(c) local x = big[1] end }} }} }}"
+        )
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
+        sim.add_script(src("s", &text(0)), Kernel::Lua, small())
+            .unwrap();
+        assert!(sim.step(0.1).errors.is_empty());
+        let vms = || pool.install(brickworld::sim::runtime::vms::cached_here);
+        assert_eq!(vms(), 1);
+        for n in 1..=40 {
+            sim.replace_script(0, src("s", &text(n))).unwrap();
+            assert!(sim.step(0.1).errors.is_empty());
+            assert_eq!(vms(), 1, "after reload {n}");
+        }
+        drop(sim);
+        assert_eq!(vms(), 0, "a dropped simulation's VMs");
+    });
+}

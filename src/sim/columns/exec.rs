@@ -292,7 +292,7 @@ fn run_lua(
     reads: &[[f64; HALO_CELLS]],
     writes: &mut [[f64; TILE_CELLS]],
 ) -> Result<(), SimError> {
-    crate::sim::runtime::vms::with_vm(s.uid, &s.src, s.limits, |vm, prepared| {
+    crate::sim::runtime::vms::with_vm(s.uid.get(), &s.src, s.limits, |vm, prepared| {
         if *prepared != serial {
             vm.begin_step(dt, &s.spec, &s.params, key, &[])?;
             *prepared = serial;

@@ -66,12 +66,11 @@ pub enum Kernel {
     Native(Arc<dyn NativeKernel>),
 }
 
-static NEXT_UID: AtomicU64 = AtomicU64::new(1);
 static STEP_SERIAL: AtomicU64 = AtomicU64::new(1);
 
 /// A loaded script: its declarations, channel ids, parameters and health.
 pub(super) struct Loaded {
-    pub(super) uid: u64,
+    pub(super) uid: crate::sim::runtime::vms::VmId,
     pub(super) src: ScriptSource,
     pub(super) spec: ScriptSpec,
     pub(super) params: Vec<f64>,
@@ -366,7 +365,7 @@ impl Simulation {
             .map(|c| self.channels.channel(c))
             .collect();
         Ok(Loaded {
-            uid: NEXT_UID.fetch_add(1, Ordering::Relaxed),
+            uid: crate::sim::runtime::vms::VmId::new(),
             src,
             spec,
             params,

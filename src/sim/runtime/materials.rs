@@ -33,6 +33,8 @@ pub fn load_materials(
 ) -> Result<Vec<String>, SimError> {
     let limits = Limits::default();
     let lua = sandboxed(limits, &src.name)?;
+    // Run once, at load: never worth native code.
+    lua.enable_jit(false);
     crate::sim::interrupt::arm(
         limits.instructions,
         Instant::now() + limits.time,

@@ -3,8 +3,6 @@
 //! replacing it on hot reload (parameters kept), native reference kernels,
 //! and each script's rate, parameters and health.
 
-use std::sync::atomic::{AtomicU64, Ordering};
-
 use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::channels::VoxelChannelId;
@@ -15,11 +13,9 @@ use crate::sim::script::{Grid, VOXEL_CELLS, VOXEL_HALO};
 use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
 use crate::world::MaterialRegistry;
 
-static NEXT_UID: AtomicU64 = AtomicU64::new(1 << 40);
-
 /// A loaded voxel script and its state.
 pub(super) struct Loaded {
-    pub(super) uid: u64,
+    pub(super) uid: crate::sim::runtime::vms::VmId,
     pub(super) src: ScriptSource,
     pub(super) spec: ScriptSpec,
     pub(super) params: Vec<f64>,
@@ -258,7 +254,7 @@ impl VoxelSim {
             .collect();
         let params = defaults;
         self.scripts.push(Loaded {
-            uid: NEXT_UID.fetch_add(1, Ordering::Relaxed),
+            uid: crate::sim::runtime::vms::VmId::new(),
             src,
             spec,
             params,

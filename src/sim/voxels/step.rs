@@ -461,7 +461,7 @@ impl VoxelSim {
             let key = StepKey::new(self.seed, self.tick, &self.scripts[si].spec.name);
             let l = &self.scripts[si];
             let job = Job {
-                uid: l.uid,
+                uid: l.uid.get(),
                 src: &l.src,
                 spec: &l.spec,
                 params: &l.params,
