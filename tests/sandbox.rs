@@ -847,3 +847,71 @@ fn a_replaced_scripts_vms_are_freed() {
         assert_eq!(vms(), 0, "a dropped simulation's VMs");
     });
 }
+
+/// Regression (hostile probe): state that escaped the kernels' freeze and
+/// made worlds differ from run to run: a count kept in a captured table's
+/// metatable, in a table used as a key, or in a buffer held in a table,
+/// and a weak table whose contents depend on when the collector ran.
+#[test]
+fn kernels_keep_no_state_in_metatables_keys_buffers_or_weak_tables() {
+    let kernel = |prelude: &str, body: &str| {
+        format!(
+            "{prelude}\nreturn {{ channels = {{ \"w\" }}, passes = {{ {{ name = \"p\", reads = {{ \"w\" }}, writes = {{ \"w\" }}, kernel = function(c) {body} end }} }} }}"
+        )
+    };
+    let cases = [
+        (
+            kernel(
+                "local proxy = setmetatable({}, {})",
+                "local mt = getmetatable(proxy); mt.n = (mt.n or 0) + 1",
+            ),
+            "readonly",
+        ),
+        (
+            kernel(
+                "local K = {}; local T = { [K] = 1 }",
+                "for k in pairs(T) do k.n = (k.n or 0) + 1 end",
+            ),
+            "readonly",
+        ),
+        (
+            kernel(
+                "local T = { b = buffer.create(8) }",
+                "buffer.writeu32(T.b, 0, buffer.readu32(T.b, 0) + 1)",
+            ),
+            "captures a buffer",
+        ),
+        (
+            kernel(
+                "",
+                "local w = setmetatable({}, { __mode = \"k\" }); w[{}] = true",
+            ),
+            "weak tables (__mode) are not allowed",
+        ),
+        (
+            kernel(
+                "",
+                "local mt = {}; local t = setmetatable({}, mt); mt.__mode = \"k\"",
+            ),
+            "readonly",
+        ),
+    ];
+    for (text, says) in cases {
+        let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+        let loaded = sim.add_script(src("s", &text), Kernel::Lua, small());
+        let msg = match loaded {
+            Err(e) => e.to_string(),
+            Ok(_) => sim.step(0.1).errors.iter().map(|e| e.to_string()).collect(),
+        };
+        assert!(msg.contains(says), "{text}\n-> {msg:?}");
+    }
+    // Metatables set up once and only read keep working.
+    let ok = kernel(
+        "local V = {}; V.__index = V; function V.get(s) return s.x end; local v = setmetatable({ x = 1 }, V)",
+        "local y = v:get()",
+    );
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(src("ok", &ok), Kernel::Lua, small())
+        .unwrap();
+    assert!(sim.step(0.1).errors.is_empty());
+}

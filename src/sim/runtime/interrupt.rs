@@ -382,12 +382,26 @@ unsafe fn freeze_at(
                 if ffi::lua_checkstack(state, 3) == 0 {
                     return;
                 }
+                // Its metatable too (regression, hostile probe: a kernel
+                // counted in `getmetatable(proxy).n`).
+                if ffi::lua_getmetatable(state, idx) != 0 {
+                    let at = ffi::lua_gettop(state);
+                    freeze_at(state, at, depth + 1, seen, refused);
+                    ffi::lua_pop(state, 1);
+                }
                 ffi::lua_pushnil(state);
                 while ffi::lua_next(state, idx) != 0 {
-                    let t = ffi::lua_type(state, -1);
-                    if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
-                        let at = ffi::lua_gettop(state);
-                        freeze_at(state, at, depth + 1, seen, refused);
+                    // Values and keys alike (regression: a table used as
+                    // a key, or a buffer held in a table, kept state).
+                    let top = ffi::lua_gettop(state);
+                    for at in [top, top - 1] {
+                        match ffi::lua_type(state, at) {
+                            ffi::LUA_TFUNCTION | ffi::LUA_TTABLE => {
+                                freeze_at(state, at, depth + 1, seen, refused)
+                            }
+                            ffi::LUA_TBUFFER => *refused = Some("a buffer in a table".into()),
+                            _ => {}
+                        }
                     }
                     ffi::lua_pop(state, 1);
                 }

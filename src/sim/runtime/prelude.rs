@@ -1,7 +1,8 @@
 //! Lua run in every script VM before the sandbox freezes its globals:
-//! `pcall`/`xpcall` that let out-of-memory through, and `tostring` /
-//! `string.format` that never show an address. Both keep a script's
-//! outcome independent of which VM ran it and what ran there before.
+//! `pcall`/`xpcall` that let out-of-memory through, `tostring` /
+//! `string.format` that never show an address, and a `setmetatable` that
+//! refuses weak tables and freezes metatables. All keep a script's outcome
+//! independent of which VM ran it and what ran there before.
 
 /// `pcall` and `xpcall` that let an out-of-memory error through. Whether
 /// an allocation fits the limit depends on how much garbage the VM has not
@@ -82,3 +83,28 @@ string.format = function(fmt, ...)
     return rawformat(fmt, ...)
 end
 "##;
+
+/// `setmetatable` that refuses weak tables and freezes the metatable it
+/// sets (regression, hostile probe):
+/// - what a weak table (`__mode`) still holds depends on when the garbage
+///   collector last ran, so a kernel that counted one gave different
+///   worlds from run to run, even on one thread;
+/// - a metatable is shared by every table it is set on, and a kernel that
+///   counted in one (`getmetatable(proxy).n += 1`) kept state between
+///   calls that depended on which tiles its VM ran. Frozen, `__mode` cannot
+///   be added later either.
+pub(super) const NO_WEAK_TABLES: &str = r#"
+local rawsetmetatable, rawget, type, error = setmetatable, rawget, type, error
+local freeze, isfrozen = table.freeze, table.isfrozen
+setmetatable = function(t, mt)
+    if type(mt) == "table" then
+        if rawget(mt, "__mode") ~= nil then
+            error("weak tables (__mode) are not allowed: what they hold depends on when the garbage collector runs", 2)
+        end
+        if not isfrozen(mt) then
+            freeze(mt)
+        end
+    end
+    return rawsetmetatable(t, mt)
+end
+"#;

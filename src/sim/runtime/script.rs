@@ -202,6 +202,7 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     for prelude in [
         super::prelude::UNCATCHABLE_MEMORY_ERRORS,
         super::prelude::NO_ADDRESSES,
+        super::prelude::NO_WEAK_TABLES,
     ] {
         lua.load(prelude)
             .set_name("=sandbox")
@@ -219,10 +220,15 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     crate::sim::interrupt::install(&lua);
     // Optimisation level 2 inlines small local functions and unrolls loops;
     // type information lets native code use annotations (`W: buffer`).
+    // The functions the preludes replace are never compiled as builtins:
+    // in a sandboxed environment a builtin call goes straight to Luau's
+    // own function (regression, hostile probe: weak tables passed the
+    // replaced `setmetatable`).
     lua.set_compiler(
         mlua::chunk::Compiler::new()
             .set_optimization_level(2)
-            .set_type_info_level(1),
+            .set_type_info_level(1)
+            .set_disabled_builtins(["setmetatable", "tostring", "string.format"]),
     );
     Ok(lua)
 }
