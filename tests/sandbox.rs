@@ -850,8 +850,9 @@ fn a_replaced_scripts_vms_are_freed() {
 
 /// Regression (hostile probe): state that escaped the kernels' freeze and
 /// made worlds differ from run to run: a count kept in a captured table's
-/// metatable, in a table used as a key, or in a buffer held in a table,
-/// and a weak table whose contents depend on when the collector ran.
+/// metatable, in a table used as a key, in a buffer held in a table, or in
+/// a closure held in a table, and a weak table whose contents depend on
+/// when the collector ran.
 #[test]
 fn kernels_keep_no_state_in_metatables_keys_buffers_or_weak_tables() {
     let kernel = |prelude: &str, body: &str| {
@@ -894,6 +895,21 @@ fn kernels_keep_no_state_in_metatables_keys_buffers_or_weak_tables() {
                 "local mt = {}; local t = setmetatable({}, mt); mt.__mode = \"k\"",
             ),
             "readonly",
+        ),
+        // A counter closure held in a table, as a value and as a key.
+        (
+            kernel(
+                "local function mk() local n = 0 return function() n = n + 1 return n end end; local T = { f = mk() }",
+                "local n = T.f()",
+            ),
+            "changed a variable outside itself",
+        ),
+        (
+            kernel(
+                "local function mk() local n = 0 return function() n = n + 1 return n end end; local T = { [mk()] = true }",
+                "for f in pairs(T) do f() end",
+            ),
+            "changed a variable outside itself",
         ),
     ];
     for (text, says) in cases {

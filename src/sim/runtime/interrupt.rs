@@ -303,6 +303,112 @@ unsafe fn walk_upvalues(
     }
 }
 
+/// The Lua functions held in the tables `f` reaches through its upvalues
+/// (and through those tables, their metatables and the functions found),
+/// collected once at load. The tables are frozen, so no other function can
+/// appear in them; each of these can still change its own upvalues, so
+/// [`upvalue_fingerprint_of`] covers them on every call (regression, hostile
+/// probe: a counter closure used as a table key kept state between calls).
+pub fn closures_in_tables(lua: &Lua, f: &mlua::Function) -> Vec<mlua::Function> {
+    let Ok(holder) = lua.create_table() else {
+        return Vec::new();
+    };
+    let mut seen: Vec<*const std::ffi::c_void> = Vec::new();
+    // SAFETY: exec_raw pushes `f` then `holder` and runs the walk in a
+    // protected call holding the VM's lock; the walk checks the stack
+    // before each push and pops what it pushes, and only appends functions
+    // to `holder` with lua_rawseti.
+    let _: mlua::Result<()> = unsafe {
+        lua.exec_raw((f.clone(), holder.clone()), |state| {
+            let top = ffi::lua_gettop(state);
+            let mut n = 0;
+            collect_at(state, top - 1, top, false, 0, &mut seen, &mut n);
+        })
+    };
+    holder
+        .sequence_values::<mlua::Function>()
+        .filter_map(Result::ok)
+        .collect()
+}
+
+/// Walk the function or table at absolute index `idx`, appending to the
+/// table at `holder` every Lua function found in a table (`in_table`).
+///
+/// # Safety
+/// `state` must be a live Luau state with a function or table at `idx` and
+/// a table at `holder`.
+unsafe fn collect_at(
+    state: *mut ffi::lua_State,
+    idx: c_int,
+    holder: c_int,
+    in_table: bool,
+    depth: u32,
+    seen: &mut Vec<*const std::ffi::c_void>,
+    n: &mut c_int,
+) {
+    // SAFETY (whole body): the caller's contract; every push is preceded
+    // by lua_checkstack and matched by a pop.
+    unsafe {
+        let p = ffi::lua_topointer(state, idx);
+        if depth > MAX_UPVALUE_DEPTH || seen.contains(&p) {
+            return;
+        }
+        seen.push(p);
+        if ffi::lua_checkstack(state, 3) == 0 {
+            return;
+        }
+        match ffi::lua_type(state, idx) {
+            ffi::LUA_TFUNCTION => {
+                if ffi::lua_iscfunction(state, idx) != 0 {
+                    return;
+                }
+                if in_table {
+                    ffi::lua_pushvalue(state, idx);
+                    *n += 1;
+                    ffi::lua_rawseti(state, holder, *n as i64);
+                }
+                let mut u = 1;
+                while !ffi::lua_getupvalue(state, idx, u).is_null() {
+                    let t = ffi::lua_type(state, -1);
+                    if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
+                        let at = ffi::lua_gettop(state);
+                        collect_at(state, at, holder, false, depth + 1, seen, n);
+                    }
+                    ffi::lua_pop(state, 1);
+                    u += 1;
+                }
+            }
+            ffi::LUA_TTABLE => {
+                if ffi::lua_getmetatable(state, idx) != 0 {
+                    let at = ffi::lua_gettop(state);
+                    collect_at(state, at, holder, true, depth + 1, seen, n);
+                    ffi::lua_pop(state, 1);
+                }
+                ffi::lua_pushnil(state);
+                while ffi::lua_next(state, idx) != 0 {
+                    let top = ffi::lua_gettop(state);
+                    for at in [top, top - 1] {
+                        let t = ffi::lua_type(state, at);
+                        if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
+                            collect_at(state, at, holder, true, depth + 1, seen, n);
+                        }
+                    }
+                    ffi::lua_pop(state, 1);
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+/// [`upvalue_fingerprint`] of a kernel combined with those of the closures
+/// held in its tables ([`closures_in_tables`]).
+pub fn upvalue_fingerprint_of(lua: &Lua, f: &mlua::Function, held: &[mlua::Function]) -> u64 {
+    held.iter().fold(upvalue_fingerprint(lua, f), |h, g| {
+        (h ^ upvalue_fingerprint(lua, g)).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
 /// Freeze every table a kernel can reach through its upvalues (and through
 /// those tables and its Lua helpers' upvalues), so that a kernel cannot keep
 /// state in a table's contents either. A captured buffer is refused: it is

@@ -102,9 +102,12 @@ pub struct ScriptVm {
     kernels: Vec<Function>,
     /// Voxel scripts: the material halo (10³ bytes) and output (8³ bytes).
     mat: Option<(Buffer, Buffer)>,
-    /// Each kernel's [`crate::sim::interrupt::upvalue_fingerprint`] after loading:
-    /// a call that changes it kept state between calls.
+    /// Each kernel's [`crate::sim::interrupt::upvalue_fingerprint_of`] after
+    /// loading: a call that changes it kept state between calls.
     prints: Vec<u64>,
+    /// Per kernel: the closures held in the tables it reaches
+    /// ([`crate::sim::interrupt::closures_in_tables`]).
+    held: Vec<Vec<Function>>,
     reads: Vec<Buffer>,
     writes: Vec<Buffer>,
     /// Per pass: indices into `reads` / `writes` (channel order of `spec.channels`).
@@ -298,6 +301,7 @@ impl ScriptVm {
             kernels: Vec::new(),
             mat: None,
             prints: Vec::new(),
+            held: Vec::new(),
             reads: Vec::new(),
             writes: Vec::new(),
             read_tables: Vec::new(),
@@ -326,8 +330,12 @@ impl ScriptVm {
                             format!("pass '{}': {m}", spec.passes[i].name),
                         )
                     })?;
+                    let held = crate::sim::interrupt::closures_in_tables(&vm.lua, &f);
                     vm.prints
-                        .push(crate::sim::interrupt::upvalue_fingerprint(&vm.lua, &f));
+                        .push(crate::sim::interrupt::upvalue_fingerprint_of(
+                            &vm.lua, &f, &held,
+                        ));
+                    vm.held.push(held);
                     vm.kernels.push(f);
                 }
                 _ => {
@@ -582,8 +590,11 @@ impl ScriptVm {
                 )));
             }
             // State kept between calls would depend on which VM ran which tile.
-            if crate::sim::interrupt::upvalue_fingerprint(&self.lua, &self.kernels[pass])
-                != self.prints[pass]
+            if crate::sim::interrupt::upvalue_fingerprint_of(
+                &self.lua,
+                &self.kernels[pass],
+                &self.held[pass],
+            ) != self.prints[pass]
             {
                 return Err(mlua::Error::runtime(
                     "the kernel changed a variable outside itself (a local of the script, or one a helper function captures); kernels must keep no state between calls: use a channel",
