@@ -447,3 +447,81 @@ fn a_huge_script_is_interpreted_not_compiled_to_native_code_per_thread() {
         .unwrap();
     common::cli::assert_success(&out);
 }
+
+/// Regression (hostile probe): a 4 MB script compiled in every worker VM
+/// at once, about 270 MB each outside the VMs' limit, and under a tight
+/// address-space limit Luau's compiler aborted the process ("Rust cannot
+/// catch foreign exceptions"). Large scripts are compiled once, after a
+/// check that the memory is there.
+#[test]
+fn a_huge_script_without_the_memory_to_compile_is_refused_not_aborted() {
+    let script = tmp("mem", "consts4m.lua");
+    let row = "1.5, 2.25, 3.125, 4.0625, 5.5, 6.75, 7.875, 8.5,\n";
+    let body = row.repeat(4_000_000 / row.len());
+    std::fs::write(
+        &script,
+        format!(
+            "local T = {{\n{body}}}\n\
+             return {{channels={{\"water\"}},passes={{{{name=\"p\",reads={{\"water\"}},writes={{\"water\"}},kernel=function(c,tx,tz) local x = T[1] end}}}}}}"
+        ),
+    )
+    .unwrap();
+    assert!(std::fs::metadata(&script).unwrap().len() < 4 << 20);
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 500000 && exec '{}' sim --size 64x32x64 --threads 4 --steps 1 --script '{}' --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            script.display(),
+            tmp("mem", "consts4m.png").display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(&out, "a 4 MB script under 500 MB", "to compile;");
+}
+
+/// Scripts over 64 KiB run from bytecode compiled once and shared, without
+/// native code: the same world as the same script under 64 KiB.
+#[test]
+fn a_large_script_runs_the_same_world_as_a_small_one() {
+    let water = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/water.lua");
+    let dir = tmp("mem", "padded");
+    std::fs::create_dir_all(&dir).unwrap();
+    let padded = dir.join("water.lua");
+    let text = std::fs::read_to_string(&water).unwrap();
+    let pad = "-- padding past the native-code size\n".repeat(2000);
+    std::fs::write(&padded, format!("{text}\n{pad}")).unwrap();
+    assert!(std::fs::metadata(&padded).unwrap().len() > 64 << 10);
+    let run = |script: &Path, png: &str| {
+        let png = tmp("mem", png);
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .args([
+                "sim",
+                "--size",
+                "64x32x64",
+                "--threads",
+                "2",
+                "--steps",
+                "30",
+            ])
+            .args(["--param", "water.rain=1", "--script"])
+            .arg(script)
+            .arg("--out")
+            .arg(&png)
+            .output()
+            .unwrap();
+        common::cli::assert_success(&out);
+        let text = String::from_utf8_lossy(&out.stdout) + String::from_utf8_lossy(&out.stderr);
+        let totals: Vec<String> = text
+            .lines()
+            .filter(|l| l.contains("total"))
+            .map(str::to_string)
+            .collect();
+        (totals, std::fs::read(&png).unwrap())
+    };
+    let (small, small_png) = run(&water, "small.png");
+    let (large, large_png) = run(&padded, "large.png");
+    assert!(!small.is_empty());
+    assert_eq!(small, large);
+    assert!(small_png == large_png, "the final images differ");
+}

@@ -106,6 +106,33 @@ pub fn available_bytes() -> u64 {
     avail
 }
 
+/// Bytes this process may still allocate *now*: [`available_bytes`], and
+/// under an address-space limit, what of it this process has not mapped
+/// yet (its threads' stacks and libraries count).
+pub fn headroom_bytes() -> u64 {
+    let mut have = available_bytes();
+    if let Ok(l) = std::fs::read_to_string("/proc/self/limits")
+        && let Some(limit) = l
+            .lines()
+            .find(|l| l.starts_with("Max address space"))
+            .and_then(|l| l.split_whitespace().nth(3))
+            .and_then(|v| v.parse::<u64>().ok())
+    {
+        let mapped = std::fs::read_to_string("/proc/self/status")
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find(|l| l.starts_with("VmSize:"))
+                    .and_then(|l| l.split_whitespace().nth(1))
+                    .and_then(|v| v.parse::<u64>().ok())
+            })
+            .unwrap_or(0)
+            * 1024;
+        have = have.min(limit.saturating_sub(mapped));
+    }
+    have
+}
+
 /// Human-readable bytes.
 pub fn human(b: u64) -> String {
     match b {

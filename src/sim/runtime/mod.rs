@@ -2,9 +2,10 @@
 //! ([`spec`], read by [`declare`]), the sandboxed Luau VMs that run it under
 //! budgets that cannot be caught ([`script`]), the Lua prelude that keeps
 //! out-of-memory uncatchable and addresses hidden (`prelude`),
-//! deterministic randomness ([`random`]), hot reload, and the scripts built
-//! into the binary.
+//! deterministic randomness ([`random`]), hot reload, the scripts built
+//! into the binary, and how source becomes code in each VM ([`compile`]).
 
+pub mod compile;
 pub mod declare;
 pub mod embedded;
 pub(crate) mod interrupt;

@@ -227,37 +227,22 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     // in a sandboxed environment a builtin call goes straight to Luau's
     // own function (regression, hostile probe: weak tables passed the
     // replaced `setmetatable`).
-    lua.set_compiler(
-        mlua::chunk::Compiler::new()
-            .set_optimization_level(2)
-            .set_type_info_level(1)
-            .set_disabled_builtins(["setmetatable", "tostring", "string.format"]),
-    );
+    lua.set_compiler(super::compile::compiler());
     Ok(lua)
-}
-
-/// Largest script compiled to native code; larger ones are interpreted.
-/// Luau's native code lives outside the VM's memory limit, and one copy is
-/// made per worker VM: measured about 330 bytes of it per source byte on
-/// long runs of field accesses, so a 3.9 MB script took some 1.3 GB a
-/// thread and died in the code generator (SIGILL, or an abort) when that
-/// was not there (regression, hostile probe). At this size a VM's native
-/// code stays near 20 MiB; the shipped scripts are under 16 KiB.
-pub const NATIVE_MAX_BYTES: usize = 64 << 10;
-
-/// Compile the chunks `lua` loads next to native code only if `text` is
-/// small enough (see [`NATIVE_MAX_BYTES`]).
-pub fn native_code_for(lua: &Lua, text: &str) {
-    lua.enable_jit(text.len() <= NATIVE_MAX_BYTES);
 }
 
 impl ScriptVm {
     /// A fresh sandboxed VM with `src` loaded. Returns the VM and the
     /// validated declarations.
     pub fn load(src: &ScriptSource, limits: Limits) -> Result<(ScriptVm, ScriptSpec), SimError> {
+        let bytecode = super::compile::shared_bytecode(src)?;
         let lua = sandboxed(limits, &src.name)?;
-        native_code_for(&lua, &src.text);
-        let chunk = lua.load(&*src.text).set_name(format!("@{}.lua", src.name));
+        super::compile::native_code_for(&lua, &src.text);
+        let chunk = match &bytecode {
+            Some(b) => lua.load(&b[..]).set_mode(mlua::chunk::ChunkMode::Binary),
+            None => lua.load(&*src.text),
+        }
+        .set_name(format!("@{}.lua", src.name));
         // The chunk itself runs under the budget too (a script can loop at load).
         crate::sim::interrupt::arm(
             limits.instructions,
