@@ -319,6 +319,32 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
     std::thread::sleep(Duration::from_millis(400));
     std::fs::remove_file(scripts.join("other.lua")).unwrap();
 
+    // materials.lua is read only at start: a change is checked and said,
+    // not silently ignored (regression, hostile probe).
+    let materials = scripts.join("materials.lua");
+    let wait_note = |says: &str| {
+        let t = Instant::now();
+        loop {
+            let st = status(&addr);
+            if st["materials_note"]
+                .as_str()
+                .is_some_and(|n| n.contains(says))
+            {
+                return;
+            }
+            assert!(t.elapsed() < Duration::from_secs(20), "{says}: {st}");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    };
+    save_like_an_editor(
+        &materials,
+        "return { moss = { color = { 60, 140, 60 }, kind = \"solid\", density = 1 } }\n",
+    );
+    wait_note("materials are read when the engine starts");
+    save_like_an_editor(&materials, "return { moss = 1 }\n");
+    wait_note("does not load");
+    std::fs::remove_file(&materials).unwrap();
+
     // A deleted script: the loaded version runs on, and /status says why
     // it was not reloaded (regression: said nowhere).
     std::fs::remove_file(&water).unwrap();

@@ -151,6 +151,10 @@ pub struct Status {
     /// The last commit failure (a full disk, say), if any; cleared by the
     /// next commit that succeeds. Nothing committed before it is lost.
     pub commit_error: Option<String>,
+    /// Set when `materials.lua` changed on disk while the engine ran: it
+    /// is read only at start, so the note says whether the new file loads
+    /// and that a restart applies it.
+    pub materials_note: Option<String>,
     /// Chunks and chunk columns changed since the last commit.
     pub dirty_chunks: usize,
     /// The world store's size on disk, in bytes.

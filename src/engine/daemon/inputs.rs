@@ -22,6 +22,10 @@ impl Engine {
             eprintln!("{note}");
         }
         for path in changed {
+            if path.file_name().is_some_and(|n| n == "materials.lua") {
+                self.materials_changed(&path);
+                continue;
+            }
             let name = path
                 .file_stem()
                 .map(|s| s.to_string_lossy().to_string())
@@ -64,6 +68,31 @@ impl Engine {
                 }
             }
         }
+    }
+
+    /// `materials.lua` changed on disk. Materials are read once, at start
+    /// (scripts and stored voxels hold their ids), so an edit takes effect
+    /// at the next start; it is checked now, and the log says so
+    /// (regression, hostile probe: an edit, valid or broken, was silently
+    /// ignored, and a script using a newly declared material failed with
+    /// "declare it in materials.lua").
+    fn materials_changed(&mut self, path: &std::path::Path) {
+        let checked = crate::sim::read_script(path).and_then(|src| {
+            let mut trial = self.world.materials.clone();
+            crate::sim::runtime::materials::load_materials(&src, &mut trial)
+        });
+        let msg = match checked {
+            Ok(_) => format!(
+                "{} changed: materials are read when the engine starts; commit, stop and start it again to use them",
+                path.display()
+            ),
+            Err(e) => format!(
+                "{} changed and does not load ({e}); the engine keeps the materials it started with",
+                path.display()
+            ),
+        };
+        eprintln!("warning: {msg}");
+        self.materials_note = Some(msg);
     }
 
     /// Apply the commands clients queued, in order; whether there were any.

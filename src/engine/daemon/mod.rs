@@ -170,6 +170,9 @@ pub struct Engine {
     last_commit: Option<CommitRef>,
     loaded_from: Option<CheckpointRef>,
     commit_error: Option<String>,
+    /// What the last change to `materials.lua` on disk means (it is read
+    /// only at start).
+    materials_note: Option<String>,
     snapshot_ms: f64,
     active_bricks: usize,
     rate: rate::StepRate,
