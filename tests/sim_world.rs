@@ -487,3 +487,32 @@ fn a_simulation_region_steps_only_inside_and_its_edge_is_a_wall() {
     );
     assert_eq!(ws.drained, 0.0);
 }
+
+/// Regression (hostile probe): a script file name with a newline or a
+/// terminal escape printed them raw in every message about the script.
+#[test]
+fn a_script_file_name_with_control_characters_is_refused() {
+    let water =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua")).unwrap();
+    for name in ["we\nird.lua", "red\u{1b}[31m.lua", "rtl\u{202e}.lua"] {
+        let path = tmp(name);
+        std::fs::write(&path, &water).unwrap();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .args(["sim", "--size", "32x32x32", "--steps", "1", "--script"])
+            .arg(&path)
+            .arg("--out")
+            .arg(tmp("names.png"))
+            .output()
+            .unwrap();
+        common::cli::assert_clear_failure(
+            &out,
+            &format!("{name:?}"),
+            "must not contain control characters",
+        );
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !err.contains('\u{1b}') && !err.contains('\u{202e}'),
+            "{err:?}"
+        );
+    }
+}

@@ -42,10 +42,22 @@ pub const MAX_SCRIPT_BYTES: u64 = 4 << 20;
 /// Read a script file (a regular file of at most [`MAX_SCRIPT_BYTES`]) into
 /// a source named after its stem.
 pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
-    let name = path
+    let stem = path
         .file_stem()
         .map(|s| s.to_string_lossy().to_string())
         .unwrap_or_else(|| "script".into());
+    // The name is in every message about the script: one that would print
+    // a newline, a terminal escape or a bidirectional override is refused
+    // (regression, hostile probe), named with those characters escaped.
+    let name = crate::sim::runtime::log::escape_controls(&stem, false).into_owned();
+    if name != stem {
+        return Err(SimError::Declaration {
+            script: name,
+            line: None,
+            msg: "script file names must not contain control characters or bidirectional overrides"
+                .into(),
+        });
+    }
     // Only a regular file of bounded size: a FIFO hung the engine and a
     // link to /dev/zero filled memory (regression).
     let text =

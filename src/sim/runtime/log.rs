@@ -33,11 +33,17 @@ fn logs() -> &'static Mutex<FxHashMap<String, ScriptLog>> {
 }
 
 /// Text from a script (a `log` line, an error message) made safe for one
-/// line of the daemon's log: control characters become escapes (`\n`,
-/// `\u{1b}`), so a script cannot forge log lines or drive the terminal.
+/// line of the daemon's log: control characters and bidirectional
+/// overrides become escapes (`\n`, `\u{1b}`, `\u{202e}`), so a script
+/// cannot forge log lines, drive the terminal or reverse text on screen.
 /// `keep_tab` keeps tabs (they separate `log`'s arguments).
 pub fn escape_controls(text: &str, keep_tab: bool) -> std::borrow::Cow<'_, str> {
-    let escaped = |c: char| c.is_control() && !(keep_tab && c == '\t');
+    // Bidirectional overrides and marks too (regression, hostile probe:
+    // U+202E reversed the rest of a log line on screen).
+    let escaped = |c: char| {
+        (c.is_control() && !(keep_tab && c == '\t'))
+            || matches!(c, '\u{061c}' | '\u{200e}' | '\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
+    };
     if !text.chars().any(escaped) {
         return std::borrow::Cow::Borrowed(text);
     }
@@ -136,5 +142,16 @@ mod tests {
         // The tab between `log`'s arguments is kept (regression: the escape
         // turned every separator into a literal "\t").
         assert_eq!(lines, ["first\\nsecond\\r\\u{1b}[31mRED\\u{0}\tok"]);
+    }
+
+    /// Regression (hostile probe): a right-to-left override from a script
+    /// reversed the rest of its log line on screen.
+    #[test]
+    fn bidirectional_overrides_are_escaped() {
+        assert_eq!(
+            escape_controls("a\u{202e}b\u{2066}c\u{200f}", false),
+            "a\\u{202e}b\\u{2066}c\\u{200f}"
+        );
+        assert_eq!(escape_controls("plain — ünïcode", false), "plain — ünïcode");
     }
 }
