@@ -911,6 +911,29 @@ fn kernels_keep_no_state_in_metatables_keys_buffers_or_weak_tables() {
             ),
             "changed a variable outside itself",
         ),
+        // Regression (review): a table first reached past the old depth
+        // cap of 8 was never frozen, even when reached again by a short
+        // path.
+        (
+            kernel(
+                "local X = { inner = { n = 0 } }; local chain = {{{{{{{{{{ X }}}}}}}}}}",
+                "local _ = chain; X.inner.n = X.inner.n + 1",
+            ),
+            "readonly",
+        ),
+        // Regression (review): a C closure keeps state too (gmatch's
+        // position).
+        (
+            kernel(
+                "local it = string.gmatch(string.rep(\"x\", 100), \"()x\")",
+                "local p = it()",
+            ),
+            "changed a variable outside itself",
+        ),
+        (
+            kernel("local T = {} for i = 1, 70 do T = { T } end", "local _ = T"),
+            "nested more than 64 levels deep",
+        ),
     ];
     for (text, says) in cases {
         let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));

@@ -175,7 +175,9 @@ pub fn check_stored_bricks(what: &str, bricks: u64, base: u64) -> Result<(), Sce
     let need = bricks
         .saturating_mul(BYTES_PER_STORED_BRICK)
         .saturating_add(base);
-    let have = available_bytes();
+    // What is left now: the file, its voxel list and the sort order are
+    // already mapped (regression, review).
+    let have = headroom_bytes();
     if need > have {
         return Err(SceneError::OutOfMemory {
             what: what.to_string(),

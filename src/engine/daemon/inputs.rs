@@ -77,13 +77,15 @@ impl Engine {
     /// ignored, and a script using a newly declared material failed with
     /// "declare it in materials.lua").
     fn materials_changed(&mut self, path: &std::path::Path) {
+        // Checked on its own: against the running registry, a material it
+        // no longer declares would still be there (regression, review).
         let checked = crate::sim::read_script(path).and_then(|src| {
-            let mut trial = self.world.materials.clone();
+            let mut trial = crate::world::MaterialRegistry::new();
             crate::sim::runtime::materials::load_materials(&src, &mut trial)
         });
         let msg = match checked {
             Ok(_) => format!(
-                "{} changed: materials are read when the engine starts; commit, stop and start it again to use them",
+                "{} changed and loads: materials are read when the engine starts; commit, stop and start it again to use them (a material it no longer declares must not be used by the world config or a script)",
                 path.display()
             ),
             Err(e) => format!(

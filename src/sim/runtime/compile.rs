@@ -29,9 +29,6 @@ pub const NATIVE_MAX_BYTES: usize = 64 << 10;
 /// margin.
 const COMPILE_BYTES_PER_BYTE: u64 = 80;
 
-/// Bytecode of the most recently compiled large scripts.
-const CACHED: usize = 8;
-
 /// A large script's text and its bytecode.
 type Compiled = (Arc<str>, Arc<[u8]>);
 
@@ -54,7 +51,7 @@ pub fn native_code_for(lua: &Lua, text: &str) {
 }
 
 /// For a script over [`NATIVE_MAX_BYTES`], its bytecode, compiled once for
-/// every VM that loads it; `None` for a small script, or one that does not
+/// every VM that loads it (and kept while the script is loaded); `None` for a small script, or one that does not
 /// compile (loading its text then reports the error as usual).
 pub fn shared_bytecode(src: &ScriptSource) -> Result<Option<Arc<[u8]>>, SimError> {
     static CACHE: Mutex<Vec<Compiled>> = Mutex::new(Vec::new());
@@ -87,9 +84,12 @@ pub fn shared_bytecode(src: &ScriptSource) -> Result<Option<Arc<[u8]>>, SimError
         return Ok(None);
     };
     let bytes: Arc<[u8]> = bytes.into();
-    if cache.len() >= CACHED {
-        cache.remove(0);
-    }
+    // Kept while a loaded script holds its text, so that a worker's VM made
+    // later (or rebuilt after an error) never compiles or checks memory
+    // again mid-run (regression, review: with a fixed number of entries, a
+    // ninth large script evicted one in use, and whether a tile failed the
+    // memory check then depended on threads and timing).
+    cache.retain(|(t, _)| Arc::strong_count(t) > 1);
     cache.push((src.text.clone(), bytes.clone()));
     Ok(Some(bytes))
 }

@@ -1,7 +1,9 @@
 //! The raw Luau C API, in one place: the per-call budget of kernels
 //! (instructions, wall-clock time, memory), enforced from Luau's interrupt
-//! hook, and [`upvalue_fingerprint`], which lets the runtime see a kernel
-//! keep state between calls in its upvalues.
+//! hook, and the walks that keep kernels stateless: [`seal`] (at load:
+//! freeze what a kernel reaches, collect its functions) and
+//! [`fingerprint`] (after each call: did any of those functions' upvalues
+//! change).
 //!
 //! This is the crate's only `unsafe` code. It exists because a benchmark
 //! demanded it: mlua's safe `set_interrupt` wraps every Luau safepoint (each
@@ -209,61 +211,203 @@ pub fn install(lua: &Lua) {
     }
 }
 
-/// Most function levels followed through upvalues.
-const MAX_UPVALUE_DEPTH: u32 = 8;
+/// Deepest nesting of functions and tables [`seal`] follows; a kernel that
+/// reaches deeper is refused rather than left partly unsealed.
+pub const MAX_SEAL_DEPTH: u32 = 64;
 
-/// A fingerprint of the state `f` can reach through its upvalues, following
-/// function upvalues (helpers) recursively: numbers, booleans, strings and
-/// vectors by value, every other object by identity. A kernel that assigns
-/// to a local of its chunk (`counter = counter + 1`) changes it; one that
-/// only reads constants and calls helpers does not. Table *contents* are not
-/// covered (a scratch table may be reused; its contents must not carry state).
-pub fn upvalue_fingerprint(lua: &Lua, f: &mlua::Function) -> u64 {
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    let mut seen: Vec<*const std::ffi::c_void> = Vec::new();
-    // SAFETY: exec_raw pushes `f` on the VM's stack and runs the closure in
-    // a protected call while holding the VM's lock; the walk only reads
-    // values, checks the stack before each push and pops what it pushed.
+/// What [`seal`] refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Refusal {
+    Buffer,
+    TooDeep,
+    Stack,
+}
+
+/// Seal kernel `f` at load, so that it can keep no state between calls:
+/// - every table it reaches (through the upvalues of Lua functions, and
+///   tables' keys, values and metatables) is frozen;
+/// - a buffer reached that way is refused (buffers are mutable by nature);
+/// - a graph nested deeper than [`MAX_SEAL_DEPTH`] is refused, never
+///   walked in part (regression, review: tables first reached at the old
+///   depth cap of 8 were skipped for good, and stayed writable);
+/// - every function reached, `f` first, Lua functions and C closures alike
+///   (`string.gmatch`'s iterator keeps its position in an upvalue;
+///   regression, review), is returned in a table for [`fingerprint`].
+///
+/// With the tables frozen, the only state left is in those functions'
+/// upvalues, which [`fingerprint`] covers.
+pub fn seal(lua: &Lua, f: &mlua::Function) -> Result<mlua::Table, String> {
+    let holder = lua.create_table().map_err(|e| e.to_string())?;
+    let mut refused = None;
+    let mut seen = rustc_hash::FxHashSet::default();
+    // SAFETY: exec_raw pushes `f` then `holder` and runs the walk in a
+    // protected call holding the VM's lock; the walk checks the stack
+    // before each push, pops what it pushes, and only appends functions to
+    // `holder` with lua_rawseti.
     let _: mlua::Result<()> = unsafe {
-        lua.exec_raw(f.clone(), |state| {
+        lua.exec_raw((f.clone(), holder.clone()), |state| {
             let top = ffi::lua_gettop(state);
-            walk_upvalues(state, top, 0, &mut h, &mut seen);
+            let mut n = 0;
+            seal_at(state, top - 1, top, 0, &mut seen, &mut n, &mut refused);
+        })
+    };
+    match refused {
+        None => Ok(holder),
+        Some(Refusal::Buffer) => Err(
+            "the kernel captures a buffer from outside itself; buffers are mutable state: create scratch buffers inside the kernel"
+                .into(),
+        ),
+        Some(Refusal::TooDeep) | Some(Refusal::Stack) => Err(format!(
+            "the kernel reaches tables or functions nested more than {MAX_SEAL_DEPTH} levels deep; flatten them"
+        )),
+    }
+}
+
+/// Seal the function or table at absolute index `idx` (see [`seal`]).
+///
+/// # Safety
+/// `state` must be a live Luau state with a function or table at `idx` and
+/// a table at `holder`.
+unsafe fn seal_at(
+    state: *mut ffi::lua_State,
+    idx: c_int,
+    holder: c_int,
+    depth: u32,
+    seen: &mut rustc_hash::FxHashSet<usize>,
+    n: &mut c_int,
+    refused: &mut Option<Refusal>,
+) {
+    // SAFETY (whole body): the caller's contract; every push is preceded
+    // by lua_checkstack and matched by a pop.
+    unsafe {
+        if refused.is_some() {
+            return;
+        }
+        let p = ffi::lua_topointer(state, idx) as usize;
+        if seen.contains(&p) {
+            return;
+        }
+        if depth > MAX_SEAL_DEPTH {
+            *refused = Some(Refusal::TooDeep);
+            return;
+        }
+        seen.insert(p);
+        if ffi::lua_checkstack(state, 3) == 0 {
+            *refused = Some(Refusal::Stack);
+            return;
+        }
+        match ffi::lua_type(state, idx) {
+            ffi::LUA_TFUNCTION => {
+                ffi::lua_pushvalue(state, idx);
+                *n += 1;
+                ffi::lua_rawseti(state, holder, *n as i64);
+                // A C closure's upvalues are its own (a gmatch position, a
+                // callback's handle): checked by value, not followed.
+                if ffi::lua_iscfunction(state, idx) != 0 {
+                    return;
+                }
+                let mut u = 1;
+                while !ffi::lua_getupvalue(state, idx, u).is_null() {
+                    let at = ffi::lua_gettop(state);
+                    seal_value(state, at, holder, depth, seen, n, refused);
+                    ffi::lua_pop(state, 1);
+                    u += 1;
+                }
+            }
+            ffi::LUA_TTABLE => {
+                ffi::lua_setreadonly(state, idx, 1);
+                if ffi::lua_getmetatable(state, idx) != 0 {
+                    let at = ffi::lua_gettop(state);
+                    seal_value(state, at, holder, depth, seen, n, refused);
+                    ffi::lua_pop(state, 1);
+                }
+                ffi::lua_pushnil(state);
+                while ffi::lua_next(state, idx) != 0 {
+                    // Keys and values alike; the key is left as it was for
+                    // lua_next.
+                    let top = ffi::lua_gettop(state);
+                    seal_value(state, top, holder, depth, seen, n, refused);
+                    seal_value(state, top - 1, holder, depth, seen, n, refused);
+                    ffi::lua_pop(state, 1);
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+/// Seal the value at absolute index `at` if it is a function or table
+/// (one level below `depth`); refuse a buffer.
+///
+/// # Safety
+/// As [`seal_at`], for the value at `at`.
+unsafe fn seal_value(
+    state: *mut ffi::lua_State,
+    at: c_int,
+    holder: c_int,
+    depth: u32,
+    seen: &mut rustc_hash::FxHashSet<usize>,
+    n: &mut c_int,
+    refused: &mut Option<Refusal>,
+) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        match ffi::lua_type(state, at) {
+            ffi::LUA_TFUNCTION | ffi::LUA_TTABLE => {
+                seal_at(state, at, holder, depth + 1, seen, n, refused)
+            }
+            ffi::LUA_TBUFFER => *refused = Some(Refusal::Buffer),
+            _ => {}
+        }
+    }
+}
+
+/// A fingerprint of the upvalues of every function [`seal`] collected in
+/// `held`: numbers, booleans, strings and vectors by value, every other
+/// object by identity. A call that changes it kept state between calls.
+/// Only each function's own upvalues are read (the tables are frozen, and
+/// every function reachable is in `held`), so the cost is the number of
+/// functions, not the size of the tables.
+pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> u64 {
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    // SAFETY: exec_raw pushes `held` and runs the closure in a protected
+    // call holding the VM's lock; each function is pushed with rawgeti
+    // after a stack check, read, and popped.
+    let _: mlua::Result<()> = unsafe {
+        lua.exec_raw(held.clone(), |state| {
+            let t = ffi::lua_gettop(state);
+            let len = ffi::lua_objlen(state, t) as c_int;
+            for i in 1..=len {
+                if ffi::lua_checkstack(state, 2) == 0 {
+                    return;
+                }
+                ffi::lua_rawgeti(state, t, i as _);
+                let f = ffi::lua_gettop(state);
+                mix_upvalues(state, f, &mut h);
+                ffi::lua_pop(state, 1);
+            }
         })
     };
     h
 }
 
-/// Mix the upvalues of the function at absolute stack index `idx` into `h`.
+/// Mix the direct upvalues of the function at absolute index `idx` into
+/// `h`.
 ///
 /// # Safety
-/// `state` must be a live Luau state with a function at `idx`.
-unsafe fn walk_upvalues(
-    state: *mut ffi::lua_State,
-    idx: c_int,
-    depth: u32,
-    h: &mut u64,
-    seen: &mut Vec<*const std::ffi::c_void>,
-) {
+/// `state` must be a live Luau state with a function at `idx` and room for
+/// one more value on its stack.
+unsafe fn mix_upvalues(state: *mut ffi::lua_State, idx: c_int, h: &mut u64) {
     fn mix(h: &mut u64, v: u64) {
         *h ^= v;
         *h = h.wrapping_mul(0x0100_0000_01b3);
     }
-    // SAFETY (whole body): `idx` holds a function (caller's contract); every
-    // push is preceded by lua_checkstack and matched by a pop.
+    // SAFETY (whole body): the caller's contract; each upvalue pushed is
+    // popped before the next.
     unsafe {
-        let p = ffi::lua_topointer(state, idx);
-        if depth > MAX_UPVALUE_DEPTH || seen.contains(&p) {
-            return;
-        }
-        seen.push(p);
+        mix(h, ffi::lua_topointer(state, idx) as u64);
         let mut n = 1;
-        loop {
-            if ffi::lua_checkstack(state, 2) == 0 {
-                return;
-            }
-            if ffi::lua_getupvalue(state, idx, n).is_null() {
-                break;
-            }
+        while !ffi::lua_getupvalue(state, idx, n).is_null() {
             let t = ffi::lua_type(state, -1);
             mix(h, t as u64);
             match t {
@@ -286,233 +430,10 @@ unsafe fn walk_upvalues(
                         }
                     }
                 }
-                ffi::LUA_TFUNCTION => {
-                    mix(h, ffi::lua_topointer(state, -1) as u64);
-                    // C functions (math.max, buffer.readf64…) hold no
-                    // script state: only Lua helpers are followed.
-                    if ffi::lua_iscfunction(state, -1) == 0 {
-                        let at = ffi::lua_gettop(state);
-                        walk_upvalues(state, at, depth + 1, h, seen);
-                    }
-                }
                 _ => mix(h, ffi::lua_topointer(state, -1) as u64),
             }
             ffi::lua_pop(state, 1);
             n += 1;
-        }
-    }
-}
-
-/// The Lua functions held in the tables `f` reaches through its upvalues
-/// (and through those tables, their metatables and the functions found),
-/// collected once at load. The tables are frozen, so no other function can
-/// appear in them; each of these can still change its own upvalues, so
-/// [`upvalue_fingerprint_of`] covers them on every call (regression, hostile
-/// probe: a counter closure used as a table key kept state between calls).
-pub fn closures_in_tables(lua: &Lua, f: &mlua::Function) -> Vec<mlua::Function> {
-    let Ok(holder) = lua.create_table() else {
-        return Vec::new();
-    };
-    let mut seen: Vec<*const std::ffi::c_void> = Vec::new();
-    // SAFETY: exec_raw pushes `f` then `holder` and runs the walk in a
-    // protected call holding the VM's lock; the walk checks the stack
-    // before each push and pops what it pushes, and only appends functions
-    // to `holder` with lua_rawseti.
-    let _: mlua::Result<()> = unsafe {
-        lua.exec_raw((f.clone(), holder.clone()), |state| {
-            let top = ffi::lua_gettop(state);
-            let mut n = 0;
-            collect_at(state, top - 1, top, false, 0, &mut seen, &mut n);
-        })
-    };
-    holder
-        .sequence_values::<mlua::Function>()
-        .filter_map(Result::ok)
-        .collect()
-}
-
-/// Walk the function or table at absolute index `idx`, appending to the
-/// table at `holder` every Lua function found in a table (`in_table`).
-///
-/// # Safety
-/// `state` must be a live Luau state with a function or table at `idx` and
-/// a table at `holder`.
-unsafe fn collect_at(
-    state: *mut ffi::lua_State,
-    idx: c_int,
-    holder: c_int,
-    in_table: bool,
-    depth: u32,
-    seen: &mut Vec<*const std::ffi::c_void>,
-    n: &mut c_int,
-) {
-    // SAFETY (whole body): the caller's contract; every push is preceded
-    // by lua_checkstack and matched by a pop.
-    unsafe {
-        let p = ffi::lua_topointer(state, idx);
-        if depth > MAX_UPVALUE_DEPTH || seen.contains(&p) {
-            return;
-        }
-        seen.push(p);
-        if ffi::lua_checkstack(state, 3) == 0 {
-            return;
-        }
-        match ffi::lua_type(state, idx) {
-            ffi::LUA_TFUNCTION => {
-                if ffi::lua_iscfunction(state, idx) != 0 {
-                    return;
-                }
-                if in_table {
-                    ffi::lua_pushvalue(state, idx);
-                    *n += 1;
-                    ffi::lua_rawseti(state, holder, *n as i64);
-                }
-                let mut u = 1;
-                while !ffi::lua_getupvalue(state, idx, u).is_null() {
-                    let t = ffi::lua_type(state, -1);
-                    if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
-                        let at = ffi::lua_gettop(state);
-                        collect_at(state, at, holder, false, depth + 1, seen, n);
-                    }
-                    ffi::lua_pop(state, 1);
-                    u += 1;
-                }
-            }
-            ffi::LUA_TTABLE => {
-                if ffi::lua_getmetatable(state, idx) != 0 {
-                    let at = ffi::lua_gettop(state);
-                    collect_at(state, at, holder, true, depth + 1, seen, n);
-                    ffi::lua_pop(state, 1);
-                }
-                ffi::lua_pushnil(state);
-                while ffi::lua_next(state, idx) != 0 {
-                    let top = ffi::lua_gettop(state);
-                    for at in [top, top - 1] {
-                        let t = ffi::lua_type(state, at);
-                        if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
-                            collect_at(state, at, holder, true, depth + 1, seen, n);
-                        }
-                    }
-                    ffi::lua_pop(state, 1);
-                }
-            }
-            _ => {}
-        }
-    }
-}
-
-/// [`upvalue_fingerprint`] of a kernel combined with those of the closures
-/// held in its tables ([`closures_in_tables`]).
-pub fn upvalue_fingerprint_of(lua: &Lua, f: &mlua::Function, held: &[mlua::Function]) -> u64 {
-    held.iter().fold(upvalue_fingerprint(lua, f), |h, g| {
-        (h ^ upvalue_fingerprint(lua, g)).wrapping_mul(0x0100_0000_01b3)
-    })
-}
-
-/// Freeze every table a kernel can reach through its upvalues (and through
-/// those tables and its Lua helpers' upvalues), so that a kernel cannot keep
-/// state in a table's contents either. A captured buffer is refused: it is
-/// mutable state by nature (create scratch buffers inside the kernel).
-pub fn freeze_upvalues(lua: &Lua, f: &mlua::Function) -> Result<(), String> {
-    let mut refused = None;
-    let mut seen: Vec<*const std::ffi::c_void> = Vec::new();
-    // SAFETY: as in `upvalue_fingerprint`: exec_raw pushes `f` and runs the
-    // walk in a protected call holding the VM's lock; the walk checks the
-    // stack before each push and pops what it pushes.
-    let _: mlua::Result<()> = unsafe {
-        lua.exec_raw(f.clone(), |state| {
-            let top = ffi::lua_gettop(state);
-            freeze_at(state, top, 0, &mut seen, &mut refused);
-        })
-    };
-    match refused {
-        Some(_) => Err(
-            "the kernel captures a buffer from outside itself; buffers are mutable state: create scratch buffers inside the kernel"
-                .to_string(),
-        ),
-        None => Ok(()),
-    }
-}
-
-/// Freeze what the value at absolute index `idx` (a function or a table)
-/// reaches.
-///
-/// # Safety
-/// `state` must be a live Luau state with a function or table at `idx`.
-unsafe fn freeze_at(
-    state: *mut ffi::lua_State,
-    idx: c_int,
-    depth: u32,
-    seen: &mut Vec<*const std::ffi::c_void>,
-    refused: &mut Option<String>,
-) {
-    // SAFETY (whole body): the caller's contract; every push is preceded
-    // by lua_checkstack and matched by a pop.
-    unsafe {
-        let p = ffi::lua_topointer(state, idx);
-        if depth > MAX_UPVALUE_DEPTH || seen.contains(&p) || refused.is_some() {
-            return;
-        }
-        seen.push(p);
-        match ffi::lua_type(state, idx) {
-            ffi::LUA_TFUNCTION => {
-                if ffi::lua_iscfunction(state, idx) != 0 {
-                    return;
-                }
-                let mut n = 1;
-                loop {
-                    if ffi::lua_checkstack(state, 2) == 0 {
-                        return;
-                    }
-                    let name = ffi::lua_getupvalue(state, idx, n);
-                    if name.is_null() {
-                        break;
-                    }
-                    let t = ffi::lua_type(state, -1);
-                    if t == ffi::LUA_TBUFFER {
-                        *refused = Some(
-                            std::ffi::CStr::from_ptr(name)
-                                .to_string_lossy()
-                                .into_owned(),
-                        );
-                    } else if t == ffi::LUA_TFUNCTION || t == ffi::LUA_TTABLE {
-                        let at = ffi::lua_gettop(state);
-                        freeze_at(state, at, depth + 1, seen, refused);
-                    }
-                    ffi::lua_pop(state, 1);
-                    n += 1;
-                }
-            }
-            ffi::LUA_TTABLE => {
-                ffi::lua_setreadonly(state, idx, 1);
-                if ffi::lua_checkstack(state, 3) == 0 {
-                    return;
-                }
-                // Its metatable too (regression, hostile probe: a kernel
-                // counted in `getmetatable(proxy).n`).
-                if ffi::lua_getmetatable(state, idx) != 0 {
-                    let at = ffi::lua_gettop(state);
-                    freeze_at(state, at, depth + 1, seen, refused);
-                    ffi::lua_pop(state, 1);
-                }
-                ffi::lua_pushnil(state);
-                while ffi::lua_next(state, idx) != 0 {
-                    // Values and keys alike (regression: a table used as
-                    // a key, or a buffer held in a table, kept state).
-                    let top = ffi::lua_gettop(state);
-                    for at in [top, top - 1] {
-                        match ffi::lua_type(state, at) {
-                            ffi::LUA_TFUNCTION | ffi::LUA_TTABLE => {
-                                freeze_at(state, at, depth + 1, seen, refused)
-                            }
-                            ffi::LUA_TBUFFER => *refused = Some("a buffer in a table".into()),
-                            _ => {}
-                        }
-                    }
-                    ffi::lua_pop(state, 1);
-                }
-            }
-            _ => {}
         }
     }
 }

@@ -131,12 +131,12 @@ pub struct ScriptVm {
     kernels: Vec<Function>,
     /// Voxel scripts: the material halo (10³ bytes) and output (8³ bytes).
     mat: Option<(Buffer, Buffer)>,
-    /// Each kernel's [`crate::sim::interrupt::upvalue_fingerprint_of`] after
-    /// loading: a call that changes it kept state between calls.
+    /// Each kernel's [`crate::sim::interrupt::fingerprint`] after loading:
+    /// a call that changes it kept state between calls.
     prints: Vec<u64>,
-    /// Per kernel: the closures held in the tables it reaches
-    /// ([`crate::sim::interrupt::closures_in_tables`]).
-    held: Vec<Vec<Function>>,
+    /// Per kernel: every function it reaches, itself first
+    /// ([`crate::sim::interrupt::seal`]).
+    held: Vec<Table>,
     reads: Vec<Buffer>,
     writes: Vec<Buffer>,
     /// Per pass: indices into `reads` / `writes` (channel order of `spec.channels`).
@@ -337,18 +337,15 @@ impl ScriptVm {
                 .map_err(|e| declaration(src, Some("kernel"), e.to_string()))?;
             match k {
                 Value::Function(f) => {
-                    crate::sim::interrupt::freeze_upvalues(&vm.lua, &f).map_err(|m| {
+                    let held = crate::sim::interrupt::seal(&vm.lua, &f).map_err(|m| {
                         declaration(
                             src,
                             Some("kernel"),
                             format!("pass '{}': {m}", spec.passes[i].name),
                         )
                     })?;
-                    let held = crate::sim::interrupt::closures_in_tables(&vm.lua, &f);
                     vm.prints
-                        .push(crate::sim::interrupt::upvalue_fingerprint_of(
-                            &vm.lua, &f, &held,
-                        ));
+                        .push(crate::sim::interrupt::fingerprint(&vm.lua, &held));
                     vm.held.push(held);
                     vm.kernels.push(f);
                 }
@@ -604,11 +601,7 @@ impl ScriptVm {
                 )));
             }
             // State kept between calls would depend on which VM ran which tile.
-            if crate::sim::interrupt::upvalue_fingerprint_of(
-                &self.lua,
-                &self.kernels[pass],
-                &self.held[pass],
-            ) != self.prints[pass]
+            if crate::sim::interrupt::fingerprint(&self.lua, &self.held[pass]) != self.prints[pass]
             {
                 return Err(mlua::Error::runtime(
                     "the kernel changed a variable outside itself (a local of the script, or one a helper function captures); kernels must keep no state between calls: use a channel",
