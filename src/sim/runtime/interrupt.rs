@@ -238,8 +238,12 @@ enum Refusal {
 /// upvalues, which [`fingerprint`] covers.
 pub fn seal(lua: &Lua, f: &mlua::Function) -> Result<mlua::Table, String> {
     let holder = lua.create_table().map_err(|e| e.to_string())?;
-    let mut refused = None;
-    let mut seen = rustc_hash::FxHashSet::default();
+    let mut walk = SealWalk {
+        holder: 0,
+        seen: rustc_hash::FxHashSet::default(),
+        collected: 0,
+        refused: None,
+    };
     // SAFETY: exec_raw pushes `f` then `holder` and runs the walk in a
     // protected call holding the VM's lock; the walk checks the stack
     // before each push, pops what it pushes, and only appends functions to
@@ -247,11 +251,11 @@ pub fn seal(lua: &Lua, f: &mlua::Function) -> Result<mlua::Table, String> {
     let _: mlua::Result<()> = unsafe {
         lua.exec_raw((f.clone(), holder.clone()), |state| {
             let top = ffi::lua_gettop(state);
-            let mut n = 0;
-            seal_at(state, top - 1, top, 0, &mut seen, &mut n, &mut refused);
+            walk.holder = top;
+            walk.at(state, top - 1, 0);
         })
     };
-    match refused {
+    match walk.refused {
         None => Ok(holder),
         Some(Refusal::Buffer) => Err(
             "the kernel captures a buffer from outside itself; buffers are mutable state: create scratch buffers inside the kernel"
@@ -263,101 +267,97 @@ pub fn seal(lua: &Lua, f: &mlua::Function) -> Result<mlua::Table, String> {
     }
 }
 
-/// Seal the function or table at absolute index `idx` (see [`seal`]).
-///
-/// # Safety
-/// `state` must be a live Luau state with a function or table at `idx` and
-/// a table at `holder`.
-unsafe fn seal_at(
-    state: *mut ffi::lua_State,
-    idx: c_int,
+/// The state of one [`seal`] walk.
+struct SealWalk {
+    /// Absolute stack index of the table collecting functions.
     holder: c_int,
-    depth: u32,
-    seen: &mut rustc_hash::FxHashSet<usize>,
-    n: &mut c_int,
-    refused: &mut Option<Refusal>,
-) {
-    // SAFETY (whole body): the caller's contract; every push is preceded
-    // by lua_checkstack and matched by a pop.
-    unsafe {
-        if refused.is_some() {
-            return;
-        }
-        let p = ffi::lua_topointer(state, idx) as usize;
-        if seen.contains(&p) {
-            return;
-        }
-        if depth > MAX_SEAL_DEPTH {
-            *refused = Some(Refusal::TooDeep);
-            return;
-        }
-        seen.insert(p);
-        if ffi::lua_checkstack(state, 3) == 0 {
-            *refused = Some(Refusal::Stack);
-            return;
-        }
-        match ffi::lua_type(state, idx) {
-            ffi::LUA_TFUNCTION => {
-                ffi::lua_pushvalue(state, idx);
-                *n += 1;
-                ffi::lua_rawseti(state, holder, *n as i64);
-                // A C closure's upvalues are its own (a gmatch position, a
-                // callback's handle): checked by value, not followed.
-                if ffi::lua_iscfunction(state, idx) != 0 {
-                    return;
-                }
-                let mut u = 1;
-                while !ffi::lua_getupvalue(state, idx, u).is_null() {
-                    let at = ffi::lua_gettop(state);
-                    seal_value(state, at, holder, depth, seen, n, refused);
-                    ffi::lua_pop(state, 1);
-                    u += 1;
-                }
-            }
-            ffi::LUA_TTABLE => {
-                ffi::lua_setreadonly(state, idx, 1);
-                if ffi::lua_getmetatable(state, idx) != 0 {
-                    let at = ffi::lua_gettop(state);
-                    seal_value(state, at, holder, depth, seen, n, refused);
-                    ffi::lua_pop(state, 1);
-                }
-                ffi::lua_pushnil(state);
-                while ffi::lua_next(state, idx) != 0 {
-                    // Keys and values alike; the key is left as it was for
-                    // lua_next.
-                    let top = ffi::lua_gettop(state);
-                    seal_value(state, top, holder, depth, seen, n, refused);
-                    seal_value(state, top - 1, holder, depth, seen, n, refused);
-                    ffi::lua_pop(state, 1);
-                }
-            }
-            _ => {}
-        }
-    }
+    /// Functions and tables already walked (by address).
+    seen: rustc_hash::FxHashSet<usize>,
+    /// Functions collected so far.
+    collected: c_int,
+    refused: Option<Refusal>,
 }
 
-/// Seal the value at absolute index `at` if it is a function or table
-/// (one level below `depth`); refuse a buffer.
-///
-/// # Safety
-/// As [`seal_at`], for the value at `at`.
-unsafe fn seal_value(
-    state: *mut ffi::lua_State,
-    at: c_int,
-    holder: c_int,
-    depth: u32,
-    seen: &mut rustc_hash::FxHashSet<usize>,
-    n: &mut c_int,
-    refused: &mut Option<Refusal>,
-) {
-    // SAFETY: the caller's contract.
-    unsafe {
-        match ffi::lua_type(state, at) {
-            ffi::LUA_TFUNCTION | ffi::LUA_TTABLE => {
-                seal_at(state, at, holder, depth + 1, seen, n, refused)
+impl SealWalk {
+    /// Seal the function or table at absolute index `idx`, `depth` levels
+    /// below the kernel.
+    ///
+    /// # Safety
+    /// `state` must be a live Luau state with a function or table at `idx`
+    /// and the holder table at `self.holder`.
+    unsafe fn at(&mut self, state: *mut ffi::lua_State, idx: c_int, depth: u32) {
+        // SAFETY (whole body): the caller's contract; every push is
+        // preceded by lua_checkstack and matched by a pop.
+        unsafe {
+            if self.refused.is_some() {
+                return;
             }
-            ffi::LUA_TBUFFER => *refused = Some(Refusal::Buffer),
-            _ => {}
+            let p = ffi::lua_topointer(state, idx) as usize;
+            if self.seen.contains(&p) {
+                return;
+            }
+            if depth > MAX_SEAL_DEPTH {
+                self.refused = Some(Refusal::TooDeep);
+                return;
+            }
+            self.seen.insert(p);
+            if ffi::lua_checkstack(state, 3) == 0 {
+                self.refused = Some(Refusal::Stack);
+                return;
+            }
+            match ffi::lua_type(state, idx) {
+                ffi::LUA_TFUNCTION => {
+                    ffi::lua_pushvalue(state, idx);
+                    self.collected += 1;
+                    ffi::lua_rawseti(state, self.holder, self.collected as i64);
+                    // A C closure's upvalues are its own (a gmatch position,
+                    // a callback's handle): checked by value, not followed.
+                    if ffi::lua_iscfunction(state, idx) != 0 {
+                        return;
+                    }
+                    let mut u = 1;
+                    while !ffi::lua_getupvalue(state, idx, u).is_null() {
+                        let at = ffi::lua_gettop(state);
+                        self.value(state, at, depth);
+                        ffi::lua_pop(state, 1);
+                        u += 1;
+                    }
+                }
+                ffi::LUA_TTABLE => {
+                    ffi::lua_setreadonly(state, idx, 1);
+                    if ffi::lua_getmetatable(state, idx) != 0 {
+                        let at = ffi::lua_gettop(state);
+                        self.value(state, at, depth);
+                        ffi::lua_pop(state, 1);
+                    }
+                    ffi::lua_pushnil(state);
+                    while ffi::lua_next(state, idx) != 0 {
+                        // Keys and values alike; the key is left as it was
+                        // for lua_next.
+                        let top = ffi::lua_gettop(state);
+                        self.value(state, top, depth);
+                        self.value(state, top - 1, depth);
+                        ffi::lua_pop(state, 1);
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+
+    /// Seal the value at absolute index `at` if it is a function or table
+    /// (one level below `depth`); refuse a buffer.
+    ///
+    /// # Safety
+    /// As [`SealWalk::at`], for the value at `at`.
+    unsafe fn value(&mut self, state: *mut ffi::lua_State, at: c_int, depth: u32) {
+        // SAFETY: the caller's contract.
+        unsafe {
+            match ffi::lua_type(state, at) {
+                ffi::LUA_TFUNCTION | ffi::LUA_TTABLE => self.at(state, at, depth + 1),
+                ffi::LUA_TBUFFER => self.refused = Some(Refusal::Buffer),
+                _ => {}
+            }
         }
     }
 }
