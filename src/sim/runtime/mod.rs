@@ -8,12 +8,14 @@
 pub mod compile;
 pub mod declare;
 pub mod embedded;
+mod errors;
 pub(crate) mod interrupt;
 pub mod log;
 pub mod materials;
 mod prelude;
 pub mod random;
 pub mod reload;
+mod sandbox;
 pub mod script;
 pub mod spec;
 pub mod vms;

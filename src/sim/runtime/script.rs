@@ -23,11 +23,15 @@
 
 use std::time::{Duration, Instant};
 
-use mlua::{Buffer, Function, Lua, LuaOptions, StdLib, Table, Value};
+use mlua::{Buffer, Function, Lua, Table, Value};
 
 use super::declare::declaration;
 pub use super::declare::{MAX_SCRIPT_CHANNELS, MAX_SCRIPT_PARAMS};
+pub use super::errors::{MAX_ERROR_CHARS, line_of, without_addresses};
+use super::errors::{one_line, strip_location};
 pub use super::random::StepKey;
+use super::sandbox::HeldLog;
+pub use super::sandbox::sandboxed;
 pub use super::spec::*;
 use crate::sim::SimError;
 use crate::sim::tile::{HALO_CELLS, TILE_CELLS};
@@ -51,75 +55,6 @@ impl Default for Limits {
             time: Duration::from_secs(5),
         }
     }
-}
-
-/// The first `:LINE:` in a Lua error message.
-pub fn line_of(msg: &str) -> Option<usize> {
-    let mut rest = msg;
-    while let Some(i) = rest.find(':') {
-        let tail = &rest[i + 1..];
-        let digits: String = tail.chars().take_while(|c| c.is_ascii_digit()).collect();
-        if !digits.is_empty() && tail[digits.len()..].starts_with(':') {
-            return digits.parse().ok();
-        }
-        rest = tail;
-    }
-    None
-}
-
-/// `"name.lua:12: message"` → `"message"` (the error's own prefix names the place).
-fn strip_location(msg: &str) -> String {
-    if let Some(line) = line_of(msg) {
-        let tag = format!(":{line}: ");
-        if let Some(i) = msg.find(&tag) {
-            return msg[i + tag.len()..].to_string();
-        }
-    }
-    msg.to_string()
-}
-
-/// `msg` with every object address (`table: 0x7f…`, as Luau writes a
-/// table, function, buffer, userdata or thread it cannot show otherwise)
-/// cut to the type name. An error raised with a table (`error({})`)
-/// showed its address, which differs from run to run (regression, hostile
-/// probe), as `tostring` no longer does.
-pub fn without_addresses(msg: &str) -> std::borrow::Cow<'_, str> {
-    const KINDS: [&str; 5] = ["table", "function", "buffer", "userdata", "thread"];
-    if !msg.contains(": 0x") {
-        return std::borrow::Cow::Borrowed(msg);
-    }
-    let mut out = String::with_capacity(msg.len());
-    let mut rest = msg;
-    while let Some(i) = rest.find(": 0x") {
-        let (head, tail) = rest.split_at(i);
-        let hex = tail[4..].bytes().take_while(u8::is_ascii_hexdigit).count();
-        if hex > 0 && KINDS.iter().any(|k| head.ends_with(k)) {
-            out.push_str(head);
-            rest = &tail[4 + hex..];
-        } else {
-            out.push_str(head);
-            out.push_str(": 0x");
-            rest = &tail[4..];
-        }
-    }
-    out.push_str(rest);
-    std::borrow::Cow::Owned(out)
-}
-
-/// Longest error text kept from a script, in characters.
-pub const MAX_ERROR_CHARS: usize = 500;
-
-/// A script's own error text made fit for one line of the log: cut to
-/// [`MAX_ERROR_CHARS`] (regression: `error(string.rep("E", 1e7))` was one
-/// 10 MB line), its control characters escaped (regression: a CR or a
-/// terminal escape in `error(...)` reached stderr raw).
-fn one_line(msg: &str) -> String {
-    let msg = &without_addresses(msg);
-    let cut = match msg.char_indices().nth(MAX_ERROR_CHARS) {
-        Some((i, _)) => format!("{}… (cut at {MAX_ERROR_CHARS} characters)", &msg[..i]),
-        None => msg.to_string(),
-    };
-    super::log::escape_controls(&cut, false).into_owned()
 }
 
 /// A sandboxed VM with a script loaded and its buffers ready.
@@ -151,114 +86,8 @@ pub struct ScriptVm {
     memory_failure: bool,
 }
 
-/// `log()` lines of the kernel call in flight, held back until its verdict:
-/// a call run again after running out of memory logs once, not twice.
-#[derive(Default)]
-struct HeldLog {
-    on: bool,
-    lines: Vec<String>,
-}
-
 /// Luau's text for an allocation the memory limit refused.
 pub const OUT_OF_MEMORY: &str = "not enough memory";
-
-/// A fresh Luau VM with the sandbox every script runs in: only `math`,
-/// `string`, `table`, `buffer`, `bit32` and `utf8`; no module loading,
-/// environments, code from strings, GC control or stdout; no unseeded
-/// randomness; read-only globals and libraries; the memory limit and the
-/// uncatchable budget hook installed.
-pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
-    let libs =
-        StdLib::MATH | StdLib::STRING | StdLib::TABLE | StdLib::BUFFER | StdLib::BIT | StdLib::UTF8;
-    let lua = Lua::new_with(libs, LuaOptions::default())
-        .map_err(|e| SimError::Internal(e.to_string()))?;
-    // Globals that reach outside the script (module loading, environments,
-    // code from strings, the GC, stdout) go before the environment is frozen.
-    {
-        let g = lua.globals();
-        // Unseeded, per-VM randomness would make worlds irreproducible;
-        // kernels get `c.random(...)` (deterministic) instead.
-        if let Ok(math) = g.raw_get::<Table>("math") {
-            for name in ["random", "randomseed"] {
-                math.raw_remove(name)
-                    .map_err(|e| SimError::Internal(e.to_string()))?;
-            }
-        }
-        for name in [
-            "require",
-            "getfenv",
-            "setfenv",
-            "loadstring",
-            "load",
-            "dofile",
-            "loadfile",
-            "collectgarbage",
-            "gcinfo",
-            "newproxy",
-            "print",
-        ] {
-            g.raw_remove(name)
-                .map_err(|e| SimError::Internal(e.to_string()))?;
-        }
-    }
-    // log(...): rate-limited lines to the daemon log and /status.
-    let who = name.to_string();
-    lua.set_app_data(HeldLog::default());
-    let log = lua
-        .create_function(move |lua, args: mlua::Variadic<Value>| {
-            let parts: Vec<String> = args
-                .iter()
-                .map(|v| match v {
-                    Value::Nil => "nil".into(),
-                    Value::Boolean(b) => b.to_string(),
-                    Value::Integer(i) => i.to_string(),
-                    Value::Number(n) => n.to_string(),
-                    Value::String(s) => s.to_string_lossy(),
-                    other => other.type_name().to_string(),
-                })
-                .collect();
-            let line = parts.join("\t");
-            if let Some(mut held) = lua.app_data_mut::<HeldLog>()
-                && held.on
-            {
-                held.lines.push(line);
-                return Ok(());
-            }
-            crate::sim::runtime::log::push(&who, line);
-            Ok(())
-        })
-        .map_err(|e| SimError::Internal(e.to_string()))?;
-    lua.globals()
-        .raw_set("log", log)
-        .map_err(|e| SimError::Internal(e.to_string()))?;
-    for prelude in [
-        super::prelude::UNCATCHABLE_MEMORY_ERRORS,
-        super::prelude::NO_ADDRESSES,
-        super::prelude::NO_WEAK_TABLES,
-    ] {
-        lua.load(prelude)
-            .set_name("=sandbox")
-            .exec()
-            .map_err(|e| SimError::Internal(e.to_string()))?;
-    }
-    lua.sandbox(true)
-        .map_err(|e| SimError::Internal(e.to_string()))?;
-    // Luau's sandbox gives each thread a writable proxy of the frozen
-    // globals; freeze the proxy too, so `counter = counter + 1` is an
-    // error instead of state that depends on which VM ran which tile.
-    lua.globals().set_readonly(true);
-    lua.set_memory_limit(limits.memory)
-        .map_err(|e| SimError::Internal(e.to_string()))?;
-    crate::sim::interrupt::install(&lua);
-    // Optimisation level 2 inlines small local functions and unrolls loops;
-    // type information lets native code use annotations (`W: buffer`).
-    // The functions the preludes replace are never compiled as builtins:
-    // in a sandboxed environment a builtin call goes straight to Luau's
-    // own function (regression, hostile probe: weak tables passed the
-    // replaced `setmetatable`).
-    lua.set_compiler(super::compile::compiler());
-    Ok(lua)
-}
 
 impl ScriptVm {
     /// A fresh sandboxed VM with `src` loaded. Returns the VM and the
@@ -638,24 +467,5 @@ impl ScriptVm {
                 msg: one_line(&strip_location(msg)),
             }
         })
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Regression (hostile probe): `error({})` showed the table's address.
-    #[test]
-    fn error_text_shows_objects_by_type_not_address() {
-        assert_eq!(without_addresses("table: 0x7f12ab34cd56"), "table");
-        assert_eq!(
-            without_addresses("got function: 0xdeadbeef and buffer: 0x1, ok"),
-            "got function and buffer, ok"
-        );
-        // Not an object's address: kept as written.
-        assert_eq!(without_addresses("value: 0x10"), "value: 0x10");
-        assert_eq!(without_addresses("table: 0x"), "table: 0x");
-        assert_eq!(without_addresses("no address"), "no address");
     }
 }
