@@ -954,3 +954,20 @@ fn kernels_keep_no_state_in_metatables_keys_buffers_or_weak_tables() {
         .unwrap();
     assert!(sim.step(0.1).errors.is_empty());
 }
+
+/// Regression (hostile probe): a budget error that a script caught with
+/// `pcall` and ran into again was reported at a line of the sandbox's own
+/// `pcall` wrapper, which the script does not have.
+#[test]
+fn a_caught_budget_error_names_a_line_of_the_script() {
+    let text = "return { channels = { \"w\" }, passes = { { name = \"p\", reads = {}, writes = { \"w\" },\n\
+                kernel = function(c)\n\
+                  while true do pcall(function() while true do end end) end\n\
+                end } } }";
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    let msg = match sim.add_script(src("caught", text), Kernel::Lua, small()) {
+        Err(e) => e.to_string(),
+        Ok(_) => sim.step(0.1).errors.iter().map(|e| e.to_string()).collect(),
+    };
+    assert!(msg.contains("budget exceeded at line 3"), "{msg}");
+}

@@ -167,16 +167,27 @@ unsafe extern "C-unwind" fn interrupt(l: *mut ffi::lua_State, gc: c_int) {
         return;
     }
     let Some(what) = exceeded(l) else { return };
-    // Find the line being executed (level 0 is the interrupted function).
+    // Find the script's line being executed (level 0 is the interrupted
+    // function). Frames of the sandbox's own Lua (the `pcall` wrapper) are
+    // skipped: a budget error a script caught and retried was reported at
+    // the wrapper's line, which the script does not have (regression,
+    // hostile probe).
     let mut line = -1;
-    for level in 0..3 {
+    for level in 0..8 {
         // SAFETY: lua_Debug is a plain C struct of integers, pointers and a
         // char array, for which all-zero bytes are a valid value.
         let mut ar: ffi::lua_Debug = unsafe { std::mem::zeroed() };
-        // SAFETY: `l` is live; "l" asks only for `currentline`; `ar` is a
-        // valid, exclusively borrowed lua_Debug.
-        let found = unsafe { ffi::lua_getinfo(l, level, c"l".as_ptr(), &mut ar) };
-        if found != 0 && ar.currentline > 0 {
+        // SAFETY: `l` is live; "sl" asks for the source and `currentline`;
+        // `ar` is a valid, exclusively borrowed lua_Debug.
+        let found = unsafe { ffi::lua_getinfo(l, level, c"sl".as_ptr(), &mut ar) };
+        if found == 0 {
+            break;
+        }
+        // SAFETY: when set, `source` is a NUL-terminated string owned by
+        // the function's prototype, alive while the frame is.
+        let ours = !ar.source.is_null()
+            && unsafe { std::ffi::CStr::from_ptr(ar.source) }.to_bytes() == b"=sandbox";
+        if !ours && ar.currentline > 0 {
             line = ar.currentline;
             break;
         }
