@@ -971,3 +971,22 @@ fn a_caught_budget_error_names_a_line_of_the_script() {
     };
     assert!(msg.contains("budget exceeded at line 3"), "{msg}");
 }
+
+/// Regression (hostile probe): an error inside `string.format` named a
+/// line of the sandbox's wrapper around it (line 30 of a 3-line script).
+#[test]
+fn a_format_error_names_the_scripts_line() {
+    let text = "return { channels = { \"w\" }, passes = { { name = \"p\", reads = {}, writes = { \"w\" },\n\
+                kernel = function(c)\n\
+                  local s = string.format(\"%d\", \"x\")\n\
+                end } } }";
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    let e = sim
+        .add_script(src("fmt", text), Kernel::Lua, small())
+        .unwrap_err();
+    assert!(
+        matches!(e, SimError::Runtime { line: Some(3), .. }),
+        "{e:?}"
+    );
+    assert!(e.to_string().contains("number expected"), "{e}");
+}
