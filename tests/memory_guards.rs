@@ -417,6 +417,21 @@ fn rough_heightmaps_and_scattered_vox_files_are_refused_not_aborted() {
     }
 }
 
+/// `brickworld sim` of one step of `script` on `threads` threads under
+/// `ulimit -v KB`.
+fn sim_capped(script: &Path, kb: u64, threads: u32) -> Output {
+    std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v {kb} && exec '{}' sim --size 64x32x64 --threads {threads} --steps 1 --script '{}' --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            script.display(),
+            script.with_extension("png").display()
+        ))
+        .output()
+        .unwrap()
+}
+
 /// Regression (hostile probe): a script under the 4 MiB limit, 3.9 MB of
 /// field accesses, was compiled to native code in every worker VM (about
 /// 1.3 GB a thread, outside the VMs' memory limit) and killed the process
@@ -435,16 +450,7 @@ fn a_huge_script_is_interpreted_not_compiled_to_native_code_per_thread() {
     )
     .unwrap();
     assert!(std::fs::metadata(&script).unwrap().len() < 4 << 20);
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -v 4000000 && exec '{}' sim --size 64x32x64 --threads 3 --steps 1 --script '{}' --out '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            script.display(),
-            tmp("mem", "fields4m.png").display()
-        ))
-        .output()
-        .unwrap();
+    let out = sim_capped(&script, 4000000, 3);
     common::cli::assert_success(&out);
 }
 
@@ -467,16 +473,7 @@ fn a_huge_script_without_the_memory_to_compile_is_refused_not_aborted() {
     )
     .unwrap();
     assert!(std::fs::metadata(&script).unwrap().len() < 4 << 20);
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -v 500000 && exec '{}' sim --size 64x32x64 --threads 4 --steps 1 --script '{}' --out '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            script.display(),
-            tmp("mem", "consts4m.png").display()
-        ))
-        .output()
-        .unwrap();
+    let out = sim_capped(&script, 500000, 4);
     assert_clear_failure(&out, "a 4 MB script under 500 MB", "to compile;");
 }
 

@@ -93,44 +93,49 @@ pub fn available_bytes() -> u64 {
     ) {
         avail = avail.min(max.saturating_sub(cur));
     }
-    if let Ok(l) = std::fs::read_to_string("/proc/self/limits")
-        && let Some(v) = l
-            .lines()
-            .find(|l| l.starts_with("Max address space"))
-            .and_then(|l| l.split_whitespace().nth(3))
-            .and_then(|v| v.parse::<u64>().ok())
-    {
+    if let Some(v) = address_space_limit() {
         // The address space also holds code and mappings: keep a margin.
         avail = avail.min(v.saturating_sub(256 << 20));
     }
     avail
 }
 
+/// This process's address-space limit in bytes (`ulimit -v`), if set.
+fn address_space_limit() -> Option<u64> {
+    std::fs::read_to_string("/proc/self/limits")
+        .ok()?
+        .lines()
+        .find(|l| l.starts_with("Max address space"))?
+        .split_whitespace()
+        .nth(3)?
+        .parse()
+        .ok()
+}
+
+/// Field `key` (`VmRSS:`, `VmSize:`) of `/proc/PID/status`, in KiB.
+fn status_kb(pid: u32, key: &str) -> Option<u64> {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()?
+        .lines()
+        .find(|l| l.starts_with(key))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()
+}
+
 /// Bytes this process may still allocate *now*: [`available_bytes`], and
 /// under an address-space limit, what of it this process has not mapped
 /// yet (its threads' stacks and libraries count).
 pub fn headroom_bytes() -> u64 {
-    let mut have = available_bytes();
-    if let Ok(l) = std::fs::read_to_string("/proc/self/limits")
-        && let Some(limit) = l
-            .lines()
-            .find(|l| l.starts_with("Max address space"))
-            .and_then(|l| l.split_whitespace().nth(3))
-            .and_then(|v| v.parse::<u64>().ok())
-    {
-        let mapped = std::fs::read_to_string("/proc/self/status")
-            .ok()
-            .and_then(|s| {
-                s.lines()
-                    .find(|l| l.starts_with("VmSize:"))
-                    .and_then(|l| l.split_whitespace().nth(1))
-                    .and_then(|v| v.parse::<u64>().ok())
-            })
-            .unwrap_or(0)
-            * 1024;
-        have = have.min(limit.saturating_sub(mapped));
+    let have = available_bytes();
+    match address_space_limit() {
+        Some(limit) => {
+            let mapped = status_kb(std::process::id(), "VmSize:").unwrap_or(0) * 1024;
+            have.min(limit.saturating_sub(mapped))
+        }
+        None => have,
     }
-    have
 }
 
 /// Human-readable bytes.
@@ -223,13 +228,5 @@ pub fn rss_kb() -> u64 {
 
 /// Resident memory of process `pid` in KiB (Linux), 0 if unknown.
 pub fn rss_kb_of(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmRSS:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse().ok())
-        })
-        .unwrap_or(0)
+    status_kb(pid, "VmRSS:").unwrap_or(0)
 }
