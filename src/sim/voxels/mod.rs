@@ -11,13 +11,16 @@
 //!   passes (Lua or native kernels) and their validated commit.
 //! - `scripts`: loading, smoke-testing and replacing voxel scripts, and
 //!   their rates, parameters and health.
-//! - [`step`]: scheduling (material filters, rates, sleep), the parallel
-//!   double-buffered step, validation and commit.
+//! - [`schedule`]: which bricks a step runs and which sleep (the active
+//!   set, wakes, material presence, candidates).
+//! - [`step`]: the step itself: rates, each script's parallel
+//!   double-buffered run, validation and commit, then sleep and wake.
 
 pub mod channels;
 mod exec;
 pub mod halo;
 pub mod native;
+pub mod schedule;
 mod scripts;
 pub mod step;
 
