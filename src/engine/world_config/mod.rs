@@ -1,6 +1,6 @@
 //! World configs (`worlds/*.toml`), in two stages: plain serde structs that
 //! reject unknown fields (`raw.rs`), then validation, a stage per section
-//! (`validate.rs`), into the typed settings here, whose errors name the file,
+//! (`validate.rs`; the camera, render and frames sections in `view.rs`), into the typed settings here, whose errors name the file,
 //! the field and the reason.
 //!
 //! ```toml
@@ -76,6 +76,7 @@ use thiserror::Error;
 
 mod raw;
 mod validate;
+mod view;
 
 use crate::scene::SceneSpec;
 
@@ -376,13 +377,13 @@ impl WorldConfig {
         let stream = validate::stream(at, raw.stream, &source, unbounded)?;
         let (dt, sim_region) = validate::sim(at, &raw.sim, stream.is_some(), size, unbounded)?;
         let scripts = validate::scripts(at, raw.scripts)?;
-        let camera = validate::camera(
+        let camera = view::camera(
             at,
             raw.camera,
             stream.is_some() && matches!(sim_region, SimRegion::AroundCamera { .. }),
         )?;
-        let render = validate::render(at, &raw.render, stream)?;
-        let frames = validate::frames(at, &raw.frames)?;
+        let render = view::render(at, &raw.render, stream)?;
+        let frames = view::frames(at, &raw.frames)?;
         let checkpoint_every = validate::every(at, raw.checkpoint.every, 500, "checkpoint.every")?;
         let addr = validate::addr(at, raw.control.addr)?;
         let hosts = validate::hosts(at, raw.control.hosts)?;
