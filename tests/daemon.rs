@@ -43,6 +43,7 @@ fn status_pause_step_and_control_errors() {
         assert!(s.get(k).is_some(), "missing {k} in {s}");
     }
     assert_eq!(s["scripts"][0]["name"], "water");
+    status_matches_the_readme(&s);
     // Token file is owner-only.
     #[cfg(unix)]
     {
@@ -224,6 +225,63 @@ fn a_port_in_use_and_a_bad_config_are_clear_errors() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains("render.width"), "{err}");
+}
+
+/// Every key `/status` sends is in the README's schema, and every key the
+/// README lists for a script is sent (a script's `totals` are keyed by
+/// channel names, which the schema writes as `CHANNEL`).
+fn status_matches_the_readme(s: &serde_json::Value) {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+    let line = readme
+        .lines()
+        .find(|l| l.starts_with("| `GET /status` |"))
+        .expect("the README documents /status");
+    let documented: std::collections::BTreeSet<&str> = line.split('"').skip(1).step_by(2).collect();
+    fn keys<'a>(v: &'a serde_json::Value, out: &mut Vec<&'a str>) {
+        match v {
+            serde_json::Value::Object(m) => {
+                for (k, x) in m {
+                    out.push(k);
+                    if k != "totals" {
+                        keys(x, out);
+                    }
+                }
+            }
+            serde_json::Value::Array(a) => a.iter().for_each(|x| keys(x, out)),
+            _ => {}
+        }
+    }
+    let mut sent = Vec::new();
+    keys(s, &mut sent);
+    for k in &sent {
+        assert!(
+            documented.contains(k),
+            "/status sends {k:?}, which the README's schema lacks"
+        );
+    }
+    let script = s["scripts"][0].as_object().unwrap();
+    let listed = line.split("\"scripts\":[{").nth(1).unwrap();
+    // The script's own keys: its text up to its closing brace, without
+    // the nested `params` entries and `totals`.
+    let mut depth = 0;
+    let mut own = String::new();
+    for c in listed.chars() {
+        match c {
+            '{' | '[' => depth += 1,
+            '}' | ']' if depth == 0 => break,
+            '}' | ']' => depth -= 1,
+            c if depth == 0 => own.push(c),
+            _ => {}
+        }
+    }
+    for k in own.split('"').skip(1).step_by(2) {
+        assert!(
+            script.contains_key(k),
+            "the README lists {k:?} for a script; /status lacks it"
+        );
+    }
+    assert!(script["totals"].is_object(), "{script:?}");
 }
 
 fn save_like_an_editor(path: &Path, text: &str) {
