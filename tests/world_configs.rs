@@ -292,3 +292,37 @@ fn bad_configs_name_the_file_field_and_reason() {
         "{missing}"
     );
 }
+
+/// The defaults the README states for a config that sets nothing: frames
+/// every 10 ticks, 200 kept within 256 MiB, commits every 500 ticks, the
+/// `auto` tracer, level of detail C = 1, occlusion and shadows on, beams
+/// and anti-aliasing off, 640×360 frames on 127.0.0.1:7878; a streamed
+/// world's fog at half its view distance, an unstreamed one without fog.
+#[test]
+fn a_config_that_sets_nothing_gets_the_documented_defaults() {
+    let c = WorldConfig::parse(
+        "min.toml",
+        "[world]\nsource = \"terrain\"\n",
+        Path::new("."),
+    )
+    .unwrap();
+    assert_eq!(c.frames_every, 10);
+    assert_eq!(c.frames_keep, 200);
+    assert_eq!(c.frames_max_bytes, 256 << 20);
+    assert_eq!(c.checkpoint_every, 500);
+    assert_eq!(c.look.tracer, brickworld::gpu::TracerChoice::Auto);
+    assert_eq!(c.look.lod, 1.0);
+    assert!(c.look.ao && c.look.shadows && !c.look.beam);
+    assert_eq!(c.look.aa, 1);
+    assert_eq!(c.look.fog, 0.0);
+    assert_eq!((c.width, c.height), (640, 360));
+    assert_eq!(c.addr.to_string(), "127.0.0.1:7878");
+    let continent = WorldConfig::load(&Path::new(ROOT).join("worlds/continent.toml")).unwrap();
+    let text = std::fs::read_to_string(Path::new(ROOT).join("worlds/continent.toml")).unwrap();
+    assert!(
+        !text.contains("fog"),
+        "continent.toml sets its fog: pick a world that does not"
+    );
+    let view = continent.stream.as_ref().unwrap().view_distance;
+    assert_eq!(continent.look.fog, (view * 0.5) as f32);
+}

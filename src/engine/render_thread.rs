@@ -211,30 +211,21 @@ impl RenderThread {
                         draw(&mut gpu, world, &job.camera, o, &st)
                     });
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
-                    // Atomic (temp, rename): a full disk or a kill never leaves a
-                    // truncated frame under a final name.
-                    let path = settings
-                        .frames_dir
-                        .join(format!("frame-{:08}.png", job.tick));
-                    let tmp = settings
-                        .frames_dir
-                        .join(format!(".frame-{:08}.png.tmp", job.tick));
-                    match std::fs::write(&tmp, &png).and_then(|_| std::fs::rename(&tmp, &path)) {
-                        Ok(()) => {
+                    match write_frame(&settings.frames_dir, job.tick, &png) {
+                        Ok(path) => {
                             written.push(path, png.len() as u64);
                             if frame_error.take().is_some() {
                                 eprintln!("frames are written again to {}", settings.frames_dir.display());
                             }
                         }
                         Err(e) => {
-                            let _ = std::fs::remove_file(&tmp);
                             // Said once a minute, not silently dropped
                             // (regression: a full disk or a bad frames.dir
                             // left no trace); the live frame still serves.
                             if frame_error.is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60)) {
                                 eprintln!(
                                     "warning: cannot write frame {}: {e} (the live view goes on; said at most once a minute)",
-                                    path.display()
+                                    settings.frames_dir.join(format!("frame-{:08}.png", job.tick)).display()
                                 );
                                 frame_error = Some(Instant::now());
                             }
@@ -451,6 +442,22 @@ fn draw(
     render(&world.brickmap(), camera, world.store().palette(), opts).rgb
 }
 
+/// Write frame `tick` into `dir` atomically: a temporary file, then a
+/// rename, so a full disk or a kill never leaves a truncated frame under a
+/// final name (a failed write removes its temporary file). Returns the
+/// frame's path.
+fn write_frame(dir: &std::path::Path, tick: u64, png: &[u8]) -> std::io::Result<PathBuf> {
+    let path = dir.join(format!("frame-{tick:08}.png"));
+    let tmp = dir.join(format!(".frame-{tick:08}.png.tmp"));
+    match std::fs::write(&tmp, png).and_then(|_| std::fs::rename(&tmp, &path)) {
+        Ok(()) => Ok(path),
+        Err(e) => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(e)
+        }
+    }
+}
+
 /// Encode an RGB8 image as PNG bytes.
 pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
@@ -468,6 +475,29 @@ pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::FrameFiles;
+
+    /// Frames replace by rename, never in place: a frame that already
+    /// exists (hard-linked here to a witness) is swapped for a new file, so
+    /// a reader never sees a partial one; a failed write leaves neither a
+    /// frame nor its temporary file.
+    #[test]
+    fn frames_are_written_by_rename_never_in_place() {
+        let dir = std::env::temp_dir().join(format!("bw-frame-write-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let witness = dir.join("witness");
+        std::fs::write(&witness, b"old").unwrap();
+        std::fs::hard_link(&witness, dir.join("frame-00000007.png")).unwrap();
+        let path = super::write_frame(&dir, 7, b"new frame").unwrap();
+        assert_eq!(path, dir.join("frame-00000007.png"));
+        assert_eq!(std::fs::read(&path).unwrap(), b"new frame");
+        assert_eq!(std::fs::read(&witness).unwrap(), b"old", "written in place");
+        // The temporary name is taken by a folder: the write fails cleanly.
+        std::fs::create_dir(dir.join(".frame-00000008.png.tmp")).unwrap();
+        assert!(super::write_frame(&dir, 8, b"x").is_err());
+        assert!(!dir.join("frame-00000008.png").exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn frames_are_pruned_to_a_count_and_to_a_byte_total_oldest_first() {
