@@ -1170,3 +1170,63 @@ fn a_chart_that_fails_to_write_leaves_the_previous_chart() {
         assert!(std::fs::read(&p).unwrap() == b, "{} changed", p.display());
     }
 }
+
+/// `sim --closed-edges` keeps every drop of rain in the world (no water
+/// drains, so the total is exactly what fell), while the default drains
+/// over the edges and reports it; `--cfl` sets the sub-stepping: a smaller
+/// number takes more sub-steps, and 0 takes none.
+#[test]
+fn sim_closed_edges_and_cfl_reach_the_simulation() {
+    let run = |extra: &[&str]| -> String {
+        let out_png = tmp(&format!(
+            "edges{}.png",
+            extra.join("").replace(['-', '.'], "")
+        ));
+        let mut args = vec![
+            "sim",
+            "--size",
+            "64x32x64",
+            "--steps",
+            "40",
+            "--script",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
+            "--param",
+            "water.rain=2",
+            "--out",
+            out_png.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let out = bin().args(&args).output().unwrap();
+        assert_success(&out);
+        // The summary goes to stderr, with the progress.
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr)
+    };
+    let number = |text: &str, key: &str| -> f64 {
+        let line = text
+            .lines()
+            .find(|l| l.contains(key))
+            .unwrap_or_else(|| panic!("no {key}: {text}"));
+        let v = line.split(key).nth(1).unwrap().trim_start_matches(':');
+        v.split_whitespace().next().unwrap().parse().unwrap()
+    };
+    let sub_steps = |text: &str| -> u32 {
+        let s = text
+            .split("up to ")
+            .nth(1)
+            .unwrap_or_else(|| panic!("{text}"));
+        s.split_whitespace().next().unwrap().parse().unwrap()
+    };
+    let drained = run(&[]);
+    let closed = run(&["--closed-edges"]);
+    assert!(
+        number(&drained, "drained over the edges") > 0.0,
+        "{drained}"
+    );
+    assert!(!closed.contains("drained"), "{closed}");
+    // 40 steps of rain on 64 × 64 columns, none lost.
+    assert_eq!(number(&closed, "total water"), 16384.0, "{closed}");
+    assert!(number(&drained, "total water") < 16384.0, "{drained}");
+    let (fine, none) = (run(&["--cfl", "0.1"]), run(&["--cfl", "0"]));
+    assert_eq!(sub_steps(&none), 1, "{none}");
+    assert!(sub_steps(&fine) > sub_steps(&drained), "{fine}\n{drained}");
+}

@@ -76,6 +76,19 @@ fn status_pause_step_and_control_errors() {
         t0 + 3,
         "exactly three steps"
     );
+    // An empty body is one step, and `step` pauses a running engine.
+    assert_eq!(post(&addr, &state, "/resume", "").0, 200);
+    assert_eq!(post(&addr, &state, "/step", "").0, 200);
+    std::thread::sleep(Duration::from_millis(500));
+    let t1 = status(&addr)["tick"].as_u64().unwrap();
+    assert_eq!(status(&addr)["paused"], true);
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(
+        status(&addr)["tick"].as_u64().unwrap(),
+        t1,
+        "step paused the engine"
+    );
+    assert!(t1 > t0 + 3, "the resume ran steps");
     assert_eq!(post(&addr, &state, "/step", "lots").0, 400);
     assert_eq!(post(&addr, &state, "/camera", "{\"eye\": [1, 2]}").0, 400);
     let cam = "{\"eye\": [-20, 60, -20], \"target\": [24, 10, 24], \"fov\": 45}";
@@ -102,18 +115,33 @@ fn status_pause_step_and_control_errors() {
     let (code, body) = post(&addr, &state, "/status", "");
     assert_eq!(code, 405, "{body}");
     assert!(body.contains("use GET"), "{body}");
-    // HEAD answers as GET does, without the body.
-    {
+    // HEAD answers as GET does, without the body, on every GET route but
+    // the event stream, which it does not open.
+    let head = |path: &str| -> String {
         use std::io::{Read, Write};
         let mut s = std::net::TcpStream::connect(&addr).unwrap();
         s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-        s.write_all(b"HEAD /status HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
-            .unwrap();
+        s.write_all(
+            format!("HEAD {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+                .as_bytes(),
+        )
+        .unwrap();
         let mut got = String::new();
         s.read_to_string(&mut got).unwrap();
-        assert!(got.starts_with("HTTP/1.1 200"), "{got}");
-        assert!(got.ends_with("\r\n\r\n"), "a body was sent: {got}");
+        got
+    };
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while request(&addr, "GET", "/frame.png", None, "").unwrap().0 != 200 {
+        assert!(Instant::now() < deadline, "no frame within 60 s");
+        std::thread::sleep(Duration::from_millis(100));
     }
+    for path in ["/status", "/", "/timeline", "/frame.png"] {
+        let got = head(path);
+        assert!(got.starts_with("HTTP/1.1 200"), "HEAD {path}: {got}");
+        assert!(got.ends_with("\r\n\r\n"), "HEAD {path} sent a body: {got}");
+    }
+    let got = head("/events");
+    assert!(got.starts_with("HTTP/1.1 405"), "HEAD /events: {got}");
     assert_eq!(post(&addr, &state, "/step", &"9".repeat(70_000)).0, 413);
     assert_eq!(
         post(&addr, &state, "/scripts/water/params", "{\"rain\": 0.5}").0,
