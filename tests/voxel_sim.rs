@@ -628,3 +628,67 @@ fn a_voxel_channel_outside_its_range_is_refused_naming_the_brick() {
     let q = sim.channels_mut().channel("q");
     assert_eq!(sim.channels().total(q), 0.0, "the step was not applied");
 }
+
+/// Audit: a voxel channel without a declared range must still be finite:
+/// a NaN or an infinity rejects the step, naming the channel and the brick,
+/// and the step is not applied.
+#[test]
+fn a_voxel_channel_without_a_range_refuses_non_finite_values() {
+    let reg = shipped_registry();
+    for (value, shown) in [("0/0", "NaN"), ("1/0", "inf"), ("-1/0", "-inf")] {
+        let mut store = BrickStore::new(Palette::grey_ramp());
+        store.set_voxel(IVec3::new(9, 1, 9), STONE);
+        store.take_modified();
+        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 16, 16), 1);
+        let wild = one_pass(
+            "wild",
+            r#"channels = { "q" },"#,
+            r#""q""#,
+            r#""q""#,
+            &format!(
+                "if bx == 1 and by == 0 and bz == 1 then buffer.writef32(c.w.q, 0, {value}) end"
+            ),
+        );
+        sim.add_script(wild, Limits::default(), &reg).unwrap();
+        let r = sim.step(&mut store, &reg, 0.05);
+        assert_eq!(r.errors.len(), 1, "{value}: {:?}", r.errors);
+        let msg = r.errors[0].to_string();
+        assert!(
+            msg.contains(&format!("channel 'q' = {shown}")) && msg.contains("brick (1, 0, 1)"),
+            "{value}: {msg}"
+        );
+        let q = sim.channels_mut().channel("q");
+        assert_eq!(sim.channels().get(q, IVec3::new(1, 0, 1)), None, "applied");
+    }
+}
+
+/// Audit: the world's bound of 256 channels holds for voxel scripts too
+/// (only the column registry's was tested): a script whose new channels
+/// would pass it is refused at load, naming the count; one that fits loads.
+#[test]
+fn voxel_scripts_cannot_pass_the_worlds_channel_bound() {
+    let reg = shipped_registry();
+    let store = BrickStore::new(Palette::grey_ramp());
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 16, 16), 1);
+    for i in 0..255 {
+        sim.channels_mut().channel(&format!("old{i}"));
+    }
+    let two = one_pass("two", r#"channels = { "a", "b" },"#, r#""a""#, r#""b""#, "");
+    let e = sim
+        .add_script(two, Limits::default(), &reg)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("would give the world 257 channels, more than 256"),
+        "{e}"
+    );
+    let one = one_pass(
+        "one",
+        r#"channels = { "a", "old3" },"#,
+        r#""a""#,
+        r#""a""#,
+        "",
+    );
+    sim.add_script(one, Limits::default(), &reg).unwrap();
+    assert_eq!(sim.channels().names().len(), 256);
+}
