@@ -373,3 +373,41 @@ fn a_script_that_loops_while_loading_is_stopped_with_its_line() {
     assert!(e.to_string().contains("instruction budget exceeded"), "{e}");
     assert!(e.to_string().starts_with("bad.lua:2:"), "{e}");
 }
+
+/// Audit: where a tile has no neighbour (the edge of a [`Simulation`]),
+/// halo cells read the channel's declared `boundary`, and 0 for a channel
+/// that declares none; next to a neighbour they read the neighbour.
+#[test]
+fn halo_cells_without_a_neighbour_read_the_channels_boundary() {
+    let text = r#"
+return {
+  channels = { "g", "h", "out" },
+  boundary = { g = 7 },
+  passes = { { name = "p", reads = { "g", "h" }, writes = { "out" }, kernel = function(c, tx, tz)
+    -- Own (0, 0) and (1, 0): the halo west of (0, 0), for g and for h;
+    -- own (7, 0): the halo east of (7, 0).
+    buffer.writef64(c.w.out, 0, buffer.readf64(c.r.g, 80))
+    buffer.writef64(c.w.out, 8, buffer.readf64(c.r.h, 80))
+    buffer.writef64(c.w.out, 56, buffer.readf64(c.r.g, 152))
+  end } },
+}
+"#;
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(2, 1));
+    sim.add_script(src("edges", text), Kernel::Lua, quick_limits())
+        .unwrap();
+    let ch = sim.channels_mut();
+    let (g, h, out) = (ch.channel("g"), ch.channel("h"), ch.channel("out"));
+    for (t, v) in [(IVec2::new(0, 0), 1.0), (IVec2::new(1, 0), 2.0)] {
+        ch.set(t, g, &[v; TILE_CELLS]);
+        ch.set(t, h, &[5.0; TILE_CELLS]);
+    }
+    run(&mut sim, 1, 0.1);
+    let got = |t: IVec2| {
+        let v = sim.channels().get(t, out).copied().unwrap();
+        [v[cell(0, 0)], v[cell(1, 0)], v[cell(7, 0)]]
+    };
+    // West tile: its west halo is the world's edge; its east one, tile 1.
+    assert_eq!(got(IVec2::new(0, 0)), [7.0, 0.0, 2.0]);
+    // East tile: the reverse.
+    assert_eq!(got(IVec2::new(1, 0)), [1.0, 5.0, 7.0]);
+}
