@@ -374,20 +374,32 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
         std::thread::sleep(Duration::from_millis(20));
     }
 
-    // A changed script takes effect: this version fails in its first kernel,
-    // which only the new code can do (the step is rolled back).
+    // A changed script takes effect: this version logs from its first
+    // kernel, which only the new code can do. (It used to raise an error
+    // there, which the smoke test refused, so the old version ran on and
+    // the test saw only the refusal: it never showed a swap.)
     let v2 = original.replacen(
         "kernel = function(c)\n",
-        "kernel = function(c)\n        error(\"v2 is running\")\n",
+        "kernel = function(c)\n        log(\"v2 is running\")\n",
         1,
     );
     assert_ne!(v2, original);
     save_like_an_editor(&water, &v2);
     let changed = wait_for_script(&addr, |s| {
-        s["error"]
-            .as_str()
-            .is_some_and(|e| e.contains("v2 is running"))
+        s["log"].as_array().is_some_and(|l| {
+            l.iter()
+                .any(|x| x.as_str().is_some_and(|x| x.contains("v2 is running")))
+        })
     });
+    let s = &status(&addr)["scripts"][0];
+    assert!(s["error"].is_null(), "{s}");
+
+    // `/status` counts the reload and says when it happened.
+    let (reloads, at) = (
+        s["reloads"].as_u64().unwrap(),
+        s["reloaded_at"].as_u64().unwrap(),
+    );
+    assert!(reloads >= 1 && at > 0, "{s}");
 
     // A version without the parameter the config sets: it runs, with a
     // warning that the next start would refuse the config (regression: it
@@ -398,6 +410,10 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
             w.contains("sets parameter 'rain'") && w.contains("no longer declares")
         })
     });
+
+    let s = &status(&addr)["scripts"][0];
+    assert_eq!(s["reloads"].as_u64().unwrap(), reloads + 1, "{s}");
+    assert!(s["reloaded_at"].as_u64().unwrap() >= at, "{s}");
 
     // A .lua that is not a loaded script, made and deleted: none of the
     // engine's business (checked in the log below).

@@ -459,6 +459,24 @@ fn names_a_script_declares_are_plain() {
         assert!(!e.contains('\n') && !e.contains('\u{1b}'), "{what}: {e:?}");
     }
     assert!(ScriptVm::load(&src("names", &voxel("fall_2", "sand", "rate_1")), small()).is_ok());
+    // 64 characters is the longest name (docs/lua-api.md: "1 to 64").
+    let long = "x".repeat(64);
+    assert!(ScriptVm::load(&src("names", &voxel(&long, "sand", &long)), small()).is_ok());
+    // Channel names are held to the same rule (audit: never exercised).
+    let channel = |name: &str| {
+        format!(
+            "return {{ channels = {{ \"{name}\" }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"{name}\" }}, kernel = function() end }} }} }}"
+        )
+    };
+    assert!(ScriptVm::load(&src("names", &channel(&long)), small()).is_ok());
+    for bad in [evil, &"x".repeat(65), ""] {
+        let e = match ScriptVm::load(&src("names", &channel(bad)), small()) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("channel {bad:?} accepted"),
+        };
+        assert!(e.contains("channel name"), "{bad:?}: {e}");
+        assert!(!e.contains('\n') && !e.contains('\u{1b}'), "{e:?}");
+    }
 }
 
 #[test]
