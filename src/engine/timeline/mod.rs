@@ -1,5 +1,6 @@
 //! The timeline: one CSV row per frame interval, appended to
-//! `STATE/timeline.csv`, and `brickworld chart STATE` to draw it.
+//! `STATE/timeline.csv`; [`chart`] reads it back and draws it
+//! (`brickworld chart STATE`).
 //!
 //! The fixed [`COLUMNS`] come first, then one `ms:SCRIPT` column per script
 //! (its time in the step) and one `total:SCRIPT.CHANNEL` column per channel
@@ -13,6 +14,9 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
+
+mod chart;
+pub use chart::{Table, chart, read};
 
 /// Column names, in order.
 pub const COLUMNS: [&str; 11] = [
@@ -279,190 +283,6 @@ impl Timeline {
     }
 }
 
-/// A timeline read back: its column names and rows.
-#[derive(Clone, Debug, Default)]
-pub struct Table {
-    /// Column names, from the header.
-    pub columns: Vec<String>,
-    /// Rows (only those with every column).
-    pub rows: Vec<Vec<f64>>,
-    /// Lines left out: a field count other than the header's.
-    pub skipped: usize,
-}
-
-impl Table {
-    /// Index of column `name`.
-    pub fn col(&self, name: &str) -> Option<usize> {
-        self.columns.iter().position(|c| c == name)
-    }
-}
-
-/// Read a timeline CSV: a regular file of at most 4 × [`ROTATE_BYTES`]
-/// (the engine rotates its own at one; regression: a link to /dev/zero
-/// filled memory).
-pub fn read(path: &Path) -> Result<Table> {
-    let text = crate::files::read_bounded(path, 4 * ROTATE_BYTES)?;
-    let text = String::from_utf8_lossy(&text);
-    let mut t = Table::default();
-    // A last line without its newline was cut off (a kill or a full disk
-    // in the middle of an append): not a row, and not a sign of a foreign
-    // file either.
-    let complete = if text.ends_with('\n') {
-        &text[..]
-    } else {
-        text.rsplit_once('\n').map_or("", |(head, _)| head)
-    };
-    for (i, line) in complete.lines().enumerate() {
-        if i == 0 {
-            t.columns = line.trim().split(',').map(str::to_string).collect();
-            continue;
-        }
-        if line.trim().is_empty() {
-            continue;
-        }
-        let vals: Vec<f64> = line
-            .split(',')
-            .map(|v| v.trim().parse().unwrap_or(f64::NAN))
-            .collect();
-        if vals.len() == t.columns.len() {
-            t.rows.push(vals);
-        } else {
-            t.skipped += 1;
-        }
-    }
-    Ok(t)
-}
-
-/// `brickworld chart STATE`: draw the timeline as SVG charts in `STATE/charts`.
-pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
-    use crate::bench::chart::{Series, xy_chart};
-    use plotters::style::RGBColor;
-    let table = read(&state.join("timeline.csv"))?;
-    let rows = &table.rows;
-    let file = state.join("timeline.csv");
-    // Rows that do not fit the header are not the engine's (regression:
-    // a file of nothing else was said to need a longer run).
-    if rows.len() < 2 && table.skipped > 0 {
-        anyhow::bail!(
-            "{} has {} lines whose fields do not match its header's {} columns: it is not a timeline the engine wrote",
-            file.display(),
-            table.skipped,
-            table.columns.len()
-        );
-    }
-    if rows.len() < 2 {
-        anyhow::bail!(
-            "{} has fewer than two rows: let the engine run a little longer",
-            file.display()
-        );
-    }
-    if table.skipped > 0 {
-        eprintln!(
-            "warning: {} left out {} lines whose fields do not match its header",
-            file.display(),
-            table.skipped
-        );
-    }
-    let dir = state.join("charts");
-    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let palette = [
-        RGBColor(60, 110, 200),
-        RGBColor(200, 70, 60),
-        RGBColor(40, 150, 80),
-        RGBColor(150, 110, 80),
-        RGBColor(120, 120, 140),
-        RGBColor(170, 60, 170),
-        RGBColor(30, 160, 170),
-        RGBColor(220, 150, 30),
-    ];
-    if table.columns.first().map(String::as_str) != Some("tick") {
-        anyhow::bail!(
-            "{} is not a brickworld timeline: its first column is not 'tick'",
-            state.join("timeline.csv").display()
-        );
-    }
-    // A column a hand-made or older file lacks leaves its line out
-    // (regression: it was a panic).
-    let series = |name: &str, color: RGBColor| -> Option<Series<'_>> {
-        let c = table.col(name)?;
-        Some(Series {
-            name: table.columns[c].as_str(),
-            color,
-            points: rows
-                .iter()
-                .map(|r| (r[0].max(1.0), r[c].abs().max(1e-9)))
-                .collect(),
-        })
-    };
-    let with_prefix = |prefix: &str| -> Vec<Series<'_>> {
-        table
-            .columns
-            .iter()
-            .filter(|c| c.starts_with(prefix))
-            .enumerate()
-            .filter_map(|(i, c)| series(c, palette[i % palette.len()]))
-            .collect()
-    };
-    let mut totals: Vec<Series<'_>> = [
-        series("water", palette[0]),
-        series("ground_plus_sediment", palette[3]),
-        series("snow", palette[4]),
-        series("drained", palette[1]),
-    ]
-    .into_iter()
-    .flatten()
-    .collect();
-    totals.extend(with_prefix("total:"));
-    let mut out = Vec::new();
-    for (file, title, y, list) in [
-        (
-            "rate.svg",
-            "Steps per second and frame time",
-            "value (log)",
-            [
-                series("steps_per_s", palette[0]),
-                series("frame_ms", palette[1]),
-            ]
-            .into_iter()
-            .flatten()
-            .collect(),
-        ),
-        (
-            "memory.svg",
-            "Resident memory (KiB)",
-            "KiB (log)",
-            series("rss_kb", palette[2]).into_iter().collect(),
-        ),
-        (
-            "work.svg",
-            "Active tiles and dirty bricks",
-            "count (log)",
-            [
-                series("active_bricks", palette[0]),
-                series("dirty_bricks", palette[1]),
-            ]
-            .into_iter()
-            .flatten()
-            .collect(),
-        ),
-        ("totals.svg", "Conserved totals", "total (log)", totals),
-        (
-            "scripts.svg",
-            "Time per step of each script (ms)",
-            "ms (log)",
-            with_prefix("ms:"),
-        ),
-    ] {
-        if list.is_empty() {
-            continue;
-        }
-        let path = dir.join(file);
-        xy_chart(&path, title, "tick (log)", y, &list)?;
-        out.push(path);
-    }
-    Ok(out)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -473,47 +293,6 @@ mod tests {
             script_ms: vec![1.5],
             conserved: vec![42.0],
             ..Row::default()
-        }
-    }
-
-    /// Regression (hostile probe): a hand-made timeline lacking a column
-    /// panicked, a huge value hung the axis, and a link to /dev/zero filled
-    /// memory.
-    #[test]
-    fn chart_survives_hand_made_timelines() {
-        let dir = std::env::temp_dir().join(format!("bw-chart-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        let csv = dir.join("timeline.csv");
-        std::fs::write(&csv, "tick,water,rss_kb\n1,1,100\n2,1.7e308,200\n3,2,300\n").unwrap();
-        let drawn = chart(&dir).unwrap();
-        let names: Vec<String> = drawn
-            .iter()
-            .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
-            .collect();
-        assert_eq!(names, ["memory.svg", "totals.svg"]);
-        std::fs::write(&csv, "a,b\n1,2\n3,4\n").unwrap();
-        assert!(
-            chart(&dir)
-                .unwrap_err()
-                .to_string()
-                .contains("not a brickworld timeline")
-        );
-        // Regression (hostile probe): a file of nothing but malformed rows
-        // was said to need a longer run.
-        std::fs::write(&csv, "tick,water\n\"1\",\"2\",x\n3\n").unwrap();
-        let e = chart(&dir).unwrap_err().to_string();
-        assert!(e.contains("not a timeline the engine wrote"), "{e}");
-        // One row and a last line cut off by a kill: the engine's, short.
-        std::fs::write(&csv, "tick,water\n1,2\n2,").unwrap();
-        let e = chart(&dir).unwrap_err().to_string();
-        assert!(e.contains("fewer than two rows"), "{e}");
-        std::fs::remove_file(&csv).unwrap();
-        #[cfg(unix)]
-        {
-            std::os::unix::fs::symlink("/dev/zero", &csv).unwrap();
-            let e = chart(&dir).unwrap_err().to_string();
-            assert!(e.contains("not a regular file"), "{e}");
         }
     }
 
