@@ -1181,3 +1181,59 @@ fn a_full_command_queue_answers_503() {
     assert_eq!(full, 1100 - 1023, "{codes:?}");
     drop(d); // killed: the stalled commit never lands
 }
+
+/// Audit: "no connection lives longer than 60 s" had no test. A client
+/// that keeps one keep-alive connection busy with a request every 2 s (so
+/// that no idle or header timeout applies) is cut off once it is 60 s old,
+/// within a few seconds of it; the engine answers new connections all along.
+#[test]
+fn a_busy_keep_alive_connection_is_closed_after_its_lifetime() {
+    use brickworld::engine::control::server::CONNECTION_LIFETIME;
+    let (cfg, state, addr) = setup("lifetime");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let mut s = TcpStream::connect(&addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let born = Instant::now();
+    let mut answered = 0;
+    let closed_after = loop {
+        let sent = s.write_all(b"GET /status HTTP/1.1\r\nHost: localhost\r\n\r\n");
+        // Read one whole answer: headers, then Content-Length bytes.
+        let mut got = Vec::new();
+        let mut byte = [0u8; 1];
+        let ok = sent.is_ok()
+            && loop {
+                match s.read(&mut byte) {
+                    Ok(1) => got.push(byte[0]),
+                    _ => break false,
+                }
+                if got.ends_with(b"\r\n\r\n") {
+                    let head = String::from_utf8_lossy(&got).to_ascii_lowercase();
+                    let len: usize = head
+                        .lines()
+                        .find_map(|l| l.strip_prefix("content-length:"))
+                        .and_then(|v| v.trim().parse().ok())
+                        .unwrap_or(0);
+                    let mut body = vec![0u8; len];
+                    break s.read_exact(&mut body).is_ok();
+                }
+            };
+        if !ok {
+            break born.elapsed();
+        }
+        answered += 1;
+        assert!(
+            born.elapsed() < CONNECTION_LIFETIME + Duration::from_secs(15),
+            "never closed"
+        );
+        std::thread::sleep(Duration::from_secs(2));
+    };
+    assert!(answered >= 25, "answered only {answered} requests");
+    assert!(
+        closed_after >= CONNECTION_LIFETIME
+            && closed_after < CONNECTION_LIFETIME + Duration::from_secs(8),
+        "closed after {closed_after:?}"
+    );
+    assert_eq!(status(&addr)["paused"], false);
+    assert_success(&stop(d));
+}
