@@ -13,8 +13,11 @@ use glam::IVec3;
 
 use super::Tracer;
 use super::dda::{DdaRay, DdaState};
+use super::lod::Footprint;
 use super::ray::{Frame, Hit, Ray};
-use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool, OCC_SHIFT, UNIFORM, voxel_index};
+use crate::world::{
+    BRICK_SHIFT, BrickGrid, BrickPool, OCC_SHIFT, TOP_LEVEL, UNIFORM, block_solid, voxel_index,
+};
 
 /// A tracer over a [`BrickGrid`] and the pool its pointers index.
 #[derive(Clone, Copy, Debug)]
@@ -27,20 +30,13 @@ pub struct BrickmapTracer<'w> {
 
 const OCC_VOXEL_SHIFT: i32 = OCC_SHIFT + BRICK_SHIFT;
 
-/// How [`BrickmapTracer::walk_exact`] ended.
-pub(super) enum ExactEnd {
-    /// The first solid voxel.
-    Hit(Hit),
-    /// The ray left the grid (or met a dangling pointer) before `t_max`.
-    Miss,
-    /// Nothing up to `t_max`: an exact state of the walk no later than
-    /// `t_max` (or, if the ray enters the grid after `t_max`, the entry
-    /// state), from which `advance_to(t_max)` restores the state there.
-    /// Its `t` is `-inf` when it is not known (see [`DdaRay::step_back`]);
-    /// then the restored state's `axes` (and so a normal there) are 0 even
-    /// if a crossing fell exactly at `t_max`. The level walk never reads
-    /// them: the cell there is voxels-only and already known empty.
-    Beyond(DdaState),
+/// The highest bit in which two cells' coordinates differ (0 if only the
+/// lowest, or none): the coarsest level whose cell a step from `a` to `b`
+/// entered.
+#[inline(always)]
+fn highest_change(a: [i32; 3], b: [i32; 3]) -> u32 {
+    let x = (a[0] ^ b[0]) | (a[1] ^ b[1]) | (a[2] ^ b[2]);
+    31u32.saturating_sub((x as u32).leading_zeros())
 }
 
 impl<'w> BrickmapTracer<'w> {
@@ -76,22 +72,48 @@ impl<'w> BrickmapTracer<'w> {
     /// exact state there is restored, so the answer is the walk's from 0.
     pub fn trace_exact_from(&self, ray: &Ray, t_start: f32, t_max: f32) -> Option<Hit> {
         let (r, st) = self.start(ray, t_start)?;
-        match self.walk_exact(&r, st, t_max) {
-            ExactEnd::Hit(hit) => Some(hit),
-            ExactEnd::Miss | ExactEnd::Beyond(_) => None,
-        }
+        self.walk_exact(&r, st, t_max)
     }
 
     /// The exact walk of `r` from the exact state `st` up to `t_max`.
     #[inline(always)]
-    pub(super) fn walk_exact(&self, r: &DdaRay, mut st: DdaState, t_max: f32) -> ExactEnd {
+    pub(super) fn walk_exact(&self, r: &DdaRay, st: DdaState, t_max: f32) -> Option<Hit> {
+        self.walk::<false>(r, st, t_max, &Footprint::EXACT)
+    }
+
+    /// The walk of `r` from the exact state `st` up to `t_max`: exact, or
+    /// with level of detail (`LOD`), stopping at the first cell that is
+    /// solid at the level its footprint allows (see [`super::lod`]).
+    ///
+    /// **Level of detail in the exact walk.** Each step of the walk enters
+    /// new cells at every level up to some `climbed` (the highest bit in
+    /// which the cell coordinates changed). The cells the footprint may
+    /// take whole at that time are those up to `allowed`; so the level walk
+    /// of [`super::lod`] checks the cell of level `min(climbed, allowed)`
+    /// there, and hits it if it is solid (any solid: a solid cell's
+    /// ancestors are solid too). This walk does exactly that at each of its
+    /// steps, while it skips empty space and steps voxels as the exact walk
+    /// does: walking an empty coarse cell voxel by voxel finds nothing, as
+    /// skipping it does. So it reports what the level walk reports, at
+    /// about the exact walk's cost (tests hold the two walks to each other).
+    #[inline(always)]
+    pub(super) fn walk<const LOD: bool>(
+        &self,
+        r: &DdaRay,
+        mut st: DdaState,
+        t_max: f32,
+        fp: &Footprint,
+    ) -> Option<Hit> {
         // `st` is the exact voxel state whenever a cell's content is read.
         // Across empty space only the coarse cell is stepped: its next
         // crossing depends on the coarse cell alone, so no voxel state is
         // kept there, and `advance_to` restores it exactly on descent.
+        // With LOD, `climbed`: every level whose cell was entered at `st.t`
+        // (all of them at the start).
+        let mut climbed = TOP_LEVEL;
         'occupancy: loop {
             if st.t > t_max {
-                return ExactEnd::Beyond(st);
+                return None;
             }
             let mut oc = st.cell.map(|v| v >> OCC_VOXEL_SHIFT);
             if !self.grid.occupied(IVec3::from(oc)) {
@@ -100,68 +122,121 @@ impl<'w> BrickmapTracer<'w> {
                 loop {
                     let t = r.coarse_step(&mut oc, &mut ot, shift);
                     if t > t_max {
-                        return ExactEnd::Beyond(st);
+                        return None;
                     }
                     if !self.inside_occ(oc) {
-                        return ExactEnd::Miss;
+                        return None;
                     }
                     if self.grid.occupied(IVec3::from(oc)) {
                         r.advance_to(&mut st, t);
+                        climbed = TOP_LEVEL;
                         break;
                     }
                 }
             }
+            if LOD
+                && climbed >= TOP_LEVEL
+                && fp.allowed(st.t) >= TOP_LEVEL
+                && let Some(hit) = self.coarse_hit(r, &st, TOP_LEVEL)
+            {
+                return Some(hit);
+            }
             let mut bc = st.cell.map(|v| v >> BRICK_SHIFT);
             loop {
                 let p = self.grid.pointer(IVec3::from(bc));
+                // Bricks and 16³ cells the footprint takes whole.
+                if LOD && st.t >= fp.at[2] && climbed >= 3 {
+                    let a = fp.allowed(st.t).min(climbed);
+                    if a == 4
+                        && let Some(hit) = self.coarse_hit(r, &st, 4)
+                    {
+                        return Some(hit);
+                    }
+                    if a == 3 && p != 0 {
+                        return Some(self.lod_hit(r, &st, 3, p));
+                    }
+                }
                 if p == 0 {
                     let shift = BRICK_SHIFT as u32;
                     let mut bt = r.coarse_tmax(bc, shift);
                     loop {
+                        let prev = bc;
                         let t = r.coarse_step(&mut bc, &mut bt, shift);
                         if t > t_max {
-                            return ExactEnd::Beyond(st);
+                            return None;
                         }
                         if bc.map(|v| v >> OCC_SHIFT) != oc {
                             // Left the occupancy cell: resume one level up.
                             r.advance_to(&mut st, t);
                             if !self.inside(st.cell) {
-                                return ExactEnd::Miss;
+                                return None;
                             }
+                            climbed = TOP_LEVEL;
                             continue 'occupancy;
+                        }
+                        // Only where a level above voxels is allowed does it
+                        // matter which levels this step entered.
+                        let far = LOD && t >= fp.at[2];
+                        let entered = if far { 3 + highest_change(prev, bc) } else { 3 };
+                        if far && entered >= 4 && t >= fp.at[3] {
+                            let mut at = st;
+                            r.advance_to(&mut at, t);
+                            if let Some(hit) = self.coarse_hit(r, &at, 4) {
+                                return Some(hit);
+                            }
                         }
                         if self.grid.pointer(IVec3::from(bc)) != 0 {
                             r.advance_to(&mut st, t);
+                            climbed = entered;
                             break;
                         }
                     }
                     continue;
                 }
                 if p & UNIFORM != 0 {
-                    return ExactEnd::Hit(self.hit(r, &st, p as u8));
+                    if LOD {
+                        let a = fp.allowed(st.t).min(climbed);
+                        return Some(self.lod_hit(r, &st, a, p));
+                    }
+                    return Some(self.hit(r, &st, p as u8));
                 }
-                let Some(brick) = self.pool.slot(p - 1) else {
-                    return ExactEnd::Miss;
-                };
+                let brick = self.pool.slot(p - 1)?;
                 let mask = brick.mask();
+                // The cell before the last voxel step; at the brick's first
+                // voxel, `climbed` says what was entered.
+                let mut prev: Option<[i32; 3]> = None;
                 loop {
                     let l = st.cell.map(|v| v & 7);
-                    let i = voxel_index(l[0], l[1], l[2]);
-                    if (mask[i >> 6] >> (i & 63)) & 1 != 0 {
-                        return ExactEnd::Hit(self.hit(r, &st, brick.material_index(i)));
+                    if LOD && st.t >= fp.at[0] {
+                        // Levels 0 to 2 come from the brick's own mask.
+                        let entered = prev.map_or(climbed, |p| highest_change(p, st.cell));
+                        let a = fp.allowed(st.t).min(entered);
+                        if block_solid(mask, a, l) {
+                            return Some(self.lod_hit(r, &st, a, p));
+                        }
+                    } else {
+                        let i = voxel_index(l[0], l[1], l[2]);
+                        if (mask[i >> 6] >> (i & 63)) & 1 != 0 {
+                            return Some(self.hit(r, &st, brick.material_index(i)));
+                        }
                     }
+                    let before = st.cell;
                     r.step_fine(&mut st);
                     if st.t > t_max {
-                        // Hand on the state before this step, which crossed
-                        // nothing later than `t_max`.
-                        return ExactEnd::Beyond(r.step_back(&st));
+                        return None;
                     }
                     if st.cell.map(|v| v >> BRICK_SHIFT) != bc {
+                        if LOD {
+                            climbed = highest_change(before, st.cell);
+                        }
                         break;
+                    }
+                    if LOD {
+                        prev = Some(before);
                     }
                 }
                 if !self.inside(st.cell) {
-                    return ExactEnd::Miss;
+                    return None;
                 }
                 if st.cell.map(|v| v >> OCC_VOXEL_SHIFT) != oc {
                     continue 'occupancy;
@@ -226,7 +301,7 @@ impl Tracer for BrickmapTracer<'_> {
         BrickmapTracer::beam_start(self, centre, spread, k)
     }
 
-    fn coarse_faces(&self, hit: &Hit, visit: &mut dyn FnMut(u8, usize, u32)) -> bool {
+    fn coarse_faces(&self, hit: &Hit, facing: u8, visit: &mut dyn FnMut(u8, usize, u32)) -> bool {
         use crate::world::{EMPTY_MASK, FACE_DIRS, FULL_MASK, for_each_exposed};
         if hit.level == 0 || hit.level > 2 {
             return false;
@@ -254,11 +329,8 @@ impl Tracer for BrickmapTracer<'_> {
         };
         let nb = FACE_DIRS.map(|d| cell(b + IVec3::from(d)).1);
         for_each_exposed(own, nb, hit.level as u32, c.map(|v| v & 7), |z, d, bits| {
-            let mut rest = bits;
-            while rest != 0 {
-                let i = z * 64 + rest.trailing_zeros() as usize;
-                rest &= rest - 1;
-                visit(r.material_index(i), d, 1);
+            if facing & (1 << d) != 0 {
+                r.for_each_material(z, bits, |m| visit(m, d, 1));
             }
         });
         true

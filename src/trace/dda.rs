@@ -289,24 +289,6 @@ impl DdaRay {
         st.axes = axes;
     }
 
-    /// The cell and crossings before the step that led to `st` (the axes
-    /// in `st.axes` step back; their next crossing is `st.t` again). Its
-    /// `t` and `axes` are not known: `t` is set to `-inf` and `axes` to 0,
-    /// so callers restore a time with [`advance_to`](Self::advance_to).
-    #[inline]
-    pub fn step_back(&self, st: &DdaState) -> DdaState {
-        let mut back = *st;
-        for a in 0..3 {
-            if st.axes & (1 << a) != 0 {
-                back.cell[a] -= self.step[a];
-                back.tmax[a] = st.t;
-            }
-        }
-        back.t = f32::NEG_INFINITY;
-        back.axes = 0;
-        back
-    }
-
     /// Skip the empty aligned cube of edge `1 << shift` holding the current
     /// cell: the state becomes exactly what [`step_fine`](Self::step_fine)
     /// would reach on leaving the cube.
@@ -386,27 +368,6 @@ mod tests {
                 assert_eq!(coarse.t, fine.t);
                 assert_eq!(coarse.axes, fine.axes);
                 assert_eq!(coarse.tmax, fine.tmax);
-            }
-        }
-    }
-
-    /// Stepping back then restoring the time of the earlier state gives
-    /// that state's cell and crossings.
-    #[test]
-    fn step_back_undoes_a_step() {
-        for d in [[0.3f32, -0.7, 0.2], [1.0, 1.0, 1.0], [-1.0, 0.0, 0.5]] {
-            let r = ray([3.25, 9.5, 4.0], d);
-            let mut st = r.enter([-64; 3], [64; 3]).unwrap();
-            for _ in 0..40 {
-                let before = st;
-                r.step_fine(&mut st);
-                let mut back = r.step_back(&st);
-                assert_eq!((back.cell, back.tmax), (before.cell, before.tmax));
-                r.advance_to(&mut back, before.t);
-                assert_eq!(
-                    (back.cell, back.tmax, back.t),
-                    (before.cell, before.tmax, before.t)
-                );
             }
         }
     }

@@ -98,11 +98,12 @@ pub trait Tracer: Sync {
     }
     /// For a level-of-detail hit on a cell of 2 or 4 voxels, call
     /// `visit(material, direction, faces)` for its exposed voxel faces
-    /// (direction an index of [`crate::world::FACE_DIRS`]), so that it can
-    /// be shaded as the average of what it holds; false (and no call) for
-    /// voxel hits, coarser cells and tracers without levels.
-    fn coarse_faces(&self, hit: &Hit, visit: &mut dyn FnMut(u8, usize, u32)) -> bool {
-        let _ = (hit, visit);
+    /// whose direction (an index of [`crate::world::FACE_DIRS`]) is in
+    /// `facing` (bit `d`: the faces that can look at the viewer), so that it
+    /// can be shaded as the average of what it holds; false (and no call)
+    /// for voxel hits, coarser cells and tracers without levels.
+    fn coarse_faces(&self, hit: &Hit, facing: u8, visit: &mut dyn FnMut(u8, usize, u32)) -> bool {
+        let _ = (hit, facing, visit);
         false
     }
     /// Whether local voxel `c` is solid (for ambient occlusion). The

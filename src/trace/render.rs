@@ -218,9 +218,16 @@ fn coarse_average(
     shading: Shading,
 ) -> Option<[f32; 3]> {
     let (mut sum, mut weight) = ([0.0f32; 3], 0.0f32);
-    let coarse = tracer.coarse_faces(hit, &mut |m, d, n| {
+    let normal = |d: usize| {
         let f = crate::world::FACE_DIRS[d];
-        let nv = Vec3::new(f[0] as f32, f[1] as f32, f[2] as f32);
+        Vec3::new(f[0] as f32, f[1] as f32, f[2] as f32)
+    };
+    // Faces turned away from the viewer weigh 0: not even looked up.
+    let facing = (0..6).fold(0u8, |b, d| {
+        b | (((-normal(d).dot(dir)).max(0.0) > 0.0) as u8) << d
+    });
+    let coarse = tracer.coarse_faces(hit, facing, &mut |m, d, n| {
+        let nv = normal(d);
         let w = n as f32 * (-nv.dot(dir)).max(0.0);
         if w > 0.0 {
             let light = shading.ambient + (1.0 - shading.ambient) * nv.dot(shading.light).max(0.0);

@@ -128,6 +128,35 @@ impl<'p> BrickRef<'p> {
         block[HEADER + local as usize]
     }
 
+    /// Call `f` with the material of each solid voxel of word `z` set in
+    /// `bits` (a subset of the mask's word `z`), in ascending bit order:
+    /// what [`material_index`](Self::material_index) gives for each, with
+    /// the rank of the word's first voxel counted once instead of per voxel.
+    pub fn for_each_material(&self, z: usize, bits: u64, mut f: impl FnMut(u8)) {
+        let mask = self.mask();
+        debug_assert_eq!(bits & !mask[z], 0, "bits outside the mask");
+        let m = self.pool.meta[self.slot];
+        if m.flags & FLAG_MULTI == 0 {
+            for _ in 0..bits.count_ones() {
+                f(m.data as u8);
+            }
+            return;
+        }
+        let base: u32 = mask[..z].iter().map(|w| w.count_ones()).sum();
+        let block = &self.pool.arena[m.data as usize..];
+        let (pal_len, width) = (block[0] as usize, block[1] as usize);
+        let mut rest = bits;
+        while rest != 0 {
+            let b = rest.trailing_zeros();
+            rest &= rest - 1;
+            let rank = base + (mask[z] & ((1u64 << b) - 1)).count_ones();
+            let bit = rank as usize * width;
+            let local =
+                (block[HEADER + pal_len + bit / 8] >> (bit % 8)) & ((1u16 << width) - 1) as u8;
+            f(block[HEADER + local as usize]);
+        }
+    }
+
     /// Material at brick-local `(x, y, z)`, 0 if empty.
     pub fn material(&self, x: i32, y: i32, z: i32) -> u8 {
         self.material_index(super::voxel_index(x, y, z))
@@ -442,6 +471,35 @@ mod tests {
             assert!(pool.remove(id));
         }
         assert_eq!(pool.arena.len(), before + block, "one block, then reused");
+    }
+
+    /// `for_each_material` gives what `material_index` gives for every
+    /// subset of every word, in bit order, for one- to 200-material bricks.
+    #[test]
+    fn materials_of_a_word_are_those_of_its_voxels() {
+        let patterns: [fn(usize) -> u8; 4] = [
+            |i| (i % 3 != 0) as u8 * 7,
+            |i| if i % 5 == 0 { 0 } else { 1 + (i % 2) as u8 },
+            |i| if i % 7 == 0 { 0 } else { 1 + (i % 13) as u8 },
+            |i| if i % 2 == 0 { 0 } else { 1 + (i % 200) as u8 },
+        ];
+        let mut pool = BrickPool::default();
+        for p in patterns {
+            let id = pool.insert(brick_from(p));
+            let b = pool.get(id).unwrap();
+            for z in 0..8 {
+                for keep in [u64::MAX, 0xF0F0_F0F0_0F0F_0F0F, 1 << 63, 0] {
+                    let bits = b.mask()[z] & keep;
+                    let mut got = Vec::new();
+                    b.for_each_material(z, bits, |m| got.push(m));
+                    let want: Vec<u8> = (0..64)
+                        .filter(|k| bits >> k & 1 != 0)
+                        .map(|k| b.material_index(z * 64 + k))
+                        .collect();
+                    assert_eq!(got, want, "word {z}, bits {bits:#x}");
+                }
+            }
+        }
     }
 
     #[test]
