@@ -83,11 +83,13 @@ pub fn install_panic_hook() {
             );
             std::process::exit(1);
         }
-        if verbose {
-            return default(info);
-        }
+        // A panic `catch_quietly` turns into an error prints nothing, even
+        // with RUST_BACKTRACE set: it is handled, and its error is said.
         if QUIET_PANICS.with(|q| q.get()) {
             return;
+        }
+        if verbose {
+            return default(info);
         }
         let at = info
             .location()

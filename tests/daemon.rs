@@ -706,3 +706,35 @@ fn a_resume_drops_the_timeline_rows_it_will_run_again() {
     assert!(ticks.windows(2).all(|w| w[0] < w[1]), "{ticks:?}");
     assert_eq!(ticks.last(), Some(&70), "{ticks:?}");
 }
+
+/// Regression (docs walk): after a restart `/timeline` was empty, so the
+/// viewer's charts lost the world's history at every start; it now starts
+/// with the rows on disk, whole and in order.
+#[test]
+fn the_viewers_timeline_starts_with_the_history_on_disk() {
+    let (cfg, state, addr) = setup("timelinehistory");
+    hash_at(&cfg, &state, 50);
+    let on_disk = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
+    assert!(on_disk.rows.len() >= 5, "{:?}", on_disk.rows);
+    let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
+    wait_ready(&addr);
+    let (code, body) = request(&addr, "GET", "/timeline", None, "").unwrap();
+    assert_eq!(code, 200, "{body}");
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let columns: Vec<&str> = v["columns"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c.as_str().unwrap())
+        .collect();
+    assert_eq!(columns, on_disk.columns, "{body}");
+    let served: Vec<f64> = v["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r[0].as_f64().unwrap())
+        .collect();
+    let stored: Vec<f64> = on_disk.rows.iter().map(|r| r[0]).collect();
+    assert_eq!(served, stored, "{body}");
+    assert_success(&stop(d));
+}

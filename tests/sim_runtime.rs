@@ -411,3 +411,26 @@ return {
     // East tile: the reverse.
     assert_eq!(got(IVec2::new(1, 0)), [1.0, 5.0, 7.0]);
 }
+
+/// Regression (docs walk): lines a kernel logs during the load-time smoke
+/// test (a dry sample tile, its own `dt`) looked like lines of the first
+/// step; they are marked `(load test)`, and a step's lines are not.
+#[test]
+fn lines_logged_by_the_load_test_are_marked() {
+    let text = r#"
+return {
+  channels = { "q" },
+  passes = { { name = "p", reads = {}, writes = { "q" }, kernel = function(c, tx, tz)
+    if tx == 0 and tz == 0 then log("dt", c.dt) end
+  end } },
+}
+"#;
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+    sim.add_script(src("loadlog", text), Kernel::Lua, quick_limits())
+        .unwrap();
+    let (lines, _, _) = brickworld::sim::runtime::log::recent("loadlog");
+    assert_eq!(lines, ["(load test) dt\t0.01"], "{lines:?}");
+    run(&mut sim, 1, 0.25);
+    let (lines, _, _) = brickworld::sim::runtime::log::recent("loadlog");
+    assert_eq!(lines.last().map(String::as_str), Some("dt\t0.25"), "{lines:?}");
+}

@@ -143,7 +143,10 @@ pub fn human(b: u64) -> String {
     match b {
         b if b >= 1 << 40 => format!("{:.1} TiB", b as f64 / (1u64 << 40) as f64),
         b if b >= 1 << 30 => format!("{:.1} GiB", b as f64 / (1u64 << 30) as f64),
-        b if b >= 1 << 20 => format!("{:.0} MiB", b as f64 / (1u64 << 20) as f64),
+        // One decimal below 10 MiB: "needs 1 MiB, over the limit of 1 MiB"
+        // read as a contradiction (docs walk) when it needed 1.1.
+        b if b >= 10 << 20 => format!("{:.0} MiB", b as f64 / (1u64 << 20) as f64),
+        b if b >= 1 << 20 => format!("{:.1} MiB", b as f64 / (1u64 << 20) as f64),
         b => format!("{:.0} KiB", b as f64 / 1024.0),
     }
 }
@@ -229,4 +232,19 @@ pub fn rss_kb() -> u64 {
 /// Resident memory of process `pid` in KiB (Linux), 0 if unknown.
 pub fn rss_kb_of(pid: u32) -> u64 {
     status_kb(pid, "VmRSS:").unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    /// Sizes under 10 MiB keep a decimal, so that a need just over a
+    /// limit never prints as equal to it (docs walk: "needs 1 MiB, over
+    /// the limit of 1 MiB").
+    #[test]
+    fn sizes_just_over_a_mebibyte_are_not_rounded_to_it() {
+        assert_eq!(super::human(1_153_434), "1.1 MiB");
+        assert_eq!(super::human(1 << 20), "1.0 MiB");
+        assert_eq!(super::human(486 << 20), "486 MiB");
+        assert_eq!(super::human(3 << 29), "1.5 GiB");
+        assert_eq!(super::human(2048), "2 KiB");
+    }
 }

@@ -416,6 +416,14 @@ mod tests {
         }
     }
 
+    /// Bricks of one to 200 materials.
+    const PATTERNS: [fn(usize) -> u8; 4] = [
+        |i| (i % 3 != 0) as u8 * 7,
+        |i| if i % 5 == 0 { 0 } else { 1 + (i % 2) as u8 },
+        |i| if i % 7 == 0 { 0 } else { 1 + (i % 13) as u8 },
+        |i| if i % 2 == 0 { 0 } else { 1 + (i % 200) as u8 },
+    ];
+
     #[test]
     fn stale_ids_are_rejected_after_slot_reuse() {
         let mut pool = BrickPool::default();
@@ -435,12 +443,7 @@ mod tests {
     #[test]
     fn pooled_bricks_read_back_exactly_and_arena_blocks_are_reused() {
         let mut pool = BrickPool::default();
-        let patterns: [fn(usize) -> u8; 4] = [
-            |i| (i % 3 != 0) as u8 * 7,
-            |i| if i % 5 == 0 { 0 } else { 1 + (i % 2) as u8 },
-            |i| if i % 7 == 0 { 0 } else { 1 + (i % 13) as u8 },
-            |i| if i % 2 == 0 { 0 } else { 1 + (i % 200) as u8 },
-        ];
+        let patterns = PATTERNS;
         let mut ids = Vec::new();
         for p in patterns {
             let b = brick_from(p);
@@ -477,12 +480,7 @@ mod tests {
     /// subset of every word, in bit order, for one- to 200-material bricks.
     #[test]
     fn materials_of_a_word_are_those_of_its_voxels() {
-        let patterns: [fn(usize) -> u8; 4] = [
-            |i| (i % 3 != 0) as u8 * 7,
-            |i| if i % 5 == 0 { 0 } else { 1 + (i % 2) as u8 },
-            |i| if i % 7 == 0 { 0 } else { 1 + (i % 13) as u8 },
-            |i| if i % 2 == 0 { 0 } else { 1 + (i % 200) as u8 },
-        ];
+        let patterns = PATTERNS;
         let mut pool = BrickPool::default();
         for p in patterns {
             let id = pool.insert(brick_from(p));

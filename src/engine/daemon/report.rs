@@ -45,11 +45,7 @@ impl Engine {
         };
         self.timeline.record(&row);
         // The viewer's charts: the same row, same columns.
-        let names: Vec<String> = crate::engine::timeline::COLUMNS
-            .iter()
-            .map(|c| c.to_string())
-            .chain(columns)
-            .collect();
+        let names = ring_columns(columns);
         let mut values = row.values();
         values.resize(names.len(), f64::NAN);
         if let Ok(mut ring) = self.shared.timeline.lock() {
@@ -186,6 +182,16 @@ impl Engine {
             camera: self.camera_status(),
         };
     }
+}
+
+/// The columns of the viewer's timeline (and of `timeline.csv`): the
+/// fixed ones, then the scripts' `extra` ones.
+pub(super) fn ring_columns(extra: Vec<String>) -> Vec<String> {
+    crate::engine::timeline::COLUMNS
+        .iter()
+        .map(|c| c.to_string())
+        .chain(extra)
+        .collect()
 }
 
 /// The timeline's per-script columns: each script's time, then each

@@ -18,7 +18,7 @@ use super::super::state_dir;
 use super::super::streaming::{self, RegionRule, StreamPlan};
 use super::super::timeline::Timeline;
 use super::super::world_config::WorldConfig;
-use super::report::timeline_columns;
+use super::report::{ring_columns, timeline_columns};
 use super::{DaemonOptions, Engine, ScriptNotes, load_source, materials_source};
 use crate::persist::WorldDb;
 use crate::progress::bar;
@@ -188,8 +188,22 @@ impl Engine {
             Ok(None) => {}
             Err(e) => eprintln!("warning: {e:#}"),
         }
+        // The viewer's charts start from the history on disk, not empty
+        // after every restart (regression, docs walk). Only rows of the
+        // same columns: another header was moved aside by `open`.
+        let names = ring_columns(timeline_columns(&ws));
+        if let Ok(past) = crate::engine::timeline::read_tail(
+            &opts.state.join("timeline.csv"),
+            crate::engine::control::live::TIMELINE_ROWS,
+        ) && past.columns == names
+            && let Ok(mut ring) = shared.timeline.lock()
+        {
+            for row in past.rows {
+                ring.push(&names, row);
+            }
+        }
         println!(
-            "brickworld is running: viewer http://{}/  (control token in {}: {token})",
+            "brickworld is running: viewer http://{}/ (control token in {}: {token})",
             server.addr,
             token_path.display()
         );

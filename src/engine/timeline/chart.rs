@@ -40,14 +40,18 @@ pub fn read(path: &Path) -> Result<Table> {
     } else {
         text.rsplit_once('\n').map_or("", |(head, _)| head)
     };
-    for (i, line) in complete.lines().enumerate() {
-        if i == 0 {
-            t.columns = line.trim().split(',').map(str::to_string).collect();
-            continue;
-        }
-        if line.trim().is_empty() {
-            continue;
-        }
+    let mut lines = complete.lines();
+    if let Some(header) = lines.next() {
+        t.columns = header.trim().split(',').map(str::to_string).collect();
+    }
+    add_rows(&mut t, lines);
+    Ok(t)
+}
+
+/// Parse `lines` as rows of `t`: blank ones are skipped, and those with
+/// a field count other than the header's are counted in `skipped`.
+fn add_rows<'a>(t: &mut Table, lines: impl Iterator<Item = &'a str>) {
+    for line in lines.filter(|l| !l.trim().is_empty()) {
         let vals: Vec<f64> = line
             .split(',')
             .map(|v| v.trim().parse().unwrap_or(f64::NAN))
@@ -58,6 +62,47 @@ pub fn read(path: &Path) -> Result<Table> {
             t.skipped += 1;
         }
     }
+}
+
+/// The header and the last rows (at most `rows`) of a timeline CSV,
+/// reading only its end: the engine seeds the viewer's charts with them at
+/// start. Lines that are not whole rows are left out, as in [`read`].
+pub fn read_tail(path: &Path, rows: usize) -> Result<Table> {
+    use std::io::{BufRead, Read, Seek, SeekFrom};
+    // Rows are under 1 KiB: this much of the end holds `rows` of them.
+    let span = (rows as u64).saturating_mul(1024).max(64 * 1024);
+    let meta =
+        std::fs::metadata(path).with_context(|| format!("cannot read {}", path.display()))?;
+    if !meta.is_file() {
+        anyhow::bail!("{} is not a regular file", path.display());
+    }
+    let mut f = std::io::BufReader::new(
+        std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?,
+    );
+    let mut header = String::new();
+    (&mut f).take(1 << 20).read_line(&mut header)?;
+    let mut t = Table {
+        columns: header.trim().split(',').map(str::to_string).collect(),
+        ..Table::default()
+    };
+    let from = meta.len().saturating_sub(span).max(header.len() as u64);
+    f.seek(SeekFrom::Start(from))?;
+    let mut tail = Vec::new();
+    f.take(span).read_to_end(&mut tail)?;
+    let mut text = String::from_utf8_lossy(&tail).into_owned();
+    if from > header.len() as u64 {
+        // Started inside a line: drop it.
+        let first = text.find('\n').map_or(text.len(), |i| i + 1);
+        text.drain(..first);
+    }
+    if !text.ends_with('\n') {
+        // A last line cut off by a kill is not a row.
+        let keep = text.rfind('\n').map_or(0, |i| i + 1);
+        text.truncate(keep);
+    }
+    add_rows(&mut t, text.lines());
+    let extra = t.rows.len().saturating_sub(rows);
+    t.rows.drain(..extra);
     Ok(t)
 }
 
@@ -194,6 +239,33 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The tail holds the last rows whole, with the header's columns, from
+    /// a file much longer than what is read; a cut-off last line and a
+    /// malformed one are left out.
+    #[test]
+    fn the_tail_of_a_timeline_is_its_last_whole_rows() {
+        let dir = std::env::temp_dir().join(format!("bw-tail-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let csv = dir.join("timeline.csv");
+        let mut text = String::from("tick,water\n");
+        for i in 0..20_000 {
+            text += &format!("{i},{}.5\n", i * 2);
+        }
+        text += "oops\n20000,4";
+        std::fs::write(&csv, &text).unwrap();
+        let t = read_tail(&csv, 100).unwrap();
+        assert_eq!(t.columns, ["tick", "water"]);
+        assert_eq!(t.rows.len(), 100);
+        assert_eq!(t.rows[0], [19_900.0, 39_800.5]);
+        assert_eq!(t.rows[99], [19_999.0, 39_998.5]);
+        std::fs::write(&csv, "tick,water\n1,2\n").unwrap();
+        assert_eq!(read_tail(&csv, 100).unwrap().rows, [[1.0, 2.0]]);
+        std::fs::write(&csv, "").unwrap();
+        assert!(read_tail(&csv, 100).unwrap().rows.is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     /// Regression (hostile probe): a hand-made timeline lacking a column
     /// panicked, a huge value hung the axis, and a link to /dev/zero filled

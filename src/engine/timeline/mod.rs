@@ -16,7 +16,7 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 
 mod chart;
-pub use chart::{Table, chart, read};
+pub use chart::{Table, chart, read, read_tail};
 
 /// Column names, in order.
 pub const COLUMNS: [&str; 11] = [

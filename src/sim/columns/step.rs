@@ -345,16 +345,19 @@ impl Simulation {
         let params: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
         // Smoke test: every pass once on a dry sample tile, in this fresh VM.
         if matches!(kernel, Kernel::Lua) {
-            vm.begin_step(
-                0.01,
-                &spec,
-                &params,
-                StepKey::new(self.seed, 0, &spec.name),
-                &[],
-            )?;
-            for (pi, pass) in spec.passes.iter().enumerate() {
-                vm.run(pi, &pass.name, 0, 0, |_| {})?;
-            }
+            crate::sim::runtime::log::at_load(|| -> Result<(), SimError> {
+                vm.begin_step(
+                    0.01,
+                    &spec,
+                    &params,
+                    StepKey::new(self.seed, 0, &spec.name),
+                    &[],
+                )?;
+                for (pi, pass) in spec.passes.iter().enumerate() {
+                    vm.run(pi, &pass.name, 0, 0, |_| {})?;
+                }
+                Ok(())
+            })?;
         }
         // Registered only once the script has passed every check: a
         // rejected reload must leave the world's registry as it was

@@ -60,8 +60,33 @@ pub fn escape_controls(text: &str, keep_tab: bool) -> std::borrow::Cow<'_, str> 
     )
 }
 
+thread_local! {
+    static AT_LOAD: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Run `f`, a script's load-time smoke test, with the lines it logs marked
+/// `(load test)`: they come from a sample tile or brick, with the smoke
+/// test's `dt`, not from a step of the world (regression, docs walk: they
+/// looked like the first step's lines).
+pub fn at_load<T>(f: impl FnOnce() -> T) -> T {
+    struct Reset;
+    impl Drop for Reset {
+        fn drop(&mut self) {
+            AT_LOAD.with(|a| a.set(false));
+        }
+    }
+    AT_LOAD.with(|a| a.set(true));
+    let _reset = Reset;
+    f()
+}
+
 /// Record a line from `script` (rate-limited, truncated, one line).
 pub fn push(script: &str, line: String) {
+    let line = if AT_LOAD.with(|a| a.get()) {
+        format!("(load test) {line}")
+    } else {
+        line
+    };
     // Control characters are written as escapes: a script's newline, CR or
     // terminal escape must not forge daemon log lines or drive the
     // terminal (regression). Tab stays: it separates `log`'s arguments and

@@ -202,12 +202,14 @@ impl VoxelSim {
             &material_ids,
         )?;
         for (pi, pass) in spec.passes.iter().enumerate() {
-            vm.run_voxel(pi, &pass.name, [0, 0, 0], |vm| {
-                let (halo, own) = vm
-                    .material_buffers()
-                    .expect("a voxel VM has material buffers");
-                halo.write_bytes(0, &[sample; VOXEL_HALO]);
-                own.write_bytes(0, &[sample; VOXEL_CELLS]);
+            crate::sim::runtime::log::at_load(|| {
+                vm.run_voxel(pi, &pass.name, [0, 0, 0], |vm| {
+                    let (halo, own) = vm
+                        .material_buffers()
+                        .expect("a voxel VM has material buffers");
+                    halo.write_bytes(0, &[sample; VOXEL_HALO]);
+                    own.write_bytes(0, &[sample; VOXEL_CELLS]);
+                })
             })
             .map_err(|e| match e {
                 SimError::Runtime {
