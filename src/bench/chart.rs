@@ -184,6 +184,8 @@ fn draw_xy(
         .configure_mesh()
         .x_desc(x_desc)
         .y_desc(y_desc)
+        .x_label_formatter(&|v| tick_label(*v))
+        .y_label_formatter(&|v| tick_label(*v))
         .draw()?;
     for s in series {
         let p: Vec<(f64, f64)> = s
@@ -206,4 +208,31 @@ fn draw_xy(
         .draw()?;
     root.present()?;
     Ok(())
+}
+
+/// A log axis's tick as a person writes it: three significant digits at
+/// most, no trailing zeros (plotters printed `0.30000000000000004`).
+fn tick_label(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let digits = (2 - v.abs().log10().floor() as i32).clamp(0, 12) as usize;
+    let s = format!("{v:.digits$}");
+    if s.contains('.') {
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        s
+    }
+}
+
+#[cfg(test)]
+mod tick_tests {
+    #[test]
+    fn ticks_are_short() {
+        assert_eq!(super::tick_label(0.30000000000000004), "0.3");
+        assert_eq!(super::tick_label(10.0), "10");
+        assert_eq!(super::tick_label(0.0123456), "0.0123");
+        assert_eq!(super::tick_label(1234.6), "1235");
+        assert_eq!(super::tick_label(2.5), "2.5");
+    }
 }
