@@ -432,5 +432,9 @@ return {
     assert_eq!(lines, ["(load test) dt\t0.01"], "{lines:?}");
     run(&mut sim, 1, 0.25);
     let (lines, _, _) = brickworld::sim::runtime::log::recent("loadlog");
-    assert_eq!(lines.last().map(String::as_str), Some("dt\t0.25"), "{lines:?}");
+    assert_eq!(
+        lines.last().map(String::as_str),
+        Some("dt\t0.25"),
+        "{lines:?}"
+    );
 }
