@@ -508,3 +508,78 @@ fn status_events_come_at_most_every_250_ms_and_only_when_it_changed() {
     }
     stop(d);
 }
+
+/// Audit: "a client that has read nothing for 30 s is closed" had no test.
+/// A viewer with a tiny receive buffer opens the event stream of a running
+/// engine and never reads: once the stream's queue has been full for
+/// `STALL_LIMIT`, the stream ends and the server closes the connection,
+/// while the engine keeps ticking. The close is seen without reading (which
+/// would unstall the stream), in the kernel's TCP table: the server's end
+/// leaves ESTABLISHED. The buffers between the stream and the client take
+/// a minute or more to fill at the engine's few kilobytes of events a
+/// second (measured: closed 109 s after opening), so the test allows four
+/// minutes past the limit.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_viewer_that_reads_nothing_is_closed_after_the_stall_limit() {
+    use brickworld::engine::control::live::STALL_LIMIT;
+    use nix::sys::socket::{
+        AddressFamily, SockFlag, SockType, SockaddrIn, connect, setsockopt, socket, sockopt::RcvBuf,
+    };
+    let (cfg, state, addr) = setup("viewer-stall-limit");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    // The receive buffer is set before connecting: the window a connection
+    // opens with is never shrunk afterwards.
+    let fd = socket(
+        AddressFamily::Inet,
+        SockType::Stream,
+        SockFlag::empty(),
+        None,
+    )
+    .unwrap();
+    setsockopt(&fd, RcvBuf, &2048).unwrap();
+    let to: std::net::SocketAddrV4 = addr.parse().unwrap();
+    connect(std::os::fd::AsRawFd::as_raw_fd(&fd), &SockaddrIn::from(to)).unwrap();
+    let mut s = TcpStream::from(fd);
+    write!(s, "GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n").unwrap();
+    let opened = Instant::now();
+    let (local, remote) = (
+        s.local_addr().unwrap().port(),
+        s.peer_addr().unwrap().port(),
+    );
+    // /proc/net/tcp: "sl local rem st …", ports in hex. The server's end
+    // of the connection leaves ESTABLISHED (01) when the server closes it:
+    // its FIN waits behind data this client never reads (FIN_WAIT1).
+    let closed_by_server = || {
+        !std::fs::read_to_string("/proc/net/tcp")
+            .unwrap()
+            .lines()
+            .any(|l| {
+                let f: Vec<&str> = l.split_whitespace().collect();
+                f.len() > 3
+                    && f[1].ends_with(&format!(":{remote:04X}"))
+                    && f[2].ends_with(&format!(":{local:04X}"))
+                    && f[3] == "01"
+            })
+    };
+    let t0 = status(&addr)["tick"].as_u64().unwrap();
+    while !closed_by_server() {
+        assert!(
+            opened.elapsed() < STALL_LIMIT + Duration::from_secs(240),
+            "the stalled stream was still open after {:?}",
+            opened.elapsed()
+        );
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    let waited = opened.elapsed();
+    assert!(
+        waited >= STALL_LIMIT,
+        "closed after {waited:?}, before the limit"
+    );
+    let t1 = status(&addr)["tick"].as_u64().unwrap();
+    assert!(t1 > t0, "the engine stalled: tick {t0} then {t1}");
+    eprintln!("stalled stream closed after {waited:?}");
+    drop(s);
+    stop(d);
+}
