@@ -214,8 +214,13 @@ fn bench_tracers_writes_the_documented_json_keys() {
         "views",
         "structures",
         "agree",
+        "grid_voxels",
+        "scene_build_s",
     ] {
         assert!(v.get(k).is_some(), "missing key {k}");
+    }
+    for k in ["rays", "mismatches"] {
+        assert!(v["agree"][k].is_u64(), "agree.{k}: {}", v["agree"]);
     }
     assert_eq!(
         v["views"].as_array().unwrap().len(),

@@ -110,11 +110,16 @@ pub fn run(s: &BenchTracersSettings) -> Result<()> {
     let draw = |p: &std::path::Path| super::chart::memory_vs_speed(p, &[&report]);
     super::write_outputs(&s.json, &json, s.chart.as_deref(), draw)?;
     print_table(&report);
-    if report.agree.mismatches > 0 {
+    verdict(&report.agree)
+}
+
+/// The bench's exit: an error when the tracers disagreed on any ray.
+fn verdict(agree: &Agreement) -> Result<()> {
+    if agree.mismatches > 0 {
         anyhow::bail!(
             "tracers disagree on {} of {} rays: this is a bug",
-            report.agree.mismatches,
-            report.agree.rays
+            agree.mismatches,
+            agree.rays
         );
     }
     Ok(())
@@ -362,4 +367,29 @@ fn print_table(r: &BenchReport) {
         "agreement: {} mismatches in {} rays",
         r.agree.mismatches, r.agree.rays
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Agreement, verdict};
+
+    /// "The bench exits non-zero if any mismatch is found": one mismatch
+    /// is an error naming the count; none is success.
+    #[test]
+    fn any_mismatch_fails_the_bench() {
+        assert!(
+            verdict(&Agreement {
+                rays: 100,
+                mismatches: 0
+            })
+            .is_ok()
+        );
+        let e = verdict(&Agreement {
+            rays: 100,
+            mismatches: 1,
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("disagree on 1 of 100 rays"), "{e}");
+    }
 }

@@ -283,6 +283,20 @@ mod tests {
             .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
             .collect();
         assert_eq!(names, ["memory.svg", "totals.svg"]);
+        // Each script's time per step goes to scripts.svg (audit: the
+        // README names it; no test drew it).
+        std::fs::write(
+            &csv,
+            "tick,water,ms:water,ms:snow\n1,1,0.5,0.2\n2,1,0.7,0.3\n",
+        )
+        .unwrap();
+        let drawn = chart(&dir).unwrap();
+        let svg = drawn
+            .iter()
+            .find(|p| p.ends_with("scripts.svg"))
+            .expect("scripts.svg");
+        let text = std::fs::read_to_string(svg).unwrap();
+        assert!(text.contains("water") && text.contains("snow"), "{text}");
         std::fs::write(&csv, "a,b\n1,2\n3,4\n").unwrap();
         assert!(
             chart(&dir)
