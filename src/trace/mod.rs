@@ -16,6 +16,8 @@ mod brickmap;
 mod camera;
 pub mod dda;
 mod dense;
+#[cfg(test)]
+mod level_walk;
 mod lod;
 mod output;
 mod ray;
