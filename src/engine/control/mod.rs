@@ -11,6 +11,7 @@
 //! Nothing a request says can crash or stall the engine: commands are
 //! validated, queued (bounded) and applied by the engine loop between steps.
 
+pub mod commands;
 pub mod live;
 pub mod routes;
 pub mod server;
