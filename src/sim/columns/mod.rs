@@ -9,4 +9,5 @@ pub mod native;
 pub mod run;
 pub mod step;
 pub mod tile;
+mod world_step;
 pub mod writeback;
