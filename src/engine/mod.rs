@@ -7,6 +7,7 @@ pub mod checkpoint;
 pub mod control;
 pub mod ctl;
 pub mod daemon;
+pub mod frames;
 pub mod persistence;
 pub mod render_thread;
 pub mod state_dir;
