@@ -178,12 +178,16 @@ impl<'w> BrickmapTracer<'w> {
                         // matter which levels this step entered.
                         let far = LOD && t >= fp.at[2];
                         let entered = if far { 3 + highest_change(prev, bc) } else { 3 };
-                        if far && entered >= 4 && t >= fp.at[3] {
+                        // A 16³ cell entered here: the state is restored only
+                        // if it is solid (its cell is the brick's, halved).
+                        if far
+                            && entered >= 4
+                            && t >= fp.at[3]
+                            && self.coarse_material(4, bc.map(|v| v >> 1)) != 0
+                        {
                             let mut at = st;
                             r.advance_to(&mut at, t);
-                            if let Some(hit) = self.coarse_hit(r, &at, 4) {
-                                return Some(hit);
-                            }
+                            return self.coarse_hit(r, &at, 4);
                         }
                         if self.grid.pointer(IVec3::from(bc)) != 0 {
                             r.advance_to(&mut st, t);

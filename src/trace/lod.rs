@@ -148,11 +148,7 @@ impl BrickmapTracer<'_> {
     /// A hit on the level-`level` (4 or 5) cell holding the current voxel
     /// of `st`, if it is solid.
     pub(super) fn coarse_hit(&self, r: &DdaRay, st: &DdaState, level: u32) -> Option<Hit> {
-        let ring = self.grid.ring().to_array();
-        let m = self
-            .grid
-            .coarse()
-            .get(level, st.cell.map(|v| v >> level), ring);
+        let m = self.coarse_material(level, st.cell.map(|v| v >> level));
         (m != 0).then(|| Hit {
             t: st.t,
             voxel: self.frame.to_world(st.cell),
@@ -160,6 +156,14 @@ impl BrickmapTracer<'_> {
             material: m,
             level: level as u8,
         })
+    }
+
+    /// The material of level-`level` (4 or 5) cell `c` (in that level's
+    /// cells), 0 if it is empty.
+    #[inline]
+    pub(super) fn coarse_material(&self, level: u32, c: [i32; 3]) -> u8 {
+        let ring = self.grid.ring().to_array();
+        self.grid.coarse().get(level, c, ring)
     }
 
     /// Material of the level-`level` cell holding local voxel `c`, whose
@@ -172,8 +176,7 @@ impl BrickmapTracer<'_> {
         brick: Option<BrickRef<'_>>,
     ) -> u8 {
         if level >= 4 {
-            let ring = self.grid.ring().to_array();
-            return self.grid.coarse().get(level, c.map(|v| v >> level), ring);
+            return self.coarse_material(level, c.map(|v| v >> level));
         }
         let Some(b) = brick else {
             return p as u8; // uniform

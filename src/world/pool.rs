@@ -97,6 +97,17 @@ pub struct BrickRef<'p> {
     slot: usize,
 }
 
+/// The material of the `rank`-th solid voxel of a multi-material brick
+/// whose arena block is `block`: its index in the block's packed indices,
+/// then the block's palette.
+#[inline]
+fn palette_entry(block: &[u8], rank: u32) -> u8 {
+    let (pal_len, width) = (block[0] as usize, block[1] as usize);
+    let bit = rank as usize * width;
+    let local = (block[HEADER + pal_len + bit / 8] >> (bit % 8)) & ((1u16 << width) - 1) as u8;
+    block[HEADER + local as usize]
+}
+
 impl<'p> BrickRef<'p> {
     /// The 512-bit occupancy mask, word `z` holding the slice at depth `z`.
     #[inline(always)]
@@ -121,11 +132,7 @@ impl<'p> BrickRef<'p> {
             rank += w.count_ones();
         }
         rank += (mask[word] & ((1u64 << (index & 63)) - 1)).count_ones();
-        let block = &self.pool.arena[m.data as usize..];
-        let (pal_len, bits) = (block[0] as usize, block[1] as usize);
-        let bit = rank as usize * bits;
-        let local = (block[HEADER + pal_len + bit / 8] >> (bit % 8)) & ((1u16 << bits) - 1) as u8;
-        block[HEADER + local as usize]
+        palette_entry(&self.pool.arena[m.data as usize..], rank)
     }
 
     /// Call `f` with the material of each solid voxel of word `z` set in
@@ -144,16 +151,14 @@ impl<'p> BrickRef<'p> {
         }
         let base: u32 = mask[..z].iter().map(|w| w.count_ones()).sum();
         let block = &self.pool.arena[m.data as usize..];
-        let (pal_len, width) = (block[0] as usize, block[1] as usize);
         let mut rest = bits;
         while rest != 0 {
             let b = rest.trailing_zeros();
             rest &= rest - 1;
-            let rank = base + (mask[z] & ((1u64 << b) - 1)).count_ones();
-            let bit = rank as usize * width;
-            let local =
-                (block[HEADER + pal_len + bit / 8] >> (bit % 8)) & ((1u16 << width) - 1) as u8;
-            f(block[HEADER + local as usize]);
+            f(palette_entry(
+                block,
+                base + (mask[z] & ((1u64 << b) - 1)).count_ones(),
+            ));
         }
     }
 
@@ -480,9 +485,8 @@ mod tests {
     /// subset of every word, in bit order, for one- to 200-material bricks.
     #[test]
     fn materials_of_a_word_are_those_of_its_voxels() {
-        let patterns = PATTERNS;
         let mut pool = BrickPool::default();
-        for p in patterns {
+        for p in PATTERNS {
             let id = pool.insert(brick_from(p));
             let b = pool.get(id).unwrap();
             for z in 0..8 {
