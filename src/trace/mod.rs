@@ -30,6 +30,8 @@ use std::str::FromStr;
 use glam::IVec3;
 use thiserror::Error;
 
+use crate::world::Palette;
+
 pub use ao::{AO_STRENGTH, face_ao};
 pub use beam::{BEAM, beam_of, ray_start};
 pub use brickmap::BrickmapTracer;
@@ -98,15 +100,15 @@ pub trait Tracer: Sync {
         let _ = (centre, spread, k);
         0.0
     }
-    /// For a level-of-detail hit on a cell of 2 or 4 voxels, call
-    /// `visit(material, direction, faces)` for its exposed voxel faces
-    /// whose direction (an index of [`crate::world::FACE_DIRS`]) is in
-    /// `facing` (bit `d`: the faces that can look at the viewer), so that it
-    /// can be shaded as the average of what it holds; false (and no call)
-    /// for voxel hits, coarser cells and tracers without levels.
-    fn coarse_faces(&self, hit: &Hit, facing: u8, visit: &mut dyn FnMut(u8, usize, u32)) -> bool {
-        let _ = (hit, facing, visit);
-        false
+    /// For a level-of-detail hit on a cell of 2 or 4 voxels, the colours
+    /// of its exposed voxel faces summed per direction (an index of
+    /// [`crate::world::FACE_DIRS`]), for the directions in `facing` (bit
+    /// `d`: the faces that can look at the viewer), so that it can be shaded
+    /// as the average of what it holds; `None` for voxel hits, coarser
+    /// cells and tracers without levels.
+    fn coarse_faces(&self, hit: &Hit, facing: u8, palette: &Palette) -> Option<FaceSums> {
+        let _ = (hit, facing, palette);
+        None
     }
     /// Whether local voxel `c` is solid (for ambient occlusion). The
     /// default asks [`trace`](Self::trace) for a hit at `t = 0` from the
@@ -119,6 +121,18 @@ pub trait Tracer: Sync {
     fn bytes(&self) -> usize;
     /// Voxels (dense), descriptors (svo) or non-empty bricks (brickmap).
     fn nodes_or_bricks(&self) -> u64;
+}
+
+/// A coarse cell's exposed voxel faces, per direction of
+/// [`crate::world::FACE_DIRS`]: how many there are and their colours
+/// summed (RGB, 0–255 each). Integer sums: the order in which faces are
+/// visited cannot change the average.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FaceSums {
+    /// Exposed faces per direction.
+    pub faces: [u32; 6],
+    /// Their colours summed per direction.
+    pub rgb: [[u32; 3]; 6],
 }
 
 /// Which tracer to use.

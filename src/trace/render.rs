@@ -217,28 +217,26 @@ fn coarse_average(
     palette: &Palette,
     shading: Shading,
 ) -> Option<[f32; 3]> {
-    let (mut sum, mut weight) = ([0.0f32; 3], 0.0f32);
     let normal = |d: usize| {
         let f = crate::world::FACE_DIRS[d];
         Vec3::new(f[0] as f32, f[1] as f32, f[2] as f32)
     };
-    // Faces turned away from the viewer weigh 0: not even looked up.
-    let facing = (0..6).fold(0u8, |b, d| {
-        b | (((-normal(d).dot(dir)).max(0.0) > 0.0) as u8) << d
-    });
-    let coarse = tracer.coarse_faces(hit, facing, &mut |m, d, n| {
-        let nv = normal(d);
-        let w = n as f32 * (-nv.dot(dir)).max(0.0);
-        if w > 0.0 {
-            let light = shading.ambient + (1.0 - shading.ambient) * nv.dot(shading.light).max(0.0);
-            let c = palette.rgb(m);
-            for k in 0..3 {
-                sum[k] += c[k] as f32 / 255.0 * light * w;
-            }
-            weight += w;
+    // The area a face of direction `d` shows: faces turned away from the
+    // viewer weigh 0 and are not even looked up.
+    let area: [f32; 6] = std::array::from_fn(|d| (-normal(d).dot(dir)).max(0.0));
+    let facing = (0..6).fold(0u8, |b, d| b | ((area[d] > 0.0) as u8) << d);
+    let sums = tracer.coarse_faces(hit, facing, palette)?;
+    let (mut sum, mut weight) = ([0.0f32; 3], 0.0f32);
+    for d in (0..6).filter(|&d| sums.faces[d] > 0 && area[d] > 0.0) {
+        let light =
+            shading.ambient + (1.0 - shading.ambient) * normal(d).dot(shading.light).max(0.0);
+        let k = light * area[d] / 255.0;
+        for (s, &c) in sum.iter_mut().zip(&sums.rgb[d]) {
+            *s += c as f32 * k;
         }
-    });
-    (coarse && weight > 0.0).then(|| sum.map(|s| s / weight))
+        weight += sums.faces[d] as f32 * area[d];
+    }
+    (weight > 0.0).then(|| sum.map(|s| s / weight))
 }
 
 /// Render `camera`'s view of `tracer` on the current rayon pool.
