@@ -595,6 +595,110 @@ fn a_slow_renderer_skips_frames_and_never_holds_up_the_simulation() {
     assert!(stop(child).status.success());
 }
 
+/// Claim (README, "Stopping"): at a stop the frame in flight gets 3 s,
+/// and a longer one is abandoned, with a warning, without holding up the
+/// final commit or leaving a half-written frame behind.
+#[test]
+fn a_stop_gives_the_frame_in_flight_3_s_then_abandons_it() {
+    let (cfg, state, addr) = setup("frameinflight");
+    // 16 samples of 2048 x 1536 with shadows: about 10 s a frame here.
+    edit_config(
+        &cfg,
+        "width = 32\nheight = 24",
+        "width = 2048\nheight = 1536\nshadows = true",
+    );
+    edit_config(&cfg, "aa = 2", "aa = 16");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    // The first frame is being drawn: later ones are skipped meanwhile.
+    wait_status(&addr, "no frame in flight", |s| {
+        s["frames"] == 0 && s["frames_skipped"].as_u64().unwrap() > 0
+    });
+    assert_success(
+        &common::cli::bin()
+            .args(["ctl", "--addr", &addr, "--state"])
+            .arg(&state)
+            .arg("pause")
+            .output()
+            .unwrap(),
+    );
+    let s = wait_status(&addr, "pausing", |s| s["paused"] == true);
+    let tick = s["tick"].as_u64().unwrap();
+    assert_eq!(s["frames"], 0, "the frame must still be in flight: {s}");
+    let t = Instant::now();
+    let out = stop(d);
+    let took = t.elapsed();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("the frame in flight is abandoned (3 s limit at shutdown)"),
+        "{err}"
+    );
+    assert!(
+        took >= Duration::from_millis(2900) && took < Duration::from_secs(20),
+        "the stop took {took:?}"
+    );
+    assert_eq!(stored_tick(&cfg, &state), Some(tick));
+    // Nothing half-written: no frame, and no temporary file of one.
+    let frames: Vec<_> = std::fs::read_dir(state.join("frames"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert!(frames.is_empty(), "{frames:?}");
+}
+
+/// Claim (README, `POST /scripts/NAME/params`): a value the server
+/// accepted against `/status`, whose range a hot reload narrowed before
+/// the engine applied it, gets 409 with the engine's reason. The engine
+/// reloads at the start of a turn, before it applies commands, and
+/// publishes `/status` only after them: a change queued while it steps
+/// (slowly here) meets the new range first.
+#[test]
+fn a_parameter_a_reload_narrowed_meanwhile_gets_409() {
+    let (cfg, state, addr) = setup("paramrace");
+    let script = |max: u32| {
+        format!(
+            "return {{ channels = {{ \"s\" }}, params = {{ k = {{ default = 1, min = 0, max = {max} }} }},\n\
+             passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"s\" }},\n\
+             kernel = function(c) for i = 1, 3000000 do end end }} }} }}"
+        )
+    };
+    add_script(&cfg, "slow.lua", &script(10));
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let set = || post(&addr, &state, "/scripts/slow/params", r#"{"k":5}"#);
+    assert_eq!(set().0, 200);
+    save_like_an_editor(&cfg.parent().unwrap().join("scripts/slow.lua"), &script(2));
+    // Until the reload, 5 is applied; then the engine refuses it (409)
+    // before `/status` shows the new range, and after that the server
+    // refuses it itself (400).
+    let mut answers = Vec::new();
+    let t = Instant::now();
+    let refused = loop {
+        let (code, body) = set();
+        answers.push(code);
+        if code != 200 {
+            break (code, body);
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "never reloaded");
+    };
+    assert_eq!(refused.0, 409, "answers {answers:?}: {}", refused.1);
+    assert!(
+        refused.1.contains("refused") && refused.1.contains("'k'"),
+        "{}",
+        refused.1
+    );
+    let s = wait_status(&addr, "the new range", |s| {
+        s["scripts"][1]["warning"]
+            .as_str()
+            .is_some_and(|w| w.contains("refused"))
+    });
+    assert!(s["scripts"][1]["error"].is_null(), "{s}");
+    let (code, body) = set();
+    assert_eq!(code, 400, "{body}");
+    assert!(stop(d).status.success());
+}
+
 /// Audit: SIGTERM and SIGINT end the engine with a final commit of the
 /// tick it stopped at (the periodic commit is every 40 ticks; the tick
 /// here is not a multiple of 40, so only the final commit can hold it).

@@ -146,8 +146,17 @@ pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
 
 /// A fresh control token: 32 hex digits from the OS's random source.
 pub fn new_token() -> Result<String, StateDirError> {
+    token_from(getrandom::fill)
+}
+
+/// A token drawn with `fill`: the OS's random source, or a failing one in
+/// tests (no other seed is ever used: a failure is an error, not a
+/// fallback to something guessable).
+fn token_from(
+    fill: impl FnOnce(&mut [u8]) -> Result<(), getrandom::Error>,
+) -> Result<String, StateDirError> {
     let mut bytes = [0u8; 16];
-    getrandom::fill(&mut bytes).map_err(|e| StateDirError::Random(e.to_string()))?;
+    fill(&mut bytes).map_err(|e| StateDirError::Random(e.to_string()))?;
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
@@ -176,4 +185,32 @@ pub fn write_token(dir: &Path, token: &str) -> Result<PathBuf, StateDirError> {
     f.write_all(token.as_bytes()).map_err(ioe)?;
     f.sync_all().map_err(ioe)?;
     Ok(path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Claim (README, control API): an engine that cannot read the OS's
+    /// random source refuses to start, in one line, rather than make a
+    /// guessable token. (`Engine::start` passes this error on with `?`,
+    /// before it listens or writes a token file.)
+    #[test]
+    fn a_failing_random_source_is_a_clear_error_not_a_weak_token() {
+        let e = token_from(|_| Err(getrandom::Error::UNSUPPORTED)).unwrap_err();
+        assert!(matches!(e, StateDirError::Random(_)), "{e:?}");
+        let line = e.to_string();
+        assert!(
+            line.starts_with("cannot draw a control token from the OS random source: ")
+                && !line.contains('\n'),
+            "{line}"
+        );
+        // The real source: 32 hex digits, fresh each time.
+        let (a, b) = (new_token().unwrap(), new_token().unwrap());
+        assert!(
+            a.len() == 32 && a.bytes().all(|c| c.is_ascii_hexdigit()),
+            "{a}"
+        );
+        assert_ne!(a, b);
+    }
 }
