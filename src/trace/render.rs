@@ -255,6 +255,11 @@ pub fn render(
     // The same f32 product the GPU shader is given.
     let lod_k = opts.lod * camera.pixel_angle() as f32;
     let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
+    // Each column's and row's part of the direction, once per frame.
+    let cols: Vec<f64> = (0..w)
+        .map(|i| camera.column_factor(i as f64 + jx))
+        .collect();
+    let rows_b: Vec<f64> = (0..h).map(|j| camera.row_factor(j as f64 + jy)).collect();
     let bw = camera.width.div_ceil(super::BEAM);
     let starts: Option<Vec<f32>> = opts.beam.then(|| {
         let bh = camera.height.div_ceil(super::BEAM);
@@ -277,7 +282,7 @@ pub fn render(
                 for r in 0..rows {
                     let j = band * TILE + r;
                     for i in tx..(tx + TILE).min(w) {
-                        let dir = camera.direction_at(i as f64 + jx, j as f64 + jy);
+                        let dir = camera.direction_from(cols[i], rows_b[j]);
                         let ray = Ray::new(origin, dir.as_vec3());
                         let px = r * w + i;
                         let t0 = starts.as_ref().map_or(0.0, |s| {
