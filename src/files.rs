@@ -283,6 +283,16 @@ impl Staged {
     /// Create a fresh, empty temporary file beside `dest` (never one that
     /// exists already).
     pub fn new(dest: &Path) -> std::io::Result<Self> {
+        // `out.npy/` names no file: its temporary would be made beside
+        // `out.npy` and only the last rename would fail, after other
+        // outputs were committed (regression: a failed render replaced
+        // its PNG).
+        if dest.file_name().is_none() || dest.as_os_str().as_encoded_bytes().ends_with(b"/") {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "not a file name (it ends in '/' or names a folder)",
+            ));
+        }
         let mut dest = dest.to_path_buf();
         if let Ok(meta) = std::fs::metadata(&dest) {
             if !meta.is_file() {

@@ -1235,3 +1235,83 @@ fn sim_closed_edges_and_cfl_reach_the_simulation() {
     assert_eq!(sub_steps(&none), 1, "{none}");
     assert!(sub_steps(&fine) > sub_steps(&drained), "{fine}\n{drained}");
 }
+
+/// Regression (hostile probe): `--depth-out missing.npy/` made its
+/// temporary file beside `missing.npy` and failed only at the last rename,
+/// after the new PNG had replaced the old one; and a link to the PNG named
+/// as `--depth-out` turned the image into a .npy, exit 0. Both are refused
+/// now, with the PNG as it was.
+#[test]
+fn a_failed_render_leaves_its_png_as_it_was() {
+    let png = tmp("kept.png");
+    std::fs::write(&png, "kept").unwrap();
+    let render = |depth: &std::path::Path| {
+        bin()
+            .args([
+                "render", "--size", "48x32x48", "--width", "8", "--height", "8", "--out",
+            ])
+            .arg(&png)
+            .arg("--depth-out")
+            .arg(depth)
+            .output()
+            .unwrap()
+    };
+    let out = render(&tmp("missing.npy/"));
+    assert_clear_failure(&out, "--depth-out ending in /", "not a file name");
+    assert_eq!(
+        std::fs::read(&png).unwrap(),
+        b"kept",
+        "the PNG was replaced"
+    );
+    let link = tmp("kept-link.npy");
+    let _ = std::fs::remove_file(&link);
+    std::os::unix::fs::symlink(&png, &link).unwrap();
+    let out = render(&link);
+    assert_clear_failure(&out, "--depth-out linked to --out", "is also --out");
+    assert_eq!(
+        std::fs::read(&png).unwrap(),
+        b"kept",
+        "the PNG was overwritten"
+    );
+}
+
+/// Regression (hostile probe): plotters' SVG backend writes through a
+/// buffer it drops without a flush, so a chart under 8 KiB (`bench lod`'s,
+/// `bench stream`'s) that could not be written was lost silently: exit 0,
+/// and past `ulimit -f` a truncated chart replaced the good one. Charts are
+/// now drawn in memory and written, with their errors, to a staged file.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_small_chart_that_cannot_be_written_is_an_error_and_keeps_the_old_one() {
+    let dir = tmp("small-chart");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let chart = dir.join("lod.svg");
+    let bench = |limit: &str, chart: &std::path::Path| {
+        std::process::Command::new("bash")
+            .arg("-c")
+            .arg(format!(
+                "{limit} exec '{}' bench lod --size 48x32x48 --width 32 --height 24 --lod 1 --repeat 1 --json '{}' --chart '{}'",
+                env!("CARGO_BIN_EXE_brickworld"),
+                dir.join("lod.json").display(),
+                chart.display()
+            ))
+            .output()
+            .unwrap()
+    };
+    assert_success(&bench("", &chart));
+    let before = std::fs::read(&chart).unwrap();
+    assert!(
+        before.len() > 4096 && before.len() < 8192,
+        "{}",
+        before.len()
+    );
+    let out = bench("ulimit -f 4;", &chart);
+    assert_clear_failure(&out, "bench lod past ulimit -f", "File too large");
+    assert!(
+        std::fs::read(&chart).unwrap() == before,
+        "the chart changed"
+    );
+    let out = bench("", std::path::Path::new("/dev/full"));
+    assert_clear_failure(&out, "bench lod --chart /dev/full", "No space left");
+}

@@ -20,15 +20,21 @@ pub fn memory_vs_speed(path: &Path, reports: &[&BenchReport]) -> Result<(), Char
     staged(path, |tmp| draw(tmp, reports))
 }
 
-/// Draw into a temporary file beside `path` that replaces it only once the
-/// chart is whole: a chart that fails (a full disk, a file-size limit)
-/// leaves the previous one as it was, never a truncated one.
+/// Draw the chart in memory, then write it to a temporary file beside
+/// `path` that replaces it only once the chart is whole: a chart that fails
+/// (a full disk, a file-size limit) leaves the previous one as it was,
+/// never a truncated one, and is an error. (Regression: plotters' SVG
+/// backend writes a file through a buffer that it drops without a flush,
+/// so a chart under 8 KiB that could not be written was lost silently,
+/// exit 0.)
 fn staged(
     path: &Path,
-    draw: impl FnOnce(&Path) -> Result<(), Box<dyn std::error::Error>>,
+    draw: impl FnOnce(&mut String) -> Result<(), Box<dyn std::error::Error>>,
 ) -> Result<(), ChartError> {
+    let mut svg = String::new();
+    draw(&mut svg).map_err(|e| ChartError::new(path, e))?;
     let file = crate::files::Staged::new(path).map_err(|e| ChartError::new(path, e.into()))?;
-    draw(file.path()).map_err(|e| ChartError::new(path, e))?;
+    std::fs::write(file.path(), svg).map_err(|e| ChartError::new(path, e.into()))?;
     file.commit().map_err(|e| ChartError::new(path, e.into()))
 }
 
@@ -59,7 +65,7 @@ impl ChartError {
     }
 }
 
-fn draw(path: &Path, reports: &[&BenchReport]) -> Result<(), Box<dyn std::error::Error>> {
+fn draw(svg: &mut String, reports: &[&BenchReport]) -> Result<(), Box<dyn std::error::Error>> {
     let mut pts: Vec<(String, &'static str, f64, f64)> = Vec::new();
     for r in reports {
         for s in &r.structures {
@@ -79,7 +85,7 @@ fn draw(path: &Path, reports: &[&BenchReport]) -> Result<(), Box<dyn std::error:
     let xmin = pts.iter().map(|p| p.2).fold(f64::INFINITY, f64::min) / 2.0;
     let xmax = pts.iter().map(|p| p.2).fold(0.0, f64::max) * 2.0;
     let ymax = pts.iter().map(|p| p.3).fold(0.0, f64::max) * 1.2;
-    let root = SVGBackend::new(path, (800, 520)).into_drawing_area();
+    let root = SVGBackend::with_string(svg, (800, 520)).into_drawing_area();
     root.fill(&WHITE)?;
     let title = if reports.len() == 1 {
         format!(
@@ -146,7 +152,7 @@ pub fn xy_chart(
 }
 
 fn draw_xy(
-    path: &Path,
+    svg: &mut String,
     title: &str,
     x_desc: &str,
     y_desc: &str,
@@ -169,7 +175,7 @@ fn draw_xy(
     let (y0, y1) = pts().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
         (a.min(p.1), b.max(p.1))
     });
-    let root = SVGBackend::new(path, (800, 520)).into_drawing_area();
+    let root = SVGBackend::with_string(svg, (800, 520)).into_drawing_area();
     root.fill(&WHITE)?;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 20))

@@ -167,9 +167,11 @@ pub const BENCH_DEFAULT_SIZE: IVec3 = IVec3::new(512, 128, 512);
 impl RenderSettings {
     /// Validate `render` arguments.
     pub fn from_args(a: &RenderArgs) -> Result<Self, ConfigError> {
-        // One path for both would leave only the depth (regression).
+        // One file for both would leave only the depth (regression), also
+        // when spelled differently or through a link (regression: a link
+        // to the PNG named as --depth-out turned it into a .npy, exit 0).
         if let Some(d) = &a.depth_out
-            && d == &a.out
+            && values::same_file(d, &a.out)
         {
             return Err(bad(
                 "--depth-out",

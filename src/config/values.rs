@@ -146,24 +146,8 @@ pub fn check_bench_outputs(json: &Path, chart: Option<&Path>) -> Result<(), Conf
         }
     };
     placed("--json", json)?;
-    // The same file however it is spelled (`./r.svg`, `a/../r.svg`, a link).
-    let same = |a: &Path, b: &Path| {
-        let resolved = |p: &Path| {
-            let dir = match p.parent() {
-                Some(d) if !d.as_os_str().is_empty() => d,
-                _ => Path::new("."),
-            };
-            Some(dir.canonicalize().ok()?.join(p.file_name()?))
-        };
-        #[cfg(unix)]
-        if let (Ok(x), Ok(y)) = (std::fs::metadata(a), std::fs::metadata(b)) {
-            use std::os::unix::fs::MetadataExt;
-            return (x.dev(), x.ino()) == (y.dev(), y.ino());
-        }
-        a == b || matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y)
-    };
     if let Some(chart) = chart {
-        if same(chart, json) {
+        if same_file(chart, json) {
             return Err(bad(
                 "--chart",
                 &chart.display().to_string(),
@@ -174,6 +158,25 @@ pub fn check_bench_outputs(json: &Path, chart: Option<&Path>) -> Result<(), Conf
         placed("--chart", chart)?;
     }
     Ok(())
+}
+
+/// Whether `a` and `b` name the same file however they are spelled
+/// (`./r.svg`, `a/../r.svg`, a symbolic or hard link), for outputs that
+/// must not overwrite each other.
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    let resolved = |p: &Path| {
+        let dir = match p.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        Some(dir.canonicalize().ok()?.join(p.file_name()?))
+    };
+    #[cfg(unix)]
+    if let (Ok(x), Ok(y)) = (std::fs::metadata(a), std::fs::metadata(b)) {
+        use std::os::unix::fs::MetadataExt;
+        return (x.dev(), x.ino()) == (y.dev(), y.ino());
+    }
+    a == b || matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y)
 }
 
 /// Largest level-of-detail `C`, in pixels.
