@@ -27,6 +27,19 @@ pub mod world;
 
 pub mod runtime_dir;
 
+/// `eprintln!` that never panics: standard error that is full or closed
+/// (`2>/dev/full`, `2>&1 | head -1`) loses the line, not the run, whose
+/// exit status still says how it went (regression, hostile probe: every
+/// command panicked with status 101 at its first message there). Every
+/// message of the crate goes through it.
+#[macro_export]
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
+
 /// Replace Rust's panic message with a one-line report (no backtrace unless
 /// `RUST_BACKTRACE` is set): a panic is a bug, but users should not see a
 /// wall of frames.
@@ -49,7 +62,7 @@ pub fn install_panic_hook() {
             if why.contains("Broken pipe") {
                 std::process::exit(0);
             }
-            eprintln!("error: cannot write to standard output: {why}");
+            crate::say!("error: cannot write to standard output: {why}");
             std::process::exit(1);
         }
         // std panics in a new thread whose signal stack cannot be mapped
@@ -59,7 +72,7 @@ pub fn install_panic_hook() {
         if msg.starts_with("failed to allocate an alternative stack")
             || msg.starts_with("failed to set up alternative stack guard page")
         {
-            eprintln!(
+            crate::say!(
                 "error: cannot start the worker threads: out of memory ({msg}) (ask for fewer with --threads)"
             );
             std::process::exit(1);
@@ -76,7 +89,7 @@ pub fn install_panic_hook() {
             if verbose {
                 default(info);
             }
-            eprintln!(
+            crate::say!(
                 "error: the world store is damaged (redb failed on it: {msg} at {}:{}): restore the state directory from a copy, or import a backup (brickworld import) into a new one",
                 l.file().rsplit("/src/").next().unwrap_or(l.file()),
                 l.line()
@@ -95,7 +108,7 @@ pub fn install_panic_hook() {
             .location()
             .map(|l| format!(" at {}:{}", l.file(), l.line()))
             .unwrap_or_default();
-        eprintln!(
+        crate::say!(
             "error: internal bug: {msg}{at} (please report it; set RUST_BACKTRACE=1 for details)"
         );
     }));

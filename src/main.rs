@@ -34,7 +34,7 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
                 .take_while(|l| !l.trim().is_empty())
                 .map(str::trim)
                 .collect();
-            eprintln!("{} (see --help)", what.join(" "));
+            brickworld::say!("{} (see --help)", what.join(" "));
             ExitCode::FAILURE
         }
     })
@@ -53,7 +53,7 @@ fn main() -> ExitCode {
     match brickworld::app::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            brickworld::say!("error: {e:#}");
             ExitCode::FAILURE
         }
     }

@@ -52,9 +52,9 @@ pub fn run(s: &SimSettings) -> Result<()> {
             for w in &mut watchers {
                 for path in w.poll() {
                     match ws.reload(&world, &path) {
-                        Ok(Some(_)) => pb.suspend(|| eprintln!("reloaded {}", path.display())),
+                        Ok(Some(_)) => pb.suspend(|| crate::say!("reloaded {}", path.display())),
                         Ok(None) => {}
-                        Err(e) => pb.suspend(|| eprintln!("warning: kept the last good version: {e}")),
+                        Err(e) => pb.suspend(|| crate::say!("warning: kept the last good version: {e}")),
                     }
                 }
             }
@@ -64,7 +64,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
                 *t += ws.script_ms(&r, i);
             }
             for (script, line) in crate::sim::runtime::log::take_unprinted() {
-                pb.suspend(|| eprintln!("[{script}] {line}"));
+                pb.suspend(|| crate::say!("[{script}] {line}"));
             }
             cells += r.active_tiles as u64 * 64 * n as u64;
             last_active = r.active_tiles;
@@ -72,14 +72,14 @@ pub fn run(s: &SimSettings) -> Result<()> {
             if let Some(e) = r.errors.into_iter().next()
                 && failed.is_empty()
             {
-                pb.suspend(|| eprintln!("warning: step {} rejected: {e}", ws.sim.tick()));
+                pb.suspend(|| crate::say!("warning: step {} rejected: {e}", ws.sim.tick()));
                 failed.push(e);
             }
             pb.inc(1);
         }
         pb.finish_and_clear();
         let secs = t0.elapsed().as_secs_f64();
-        eprintln!(
+        crate::say!(
             "{} steps in {:.2} s ({:.1} steps/s, {:.1} M column updates/s, up to {max_sub} sub-steps); {} tiles active at the end; {} dirty bricks published",
             s.steps,
             secs,
@@ -89,24 +89,24 @@ pub fn run(s: &SimSettings) -> Result<()> {
             bricks
         );
         if max_sub >= crate::sim::columns::run::MAX_SUBSTEPS {
-            eprintln!(
+            crate::say!(
                 "warning: some steps needed the most sub-steps there are ({max_sub}); the CFL limit may not have been met there: use a smaller --dt or a larger --cfl"
             );
         }
         for (i, t) in script_ms.iter().enumerate() {
-            eprintln!("  {}: {:.3} ms per step", ws.spec(i).name, t / s.steps.max(1) as f64);
+            crate::say!("  {}: {:.3} ms per step", ws.spec(i).name, t / s.steps.max(1) as f64);
             for (name, total) in ws.conserved_totals(i) {
-                eprintln!("    conserved {name}: {total:.6}");
+                crate::say!("    conserved {name}: {total:.6}");
             }
         }
         // Conserved quantities (sources such as rain and snowfall add to them).
         for name in ["water", "ground", "sediment", "snow"] {
             if let Some(id) = ws.sim.channels().find(name) {
-                eprintln!("  total {name}: {:.6}", ws.sim.channels().total(id));
+                crate::say!("  total {name}: {:.6}", ws.sim.channels().total(id));
             }
         }
         if s.drain {
-            eprintln!("  water drained over the edges: {:.6}", ws.drained);
+            crate::say!("  water drained over the edges: {:.6}", ws.drained);
         }
         // A failed run writes no image: an existing --out stays as it was
         // (regression: it was replaced, then the run exited 1).
@@ -123,7 +123,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
         let staged = crate::files::Staged::new(&s.out).with_context(|| format!("cannot write {}", s.out.display()))?;
         write_png(staged.path(), out.width, out.height, &out.rgb).with_context(|| format!("cannot write {}", s.out.display()))?;
         staged.commit().with_context(|| format!("cannot write {}", s.out.display()))?;
-        eprintln!("-> {}", s.out.display());
+        crate::say!("-> {}", s.out.display());
         Ok(())
     })
 }

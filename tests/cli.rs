@@ -1315,3 +1315,56 @@ fn a_small_chart_that_cannot_be_written_is_an_error_and_keeps_the_old_one() {
     let out = bench("", std::path::Path::new("/dev/full"));
     assert_clear_failure(&out, "bench lod --chart /dev/full", "No space left");
 }
+
+/// Regression (hostile probe): with standard error full or closed every
+/// command panicked (status 101) at its first message, failed or not. A
+/// message that cannot be written is lost; the status still says how the
+/// run went.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_full_or_closed_stderr_does_not_change_the_exit_status() {
+    let full = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+    };
+    let out = bin()
+        .args(["render", "--lod", "0"])
+        .stderr(full())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "a refused flag");
+    let png = tmp("full-stderr.png");
+    let _ = std::fs::remove_file(&png);
+    let out = bin()
+        .args([
+            "render", "--size", "48x32x48", "--width", "8", "--height", "8", "--out",
+        ])
+        .arg(&png)
+        .stderr(full())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0), "a render that worked");
+    assert!(png.exists());
+    // Standard error read by a reader that stops after one line (standard
+    // output elsewhere): the bench runs on, writes its results and succeeds.
+    let json = tmp("closed-stderr.json");
+    let _ = std::fs::remove_file(&json);
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "'{}' bench lod --size 48x32x48 --width 32 --height 24 --lod 1 --repeat 1 --json '{}' 2>&1 >/dev/null | head -1 >/dev/null; exit ${{PIPESTATUS[0]}}",
+            env!("CARGO_BIN_EXE_brickworld"),
+            json.display()
+        ))
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(read_json(&json)["views"].is_array());
+}

@@ -52,13 +52,13 @@ pub(super) fn run_render(s: RenderSettings) -> Result<()> {
             TracerChoice::Auto if s.structure != Structure::Brickmap => None,
             TracerChoice::Auto => {
                 let (ctx, line) = crate::gpu::choose(TracerChoice::Auto);
-                eprintln!("{line}");
+                crate::say!("{line}");
                 ctx
             }
             TracerChoice::Gpu => match crate::gpu::GpuContext::new() {
                 Ok(ctx) => Some(ctx),
                 Err(e) => {
-                    eprintln!("warning: {e}; rendering on the CPU instead");
+                    crate::say!("warning: {e}; rendering on the CPU instead");
                     None
                 }
             },
@@ -69,7 +69,7 @@ pub(super) fn run_render(s: RenderSettings) -> Result<()> {
             let (out, _) = gpu.render(&ctx, &camera, &opts, world.grid(), world.store().pool())?;
             let traced = t1.elapsed();
             write_image_files(&s.out, s.depth_out.as_deref(), out.width, out.height, &out.rgb, &out.depth)?;
-            eprintln!(
+            crate::say!(
                 "rendered {}x{} on the GPU ({}) in {:.3} s, upload included (scene built in {:.2} s) -> {}",
                 out.width,
                 out.height,
@@ -103,7 +103,7 @@ pub(super) fn run_render(s: RenderSettings) -> Result<()> {
             &out.rgb,
             &out.depth,
         )?;
-        eprintln!(
+        crate::say!(
             "rendered {}x{} with {} in {:.3} s (scene built in {:.2} s; {:.1}% of rays hit) -> {}",
             out.width,
             out.height,

@@ -103,13 +103,18 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
     let draw = |path: &std::path::Path| draw_chart(path, &report);
     super::write_outputs(&s.json, &json, s.chart.as_deref(), draw)?;
     for (vi, v) in report.views.iter().enumerate() {
-        eprintln!("view {vi} (reference {:.1} s):", v.reference_s);
-        eprintln!(
+        crate::say!("view {vi} (reference {:.1} s):", v.reference_s);
+        crate::say!(
             "  {:>6} {:>10} {:>8} {:>8} {:>8} {:>8}",
-            "C", "Mrays/s", "FLIP", "speed", "error", "coarse"
+            "C",
+            "Mrays/s",
+            "FLIP",
+            "speed",
+            "error",
+            "coarse"
         );
         for p in &v.points {
-            eprintln!(
+            crate::say!(
                 "  {:>6} {:>10.2} {:>8.4} {:>7.2}x {:>7.2}x {:>7.1}%",
                 if p.c == 0.0 {
                     "exact".to_string()
@@ -125,7 +130,7 @@ pub fn run(s: &BenchLodSettings) -> Result<()> {
         }
     }
     if let Some(met) = report.target_met {
-        eprintln!(
+        crate::say!(
             "target (view 0, C = {DEFAULT_LOD}: error <= 0.5x and speed >= 1.5x exact): {}",
             if met { "met" } else { "missed" }
         );

@@ -234,7 +234,7 @@ pub fn migrate_legacy(
     }
     let (_, found, warnings) = checkpoint::Checkpoints::open(dir, identity.clone())?;
     for w in warnings {
-        eprintln!("warning: {w}");
+        crate::say!("warning: {w}");
     }
     let Some((path, st)) = found else {
         return Ok(None);
@@ -364,7 +364,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
     let comparable = match super::daemon::load_scripts(cfg, &mut world, &mut ws) {
         Ok(()) => true,
         Err(e) => {
-            eprintln!(
+            crate::say!(
                 "warning: {e:#}: exported all the same; the world hash is left out, as it would not match run's"
             );
             ws = WorldSim::with_edges(&mut world, true);
@@ -382,7 +382,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
         bail!("{} was never committed (nothing to export)", dir.display());
     };
     for c in &r.corrupt {
-        eprintln!("warning: {c}");
+        crate::say!("warning: {c}");
     }
     export(&world, &ws, &r.state, &identity, out)?;
     // The hash `run` prints when it stops and `resumed` at start (the

@@ -141,7 +141,7 @@ impl RenderThread {
                                 m.apply_delta(d);
                             }
                             None => {
-                                eprintln!(
+                                crate::say!(
                                     "warning: a frame delta came before the world; frame skipped"
                                 );
                                 continue;
@@ -182,7 +182,7 @@ impl RenderThread {
                                     window = Some(w);
                                 }
                                 Err(e) => {
-                                    eprintln!("warning: cannot open the render window: {e}");
+                                    crate::say!("warning: cannot open the render window: {e}");
                                     continue;
                                 }
                             },
@@ -216,7 +216,7 @@ impl RenderThread {
                         Ok(path) => {
                             written.push(path, png.len() as u64);
                             if frame_error.take().is_some() {
-                                eprintln!("frames are written again to {}", settings.frames_dir.display());
+                                crate::say!("frames are written again to {}", settings.frames_dir.display());
                             }
                         }
                         Err(e) => {
@@ -224,7 +224,7 @@ impl RenderThread {
                             // (regression: a full disk or a bad frames.dir
                             // left no trace); the live frame still serves.
                             if frame_error.is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60)) {
-                                eprintln!(
+                                crate::say!(
                                     "warning: cannot write frame {}: {e} (the live view goes on; said at most once a minute)",
                                     settings.frames_dir.join(format!("frame-{:08}.png", job.tick)).display()
                                 );
@@ -300,7 +300,7 @@ impl RenderThread {
             if h.is_finished() {
                 let _ = h.join();
             } else {
-                eprintln!(
+                crate::say!(
                     "warning: the frame in flight is abandoned ({} s limit at shutdown)",
                     limit.as_secs()
                 );
@@ -314,7 +314,7 @@ fn start_gpu(
     choice: crate::gpu::TracerChoice,
 ) -> Option<(GpuContext, GpuBrickmap)> {
     let (ctx, line) = crate::gpu::choose(choice);
-    eprintln!("{line}");
+    crate::say!("{line}");
     let ctx = ctx?;
     match GpuBrickmap::streaming(
         &ctx,
@@ -325,7 +325,7 @@ fn start_gpu(
     ) {
         Ok(g) => Some((ctx, g)),
         Err(e) => {
-            eprintln!("warning: {e}; rendering on the CPU");
+            crate::say!("warning: {e}; rendering on the CPU");
             None
         }
     }
@@ -347,7 +347,7 @@ fn draw(
                 return f.rgb;
             }
             Err(e) => {
-                eprintln!("warning: GPU frame failed ({e}); rendering on the CPU from now on");
+                crate::say!("warning: GPU frame failed ({e}); rendering on the CPU from now on");
                 *gpu = None;
             }
         }

@@ -248,7 +248,7 @@ pub fn store_overlay(reader: StoreReader, gen_: &ChunkGen) -> ColumnOverlay {
                 Err(e) => {
                     let mut seen = reported.lock().unwrap_or_else(|p| p.into_inner());
                     if seen.insert(key) {
-                        eprintln!(
+                        crate::say!(
                             "warning: {key} cannot be shown as stored ({e}): drawn as generated"
                         );
                     }

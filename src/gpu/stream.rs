@@ -431,7 +431,7 @@ mod tests {
                 panic!("GPU required but unavailable: {e}")
             }
             Err(e) => {
-                eprintln!("{e}: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
+                crate::say!("{e}: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
                 return;
             }
         };

@@ -147,7 +147,7 @@ impl GpuBrickmap {
         let limit = ctx.limits.max_storage_buffer_binding_size;
         let (cfg, warning) = super::stream::fit_pool(cfg, limit);
         if let Some(w) = warning {
-            eprintln!("warning: {w}");
+            crate::say!("warning: {w}");
         }
         for (what, needed) in [
             ("brick grid", grid.pointers().len() as u64 * 4),

@@ -52,7 +52,7 @@ pub fn write_at(path: &Path, state: WorldRef<'_>) -> Result<u64, CheckpointError
     // retention must count it even if the directory's fsync fails (out of
     // descriptors, say; regression: such files were orphaned for ever).
     if let Err(e) = File::open(dir).and_then(|d| d.sync_all()) {
-        eprintln!(
+        crate::say!(
             "warning: checkpoint {} written, but syncing its directory failed: {e}",
             path.display()
         );

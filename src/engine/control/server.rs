@@ -115,7 +115,7 @@ async fn accept_loop(
     let listener = match tokio::net::TcpListener::from_std(listener) {
         Ok(l) => l,
         Err(e) => {
-            eprintln!("error: the control server cannot use its socket: {e}");
+            crate::say!("error: the control server cannot use its socket: {e}");
             return;
         }
     };
@@ -139,7 +139,7 @@ async fn accept_loop(
                     // Out of descriptors (or a connection reset before accept):
                     // wait for clients to leave; the listener stays.
                     if last_report.is_none_or(|t| t.elapsed() >= Duration::from_secs(10)) {
-                        eprintln!("warning: the control server cannot accept a connection ({e}); retrying");
+                        crate::say!("warning: the control server cannot accept a connection ({e}); retrying");
                         last_report = Some(std::time::Instant::now());
                     }
                     tokio::time::sleep(ACCEPT_BACKOFF).await;

@@ -118,9 +118,10 @@ impl Engine {
             Err(e) => {
                 let msg = format!("{e:#}");
                 if f.error.as_deref() != Some(msg.as_str()) {
-                    eprintln!(
+                    crate::say!(
                         "warning: the simulated region cannot move from chunk columns {} .. {}: {msg}; the simulation waits and tries again every second",
-                        now.0, now.1
+                        now.0,
+                        now.1
                     );
                 }
                 f.error = Some(msg);
@@ -170,10 +171,10 @@ impl Engine {
             bail!("the store holds no state after a commit");
         };
         for c in &r.corrupt {
-            eprintln!("warning: {c}");
+            crate::say!("warning: {c}");
         }
         for w in persistence::apply_state(&r.state, &mut ws) {
-            eprintln!("warning: {w}");
+            crate::say!("warning: {w}");
         }
         wake_entered(&world, &mut ws, from, to);
         self.world = world;

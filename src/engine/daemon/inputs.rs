@@ -19,7 +19,7 @@ impl Engine {
         };
         let changed = w.poll();
         for note in w.take_notes() {
-            eprintln!("{note}");
+            crate::say!("{note}");
         }
         for path in changed {
             if path.file_name().is_some_and(|n| n == "materials.lua") {
@@ -33,7 +33,7 @@ impl Engine {
             let index = self.ws.script_index(&name);
             match self.ws.reload(&self.world, &path) {
                 Ok(Some((i, mut warnings))) => {
-                    eprintln!("reloaded {}", path.display());
+                    crate::say!("reloaded {}", path.display());
                     // A parameter the config sets and the new version does
                     // not declare: running on is fine, but the next start
                     // refuses the config (regression: said nowhere).
@@ -49,7 +49,7 @@ impl Engine {
                         }
                     }
                     for w in &warnings {
-                        eprintln!("warning: {w}");
+                        crate::say!("warning: {w}");
                     }
                     let reloads = self.notes[i].reloads + 1;
                     self.notes[i] = ScriptNotes {
@@ -61,7 +61,7 @@ impl Engine {
                 }
                 Ok(None) => {}
                 Err(e) => {
-                    eprintln!("warning: kept the last good version: {e}");
+                    crate::say!("warning: kept the last good version: {e}");
                     if let Some(i) = index {
                         self.notes[i].reload_error = Some(e.to_string());
                     }
@@ -93,7 +93,7 @@ impl Engine {
                 path.display()
             ),
         };
-        eprintln!("warning: {msg}");
+        crate::say!("warning: {msg}");
         self.materials_note = Some(msg);
     }
 

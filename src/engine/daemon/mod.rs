@@ -191,7 +191,7 @@ impl Engine {
         if self.reached_stop() {
             // `--until-tick` at or below the restored tick: nothing to run
             // (regression: one tick ran before the check).
-            eprintln!(
+            crate::say!(
                 "the world is already at tick {}: nothing to run",
                 self.ws.sim.tick()
             );
@@ -284,7 +284,7 @@ impl Engine {
             };
         }
         for (script, line) in crate::sim::runtime::log::take_unprinted() {
-            eprintln!("[{script}] {line}");
+            crate::say!("[{script}] {line}");
         }
         r
     }
@@ -298,7 +298,7 @@ impl Engine {
             let name = &self.ws.spec(i).name;
             if let Some(e) = self.ws.suspended(i) {
                 if !suspended {
-                    eprintln!(
+                    crate::say!(
                         "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it): {e}",
                         self.ws.failures(i)
                     );
@@ -313,7 +313,7 @@ impl Engine {
                 && quiet
                 && let Some(e) = r.errors.iter().find(|e| error_script(e) == name)
             {
-                eprintln!("warning: {name}.lua failed a step: {e}");
+                crate::say!("warning: {name}.lua failed a step: {e}");
                 self.notes[i].announced = Some(Instant::now());
             }
         }
@@ -346,7 +346,7 @@ impl Engine {
         ) {
             Ok(st) => {
                 if self.commit_error.is_some() {
-                    eprintln!("committing again: nothing was lost");
+                    crate::say!("committing again: nothing was lost");
                 }
                 self.last_commit = Some(CommitRef {
                     tick: self.ws.sim.tick(),
@@ -362,7 +362,7 @@ impl Engine {
                 // interval); `/status` always shows the current one.
                 let msg = e.to_string();
                 if self.commit_error.as_deref() != Some(msg.as_str()) {
-                    eprintln!("warning: {msg}; retrying at every commit");
+                    crate::say!("warning: {msg}; retrying at every commit");
                 }
                 self.commit_error = Some(msg);
             }
@@ -372,7 +372,7 @@ impl Engine {
     /// Stop: a final commit, the frame in flight, then the server.
     fn finish(mut self) -> Result<()> {
         if self.step_cut {
-            eprintln!(
+            crate::say!(
                 "a step was still running {} s after the stop request: its scripts were interrupted and the step is dropped; the world stays as last committed",
                 STOP_GRACE.as_secs()
             );

@@ -67,7 +67,7 @@ impl Engine {
             let s = shared.clone();
             ctrlc::set_handler(move || {
                 if s.shutdown.swap(true, Ordering::Relaxed) {
-                    eprintln!("second signal: exiting now, without a final checkpoint");
+                    crate::say!("second signal: exiting now, without a final checkpoint");
                     std::process::exit(130);
                 }
                 std::thread::spawn(|| {
@@ -127,13 +127,13 @@ impl Engine {
                     camera_override = Some(c);
                 }
                 for c in &r.corrupt {
-                    eprintln!("warning: {c}");
+                    crate::say!("warning: {c}");
                 }
                 for w in persistence::apply_state(&r.state, &mut ws) {
-                    eprintln!("warning: {w}");
+                    crate::say!("warning: {w}");
                 }
                 let hash = persistence::engine_hash(&world, &ws);
-                eprintln!(
+                crate::say!(
                     "resumed {} at tick {} ({} stored chunks, world hash {hash:#018x})",
                     db.path().display(),
                     r.state.tick,
@@ -163,7 +163,7 @@ impl Engine {
         // compiled and smoke-tested in a fresh VM and swapped in between
         // steps; a broken one keeps the last good version running.
         let watcher = if cfg.scripts_embedded {
-            eprintln!(
+            crate::say!(
                 "note: the default world's scripts are built in; `brickworld init DIR` writes editable copies (hot reload watches them)"
             );
             None
@@ -171,7 +171,7 @@ impl Engine {
             match ScriptWatcher::new(&cfg.scripts_dir, std::time::Duration::from_millis(150)) {
                 Ok(w) => Some(w),
                 Err(e) => {
-                    eprintln!("warning: hot reload is off: {e}");
+                    crate::say!("warning: hot reload is off: {e}");
                     None
                 }
             }
@@ -180,13 +180,13 @@ impl Engine {
             Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
         // The timeline never stops the engine: a trim that fails is said.
         match timeline.drop_rows_after(ws.sim.tick()) {
-            Ok(Some(aside)) => eprintln!(
+            Ok(Some(aside)) => crate::say!(
                 "timeline: rows after tick {} (to be run again) dropped; the timeline as it was is kept in {}",
                 ws.sim.tick(),
                 aside.display()
             ),
             Ok(None) => {}
-            Err(e) => eprintln!("warning: {e:#}"),
+            Err(e) => crate::say!("warning: {e:#}"),
         }
         // The viewer's charts start from the history on disk, not empty
         // after every restart (regression, docs walk). Only rows of the
@@ -208,7 +208,7 @@ impl Engine {
             token_path.display()
         );
         if opts.paused {
-            eprintln!(
+            crate::say!(
                 "paused at tick {}: `brickworld ctl resume` or `ctl step N` runs it",
                 ws.sim.tick()
             );
@@ -263,10 +263,10 @@ fn open_store(state: &Path, cfg: &WorldConfig) -> Result<WorldDb> {
     let identity = cfg.identity();
     let (mut db, warnings) = WorldDb::open(state, &identity)?;
     for w in &warnings {
-        eprintln!("warning: {w}");
+        crate::say!("warning: {w}");
     }
     if let Some((path, tick)) = super::super::backup::migrate_legacy(&mut db, state, &identity)? {
-        eprintln!(
+        crate::say!(
             "migrated the checkpoint {} (tick {tick}) into the world store {}; the old checkpoint files are no longer read and can be deleted",
             path.display(),
             db.path().display()
@@ -307,7 +307,7 @@ fn build_world(
             let (world, mut plan) = streaming::build_region(gen_, columns, st)?;
             plan.overlay = Some(streaming::store_overlay(db.reader(), &plan.gen_));
             streaming::check_budget(&world, &mut plan, st.memory_budget, rule.follows())?;
-            eprintln!(
+            crate::say!(
                 "streaming: simulated region of {} chunk columns ({}), render window {} columns across, memory budget {}",
                 (plan.live.1 - plan.live.0).element_product(),
                 crate::scene::budget::human(streaming::world_bytes(&world)),
@@ -404,7 +404,7 @@ fn first_start(
         // store is the world, and the file is not needed.
         dirty_chunks.everything(world, ws);
         let st = persistence::commit(db, dirty_chunks, world, ws, None)?;
-        eprintln!(
+        crate::say!(
             "imported {} into {} ({} chunks, {} bytes)",
             cfg.source_text,
             db.path().display(),

@@ -130,7 +130,7 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
         );
     }
     if table.skipped > 0 {
-        eprintln!(
+        crate::say!(
             "warning: {} left out {} lines whose fields do not match its header",
             file.display(),
             table.skipped

@@ -501,7 +501,7 @@ impl WorldDb {
             mt.insert("state", state).map_err(|e| fail(e.into()))?;
         }
         if let Some(stall) = commit_stall() {
-            eprintln!("test hook: a commit is stalled inside its transaction");
+            crate::say!("test hook: a commit is stalled inside its transaction");
             std::thread::sleep(stall);
         }
         tx.commit().map_err(|e| fail(e.into()))?;
