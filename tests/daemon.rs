@@ -699,6 +699,32 @@ fn a_parameter_a_reload_narrowed_meanwhile_gets_409() {
     assert!(stop(d).status.success());
 }
 
+/// Regression (hostile probe): `water.lua` at its declared least `dx`
+/// needs more CFL sub-steps than a step may take; its steps went unstable
+/// and it was suspended for a channel out of bounds, with no word of the
+/// cause. `/status` and the log now say it.
+#[test]
+fn a_script_past_the_sub_step_cap_is_told_why() {
+    let (cfg, state, addr) = setup("substepcap");
+    edit_config(
+        &cfg,
+        "params = { rain = 0.2 }",
+        "params = { rain = 0.2, dx = 0.001 }",
+    );
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let s = wait_status(&addr, "no sub-step warning", |s| {
+        s["scripts"][0]["warning"]
+            .as_str()
+            .is_some_and(|w| w.contains("256 sub-steps"))
+    });
+    let w = s["scripts"][0]["warning"].as_str().unwrap();
+    assert!(w.contains("sim.dt") && w.contains("'dx'"), "{w}");
+    let out = stop(d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("256 sub-steps").count(), 1, "said once: {err}");
+}
+
 /// Audit: SIGTERM and SIGINT end the engine with a final commit of the
 /// tick it stopped at (the periodic commit is every 40 ticks; the tick
 /// here is not a multiple of 40, so only the final commit can hold it).

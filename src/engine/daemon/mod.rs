@@ -116,6 +116,9 @@ struct ScriptNotes {
     /// The last failed reload (cleared by a successful one).
     reload_error: Option<String>,
     warning: Option<String>,
+    /// Set while the script's CFL limit needs more sub-steps than a step
+    /// may take (its steps may then go unstable).
+    substep_cap: Option<String>,
     /// Hot reloads in this run, and the tick of the last.
     reloads: u64,
     reloaded_at: u64,
@@ -259,7 +262,8 @@ impl Engine {
         let before: Vec<(u32, bool)> = (0..self.ws.script_count())
             .map(|i| (self.ws.failures(i), self.ws.suspended(i).is_some()))
             .collect();
-        let (r, _) = self.ws.step_within_cfl(&mut self.world, self.cfg.dt, 0.5);
+        let (r, substeps) = self.ws.step_within_cfl(&mut self.world, self.cfg.dt, 0.5);
+        self.note_substep_cap(substeps);
         self.announce_failures(&before, &r);
         for (i, n) in self.notes.iter_mut().enumerate() {
             if self.ws.failures(i) == 0 && self.ws.suspended(i).is_none() {
@@ -287,6 +291,30 @@ impl Engine {
             crate::say!("[{script}] {line}");
         }
         r
+    }
+
+    /// When a step needed the most sub-steps there are, say so for every
+    /// script with a CFL limit, in `/status` and once on stderr: its steps
+    /// may go unstable, and the failure that follows names only a channel
+    /// out of bounds (regression, hostile probe: water.lua at its declared
+    /// least `dx` was suspended with no word of the cause).
+    fn note_substep_cap(&mut self, substeps: u32) {
+        use crate::sim::columns::run::MAX_SUBSTEPS;
+        for (i, note) in self.notes.iter_mut().enumerate() {
+            let spec = self.ws.spec(i);
+            let Some(cfl) = spec.cfl.as_ref().filter(|_| substeps >= MAX_SUBSTEPS) else {
+                note.substep_cap = None;
+                continue;
+            };
+            if note.substep_cap.is_none() {
+                let msg = format!(
+                    "its CFL limit needs all the {MAX_SUBSTEPS} sub-steps a step may take, or more, so its steps may go unstable: lower sim.dt, or raise '{}' or lower '{}'",
+                    cfl.dx, cfl.gravity
+                );
+                crate::say!("warning: {}.lua: {msg}", spec.name);
+                note.substep_cap = Some(msg);
+            }
+        }
     }
 
     /// Say on stderr when a script begins to fail (at most once a minute per

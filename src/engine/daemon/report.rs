@@ -101,7 +101,10 @@ impl Engine {
                     max: p.max,
                 })
                 .collect(),
-            warning: note.warning,
+            warning: match (note.warning, note.substep_cap) {
+                (Some(w), Some(c)) => Some(format!("{w}; {c}")),
+                (w, c) => w.or(c),
+            },
             ms_per_step: self.script_ms.get(i).copied().unwrap_or(0.0),
             totals: sim.conserved_totals(i).into_iter().collect(),
             log,
