@@ -1368,3 +1368,10 @@ fn a_full_or_closed_stderr_does_not_change_the_exit_status() {
     );
     assert!(read_json(&json)["views"].is_array());
 }
+
+/// Regression (hostile probe): `--addr localhost:7878` was told "expected
+/// HOST:PORT", which it is; the rule is an IP address.
+#[test]
+fn a_host_name_as_addr_is_told_to_use_an_ip_address() {
+    expect_failure(&["run", "--addr", "localhost:17950"], "not a host name");
+}

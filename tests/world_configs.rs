@@ -121,6 +121,16 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[camera]\nfov = 200.0\n",
             "camera.fov",
         ),
+        // Regression (hostile probe): the config took any fov in (0, 180),
+        // where --fov and POST /camera take 0.01..=179.
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nfov = 1e-300\n",
+            "camera.fov: 1e-300 is outside 0.01..=179 degrees",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[camera]\nfov = 179.99999999\n",
+            "camera.fov",
+        ),
         // Regression (hostile probe): a subnormal period drew no frames.
         (
             "[world]\nsource = \"terrain\"\n[camera]\nmode = \"orbit\"\norbit_period_s = 5e-324\n",

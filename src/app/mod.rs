@@ -153,7 +153,7 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
     };
     if let Some(addr) = &a.addr {
         world.addr = addr.parse().map_err(|_| {
-            anyhow::anyhow!("invalid --addr '{addr}': expected HOST:PORT, e.g. 127.0.0.1:7878")
+            anyhow::anyhow!("invalid --addr '{addr}': expected an IP address and a port, e.g. 127.0.0.1:7878 (not a host name)")
         })?;
     }
     if let Some(text) = &a.memory_budget {

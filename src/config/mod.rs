@@ -75,7 +75,7 @@ impl ViewSettings {
         let fov = a
             .fov
             .as_deref()
-            .map(|s| parse_num("--fov", s, 0.01f64, 179.0))
+            .map(|s| parse_num("--fov", s, crate::trace::MIN_FOV, crate::trace::MAX_FOV))
             .transpose()?;
         let view = match (&a.eye, &a.target) {
             (Some(e), Some(t)) => {

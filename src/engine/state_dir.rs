@@ -70,6 +70,11 @@ pub fn make(dir: &Path) -> Result<bool, StateDirError> {
     }
     match std::fs::create_dir(dir) {
         Ok(()) => Ok(true),
+        // Something that is not a folder: say so, not "File exists"
+        // (regression, hostile probe: `--state /dev/null`).
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && !dir.is_dir() => Err(ioe(dir)(
+            std::io::Error::other("is not a folder (the state directory must be one)"),
+        )),
         Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
         Err(e) => Err(ioe(dir)(e)),
     }
@@ -195,6 +200,23 @@ mod tests {
     /// random source refuses to start, in one line, rather than make a
     /// guessable token. (`Engine::start` passes this error on with `?`,
     /// before it listens or writes a token file.)
+    /// Regression (hostile probe): a state path that is a file or a
+    /// device said "File exists".
+    #[test]
+    fn a_state_path_that_is_not_a_folder_says_so() {
+        let file = std::env::temp_dir().join(format!("bw-state-file-{}", std::process::id()));
+        std::fs::write(&file, "mine").unwrap();
+        for p in [file.as_path(), Path::new("/dev/null")] {
+            let e = make(p).unwrap_err().to_string();
+            assert!(
+                e.contains("is not a folder") && !e.contains("File exists"),
+                "{e}"
+            );
+        }
+        assert_eq!(std::fs::read_to_string(&file).unwrap(), "mine");
+        let _ = std::fs::remove_file(&file);
+    }
+
     #[test]
     fn a_failing_random_source_is_a_clear_error_not_a_weak_token() {
         let e = token_from(|_| Err(getrandom::Error::UNSUPPORTED)).unwrap_err();

@@ -8,6 +8,13 @@
 use glam::DVec3;
 use thiserror::Error;
 
+/// Fields of view every input accepts (`--fov`, `[camera] fov`, `POST
+/// /camera`), in degrees: one range for all (regression, hostile probe:
+/// the world config took anything in (0, 180), 1e-300 included).
+pub const MIN_FOV: f64 = 0.01;
+/// See [`MIN_FOV`].
+pub const MAX_FOV: f64 = 179.0;
+
 /// Why a camera was rejected.
 #[derive(Debug, Error, PartialEq)]
 pub enum CameraError {

@@ -36,7 +36,11 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
                 }
             };
             if !(1..=100_000).contains(&n) {
-                return Err(bad(format!("step count {n} is outside 1..=100000")));
+                // The count as sent, not the 64-bit limit it was read as.
+                return Err(bad(format!(
+                    "step count {} is outside 1..=100000",
+                    shown(t)
+                )));
             }
             Ok(Command::Step(n))
         }
@@ -60,7 +64,7 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             {
                 return Err(bad("camera coordinates must be within ±1e9".into()));
             }
-            if !(0.01..=179.0).contains(&fov) {
+            if !(crate::trace::MIN_FOV..=crate::trace::MAX_FOV).contains(&fov) {
                 return Err(bad(format!(
                     "fov {} is outside 0.01..=179 degrees",
                     crate::sim::fmt_num(fov)
@@ -183,12 +187,16 @@ mod tests {
     use super::*;
 
     /// Regression (hostile probe): a step count past 64 bits was said not
-    /// to be a whole number.
+    /// to be a whole number, and then quoted as 18446744073709551615 (the
+    /// limit it was read as), a number the client never sent.
     #[test]
     fn a_step_count_past_64_bits_is_out_of_range_not_malformed() {
         let status = Status::default();
         for (body, says) in [
-            ("99999999999999999999999", "is outside 1..=100000"),
+            (
+                "99999999999999999999999",
+                "99999999999999999999999 is outside 1..=100000",
+            ),
             ("100001", "is outside 1..=100000"),
             ("0", "is outside 1..=100000"),
             ("-1", "'-1' is not a whole number"),

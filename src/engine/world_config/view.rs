@@ -63,8 +63,11 @@ pub(super) fn camera(
         velocity: None,
     });
     let fov = cam.fov.unwrap_or(50.0);
-    if !(fov > 0.0 && fov < 180.0) {
-        return Err(err("camera.fov", format!("{fov} is outside (0, 180)")));
+    if !(crate::trace::MIN_FOV..=crate::trace::MAX_FOV).contains(&fov) {
+        return Err(err(
+            "camera.fov",
+            format!("{} is outside 0.01..=179 degrees", crate::sim::fmt_num(fov)),
+        ));
     }
     let mode = match cam.mode.as_deref().unwrap_or("fixed") {
         "fixed" => CameraMode::Fixed,
