@@ -73,7 +73,7 @@ fn bad_configs_name_the_file_field_and_reason() {
         // numbers were ignored).
         (
             "[world]\nsource = \"terrain\"\nsize = [64, 32, 64, 5]\n",
-            "line 3, column 8: expected an array of 3 numbers, found 4",
+            "world.size (line 3, column 8): expected an array of 3 numbers, found 4",
         ),
         (
             "[world]\nsource = \"terrain\"\n[camera]\neye = [1, 2]\n",
@@ -84,6 +84,20 @@ fn bad_configs_name_the_file_field_and_reason() {
             "expected an array of 2 numbers, found 3",
         ),
         ("[world]\nsource = \"terrain\"\nsize = \"big\"\n", "line 3"),
+        // Regression (hostile probe): a wrong type named only the line and
+        // column, in Rust's words.
+        (
+            "[world]\nsource = \"terrain\"\n[render]\nwidth = \"64\"\n",
+            "render.width (line 4, column 9): invalid type: string \"64\", expected a whole number",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[[scripts]]\nfile = \"a.lua\"\n[[scripts]]\nfile = \"b.lua\"\nevery = 1.5\n",
+            "scripts[1].every (line 7",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[sim]\ndt = \"fast\"\n",
+            "sim.dt (line 4, column 6): invalid type: string \"fast\", expected a number",
+        ),
         (
             "[world]\nsource = \"terrain\"\n[sim]\ndt = -1.0\n",
             "sim.dt",
