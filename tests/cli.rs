@@ -1375,3 +1375,16 @@ fn a_full_or_closed_stderr_does_not_change_the_exit_status() {
 fn a_host_name_as_addr_is_told_to_use_an_ip_address() {
     expect_failure(&["run", "--addr", "localhost:17950"], "not a host name");
 }
+
+/// Regression (hostile probe): `run DIR` said "DIR: (file): DIR is not a
+/// regular file".
+#[test]
+fn a_folder_as_the_world_config_is_named_once_and_plainly() {
+    let dir = tmp("a-world-folder");
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = bin().arg("run").arg(&dir).output().unwrap();
+    assert_clear_failure(&out, "run DIR", "is a folder: name the world's .toml file");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches(dir.to_str().unwrap()).count(), 1, "{err}");
+    assert!(!err.contains("(file)"), "{err}");
+}

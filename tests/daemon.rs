@@ -725,6 +725,25 @@ fn a_script_past_the_sub_step_cap_is_told_why() {
     assert_eq!(err.matches("256 sub-steps").count(), 1, "said once: {err}");
 }
 
+/// Regression (hostile probe): `[frames] dir = "/dev/null"` said "cannot
+/// create /dev/null: File exists", naming no field.
+#[test]
+fn a_frames_dir_that_is_not_a_folder_names_its_field() {
+    let (cfg, state, _) = setup("framesdir");
+    edit_config(
+        &cfg,
+        "[frames]\nevery = 5",
+        "[frames]\nevery = 5\ndir = \"/dev/null\"",
+    );
+    let out = run_cmd(&cfg, &state).output().unwrap();
+    common::cli::assert_clear_failure(
+        &out,
+        "frames.dir = /dev/null",
+        "frames.dir: /dev/null is not a folder",
+    );
+    assert!(!state.exists(), "the failed start left its state directory");
+}
+
 /// Audit: SIGTERM and SIGINT end the engine with a final commit of the
 /// tick it stopped at (the periodic commit is every 40 ticks; the tick
 /// here is not a multiple of 40, so only the final commit can hold it).

@@ -135,6 +135,16 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[camera]\nfov = 200.0\n",
             "camera.fov",
         ),
+        // Regression (hostile probe): 1e300 was printed with all its 301
+        // digits, and 1e-40 as a 42-digit decimal.
+        (
+            "[world]\nsource = \"terrain\"\n[frames]\nmax_mb = 1e300\n",
+            "frames.max_mb: 1e300 is outside",
+        ),
+        (
+            "[world]\nsource = \"terrain\"\n[render]\nlod = 1e-40\n",
+            "render.lod: 1e-40 is not a cell footprint",
+        ),
         // Regression (hostile probe): the config took any fov in (0, 180),
         // where --fov and POST /camera take 0.01..=179.
         (
@@ -254,7 +264,7 @@ fn bad_configs_name_the_file_field_and_reason() {
         ),
         (
             "[world]\nsource = \"terrain\"\n[render]\nlod = 1e-50\n",
-            "render.lod: 0.00000000000000000000000000000000000000000000000001 is not a cell footprint",
+            "render.lod: 1e-50 is not a cell footprint",
         ),
         (
             "[world]\nsource = \"terrain\"\n[render]\nlod = nan\n",

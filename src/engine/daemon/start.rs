@@ -146,8 +146,16 @@ impl Engine {
             }
         }
         let frames_dir = opts.state.join(&cfg.frames_dir);
+        // Named by its field (regression, hostile probe: `dir = "/dev/null"`
+        // said "cannot create /dev/null: File exists").
+        if frames_dir.exists() && !frames_dir.is_dir() {
+            anyhow::bail!(
+                "frames.dir: {} is not a folder (frames are written into one)",
+                frames_dir.display()
+            );
+        }
         std::fs::create_dir_all(&frames_dir)
-            .with_context(|| format!("cannot create {}", frames_dir.display()))?;
+            .with_context(|| format!("frames.dir: cannot create {}", frames_dir.display()))?;
         let renderer = RenderThread::spawn(
             RenderSettings {
                 look: cfg.look,

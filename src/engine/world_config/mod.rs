@@ -85,12 +85,12 @@ pub const DEFAULT_WORLD: &str = include_str!("../../../worlds/default.toml");
 
 /// A config that could not be read or is invalid.
 #[derive(Debug, Error, PartialEq)]
-#[error("{file}: {field}: {reason}")]
+#[error("{file}: {}{reason}", if field.is_empty() { String::new() } else { format!("{field}: ") })]
 pub struct WorldConfigError {
     /// The config file (or `<embedded default>`).
     pub file: String,
     /// The field at fault, dotted (e.g. `camera.fov`), or the line and column
-    /// of a syntax error.
+    /// of a syntax error; empty when the file itself is at fault.
     pub field: String,
     /// What is wrong.
     pub reason: String,
@@ -339,9 +339,18 @@ impl WorldConfig {
         let text =
             crate::files::read_text(path, MAX_CONFIG_BYTES).map_err(|e| WorldConfigError {
                 file: file.clone(),
-                field: "(file)".into(),
+                // The file itself is at fault: no field, and its path said
+                // once (regression, hostile probe: "d: (file): d is not a
+                // regular file").
+                field: String::new(),
                 reason: match e {
                     crate::files::FileError::Io { error, .. } => format!("cannot read: {error}"),
+                    crate::files::FileError::NotAFile { .. } if path.is_dir() => {
+                        "is a folder: name the world's .toml file".into()
+                    }
+                    crate::files::FileError::NotAFile { .. } => {
+                        "is not a regular file: name the world's .toml file".into()
+                    }
                     e => e.to_string(),
                 },
             })?;

@@ -219,7 +219,8 @@ pub(super) fn render(
                 return Err(err(
                     "render.lod",
                     format!(
-                        "{c} is not a cell footprint in pixels from {} to {} (0 turns level of detail off)",
+                        "{} is not a cell footprint in pixels from {} to {} (0 turns level of detail off)",
+                        crate::sim::fmt_num(c),
                         crate::config::MIN_LOD,
                         crate::config::MAX_LOD
                     ),
@@ -257,7 +258,7 @@ pub(super) fn frames(at: Fields, f: &RawFrames) -> Result<Frames, WorldConfigErr
             m => {
                 return Err(err(
                     "frames.max_mb",
-                    format!("{m} is outside 1..=1048576 MiB"),
+                    format!("{} is outside 1..=1048576 MiB", crate::sim::fmt_num(m)),
                 ));
             }
         },
