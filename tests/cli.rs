@@ -1243,7 +1243,7 @@ fn sim_closed_edges_and_cfl_reach_the_simulation() {
 /// now, with the PNG as it was.
 #[test]
 fn a_failed_render_leaves_its_png_as_it_was() {
-    let png = tmp("kept.png");
+    let png = tmp("kept-on-failure.png");
     std::fs::write(&png, "kept").unwrap();
     let render = |depth: &std::path::Path| {
         bin()
