@@ -20,6 +20,7 @@
 //! shrinks several times, and one exact-size allocation per column makes
 //! the cache's byte count the memory it really holds.
 
+mod cache;
 mod pack;
 #[cfg(test)]
 mod tests;
@@ -32,7 +33,7 @@ use crossbeam_channel::{Receiver, Sender, unbounded};
 use glam::{DVec3, IVec2, IVec3};
 use rustc_hash::{FxHashMap, FxHashSet};
 
-use self::pack::{Cached, PackScratch, pack, unpack};
+use self::cache::ColumnCache;
 use super::{CHUNK_BRICKS, CHUNK_VOXELS, ChunkGen, SceneError, SceneWorld, chunk_column_of};
 use crate::world::{BRICK_EDGE, BrickContent, BrickStore, OCC_EDGE};
 
@@ -125,14 +126,11 @@ pub struct RenderWindow {
     /// Columns requested and not answered, with their request's number.
     in_flight: FxHashMap<IVec2, u64>,
     next_request: u64,
-    cache: FxHashMap<IVec2, Cached>,
-    cache_bytes: u64,
-    clock: u64,
+    cache: ColumnCache,
     requests: Option<Sender<Request>>,
     results: Receiver<Answer>,
     workers: Vec<JoinHandle<()>>,
     stats: WindowStats,
-    scratch: PackScratch,
     /// Bricks whose grid cells changed since [`take_changed`]
     /// (RenderWindow::take_changed), kept only when tracked (for a GPU
     /// copy of the grid).
@@ -193,14 +191,11 @@ impl RenderWindow {
             columns: FxHashMap::default(),
             in_flight: FxHashMap::default(),
             next_request: 0,
-            cache: FxHashMap::default(),
-            cache_bytes: 0,
-            clock: 0,
+            cache: ColumnCache::default(),
             requests: Some(req_tx),
             results: res_rx,
             workers,
             stats: WindowStats::default(),
-            scratch: PackScratch::default(),
             changed: None,
         };
         for c in w.window_columns() {
@@ -275,7 +270,7 @@ impl RenderWindow {
             .count();
         s.in_flight = self.in_flight.len();
         s.window_bytes = self.window_bytes();
-        s.cache_bytes = self.cache_bytes;
+        s.cache_bytes = self.cache.bytes();
         s.cache_columns = self.cache.len();
         s
     }
@@ -317,7 +312,7 @@ impl RenderWindow {
     /// and the window. Call it once the first window is exact.
     pub fn measure_overhead(&mut self) {
         let rss = crate::scene::budget::rss_kb() * 1024;
-        self.stats.overhead_bytes = rss.saturating_sub(self.window_bytes() + self.cache_bytes);
+        self.stats.overhead_bytes = rss.saturating_sub(self.window_bytes() + self.cache.bytes());
         self.evict();
     }
 
@@ -326,7 +321,7 @@ impl RenderWindow {
     /// fetchers finished, request more and keep the cache in budget. Never
     /// waits for generation.
     pub fn update(&mut self, eye: DVec3, live_world: Option<&SceneWorld>, changed: &[IVec3]) {
-        self.clock += 1;
+        self.cache.tick();
         let c = Self::column_of(eye);
         if c != self.center {
             self.slide(c, live_world);
@@ -365,17 +360,10 @@ impl RenderWindow {
             .chain(self.window_columns().into_iter().filter(|c| was_live(*c)))
             .filter(|c| !self.is_live(*c))
             .collect();
-        let gone: Vec<IVec2> = self
-            .cache
-            .keys()
-            .copied()
-            .filter(|c| self.is_live(*c) || stale.contains(c))
-            .collect();
-        for c in gone {
-            if let Some(e) = self.cache.remove(&c) {
-                self.cache_bytes -= e.bytes();
-            }
-        }
+        let live = self.live;
+        let is_live =
+            |c: IVec2| live.is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all());
+        self.cache.drop_where(|c| is_live(c) || stale.contains(&c));
         for col in self.window_columns() {
             if !self.gen_.contains(col) {
                 continue;
@@ -430,7 +418,7 @@ impl RenderWindow {
             // When it leaves, its bricks move into the cache.
             self.columns.insert(col, Column::Exact);
         } else if !self.columns.contains_key(&col) {
-            self.cache_put(col, bricks);
+            self.cache.put(col, &bricks);
         }
     }
 
@@ -452,17 +440,6 @@ impl RenderWindow {
         out
     }
 
-    fn cache_put(&mut self, col: IVec2, bricks: Bricks) {
-        let entry = Cached {
-            packed: pack(col, &bricks, &mut self.scratch),
-            used: self.clock,
-        };
-        self.cache_bytes += entry.bytes();
-        if let Some(old) = self.cache.insert(col, entry) {
-            self.cache_bytes -= old.bytes();
-        }
-    }
-
     fn enter(&mut self, col: IVec2, live_world: Option<&SceneWorld>) {
         if !self.gen_.contains(col) {
             self.columns.insert(col, Column::Exact);
@@ -480,14 +457,11 @@ impl RenderWindow {
             self.columns.insert(col, Column::Exact);
             return;
         }
-        if let Some(c) = self.cache.remove(&col) {
-            self.cache_bytes -= c.bytes();
-            if let Some(bricks) = unpack(col, &c.packed, self.gen_.palette()) {
-                self.stats.cache_hits += 1;
-                self.install(&bricks);
-                self.columns.insert(col, Column::Exact);
-                return;
-            }
+        if let Some(bricks) = self.cache.take(col, self.gen_.palette()) {
+            self.stats.cache_hits += 1;
+            self.install(&bricks);
+            self.columns.insert(col, Column::Exact);
+            return;
         }
         let mut coarse = Vec::new();
         self.gen_.generate_coarse(col, &mut coarse);
@@ -509,7 +483,7 @@ impl RenderWindow {
             let state = self.columns.remove(&col);
             let bricks = self.clear(col);
             if state == Some(Column::Exact) && !self.is_live(col) && self.gen_.contains(col) {
-                self.cache_put(col, bricks);
+                self.cache.put(col, &bricks);
             }
         }
         for col in self.window_columns() {
@@ -560,20 +534,7 @@ impl RenderWindow {
             .settings
             .budget_bytes
             .saturating_sub(self.window_bytes() + self.stats.overhead_bytes);
-        if self.cache_bytes <= allowance {
-            return;
-        }
-        let mut by_age: Vec<(u64, IVec2)> = self.cache.iter().map(|(c, e)| (e.used, *c)).collect();
-        by_age.sort_by_key(|(used, c)| (*used, c.x, c.y));
-        for (_, c) in by_age {
-            if self.cache_bytes <= allowance {
-                break;
-            }
-            if let Some(e) = self.cache.remove(&c) {
-                self.cache_bytes -= e.bytes();
-                self.stats.evicted += 1;
-            }
-        }
+        self.stats.evicted += self.cache.evict_to(allowance);
     }
 }
 
