@@ -240,8 +240,7 @@ impl RenderWindow {
     }
 
     fn is_live(&self, c: IVec2) -> bool {
-        self.live
-            .is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all())
+        in_region(self.live, c)
     }
 
     /// Brick coordinates of column `c` (every height).
@@ -352,8 +351,7 @@ impl RenderWindow {
     /// dropped, and requests in flight for them cancelled: they are stale.
     pub fn set_live(&mut self, live: (IVec2, IVec2), live_world: &SceneWorld, left: &[IVec2]) {
         let old = self.live.replace(live);
-        let was_live =
-            |c: IVec2| old.is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all());
+        let was_live = |c: IVec2| in_region(old, c);
         let stale: FxHashSet<IVec2> = left
             .iter()
             .copied()
@@ -361,9 +359,8 @@ impl RenderWindow {
             .filter(|c| !self.is_live(*c))
             .collect();
         let live = self.live;
-        let is_live =
-            |c: IVec2| live.is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all());
-        self.cache.drop_where(|c| is_live(c) || stale.contains(&c));
+        self.cache
+            .drop_where(|c| in_region(live, c) || stale.contains(&c));
         for col in self.window_columns() {
             if !self.gen_.contains(col) {
                 continue;
@@ -536,6 +533,11 @@ impl RenderWindow {
             .saturating_sub(self.window_bytes() + self.stats.overhead_bytes);
         self.stats.evicted += self.cache.evict_to(allowance);
     }
+}
+
+/// Whether chunk column `c` lies in the region `[min, max)`, if any.
+fn in_region(region: Option<(IVec2, IVec2)>, c: IVec2) -> bool {
+    region.is_some_and(|(lo, hi)| c.cmpge(lo).all() && c.cmplt(hi).all())
 }
 
 impl Drop for RenderWindow {
