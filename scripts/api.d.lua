@@ -30,3 +30,15 @@
 ---@field nonnegative? string[]                      Channels a step may not drive below zero.
 ---@field params? table<string, brickworld.Param>    Parameters with defaults and ranges.
 ---@field passes brickworld.Pass[]                   Run in order each step.
+---@field grid? "columns"|"voxels"                  The grid the kernels run over (default "columns").
+---@field conserved? string[]                        Channels whose totals are reported (columns) or checked (voxels).
+---@field ranges? table<string, number[]>            { min, max } per channel; a step writing outside is rejected.
+---@field boundary? table<string, number>            Column scripts: halo value outside the world, per channel.
+---@field drains? string[]                           Column scripts: channels the moat removes and counts.
+---@field cfl? table                                 Column scripts: { depth, velocities, gravity, dx } for sub-stepping.
+---@field materials? string[]                        Voxel scripts: material names the kernel uses.
+---@field only? string[]                             Voxel scripts: run only on bricks holding these.
+---@field keep_awake? string[]                       Voxel scripts: bricks holding these never sleep.
+---@field fills? table<string, string>               Voxel scripts: channel = material, filled in a fresh world.
+---@field sky? boolean                               Voxel scripts: run on the top layer of bricks only.
+-- Any other key is a load error (see docs/lua-api.md).

@@ -1008,3 +1008,143 @@ fn a_format_error_names_the_scripts_line() {
     );
     assert!(e.to_string().contains("number expected"), "{e}");
 }
+
+/// The load error of `text` as script `decl`, or a panic if it loads.
+fn load_error(text: &str) -> String {
+    match ScriptVm::load(&src("decl", text), small()) {
+        Err(e) => e.to_string(),
+        Ok(_) => panic!("accepted:\n{text}"),
+    }
+}
+
+/// A column script with one channel `h`, its declarations `decl` added at
+/// the top level and `pass` inside its pass table.
+fn column_script(decl: &str, pass: &str) -> String {
+    format!(
+        "return {{\n  channels = {{ \"h\" }},\n  {decl}\n  passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"h\" }}, {pass}\n    kernel = function() end }} }},\n}}"
+    )
+}
+
+/// Regression (hostile probe 2): unknown keys in a script's declaration (a
+/// typo: `nonnegatve`) loaded and did nothing. They are refused at every
+/// level (the table, a pass, a parameter, `cfl`), with the line, and the
+/// nearest known key when one is close.
+#[test]
+fn unknown_declaration_keys_are_refused_with_the_nearest_known_one() {
+    let e = load_error(&column_script("nonnegatve = { \"h\" },", ""));
+    assert!(
+        e.contains("decl.lua:3")
+            && e.contains("unknown key 'nonnegatve'; did you mean 'nonnegative'?"),
+        "{e}"
+    );
+    let e = load_error(&column_script("", "kernal = 1,"));
+    assert!(
+        e.contains("pass 'p' has an unknown key 'kernal'; did you mean 'kernel'?"),
+        "{e}"
+    );
+    let e = load_error(&column_script(
+        "params = { k = { default = 1, min = 0, max = 2, step = 1 } },",
+        "",
+    ));
+    assert!(e.contains("parameter 'k' has an unknown key 'step'"), "{e}");
+    assert!(e.contains("(known: default, min, max)"), "{e}");
+    let e = load_error(&column_script(
+        "params = { g = { default = 1, min = 0, max = 2 } },\n  cfl = { depth = \"h\", gravity = \"g\", dx = \"g\", velocity = {} },",
+        "",
+    ));
+    assert!(
+        e.contains("'cfl' has an unknown key 'velocity'; did you mean 'velocities'?"),
+        "{e}"
+    );
+    // Something far from every key lists them all; a list entry is a key too.
+    let e = load_error(&column_script("description = \"mine\",", ""));
+    assert!(
+        e.contains("unknown key 'description' (known: grid, channels"),
+        "{e}"
+    );
+    let e = load_error(&column_script("\"stray\",", ""));
+    assert!(e.contains("unknown key '[1]'"), "{e}");
+    // The well-formed script loads.
+    assert!(ScriptVm::load(&src("decl", &column_script("", "")), small()).is_ok());
+}
+
+/// Regression (hostile probe 2): `boundary`, `drains` and `cfl` loaded on
+/// voxel scripts, which never read them. A declaration meant for the other
+/// grid is refused, both ways.
+#[test]
+fn declarations_for_the_other_grid_are_refused() {
+    let voxel = |decl: &str| {
+        format!(
+            "return {{ grid = \"voxels\", channels = {{ \"h\" }}, params = {{ g = {{ default = 1, min = 0, max = 2 }} }},\n  {decl}\n  passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"h\" }}, kernel = function() end }} }} }}"
+        )
+    };
+    for decl in [
+        "boundary = { h = 1 },",
+        "drains = { \"h\" },",
+        "cfl = { depth = \"h\", velocities = {}, gravity = \"g\", dx = \"g\" },",
+    ] {
+        let e = load_error(&voxel(decl));
+        let key = decl.split(' ').next().unwrap();
+        assert!(
+            e.contains(&format!("'{key}' is for column scripts")) && e.contains("decl.lua:2"),
+            "{decl}: {e}"
+        );
+    }
+    // What voxel scripts do act on loads there.
+    assert!(
+        ScriptVm::load(
+            &src("decl", &voxel("nonnegative = { \"h\" }, sky = false,")),
+            small()
+        )
+        .is_ok()
+    );
+    for decl in [
+        "materials = { \"sand\" },",
+        "fills = { h = \"sand\" },",
+        "sky = true,",
+    ] {
+        let e = load_error(&column_script(decl, ""));
+        let key = decl.split(' ').next().unwrap();
+        assert!(
+            e.contains(&format!("'{key}'")) && e.contains("for voxel scripts"),
+            "{decl}: {e}"
+        );
+    }
+}
+
+/// Regression (hostile probe 2): a channel or pass named twice loaded
+/// without a word (the second pass's name then meant two passes in logs
+/// and `/status`).
+#[test]
+fn a_channel_or_pass_named_twice_is_refused() {
+    let e = load_error(
+        "return { channels = { \"h\", \"h\" }, passes = { { name = \"p\", reads = {}, writes = { \"h\" }, kernel = function() end } } }",
+    );
+    assert!(e.contains("channel 'h' is declared twice"), "{e}");
+    let e = load_error(
+        "return { channels = { \"h\" }, passes = {\n { name = \"p\", reads = {}, writes = { \"h\" }, kernel = function() end },\n { name = \"p\", reads = {}, writes = { \"h\" }, kernel = function() end } } }",
+    );
+    assert!(e.contains("pass name 'p' is used twice"), "{e}");
+}
+
+/// Regression (hostile probe 2): a parameter with an infinite `min` or
+/// `max` loaded, and `/status` showed its range as `null`; `min > max` was
+/// reported as the default lying outside the range.
+#[test]
+fn parameter_ranges_are_finite_and_ordered() {
+    for range in ["min = -math.huge, max = 1", "min = 0, max = math.huge"] {
+        let e = load_error(&column_script(
+            &format!("params = {{ k = {{ default = 0, {range} }} }},"),
+            "",
+        ));
+        assert!(
+            e.contains("parameter 'k'") && e.contains("must be finite numbers"),
+            "{range}: {e}"
+        );
+    }
+    let e = load_error(&column_script(
+        "params = { k = { default = 1, min = 2, max = 0 } },",
+        "",
+    ));
+    assert!(e.contains("parameter 'k': min 2 is above max 0"), "{e}");
+}

@@ -692,3 +692,45 @@ fn voxel_scripts_cannot_pass_the_worlds_channel_bound() {
     sim.add_script(one, Limits::default(), &reg).unwrap();
     assert_eq!(sim.channels().names().len(), 256);
 }
+
+/// Regression (hostile probe 2): `nonnegative` on a voxel script loaded and
+/// did nothing. A step writing below zero into such a channel is now
+/// rejected, naming the channel and the brick, and is not applied; the same
+/// value into a channel not declared `nonnegative` is accepted.
+#[test]
+fn a_voxel_scripts_nonnegative_channel_refuses_negative_values() {
+    let reg = shipped_registry();
+    for (decl, refused) in [
+        (r#"channels = { "q" }, nonnegative = { "q" },"#, true),
+        (r#"channels = { "q" },"#, false),
+    ] {
+        let mut store = BrickStore::new(Palette::grey_ramp());
+        store.set_voxel(IVec3::new(9, 1, 9), STONE);
+        store.take_modified();
+        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 16, 16), 1);
+        let below = one_pass(
+            "below",
+            decl,
+            r#""q""#,
+            r#""q""#,
+            "if bx == 1 and by == 0 and bz == 1 then buffer.writef32(c.w.q, 0, -0.5) end",
+        );
+        sim.add_script(below, Limits::default(), &reg).unwrap();
+        let r = sim.step(&mut store, &reg, 0.05);
+        let q = sim.channels_mut().channel("q");
+        if refused {
+            assert_eq!(r.errors.len(), 1, "{:?}", r.errors);
+            let msg = r.errors[0].to_string();
+            assert!(
+                msg.contains("channel 'q' = -0.5")
+                    && msg.contains("brick (1, 0, 1)")
+                    && msg.contains("nonnegative"),
+                "{msg}"
+            );
+            assert_eq!(sim.channels().total(q), 0.0, "the step was not applied");
+        } else {
+            assert!(r.errors.is_empty(), "{:?}", r.errors);
+            assert_eq!(sim.channels().total(q), -0.5);
+        }
+    }
+}

@@ -321,6 +321,17 @@ fn check_channel(
             ),
         });
     }
+    if spec.nonnegative.contains(&spec.channels[i])
+        && let Some((c, x)) = v.iter().enumerate().find(|(_, x)| **x < -1e-9)
+    {
+        return Err(SimError::Unstable {
+            script: spec.name.clone(),
+            msg: format!(
+                "channel '{}' = {x} at voxel {} of brick ({}, {}, {}), below 0 in a `nonnegative` channel",
+                spec.channels[i], c, b.x, b.y, b.z
+            ),
+        });
+    }
     if let Some(r) = spec.ranges.iter().find(|r| r.0 == spec.channels[i])
         && let Some(x) = v.iter().find(|&&x| (x as f64) < r.1 || (x as f64) > r.2)
     {

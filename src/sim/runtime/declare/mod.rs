@@ -6,6 +6,10 @@ use mlua::{Table, Value};
 use super::spec::{CflSpec, Grid, MAT, ParamSpec, PassSpec, ScriptSource, ScriptSpec};
 use crate::sim::SimError;
 
+mod keys;
+use keys::{COLUMN_ONLY, SCRIPT_KEYS, VOXEL_ONLY, no_duplicates, only_known_keys, plain};
+pub use keys::{MAX_NAME_LEN, is_plain_name};
+
 /// Line of the first occurrence of `needle` in `text` (for declaration errors).
 fn line_in(text: &str, needle: &str) -> Option<usize> {
     text.lines().position(|l| l.contains(needle)).map(|i| i + 1)
@@ -16,31 +20,6 @@ fn line_in(text: &str, needle: &str) -> Option<usize> {
 pub const MAX_SCRIPT_CHANNELS: usize = 256;
 /// The most parameters one script may declare.
 pub const MAX_SCRIPT_PARAMS: usize = 256;
-
-/// Longest name of a pass, parameter or channel.
-pub const MAX_NAME_LEN: usize = 64;
-
-/// Whether `name` is 1 to [`MAX_NAME_LEN`] letters, digits and `_`: the
-/// names of channels, passes and parameters, which reach error messages,
-/// `/status`, `ctl` and URLs (regression: a pass named with a newline and a
-/// terminal escape forged a line in the daemon's log).
-pub fn is_plain_name(name: &str) -> bool {
-    (1..=MAX_NAME_LEN).contains(&name.len())
-        && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_')
-}
-
-/// `Err` naming `what` unless `name` [`is_plain_name`].
-fn plain(src: &ScriptSource, what: &str, name: &str) -> Result<(), SimError> {
-    if is_plain_name(name) {
-        Ok(())
-    } else {
-        Err(declaration(
-            src,
-            Some(name),
-            format!("{what} name {name:?} must be 1 to {MAX_NAME_LEN} letters, digits and '_'"),
-        ))
-    }
-}
 
 /// A declaration error in `src`, at the line of `needle` if given.
 pub(super) fn declaration(
@@ -122,7 +101,9 @@ fn number(src: &ScriptSource, t: &Table, field: &str, param: &str) -> Result<f64
 
 /// The validated declarations of the table `def` that `src` returned.
 pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimError> {
+    only_known_keys(src, def, "the script's table", &SCRIPT_KEYS)?;
     let channels = strings(src, def, "channels")?;
+    no_duplicates(src, "channel", &channels)?;
     if channels.len() > MAX_SCRIPT_CHANNELS {
         return Err(declaration(
             src,
@@ -153,6 +134,26 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             ));
         }
     };
+    // A declaration the runtime would not act on for this grid is refused,
+    // not ignored (regression: `nonnegative`, `boundary` and `cfl` loaded on
+    // voxel scripts and did nothing).
+    let (foreign, kind): (&[&str], &str) = match grid {
+        Grid::Columns => (&VOXEL_ONLY, "voxel scripts (grid = \"voxels\")"),
+        Grid::Voxels => (&COLUMN_ONLY, "column scripts (grid = \"columns\")"),
+    };
+    for field in foreign {
+        let v: Value = def
+            .get(*field)
+            .map_err(|e| declaration(src, Some(field), e.to_string()))?;
+        // `sky = false` says nothing, on either grid.
+        if !matches!(v, Value::Nil | Value::Boolean(false)) {
+            return Err(declaration(
+                src,
+                Some(field),
+                format!("'{field}' is for {kind}"),
+            ));
+        }
+    }
     let materials = strings(src, def, "materials")?;
     let only = strings(src, def, "only")?;
     let keep_awake = strings(src, def, "keep_awake")?;
@@ -228,6 +229,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                     "'cfl' is { depth = CHANNEL, velocities = { CHANNEL… }, gravity = PARAM, dx = PARAM }",
                 )
             };
+            only_known_keys(src, &t, "'cfl'", &["depth", "velocities", "gravity", "dx"])?;
             let depth: String = t.get("depth").map_err(|_| bad())?;
             let gravity: String = t.get("gravity").map_err(|_| bad())?;
             let dx: String = t.get("dx").map_err(|_| bad())?;
@@ -271,21 +273,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             fills.sort();
         }
         _ => return Err(declaration(src, Some("fills"), "'fills' must be a table")),
-    }
-    if grid == Grid::Columns {
-        for (field, list) in [
-            ("materials", &materials),
-            ("only", &only),
-            ("keep_awake", &keep_awake),
-        ] {
-            if !list.is_empty() {
-                return Err(declaration(
-                    src,
-                    Some(field),
-                    format!("'{field}' is for voxel scripts (grid = \"voxels\")"),
-                ));
-            }
-        }
     }
     for m in &materials {
         plain(src, "material", m)?;
@@ -340,21 +327,36 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                         format!("parameter '{name}' must be a table {{default, min, max}}"),
                     ));
                 };
+                only_known_keys(
+                    src,
+                    &p,
+                    &format!("parameter '{name}'"),
+                    &["default", "min", "max"],
+                )?;
                 let (default, min, max) = (
                     number(src, &p, "default", &name)?,
                     number(src, &p, "min", &name)?,
                     number(src, &p, "max", &name)?,
                 );
-                if !default.is_finite() || min.is_nan() || max.is_nan() {
+                // Ranges are finite (regression: `min = -math.huge` loaded,
+                // and `/status` showed the range as `null`).
+                if !(default.is_finite() && min.is_finite() && max.is_finite()) {
                     return Err(declaration(
                         src,
                         Some(&name),
                         format!(
-                            "parameter '{name}': default {default}, min {min} and max {max} must be numbers, and the default finite"
+                            "parameter '{name}': default {default}, min {min} and max {max} must be finite numbers"
                         ),
                     ));
                 }
-                if min > max || !(min..=max).contains(&default) {
+                if min > max {
+                    return Err(declaration(
+                        src,
+                        Some(&name),
+                        format!("parameter '{name}': min {min} is above max {max}"),
+                    ));
+                }
+                if !(min..=max).contains(&default) {
                     return Err(declaration(
                         src,
                         Some(&name),
@@ -440,6 +442,19 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             _ => format!("pass{}", i + 1),
         };
         plain(src, "pass", &name)?;
+        only_known_keys(
+            src,
+            &p,
+            &format!("pass '{name}'"),
+            &["name", "reads", "writes", "kernel"],
+        )?;
+        if passes.iter().any(|q: &PassSpec| q.name == name) {
+            return Err(declaration(
+                src,
+                Some(&format!("\"{name}\"")),
+                format!("pass name '{name}' is used twice"),
+            ));
+        }
         let reads = strings(src, &p, "reads")?;
         let writes = strings(src, &p, "writes")?;
         let is_mat = |c: &str| grid == Grid::Voxels && c == MAT;

@@ -1,0 +1,120 @@
+//! The names and keys a declaration may use: plain names for channels,
+//! passes, parameters and materials, the known keys at each level of the
+//! returned table (with the nearest one suggested for a typo), the keys
+//! that belong to one grid only, and names given twice.
+
+use mlua::{Table, Value};
+
+use super::declaration;
+use crate::sim::SimError;
+use crate::sim::runtime::spec::ScriptSource;
+
+/// Longest name of a pass, parameter or channel.
+pub const MAX_NAME_LEN: usize = 64;
+
+/// Whether `name` is 1 to [`MAX_NAME_LEN`] letters, digits and `_`: the
+/// names of channels, passes and parameters, which reach error messages,
+/// `/status`, `ctl` and URLs (regression: a pass named with a newline and a
+/// terminal escape forged a line in the daemon's log).
+pub fn is_plain_name(name: &str) -> bool {
+    (1..=MAX_NAME_LEN).contains(&name.len())
+        && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_')
+}
+
+/// `Err` naming `what` unless `name` [`is_plain_name`].
+pub(super) fn plain(src: &ScriptSource, what: &str, name: &str) -> Result<(), SimError> {
+    if is_plain_name(name) {
+        Ok(())
+    } else {
+        Err(declaration(
+            src,
+            Some(name),
+            format!("{what} name {name:?} must be 1 to {MAX_NAME_LEN} letters, digits and '_'"),
+        ))
+    }
+}
+
+/// The keys a script's returned table may hold.
+pub(super) const SCRIPT_KEYS: [&str; 15] = [
+    "grid",
+    "channels",
+    "materials",
+    "only",
+    "keep_awake",
+    "conserved",
+    "sky",
+    "fills",
+    "boundary",
+    "drains",
+    "cfl",
+    "nonnegative",
+    "params",
+    "ranges",
+    "passes",
+];
+/// The declarations the runtime acts on only for column scripts.
+pub(super) const COLUMN_ONLY: [&str; 3] = ["boundary", "drains", "cfl"];
+/// The declarations the runtime acts on only for voxel scripts.
+pub(super) const VOXEL_ONLY: [&str; 5] = ["materials", "only", "keep_awake", "sky", "fills"];
+
+/// `Err` naming the first key of `t` not in `known` (regression: a typo
+/// such as `nonnegatve` loaded and silently did nothing), with the nearest
+/// known key when one is close.
+pub(super) fn only_known_keys(
+    src: &ScriptSource,
+    t: &Table,
+    what: &str,
+    known: &[&str],
+) -> Result<(), SimError> {
+    let mut keys: Vec<String> = Vec::new();
+    for pair in t.pairs::<Value, Value>() {
+        let (k, _) = pair.map_err(|e| declaration(src, None, format!("{what}: {e}")))?;
+        let name = match &k {
+            Value::String(s) => s.to_str().map(|s| s.to_string()).unwrap_or_default(),
+            Value::Integer(i) => format!("[{i}]"),
+            Value::Number(n) => format!("[{n}]"),
+            other => format!("a {} key", other.type_name()),
+        };
+        if !known.contains(&name.as_str()) {
+            keys.push(name);
+        }
+    }
+    // Table order is not the file's: report the first in name order, so
+    // the message is the same on every load.
+    keys.sort();
+    let Some(bad) = keys.first() else {
+        return Ok(());
+    };
+    let near = known
+        .iter()
+        .map(|k| (strsim::damerau_levenshtein(bad, k), *k))
+        .min()
+        .filter(|(d, k)| *d <= 2.max(k.len() / 3) && *d < bad.len());
+    let hint = match near {
+        Some((_, k)) => format!("; did you mean '{k}'?"),
+        None => format!(" (known: {})", known.join(", ")),
+    };
+    Err(declaration(
+        src,
+        Some(bad.trim_matches(['[', ']'])),
+        format!("{what} has an unknown key '{bad}'{hint}"),
+    ))
+}
+
+/// `Err` if `list` names something twice.
+pub(super) fn no_duplicates(
+    src: &ScriptSource,
+    what: &str,
+    list: &[String],
+) -> Result<(), SimError> {
+    for (i, n) in list.iter().enumerate() {
+        if list[..i].contains(n) {
+            return Err(declaration(
+                src,
+                Some(&format!("\"{n}\"")),
+                format!("{what} '{n}' is declared twice"),
+            ));
+        }
+    }
+    Ok(())
+}
