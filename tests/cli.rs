@@ -1057,6 +1057,56 @@ fn a_refused_import_leaves_no_state_directory_behind() {
     drop(lock);
 }
 
+/// Regression (hostile probe 2): `init` past `ulimit -f` left a truncated
+/// script in place, and a second `init` refused to overwrite it. Its files
+/// are now written in full before any is put in place: a failed `init`
+/// leaves nothing (no file, no temporary, no `scripts` folder it made), and
+/// the next one succeeds.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_failed_init_leaves_nothing_and_the_next_one_succeeds() {
+    let dir = tmp("init-fsize");
+    let _ = std::fs::remove_dir_all(&dir);
+    let d = dir.to_str().unwrap();
+    // 8 KiB: smaller than water3d.lua, larger than most scripts.
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -f 8; exec '{}' init '{d}'",
+            env!("CARGO_BIN_EXE_brickworld")
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(&out, "init past ulimit -f", "File too large");
+    let left: Vec<_> = walk(&dir);
+    assert!(left.is_empty(), "a failed init left {left:?}");
+    let out = bin().args(["init", d]).output().unwrap();
+    assert!(out.status.success(), "{out:?}");
+    let water3d = std::fs::read_to_string(dir.join("scripts/water3d.lua")).unwrap();
+    assert_eq!(water3d, include_str!("../scripts/water3d.lua"));
+    assert!(
+        walk(&dir).iter().all(|p| !p.contains(".tmp")),
+        "{:?}",
+        walk(&dir)
+    );
+}
+
+/// Every file under `dir`, as paths relative to it.
+fn walk(dir: &std::path::Path) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                todo.push(p.clone());
+            }
+            out.push(p.strip_prefix(dir).unwrap().display().to_string());
+        }
+    }
+    out
+}
+
 /// Regression (hostile probe): `init DIR` wrote through a dangling link at
 /// DIR/world.toml (creating a file outside DIR), and a dangling
 /// DIR/scripts link gave a misleading "File exists".

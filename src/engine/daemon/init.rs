@@ -31,17 +31,54 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
             scripts.display()
         );
     }
+    let made_scripts = !there(&scripts);
     std::fs::create_dir_all(&scripts)
         .with_context(|| format!("cannot create {}", scripts.display()))?;
-    for (p, text) in &files {
-        // `create_new` never follows a link or replaces a file that
-        // appeared meanwhile.
-        std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(p)
-            .and_then(|mut f| std::io::Write::write_all(&mut f, text.as_bytes()))
-            .with_context(|| format!("cannot write {}", p.display()))?;
+    // Every file is written in full beside its place first, then linked in
+    // (regression: a write past `ulimit -f` left a truncated script, and
+    // the next `init` refused to overwrite it). On any failure, what this
+    // run put in place is taken out again.
+    let mut temps: Vec<PathBuf> = Vec::new();
+    let mut placed: Vec<&Path> = Vec::new();
+    let outcome = (|| -> Result<()> {
+        for (p, text) in &files {
+            let (tmp, mut f) = crate::files::fresh_temp_beside(p)
+                .with_context(|| format!("cannot write {}", p.display()))?;
+            temps.push(tmp);
+            std::io::Write::write_all(&mut f, text.as_bytes())
+                .and_then(|_| f.sync_all())
+                .with_context(|| format!("cannot write {}", p.display()))?;
+        }
+        for ((p, _), tmp) in files.iter().zip(&temps) {
+            place_new(tmp, p).with_context(|| format!("cannot write {}", p.display()))?;
+            placed.push(p);
+        }
+        Ok(())
+    })();
+    for tmp in &temps {
+        let _ = std::fs::remove_file(tmp);
+    }
+    if let Err(e) = outcome {
+        for p in placed {
+            let _ = std::fs::remove_file(p);
+        }
+        if made_scripts {
+            // Only if empty: never anything of the user's.
+            let _ = std::fs::remove_dir(&scripts);
+        }
+        return Err(e);
     }
     Ok(files.into_iter().map(|(p, _)| p).collect())
+}
+
+/// Put the finished file `tmp` at `dest`, which must not exist: a hard link
+/// never replaces a file or follows a link that appeared meanwhile. Where
+/// the file system has no hard links, a rename after a last check.
+fn place_new(tmp: &Path, dest: &Path) -> std::io::Result<()> {
+    match std::fs::hard_link(tmp, dest) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Err(e),
+        Err(_) if std::fs::symlink_metadata(dest).is_err() => std::fs::rename(tmp, dest),
+        Err(e) => Err(e),
+    }
 }
