@@ -20,8 +20,9 @@ pub fn run(s: &SimSettings) -> Result<()> {
         let mut ws = WorldSim::with_edges(&mut world, s.drain);
         ws.set_seed(s.scene.seed);
         // A materials.lua beside the first script names the voxel scripts' materials.
-        if let Some(m) = s.scripts.first().and_then(|p| p.parent()).map(|d| d.join("materials.lua")).filter(|m| m.is_file()) {
-            ws.load_materials(&mut world, &read_script(&m)?).context("cannot load materials.lua")?;
+        let beside = s.scripts.first().and_then(|p| p.parent()).map(|d| d.join("materials.lua"));
+        if let Some(m) = beside.map(|m| crate::sim::read_optional_script(&m)).transpose()?.flatten() {
+            ws.load_materials(&mut world, &m)?;
         }
         for path in &s.scripts {
             let src = read_script(path)?;

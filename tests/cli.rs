@@ -1107,6 +1107,53 @@ fn walk(dir: &std::path::Path) -> Vec<String> {
     out
 }
 
+/// Regression (hostile probe 2): a `materials.lua` that was a folder or a
+/// FIFO was taken as missing (the error then blamed the script naming a
+/// material), and its errors repeated their prefix ("cannot load
+/// materials.lua: materials.lua:1: runtime error: materials.lua:1: boom").
+#[cfg(unix)]
+#[test]
+fn a_materials_file_that_is_not_a_file_is_refused_and_its_errors_say_it_once() {
+    let dir = tmp("materials-odd");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let sand = dir.join("sand.lua");
+    std::fs::write(&sand, include_str!("../scripts/sand.lua")).unwrap();
+    let materials = dir.join("materials.lua");
+    let args = [
+        "sim",
+        "--size",
+        "32x32x32",
+        "--steps",
+        "1",
+        "--script",
+        sand.to_str().unwrap(),
+    ];
+    std::fs::create_dir(&materials).unwrap();
+    expect_failure(&args, "materials.lua is not a regular file");
+    std::fs::remove_dir(&materials).unwrap();
+    mkfifo(&materials);
+    expect_failure(&args, "materials.lua is not a regular file");
+    std::fs::remove_file(&materials).unwrap();
+    for (text, said) in [
+        ("error(\"boom\")", "error: materials.lua:1: boom"),
+        (
+            "return 5",
+            "error: materials.lua: must return a table of materials, it returned an integer",
+        ),
+        (
+            "return { dune = { color = { 1, 2, 3 }, densty = 2 } }",
+            "error: materials.lua:1: material 'dune' has an unknown key 'densty'; did you mean 'density'?",
+        ),
+    ] {
+        std::fs::write(&materials, text).unwrap();
+        let out = bin().args(args).output().unwrap();
+        assert_clear_failure(&out, text, said);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(err.matches("materials.lua").count(), 1, "{err}");
+    }
+}
+
 /// Regression (hostile probe): `init DIR` wrote through a dangling link at
 /// DIR/world.toml (creating a file outside DIR), and a dangling
 /// DIR/scripts link gave a misleading "File exists".

@@ -1148,3 +1148,15 @@ fn parameter_ranges_are_finite_and_ordered() {
     ));
     assert!(e.contains("parameter 'k': min 2 is above max 0"), "{e}");
 }
+
+/// Regression (hostile probe 2): an error raised while the declaration was
+/// read (here by the returned table's `__index`) reached the one-line error
+/// with Luau's stack traceback, its `runtime error:` tag and its location
+/// twice.
+#[test]
+fn an_error_raised_while_reading_the_declaration_is_one_line() {
+    let e = load_error(
+        "local t = { channels = { \"h\" } }\nreturn setmetatable(t, { __index = function()\n error(\"deep\") end })",
+    );
+    assert_eq!(e, "decl.lua:3: deep");
+}

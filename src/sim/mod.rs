@@ -23,7 +23,7 @@ use thiserror::Error;
 
 pub use channels::{ChannelId, ChannelStore};
 pub use reload::ScriptWatcher;
-pub use run::{WorldSim, read_script};
+pub use run::{WorldSim, read_optional_script, read_script};
 pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm, StepKey};
 pub use step::{Kernel, Simulation, StepReport};
 

@@ -100,12 +100,9 @@ fn materials_source(cfg: &WorldConfig) -> Result<Option<ScriptSource>> {
     if cfg.scripts_embedded {
         return Ok(crate::sim::embedded::script("materials.lua"));
     }
-    let path = cfg.scripts_dir.join("materials.lua");
-    if path.is_file() {
-        Ok(Some(read_script(&path)?))
-    } else {
-        Ok(None)
-    }
+    Ok(crate::sim::read_optional_script(
+        &cfg.scripts_dir.join("materials.lua"),
+    )?)
 }
 
 /// Per-script messages shown in `/status`.

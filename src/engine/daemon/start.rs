@@ -360,8 +360,8 @@ pub(crate) fn load_scripts(
 ) -> Result<()> {
     // materials.lua (optional) names the materials voxel scripts use.
     if let Some(src) = materials_source(cfg)? {
-        ws.load_materials(world, &src)
-            .context("cannot load materials.lua")?;
+        // Its errors name materials.lua and the line already.
+        ws.load_materials(world, &src)?;
     }
     for (i, s) in cfg.scripts.iter().enumerate() {
         let id = ws

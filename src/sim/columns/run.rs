@@ -41,6 +41,18 @@ pub struct WorldSim {
 /// Largest script file (a script is code, not data).
 pub const MAX_SCRIPT_BYTES: u64 = 4 << 20;
 
+/// [`read_script`] for a file that may be absent (`materials.lua`): `None`
+/// only when nothing is at `path`. Anything else there, a folder, a FIFO, a
+/// device or a dangling link, is read as a script and refused as one
+/// (regression: such a `materials.lua` was taken as missing, and the error
+/// then blamed the script that named a material).
+pub fn read_optional_script(path: &Path) -> Result<Option<ScriptSource>, SimError> {
+    match std::fs::symlink_metadata(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        _ => read_script(path).map(Some),
+    }
+}
+
 /// Read a script file (a regular file of at most [`MAX_SCRIPT_BYTES`]) into
 /// a source named after its stem.
 pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {

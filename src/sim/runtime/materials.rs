@@ -44,19 +44,15 @@ pub fn load_materials(
         .load(&*src.text)
         .set_name(format!("@{}.lua", src.name))
         .eval()
-        .map_err(|e| {
-            let msg = e.to_string();
-            SimError::Declaration {
-                script: src.name.clone(),
-                line: crate::sim::script::line_of(&msg),
-                msg: msg.lines().next().unwrap_or("").to_string(),
-            }
-        })?;
+        .map_err(|e| super::script::load_error(src, e))?;
     let Value::Table(t) = v else {
         return Err(err(
             src,
             None,
-            "materials.lua must return a table of materials".into(),
+            format!(
+                "must return a table of materials, it returned {}",
+                super::declare::a(v.type_name())
+            ),
         ));
     };
     let mut defs: Vec<(String, MaterialDef)> = Vec::new();
@@ -85,6 +81,12 @@ pub fn load_materials(
 
 fn parse_def(src: &ScriptSource, name: &str, d: &Table) -> Result<MaterialDef, SimError> {
     let bad = |m: String| err(src, Some(name), format!("material '{name}': {m}"));
+    super::declare::only_known_keys(
+        src,
+        d,
+        &format!("material '{name}'"),
+        &["color", "kind", "density"],
+    )?;
     let color: Table = d
         .get("color")
         .map_err(|_| bad("color must be {r, g, b}".into()))?;

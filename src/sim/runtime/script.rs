@@ -89,6 +89,26 @@ pub struct ScriptVm {
 /// Luau's text for an allocation the memory limit refused.
 pub const OUT_OF_MEMORY: &str = "not enough memory";
 
+/// The one-line error of a script's chunk that failed to run at load: its
+/// syntax error or its runtime error, at its line, without Luau's repeated
+/// location, the `runtime error:` tag or a stack traceback.
+pub(super) fn load_error(src: &ScriptSource, e: mlua::Error) -> SimError {
+    let msg = e.to_string();
+    let first = msg.lines().next().unwrap_or("");
+    match e {
+        mlua::Error::SyntaxError { .. } => SimError::Syntax {
+            script: src.name.clone(),
+            line: line_of(&msg),
+            msg: one_line(&strip_location(first)),
+        },
+        _ => SimError::Declaration {
+            script: src.name.clone(),
+            line: line_of(&msg),
+            msg: one_line(&strip_location(first.trim_start_matches("runtime error: "))),
+        },
+    }
+}
+
 impl ScriptVm {
     /// A fresh sandboxed VM with `src` loaded. Returns the VM and the
     /// validated declarations.
@@ -107,26 +127,7 @@ impl ScriptVm {
             Instant::now() + limits.time,
             limits.memory / 10 * 9,
         );
-        let def: Value = chunk.eval().map_err(|e| {
-            let msg = e.to_string();
-            match e {
-                mlua::Error::SyntaxError { .. } => SimError::Syntax {
-                    script: src.name.clone(),
-                    line: line_of(&msg),
-                    msg: one_line(&strip_location(msg.lines().next().unwrap_or(""))),
-                },
-                _ => SimError::Declaration {
-                    script: src.name.clone(),
-                    line: line_of(&msg),
-                    msg: one_line(&strip_location(
-                        msg.lines()
-                            .next()
-                            .unwrap_or("")
-                            .trim_start_matches("runtime error: "),
-                    )),
-                },
-            }
-        })?;
+        let def: Value = chunk.eval().map_err(|e| load_error(src, e))?;
         let Value::Table(def) = def else {
             return Err(declaration(
                 src,

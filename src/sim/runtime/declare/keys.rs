@@ -60,7 +60,7 @@ pub(super) const VOXEL_ONLY: [&str; 5] = ["materials", "only", "keep_awake", "sk
 /// `Err` naming the first key of `t` not in `known` (regression: a typo
 /// such as `nonnegatve` loaded and silently did nothing), with the nearest
 /// known key when one is close.
-pub(super) fn only_known_keys(
+pub(in crate::sim::runtime) fn only_known_keys(
     src: &ScriptSource,
     t: &Table,
     what: &str,

@@ -7,7 +7,8 @@ use super::spec::{CflSpec, Grid, MAT, ParamSpec, PassSpec, ScriptSource, ScriptS
 use crate::sim::SimError;
 
 mod keys;
-use keys::{COLUMN_ONLY, SCRIPT_KEYS, VOXEL_ONLY, no_duplicates, only_known_keys, plain};
+pub(super) use keys::only_known_keys;
+use keys::{COLUMN_ONLY, SCRIPT_KEYS, VOXEL_ONLY, no_duplicates, plain};
 pub use keys::{MAX_NAME_LEN, is_plain_name};
 
 /// Line of the first occurrence of `needle` in `text` (for declaration errors).
@@ -22,16 +23,39 @@ pub const MAX_SCRIPT_CHANNELS: usize = 256;
 pub const MAX_SCRIPT_PARAMS: usize = 256;
 
 /// A declaration error in `src`, at the line of `needle` if given.
+///
+/// `msg` may hold an error of Luau's (a metamethod of the returned table
+/// that raised one): only its first line is kept, without the
+/// `runtime error:` tag, and its own `NAME.lua:LINE:` becomes the line
+/// (regression: a stack traceback and a repeated location reached a
+/// one-line error).
 pub(super) fn declaration(
     src: &ScriptSource,
     needle: Option<&str>,
     msg: impl Into<String>,
 ) -> SimError {
+    let msg = msg.into();
+    let first = msg
+        .lines()
+        .next()
+        .unwrap_or("")
+        .trim_start_matches("runtime error: ");
+    let own = format!("{}.lua:", src.name);
+    let (line, msg) = match first.find(&own) {
+        Some(i) => (
+            super::errors::line_of(&first[i..]),
+            super::errors::strip_location(&first[i..]),
+        ),
+        None => (
+            needle.and_then(|n| line_in(&src.text, n)),
+            first.to_string(),
+        ),
+    };
     SimError::Declaration {
         script: src.name.clone(),
-        line: needle.and_then(|n| line_in(&src.text, n)),
+        line,
         // Names in it come from the script: no raw control characters.
-        msg: super::log::escape_controls(&msg.into(), false).into_owned(),
+        msg: super::log::escape_controls(&msg, false).into_owned(),
     }
 }
 
@@ -126,6 +150,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         Ok(Value::Nil) => Grid::Columns,
         Ok(Value::String(g)) if g.to_str().is_ok_and(|g| g == "columns") => Grid::Columns,
         Ok(Value::String(g)) if g.to_str().is_ok_and(|g| g == "voxels") => Grid::Voxels,
+        Err(e) => return Err(declaration(src, Some("grid"), e.to_string())),
         _ => {
             return Err(declaration(
                 src,
