@@ -407,7 +407,13 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
     // A version without the parameter the config sets: it runs, with a
     // warning that the next start would refuse the config (regression: it
     // was said nowhere).
-    save_like_an_editor(&water, &original.replace("rain", "drizzle"));
+    // (Only the parameter: a blind replace made `drains` `ddrizzles`, which
+    // loaded while unknown keys were ignored.)
+    let drizzle = original
+        .replace("rain = { default", "drizzle = { default")
+        .replace("c.p.rain", "c.p.drizzle");
+    assert_eq!(drizzle.matches("drizzle").count(), 2);
+    save_like_an_editor(&water, &drizzle);
     wait_for_script(&addr, |s| {
         s["warning"].as_str().is_some_and(|w| {
             w.contains("sets parameter 'rain'") && w.contains("no longer declares")
@@ -417,6 +423,22 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
     let s = &status(&addr)["scripts"][0];
     assert_eq!(s["reloads"].as_u64().unwrap(), reloads + 1, "{s}");
     assert!(s["reloaded_at"].as_u64().unwrap() >= at, "{s}");
+
+    // A version whose range leaves out the config's value (rain = 0.2):
+    // it runs clamped, and says now that the next start would refuse the
+    // config (regression, hostile probe 2: only that start said so).
+    let narrowed = original.replace(
+        "rain = { default = 0, min = 0, max = 10 }",
+        "rain = { default = 0, min = 0, max = 0.1 }",
+    );
+    assert_ne!(narrowed, original);
+    save_like_an_editor(&water, &narrowed);
+    wait_for_script(&addr, |s| {
+        s["warning"].as_str().is_some_and(|w| {
+            w.contains("sets parameter 'rain' of water.lua to 0.2, outside its new range [0, 0.1]")
+                && w.contains("the next start will refuse the config")
+        })
+    });
 
     // A .lua that is not a loaded script, made and deleted: none of the
     // engine's business (checked in the log below).

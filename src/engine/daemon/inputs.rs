@@ -40,11 +40,23 @@ impl Engine {
                     let file = format!("{}.lua", self.ws.spec(i).name);
                     if let Some(set) = self.cfg.scripts.iter().find(|s| s.file == file) {
                         let spec = self.ws.spec(i);
-                        for k in set.params.keys() {
-                            if !spec.params.iter().any(|p| &p.name == k) {
-                                warnings.push(format!(
+                        for (k, &v) in &set.params {
+                            match spec.params.iter().find(|p| &p.name == k) {
+                                None => warnings.push(format!(
                                     "the world config sets parameter '{k}' of {file}, which it no longer declares: the next start will refuse the config until one of them changes"
-                                ));
+                                )),
+                                // Regression (hostile probe 2): a narrowed
+                                // range ran clamped, and only the next start
+                                // said the config no longer fits.
+                                Some(p) if !(p.min..=p.max).contains(&v) => {
+                                    warnings.push(format!(
+                                        "the world config sets parameter '{k}' of {file} to {}, outside its new range [{}, {}]: the next start will refuse the config until one of them changes",
+                                        crate::sim::fmt_num(v),
+                                        crate::sim::fmt_num(p.min),
+                                        crate::sim::fmt_num(p.max)
+                                    ))
+                                }
+                                Some(_) => {}
                             }
                         }
                     }
