@@ -168,7 +168,7 @@ pub struct SimArgs {
     /// Time step in seconds
     #[arg(long, default_value = "0.05", allow_hyphen_values = true)]
     pub dt: String,
-    /// Parameter override SCRIPT.NAME=VALUE (repeatable), e.g. water.rain=0.2
+    /// Parameter override SCRIPT.NAME=VALUE (repeatable), e.g. water.rain=0.2; NAME follows the last dot
     #[arg(long = "param")]
     pub params: Vec<String>,
     /// PNG of the final state

@@ -1038,6 +1038,23 @@ fn a_refused_import_leaves_no_state_directory_behind() {
     let s = state.to_str().unwrap();
     expect_failure(&["import", "/dev/zero", "--state", s], "cannot import");
     assert!(!state.exists(), "created by a refused import");
+    // A FIFO is no backup, not a damaged one (regression, hostile probe 2:
+    // "checkpoint … is corrupt"); nor is a folder.
+    #[cfg(unix)]
+    {
+        let fifo = tmp("import-fifo");
+        let _ = std::fs::remove_file(&fifo);
+        mkfifo(&fifo);
+        for path in [fifo.as_path(), std::env::temp_dir().as_path()] {
+            let out = bin()
+                .args(["import", path.to_str().unwrap(), "--state", s])
+                .output()
+                .unwrap();
+            assert_clear_failure(&out, "import a FIFO", "not a regular file");
+            assert!(!String::from_utf8_lossy(&out.stderr).contains("corrupt"));
+        }
+        assert!(!state.exists(), "created by a refused import");
+    }
     std::fs::create_dir_all(&state).unwrap();
     expect_failure(&["import", "/dev/zero", "--state", s], "cannot import");
     assert_eq!(std::fs::read_dir(&state).unwrap().count(), 0, "left files");

@@ -235,7 +235,17 @@ fn sim_command_rejects_bad_input_clearly() {
     let water = format!("{root}/scripts/water.lua");
     let bad = tmp("broken.lua");
     std::fs::write(&bad, "return {\n  channels = { \"water\" \n").unwrap();
+    // Regression (hostile probe 2): a script named with a dot could not be
+    // reached (`--param my.water.rain=…` looked for script `my`). The name
+    // ends at the last dot: this override reaches it and is range-checked.
+    let dotted = tmp("my.water.lua");
+    std::fs::write(&dotted, std::fs::read_to_string(&water).unwrap()).unwrap();
+    let dotted = dotted.to_str().unwrap().to_string();
     for (args, needle) in [
+        (
+            vec!["sim", "--script", &dotted, "--param", "my.water.rain=99"],
+            "outside [0, 10]",
+        ),
         (
             vec!["sim", "--script", "/nonexistent/x.lua"],
             "cannot read /nonexistent/x.lua",

@@ -94,6 +94,12 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[[scripts]]\nfile = \"a.lua\"\n[[scripts]]\nfile = \"b.lua\"\nevery = 1.5\n",
             "scripts[1].every (line 7",
         ),
+        // Regression (hostile probe 2): past 64 bits, "expected a whole
+        // number" of a whole number.
+        (
+            "[world]\nsource = \"terrain\"\n[checkpoint]\nevery = 18446744073709551615\n",
+            "checkpoint.every (line 4, column 9): 18446744073709551615 is too large",
+        ),
         (
             "[world]\nsource = \"terrain\"\n[sim]\ndt = \"fast\"\n",
             "sim.dt (line 4, column 6): invalid type: string \"fast\", expected a number",

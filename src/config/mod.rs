@@ -357,7 +357,7 @@ impl SimSettings {
                 .split_once('=')
                 .ok_or_else(|| bad("--param", p, "expected SCRIPT.NAME=VALUE"))?;
             let (script, name) = lhs
-                .split_once('.')
+                .rsplit_once('.')
                 .ok_or_else(|| bad("--param", p, "expected SCRIPT.NAME=VALUE"))?;
             let value: f64 = value
                 .trim()

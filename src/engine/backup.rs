@@ -89,6 +89,14 @@ fn write_durable_marker(path: &Path) -> std::io::Result<()> {
 /// world `identity` describes; a store that already holds a world is refused.
 /// What an interrupted import left ([`IMPORT_MARKER`]) is replaced.
 pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<CommitStats> {
+    // A FIFO, folder or device is no backup, not a damaged one
+    // (regression, hostile probe 2: "checkpoint FIFO is corrupt").
+    if crate::files::is_there_but_not_a_file(file) {
+        bail!(
+            "cannot import {}: not a regular file (a backup is a file `brickworld export` wrote)",
+            file.display()
+        );
+    }
     let st = checkpoint::read(file).with_context(|| format!("cannot import {}", file.display()))?;
     match &st.identity {
         Some(id) if !id.same_world(identity) => bail!(

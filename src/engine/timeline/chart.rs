@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 
 use super::ROTATE_BYTES;
 
@@ -137,6 +137,13 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
         );
     }
     let dir = state.join("charts");
+    // Regression (hostile probe 2): a file there gave "File exists".
+    if std::fs::symlink_metadata(&dir).is_ok() && !dir.is_dir() {
+        bail!(
+            "{} is not a folder: chart writes its SVGs there, so move it away",
+            dir.display()
+        );
+    }
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let palette = [
         RGBColor(60, 110, 200),
@@ -264,6 +271,24 @@ mod tests {
         assert_eq!(read_tail(&csv, 100).unwrap().rows, [[1.0, 2.0]]);
         std::fs::write(&csv, "").unwrap();
         assert!(read_tail(&csv, 100).unwrap().rows.is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Regression (hostile probe 2): a file at `STATE/charts` gave "cannot
+    /// create …: File exists"; it is named as not a folder, and kept.
+    #[test]
+    fn a_file_where_the_charts_go_is_named_and_kept() {
+        let dir = std::env::temp_dir().join(format!("bw-chart-file-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("timeline.csv"), "tick,water\n1,1\n2,2\n").unwrap();
+        std::fs::write(dir.join("charts"), "mine").unwrap();
+        let e = chart(&dir).unwrap_err().to_string();
+        assert!(
+            e.ends_with("charts is not a folder: chart writes its SVGs there, so move it away"),
+            "{e}"
+        );
+        assert_eq!(std::fs::read_to_string(dir.join("charts")).unwrap(), "mine");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -102,6 +102,14 @@ fn plain_types(message: &str) -> String {
             m = format!("{}{plain}", &m[..m.len() - rust.len()]);
         }
     }
+    // A whole number past 64 bits is one (regression, hostile probe 2:
+    // "invalid value: integer `18446744073709551615`, expected a whole
+    // number").
+    if let Some(rest) = m.strip_prefix("invalid value: integer `")
+        && let Some((n, "expected a whole number")) = rest.split_once("`, ")
+    {
+        m = format!("{n} is too large");
+    }
     m
 }
 
