@@ -277,3 +277,58 @@ fn gpu_matches_cpu_with_ambient_occlusion() {
         },
     );
 }
+
+/// Regression (hostile probe): an eye more than 2^24 voxels from the
+/// world's anchor saw nothing on the CPU (the DDA refuses origins whose f32
+/// coordinates are no longer exact). Its rays now start where they enter
+/// the exact range: the three CPU tracers agree, the world is there at the
+/// distance it is, and the GPU hits the same pixels, each within 2 voxels
+/// of the CPU's (its f32 walk already reached them, from an eye rounded to
+/// f32).
+#[test]
+fn an_eye_past_2_24_voxels_sees_the_world_on_every_tracer() {
+    use brickworld::trace::Tracer;
+    let b = common::Built::new("terrain", glam::IVec3::new(256, 64, 256), 1);
+    let eye = DVec3::new(2e7, 100.0, 128.0);
+    // 0.01° over 64 rows: the 256-voxel world is about 5 pixels wide.
+    let cam = Camera::new(eye, DVec3::new(128.0, 32.0, 128.0), 0.01, 64, 64).unwrap();
+    let opts = RenderOptions::default();
+    let bm = b.brickmap();
+    let palette = b.world.store().palette();
+    let tracers: [&dyn Tracer; 3] = [&b.dense, &b.svo, &bm];
+    let frames: Vec<_> = tracers
+        .iter()
+        .map(|t| render(*t, &cam, palette, &opts))
+        .collect();
+    let hits: Vec<_> = frames[0].hits.iter().flatten().collect();
+    assert!(hits.len() >= 3, "the far eye sees {} voxels", hits.len());
+    for h in &hits {
+        let d = (h.voxel.as_dvec3() - eye).length();
+        assert!(
+            (h.t as f64 - d).abs() < 2.0,
+            "hit at t {} for a voxel {d} away",
+            h.t
+        );
+    }
+    for (t, f) in tracers.iter().zip(&frames).skip(1) {
+        assert_eq!(f.hits, frames[0].hits, "{} differs from dense", t.name());
+    }
+    let Some(ctx) = context() else { return };
+    let mut gpu =
+        GpuBrickmap::preloaded(&ctx, b.world.grid(), b.world.store().pool(), palette).unwrap();
+    let (g, _) = gpu
+        .render(&ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
+        .unwrap();
+    let cpu: Vec<_> = frames[0].hits.iter().map(|h| h.map(|h| h.voxel)).collect();
+    let gpu_hits: Vec<_> = g.hits.iter().map(|h| h.map(|h| h.0)).collect();
+    // The shader's eye is f32, so 2e7 voxels out it is rounded to 2 voxels
+    // (a pixel here spans 50): the same pixels hit, each within 2 voxels.
+    let differ: Vec<_> = (0..cpu.len())
+        .filter(|&i| match (cpu[i], gpu_hits[i]) {
+            (Some(c), Some(g)) => (c - g).abs().max_element() > 2,
+            (c, g) => c != g,
+        })
+        .map(|i| (i, cpu[i], gpu_hits[i]))
+        .collect();
+    assert!(differ.is_empty(), "the GPU sees other voxels: {differ:?}");
+}

@@ -239,6 +239,38 @@ fn coarse_average(
     (weight > 0.0).then(|| sum.map(|s| s / weight))
 }
 
+/// Local coordinates within this of the anchor start their rays at the eye.
+const NEAR: f64 = (super::dda::MAX_LOCAL / 2.0) as f64;
+
+/// `Some(local eye)` when the eye, in local `f64` coordinates, is farther
+/// than [`NEAR`] from the anchor on some axis.
+fn far_eye(local: glam::DVec3) -> Option<glam::DVec3> {
+    (local.abs().max_element() > NEAR).then_some(local)
+}
+
+/// The ray from the far `local` eye along `dir`, started where it enters
+/// the box of half-edge [`NEAR`] around the anchor (every world lies well
+/// inside it), and the distance it skipped; `None` for the distance when
+/// the ray never enters it (and so hits nothing).
+fn near_start(local: glam::DVec3, dir: glam::DVec3) -> (Ray, Option<f64>) {
+    let (mut t_in, mut t_out) = (0.0f64, f64::INFINITY);
+    for a in 0..3 {
+        let (o, d) = (local[a], dir[a]);
+        if d == 0.0 {
+            if o.abs() > NEAR {
+                t_in = f64::INFINITY;
+            }
+            continue;
+        }
+        let (t0, t1) = ((-NEAR - o) / d, (NEAR - o) / d);
+        t_in = t_in.max(t0.min(t1));
+        t_out = t_out.min(t0.max(t1));
+    }
+    let start = local + dir * t_in;
+    let ray = Ray::new(start.as_vec3(), dir.as_vec3());
+    (ray, (t_in <= t_out && t_in.is_finite()).then_some(t_in))
+}
+
 /// Render `camera`'s view of `tracer` on the current rayon pool.
 pub fn render(
     tracer: &dyn Tracer,
@@ -252,6 +284,12 @@ pub fn render(
     let mut hits = vec![None; w * h];
     let frame = tracer.frame();
     let origin = frame.to_local(camera.eye);
+    // An eye so far away that its local f32 coordinates are no longer exact
+    // integers (the DDA refuses such origins): each ray starts where it
+    // enters the exact range instead, found in f64 (regression: such an
+    // eye saw nothing). Never the case within 2^23 voxels of the anchor,
+    // which keeps every other image bit for bit as it was.
+    let far = far_eye(camera.eye - frame.anchor.as_dvec3());
     // The same f32 product the GPU shader is given.
     let lod_k = opts.lod * camera.pixel_angle() as f32;
     let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
@@ -261,7 +299,7 @@ pub fn render(
         .collect();
     let rows_b: Vec<f64> = (0..h).map(|j| camera.row_factor(j as f64 + jy)).collect();
     let bw = camera.width.div_ceil(super::BEAM);
-    let starts: Option<Vec<f32>> = opts.beam.then(|| {
+    let starts: Option<Vec<f32>> = (opts.beam && far.is_none()).then(|| {
         let bh = camera.height.div_ceil(super::BEAM);
         (0..bw * bh)
             .into_par_iter()
@@ -283,18 +321,27 @@ pub fn render(
                     let j = band * TILE + r;
                     for i in tx..(tx + TILE).min(w) {
                         let dir = camera.direction_from(cols[i], rows_b[j]);
-                        let ray = Ray::new(origin, dir.as_vec3());
+                        let (ray, shift) = match far {
+                            None => (Ray::new(origin, dir.as_vec3()), Some(0.0)),
+                            Some(local) => near_start(local, dir),
+                        };
                         let px = r * w + i;
                         let t0 = starts.as_ref().map_or(0.0, |s| {
                             s[(j as u32 / super::BEAM * bw + i as u32 / super::BEAM) as usize]
                         });
-                        let c = match tracer.trace_from(&ray, t0, f32::INFINITY, lod_k) {
-                            Some(hit) => {
-                                depth[px] = hit.t;
-                                hits[px] = Some(hit);
+                        let found = shift.and_then(|shift| {
+                            let hit = tracer.trace_from(&ray, t0, f32::INFINITY, lod_k)?;
+                            Some((hit, shift))
+                        });
+                        let c = match found {
+                            Some((hit, shift)) => {
+                                // From the eye, not from the shifted start.
+                                let t = (hit.t as f64 + shift) as f32;
+                                depth[px] = t;
+                                hits[px] = Some(Hit { t, ..hit });
                                 let c = shade(tracer, &ray, &hit, palette, opts);
                                 if opts.fog > 0.0 {
-                                    fogged(c, sky(dir), hit.t, opts.fog)
+                                    fogged(c, sky(dir), t, opts.fog)
                                 } else {
                                     c
                                 }
