@@ -107,8 +107,45 @@ pub fn request(
     Ok((code, body.to_string()))
 }
 
+/// `a` with the options written after the command words moved where
+/// clap puts them, and the command words alone. The words take values that
+/// start with '-' (`param water rain -1e-3`), so clap leaves everything
+/// after the first word to them (regression, hostile probe 2: `ctl status
+/// --addr A` was an "unknown ctl command").
+fn with_trailing_options(a: &CtlArgs) -> Result<(CtlArgs, Vec<String>)> {
+    let mut out = a.clone();
+    let mut words = Vec::new();
+    let mut it = a.command.iter();
+    while let Some(w) = it.next() {
+        let (name, inline) = match w.split_once('=') {
+            Some((n, v)) if n.starts_with("--") => (n, Some(v.to_string())),
+            _ => (w.as_str(), None),
+        };
+        let mut value = |what: &str| -> Result<String> {
+            inline
+                .clone()
+                .or_else(|| it.next().cloned())
+                .with_context(|| format!("{what} needs a value"))
+        };
+        match name {
+            "--no-follow" if inline.is_none() => out.no_follow = true,
+            "--addr" => out.addr = value("--addr")?,
+            "--state" => out.state = value("--state")?.into(),
+            n if n.starts_with("--") => bail!(
+                "unknown option '{n}' for ctl (its options are --addr, --state and --no-follow)"
+            ),
+            _ => words.push(w.clone()),
+        }
+    }
+    out.command = words.clone();
+    Ok((out, words))
+}
+
 /// Run `brickworld ctl`.
 pub fn run(a: &CtlArgs) -> Result<()> {
+    let (a, words) = with_trailing_options(a)?;
+    let a = &a;
+    let words: Vec<&str> = words.iter().map(|s| s.as_str()).collect();
     let token_path = a.state.join("control.token");
     let token = || {
         crate::files::read_text(&token_path, 4096).map_err(|e| match e {
@@ -119,19 +156,6 @@ pub fn run(a: &CtlArgs) -> Result<()> {
             ),
             e => anyhow::anyhow!("the control token: {e}"),
         })
-    };
-    // `--no-follow` may also come after the command words (`ctl log
-    // --no-follow water`), which take hyphenated values.
-    let no_follow = a.no_follow || a.command.iter().any(|w| w == "--no-follow");
-    let words: Vec<&str> = a
-        .command
-        .iter()
-        .map(|s| s.as_str())
-        .filter(|w| *w != "--no-follow")
-        .collect();
-    let a = &CtlArgs {
-        no_follow,
-        ..a.clone()
     };
     match words.as_slice() {
         ["params"] => return params(&a.addr, None),
@@ -330,6 +354,54 @@ fn log(addr: &str, only: Option<&str>, follow: bool) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Regression (hostile probe 2): options after the command words were
+    /// taken as words ("unknown ctl command"), except `--no-follow`. They
+    /// now count wherever they are, in both spellings; values that start
+    /// with '-' stay words, and an unknown option is named.
+    #[test]
+    fn options_after_the_command_words_count() {
+        let args = |words: &[&str]| {
+            let a = CtlArgs {
+                addr: "127.0.0.1:7878".into(),
+                state: "state".into(),
+                no_follow: false,
+                command: words.iter().map(|w| w.to_string()).collect(),
+            };
+            with_trailing_options(&a).map(|(a, w)| (a.addr, a.state, a.no_follow, w))
+        };
+        let (addr, state, follow, words) = args(&[
+            "param",
+            "water",
+            "rain",
+            "--addr",
+            "10.0.0.1:9",
+            "-1e-3",
+            "--state=s2",
+        ])
+        .unwrap();
+        assert_eq!(
+            (addr.as_str(), state, follow, words),
+            (
+                "10.0.0.1:9",
+                std::path::PathBuf::from("s2"),
+                false,
+                vec![
+                    "param".into(),
+                    "water".into(),
+                    "rain".into(),
+                    "-1e-3".into()
+                ]
+            )
+        );
+        let (_, _, follow, words) = args(&["log", "--no-follow", "water"]).unwrap();
+        assert!(follow);
+        assert_eq!(words, ["log", "water"]);
+        let e = args(&["status", "--addr"]).unwrap_err().to_string();
+        assert_eq!(e, "--addr needs a value");
+        let e = args(&["status", "--adr", "x"]).unwrap_err().to_string();
+        assert!(e.starts_with("unknown option '--adr' for ctl"), "{e}");
+    }
 
     /// Regression (hostile probe): names and log lines from the server
     /// reached the terminal with their escapes.
