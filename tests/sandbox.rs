@@ -1120,7 +1120,7 @@ fn a_channel_or_pass_named_twice_is_refused() {
     let e = load_error(
         "return { channels = { \"h\", \"h\" }, passes = { { name = \"p\", reads = {}, writes = { \"h\" }, kernel = function() end } } }",
     );
-    assert!(e.contains("channel 'h' is declared twice"), "{e}");
+    assert!(e.contains("'channels' lists 'h' twice"), "{e}");
     let e = load_error(
         "return { channels = { \"h\" }, passes = {\n { name = \"p\", reads = {}, writes = { \"h\" }, kernel = function() end },\n { name = \"p\", reads = {}, writes = { \"h\" }, kernel = function() end } } }",
     );
@@ -1159,4 +1159,144 @@ fn an_error_raised_while_reading_the_declaration_is_one_line() {
         "local t = { channels = { \"h\" } }\nreturn setmetatable(t, { __index = function()\n error(\"deep\") end })",
     );
     assert_eq!(e, "decl.lua:3: deep");
+}
+
+/// A voxel script with `decl` at the top level and one pass writing `mat`.
+fn voxel_script(decl: &str) -> String {
+    format!(
+        "return {{ grid = \"voxels\",\n  {decl}\n  passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"mat\" }}, kernel = function() end }} }} }}"
+    )
+}
+
+/// Regression (hostile probe 3): names holding a newline cut the error at
+/// it (`'nonnegative' names unknown channel 'a`, naming a channel that is
+/// declared), and a key holding `x.lua:42:` was taken for Luau's location.
+/// Names are escaped whole; only Luau's own errors give a line.
+#[test]
+fn names_with_newlines_or_locations_are_shown_whole() {
+    let e = load_error(&column_script("nonnegative = { \"h\\nsecret\" },", ""));
+    assert!(
+        e.contains("'nonnegative' names unknown channel 'h\\nsecret'"),
+        "{e}"
+    );
+    let e = load_error(&voxel_script("[\"\\n\\27[2Jevil\"] = 1,"));
+    assert!(e.contains("unknown key '\\n\\u{1b}[2Jevil'"), "{e}");
+    assert!(!e.contains('\n') && !e.contains('\u{1b}'), "{e:?}");
+    let e = load_error(&voxel_script("[\"zz decl.lua:42: all good\"] = 1,"));
+    assert!(
+        e.starts_with(
+            "decl.lua:2: the script's table has an unknown key 'zz decl.lua:42: all good'"
+        ),
+        "{e}"
+    );
+}
+
+/// Regression (hostile probe 3): lists were read up to their first hole
+/// and without their named entries, so a map where a list belongs, a gap,
+/// a pass after a gap, a name that is not a string, extra range entries or
+/// a parameter list loaded and were ignored; repeats in any list loaded.
+#[test]
+fn lists_and_maps_are_read_whole_or_refused() {
+    for (decl, said) in [
+        (
+            "nonnegative = { h = true },",
+            "'nonnegative' must be a list, but it has the key 'h'",
+        ),
+        (
+            "conserved = { \"h\", x = \"h\" },",
+            "'conserved' must be a list, but it has the key 'x'",
+        ),
+        (
+            "nonnegative = { \"h\", nil, \"h\" },",
+            "'nonnegative' must be a list without gaps: entry 2 is missing",
+        ),
+        (
+            "conserved = { \"h\", \"h\" },",
+            "'conserved' lists 'h' twice",
+        ),
+        (
+            "ranges = { h = { 0, 1, 5 } },",
+            "ranges.h must be {min, max}",
+        ),
+        (
+            "ranges = { h = { \"0\", \"1\" } },",
+            "ranges.h must be {min, max}",
+        ),
+        (
+            "params = { { default = 1, min = 0, max = 2 } },",
+            "'params' maps names to values, but it has an integer key",
+        ),
+        (
+            "boundary = { h = \"1\" },",
+            "boundary.h must be a number, found a string",
+        ),
+    ] {
+        let e = load_error(&column_script(decl, ""));
+        assert!(e.contains(said), "{decl}: {e}");
+    }
+    let two = |second: &str| {
+        format!(
+            "return {{ channels = {{ \"h\" }}, passes = {{\n {{ name = \"p\", reads = {{}}, writes = {{ \"h\" }}, kernel = function() end }},\n {second} }} }}"
+        )
+    };
+    let e = load_error(&two(
+        "nil, { name = \"q\", writes = { \"zz\" }, kernel = function() end }",
+    ));
+    assert!(
+        e.contains("'passes' must be a list without gaps: entry 2 is missing"),
+        "{e}"
+    );
+    let e = load_error(&two(
+        "extra = { name = \"q\", writes = { \"h\" }, kernel = function() end }",
+    ));
+    assert!(
+        e.contains("'passes' must be a list, but it has the key 'extra'"),
+        "{e}"
+    );
+    let e = load_error(&column_script("", "name = 5,").replace("name = \"p\", ", ""));
+    assert!(
+        e.contains("passes[1].name must be a string, found an integer"),
+        "{e}"
+    );
+    for (decl, said) in [
+        (
+            "materials = { \"sand\", \"sand\" },",
+            "'materials' lists 'sand' twice",
+        ),
+        ("drains = false,", "'drains' is for column scripts"),
+    ] {
+        let e = load_error(&voxel_script(decl));
+        assert!(e.contains(said), "{decl}: {e}");
+    }
+    // A typo in `grid` is named, not the channels it then lacks.
+    let e = load_error(&voxel_script("").replace("\"voxels\"", "\"voxel\""));
+    assert!(
+        e.contains("'grid' must be \"columns\" or \"voxels\""),
+        "{e}"
+    );
+}
+
+/// Regression (hostile probe 3): repeats were checked in quadratic time
+/// before the count bounds, outside every script budget: 200 000 channels
+/// took 17 s to be refused, and passes and materials had no bound at all.
+/// Every list is now bounded before it is checked.
+#[test]
+fn huge_lists_are_refused_by_their_bounds() {
+    let huge = |field: &str, entry: &str| {
+        format!(
+            "local t = {{}} for i = 1, 20000 do t[i] = {entry} end\nreturn {{ grid = \"voxels\", {field} = t,\n passes = {{ {{ name = \"p\", writes = {{ \"mat\" }}, kernel = function() end }} }} }}"
+        )
+    };
+    let e = load_error(&huge("channels", "\"c\" .. i"));
+    assert!(e.contains("'channels' has more than 1024 entries"), "{e}");
+    let e = load_error(&huge("materials", "\"m\" .. i"));
+    assert!(e.contains("'materials' has more than 1024 entries"), "{e}");
+    let passes: String = (0..257)
+        .map(|i| format!("{{ name = \"p{i}\", writes = {{ \"mat\" }}, kernel = function() end }}"))
+        .collect::<Vec<_>>()
+        .join(", ");
+    let e = load_error(&format!(
+        "return {{ grid = \"voxels\", passes = {{ {passes} }} }}"
+    ));
+    assert!(e.contains("declares 257 passes, more than 256"), "{e}");
 }

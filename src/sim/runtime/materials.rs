@@ -90,6 +90,12 @@ fn parse_def(src: &ScriptSource, name: &str, d: &Table) -> Result<MaterialDef, S
     let color: Table = d
         .get("color")
         .map_err(|_| bad("color must be {r, g, b}".into()))?;
+    super::declare::only_known_keys(
+        src,
+        &color,
+        &format!("material '{name}': color"),
+        &["[1]", "[2]", "[3]"],
+    )?;
     let mut rgb = [0u8; 3];
     for (k, c) in rgb.iter_mut().enumerate() {
         let v: f64 = color

@@ -157,14 +157,14 @@ impl ScriptVm {
         };
         let passes: Table = def
             .get("passes")
-            .map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+            .map_err(|e| super::declare::read::from_lua(src, Some("passes"), &e))?;
         for (i, _) in spec.passes.iter().enumerate() {
             let p: Table = passes
                 .get(i + 1)
-                .map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+                .map_err(|e| super::declare::read::from_lua(src, Some("passes"), &e))?;
             let k: Value = p
                 .get("kernel")
-                .map_err(|e| declaration(src, Some("kernel"), e.to_string()))?;
+                .map_err(|e| super::declare::read::from_lua(src, Some("kernel"), &e))?;
             match k {
                 Value::Function(f) => {
                     let held = crate::sim::interrupt::seal(&vm.lua, &f).map_err(|m| {

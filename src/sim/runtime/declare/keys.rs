@@ -66,23 +66,22 @@ pub(in crate::sim::runtime) fn only_known_keys(
     what: &str,
     known: &[&str],
 ) -> Result<(), SimError> {
-    let mut keys: Vec<String> = Vec::new();
+    // Table order is not the file's: report the least unknown key, so the
+    // message is the same on every load.
+    let mut least: Option<String> = None;
     for pair in t.pairs::<Value, Value>() {
-        let (k, _) = pair.map_err(|e| declaration(src, None, format!("{what}: {e}")))?;
+        let (k, _) = pair.map_err(|e| super::read::from_lua(src, None, &e))?;
         let name = match &k {
-            Value::String(s) => s.to_str().map(|s| s.to_string()).unwrap_or_default(),
+            Value::String(s) => s.to_string_lossy(),
             Value::Integer(i) => format!("[{i}]"),
             Value::Number(n) => format!("[{n}]"),
             other => format!("a {} key", other.type_name()),
         };
-        if !known.contains(&name.as_str()) {
-            keys.push(name);
+        if !known.contains(&name.as_str()) && least.as_ref().is_none_or(|l| name < *l) {
+            least = Some(name);
         }
     }
-    // Table order is not the file's: report the first in name order, so
-    // the message is the same on every load.
-    keys.sort();
-    let Some(bad) = keys.first() else {
+    let Some(bad) = least.as_deref() else {
         return Ok(());
     };
     let near = known
@@ -99,22 +98,4 @@ pub(in crate::sim::runtime) fn only_known_keys(
         Some(bad.trim_matches(['[', ']'])),
         format!("{what} has an unknown key '{bad}'{hint}"),
     ))
-}
-
-/// `Err` if `list` names something twice.
-pub(super) fn no_duplicates(
-    src: &ScriptSource,
-    what: &str,
-    list: &[String],
-) -> Result<(), SimError> {
-    for (i, n) in list.iter().enumerate() {
-        if list[..i].contains(n) {
-            return Err(declaration(
-                src,
-                Some(&format!("\"{n}\"")),
-                format!("{what} '{n}' is declared twice"),
-            ));
-        }
-    }
-    Ok(())
 }

@@ -7,9 +7,12 @@ use super::spec::{CflSpec, Grid, MAT, ParamSpec, PassSpec, ScriptSource, ScriptS
 use crate::sim::SimError;
 
 mod keys;
+pub(super) mod read;
 pub(super) use keys::only_known_keys;
-use keys::{COLUMN_ONLY, SCRIPT_KEYS, VOXEL_ONLY, no_duplicates, plain};
+use keys::{COLUMN_ONLY, SCRIPT_KEYS, VOXEL_ONLY, plain};
 pub use keys::{MAX_NAME_LEN, is_plain_name};
+pub use read::MAX_LIST;
+use read::{field, list, map, number, strings, text};
 
 /// Line of the first occurrence of `needle` in `text` (for declaration errors).
 fn line_in(text: &str, needle: &str) -> Option<usize> {
@@ -21,41 +24,24 @@ fn line_in(text: &str, needle: &str) -> Option<usize> {
 pub const MAX_SCRIPT_CHANNELS: usize = 256;
 /// The most parameters one script may declare.
 pub const MAX_SCRIPT_PARAMS: usize = 256;
+/// The most passes one script may declare.
+pub const MAX_SCRIPT_PASSES: usize = 256;
 
-/// A declaration error in `src`, at the line of `needle` if given.
-///
-/// `msg` may hold an error of Luau's (a metamethod of the returned table
-/// that raised one): only its first line is kept, without the
-/// `runtime error:` tag, and its own `NAME.lua:LINE:` becomes the line
-/// (regression: a stack traceback and a repeated location reached a
-/// one-line error).
+/// A declaration error in `src`, at the line of `needle` if given. The
+/// message is cut to one readable line: names in it come from the script,
+/// so control characters (a newline too) are escaped, not cut at
+/// (regression, hostile probe 3: a key holding a newline ended the message
+/// there, and a key holding `x.lua:42:` was taken for Luau's location).
+/// Errors of Luau's go through [`read::from_lua`].
 pub(super) fn declaration(
     src: &ScriptSource,
     needle: Option<&str>,
     msg: impl Into<String>,
 ) -> SimError {
-    let msg = msg.into();
-    let first = msg
-        .lines()
-        .next()
-        .unwrap_or("")
-        .trim_start_matches("runtime error: ");
-    let own = format!("{}.lua:", src.name);
-    let (line, msg) = match first.find(&own) {
-        Some(i) => (
-            super::errors::line_of(&first[i..]),
-            super::errors::strip_location(&first[i..]),
-        ),
-        None => (
-            needle.and_then(|n| line_in(&src.text, n)),
-            first.to_string(),
-        ),
-    };
     SimError::Declaration {
         script: src.name.clone(),
-        line,
-        // Names in it come from the script: no raw control characters.
-        msg: super::log::escape_controls(&msg, false).into_owned(),
+        line: needle.and_then(|n| line_in(&src.text, n)),
+        msg: super::errors::one_line(&msg.into()),
     }
 }
 
@@ -68,66 +54,24 @@ pub(super) fn a(type_name: &str) -> String {
     }
 }
 
-fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<String>, SimError> {
-    let v: Value = t
-        .get(field)
-        .map_err(|e| declaration(src, Some(field), e.to_string()))?;
-    match v {
-        Value::Nil => Ok(Vec::new()),
-        Value::Table(list) => {
-            let mut out = Vec::new();
-            for item in list.sequence_values::<Value>() {
-                match item {
-                    Ok(Value::String(s)) => {
-                        out.push(s.to_str().map(|s| s.to_string()).unwrap_or_default())
-                    }
-                    Ok(other) => {
-                        return Err(declaration(
-                            src,
-                            Some(field),
-                            format!(
-                                "'{field}' must list strings, found {}",
-                                a(other.type_name())
-                            ),
-                        ));
-                    }
-                    Err(e) => return Err(declaration(src, Some(field), e.to_string())),
-                }
-            }
-            Ok(out)
-        }
-        other => Err(declaration(
-            src,
-            Some(field),
-            format!(
-                "'{field}' must be a list of strings, found {}",
-                a(other.type_name())
-            ),
-        )),
-    }
-}
-
-fn number(src: &ScriptSource, t: &Table, field: &str, param: &str) -> Result<f64, SimError> {
-    match t.get::<Value>(field) {
-        Ok(Value::Number(n)) => Ok(n),
-        Ok(Value::Integer(n)) => Ok(n as f64),
-        Ok(other) => Err(declaration(
-            src,
-            Some(param),
-            format!(
-                "parameter '{param}': '{field}' must be a number, found {}",
-                a(other.type_name())
-            ),
-        )),
-        Err(e) => Err(declaration(src, Some(param), e.to_string())),
-    }
-}
-
 /// The validated declarations of the table `def` that `src` returned.
 pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimError> {
     only_known_keys(src, def, "the script's table", &SCRIPT_KEYS)?;
+    // The grid first: a typo there explains the rest (regression: `grid =
+    // "voxel"` was reported as declaring no channels).
+    let grid = match field(src, def, "grid")? {
+        Value::Nil => Grid::Columns,
+        Value::String(g) if g.to_str().is_ok_and(|g| g == "columns") => Grid::Columns,
+        Value::String(g) if g.to_str().is_ok_and(|g| g == "voxels") => Grid::Voxels,
+        _ => {
+            return Err(declaration(
+                src,
+                Some("grid"),
+                "'grid' must be \"columns\" or \"voxels\"",
+            ));
+        }
+    };
     let channels = strings(src, def, "channels")?;
-    no_duplicates(src, "channel", &channels)?;
     if channels.len() > MAX_SCRIPT_CHANNELS {
         return Err(declaration(
             src,
@@ -138,27 +82,13 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             ),
         ));
     }
-    let voxel_grid = matches!(def.get::<Value>("grid"), Ok(Value::String(ref g)) if g.to_str().is_ok_and(|g| g == "voxels"));
-    if channels.is_empty() && !voxel_grid {
+    if channels.is_empty() && grid == Grid::Columns {
         return Err(declaration(
             src,
             Some("channels"),
             "the script declares no channels",
         ));
     }
-    let grid = match def.get::<Value>("grid") {
-        Ok(Value::Nil) => Grid::Columns,
-        Ok(Value::String(g)) if g.to_str().is_ok_and(|g| g == "columns") => Grid::Columns,
-        Ok(Value::String(g)) if g.to_str().is_ok_and(|g| g == "voxels") => Grid::Voxels,
-        Err(e) => return Err(declaration(src, Some("grid"), e.to_string())),
-        _ => {
-            return Err(declaration(
-                src,
-                Some("grid"),
-                "'grid' must be \"columns\" or \"voxels\"",
-            ));
-        }
-    };
     // A declaration the runtime would not act on for this grid is refused,
     // not ignored (regression: `nonnegative`, `boundary` and `cfl` loaded on
     // voxel scripts and did nothing).
@@ -166,12 +96,16 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         Grid::Columns => (&VOXEL_ONLY, "voxel scripts (grid = \"voxels\")"),
         Grid::Voxels => (&COLUMN_ONLY, "column scripts (grid = \"columns\")"),
     };
-    for field in foreign {
-        let v: Value = def
-            .get(*field)
-            .map_err(|e| declaration(src, Some(field), e.to_string()))?;
+    for key in foreign {
+        let v = field(src, def, key)?;
         // `sky = false` says nothing, on either grid.
-        if !matches!(v, Value::Nil | Value::Boolean(false)) {
+        let says_nothing = match v {
+            Value::Nil => true,
+            Value::Boolean(false) => *key == "sky",
+            _ => false,
+        };
+        if !says_nothing {
+            let field = key;
             return Err(declaration(
                 src,
                 Some(field),
@@ -183,9 +117,9 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
     let only = strings(src, def, "only")?;
     let keep_awake = strings(src, def, "keep_awake")?;
     let conserved = strings(src, def, "conserved")?;
-    let sky = match def.get::<Value>("sky") {
-        Ok(Value::Nil) => false,
-        Ok(Value::Boolean(b)) if grid == Grid::Voxels || !b => b,
+    let sky = match field(src, def, "sky")? {
+        Value::Nil => false,
+        Value::Boolean(b) if grid == Grid::Voxels || !b => b,
         _ => {
             return Err(declaration(
                 src,
@@ -209,18 +143,12 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         }
     };
     let mut boundary = Vec::new();
-    match def.get::<Value>("boundary") {
-        Ok(Value::Nil) => {}
-        Ok(Value::Table(t)) => {
-            for pair in t.pairs::<String, f64>() {
-                let (ch, v) = pair.map_err(|e| {
-                    declaration(
-                        src,
-                        Some("boundary"),
-                        format!("'boundary' maps channel names to numbers: {e}"),
-                    )
-                })?;
+    match field(src, def, "boundary")? {
+        Value::Nil => {}
+        Value::Table(t) => {
+            for (ch, v) in map(src, &t, "boundary")? {
                 known(&ch, "'boundary'")?;
+                let v = number(src, &v, &format!("boundary.{ch}"), "boundary")?;
                 if !v.is_finite() {
                     return Err(declaration(
                         src,
@@ -244,20 +172,20 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
     for d in &drains {
         known(d, "'drains'")?;
     }
-    let cfl = match def.get::<Value>("cfl") {
-        Ok(Value::Nil) => None,
-        Ok(Value::Table(t)) => {
-            let bad = || {
-                declaration(
-                    src,
-                    Some("cfl"),
-                    "'cfl' is { depth = CHANNEL, velocities = { CHANNEL… }, gravity = PARAM, dx = PARAM }",
-                )
-            };
+    let cfl = match field(src, def, "cfl")? {
+        Value::Nil => None,
+        Value::Table(t) => {
             only_known_keys(src, &t, "'cfl'", &["depth", "velocities", "gravity", "dx"])?;
-            let depth: String = t.get("depth").map_err(|_| bad())?;
-            let gravity: String = t.get("gravity").map_err(|_| bad())?;
-            let dx: String = t.get("dx").map_err(|_| bad())?;
+            let name = |key: &str| -> Result<String, SimError> {
+                text(src, &field(src, &t, key)?, &format!("cfl.{key}")).map_err(|_| {
+                    declaration(
+                        src,
+                        Some("cfl"),
+                        "'cfl' is { depth = CHANNEL, velocities = { CHANNEL… }, gravity = PARAM, dx = PARAM }",
+                    )
+                })
+            };
+            let (depth, gravity, dx) = (name("depth")?, name("gravity")?, name("dx")?);
             let velocities = strings(src, &t, "velocities")?;
             known(&depth, "'cfl.depth'")?;
             for v in &velocities {
@@ -273,17 +201,11 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         _ => return Err(declaration(src, Some("cfl"), "'cfl' must be a table")),
     };
     let mut fills = Vec::new();
-    match def.get::<Value>("fills") {
-        Ok(Value::Nil) => {}
-        Ok(Value::Table(t)) => {
-            for pair in t.pairs::<String, String>() {
-                let (ch, m) = pair.map_err(|e| {
-                    declaration(
-                        src,
-                        Some("fills"),
-                        format!("'fills' maps channel names to material names: {e}"),
-                    )
-                })?;
+    match field(src, def, "fills")? {
+        Value::Nil => {}
+        Value::Table(t) => {
+            for (ch, m) in map(src, &t, "fills")? {
+                let m = text(src, &m, &format!("fills.{ch}"))?;
                 if !channels.contains(&ch) || !materials.contains(&m) {
                     return Err(declaration(
                         src,
@@ -329,10 +251,10 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         known(c, "'conserved'")?;
     }
     let mut params = Vec::new();
-    match def.get::<Value>("params") {
-        Ok(Value::Nil) => {}
-        Ok(Value::Table(t)) => {
-            for pair in t.pairs::<String, Value>() {
+    match field(src, def, "params")? {
+        Value::Nil => {}
+        Value::Table(t) => {
+            for (name, v) in map(src, &t, "params")? {
                 // Every parameter is in each `/status` and each step's
                 // context: 50 000 of them slowed the engine fourfold.
                 if params.len() == MAX_SCRIPT_PARAMS {
@@ -342,8 +264,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                         format!("more than {MAX_SCRIPT_PARAMS} parameters"),
                     ));
                 }
-                let (name, v) =
-                    pair.map_err(|e| declaration(src, Some("params"), format!("params: {e}")))?;
                 plain(src, "parameter", &name)?;
                 let Value::Table(p) = v else {
                     return Err(declaration(
@@ -358,11 +278,11 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                     &format!("parameter '{name}'"),
                     &["default", "min", "max"],
                 )?;
-                let (default, min, max) = (
-                    number(src, &p, "default", &name)?,
-                    number(src, &p, "min", &name)?,
-                    number(src, &p, "max", &name)?,
-                );
+                let value = |key: &str| -> Result<f64, SimError> {
+                    let v = field(src, &p, key)?;
+                    number(src, &v, &format!("parameter '{name}': '{key}'"), &name)
+                };
+                let (default, min, max) = (value("default")?, value("min")?, value("max")?);
                 // Ranges are finite (regression: `min = -math.huge` loaded,
                 // and `/status` showed the range as `null`).
                 if !(default.is_finite() && min.is_finite() && max.is_finite()) {
@@ -397,22 +317,19 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             }
             params.sort_by(|a, b| a.name.cmp(&b.name));
         }
-        Ok(other) => {
+        other => {
             return Err(declaration(
                 src,
                 Some("params"),
                 format!("'params' must be a table, found {}", a(other.type_name())),
             ));
         }
-        Err(e) => return Err(declaration(src, Some("params"), e.to_string())),
     }
     let mut ranges = Vec::new();
-    match def.get::<Value>("ranges") {
-        Ok(Value::Nil) => {}
-        Ok(Value::Table(t)) => {
-            for pair in t.pairs::<String, Value>() {
-                let (name, v) =
-                    pair.map_err(|e| declaration(src, Some("ranges"), format!("ranges: {e}")))?;
+    match field(src, def, "ranges")? {
+        Value::Nil => {}
+        Value::Table(t) => {
+            for (name, v) in map(src, &t, "ranges")? {
                 known(&name, "'ranges'")?;
                 let bad = || {
                     declaration(
@@ -424,8 +341,22 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 let Value::Table(r) = v else {
                     return Err(bad());
                 };
-                let (lo, hi): (f64, f64) =
-                    (r.get(1).map_err(|_| bad())?, r.get(2).map_err(|_| bad())?);
+                // Exactly { min, max }, numbers (regression: extra entries
+                // and numbers written as strings were taken).
+                let entries = list(src, &r, &format!("ranges.{name}"))?;
+                let [lo, hi] = entries.as_slice() else {
+                    return Err(bad());
+                };
+                let (Value::Number(_) | Value::Integer(_), Value::Number(_) | Value::Integer(_)) =
+                    (lo, hi)
+                else {
+                    return Err(bad());
+                };
+                let what = format!("ranges.{name}");
+                let (lo, hi) = (
+                    number(src, lo, &what, "ranges")?,
+                    number(src, hi, &what, "ranges")?,
+                );
                 if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
                     return Err(bad());
                 }
@@ -433,28 +364,34 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
             }
             ranges.sort_by(|a, b| a.0.cmp(&b.0));
         }
-        Ok(other) => {
+        other => {
             return Err(declaration(
                 src,
                 Some("ranges"),
                 format!("'ranges' must be a table, found {}", a(other.type_name())),
             ));
         }
-        Err(e) => return Err(declaration(src, Some("ranges"), e.to_string())),
     }
-    let passes_v: Value = def
-        .get("passes")
-        .map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
-    let Value::Table(passes_t) = passes_v else {
+    let Value::Table(passes_t) = field(src, def, "passes")? else {
         return Err(declaration(
             src,
             Some("passes"),
             "the script has no 'passes' list (each pass needs a kernel)",
         ));
     };
+    let passes_list = list(src, &passes_t, "passes")?;
+    if passes_list.len() > MAX_SCRIPT_PASSES {
+        return Err(declaration(
+            src,
+            Some("passes"),
+            format!(
+                "the script declares {} passes, more than {MAX_SCRIPT_PASSES}",
+                passes_list.len()
+            ),
+        ));
+    }
     let mut passes = Vec::new();
-    for (i, p) in passes_t.sequence_values::<Value>().enumerate() {
-        let p = p.map_err(|e| declaration(src, Some("passes"), e.to_string()))?;
+    for (i, p) in passes_list.into_iter().enumerate() {
         let Value::Table(p) = p else {
             return Err(declaration(
                 src,
@@ -462,9 +399,9 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 format!("passes[{}] must be a table", i + 1),
             ));
         };
-        let name: String = match p.get::<Value>("name") {
-            Ok(Value::String(s)) => s.to_str().map(|s| s.to_string()).unwrap_or_default(),
-            _ => format!("pass{}", i + 1),
+        let name: String = match field(src, &p, "name")? {
+            Value::Nil => format!("pass{}", i + 1),
+            v => text(src, &v, &format!("passes[{}].name", i + 1))?,
         };
         plain(src, "pass", &name)?;
         only_known_keys(
