@@ -31,7 +31,7 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
             scripts.display()
         );
     }
-    let made_scripts = !there(&scripts);
+    let (made_dir, made_scripts) = (!there(dir), !there(&scripts));
     std::fs::create_dir_all(&scripts)
         .with_context(|| format!("cannot create {}", scripts.display()))?;
     // Every file is written in full beside its place first, then linked in
@@ -62,9 +62,13 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
         for p in placed {
             let _ = std::fs::remove_file(p);
         }
+        // Only folders this run made, and only if empty: never anything of
+        // the user's.
         if made_scripts {
-            // Only if empty: never anything of the user's.
             let _ = std::fs::remove_dir(&scripts);
+        }
+        if made_dir {
+            let _ = std::fs::remove_dir(dir);
         }
         return Err(e);
     }

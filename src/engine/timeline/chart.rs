@@ -237,6 +237,16 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             continue;
         }
         let path = dir.join(file);
+        // The names are fixed, inside STATE: anything there but a file
+        // is refused, not written into (regression, hostile probe 3: a
+        // FIFO hung `chart`, and a link made it overwrite a file outside
+        // STATE).
+        if std::fs::symlink_metadata(&path).is_ok_and(|m| !m.file_type().is_file()) {
+            bail!(
+                "{} is not a regular file (a link, folder or FIFO): chart replaces its SVGs there, so move it away",
+                path.display()
+            );
+        }
         xy_chart(&path, title, "tick (log)", y, &list)?;
         out.push(path);
     }
@@ -276,6 +286,8 @@ mod tests {
 
     /// Regression (hostile probe 2): a file at `STATE/charts` gave "cannot
     /// create …: File exists"; it is named as not a folder, and kept.
+    /// Regression (hostile probe 3): a FIFO at a chart's name hung `chart`,
+    /// and a link there made it overwrite the file linked to.
     #[test]
     fn a_file_where_the_charts_go_is_named_and_kept() {
         let dir = std::env::temp_dir().join(format!("bw-chart-file-{}", std::process::id()));
@@ -289,6 +301,22 @@ mod tests {
             "{e}"
         );
         assert_eq!(std::fs::read_to_string(dir.join("charts")).unwrap(), "mine");
+        // Nor is anything but a file written into inside it.
+        std::fs::remove_file(dir.join("charts")).unwrap();
+        std::fs::create_dir(dir.join("charts")).unwrap();
+        let victim = dir.join("victim");
+        std::fs::write(&victim, "mine").unwrap();
+        #[cfg(unix)]
+        {
+            std::os::unix::fs::symlink(&victim, dir.join("charts/totals.svg")).unwrap();
+            let e = chart(&dir).unwrap_err().to_string();
+            assert!(e.contains("totals.svg is not a regular file"), "{e}");
+            assert_eq!(std::fs::read_to_string(&victim).unwrap(), "mine");
+            std::fs::remove_file(dir.join("charts/totals.svg")).unwrap();
+            crate::files::mkfifo(&dir.join("charts/totals.svg"));
+            let e = chart(&dir).unwrap_err().to_string();
+            assert!(e.contains("totals.svg is not a regular file"), "{e}");
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
