@@ -15,8 +15,8 @@
 ---@alias brickworld.Kernel fun(c: brickworld.Context, tx: integer, tz: integer)
 
 ---@class brickworld.Pass
----@field name string
----@field reads string[]   Channels read with a one-column halo.
+---@field name? string    Default: pass1, pass2… by position.
+---@field reads? string[]  Channels read with a one-column halo.
 ---@field writes string[]  Channels written (own tile only).
 ---@field kernel brickworld.Kernel
 

@@ -100,6 +100,11 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[checkpoint]\nevery = 18446744073709551615\n",
             "checkpoint.every (line 4, column 9): 18446744073709551615 is too large",
         ),
+        // (Review: a negative one was "too large" too.)
+        (
+            "[world]\nsource = \"terrain\"\nseed = -1\n",
+            "world.seed (line 3, column 8): -1 is below 0",
+        ),
         (
             "[world]\nsource = \"terrain\"\n[sim]\ndt = \"fast\"\n",
             "sim.dt (line 4, column 6): invalid type: string \"fast\", expected a number",

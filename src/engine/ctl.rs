@@ -129,6 +129,7 @@ fn with_trailing_options(a: &CtlArgs) -> Result<(CtlArgs, Vec<String>)> {
         };
         match name {
             "--no-follow" if inline.is_none() => out.no_follow = true,
+            "--help" => bail!("--help goes before the command words: brickworld ctl --help"),
             "--addr" => out.addr = value("--addr")?,
             "--state" => out.state = value("--state")?.into(),
             n if n.starts_with("--") => bail!(

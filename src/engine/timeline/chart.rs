@@ -138,7 +138,8 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
     }
     let dir = state.join("charts");
     // Regression (hostile probe 2): a file there gave "File exists".
-    if std::fs::symlink_metadata(&dir).is_ok() && !dir.is_dir() {
+    // A link to a folder elsewhere too (review): the SVGs go in STATE.
+    if std::fs::symlink_metadata(&dir).is_ok_and(|m| !m.file_type().is_dir()) {
         bail!(
             "{} is not a folder: chart writes its SVGs there, so move it away",
             dir.display()
@@ -316,6 +317,14 @@ mod tests {
             crate::files::mkfifo(&dir.join("charts/totals.svg"));
             let e = chart(&dir).unwrap_err().to_string();
             assert!(e.contains("totals.svg is not a regular file"), "{e}");
+            // A link to a folder elsewhere is no charts folder (review).
+            std::fs::remove_dir_all(dir.join("charts")).unwrap();
+            let elsewhere = dir.join("elsewhere");
+            std::fs::create_dir(&elsewhere).unwrap();
+            std::os::unix::fs::symlink(&elsewhere, dir.join("charts")).unwrap();
+            let e = chart(&dir).unwrap_err().to_string();
+            assert!(e.contains("charts is not a folder"), "{e}");
+            assert_eq!(std::fs::read_dir(&elsewhere).unwrap().count(), 0);
         }
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -108,7 +108,12 @@ fn plain_types(message: &str) -> String {
     if let Some(rest) = m.strip_prefix("invalid value: integer `")
         && let Some((n, "expected a whole number")) = rest.split_once("`, ")
     {
-        m = format!("{n} is too large");
+        // Or below 0 for a field that takes none (review: "-1 is too large").
+        m = if n.starts_with('-') {
+            format!("{n} is below 0")
+        } else {
+            format!("{n} is too large")
+        };
     }
     m
 }

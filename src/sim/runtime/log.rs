@@ -42,7 +42,7 @@ pub fn escape_controls(text: &str, keep_tab: bool) -> std::borrow::Cow<'_, str> 
     // U+202E reversed the rest of a log line on screen).
     let escaped = |c: char| {
         (c.is_control() && !(keep_tab && c == '\t'))
-            || matches!(c, '\u{061c}' | '\u{200e}' | '\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
+            || matches!(c, '\u{061c}' | '\u{200e}' | '\u{200f}' | '\u{2028}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
     };
     if !text.chars().any(escaped) {
         return std::borrow::Cow::Borrowed(text);

@@ -93,18 +93,19 @@ pub const OUT_OF_MEMORY: &str = "not enough memory";
 /// syntax error or its runtime error, at its line, without Luau's repeated
 /// location, the `runtime error:` tag or a stack traceback.
 pub(super) fn load_error(src: &ScriptSource, e: mlua::Error) -> SimError {
-    let msg = e.to_string();
-    let first = msg.lines().next().unwrap_or("");
+    // Only a location of the script's own, at the start, is a line: text
+    // the script raised (`error("x.lua:42: hi", 0)`) is not (review).
+    let (line, msg) = super::declare::read::lua_text(src, &e);
     match e {
         mlua::Error::SyntaxError { .. } => SimError::Syntax {
             script: src.name.clone(),
-            line: line_of(&msg),
-            msg: one_line(&strip_location(first)),
+            line,
+            msg: one_line(&msg),
         },
         _ => SimError::Declaration {
             script: src.name.clone(),
-            line: line_of(&msg),
-            msg: one_line(&strip_location(first.trim_start_matches("runtime error: "))),
+            line,
+            msg: one_line(&msg),
         },
     }
 }

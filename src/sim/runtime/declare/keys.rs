@@ -71,31 +71,53 @@ pub(in crate::sim::runtime) fn only_known_keys(
     let mut least: Option<String> = None;
     for pair in t.pairs::<Value, Value>() {
         let (k, _) = pair.map_err(|e| super::read::from_lua(src, None, &e))?;
-        let name = match &k {
-            Value::String(s) => s.to_string_lossy(),
-            Value::Integer(i) => format!("[{i}]"),
-            Value::Number(n) => format!("[{n}]"),
-            other => format!("a {} key", other.type_name()),
+        // Integer keys show as `[1]`; a string key written so is no
+        // integer key (regression, review).
+        let (name, is_known) = match &k {
+            Value::String(s) => {
+                let name = s.to_string_lossy();
+                let is_known = known.contains(&name.as_str()) && !name.starts_with('[');
+                (name, is_known)
+            }
+            Value::Integer(i) => {
+                let name = format!("[{i}]");
+                let is_known = known.contains(&name.as_str());
+                (name, is_known)
+            }
+            Value::Number(n) => (format!("[{n}]"), false),
+            other => (format!("a {} key", other.type_name()), false),
         };
-        if !known.contains(&name.as_str()) && least.as_ref().is_none_or(|l| name < *l) {
+        if !is_known && least.as_ref().is_none_or(|l| name < *l) {
             least = Some(name);
         }
     }
     let Some(bad) = least.as_deref() else {
         return Ok(());
     };
-    let near = known
-        .iter()
-        .map(|k| (strsim::damerau_levenshtein(bad, k), *k))
-        .min()
+    // The distance costs len(bad) × len(k): a key far longer than every
+    // known one is near none of them, and is not measured (regression,
+    // review: a 50-million-character key took seconds outside the budget).
+    let longest = known.iter().map(|k| k.len()).max().unwrap_or(0);
+    let near = (bad.len() <= longest + 2)
+        .then(|| {
+            known
+                .iter()
+                .map(|k| (strsim::damerau_levenshtein(bad, k), *k))
+                .min()
+        })
+        .flatten()
         .filter(|(d, k)| *d <= 2.max(k.len() / 3) && *d < bad.len());
     let hint = match near {
         Some((_, k)) => format!("; did you mean '{k}'?"),
         None => format!(" (known: {})", known.join(", ")),
     };
+    // At most 64 characters of it; integer keys give no line (their digits
+    // are anywhere in the file).
+    let shown: String = bad.chars().take(MAX_NAME_LEN).collect();
+    let cut = if shown.len() < bad.len() { "…" } else { "" };
     Err(declaration(
         src,
-        Some(bad.trim_matches(['[', ']'])),
-        format!("{what} has an unknown key '{bad}'{hint}"),
+        (!bad.starts_with('[')).then_some(shown.as_str()),
+        format!("{what} has an unknown key '{shown}{cut}'{hint}"),
     ))
 }

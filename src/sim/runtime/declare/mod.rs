@@ -56,6 +56,14 @@ pub(super) fn a(type_name: &str) -> String {
 
 /// The validated declarations of the table `def` that `src` returned.
 pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimError> {
+    // A plain table: what is declared is what is there.
+    if def.metatable().is_some() {
+        return Err(declaration(
+            src,
+            Some("setmetatable"),
+            "the returned table has a metatable; a declaration is a plain table",
+        ));
+    }
     only_known_keys(src, def, "the script's table", &SCRIPT_KEYS)?;
     // The grid first: a typo there explains the rest (regression: `grid =
     // "voxel"` was reported as declaring no channels).
@@ -81,6 +89,19 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 channels.len()
             ),
         ));
+    }
+    // Names are bounded (64 plain characters) before any is compared with
+    // another (regression, review: 40 KB names made the checks below cost
+    // a second of Rust time per load).
+    for c in &channels {
+        if c == MAT && grid == Grid::Voxels {
+            return Err(declaration(
+                src,
+                Some(c),
+                "'mat' is the material buffer; name the channel otherwise",
+            ));
+        }
+        plain(src, "channel", c)?;
     }
     if channels.is_empty() && grid == Grid::Columns {
         return Err(declaration(
@@ -114,6 +135,9 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         }
     }
     let materials = strings(src, def, "materials")?;
+    for m in &materials {
+        plain(src, "material", m)?;
+    }
     let only = strings(src, def, "only")?;
     let keep_awake = strings(src, def, "keep_awake")?;
     let conserved = strings(src, def, "conserved")?;
@@ -177,7 +201,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         Value::Table(t) => {
             only_known_keys(src, &t, "'cfl'", &["depth", "velocities", "gravity", "dx"])?;
             let name = |key: &str| -> Result<String, SimError> {
-                text(src, &field(src, &t, key)?, &format!("cfl.{key}")).map_err(|_| {
+                text(src, &field(src, &t, key)?, &format!("cfl.{key}"), "cfl").map_err(|_| {
                     declaration(
                         src,
                         Some("cfl"),
@@ -205,7 +229,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         Value::Nil => {}
         Value::Table(t) => {
             for (ch, m) in map(src, &t, "fills")? {
-                let m = text(src, &m, &format!("fills.{ch}"))?;
+                let m = text(src, &m, &format!("fills.{ch}"), "fills")?;
                 if !channels.contains(&ch) || !materials.contains(&m) {
                     return Err(declaration(
                         src,
@@ -221,9 +245,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         }
         _ => return Err(declaration(src, Some("fills"), "'fills' must be a table")),
     }
-    for m in &materials {
-        plain(src, "material", m)?;
-    }
     for m in only.iter().chain(&keep_awake) {
         if !materials.contains(m) {
             return Err(declaration(
@@ -232,16 +253,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 format!("material '{m}' must also be listed in 'materials'"),
             ));
         }
-    }
-    for c in &channels {
-        if c == MAT && grid == Grid::Voxels {
-            return Err(declaration(
-                src,
-                Some(c),
-                "'mat' is the material buffer; name the channel otherwise",
-            ));
-        }
-        plain(src, "channel", c)?;
     }
     let nonnegative = strings(src, def, "nonnegative")?;
     for c in &nonnegative {
@@ -401,7 +412,7 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
         };
         let name: String = match field(src, &p, "name")? {
             Value::Nil => format!("pass{}", i + 1),
-            v => text(src, &v, &format!("passes[{}].name", i + 1))?,
+            v => text(src, &v, &format!("passes[{}].name", i + 1), "name")?,
         };
         plain(src, "pass", &name)?;
         only_known_keys(

@@ -20,15 +20,19 @@ use crate::sim::runtime::spec::ScriptSource;
 pub const MAX_LIST: usize = 1024;
 
 /// The first line of one of Luau's errors, without its `runtime error:`
-/// tag, and the line it names in `src` if it starts with `src`'s own
+/// or `syntax error:` tag, and the line it names in `src` if it starts with `src`'s own
 /// location (which it then loses).
-pub(super) fn lua_text(src: &ScriptSource, e: &mlua::Error) -> (Option<usize>, String) {
+pub(in crate::sim::runtime) fn lua_text(
+    src: &ScriptSource,
+    e: &mlua::Error,
+) -> (Option<usize>, String) {
     let text = e.to_string();
     let first = text
         .lines()
         .next()
         .unwrap_or("")
-        .trim_start_matches("runtime error: ");
+        .trim_start_matches("runtime error: ")
+        .trim_start_matches("syntax error: ");
     let own = format!("{}.lua:", src.name);
     if let Some(rest) = first.strip_prefix(&own)
         && let Some((line, msg)) = rest.split_once(": ")
@@ -63,9 +67,11 @@ pub(in crate::sim::runtime) fn from_lua(
     }
 }
 
-/// `t[field]`, or the declaration error of a metamethod that failed.
+/// `t[field]`, read raw: a metatable's `__index` is never called, so
+/// what is read is what the key checks saw (regression, review: a
+/// declaration served by `__index` passed the unknown-key check unseen).
 pub(super) fn field(src: &ScriptSource, t: &Table, field: &str) -> Result<Value, SimError> {
-    t.get(field).map_err(|e| from_lua(src, Some(field), &e))
+    t.raw_get(field).map_err(|e| from_lua(src, Some(field), &e))
 }
 
 /// The error of a list or map `what` past [`MAX_LIST`] entries (it is
@@ -129,19 +135,25 @@ pub(super) fn list(src: &ScriptSource, t: &Table, what: &str) -> Result<Vec<Valu
     Ok(entries.into_iter().map(|e| e.1).collect())
 }
 
-/// A string value as UTF-8 text, or an error naming `what`.
-pub(super) fn text(src: &ScriptSource, v: &Value, what: &str) -> Result<String, SimError> {
+/// A string value as UTF-8 text, or an error naming `what`, at the line of
+/// `needle`.
+pub(super) fn text(
+    src: &ScriptSource,
+    v: &Value,
+    what: &str,
+    needle: &str,
+) -> Result<String, SimError> {
     match v {
         Value::String(s) => s.to_str().map(|s| s.to_string()).map_err(|_| {
             declaration(
                 src,
-                Some(what),
+                Some(needle),
                 format!("{what}: {:?} is not UTF-8 text", s.to_string_lossy()),
             )
         }),
         other => Err(declaration(
             src,
-            Some(what),
+            Some(needle),
             format!("{what} must be a string, found {}", a(other.type_name())),
         )),
     }
@@ -173,7 +185,7 @@ pub(super) fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<
                 format!("'{field}' must list strings, found {}", a(v.type_name())),
             ));
         }
-        let s = text(src, &v, &format!("an entry of '{field}'"))?;
+        let s = text(src, &v, &format!("an entry of '{field}'"), field)?;
         if !seen.insert(s.clone()) {
             return Err(declaration(
                 src,
@@ -225,7 +237,7 @@ pub(super) fn map(
                 ),
             ));
         }
-        let name = text(src, &k, &format!("a key of '{what}'"))?;
+        let name = text(src, &k, &format!("a key of '{what}'"), what)?;
         if out.len() == MAX_LIST {
             return Err(too_many(src, what));
         }
