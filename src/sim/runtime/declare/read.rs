@@ -40,7 +40,18 @@ pub(in crate::sim::runtime) fn lua_text(
     {
         return (Some(line), msg.to_string());
     }
-    (None, first.to_string())
+    // Else the line Luau's own traceback names first (a budget error, which
+    // has no location; regression: "instruction budget exceeded" at load
+    // lost its line): after the last "stack traceback:", so that text the
+    // script raised cannot pose as it.
+    let line = text.rsplit_once("stack traceback:").and_then(|(_, tb)| {
+        tb.lines().find_map(|l| {
+            let at = l.find(&own)?;
+            let (n, _) = l[at + own.len()..].split_once(':')?;
+            n.parse::<usize>().ok()
+        })
+    });
+    (line, first.to_string())
 }
 
 /// A declaration error from one of Luau's (a metamethod of the returned
