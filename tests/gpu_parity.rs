@@ -332,3 +332,47 @@ fn an_eye_past_2_24_voxels_sees_the_world_on_every_tracer() {
         .collect();
     assert!(differ.is_empty(), "the GPU sees other voxels: {differ:?}");
 }
+
+/// Regression (review): with level of detail, a far eye's rays took their
+/// levels from where their walk started (2^23 voxels from the anchor), not
+/// from the eye, so they were finer than the footprint allows and than the
+/// GPU's. At 2·10⁷ voxels a pixel here spans about 54 voxels: every hit is
+/// a 32-voxel cell, and the GPU enters the same cells (depths within the 2
+/// voxels its f32 eye is off by).
+#[test]
+fn a_far_eye_takes_its_levels_from_the_eye() {
+    let b = common::Built::new("terrain", glam::IVec3::new(256, 64, 256), 1);
+    let cam = Camera::new(
+        DVec3::new(2e7, 100.0, 128.0),
+        DVec3::new(128.0, 32.0, 128.0),
+        0.01,
+        64,
+        64,
+    )
+    .unwrap();
+    let opts = RenderOptions {
+        lod: 1.0,
+        ..Default::default()
+    };
+    let bm = b.brickmap();
+    let palette = b.world.store().palette();
+    let cpu = render(&bm, &cam, palette, &opts);
+    let hits: Vec<_> = cpu.hits.iter().flatten().collect();
+    assert!(hits.len() >= 3, "the far eye sees {} cells", hits.len());
+    for h in &hits {
+        assert_eq!(h.level, 5, "a hit on level {} at t {}", h.level, h.t);
+    }
+    let Some(ctx) = context() else { return };
+    let mut gpu =
+        GpuBrickmap::preloaded(&ctx, b.world.grid(), b.world.store().pool(), palette).unwrap();
+    let (g, _) = gpu
+        .render(&ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
+        .unwrap();
+    for i in 0..cpu.depth.len() {
+        let (c, d) = (cpu.depth[i], g.depth[i]);
+        assert!(
+            c == d || (c - d).abs() <= 4.0,
+            "pixel {i}: the CPU's depth {c}, the GPU's {d}"
+        );
+    }
+}

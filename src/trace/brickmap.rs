@@ -311,6 +311,15 @@ impl Tracer for BrickmapTracer<'_> {
         }
     }
 
+    fn trace_skipped(&self, ray: &Ray, t_max: f32, k: f32, skipped: f32) -> Option<Hit> {
+        if k == 0.0 {
+            self.trace_exact_from(ray, 0.0, t_max)
+        } else {
+            let (r, st) = self.start(ray, 0.0)?;
+            self.walk::<true>(&r, st, t_max, &Footprint::skipped(k, skipped))
+        }
+    }
+
     fn beam_start(&self, centre: &Ray, spread: f32, k: f32) -> f32 {
         BrickmapTracer::beam_start(self, centre, spread, k)
     }

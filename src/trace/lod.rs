@@ -83,6 +83,23 @@ impl Footprint {
         fp
     }
 
+    /// The footprint of `k` for a ray whose `t` counts from `skipped`
+    /// voxels past the eye: each level's distance moves that much closer
+    /// (regression, review: a far eye's rays took levels as if their walk
+    /// started at the eye, finer than the GPU's).
+    pub(super) fn skipped(k: f32, skipped: f32) -> Self {
+        let fp = Footprint::new(k);
+        Footprint {
+            at: fp.at.map(|a| {
+                if a.is_finite() {
+                    (a as f64 - skipped as f64).max(0.0) as f32
+                } else {
+                    a
+                }
+            }),
+        }
+    }
+
     /// The level whose cells a ray may take whole at distance `t`.
     #[inline(always)]
     pub(super) fn allowed(&self, t: f32) -> u32 {

@@ -93,6 +93,14 @@ pub trait Tracer: Sync {
         let _ = t_start;
         self.trace_lod(ray, t_max, k)
     }
+    /// [`trace_lod`](Self::trace_lod) for a ray whose start lies `skipped`
+    /// voxels along from the eye (a far eye's ray, started where it enters
+    /// the exact range): the footprint is measured from the eye. Tracers
+    /// without levels ignore `skipped`.
+    fn trace_skipped(&self, ray: &Ray, t_max: f32, k: f32, skipped: f32) -> Option<Hit> {
+        let _ = skipped;
+        self.trace_lod(ray, t_max, k)
+    }
     /// A distance before which every ray within `spread` (tangent of the
     /// half-angle) of `centre` meets nothing, at level of detail `k`; 0
     /// (the default) when the tracer cannot say.

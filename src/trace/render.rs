@@ -330,7 +330,11 @@ pub fn render(
                             s[(j as u32 / super::BEAM * bw + i as u32 / super::BEAM) as usize]
                         });
                         let found = shift.and_then(|shift| {
-                            let hit = tracer.trace_from(&ray, t0, f32::INFINITY, lod_k)?;
+                            let hit = if shift > 0.0 {
+                                tracer.trace_skipped(&ray, f32::INFINITY, lod_k, shift as f32)
+                            } else {
+                                tracer.trace_from(&ray, t0, f32::INFINITY, lod_k)
+                            }?;
                             Some((hit, shift))
                         });
                         let c = match found {
