@@ -151,6 +151,20 @@ pub fn xy_chart(
     staged(path, |tmp| draw_xy(tmp, title, x_desc, y_desc, series))
 }
 
+/// [`xy_chart`]'s SVG text, for a caller that writes it itself (`path`
+/// names it in errors).
+pub fn xy_svg(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[Series],
+) -> Result<String, ChartError> {
+    let mut svg = String::new();
+    draw_xy(&mut svg, title, x_desc, y_desc, series).map_err(|e| ChartError::new(path, e))?;
+    Ok(svg)
+}
+
 fn draw_xy(
     svg: &mut String,
     title: &str,

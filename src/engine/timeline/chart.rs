@@ -108,7 +108,7 @@ pub fn read_tail(path: &Path, rows: usize) -> Result<Table> {
 
 /// `brickworld chart STATE`: draw the timeline as SVG charts in `STATE/charts`.
 pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
-    use crate::bench::chart::{Series, xy_chart};
+    use crate::bench::chart::Series;
     use plotters::style::RGBColor;
     let table = read(&state.join("timeline.csv"))?;
     let rows = &table.rows;
@@ -248,7 +248,18 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
                 path.display()
             );
         }
-        xy_chart(&path, title, "tick (log)", y, &list)?;
+        // Written beside and renamed over its name: a link or FIFO put
+        // there after the check above is replaced, never written through.
+        let svg = crate::bench::chart::xy_svg(&path, title, "tick (log)", y, &list)?;
+        let (tmp, mut f) = crate::files::fresh_temp_beside(&path)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        let written = std::io::Write::write_all(&mut f, svg.as_bytes())
+            .and_then(|_| f.sync_all())
+            .and_then(|_| std::fs::rename(&tmp, &path));
+        if let Err(e) = written {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(e).with_context(|| format!("cannot write {}", path.display()));
+        }
         out.push(path);
     }
     Ok(out)
