@@ -1082,8 +1082,10 @@ fn a_refused_import_leaves_no_state_directory_behind() {
 #[cfg(target_os = "linux")]
 #[test]
 fn a_failed_init_leaves_nothing_and_the_next_one_succeeds() {
-    let dir = tmp("init-fsize");
-    let _ = std::fs::remove_dir_all(&dir);
+    // Two levels that do not exist yet: both are made, both go again.
+    let top = tmp("init-fsize");
+    let _ = std::fs::remove_dir_all(&top);
+    let dir = top.join("world");
     let d = dir.to_str().unwrap();
     // 8 KiB: smaller than water3d.lua, larger than most scripts.
     let out = std::process::Command::new("bash")
@@ -1096,7 +1098,7 @@ fn a_failed_init_leaves_nothing_and_the_next_one_succeeds() {
         .unwrap();
     assert_clear_failure(&out, "init past ulimit -f", "File too large");
     // Not even DIR, which it made (hostile probe 3).
-    assert!(!dir.exists(), "a failed init left {:?}", walk(&dir));
+    assert!(!top.exists(), "a failed init left {:?}", walk(&top));
     let out = bin().args(["init", d]).output().unwrap();
     assert!(out.status.success(), "{out:?}");
     let water3d = std::fs::read_to_string(dir.join("scripts/water3d.lua")).unwrap();

@@ -31,7 +31,13 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
             scripts.display()
         );
     }
-    let (made_dir, made_scripts) = (!there(dir), !there(&scripts));
+    // The folders this run makes: DIR, any missing parents, and scripts.
+    let made: Vec<PathBuf> = dir
+        .ancestors()
+        .take_while(|a| !a.as_os_str().is_empty() && !there(a))
+        .map(Path::to_path_buf)
+        .collect();
+    let made_scripts = !there(&scripts);
     std::fs::create_dir_all(&scripts)
         .with_context(|| format!("cannot create {}", scripts.display()))?;
     // Every file is written in full beside its place first, then linked in
@@ -67,8 +73,8 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
         if made_scripts {
             let _ = std::fs::remove_dir(&scripts);
         }
-        if made_dir {
-            let _ = std::fs::remove_dir(dir);
+        for d in &made {
+            let _ = std::fs::remove_dir(d);
         }
         return Err(e);
     }
