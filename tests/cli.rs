@@ -1149,7 +1149,11 @@ fn a_materials_file_that_is_not_a_file_is_refused_and_its_errors_say_it_once() {
         sand.to_str().unwrap(),
     ];
     std::fs::create_dir(&materials).unwrap();
-    expect_failure(&args, "materials.lua is not a regular file");
+    // Named once, by its path (hostile probe 3: the name came twice).
+    let out = bin().args(args).output().unwrap();
+    assert_clear_failure(&out, "a folder", "materials.lua is not a regular file");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("materials.lua").count(), 1, "{err}");
     std::fs::remove_dir(&materials).unwrap();
     mkfifo(&materials);
     expect_failure(&args, "materials.lua is not a regular file");

@@ -129,6 +129,7 @@ fn with_trailing_options(a: &CtlArgs) -> Result<(CtlArgs, Vec<String>)> {
         };
         match name {
             "--no-follow" if inline.is_none() => out.no_follow = true,
+            "--no-follow" => bail!("--no-follow takes no value"),
             "--help" => bail!("--help goes before the command words: brickworld ctl --help"),
             "--addr" => out.addr = value("--addr")?,
             "--state" => out.state = value("--state")?.into(),
@@ -400,6 +401,8 @@ mod tests {
         assert_eq!(words, ["log", "water"]);
         let e = args(&["status", "--addr"]).unwrap_err().to_string();
         assert_eq!(e, "--addr needs a value");
+        let e = args(&["log", "--no-follow=yes"]).unwrap_err().to_string();
+        assert_eq!(e, "--no-follow takes no value");
         let e = args(&["status", "--adr", "x"]).unwrap_err().to_string();
         assert!(e.starts_with("unknown option '--adr' for ctl"), "{e}");
     }

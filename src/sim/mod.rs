@@ -167,6 +167,17 @@ pub enum SimError {
         /// What is wrong.
         msg: String,
     },
+    /// A script's file could not be read (missing, not a regular file, too
+    /// large). The message names the file's path, so not its name again
+    /// (regression, hostile probe 3: "materials.lua: …/materials.lua is
+    /// not a regular file").
+    #[error("{msg}")]
+    File {
+        /// Script name.
+        script: String,
+        /// What is wrong, with the path.
+        msg: String,
+    },
     /// Unexpected failure inside the runtime.
     #[error("simulation runtime: {0}")]
     Internal(String),

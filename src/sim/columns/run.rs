@@ -74,12 +74,10 @@ pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
     }
     // Only a regular file of bounded size: a FIFO hung the engine and a
     // link to /dev/zero filled memory (regression).
-    let text =
-        crate::files::read_text(path, MAX_SCRIPT_BYTES).map_err(|e| SimError::Declaration {
-            script: name.clone(),
-            line: None,
-            msg: e.to_string(),
-        })?;
+    let text = crate::files::read_text(path, MAX_SCRIPT_BYTES).map_err(|e| SimError::File {
+        script: name.clone(),
+        msg: e.to_string(),
+    })?;
     Ok(ScriptSource {
         name,
         text: text.into(),
