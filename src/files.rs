@@ -315,6 +315,19 @@ impl Staged {
         })
     }
 
+    /// A fresh temporary file beside `dest` that replaces whatever is at
+    /// `dest` itself on commit: a link or FIFO there is replaced, never
+    /// followed or written into. For the files the engine names inside its
+    /// own folders (`chart`'s SVGs), where nothing there is the user's.
+    pub fn replacing(dest: &Path) -> std::io::Result<Self> {
+        let (tmp, _) = fresh_temp_beside(dest)?;
+        Ok(Staged {
+            tmp,
+            dest: dest.to_path_buf(),
+            done: false,
+        })
+    }
+
     /// Where to write the content.
     pub fn path(&self) -> &Path {
         &self.tmp
@@ -353,6 +366,33 @@ pub(crate) fn mkfifo(path: &Path) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `Staged::replacing` replaces a link at its destination instead of
+    /// writing through it, and leaves no temporary file.
+    #[cfg(unix)]
+    #[test]
+    fn a_replacing_stage_replaces_a_link_and_never_follows_it() {
+        let dir = std::env::temp_dir().join(format!("bw-replacing-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let target = dir.join("target");
+        std::fs::write(&target, "mine").unwrap();
+        let dest = dir.join("chart.svg");
+        std::os::unix::fs::symlink(&target, &dest).unwrap();
+        let f = Staged::replacing(&dest).unwrap();
+        std::fs::write(f.path(), "new").unwrap();
+        f.commit().unwrap();
+        assert!(
+            std::fs::symlink_metadata(&dest)
+                .unwrap()
+                .file_type()
+                .is_file()
+        );
+        assert_eq!(std::fs::read_to_string(&dest).unwrap(), "new");
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "mine");
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 2);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     fn dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("bw-files-{name}-{}", std::process::id()));

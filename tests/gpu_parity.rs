@@ -278,6 +278,33 @@ fn gpu_matches_cpu_with_ambient_occlusion() {
     );
 }
 
+/// The far eye of the two tests below: 2·10⁷ voxels out, looking at a
+/// 256-voxel terrain through 0.01° over 64 rows (the world is about 5
+/// pixels wide, a pixel about 54 voxels).
+const FAR_EYE: DVec3 = DVec3::new(2e7, 100.0, 128.0);
+
+fn far_view() -> (&'static common::Built, Camera) {
+    static WORLD: std::sync::OnceLock<common::Built> = std::sync::OnceLock::new();
+    let b = WORLD.get_or_init(|| common::Built::new("terrain", glam::IVec3::new(256, 64, 256), 1));
+    let cam = Camera::new(FAR_EYE, DVec3::new(128.0, 32.0, 128.0), 0.01, 64, 64).unwrap();
+    (b, cam)
+}
+
+/// The GPU's frame of `cam` over `b` with `opts`.
+fn gpu_frame(
+    ctx: &GpuContext,
+    b: &common::Built,
+    cam: &Camera,
+    opts: &RenderOptions,
+) -> brickworld::gpu::GpuFrame {
+    let palette = b.world.store().palette();
+    let mut gpu =
+        GpuBrickmap::preloaded(ctx, b.world.grid(), b.world.store().pool(), palette).unwrap();
+    gpu.render(ctx, cam, opts, b.world.grid(), b.world.store().pool())
+        .unwrap()
+        .0
+}
+
 /// Regression (hostile probe): an eye more than 2^24 voxels from the
 /// world's anchor saw nothing on the CPU (the DDA refuses origins whose f32
 /// coordinates are no longer exact). Its rays now start where they enter
@@ -288,10 +315,8 @@ fn gpu_matches_cpu_with_ambient_occlusion() {
 #[test]
 fn an_eye_past_2_24_voxels_sees_the_world_on_every_tracer() {
     use brickworld::trace::Tracer;
-    let b = common::Built::new("terrain", glam::IVec3::new(256, 64, 256), 1);
-    let eye = DVec3::new(2e7, 100.0, 128.0);
-    // 0.01° over 64 rows: the 256-voxel world is about 5 pixels wide.
-    let cam = Camera::new(eye, DVec3::new(128.0, 32.0, 128.0), 0.01, 64, 64).unwrap();
+    let (b, cam) = far_view();
+    let eye = FAR_EYE;
     let opts = RenderOptions::default();
     let bm = b.brickmap();
     let palette = b.world.store().palette();
@@ -314,11 +339,7 @@ fn an_eye_past_2_24_voxels_sees_the_world_on_every_tracer() {
         assert_eq!(f.hits, frames[0].hits, "{} differs from dense", t.name());
     }
     let Some(ctx) = context() else { return };
-    let mut gpu =
-        GpuBrickmap::preloaded(&ctx, b.world.grid(), b.world.store().pool(), palette).unwrap();
-    let (g, _) = gpu
-        .render(&ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
-        .unwrap();
+    let g = gpu_frame(&ctx, b, &cam, &opts);
     let cpu: Vec<_> = frames[0].hits.iter().map(|h| h.map(|h| h.voxel)).collect();
     let gpu_hits: Vec<_> = g.hits.iter().map(|h| h.map(|h| h.0)).collect();
     // The shader's eye is f32, so 2e7 voxels out it is rounded to 2 voxels
@@ -341,15 +362,7 @@ fn an_eye_past_2_24_voxels_sees_the_world_on_every_tracer() {
 /// voxels its f32 eye is off by).
 #[test]
 fn a_far_eye_takes_its_levels_from_the_eye() {
-    let b = common::Built::new("terrain", glam::IVec3::new(256, 64, 256), 1);
-    let cam = Camera::new(
-        DVec3::new(2e7, 100.0, 128.0),
-        DVec3::new(128.0, 32.0, 128.0),
-        0.01,
-        64,
-        64,
-    )
-    .unwrap();
+    let (b, cam) = far_view();
     let opts = RenderOptions {
         lod: 1.0,
         ..Default::default()
@@ -363,11 +376,7 @@ fn a_far_eye_takes_its_levels_from_the_eye() {
         assert_eq!(h.level, 5, "a hit on level {} at t {}", h.level, h.t);
     }
     let Some(ctx) = context() else { return };
-    let mut gpu =
-        GpuBrickmap::preloaded(&ctx, b.world.grid(), b.world.store().pool(), palette).unwrap();
-    let (g, _) = gpu
-        .render(&ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
-        .unwrap();
+    let g = gpu_frame(&ctx, b, &cam, &opts);
     for i in 0..cpu.depth.len() {
         let (c, d) = (cpu.depth[i], g.depth[i]);
         assert!(

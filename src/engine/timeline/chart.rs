@@ -251,15 +251,9 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
         // Written beside and renamed over its name: a link or FIFO put
         // there after the check above is replaced, never written through.
         let svg = crate::bench::chart::xy_svg(&path, title, "tick (log)", y, &list)?;
-        let (tmp, mut f) = crate::files::fresh_temp_beside(&path)
+        crate::files::Staged::replacing(&path)
+            .and_then(|f| std::fs::write(f.path(), &svg).and_then(|_| f.commit()))
             .with_context(|| format!("cannot write {}", path.display()))?;
-        let written = std::io::Write::write_all(&mut f, svg.as_bytes())
-            .and_then(|_| f.sync_all())
-            .and_then(|_| std::fs::rename(&tmp, &path));
-        if let Err(e) = written {
-            let _ = std::fs::remove_file(&tmp);
-            return Err(e).with_context(|| format!("cannot write {}", path.display()));
-        }
         out.push(path);
     }
     Ok(out)

@@ -182,7 +182,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 }
                 boundary.push((ch, v));
             }
-            boundary.sort_by(|a, b| a.0.cmp(&b.0));
         }
         _ => {
             return Err(declaration(
@@ -241,7 +240,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 }
                 fills.push((ch, m));
             }
-            fills.sort();
         }
         _ => return Err(declaration(src, Some("fills"), "'fills' must be a table")),
     }
@@ -326,7 +324,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                     max,
                 });
             }
-            params.sort_by(|a, b| a.name.cmp(&b.name));
         }
         other => {
             return Err(declaration(
@@ -373,7 +370,6 @@ pub(super) fn parse(src: &ScriptSource, def: &Table) -> Result<ScriptSpec, SimEr
                 }
                 ranges.push((name, lo, hi));
             }
-            ranges.sort_by(|a, b| a.0.cmp(&b.0));
         }
         other => {
             return Err(declaration(

@@ -104,24 +104,15 @@ pub(super) fn list(src: &ScriptSource, t: &Table, what: &str) -> Result<Vec<Valu
         let i = match k {
             Value::Integer(i) => i,
             Value::Number(n) if n.fract() == 0.0 && n.abs() < 1e15 => n as i64,
-            Value::String(s) => {
-                return Err(declaration(
-                    src,
-                    Some(what),
-                    format!(
-                        "'{what}' must be a list, but it has the key '{}'",
-                        s.to_string_lossy()
-                    ),
-                ));
-            }
             other => {
+                let key = match &other {
+                    Value::String(s) => format!("the key '{}'", s.to_string_lossy()),
+                    o => format!("{} key", a(o.type_name())),
+                };
                 return Err(declaration(
                     src,
                     Some(what),
-                    format!(
-                        "'{what}' must be a list, but it has {} key",
-                        a(other.type_name())
-                    ),
+                    format!("'{what}' must be a list, but it has {key}"),
                 ));
             }
         };
@@ -189,13 +180,6 @@ pub(super) fn strings(src: &ScriptSource, t: &Table, field: &str) -> Result<Vec<
     let mut out = Vec::new();
     let mut seen = std::collections::HashSet::new();
     for v in list(src, &list_t, field)? {
-        if !matches!(v, Value::String(_)) {
-            return Err(declaration(
-                src,
-                Some(field),
-                format!("'{field}' must list strings, found {}", a(v.type_name())),
-            ));
-        }
         let s = text(src, &v, &format!("an entry of '{field}'"), field)?;
         if !seen.insert(s.clone()) {
             return Err(declaration(
@@ -229,7 +213,7 @@ pub(super) fn number(
 }
 
 /// The entries of map `t` (names to values), named `what` in errors, in
-/// name order: every key a UTF-8 string, at most [`MAX_LIST`] of them.
+/// name order (so what is built from them needs no sort of its own): every key a UTF-8 string, at most [`MAX_LIST`] of them.
 pub(super) fn map(
     src: &ScriptSource,
     t: &Table,
