@@ -1168,6 +1168,15 @@ fn a_materials_file_that_is_not_a_file_is_refused_and_its_errors_say_it_once() {
             "return { dune = { color = { 1, 2, 3 }, densty = 2 } }",
             "error: materials.lua:1: material 'dune' has an unknown key 'densty'; did you mean 'density'?",
         ),
+        // Regression (fuzzing): "unknown key '[4]'; did you mean '[1]'?".
+        (
+            "return { dune = { color = { 1, 2, 3, 4, 5 } } }",
+            "error: materials.lua:1: material 'dune': color must be 3 numbers {r, g, b}; it has 5",
+        ),
+        (
+            "return { dune = { color = { 1, 2, 3, [7] = 4 } } }",
+            "color has an unknown key '[7]' (known: [1], [2], [3])",
+        ),
     ] {
         std::fs::write(&materials, text).unwrap();
         let out = bin().args(args).output().unwrap();
@@ -1175,6 +1184,14 @@ fn a_materials_file_that_is_not_a_file_is_refused_and_its_errors_say_it_once() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(err.matches("materials.lua").count(), 1, "{err}");
     }
+    // Regression (fuzzing): a byte-order mark, which TOML configs may
+    // start with, was a syntax error in a script.
+    std::fs::write(
+        &materials,
+        "\u{feff}return { sand = { color = { 1, 2, 3 }, kind = \"granular\" } }",
+    )
+    .unwrap();
+    assert_success(&bin().args(args).output().unwrap());
 }
 
 /// Regression (hostile probe): `init DIR` wrote through a dangling link at

@@ -84,18 +84,33 @@ fn exploding_vox(fan: u32, levels: u32) -> PathBuf {
 /// the file one `size`³ model holding `voxels`, and write it.
 fn write_vox(
     name: &str,
+    scenes: Vec<dot_vox::SceneNode>,
+    model: u32,
+    size: u32,
+    voxels: Vec<dot_vox::Voxel>,
+) -> PathBuf {
+    write_vox_listing(name, scenes, model, 1, size, voxels)
+}
+
+/// [`write_vox`] whose final shape lists model `model` `times` times.
+fn write_vox_listing(
+    name: &str,
     mut scenes: Vec<dot_vox::SceneNode>,
     model: u32,
+    times: usize,
     size: u32,
     voxels: Vec<dot_vox::Voxel>,
 ) -> PathBuf {
     use dot_vox::{DotVoxData, Model, SceneNode, ShapeModel, Size};
     scenes.push(SceneNode::Shape {
         attributes: Default::default(),
-        models: vec![ShapeModel {
-            model_id: model,
-            attributes: Default::default(),
-        }],
+        models: vec![
+            ShapeModel {
+                model_id: model,
+                attributes: Default::default(),
+            };
+            times
+        ],
     });
     let data = DotVoxData {
         version: 150,
@@ -214,6 +229,17 @@ fn a_daemon_with_frames_larger_than_memory_is_refused_naming_the_fields() {
 /// children that are the next group, ending in a shape of model `model`:
 /// 2^levels paths from a file of a few KB.
 fn doubling_vox(levels: u32, model: u32, voxels: Vec<dot_vox::Voxel>) -> PathBuf {
+    write_vox(
+        &format!("doubling-{levels}-{model}.vox"),
+        doubling_scenes(levels),
+        model,
+        8,
+        voxels,
+    )
+}
+
+/// The scene graph of [`doubling_vox`] without its final shape.
+fn doubling_scenes(levels: u32) -> Vec<dot_vox::SceneNode> {
     use dot_vox::{Frame, SceneNode};
     let mut scenes = vec![SceneNode::Transform {
         attributes: Default::default(),
@@ -227,13 +253,7 @@ fn doubling_vox(levels: u32, model: u32, voxels: Vec<dot_vox::Voxel>) -> PathBuf
             children: vec![l + 2, l + 2],
         });
     }
-    write_vox(
-        &format!("doubling-{levels}-{model}.vox"),
-        scenes,
-        model,
-        8,
-        voxels,
-    )
+    scenes
 }
 
 /// Regression (hostile probe): a scene graph that places no voxel (an
@@ -246,6 +266,18 @@ fn a_vox_scene_graph_of_many_empty_paths_is_refused() {
         let out = render_capped(&format!("vox:{}", path.display()), None);
         assert_clear_failure(&out, "2^60 empty paths", "node visits");
     }
+}
+
+/// Regression (fuzzing): a shape listing an empty model 2 000 times at
+/// the end of 2^20 paths counted as 2^20 node visits, under the limit, and
+/// the expansion's 2·10⁹ placements aborted out of memory.
+#[test]
+fn a_vox_shape_listing_a_model_many_times_counts_each_listing() {
+    let scenes = doubling_scenes(20);
+    let path = write_vox_listing("fanout-2000.vox", scenes, 0, 2000, 8, Vec::new());
+    assert!(std::fs::metadata(&path).unwrap().len() < 64 << 10);
+    let out = render_capped(&format!("vox:{}", path.display()), None);
+    assert_clear_failure(&out, "2^20 paths to 2 000 listings", "node visits");
 }
 
 /// Regression (hostile probe): a .vox model whose voxels all lie below

@@ -371,3 +371,23 @@ fn a_config_that_sets_nothing_gets_the_documented_defaults() {
     let view = continent.stream.as_ref().unwrap().view_distance;
     assert_eq!(continent.look.fog, (view * 0.5) as f32);
 }
+
+/// Regression (fuzzing): a NUL in a key reached the error raw, and a
+/// 100 000-character tracer name made a 100 KB error line.
+#[test]
+fn config_errors_escape_control_characters_and_cut_long_values() {
+    let nul = error("[world]\nsource = \"terrain\"\n\"si\0ze\" = [48, 32, 48]\n");
+    assert!(!nul.contains('\0'), "{nul:?}");
+    assert!(
+        nul.contains("world.si\\0ze") || nul.contains("world.si\\u{0}ze"),
+        "{nul:?}"
+    );
+    let long = "a".repeat(100_000);
+    let e = error(&format!(
+        "[world]\nsource = \"terrain\"\n[render]\ntracer = \"{long}\"\n"
+    ));
+    assert!(e.contains("render.tracer"), "{e}");
+    assert!(e.len() < 1000, "{} bytes", e.len());
+    assert!(e.contains("more characters)"), "{e}");
+    assert!(!e.contains('\n'), "{e}");
+}

@@ -804,6 +804,49 @@ fn export_never_replaces_the_world_store_or_a_special_file() {
     hash_at(&cfg, &state, 4);
 }
 
+/// Write `file`: a backup of `cfg`'s world (its identity) at tick 3 with
+/// valid checksums, holding what it is given.
+fn write_backup(
+    cfg: &std::path::Path,
+    file: &std::path::Path,
+    store: &BrickStore,
+    bounds: (IVec3, IVec3),
+    channels: &ChannelStore,
+    params: &[(String, Vec<(String, f64)>)],
+    extras: &brickworld::engine::checkpoint::SimExtras,
+) {
+    let identity = brickworld::engine::world_config::WorldConfig::load(cfg)
+        .unwrap()
+        .identity();
+    let world = brickworld::engine::checkpoint::WorldRef {
+        tick: 3,
+        store,
+        bounds,
+        channels,
+        params,
+        identity: Some(&identity),
+        extras,
+    };
+    brickworld::engine::checkpoint::write_at(file, world).unwrap();
+}
+
+/// `brickworld import FILE` into state directory `into`.
+fn import(
+    file: &std::path::Path,
+    cfg: &std::path::Path,
+    into: &std::path::Path,
+) -> std::process::Output {
+    bin()
+        .arg("import")
+        .arg(file)
+        .arg("--world")
+        .arg(cfg)
+        .arg("--state")
+        .arg(into)
+        .output()
+        .unwrap()
+}
+
 /// Regression (hostile probe): a backup with valid checksums but forged
 /// bounds panicked `import` (i32::MIN .. i32::MAX) or aborted it out of
 /// memory (a grid of 2^30 bricks). Bounds are checked before anything is
@@ -811,11 +854,8 @@ fn export_never_replaces_the_world_store_or_a_special_file() {
 /// than the memory there is (here under a 3 GB address-space limit).
 #[test]
 fn a_backup_with_forged_bounds_is_refused_clearly() {
-    use brickworld::engine::checkpoint::{SimExtras, WorldRef, write_at};
+    use brickworld::engine::checkpoint::SimExtras;
     let (cfg, state, _) = setup("forgedbounds");
-    let identity = brickworld::engine::world_config::WorldConfig::load(&cfg)
-        .unwrap()
-        .identity();
     let store = BrickStore::new(Palette::grey_ramp());
     let (channels, extras) = (ChannelStore::default(), SimExtras::default());
     let cases = [
@@ -829,16 +869,7 @@ fn a_backup_with_forged_bounds_is_refused_clearly() {
     ];
     for (i, (lo, hi, needle)) in cases.into_iter().enumerate() {
         let file = state.parent().unwrap().join(format!("forged{i}.bwc"));
-        let world = WorldRef {
-            tick: 3,
-            store: &store,
-            bounds: (lo, hi),
-            channels: &channels,
-            params: &[],
-            identity: Some(&identity),
-            extras: &extras,
-        };
-        write_at(&file, world).unwrap();
+        write_backup(&cfg, &file, &store, (lo, hi), &channels, &[], &extras);
         let into = state.parent().unwrap().join(format!("into{i}"));
         let out = std::process::Command::new("bash")
             .arg("-c")
@@ -854,6 +885,68 @@ fn a_backup_with_forged_bounds_is_refused_clearly() {
         common::cli::assert_clear_failure(&out, "a forged backup", needle);
         assert!(!into.join("world.redb").exists(), "case {i} wrote a store");
     }
+}
+
+/// Regression (fuzzing): a backup whose bounds were forged to miss part of
+/// its world imported with exit 0, and the bricks, voxel channels and
+/// column channels outside them were dropped without a word. Each is now
+/// refused, naming what lies outside.
+#[test]
+fn a_backup_holding_data_outside_its_bounds_is_refused() {
+    use brickworld::engine::checkpoint::SimExtras;
+    let (cfg, state, _) = setup("outsidebounds");
+    let bounds = (IVec3::ZERO, IVec3::new(48, 32, 48));
+    let mut outside = BrickStore::new(Palette::grey_ramp());
+    outside.set_voxel(IVec3::new(60, 5, 5), 3);
+    let mut voxel = SimExtras::default();
+    let id = voxel.voxel_channels.channel("water");
+    voxel
+        .voxel_channels
+        .set(id, IVec3::new(0, -1, 0), &[1.0; 512]);
+    let mut columns = ChannelStore::default();
+    let ch = columns.channel("water");
+    // Tiles 0..6 are the world's and -1 and 6 its moat: 7 is outside.
+    columns.set(IVec2::new(7, 0), ch, &[1.0; 64]);
+    let empty = BrickStore::new(Palette::grey_ramp());
+    let cases = [
+        (
+            &outside,
+            ChannelStore::default(),
+            SimExtras::default(),
+            "holds brick",
+        ),
+        (&empty, ChannelStore::default(), voxel, "holds brick"),
+        (&empty, columns, SimExtras::default(), "column tile"),
+    ];
+    for (i, (store, channels, extras, needle)) in cases.into_iter().enumerate() {
+        let file = state.parent().unwrap().join(format!("outside{i}.bwc"));
+        write_backup(&cfg, &file, store, bounds, &channels, &[], &extras);
+        let into = state.parent().unwrap().join(format!("outside-into{i}"));
+        let out = import(&file, &cfg, &into);
+        common::cli::assert_clear_failure(&out, "data outside the bounds", needle);
+        assert!(!into.join("world.redb").exists(), "case {i} wrote a store");
+    }
+}
+
+/// Regression (fuzzing): a stored parameter of 1e-320, out of its range,
+/// was named in the start's warning with 320 digits.
+#[test]
+fn a_tiny_stored_parameter_is_named_in_scientific_notation() {
+    use brickworld::engine::checkpoint::SimExtras;
+    let (cfg, state, _) = setup("tinyparam");
+    let store = BrickStore::new(Palette::grey_ramp());
+    let (channels, extras) = (ChannelStore::default(), SimExtras::default());
+    let file = state.parent().unwrap().join("tiny.bwc");
+    let params = [("water".to_string(), vec![("dx".to_string(), 1e-320)])];
+    let bounds = (IVec3::ZERO, IVec3::new(48, 32, 48));
+    write_backup(&cfg, &file, &store, bounds, &channels, &params, &extras);
+    assert_success(&import(&file, &cfg, &state));
+    let said = stderr_of_ticks(&cfg, &state, 1);
+    assert!(
+        said.contains("the stored water.dx = 1e-320 is not kept"),
+        "{said}"
+    );
+    assert!(!said.contains("0.00000000"), "{said}");
 }
 
 /// The world of `setup`, widened to 4 × 2 chunks, with the column scripts

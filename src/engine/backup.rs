@@ -123,6 +123,7 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
         );
     }
     crate::scene::budget::check_world("the imported world", extent.as_ivec3())?;
+    refuse_contents_outside(file, &st)?;
     let marker = dir.join(IMPORT_MARKER);
     let had_marker = std::fs::symlink_metadata(&marker).is_ok();
     if had_marker && WorldDb::has_state(dir) {
@@ -142,6 +143,45 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
         let _ = write_durable_marker(&marker);
     }
     result
+}
+
+/// Refuse a backup holding a brick, a voxel channel's brick or a column
+/// channel's tile (past the moat's ring) outside the bounds it claims: the world built from it
+/// would drop them without a word (regression, fuzzing: bounds forged to
+/// miss part of the world imported with exit 0, losing bricks and every
+/// voxel channel).
+fn refuse_contents_outside(file: &Path, st: &WorldState) -> Result<()> {
+    use crate::world::BRICK_SHIFT;
+    let (lo, hi) = st.bounds;
+    let (blo, bhi) = (lo >> BRICK_SHIFT, (hi - glam::IVec3::ONE) >> BRICK_SHIFT);
+    let brick = st
+        .store
+        .iter()
+        .map(|(b, _)| b)
+        .chain(st.extras.voxel_channels.all_bricks())
+        .find(|b| b.cmplt(blo).any() || b.cmpgt(bhi).any());
+    if let Some(b) = brick {
+        bail!(
+            "{} holds brick {b}, outside the world bounds {lo} .. {hi} it claims: the file is forged or corrupt (nothing was changed)",
+            file.display()
+        );
+    }
+    // Column channels hold a one-tile moat around the world's tiles
+    // (drained edges).
+    let (tmin, tmax) = crate::sim::writeback::tiles_of(lo, hi);
+    let (tmin, tmax) = (tmin - glam::IVec2::ONE, tmax + glam::IVec2::ONE);
+    if let Some(t) = st
+        .channels
+        .tiles()
+        .into_iter()
+        .find(|t| t.cmplt(tmin).any() || t.cmpge(tmax).any())
+    {
+        bail!(
+            "{} holds channel data for column tile {t}, outside the world bounds {lo} .. {hi} it claims: the file is forged or corrupt (nothing was changed)",
+            file.display()
+        );
+    }
+    Ok(())
 }
 
 /// [`import`] once the backup is checked: replace what an interrupted

@@ -418,7 +418,12 @@ pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
         if let Some(i) = ws.script_index(script) {
             for (k, v) in values {
                 if let Err(e) = ws.set_param(i, k, *v) {
-                    warnings.push(format!("the stored {script}.{k} = {v} is not kept: {e}"));
+                    // A tiny or huge value in scientific notation (regression,
+                    // fuzzing: 1e-320 was printed with 320 digits).
+                    warnings.push(format!(
+                        "the stored {script}.{k} = {} is not kept: {e}",
+                        crate::sim::fmt_num(*v)
+                    ));
                 }
             }
         }

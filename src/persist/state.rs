@@ -124,11 +124,13 @@ mod tests {
     }
 
     /// Regression (hostile probe): a forged tick near `u64::MAX` wrapped.
+    /// Regression (fuzzing): one at 2^53 loaded, stepped past 2^53 and
+    /// committed a state the next start refused.
     #[test]
-    fn a_forged_tick_past_2_pow_53_is_refused() {
+    fn a_forged_tick_past_2_pow_52_is_refused() {
         let bounds = (IVec3::ZERO, IVec3::splat(64));
         let e = SimExtras::default();
-        for tick in [u64::MAX, crate::engine::checkpoint::MAX_TICK + 1] {
+        for tick in [u64::MAX, 1 << 53, crate::engine::checkpoint::MAX_TICK + 1] {
             let b = encode(tick, &Palette::grey_ramp(), bounds, &[], &e);
             let err = decode(&b).expect_err("refused");
             assert!(err.contains("forged or corrupt"), "{err}");
@@ -152,6 +154,45 @@ mod tests {
             assert_eq!(st.extras.camera, e.camera);
             assert_eq!(st.extras.health, e.health);
         }
+    }
+
+    /// Regression (fuzzing): a stored state with a NaN or infinite drained
+    /// total, an eye at 1e300, or a material named with a newline or a
+    /// path loaded with exit 0. Each is refused, naming what is wrong.
+    #[test]
+    fn a_state_with_impossible_values_is_refused() {
+        use crate::world::MaterialKind;
+        let named = |name: &str| SimExtras {
+            materials: vec![(5, name.to_string(), MaterialKind::Solid, 1.0)],
+            ..Default::default()
+        };
+        let far = SimExtras {
+            camera: Some(CameraOverride {
+                eye: [1e300, 0.0, 0.0],
+                target: [0.0; 3],
+                fov: 60.0,
+            }),
+            ..Default::default()
+        };
+        let mut cases = vec![
+            (named("sand\nrock"), "which no material may be"),
+            (named("../etc"), "which no material may be"),
+            (far, "within ±1e9 voxels"),
+        ];
+        for d in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            let e = SimExtras {
+                drained: d,
+                ..Default::default()
+            };
+            cases.push((e, "not a finite number"));
+        }
+        for (e, needle) in cases {
+            let err = decode(&blob(&e)).expect_err(needle);
+            assert!(err.contains(needle), "{err}");
+            assert!(!err.contains('\n'), "{err}");
+        }
+        // What a world writes still loads.
+        assert!(decode(&blob(&named("sand_2"))).is_ok());
     }
 
     /// A section repeated or unknown, or a bad suspension flag, is refused

@@ -28,12 +28,25 @@ const DEEP: u8 = 255;
 fn png_message(e: png::DecodingError) -> String {
     let mut msg = e.to_string();
     while let Some(i) = msg.find("ChunkType { type: ") {
+        // The name is printed with Rust's escapes (`\u{7f}`), whose braces
+        // are not the struct's: it ends at the first field after it
+        // (regression, fuzzing: a name with odd bytes was cut to a letter
+        // or two, and the struct's fields were left in the message).
         let rest = &msg[i + "ChunkType { type: ".len()..];
+        // Bytes past ASCII came out as Latin-1 letters: shown as bytes.
         let name: String = rest
+            .find(", critical:")
+            .map_or("", |j| &rest[..j])
             .chars()
-            .take_while(|c| c.is_ascii_alphanumeric())
+            .map(|c| match c as u32 {
+                0x80..=0xff => format!("\\x{:02x}", c as u32),
+                _ => c.to_string(),
+            })
             .collect();
-        let end = msg[i..].find('}').map_or(msg.len(), |j| i + j + 1);
+        let end = msg[i..]
+            .find(", critical:")
+            .and_then(|j| msg[i + j..].find(" }").map(|k| i + j + k + 2))
+            .unwrap_or(msg.len());
         msg.replace_range(i..end, &format!("'{name}'"));
     }
     msg.trim_end_matches('.').to_string()
@@ -187,5 +200,25 @@ impl Heightfield for Heightmap {
 
     fn deep(&self) -> Option<(i32, u8)> {
         Some((3, DEEP))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression (fuzzing): a chunk type holding bytes that are not
+    /// letters was shown cut (`''DR`), followed by the debug fields of the
+    /// decoder's struct. The whole name is shown, escaped, and nothing else.
+    #[test]
+    fn a_chunk_name_with_odd_bytes_is_shown_whole() {
+        let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+        let kind = [0xff, 0x7f, b'D', b'R'];
+        png.extend(0u32.to_be_bytes());
+        png.extend(kind);
+        png.extend(crc32fast::hash(&kind).to_be_bytes());
+        let e = Heightmap::decode(&png).unwrap_err();
+        assert!(e.contains(r"'\xff\u{7f}DR'"), "{e}");
+        assert!(!e.contains("critical"), "{e}");
     }
 }

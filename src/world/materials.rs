@@ -154,12 +154,17 @@ impl MaterialRegistry {
         self.register_at(id, name, def)
     }
 
+    /// Whether `name` may name a material: 1 to 64 ASCII letters, digits
+    /// and `_`, and not `air`.
+    pub fn valid_name(name: &str) -> bool {
+        !name.is_empty()
+            && name != "air"
+            && name.len() <= 64
+            && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+    }
+
     fn check(name: &str, def: &MaterialDef) -> Result<(), MaterialError> {
-        if name.is_empty()
-            || name == "air"
-            || name.len() > 64
-            || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
-        {
+        if !Self::valid_name(name) {
             return Err(MaterialError::BadName(name.into()));
         }
         if !(def.density.is_finite() && def.density >= 0.0) {

@@ -158,10 +158,13 @@ pub(crate) fn encode(state: WorldRef<'_>) -> Vec<u8> {
 const SECTION_CAMERA: u32 = 1;
 const SECTION_HEALTH: u32 = 2;
 
-/// Highest tick a stored state may claim: 2^53, where a tick stops being
-/// exact as the `f64` of simulated time (285 000 years at 1 000 ticks a
-/// second). A larger one is forged or corrupt.
-pub const MAX_TICK: u64 = 1 << 53;
+/// Highest tick a stored state may claim: 2^52. A tick stays exact as the
+/// `f64` of simulated time up to 2^53; a stored world is held to half of
+/// that, so that it can still step 2^52 times (142 000 years at 1 000
+/// ticks a second) and never commits a tick it would then refuse
+/// (regression, fuzzing: a backup at 2^53 imported, stepped to 2^53 + 2,
+/// committed, and could not be resumed). A larger one is forged or corrupt.
+pub const MAX_TICK: u64 = 1 << 52;
 
 /// Decode a decompressed payload of format `version` (1 to 4). Never
 /// panics, whatever the bytes: every count is checked against what is left,
@@ -170,7 +173,7 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
     if tick > MAX_TICK {
         // A forged tick near u64::MAX wrapped on the next step (regression).
         return Err(format!(
-            "tick {tick} is past 2^53, which no world reaches: the file is forged or corrupt"
+            "tick {tick} is past 2^52, which no world reaches: the file is forged or corrupt"
         ));
     }
     let mut r = Reader::new(payload);
@@ -224,6 +227,14 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
     let mut extras = SimExtras::default();
     if version >= 2 {
         extras.drained = r.f64()?;
+        // Regression (fuzzing): NaN and ±inf were taken, and every total
+        // after them was nonsense.
+        if !extras.drained.is_finite() {
+            return Err(format!(
+                "the drained water total {} is not a finite number",
+                extras.drained
+            ));
+        }
         if r.u32()? == 1 {
             let left = |r: &Reader, per: usize| (r.data.len() - r.at) / per;
             let n = r.count(left(&r, 8), "awake tile")?;
@@ -267,6 +278,17 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
                 k => return Err(format!("material kind {k} is unknown")),
             };
             let density = f32::from_le_bytes(r.take(4)?.try_into().expect("4"));
+            // Regression (fuzzing): names holding a newline or a path were
+            // taken, then dropped without a word by the registry.
+            if id == 0 || !crate::world::MaterialRegistry::valid_name(&name) {
+                return Err(format!(
+                    "material {id} is named '{}', which no material may be",
+                    crate::sim::runtime::log::escape_controls(&name, false)
+                ));
+            }
+            if !(density.is_finite() && density >= 0.0) {
+                return Err(format!("material '{name}' has density {density}"));
+            }
             extras.materials.push((id, name, kind, density));
         }
         if r.u32()? == 1 {
@@ -324,9 +346,12 @@ fn read_camera(r: &mut Reader) -> Result<CameraOverride, String> {
     for x in v.iter_mut() {
         *x = r.f64()?;
     }
-    if v.iter().any(|x| !x.is_finite()) || !(v[6] > 0.0 && v[6] < 180.0) {
+    // Within ±1e9 voxels, as `--eye` and a config's camera (regression,
+    // fuzzing: an eye at 1e300 was taken).
+    if v[..6].iter().any(|x| x.is_nan() || x.abs() > 1e9) || !(v[6] > 0.0 && v[6] < 180.0) {
         return Err(
-            "the stored camera is not finite or its field of view is outside (0, 180)".into(),
+            "the stored camera is not within ±1e9 voxels or its field of view is outside (0, 180)"
+                .into(),
         );
     }
     Ok(CameraOverride {

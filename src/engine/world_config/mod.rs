@@ -85,7 +85,7 @@ pub const DEFAULT_WORLD: &str = include_str!("../../../worlds/default.toml");
 
 /// A config that could not be read or is invalid.
 #[derive(Debug, Error, PartialEq)]
-#[error("{file}: {}{reason}", if field.is_empty() { String::new() } else { format!("{field}: ") })]
+#[error("{file}: {}{}", if field.is_empty() { String::new() } else { format!("{}: ", shown(field)) }, shown(reason))]
 pub struct WorldConfigError {
     /// The config file (or `<embedded default>`).
     pub file: String,
@@ -95,6 +95,23 @@ pub struct WorldConfigError {
     /// What is wrong.
     pub reason: String,
 }
+
+/// Text from a config as an error shows it: control characters escaped
+/// and at most [`SHOWN_CHARS`] characters (regression, fuzzing: a NUL in
+/// a key was printed raw, and a 100 000-character tracer name made a
+/// 100 KB line).
+fn shown(text: &str) -> String {
+    let text = crate::sim::runtime::log::escape_controls(text, false);
+    let n = text.chars().count();
+    if n <= SHOWN_CHARS {
+        return text.into_owned();
+    }
+    let head: String = text.chars().take(SHOWN_CHARS).collect();
+    format!("{head}… ({} more characters)", n - SHOWN_CHARS)
+}
+
+/// Characters of a config error's field and reason that are shown.
+const SHOWN_CHARS: usize = 300;
 
 /// How a streamed world keeps memory bounded (`[stream]`).
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -78,6 +78,13 @@ pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
         script: name.clone(),
         msg: e.to_string(),
     })?;
+    // A byte-order mark, which some editors write, is not Luau: it is
+    // dropped, as TOML drops it in a world config (regression, fuzzing:
+    // a materials.lua saved with one was a syntax error).
+    let text = match text.strip_prefix('\u{feff}') {
+        Some(rest) => rest.to_string(),
+        None => text,
+    };
     Ok(ScriptSource {
         name,
         text: text.into(),

@@ -90,6 +90,12 @@ fn parse_def(src: &ScriptSource, name: &str, d: &Table) -> Result<MaterialDef, S
     let color: Table = d
         .get("color")
         .map_err(|_| bad("color must be {r, g, b}".into()))?;
+    let n = color.raw_len();
+    if n > 3 {
+        return Err(bad(format!(
+            "color must be 3 numbers {{r, g, b}}; it has {n}"
+        )));
+    }
     super::declare::only_known_keys(
         src,
         &color,

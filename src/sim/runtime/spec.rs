@@ -90,8 +90,13 @@ pub fn carry_params(
             let kept = v.clamp(p.min, p.max);
             if kept != v {
                 warnings.push(format!(
-                    "{}.lua: parameter '{}' = {v} is outside its new range [{}, {}]; clamped to {kept}",
-                    new.name, p.name, p.min, p.max
+                    "{}.lua: parameter '{}' = {} is outside its new range [{}, {}]; clamped to {}",
+                    new.name,
+                    p.name,
+                    crate::sim::fmt_num(v),
+                    crate::sim::fmt_num(p.min),
+                    crate::sim::fmt_num(p.max),
+                    crate::sim::fmt_num(kept)
                 ));
             }
             values[i] = kept;

@@ -98,7 +98,9 @@ pub(in crate::sim::runtime) fn only_known_keys(
     // known one is near none of them, and is not measured (regression,
     // review: a 50-million-character key took seconds outside the budget).
     let longest = known.iter().map(|k| k.len()).max().unwrap_or(0);
-    let near = (bad.len() <= longest + 2)
+    // An index is near no name: `[4]` is not a typo of `[1]` (regression,
+    // fuzzing: "did you mean '[1]'?" for a colour of five numbers).
+    let near = (bad.len() <= longest + 2 && !bad.starts_with('['))
         .then(|| {
             known
                 .iter()
