@@ -794,6 +794,32 @@ fn fake_server(answer: fn(&mut std::net::TcpStream)) -> String {
     addr
 }
 
+/// Regression (crash probe): an engine that closed the connection without
+/// answering (killed mid-request) was "not HTTP: is it a brickworld
+/// engine?"; and a command that got no answer did not say it may still
+/// be carried out (a stopped engine paused when continued, after `ctl
+/// pause` had failed).
+#[test]
+fn ctl_says_an_unanswered_command_may_still_be_carried_out() {
+    let silent = fake_server(|_| {});
+    expect_failure(
+        &["ctl", "--addr", &silent, "status"],
+        "closed the connection before answering (did the engine stop?)",
+    );
+    let state = tmp("ctl-closed-state");
+    std::fs::create_dir_all(&state).unwrap();
+    std::fs::write(state.join("control.token"), "t0k3n").unwrap();
+    let args = [
+        "ctl",
+        "--addr",
+        &silent,
+        "--state",
+        state.to_str().unwrap(),
+        "pause",
+    ];
+    expect_failure(&args, "the command was sent and may still be carried out");
+}
+
 /// Regression (hostile probe): `ctl` printed whatever a non-engine server
 /// sent with exit 0, and read an endless answer until memory ran out.
 #[test]

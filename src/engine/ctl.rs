@@ -64,12 +64,33 @@ pub fn request(
         "{method} {path} HTTP/1.1\r\nHost: {host}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
         body.len()
     )?;
+    // A command sent but not answered may still be carried out: the
+    // request waits in the engine's socket until it reads it (regression,
+    // crash probe: `ctl pause` to a stopped engine failed after 60 s, and
+    // the engine paused when it was continued).
+    let unsure = if method == "GET" {
+        ""
+    } else {
+        "; the command was sent and may still be carried out (see `brickworld ctl status`)"
+    };
+    let late = || {
+        anyhow::anyhow!(
+            "{addr} did not answer within {} s{unsure}",
+            DEADLINE.as_secs()
+        )
+    };
+    // Regression (crash probe): an engine killed mid-request was "not HTTP".
+    let closed = || {
+        anyhow::anyhow!(
+            "{addr} closed the connection before answering (did the engine stop?){unsure}"
+        )
+    };
     let mut raw = Vec::new();
     let mut buf = [0u8; 64 << 10];
     loop {
         let left = DEADLINE.saturating_sub(start.elapsed());
         if left.is_zero() {
-            bail!("{addr} did not answer within {} s", DEADLINE.as_secs());
+            return Err(late());
         }
         s.set_read_timeout(Some(left))?;
         let n = match s.read(&mut buf) {
@@ -80,11 +101,23 @@ pub fn request(
                     std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
                 ) =>
             {
-                bail!("{addr} did not answer within {} s", DEADLINE.as_secs());
+                return Err(late());
+            }
+            Err(e)
+                if raw.is_empty()
+                    && matches!(
+                        e.kind(),
+                        std::io::ErrorKind::ConnectionReset | std::io::ErrorKind::ConnectionAborted
+                    ) =>
+            {
+                return Err(closed());
             }
             Err(e) => return Err(e).with_context(|| format!("reading the answer from {addr}")),
         };
         if n == 0 {
+            if raw.is_empty() {
+                return Err(closed());
+            }
             break;
         }
         raw.extend_from_slice(&buf[..n]);
