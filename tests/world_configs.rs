@@ -390,4 +390,9 @@ fn config_errors_escape_control_characters_and_cut_long_values() {
     assert!(e.len() < 1000, "{} bytes", e.len());
     assert!(e.contains("more characters)"), "{e}");
     assert!(!e.contains('\n'), "{e}");
+    // The file's name too (found by review).
+    let named = WorldConfig::parse("x\ny.toml", "[world]\nsize = 1\n", Path::new("."))
+        .unwrap_err()
+        .to_string();
+    assert!(named.starts_with("x\\ny.toml: "), "{named}");
 }

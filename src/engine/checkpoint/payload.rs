@@ -158,13 +158,13 @@ pub(crate) fn encode(state: WorldRef<'_>) -> Vec<u8> {
 const SECTION_CAMERA: u32 = 1;
 const SECTION_HEALTH: u32 = 2;
 
-/// Highest tick a stored state may claim: 2^52. A tick stays exact as the
-/// `f64` of simulated time up to 2^53; a stored world is held to half of
-/// that, so that it can still step 2^52 times (142 000 years at 1 000
-/// ticks a second) and never commits a tick it would then refuse
-/// (regression, fuzzing: a backup at 2^53 imported, stepped to 2^53 + 2,
-/// committed, and could not be resumed). A larger one is forged or corrupt.
-pub const MAX_TICK: u64 = 1 << 52;
+/// Highest tick a stored state may claim: 2^53, where a tick stops being
+/// exact as the `f64` of simulated time (285 000 years at 1 000 ticks a
+/// second). A larger one is forged or corrupt. The engine steps no further
+/// than this, so it never commits a tick it would then refuse (regression,
+/// fuzzing: a backup at 2^53 imported, stepped to 2^53 + 2, committed, and
+/// could not be resumed).
+pub const MAX_TICK: u64 = 1 << 53;
 
 /// Decode a decompressed payload of format `version` (1 to 4). Never
 /// panics, whatever the bytes: every count is checked against what is left,
@@ -173,7 +173,7 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
     if tick > MAX_TICK {
         // A forged tick near u64::MAX wrapped on the next step (regression).
         return Err(format!(
-            "tick {tick} is past 2^52, which no world reaches: the file is forged or corrupt"
+            "tick {tick} is past 2^53, which no world reaches: the file is forged or corrupt"
         ));
     }
     let mut r = Reader::new(payload);

@@ -200,6 +200,16 @@ impl Engine {
             if self.shared.shutdown.load(Ordering::Relaxed) || self.reached_stop() {
                 break;
             }
+            // The last tick a stored state may claim: stepping on would
+            // commit a world the next start refuses (regression, fuzzing:
+            // a backup at 2^53 ran on and could not be resumed).
+            if self.ws.sim.tick() >= crate::engine::checkpoint::MAX_TICK {
+                crate::say!(
+                    "warning: the world is at tick {}, 2^53, past which simulated time is no longer exact: it steps no further",
+                    self.ws.sim.tick()
+                );
+                break;
+            }
             self.hot_reload();
             if self.apply_commands() {
                 // What the commands changed shows at once, not after the

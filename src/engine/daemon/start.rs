@@ -189,7 +189,7 @@ impl Engine {
         // The timeline never stops the engine: a trim that fails is said.
         match timeline.drop_rows_after(ws.sim.tick()) {
             Ok(Some(aside)) => crate::say!(
-                "timeline: rows after tick {} (to be run again) dropped; the timeline as it was is kept in {}",
+                "timeline: rows after tick {} (to be run again) dropped; they are kept in {}",
                 ws.sim.tick(),
                 aside.display()
             ),

@@ -85,7 +85,7 @@ pub const DEFAULT_WORLD: &str = include_str!("../../../worlds/default.toml");
 
 /// A config that could not be read or is invalid.
 #[derive(Debug, Error, PartialEq)]
-#[error("{file}: {}{}", if field.is_empty() { String::new() } else { format!("{}: ", shown(field)) }, shown(reason))]
+#[error("{}: {}{}", shown(file), if field.is_empty() { String::new() } else { format!("{}: ", shown(field)) }, shown(reason))]
 pub struct WorldConfigError {
     /// The config file (or `<embedded default>`).
     pub file: String,

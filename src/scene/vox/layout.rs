@@ -7,24 +7,40 @@
 //! whose count was too small drew one voxel of 73 (regression, fuzzing).
 //! Here every chunk must fit its parent exactly, the chunks of fixed shape
 //! (`SIZE`, `XYZI`, `RGBA`) must have it, and nothing may follow `MAIN`.
+//! The pass also counts the scene-graph nodes and models the file holds,
+//! so that [`super::parse`] can refuse a file whose node or model chunk
+//! had the right size but could not be read (a skipped node shifts every
+//! index after it: the file loaded as another scene, found by review).
 
 /// Chunks may nest this deep (files only nest one level under `MAIN`).
 const MAX_DEPTH: u32 = 8;
 
+/// What a file's layout holds directly under `MAIN`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Counts {
+    /// Scene-graph nodes (`nTRN`, `nGRP`, `nSHP`).
+    pub nodes: usize,
+    /// Models (an `XYZI` after a `SIZE`).
+    pub models: usize,
+    /// Whether a `SIZE` came yet.
+    sized: bool,
+}
+
 /// Check the layout of a file's bytes; the error names the chunk and its
 /// byte offset.
-pub fn check(b: &[u8]) -> Result<(), String> {
+pub fn check(b: &[u8]) -> Result<Counts, String> {
     if b.len() < 8 || &b[..4] != b"VOX " {
         return Err("not a MagicaVoxel file (it does not start with 'VOX ')".into());
     }
-    let end = chunk(b, 8, b.len(), 0)?;
+    let mut counts = Counts::default();
+    let end = chunk(b, 8, b.len(), 0, &mut counts)?;
     if end != b.len() {
         return Err(format!(
             "{} bytes follow the MAIN chunk, which ends at byte {end}",
             b.len() - end
         ));
     }
-    Ok(())
+    Ok(counts)
 }
 
 fn u32_at(b: &[u8], at: usize) -> Option<usize> {
@@ -46,7 +62,14 @@ fn name(id: &[u8]) -> String {
 }
 
 /// Check the chunk at `at`, which must end by `limit`; returns its end.
-fn chunk(b: &[u8], at: usize, limit: usize, depth: u32) -> Result<usize, String> {
+/// Childless chunks directly under `MAIN` are counted into `counts`.
+fn chunk(
+    b: &[u8],
+    at: usize,
+    limit: usize,
+    depth: u32,
+    counts: &mut Counts,
+) -> Result<usize, String> {
     let short = || format!("the file ends inside a chunk header at byte {at}");
     let id = b.get(at..at + 4).ok_or_else(short)?;
     let content = u32_at(b, at + 4).ok_or_else(short)?;
@@ -63,9 +86,15 @@ fn chunk(b: &[u8], at: usize, limit: usize, depth: u32) -> Result<usize, String>
                 if depth == 0 { "the file" } else { "its parent" }
             )
         })?;
+    // A palette may list fewer than 256 colours (`dot_vox` writes as many
+    // as it has; found by review).
+    if id == b"RGBA" && (content == 0 || content % 4 != 0 || content > 1024) {
+        return Err(format!(
+            "chunk 'RGBA' at byte {at} holds {content} bytes, not 1 to 256 colours of 4"
+        ));
+    }
     let fixed = match id {
         b"SIZE" => Some(12),
-        b"RGBA" => Some(1024),
         b"XYZI" => {
             let n = u32_at(b, start).filter(|_| content >= 4).ok_or_else(|| {
                 format!("chunk 'XYZI' at byte {at} is too short for its voxel count")
@@ -95,7 +124,15 @@ fn chunk(b: &[u8], at: usize, limit: usize, depth: u32) -> Result<usize, String>
         ));
     }
     while c < end {
-        c = chunk(b, c, end, depth + 1)?;
+        c = chunk(b, c, end, depth + 1, counts)?;
+    }
+    if depth == 1 && children == 0 {
+        match id {
+            b"nTRN" | b"nGRP" | b"nSHP" => counts.nodes += 1,
+            b"SIZE" => counts.sized = true,
+            b"XYZI" if counts.sized => counts.models += 1,
+            _ => {}
+        }
     }
     Ok(end)
 }
@@ -130,7 +167,8 @@ mod tests {
 
     #[test]
     fn a_well_formed_file_passes_and_so_does_what_dot_vox_writes() {
-        assert_eq!(check(&file(&model(3, 3))), Ok(()));
+        let counts = check(&file(&model(3, 3))).unwrap();
+        assert_eq!((counts.nodes, counts.models), (0, 1));
         let data = dot_vox::DotVoxData {
             version: 150,
             index_map: Vec::new(),
@@ -150,7 +188,30 @@ mod tests {
         };
         let mut bytes = Vec::new();
         data.write_vox(&mut bytes).unwrap();
-        assert_eq!(check(&bytes), Ok(()));
+        assert!(check(&bytes).is_ok());
+        // A palette of fewer than 256 colours, as `dot_vox` writes one
+        // (regression, review: it was refused).
+        let short = dot_vox::DotVoxData {
+            palette: dot_vox::DEFAULT_PALETTE[..16].to_vec(),
+            ..data
+        };
+        let mut bytes = Vec::new();
+        short.write_vox(&mut bytes).unwrap();
+        assert!(check(&bytes).is_ok(), "{:?}", check(&bytes));
+    }
+
+    /// Regression (review): a node chunk of the right size whose contents
+    /// could not be read was skipped by the parser, so the file loaded as
+    /// another scene with exit 0.
+    #[test]
+    fn a_node_chunk_that_cannot_be_read_is_refused() {
+        let mut kids = model(1, 1);
+        // A transform node claiming 99 dictionary entries it does not hold.
+        kids.extend(chunk_bytes(b"nTRN", &[0, 0, 0, 0, 99, 0, 0, 0], &[]));
+        let bytes = file(&kids);
+        assert_eq!(check(&bytes).map(|c| c.nodes), Ok(1));
+        let e = super::super::parse(&bytes).unwrap_err();
+        assert!(e.contains("1 of the file's 1 scene-graph chunks"), "{e}");
     }
 
     #[test]

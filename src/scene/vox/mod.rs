@@ -280,8 +280,20 @@ fn walk(
 
 /// Parse `.vox` bytes, turning any parser failure (even a panic) into an error.
 pub fn parse(bytes: &[u8]) -> Result<dot_vox::DotVoxData, String> {
-    layout::check(bytes)?;
+    let counts = layout::check(bytes)?;
     match crate::catch_quietly(|| dot_vox::load_bytes(bytes)) {
+        // A node or model chunk that could not be read is skipped by the
+        // parser, and every index after it shifts.
+        Ok(Ok(d)) if d.scenes.len() != counts.nodes => Err(format!(
+            "{} of the file's {} scene-graph chunks could not be read",
+            counts.nodes - d.scenes.len().min(counts.nodes),
+            counts.nodes
+        )),
+        Ok(Ok(d)) if d.models.len() != counts.models => Err(format!(
+            "{} of the file's {} models could not be read",
+            counts.models - d.models.len().min(counts.models),
+            counts.models
+        )),
         Ok(Ok(d)) => Ok(d),
         Ok(Err(e)) => Err(e.to_string()),
         Err(_) => Err("the .vox parser rejected the file (malformed chunk)".into()),
