@@ -833,6 +833,36 @@ fn a_rejected_reload_registers_no_channels() {
     assert_eq!(sim.channels().channels().count(), before + 50);
 }
 
+/// Regression (fuzzing): a script failing on many tiles named whichever
+/// tile a thread met first, so the message differed from run to run with
+/// two threads. The lowest failing tile is named, whatever the threads.
+#[test]
+fn a_step_failing_on_many_tiles_names_the_same_tile_every_time() {
+    let text = "return { channels = { \"w\" }, passes = { { name = \"p\", reads = {}, writes = { \"w\" },\n\
+                kernel = function(c, tx, tz)\n\
+                  if tx + tz > 3 then error(\"boom\") end\n\
+                end } } }";
+    let message = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(8, 8));
+            sim.add_script(src("many", text), Kernel::Lua, small())
+                .unwrap();
+            let errors = sim.step(0.1).errors;
+            assert_eq!(errors.len(), 1, "{errors:?}");
+            errors[0].to_string()
+        })
+    };
+    let first = message(1);
+    assert!(first.contains("boom"), "{first}");
+    for _ in 0..12 {
+        assert_eq!(message(2), first);
+    }
+}
+
 /// Regression (hostile probe): each hot reload kept the replaced version's
 /// VMs in every worker's cache (up to 32 a thread), about 75 MB a reload
 /// of a script holding a large table, until the daemon aborted out of
@@ -1009,6 +1039,44 @@ fn a_format_error_names_the_scripts_line() {
     assert!(e.to_string().contains("number expected"), "{e}");
 }
 
+/// Regression (fuzzing): a bad argument to `xpcall` or `setmetatable`
+/// was raised inside the sandbox's wrapper, and named a line of the
+/// wrapper (16 or 13 of an 11-line script).
+#[test]
+fn a_bad_argument_to_a_wrapped_builtin_names_the_scripts_line() {
+    for (call, said) in [
+        ("xpcall(print)", "invalid argument #2 to 'xpcall'"),
+        (
+            "setmetatable(1, 2)",
+            "invalid argument #1 to 'setmetatable'",
+        ),
+        (
+            "setmetatable({}, 2)",
+            "invalid argument #2 to 'setmetatable'",
+        ),
+        (
+            "setmetatable(setmetatable({}, { __metatable = 1 }), {})",
+            "protected metatable",
+        ),
+    ] {
+        let text = format!(
+            "return {{ channels = {{ \"w\" }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"w\" }},\n\
+             kernel = function(c)\n\
+               {call}\n\
+             end }} }} }}"
+        );
+        let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+        let e = sim
+            .add_script(src("wrapped", &text), Kernel::Lua, small())
+            .unwrap_err();
+        assert!(
+            matches!(e, SimError::Runtime { line: Some(3), .. }),
+            "{call}: {e:?}"
+        );
+        assert!(e.to_string().contains(said), "{call}: {e}");
+    }
+}
+
 /// The load error of `text` as script `decl`, or a panic if it loads.
 fn load_error(text: &str) -> String {
     match ScriptVm::load(&src("decl", text), small()) {
@@ -1169,6 +1237,31 @@ fn an_error_raised_while_reading_the_declaration_is_one_line() {
         e,
         "decl.lua:2: the returned table has a metatable; a declaration is a plain table"
     );
+}
+
+/// Regression (fuzzing): a list, a pass or a parameter reached through a
+/// metatable (`nonnegative = setmetatable({}, { __index = { "h" } })`)
+/// loaded and did nothing, since declarations are read raw. Every table of
+/// a declaration must be plain.
+#[test]
+fn a_declaration_table_with_a_metatable_is_refused() {
+    for (decl, what) in [
+        (
+            "nonnegative = setmetatable({}, { __index = { \"h\" } }),",
+            "'nonnegative' has a metatable",
+        ),
+        (
+            "params = setmetatable({}, { __index = { k = { default = 1, min = 0, max = 2 } } }),",
+            "'params' has a metatable",
+        ),
+        (
+            "params = { k = setmetatable({ default = 1 }, { __index = { min = 0, max = 2 } }) },",
+            "has a metatable; declarations are plain tables",
+        ),
+    ] {
+        let e = load_error(&column_script(decl, ""));
+        assert!(e.contains(what), "{decl}: {e}");
+    }
 }
 
 /// Regression (review): an unknown key of millions of characters was

@@ -81,6 +81,50 @@ pub(crate) fn channel_room(
     Ok(())
 }
 
+/// The error of the lowest item of a parallel pass, whichever thread met
+/// its error first: what a failed step reports is the same on every run
+/// and thread count (regression, fuzzing: a script failing on many tiles
+/// named a different tile from run to run). Items above the lowest error
+/// seen so far are skipped; those below still run, since one of them may
+/// fail too.
+#[derive(Debug)]
+pub(crate) struct LowestError {
+    at: std::sync::atomic::AtomicUsize,
+    err: std::sync::Mutex<Option<(usize, SimError)>>,
+}
+
+impl LowestError {
+    pub(crate) fn new() -> Self {
+        LowestError {
+            at: std::sync::atomic::AtomicUsize::new(usize::MAX),
+            err: std::sync::Mutex::new(None),
+        }
+    }
+
+    /// Run item `i` (`f`), unless an earlier item already failed, and note
+    /// its error.
+    pub(crate) fn run(&self, i: usize, f: impl FnOnce() -> Result<(), SimError>) {
+        if i > self.at.load(std::sync::atomic::Ordering::Relaxed) {
+            return;
+        }
+        if let Err(e) = f() {
+            let mut g = self.err.lock().unwrap_or_else(|p| p.into_inner());
+            if g.as_ref().is_none_or(|(j, _)| i < *j) {
+                *g = Some((i, e));
+                self.at.fetch_min(i, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// The lowest item's error, if any failed.
+    pub(crate) fn result(self) -> Result<(), SimError> {
+        match self.err.into_inner().unwrap_or_else(|p| p.into_inner()) {
+            Some((_, e)) => Err(e),
+            None => Ok(()),
+        }
+    }
+}
+
 /// A number for a message: plain when moderate, in scientific notation
 /// when huge or tiny (a 1e300 is not printed as 301 digits).
 pub fn fmt_num(v: f64) -> String {

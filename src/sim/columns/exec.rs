@@ -185,29 +185,33 @@ pub(super) fn run_script(
         let data_ref = &*data;
         let nw = write_idx.len();
         outs.resize(ws.active.len() * nw, [0.0; TILE_CELLS]);
-        outs.par_chunks_mut(nw).enumerate().try_for_each_init(
+        let failed = crate::sim::LowestError::new();
+        outs.par_chunks_mut(nw).enumerate().for_each_init(
             || (vec![[0.0f64; HALO_CELLS]; n], vec![[0.0f64; TILE_CELLS]; n]),
-            |(reads, writes), (k, out)| -> Result<(), SimError> {
-                for &i in &read_idx {
-                    ws.gather(k, (data_ref, n, i), s.boundary[i], &mut reads[i]);
-                }
-                let w = ws.active[k] as usize;
-                for &i in &write_idx {
-                    writes[i] = data_ref[w * n + i];
-                }
-                let t = ws.tiles[w];
-                match &s.kernel {
-                    Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
-                    Kernel::Lua => run_lua(
-                        s, pi, t, dt, serial, key, &read_idx, &write_idx, reads, writes,
-                    )?,
-                }
-                for (j, &i) in write_idx.iter().enumerate() {
-                    out[j] = writes[i];
-                }
-                Ok(())
+            |(reads, writes), (k, out)| {
+                failed.run(k, || -> Result<(), SimError> {
+                    for &i in &read_idx {
+                        ws.gather(k, (data_ref, n, i), s.boundary[i], &mut reads[i]);
+                    }
+                    let w = ws.active[k] as usize;
+                    for &i in &write_idx {
+                        writes[i] = data_ref[w * n + i];
+                    }
+                    let t = ws.tiles[w];
+                    match &s.kernel {
+                        Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
+                        Kernel::Lua => run_lua(
+                            s, pi, t, dt, serial, key, &read_idx, &write_idx, reads, writes,
+                        )?,
+                    }
+                    for (j, &i) in write_idx.iter().enumerate() {
+                        out[j] = writes[i];
+                    }
+                    Ok(())
+                });
             },
-        )?;
+        );
+        failed.result()?;
         // Commit the pass into the dense generation (double buffering: every
         // tile of this pass read the previous values).
         for (k, out) in outs.chunks(nw).enumerate() {

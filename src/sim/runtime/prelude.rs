@@ -26,8 +26,9 @@ pcall = function(f, ...)
 end
 xpcall = function(f, handler, ...)
     if type(handler) ~= "function" then
-        -- Luau's own check ("function expected").
-        return rawxpcall(f, handler, ...)
+        -- Luau's own message, at the script's line (regression, fuzzing:
+        -- raised in here, it named a line of this wrapper).
+        error("invalid argument #2 to 'xpcall' (function expected)", 2)
     end
     return pass(rawxpcall(f, function(e)
         if e == MEM then
@@ -110,8 +111,17 @@ end
 ///   be added later either.
 pub(super) const NO_WEAK_TABLES: &str = r#"
 local rawsetmetatable, rawget, type, error = setmetatable, rawget, type, error
+local rawpcall = pcall
 local freeze, isfrozen = table.freeze, table.isfrozen
 setmetatable = function(t, mt)
+    -- Bad arguments are Luau's own errors, at the script's line (regression,
+    -- fuzzing: raised in here, they named a line of this wrapper).
+    if type(t) ~= "table" then
+        error("invalid argument #1 to 'setmetatable' (table expected, got " .. type(t) .. ")", 2)
+    end
+    if mt ~= nil and type(mt) ~= "table" then
+        error("invalid argument #2 to 'setmetatable' (nil or table expected)", 2)
+    end
     if type(mt) == "table" then
         if rawget(mt, "__mode") ~= nil then
             error("weak tables (__mode) are not allowed: what they hold depends on when the garbage collector runs", 2)
@@ -120,6 +130,14 @@ setmetatable = function(t, mt)
             freeze(mt)
         end
     end
-    return rawsetmetatable(t, mt)
+    local ok, r = rawpcall(rawsetmetatable, t, mt)
+    if not ok then
+        if r == "not enough memory" then
+            error(r, 0)
+        end
+        -- A protected metatable (`__metatable`) or a frozen table.
+        error(r, 2)
+    end
+    return r
 end
 "#;

@@ -212,49 +212,53 @@ pub(super) fn run_script(
             })
             .collect();
         let w = &work;
-        outs.par_iter_mut().enumerate().try_for_each_init(
+        let failed = crate::sim::LowestError::new();
+        outs.par_iter_mut().enumerate().for_each_init(
             || Scratch {
                 mat: [0; VOXEL_HALO],
                 chans: vec![[0.0; VOXEL_HALO]; nch],
                 bytes: vec![0; VOXEL_HALO * 4],
             },
-            |sc, (ci, out)| -> Result<(), SimError> {
-                let b = cands[ci];
-                gather(&w.neighbours(ci, &w.mats), BOUNDARY, &mut sc.mat);
-                for &i in &ridx {
-                    let nbr = w.neighbours(ci, &w.chans[i]);
-                    // Outside the bounds a channel reads 0.
-                    let nbr = nbr.map(|n| Some(n.unwrap_or(&ZERO_F32)));
-                    gather(&nbr, 0.0, &mut sc.chans[i]);
-                }
-                let own = &w.mats[nbr_self(w, ci)];
-                out.mat = *own;
-                for (j, &i) in widx.iter().enumerate() {
-                    out.chans[j] = w.chans[i][nbr_self(w, ci)];
-                }
-                match job.kernel {
-                    VoxelKernel::Native(k) => {
-                        k.run(
-                            pi,
-                            NativeBrick {
-                                brick: b,
-                                dt,
-                                params: job.params,
-                                materials: job.material_ids,
-                                mat: &sc.mat,
-                                reads: &sc.chans,
-                                mat_out: &mut out.mat,
-                                writes: &mut out.chans,
-                            },
-                        );
-                        Ok(())
+            |sc, (ci, out)| {
+                failed.run(ci, || -> Result<(), SimError> {
+                    let b = cands[ci];
+                    gather(&w.neighbours(ci, &w.mats), BOUNDARY, &mut sc.mat);
+                    for &i in &ridx {
+                        let nbr = w.neighbours(ci, &w.chans[i]);
+                        // Outside the bounds a channel reads 0.
+                        let nbr = nbr.map(|n| Some(n.unwrap_or(&ZERO_F32)));
+                        gather(&nbr, 0.0, &mut sc.chans[i]);
                     }
-                    VoxelKernel::Lua => {
-                        run_lua(job, pi, &ridx, &widx, sc, out, b, (dt, serial, key))
+                    let own = &w.mats[nbr_self(w, ci)];
+                    out.mat = *own;
+                    for (j, &i) in widx.iter().enumerate() {
+                        out.chans[j] = w.chans[i][nbr_self(w, ci)];
                     }
-                }
+                    match job.kernel {
+                        VoxelKernel::Native(k) => {
+                            k.run(
+                                pi,
+                                NativeBrick {
+                                    brick: b,
+                                    dt,
+                                    params: job.params,
+                                    materials: job.material_ids,
+                                    mat: &sc.mat,
+                                    reads: &sc.chans,
+                                    mat_out: &mut out.mat,
+                                    writes: &mut out.chans,
+                                },
+                            );
+                            Ok(())
+                        }
+                        VoxelKernel::Lua => {
+                            run_lua(job, pi, &ridx, &widx, sc, out, b, (dt, serial, key))
+                        }
+                    }
+                });
             },
-        )?;
+        );
+        failed.result()?;
         // Commit the pass (every brick of it read the previous generation).
         for (ci, out) in outs.into_iter().enumerate() {
             let b = cands[ci];

@@ -66,6 +66,7 @@ pub(in crate::sim::runtime) fn only_known_keys(
     what: &str,
     known: &[&str],
 ) -> Result<(), SimError> {
+    super::read::plain_table(src, t, what)?;
     // Table order is not the file's: report the least unknown key, so the
     // message is the same on every load.
     let mut least: Option<String> = None;

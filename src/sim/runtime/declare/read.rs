@@ -95,9 +95,29 @@ fn too_many(src: &ScriptSource, what: &str) -> SimError {
     )
 }
 
+/// Refuse table `t` (named `what`) if it has a metatable: a declaration is
+/// what its tables hold, and they are read raw, so entries served by
+/// `__index` were never seen (regression, fuzzing: `nonnegative =
+/// setmetatable({}, { __index = { "water" } })` loaded and did nothing).
+pub(in crate::sim::runtime) fn plain_table(
+    src: &ScriptSource,
+    t: &Table,
+    what: &str,
+) -> Result<(), SimError> {
+    if t.metatable().is_some() {
+        return Err(declaration(
+            src,
+            Some("setmetatable"),
+            format!("'{what}' has a metatable; declarations are plain tables"),
+        ));
+    }
+    Ok(())
+}
+
 /// The entries of list `t`, named `what` in errors: its keys must be 1 to
 /// n with no gap, and n at most [`MAX_LIST`].
 pub(super) fn list(src: &ScriptSource, t: &Table, what: &str) -> Result<Vec<Value>, SimError> {
+    plain_table(src, t, what)?;
     let mut entries: Vec<(i64, Value)> = Vec::new();
     for pair in t.pairs::<Value, Value>() {
         let (k, v) = pair.map_err(|e| from_lua(src, Some(what), &e))?;
@@ -219,6 +239,7 @@ pub(super) fn map(
     t: &Table,
     what: &str,
 ) -> Result<Vec<(String, Value)>, SimError> {
+    plain_table(src, t, what)?;
     let mut out = Vec::new();
     for pair in t.pairs::<Value, Value>() {
         let (k, v) = pair.map_err(|e| from_lua(src, Some(what), &e))?;
