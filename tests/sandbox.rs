@@ -1077,6 +1077,33 @@ fn a_bad_argument_to_a_wrapped_builtin_names_the_scripts_line() {
     }
 }
 
+/// Regression (fuzzing): text a kernel raised set the reported line:
+/// `error("see line 99", 0)` was at line 99, and `error("other.lua:42: x",
+/// 0)` at 42 with "other.lua:42:" cut from its text. The line is where
+/// the error was raised, and the text is the script's.
+#[test]
+fn text_a_kernel_raises_does_not_set_the_line() {
+    for (raised, said) in [
+        ("error(\"see line 99\", 0)", "see line 99"),
+        ("error(\"other.lua:42: x\", 0)", "other.lua:42: x"),
+    ] {
+        let text = format!(
+            "return {{ channels = {{ \"w\" }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"w\" }},\n\
+             kernel = function(c)\n\
+               {raised}\n\
+             end }} }} }}"
+        );
+        let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+        let e = sim
+            .add_script(src("spoof", &text), Kernel::Lua, small())
+            .unwrap_err();
+        assert!(
+            matches!(&e, SimError::Runtime { line: Some(3), msg, .. } if msg == said),
+            "{raised}: {e:?}"
+        );
+    }
+}
+
 /// The load error of `text` as script `decl`, or a panic if it loads.
 fn load_error(text: &str) -> String {
     match ScriptVm::load(&src("decl", text), small()) {

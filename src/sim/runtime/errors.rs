@@ -17,17 +17,6 @@ pub fn line_of(msg: &str) -> Option<usize> {
     None
 }
 
-/// `"name.lua:12: message"` → `"message"` (the error's own prefix names the place).
-pub(super) fn strip_location(msg: &str) -> String {
-    if let Some(line) = line_of(msg) {
-        let tag = format!(":{line}: ");
-        if let Some(i) = msg.find(&tag) {
-            return msg[i + tag.len()..].to_string();
-        }
-    }
-    msg.to_string()
-}
-
 /// `msg` with every object address (`table: 0x7f…`, as Luau writes a
 /// table, function, buffer, userdata or thread it cannot show otherwise)
 /// cut to the type name. An error raised with a table (`error({})`)

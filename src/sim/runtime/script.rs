@@ -27,8 +27,8 @@ use mlua::{Buffer, Function, Lua, Table, Value};
 
 use super::declare::declaration;
 pub use super::declare::{MAX_SCRIPT_CHANNELS, MAX_SCRIPT_PARAMS};
+use super::errors::one_line;
 pub use super::errors::{MAX_ERROR_CHARS, line_of, without_addresses};
-use super::errors::{one_line, strip_location};
 pub use super::random::StepKey;
 use super::sandbox::HeldLog;
 pub use super::sandbox::sandboxed;
@@ -454,19 +454,28 @@ impl ScriptVm {
                 mlua::Error::CallbackError { cause, .. } => cause.to_string(),
                 other => other.to_string(),
             };
-            let msg = msg
-                .lines()
-                .next()
-                .unwrap_or("")
-                .trim_start_matches("runtime error: ");
-            let line =
-                line_of(msg).or_else(|| msg.rsplit("line ").next().and_then(|s| s.parse().ok()));
+            // The line from the script's own location or Luau's traceback,
+            // never from text the script raised (regression, fuzzing:
+            // `error("see line 99", 0)` was reported at line 99, and
+            // `error("other.lua:42: x", 0)` at 42 with its text cut).
+            let (line, first) = super::declare::read::lua_text_of(&self.name, &msg);
+            let line = line.or_else(|| {
+                // No traceback: the budget's own "… at line N", else a
+                // location in the text.
+                let first = msg.lines().next().unwrap_or("");
+                first
+                    .rsplit("at line ")
+                    .next()
+                    .filter(|_| first.contains("at line "))
+                    .and_then(|s| s.parse().ok())
+                    .or_else(|| line_of(first))
+            });
             SimError::Runtime {
                 script: self.name.clone(),
                 pass: pass_name.to_string(),
                 tile: (tx, tz),
                 line,
-                msg: one_line(&strip_location(msg)),
+                msg: one_line(&first),
             }
         })
     }

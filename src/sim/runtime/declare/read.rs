@@ -26,14 +26,18 @@ pub(in crate::sim::runtime) fn lua_text(
     src: &ScriptSource,
     e: &mlua::Error,
 ) -> (Option<usize>, String) {
-    let text = e.to_string();
+    lua_text_of(&src.name, &e.to_string())
+}
+
+/// [`lua_text`] of error text `text` raised by script `name`.
+pub(in crate::sim::runtime) fn lua_text_of(name: &str, text: &str) -> (Option<usize>, String) {
     let first = text
         .lines()
         .next()
         .unwrap_or("")
         .trim_start_matches("runtime error: ")
         .trim_start_matches("syntax error: ");
-    let own = format!("{}.lua:", src.name);
+    let own = format!("{name}.lua:");
     if let Some(rest) = first.strip_prefix(&own)
         && let Some((line, msg)) = rest.split_once(": ")
         && let Ok(line) = line.parse::<usize>()
