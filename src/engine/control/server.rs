@@ -10,9 +10,16 @@
 //! - **Block others by being slow**: every connection is its own task, headers
 //!   must arrive within [`HEADER_TIMEOUT`], a body within [`BODY_TIMEOUT`]
 //!   (else 408), and no connection lives longer than [`CONNECTION_LIFETIME`].
-//! - **Exhaust descriptors**: at most [`MAX_CONNECTIONS`] are served at once
-//!   (more are closed at once); an accept error (EMFILE, ENFILE…) pauses the
-//!   accept loop briefly and never ends it, so the listener survives.
+//! - **Exhaust descriptors**: at most [`MAX_CONNECTIONS`] are served at once;
+//!   a new one then takes the slot of the oldest connection that is between
+//!   requests (it is closed), and only when every one is busy with a
+//!   request is the new one closed. An accept error (EMFILE, ENFILE…)
+//!   pauses the accept loop briefly and never ends it, so the listener
+//!   survives.
+//! - **Lock others out with silent connections**: see the line above
+//!   (regression, HTTP fuzzing: 600 connections that sent nothing, each
+//!   reopened when closed, kept the slots full and `ctl` was refused 26
+//!   times in 30).
 //! - **Hold a connection for ever**: only a live viewer's event stream
 //!   outlives [`CONNECTION_LIFETIME`]; at most
 //!   [`MAX_VIEWERS`](super::live::MAX_VIEWERS) are served and one that
@@ -29,7 +36,7 @@ use std::time::Duration;
 use hyper::server::conn::http1;
 use hyper::service::service_fn;
 use hyper_util::rt::{TokioIo, TokioTimer};
-use tokio::sync::{Semaphore, oneshot};
+use tokio::sync::oneshot;
 
 use super::Shared;
 
@@ -41,8 +48,76 @@ pub const HEADER_TIMEOUT: Duration = Duration::from_secs(5);
 pub const BODY_TIMEOUT: Duration = Duration::from_secs(5);
 /// Longest a connection is kept, keep-alive included.
 pub const CONNECTION_LIFETIME: Duration = Duration::from_secs(60);
-/// Connections served at once; more are closed as soon as they are accepted.
+/// Connections served at once (see the module's notes for what happens
+/// to the next).
 pub const MAX_CONNECTIONS: usize = 512;
+
+/// One connection being served: whether it is in a request, and how to
+/// close it from the accept loop.
+struct Conn {
+    /// Requests in progress.
+    busy: std::sync::atomic::AtomicUsize,
+    /// The connection's event stream, if it answered with one (see
+    /// [`super::live`]): an open stream keeps its connection busy.
+    streaming: Arc<AtomicU8>,
+    close: tokio::sync::Notify,
+}
+
+impl Conn {
+    fn idle(&self) -> bool {
+        self.busy.load(Ordering::Relaxed) == 0
+            && self.streaming.load(Ordering::Relaxed) != super::live::STREAM_LIVE
+    }
+}
+
+/// The connections being served, oldest first.
+#[derive(Default)]
+struct Conns {
+    next: u64,
+    live: std::collections::BTreeMap<u64, Arc<Conn>>,
+}
+
+impl Conns {
+    /// A slot for a new connection: free, or the oldest idle connection's
+    /// (closed); `None` when all are in a request.
+    fn admit(&mut self) -> Option<(u64, Arc<Conn>)> {
+        if self.live.len() >= MAX_CONNECTIONS {
+            let idle = self
+                .live
+                .iter()
+                .find(|(_, c)| c.idle())
+                .map(|(id, _)| *id)?;
+            if let Some(c) = self.live.remove(&idle) {
+                c.close.notify_one();
+            }
+        }
+        let id = self.next;
+        self.next += 1;
+        let c = Arc::new(Conn {
+            busy: Default::default(),
+            streaming: Arc::new(AtomicU8::new(super::live::STREAM_NONE)),
+            close: Default::default(),
+        });
+        self.live.insert(id, c.clone());
+        Some((id, c))
+    }
+}
+
+/// Counts a request in progress on a connection while it lives.
+struct Busy(Arc<Conn>);
+
+impl Busy {
+    fn new(c: &Arc<Conn>) -> Self {
+        c.busy.fetch_add(1, Ordering::Relaxed);
+        Busy(c.clone())
+    }
+}
+
+impl Drop for Busy {
+    fn drop(&mut self) {
+        self.0.busy.fetch_sub(1, Ordering::Relaxed);
+    }
+}
 /// Pause of the accept loop after an accept error (out of descriptors…).
 const ACCEPT_BACKOFF: Duration = Duration::from_millis(50);
 
@@ -119,7 +194,7 @@ async fn accept_loop(
             return;
         }
     };
-    let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    let conns = Arc::new(std::sync::Mutex::new(Conns::default()));
     // Accept errors are reported at most once per ten seconds.
     let mut last_report: Option<std::time::Instant> = None;
     loop {
@@ -127,12 +202,14 @@ async fn accept_loop(
             _ = &mut stopped => break,
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
-                    // Over the limit: close at once, freeing the descriptor.
-                    let Ok(slot) = slots.clone().try_acquire_owned() else { continue };
-                    let shared = shared.clone();
+                    // Every slot in a request: close at once, freeing the
+                    // descriptor.
+                    let admitted = conns.lock().unwrap_or_else(|p| p.into_inner()).admit();
+                    let Some((id, conn)) = admitted else { continue };
+                    let (shared, conns) = (shared.clone(), conns.clone());
                     tokio::spawn(async move {
-                        serve(stream, shared).await;
-                        drop(slot);
+                        serve(stream, shared, conn).await;
+                        conns.lock().unwrap_or_else(|p| p.into_inner()).live.remove(&id);
                     });
                 }
                 Err(e) => {
@@ -149,26 +226,41 @@ async fn accept_loop(
     }
 }
 
-async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>) {
+async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>, me: Arc<Conn>) {
     let _ = stream.set_nodelay(true);
     // Set once this connection answers with an event stream: a live viewer
     // may stay longer than CONNECTION_LIFETIME (the stream has its own
     // limits, see `live`), and once the stream ends the connection closes.
-    let streaming = Arc::new(AtomicU8::new(super::live::STREAM_NONE));
+    let streaming = me.streaming.clone();
     let flag = streaming.clone();
+    let mine = me.clone();
     let service = service_fn(move |req| {
         let (shared, flag) = (shared.clone(), flag.clone());
-        async move { Ok::<_, Infallible>(super::routes::handle(req, &shared, &flag).await) }
+        let busy = Busy::new(&mine);
+        async move {
+            let r = super::routes::handle(req, &shared, &flag).await;
+            drop(busy);
+            Ok::<_, Infallible>(r)
+        }
     });
     let conn = http1::Builder::new()
         .timer(TokioTimer::new())
         .header_read_timeout(HEADER_TIMEOUT)
         .max_buf_size(MAX_HEADER_BYTES)
+        // A client that shuts its sending side after its request still
+        // gets the answer (regression, HTTP fuzzing: the routes that wait
+        // for the engine answered nothing, yet carried the command out).
+        .half_close(true)
         .serve_connection(TokioIo::new(stream), service);
     tokio::pin!(conn);
     let born = tokio::time::Instant::now();
     loop {
-        match tokio::time::timeout(WATCH_EVERY, &mut conn).await {
+        let waited = tokio::select! {
+            r = tokio::time::timeout(WATCH_EVERY, &mut conn) => r,
+            // A new client took this idle connection's slot.
+            _ = me.close.notified() => return,
+        };
+        match waited {
             Ok(_) => return,
             Err(_) => match streaming.load(Ordering::Relaxed) {
                 super::live::STREAM_LIVE => continue,
