@@ -349,6 +349,14 @@ fn nan_and_negative_values_are_detected_instead_of_written() {
             "{value}: {:?}",
             r.errors
         );
+        // A negative write is named as one, not only as an unstable step
+        // (regression, fuzzing: "reduce dt" was all it said).
+        let said = r.errors[0].to_string();
+        assert_eq!(
+            said.contains("below 0 in a channel declared nonnegative"),
+            value == "-1",
+            "{value}: {said}"
+        );
         assert_eq!(sim.channels().hash(), before, "{value}");
     }
 }

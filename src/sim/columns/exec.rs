@@ -269,11 +269,19 @@ pub(super) fn run_script(
             let t = ws.tiles[w as usize];
             return Err(SimError::Unstable {
                 script: s.spec.name.clone(),
+                // A negative value in a `nonnegative` channel is named as
+                // such: it may be a plain write, not an unstable step
+                // (regression, fuzzing: "reduce dt" for `c.w[i] = -1`).
                 msg: format!(
-                    "channel '{}' = {x} at column ({}, {}); reduce dt (or enable sub-stepping)",
+                    "channel '{}' = {x} at column ({}, {}){}",
                     s.spec.channels[i],
                     t.x * TILE + (c as i32 % TILE),
-                    t.y * TILE + (c as i32 / TILE)
+                    t.y * TILE + (c as i32 / TILE),
+                    if x.is_finite() {
+                        ", below 0 in a channel declared nonnegative (a write of a negative value, or a step too large: reduce dt or enable sub-stepping)"
+                    } else {
+                        "; reduce dt (or enable sub-stepping)"
+                    }
                 ),
             });
         }
