@@ -116,6 +116,7 @@ pub(super) fn shown(name: &str) -> String {
 /// assert!(host_allowed("[fe80::1%2]:7878", &[]));
 /// assert!(host_allowed("localhost:7878", &[]));
 /// assert!(!host_allowed("evil.example:7878", &[]));
+/// assert!(!host_allowed("127.0.0.1:99999", &[]));
 /// assert!(host_allowed("Box.LAN:7878", &["box.lan".to_string()]));
 /// ```
 pub fn host_allowed(host: &str, allowed: &[String]) -> bool {
@@ -144,8 +145,10 @@ pub fn host_allowed(host: &str, allowed: &[String]) -> bool {
         || allowed.contains(&name)
 }
 
+/// A port number: digits that fit 16 bits (regression, HTTP fuzzing:
+/// `Host: 127.0.0.1:99999` was served).
 fn is_port(p: &str) -> bool {
-    !p.is_empty() && p.len() <= 5 && p.bytes().all(|b| b.is_ascii_digit())
+    !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()) && p.parse::<u16>().is_ok()
 }
 
 /// Answer one request. `stream` is the connection's stream state
