@@ -1284,33 +1284,3 @@ fn silent_connections_cannot_lock_other_clients_out() {
     drop(flood);
     assert_success(&stop(d));
 }
-
-/// Regression (HTTP fuzzing): a client that shut its sending side after a
-/// command got no answer from the routes that wait for the engine (the
-/// connection closed empty), yet the command was carried out. It is
-/// answered now.
-#[test]
-fn a_half_closed_client_gets_its_commands_answer() {
-    let (cfg, state, addr) = setup("halfclose");
-    let d = start(&cfg, &state);
-    wait_ready(&addr);
-    let tok = token(&state);
-    for (path, body) in [
-        ("/commit", ""),
-        ("/scripts/water/params", "{\"rain\":0.07}"),
-    ] {
-        let mut s = TcpStream::connect(&addr).unwrap();
-        s.write_all(
-            format!(
-                "POST {path} HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {tok}\r\nContent-Length: {}\r\n\r\n{body}",
-                body.len()
-            )
-            .as_bytes(),
-        )
-        .unwrap();
-        s.shutdown(std::net::Shutdown::Write).unwrap();
-        let line = reply_line(&mut s, Duration::from_secs(10));
-        assert!(line.starts_with("HTTP/1.1 20"), "{path}: {line:?}");
-    }
-    assert_success(&stop(d));
-}

@@ -247,10 +247,12 @@ async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>, me: Arc<Conn>
         .timer(TokioTimer::new())
         .header_read_timeout(HEADER_TIMEOUT)
         .max_buf_size(MAX_HEADER_BYTES)
-        // A client that shuts its sending side after its request still
-        // gets the answer (regression, HTTP fuzzing: the routes that wait
-        // for the engine answered nothing, yet carried the command out).
-        .half_close(true)
+        // Half-close stays off: with it on, hyper stops watching for a
+        // client that leaves mid-request or mid-stream, and a closed
+        // viewer's event stream held its slot for ever on a paused engine
+        // (found by review). A client that shuts its sending side before
+        // reading the answer may get none (its command may still be
+        // carried out, as `ctl` says of a command without an answer).
         .serve_connection(TokioIo::new(stream), service);
     tokio::pin!(conn);
     let born = tokio::time::Instant::now();
