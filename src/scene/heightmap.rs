@@ -32,21 +32,21 @@ fn png_message(e: png::DecodingError) -> String {
         // are not the struct's: it ends at the first field after it
         // (regression, fuzzing: a name with odd bytes was cut to a letter
         // or two, and the struct's fields were left in the message).
-        let rest = &msg[i + "ChunkType { type: ".len()..];
+        let start = i + "ChunkType { type: ".len();
+        let Some(fields) = msg[start..].find(", critical:").map(|j| start + j) else {
+            break;
+        };
         // Bytes past ASCII came out as Latin-1 letters: shown as bytes.
-        let name: String = rest
-            .find(", critical:")
-            .map_or("", |j| &rest[..j])
+        let name: String = msg[start..fields]
             .chars()
             .map(|c| match c as u32 {
                 0x80..=0xff => format!("\\x{:02x}", c as u32),
                 _ => c.to_string(),
             })
             .collect();
-        let end = msg[i..]
-            .find(", critical:")
-            .and_then(|j| msg[i + j..].find(" }").map(|k| i + j + k + 2))
-            .unwrap_or(msg.len());
+        let end = msg[fields..]
+            .find(" }")
+            .map_or(msg.len(), |k| fields + k + 2);
         msg.replace_range(i..end, &format!("'{name}'"));
     }
     msg.trim_end_matches('.').to_string()

@@ -158,8 +158,10 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
     // The head limit, counted here too: hyper caps its read buffer, but
     // a head that arrived behind a body on a reused connection could pass
     // it (regression, HTTP fuzzing: 2.7 % of 20 KB heads got 404, not 431).
+    let uri = req.uri();
     let head = req.method().as_str().len()
-        + req.uri().to_string().len()
+        + uri.authority().map_or(0, |a| a.as_str().len())
+        + uri.path_and_query().map_or(0, |p| p.as_str().len())
         + req
             .headers()
             .iter()
