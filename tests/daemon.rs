@@ -446,8 +446,8 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
     std::thread::sleep(Duration::from_millis(400));
     std::fs::remove_file(scripts.join("other.lua")).unwrap();
 
-    // materials.lua is read only at start: a change is checked and said,
-    // not silently ignored (regression, hostile probe).
+    // A change to materials.lua is applied and said, a broken one refused
+    // and said, not silently ignored (regression, hostile probe).
     let materials = scripts.join("materials.lua");
     let wait_note = |says: &str| {
         let t = Instant::now();
@@ -467,7 +467,7 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
         &materials,
         "return { moss = { color = { 60, 140, 60 }, kind = \"solid\", density = 1 } }\n",
     );
-    wait_note("materials are read when the engine starts");
+    wait_note("applied: 1 new material (moss), 0 recoloured");
     save_like_an_editor(&materials, "return { moss = 1 }\n");
     wait_note("does not load");
     std::fs::remove_file(&materials).unwrap();
@@ -912,4 +912,97 @@ fn the_viewers_timeline_starts_with_the_history_on_disk() {
     let stored: Vec<f64> = on_disk.rows.iter().map(|r| r[0]).collect();
     assert_eq!(served, stored, "{body}");
     assert_success(&stop(d));
+}
+
+/// `materials.lua` is applied while the engine runs: a voxel script whose
+/// reload waited for a material is reloaded once the material is declared,
+/// a recoloured material is said and stored, and the ids are those the
+/// same edits made while the engine was stopped give.
+#[test]
+fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_it() {
+    let (cfg, state, addr) = setup("livematerials");
+    let lava_src =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/lava.lua")).unwrap();
+    add_script(&cfg, "lava.lua", &lava_src);
+    let scripts = cfg.parent().unwrap().join("scripts");
+    let materials = scripts.join("materials.lua");
+    let shipped = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/scripts/materials.lua"
+    ))
+    .unwrap();
+    std::fs::write(&materials, &shipped).unwrap();
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str("[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n");
+    std::fs::write(&cfg, text).unwrap();
+    let child = start(&cfg, &state);
+    wait_ready(&addr);
+    let lava = |pred: &dyn Fn(&serde_json::Value) -> bool| {
+        let t = Instant::now();
+        loop {
+            let st = status(&addr);
+            if pred(&st["scripts"][1]) {
+                return st;
+            }
+            assert!(t.elapsed() < Duration::from_secs(20), "{st}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    };
+    lava(&|s| s["name"] == "lava");
+
+    // Lava cools to `obsidian` now, a material not declared yet: the
+    // reload is refused and the old version runs on.
+    let v2 = lava_src
+        .replace("\"basalt\", \"water\"", "\"obsidian\", \"water\"")
+        .replace("c.m.basalt", "c.m.obsidian");
+    assert_ne!(v2, lava_src);
+    save_like_an_editor(&scripts.join("lava.lua"), &v2);
+    lava(&|s| {
+        s["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("unknown material 'obsidian'"))
+    });
+    let reloads = status(&addr)["scripts"][1]["reloads"].as_u64().unwrap();
+
+    // Declared, with lava recoloured: applied, and the waiting script
+    // reloads by itself.
+    let declared = shipped
+        .replacen(
+            "return {",
+            "return {\n  obsidian = { color = { 30, 20, 40 }, kind = \"solid\", density = 2.6 },",
+            1,
+        )
+        .replace("color = { 255, 96, 24 }", "color = { 250, 10, 10 }");
+    save_like_an_editor(&materials, &declared);
+    let st = lava(&|s| s["error"].is_null() && s["reloads"].as_u64() > Some(reloads));
+    let note = st["materials_note"].as_str().unwrap_or_default();
+    assert!(
+        note.contains("applied: 1 new material (obsidian), 1 recoloured"),
+        "{st}"
+    );
+    let out = stop(child);
+    assert!(out.status.success());
+    let log = String::from_utf8_lossy(&out.stderr);
+    common::cli::assert_no_panic(&log, "the engine");
+    let (live, palette) = stored_materials(&cfg, &state);
+    let id = |m: &[(u8, String)], n: &str| m.iter().find(|e| e.1 == n).unwrap().0;
+    assert_eq!(palette[id(&live, "lava") as usize], [250, 10, 10]);
+    assert_eq!(palette[id(&live, "obsidian") as usize], [30, 20, 40]);
+
+    // The same edits made while the engine was stopped give the same ids.
+    let (cfg2, state2, _) = setup("livematerials-restart");
+    add_script(&cfg2, "lava.lua", &lava_src);
+    std::fs::write(
+        cfg2.parent().unwrap().join("scripts/materials.lua"),
+        &shipped,
+    )
+    .unwrap();
+    std::fs::copy(&cfg, &cfg2).unwrap();
+    edit_config(&cfg2, "livematerials", "livematerials-restart");
+    run_ok(&cfg2, &state2, "--ticks", 2);
+    let scripts2 = cfg2.parent().unwrap().join("scripts");
+    std::fs::write(scripts2.join("lava.lua"), &v2).unwrap();
+    std::fs::write(scripts2.join("materials.lua"), &declared).unwrap();
+    run_ok(&cfg2, &state2, "--ticks", 2);
+    assert_eq!(stored_materials(&cfg2, &state2).0, live);
 }

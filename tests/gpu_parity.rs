@@ -385,3 +385,57 @@ fn a_far_eye_takes_its_levels_from_the_eye() {
         );
     }
 }
+
+/// A palette uploaded after the GPU brickmap was built is the one it draws
+/// with (a hot reload of `materials.lua` recolours materials): its frame
+/// matches the CPU's with the new palette, not the old one.
+#[test]
+fn a_new_palette_reaches_the_gpu() {
+    let Some(ctx) = context() else { return };
+    let (b, _) = far_view();
+    let v = b.world.default_views()[1];
+    let cam = Camera::new(DVec3::from(v.eye), DVec3::from(v.target), v.fov, 64, 48).unwrap();
+    let opts = RenderOptions::default();
+    let old = b.world.store().palette();
+    let mut new = old.clone();
+    for m in 1..=255u8 {
+        let c = old.rgb(m);
+        new.set(m, [255 - c[0], c[2], c[1]]);
+    }
+    let mut gpu =
+        GpuBrickmap::preloaded(&ctx, b.world.grid(), b.world.store().pool(), old).unwrap();
+    gpu.set_palette(&ctx, &new);
+    let (g, _) = gpu
+        .render(&ctx, &cam, &opts, b.world.grid(), b.world.store().pool())
+        .unwrap();
+    let bm = b.brickmap();
+    let cpu_new = render(&bm, &cam, &new, &opts);
+    let cpu_old = render(&bm, &cam, old, &opts);
+    let hits: Vec<usize> = (0..cpu_new.hits.len())
+        .filter(|&i| cpu_new.hits[i].is_some())
+        .collect();
+    assert!(hits.len() > 100, "{} hits", hits.len());
+    let off = |a: &[u8], i: usize| {
+        (0..3)
+            .map(|k| a[i * 3 + k].abs_diff(g.rgb[i * 3 + k]))
+            .max()
+            .unwrap()
+    };
+    let bad = hits
+        .iter()
+        .filter(|&&i| off(&cpu_new.rgb, i) > COLOUR_TOLERANCE)
+        .count();
+    assert!(
+        bad * 200 <= hits.len(),
+        "{bad} of {} pixels off the new palette",
+        hits.len()
+    );
+    let old_like = hits
+        .iter()
+        .filter(|&&i| off(&cpu_old.rgb, i) <= COLOUR_TOLERANCE)
+        .count();
+    assert!(
+        old_like * 10 < hits.len(),
+        "{old_like} pixels still in the old colours"
+    );
+}

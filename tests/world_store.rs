@@ -1353,3 +1353,81 @@ fn damage_anywhere_in_the_store_file_is_one_line_never_a_panic_or_an_abort() {
         "no flip reached redb's own pages: the test needs other offsets"
     );
 }
+
+/// Regression: `materials.lua` was loaded, with the scripts, against a
+/// fresh registry on every start, and the stored registry then replaced it
+/// under them. A material declared before the others (names are taken in
+/// order) shifted their ids, so after "stop and start again to use it" the
+/// lava script took the stored `lava_source` for lava, and a changed colour
+/// was lost to the stored palette. Now a stored name keeps its id, a new
+/// one takes a free id, and the new colour is the world's.
+#[test]
+fn a_material_declared_before_the_others_keeps_their_stored_ids_across_a_restart() {
+    let run_lava = |name: &str| {
+        let (cfg, state, _) = setup(name);
+        add_script(
+            &cfg,
+            "lava.lua",
+            &std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/lava.lua"))
+                .unwrap(),
+        );
+        let materials = cfg.parent().unwrap().join("scripts/materials.lua");
+        std::fs::copy(
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/materials.lua"),
+            &materials,
+        )
+        .unwrap();
+        let mut text = std::fs::read_to_string(&cfg).unwrap();
+        text.push_str(
+            "[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n",
+        );
+        std::fs::write(&cfg, text).unwrap();
+        (cfg, state, materials)
+    };
+    let (cfg_a, state_a, _) = run_lava("matids-a");
+    let uninterrupted = hash_at(&cfg_a, &state_a, 12);
+
+    let (cfg, state, materials) = run_lava("matids-b");
+    hash_at(&cfg, &state, 2);
+    let text = std::fs::read_to_string(&materials).unwrap();
+    let edited = text
+        .replacen(
+            "return {",
+            "return {\n  acid = { color = { 100, 255, 0 }, kind = \"liquid\", density = 1.2 },",
+            1,
+        )
+        .replace("color = { 255, 96, 24 }", "color = { 250, 10, 10 }");
+    assert_ne!(edited, text);
+    std::fs::write(&materials, edited).unwrap();
+    assert_eq!(
+        hash_at(&cfg, &state, 12),
+        uninterrupted,
+        "the lava ran on as before"
+    );
+
+    // The stored registry keeps every old id and adds acid at a free one;
+    // the stored palette has lava's new colour.
+    let stored = |cfg: &std::path::Path, state: &std::path::Path| {
+        let identity = brickworld::engine::world_config::WorldConfig::load(cfg)
+            .unwrap()
+            .identity();
+        let (db, _) = WorldDb::open(state, &identity).unwrap();
+        state::decode(&db.state().unwrap().unwrap()).unwrap()
+    };
+    let (before, after) = (stored(&cfg_a, &state_a), stored(&cfg, &state));
+    let id = |st: &brickworld::engine::checkpoint::WorldState, n: &str| {
+        st.extras
+            .materials
+            .iter()
+            .find(|m| m.1 == n)
+            .unwrap_or_else(|| panic!("{n} in {:?}", st.extras.materials))
+            .0
+    };
+    for m in &before.extras.materials {
+        assert_eq!(id(&after, &m.1), m.0, "{} kept its id", m.1);
+    }
+    let acid = id(&after, "acid");
+    assert!(before.extras.materials.iter().all(|m| m.0 != acid));
+    assert_eq!(after.store.palette().rgb(id(&after, "lava")), [250, 10, 10]);
+    assert_eq!(after.store.palette().rgb(acid), [100, 255, 0]);
+}

@@ -409,6 +409,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
     // those `run` prints. A world whose scripts no longer load is still
     // exported (its data is stored by channel name); only the hash is
     // left out.
+    super::persistence::seed_materials(&db, &mut world)?;
     let comparable = match super::daemon::load_scripts(cfg, &mut world, &mut ws) {
         Ok(()) => true,
         Err(e) => {
@@ -417,6 +418,8 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
             );
             ws = WorldSim::with_edges(&mut world, true);
             ws.sim.channels_mut().take_dirty();
+            // The simulation's colours again as stored.
+            super::persistence::seed_materials(&db, &mut world)?;
             false
         }
     };

@@ -176,6 +176,34 @@ pub fn stored_frame(db: &WorldDb) -> Result<Option<StoredFrame>, StoreError> {
     Ok(Some((st.store.palette().clone(), st.bounds)))
 }
 
+/// Put the store's material registry under the world's (see
+/// [`MaterialRegistry::under`](crate::world::MaterialRegistry::under)),
+/// before `materials.lua` and the scripts load: a stored name keeps its
+/// id, and the scripts resolve the ids the stored voxels hold. Nothing
+/// changes for a store never committed, or one whose state names no
+/// materials (older files).
+pub fn seed_materials(db: &WorldDb, world: &mut SceneWorld) -> Result<(), StoreError> {
+    let Some(blob) = db.state()? else {
+        return Ok(());
+    };
+    let st = state::decode(&blob).map_err(|msg| StoreError::Db {
+        path: db.path().to_path_buf(),
+        msg: format!("{msg}; the chunks are intact, but the world cannot resume without it"),
+    })?;
+    if st.extras.materials.is_empty() {
+        return Ok(());
+    }
+    let stored =
+        crate::world::MaterialRegistry::from_entries(&st.extras.materials, st.store.palette());
+    world.materials = world.materials.under(&stored);
+    // Stored colours first (`materials.lua` recolours over them later);
+    // generated bricks get their LOD colours.
+    let mut palette = st.store.palette().clone();
+    world.materials.apply(&mut palette);
+    world.set_palette(palette);
+    Ok(())
+}
+
 /// What [`restore_chunks`] found besides the chunks.
 #[derive(Debug)]
 pub struct Restored {
@@ -265,8 +293,32 @@ pub fn restore_chunks(
     } else {
         (db.chunk_keys()?, db.column_keys()?)
     };
-    let (overlay, _) = world.edit(|store, materials| -> Result<_, StoreError> {
-        *store.palette_mut() = st.store.palette().clone();
+    // The registry the scripts were loaded against must give every stored
+    // name its stored id ([`seed_materials`] saw to that); it is kept, so
+    // that `materials.lua`'s new names and colours stay. Its colours go
+    // over the stored palette before any brick is decoded, so that far
+    // bricks' LOD colours are the new ones.
+    let stored_materials = (!st.extras.materials.is_empty()).then(|| {
+        crate::world::MaterialRegistry::from_entries(&st.extras.materials, st.store.palette())
+    });
+    if let Some(m) = stored_materials
+        .as_ref()
+        .and_then(|s| world.materials.disagreement(s))
+    {
+        return Err(StoreError::Db {
+            path: db.path().to_path_buf(),
+            msg: format!(
+                "the stored material {m} has another id in the registry the scripts were loaded against (the store's registry was not put under it first)"
+            ),
+        });
+    }
+    let mut palette = st.store.palette().clone();
+    if stored_materials.is_some() {
+        world.materials.apply(&mut palette);
+    }
+    // (An older state names no materials: its palette as stored.)
+    world.set_palette(palette);
+    let (overlay, _) = world.edit(|store, _| -> Result<_, StoreError> {
         let mut keys = chunk_keys;
         keys.retain(in_world);
         let mut corrupt = Vec::new();
@@ -319,10 +371,6 @@ pub fn restore_chunks(
                     }
                 }
             }
-        }
-        if !st.extras.materials.is_empty() {
-            *materials =
-                crate::world::MaterialRegistry::from_entries(&st.extras.materials, store.palette());
         }
         Ok((corrupt, regenerated, bad_columns, n))
     });

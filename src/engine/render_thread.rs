@@ -134,6 +134,7 @@ impl RenderThread {
                 for job in rx.iter() {
                     let t = Instant::now();
                     let full = matches!(job.world, FrameWorld::Full(_));
+                    let palette_before = mirror.as_ref().map(|m| m.store().palette().clone());
                     match job.world {
                         FrameWorld::Full(w) => mirror = Some(*w),
                         FrameWorld::Delta(d) => match mirror.as_mut() {
@@ -149,6 +150,9 @@ impl RenderThread {
                         },
                     }
                     let mut world = mirror.as_ref().expect("set above");
+                    // Recoloured materials (`materials.lua` reloaded), or
+                    // the first world.
+                    let palette_changed = palette_before.as_ref() != Some(world.store().palette());
                     let mut window_changed = Vec::new();
                     if let Some(plan) = &settings.stream {
                         let eye = job.camera.eye;
@@ -179,6 +183,7 @@ impl RenderThread {
                                     if settings.look.tracer != crate::gpu::TracerChoice::Cpu {
                                         w.track_changes();
                                     }
+                                    w.set_palette(world.store().palette().clone());
                                     window = Some(w);
                                 }
                                 Err(e) => {
@@ -188,6 +193,9 @@ impl RenderThread {
                             },
                         }
                         let w = window.as_mut().expect("set above");
+                        if palette_changed {
+                            w.set_palette(world.store().palette().clone());
+                        }
                         window_changed = w.take_changed();
                         if let Ok(mut s) = st.window.lock() {
                             *s = Some(w.stats());
@@ -206,6 +214,9 @@ impl RenderThread {
                             &job.dirty
                         };
                         g.apply_edits(ctx, world.grid(), world.store().pool(), changed);
+                        if palette_changed {
+                            g.set_palette(ctx, world.store().palette());
+                        }
                     }
                     let opts = settings.look.options();
                     let rgb = supersample(settings.look.aa, &opts, |o| {

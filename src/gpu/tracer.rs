@@ -48,6 +48,28 @@ pub struct GpuBrickmap {
     pub(super) slots: u32,
 }
 
+/// The palette as the shader reads it: one `0x00BBGGRR` word per material.
+fn palette_words(palette: &Palette) -> Vec<u32> {
+    (0..=255u8)
+        .map(|m| {
+            let c = palette.rgb(m);
+            c[0] as u32 | (c[1] as u32) << 8 | (c[2] as u32) << 16
+        })
+        .collect()
+}
+
+impl GpuBrickmap {
+    /// Upload `palette` (a hot reload of `materials.lua` recolours
+    /// materials; the bricks' LOD colours come with their edits).
+    pub fn set_palette(&self, ctx: &GpuContext, palette: &Palette) {
+        ctx.queue.write_buffer(
+            &self.palette,
+            0,
+            bytemuck::cast_slice(&palette_words(palette)),
+        );
+    }
+}
+
 fn words_of(bytes: &[u8]) -> Vec<u32> {
     bytes
         .chunks(4)
@@ -214,12 +236,7 @@ impl GpuBrickmap {
     ) -> Result<Self, GpuError> {
         let dev = &ctx.device;
         let limit = ctx.limits.max_storage_buffer_binding_size;
-        let pal: Vec<u32> = (0..=255u8)
-            .map(|m| {
-                let c = palette.rgb(m);
-                c[0] as u32 | (c[1] as u32) << 8 | (c[2] as u32) << 16
-            })
-            .collect();
+        let pal = palette_words(palette);
         let usage = wgpu::BufferUsages::STORAGE
             | wgpu::BufferUsages::COPY_DST
             | wgpu::BufferUsages::COPY_SRC;

@@ -256,6 +256,22 @@ impl SceneWorld {
         self.bounds
     }
 
+    /// Give the world `palette`. A brick's LOD colour is the average of its
+    /// voxels' colours, so the bricks holding a material whose colour
+    /// changes are re-encoded ([`BrickStore::recolour`]); they are returned
+    /// (their voxels are the same: for the renderer, not for a commit).
+    pub fn set_palette(&mut self, palette: crate::world::Palette) -> Vec<IVec3> {
+        let ((), recoloured) = self.edit(|s, _| {
+            let mut changed = [false; 256];
+            for (id, c) in changed.iter_mut().enumerate().skip(1) {
+                *c = s.palette().rgb(id as u8) != palette.rgb(id as u8);
+            }
+            *s.palette_mut() = palette;
+            s.recolour(&changed);
+        });
+        recoloured
+    }
+
     /// Change the world: `f` gets the store and the materials; afterwards
     /// the grid is patched with the bricks `f` changed, which are returned
     /// with `f`'s result.

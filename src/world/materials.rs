@@ -233,6 +233,39 @@ impl MaterialRegistry {
         r
     }
 
+    /// `stored` (the ids a store's voxels hold) with this registry's names
+    /// added where they fit: a name `stored` lacks keeps its id here if that
+    /// id is free there. A world that resumes loads `materials.lua` and its
+    /// scripts against this, so that a name keeps its stored id and a new
+    /// one takes a free id, as a hot reload would give it (regression: the
+    /// scripts were loaded against a fresh registry, where a name declared
+    /// before the others shifted their ids, and then the stored registry
+    /// replaced it under them).
+    pub fn under(&self, stored: &MaterialRegistry) -> MaterialRegistry {
+        let mut r = stored.clone();
+        for (i, d) in self.defs.iter().enumerate() {
+            if let Some((name, def)) = d
+                && r.id(name).is_none()
+                && r.defs[i].is_none()
+            {
+                r.defs[i] = Some((name.clone(), *def));
+                r.by_name.insert(name.clone(), i as MaterialId);
+            }
+        }
+        r
+    }
+
+    /// The first of `stored`'s materials that this registry lacks or gives
+    /// another id, as "name (id N)": None when every stored name keeps its
+    /// id here.
+    pub fn disagreement(&self, stored: &MaterialRegistry) -> Option<String> {
+        stored
+            .names()
+            .into_iter()
+            .find(|(id, name)| self.id(name) != Some(*id))
+            .map(|(id, name)| format!("{name} (id {id})"))
+    }
+
     /// Write every registered colour into `palette`.
     pub fn apply(&self, palette: &mut Palette) {
         for (i, d) in self.defs.iter().enumerate() {
@@ -270,6 +303,33 @@ mod tests {
         let mut p = Palette::grey_ramp();
         r.apply(&mut p);
         assert_eq!(p.rgb(251), [9, 9, 9]);
+    }
+
+    #[test]
+    fn a_registry_under_a_stored_one_keeps_the_stored_ids() {
+        let mut stored = MaterialRegistry::new();
+        stored.register_at(1, "grass", def(1)).unwrap();
+        stored.register("basalt", def(2)).unwrap(); // 251
+        stored.register("lava", def(3)).unwrap(); // 250
+        // A fresh start gives acid, declared first, the id stored for basalt.
+        let mut fresh = MaterialRegistry::new();
+        fresh.register_at(1, "grass", def(9)).unwrap();
+        fresh.register_at(2, "rock", def(9)).unwrap();
+        fresh.register("acid", def(4)).unwrap();
+        assert_eq!(fresh.id("acid"), Some(251));
+        assert_eq!(
+            fresh.disagreement(&stored).as_deref(),
+            Some("lava (id 250)")
+        );
+        let mut r = fresh.under(&stored);
+        assert_eq!(r.disagreement(&stored), None);
+        assert_eq!(r.id("acid"), None, "its id is taken there");
+        assert_eq!(r.id("rock"), Some(2), "a free id is kept");
+        assert_eq!(r.get(1).unwrap().1.color, [1, 1, 1], "stored wins");
+        // materials.lua then registers onto it: acid takes a free id.
+        assert_eq!(r.register("acid", def(4)).unwrap(), 249);
+        assert_eq!(r.register("lava", def(5)).unwrap(), 250);
+        assert_eq!(r.disagreement(&stored), None);
     }
 
     #[test]

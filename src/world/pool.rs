@@ -162,6 +162,19 @@ impl<'p> BrickRef<'p> {
         }
     }
 
+    /// Whether any of the brick's materials is one `wanted` marks, read
+    /// from its local palette (no voxel is decoded).
+    pub fn holds_any(&self, wanted: &[bool; 256]) -> bool {
+        let m = self.pool.meta[self.slot];
+        if m.flags & FLAG_MULTI == 0 {
+            return wanted[m.data as u8 as usize];
+        }
+        let block = &self.pool.arena[m.data as usize..];
+        block[HEADER..HEADER + block[0] as usize]
+            .iter()
+            .any(|&id| wanted[id as usize])
+    }
+
     /// Material at brick-local `(x, y, z)`, 0 if empty.
     pub fn material(&self, x: i32, y: i32, z: i32) -> u8 {
         self.material_index(super::voxel_index(x, y, z))

@@ -290,6 +290,45 @@ impl BrickStore {
         }
     }
 
+    /// Re-encode the mixed bricks that hold a material `changed` names,
+    /// after the palette gave it a new colour: a mixed brick's LOD colour
+    /// is its voxels' average in the palette (the grid's pointers and the
+    /// GPU's stand-ins carry it). Each is recorded as modified (for the
+    /// grid and the renderer) but takes no edit tick: its voxels are the
+    /// same. Uniform bricks are left alone: their colour is their one
+    /// material's, read from the palette. Returns how many were re-encoded.
+    pub fn recolour(&mut self, changed: &[bool; 256]) -> usize {
+        if !changed.iter().any(|&c| c) {
+            return 0;
+        }
+        let mut mixed: Vec<(IVec3, super::BrickId)> = self
+            .entries
+            .iter()
+            .filter_map(|(b, e)| match e.cell {
+                Cell::Mixed(id) => Some((*b, id)),
+                _ => None,
+            })
+            .filter(|(_, id)| self.pool.get(*id).is_some_and(|br| br.holds_any(changed)))
+            .collect();
+        mixed.sort_by_key(|(b, _)| (b.z, b.y, b.x));
+        let mut dense = [0u8; BRICK_VOXELS];
+        for &(b, id) in &mixed {
+            self.read_dense(b, &mut dense);
+            let lod = self.pool.get(id).map(|br| br.lod());
+            if let (BrickContent::Mixed(brick), Some(lod)) =
+                (BrickContent::from_dense(&dense, &self.palette), lod)
+            {
+                // The coarser levels' materials stay as they were (a copy
+                // may carry another brick's).
+                self.pool.replace(id, brick.with_lod(lod));
+            }
+            if self.modified_set.insert(b) {
+                self.modified.push(b);
+            }
+        }
+        mixed.len()
+    }
+
     /// Drain the list of bricks changed since the last call, each once, in
     /// the order they were first changed.
     pub fn take_modified(&mut self) -> Vec<IVec3> {
@@ -341,6 +380,44 @@ impl BrickStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn recolour_gives_new_lod_colours_to_the_mixed_bricks_holding_a_material_and_keeps_their_voxels()
+     {
+        let mut s = BrickStore::new(Palette::grey_ramp());
+        s.set_brick(IVec3::ZERO, BrickContent::Uniform(5));
+        s.set_voxel(IVec3::new(8, 0, 0), 5); // mixed, holds 5
+        s.set_voxel(IVec3::new(9, 0, 0), 7); // two materials
+        s.set_voxel(IVec3::new(16, 0, 0), 6); // mixed, does not
+        s.set_voxel(IVec3::new(24, 0, 0), 6); // two materials, neither 5
+        s.set_voxel(IVec3::new(25, 0, 0), 7);
+        s.take_modified();
+        let ticks: Vec<u64> = (0..3).map(|x| s.edit_tick(IVec3::new(x, 0, 0))).collect();
+        let id = |s: &BrickStore, x| match s.cell(IVec3::new(x, 0, 0)) {
+            Cell::Mixed(id) => id,
+            c => panic!("{c:?}"),
+        };
+        let before = s.pool().get(id(&s, 1)).unwrap().lod_rgb();
+        let mut dense = [0u8; BRICK_VOXELS];
+        s.read_dense(IVec3::X, &mut dense);
+        s.palette_mut().set(5, [250, 10, 10]);
+        let mut changed = [false; 256];
+        changed[5] = true;
+        assert_eq!(s.recolour(&changed), 1, "the mixed brick that holds 5");
+        assert_eq!(s.take_modified(), vec![IVec3::X]);
+        assert_eq!(s.recolour(&[false; 256]), 0);
+        let after = s.pool().get(id(&s, 1)).unwrap().lod_rgb();
+        assert_ne!(after, before);
+        // What a brick encoded afresh with the new palette holds.
+        let mut fresh = BrickStore::new(s.palette().clone());
+        fresh.set_brick(IVec3::X, s.content(IVec3::X));
+        assert_eq!(after, fresh.pool().get(id(&fresh, 1)).unwrap().lod_rgb());
+        let mut again = [0u8; BRICK_VOXELS];
+        s.read_dense(IVec3::X, &mut again);
+        assert_eq!(again, dense, "the voxels are the same");
+        let now: Vec<u64> = (0..3).map(|x| s.edit_tick(IVec3::new(x, 0, 0))).collect();
+        assert_eq!(now, ticks, "not an edit");
+    }
 
     #[test]
     fn negative_coordinates_use_floor_division() {

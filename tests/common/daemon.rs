@@ -214,6 +214,26 @@ pub fn stored_tick(cfg: &Path, state: &Path) -> Option<u64> {
     Some(brickworld::persist::state::decode(&blob).unwrap().tick)
 }
 
+/// The material registry and palette of `state`'s last commit, read as a
+/// user's tools would, through the library: (id, name) by id, and the
+/// colour of each id.
+#[allow(dead_code)]
+pub fn stored_materials(cfg: &Path, state: &Path) -> (Vec<(u8, String)>, Vec<[u8; 3]>) {
+    let identity = brickworld::engine::world_config::WorldConfig::load(cfg)
+        .unwrap()
+        .identity();
+    let (db, _) = brickworld::persist::WorldDb::open(state, &identity).unwrap();
+    let st = brickworld::persist::state::decode(&db.state().unwrap().unwrap()).unwrap();
+    (
+        st.extras
+            .materials
+            .iter()
+            .map(|m| (m.0, m.1.clone()))
+            .collect(),
+        (0..=255u8).map(|i| st.store.palette().rgb(i)).collect(),
+    )
+}
+
 /// Run the daemon with `flag N` (`--ticks` or `--until-tick`), require
 /// success; its (stdout, stderr).
 #[allow(dead_code)]

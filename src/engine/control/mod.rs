@@ -152,9 +152,9 @@ pub struct Status {
     /// The last commit failure (a full disk, say), if any; cleared by the
     /// next commit that succeeds. Nothing committed before it is lost.
     pub commit_error: Option<String>,
-    /// Set when `materials.lua` changed on disk while the engine ran: it
-    /// is read only at start, so the note says whether the new file loads
-    /// and that a restart applies it.
+    /// Set when `materials.lua` changed on disk while the engine ran: what
+    /// was applied (new materials, recoloured ones), or why the file was
+    /// refused.
     pub materials_note: Option<String>,
     /// Chunks and chunk columns changed since the last commit.
     pub dirty_chunks: usize,

@@ -149,8 +149,8 @@ impl Engine {
         // The registry the scripts were loaded against (materials.lua's
         // names); the palette and registry of the state follow.
         world.materials = self.world.materials.clone();
-        let palette = self.world.store().palette().clone();
-        world.edit(|s, _| *s.palette_mut() = palette);
+        // Generated bricks get the LOD colours of the world's palette.
+        world.set_palette(self.world.store().palette().clone());
         ws.sim.channels_mut().take_dirty();
         ws.set_seed(self.cfg.seed);
         ws.rebuild_scripts(&world, &self.ws.script_states())?;

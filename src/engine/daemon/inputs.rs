@@ -26,12 +26,20 @@ impl Engine {
                 self.materials_changed(&path);
                 continue;
             }
+            self.reload_script(&path);
+        }
+    }
+
+    /// Swap in the script at `path` if it is a loaded one (a broken version
+    /// keeps the running one, and `/status` says why).
+    fn reload_script(&mut self, path: &std::path::Path) {
+        {
             let name = path
                 .file_stem()
                 .map(|s| s.to_string_lossy().to_string())
                 .unwrap_or_default();
             let index = self.ws.script_index(&name);
-            match self.ws.reload(&self.world, &path) {
+            match self.ws.reload(&self.world, path) {
                 Ok(Some((i, mut warnings))) => {
                     crate::say!("reloaded {}", path.display());
                     // A parameter the config sets and the new version does
@@ -82,29 +90,85 @@ impl Engine {
         }
     }
 
-    /// `materials.lua` changed on disk. Materials are read once, at start
-    /// (scripts and stored voxels hold their ids), so an edit takes effect
-    /// at the next start; it is checked now, and the log says so
-    /// (regression, hostile probe: an edit, valid or broken, was silently
-    /// ignored, and a script using a newly declared material failed with
-    /// "declare it in materials.lua").
+    /// `materials.lua` changed on disk: applied between steps, as a hot
+    /// reload of a script is (regression, hostile probe: an edit was
+    /// silently ignored, and a script using a newly declared material
+    /// failed with "declare it in materials.lua"; a later session applied
+    /// it only at the next start).
+    ///
+    /// - A declared name keeps its id and takes its new colour, kind and
+    ///   density; a new name takes a free id, the one the next start would
+    ///   give it (the store's registry goes under `materials.lua` there).
+    /// - A name it no longer declares stays registered: voxels and scripts
+    ///   may hold its id.
+    /// - Bricks holding a recoloured material get new LOD colours, and go
+    ///   to the renderer.
+    /// - Scripts whose last reload failed are tried again: the usual
+    ///   reason is a material they use that was not declared yet.
     fn materials_changed(&mut self, path: &std::path::Path) {
-        // Checked on its own: against the running registry, a material it
-        // no longer declares would still be there (regression, review).
-        let checked = crate::sim::read_script(path).and_then(|src| {
-            let mut trial = crate::world::MaterialRegistry::new();
-            crate::sim::runtime::materials::load_materials(&src, &mut trial)
-        });
-        let msg = match checked {
-            Ok(_) => format!(
-                "{} changed and loads: materials are read when the engine starts; commit, stop and start it again to use them (a material it no longer declares must not be used by the world config or a script)",
-                path.display()
-            ),
-            Err(e) => format!(
-                "{} changed and does not load ({e}); the engine keeps the materials it started with",
-                path.display()
-            ),
+        let shown = path.display();
+        let not_loaded = |e: &dyn std::fmt::Display| {
+            format!(
+                "{shown} changed and does not load ({e}); the engine keeps the materials it has"
+            )
         };
+        let src = match crate::sim::read_optional_script(path) {
+            Ok(Some(src)) => src,
+            Ok(None) => {
+                return self.materials_refused(format!(
+                    "{shown} was removed: the engine keeps the materials it has (voxels and scripts may hold their ids)"
+                ));
+            }
+            Err(e) => return self.materials_refused(not_loaded(&e)),
+        };
+        let before = self.world.materials.clone();
+        let palette = self.world.store().palette().clone();
+        let (names, bricks) = match self.ws.load_materials(&mut self.world, &src) {
+            Ok(loaded) => loaded,
+            Err(e) => return self.materials_refused(not_loaded(&e)),
+        };
+        let added: Vec<&str> = names
+            .iter()
+            .filter(|n| before.id(n).is_none())
+            .map(String::as_str)
+            .collect();
+        // New names take ids whose palette entry changes too; only the
+        // materials the world had count as recoloured.
+        let now = self.world.store().palette();
+        let recoloured = (1..=255u8)
+            .filter(|&id| now.rgb(id) != palette.rgb(id) && before.get(id).is_some())
+            .count();
+        // Their voxels are the same: nothing to commit, only to draw.
+        let redrawn = bricks.len();
+        self.dirty_pending.extend(bricks);
+        let msg = format!(
+            "{shown} applied: {} new material{}{}, {recoloured} recoloured ({redrawn} bricks redrawn)",
+            added.len(),
+            if added.len() == 1 { "" } else { "s" },
+            if added.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", added.join(", "))
+            },
+        );
+        crate::say!("{msg}");
+        self.materials_note = Some(msg);
+        // Scripts a missing material kept from reloading.
+        let failed: Vec<std::path::PathBuf> = (0..self.notes.len())
+            .filter(|&i| self.notes[i].reload_error.is_some())
+            .map(|i| {
+                self.cfg
+                    .scripts_dir
+                    .join(format!("{}.lua", self.ws.spec(i).name))
+            })
+            .collect();
+        for p in failed {
+            self.reload_script(&p);
+        }
+    }
+
+    /// Say why `materials.lua` was not applied, in the log and `/status`.
+    fn materials_refused(&mut self, msg: String) {
         crate::say!("warning: {msg}");
         self.materials_note = Some(msg);
     }

@@ -170,8 +170,8 @@ pub struct Engine {
     last_commit: Option<CommitRef>,
     loaded_from: Option<CheckpointRef>,
     commit_error: Option<String>,
-    /// What the last change to `materials.lua` on disk means (it is read
-    /// only at start).
+    /// What the last change to `materials.lua` on disk did (applied live,
+    /// or refused).
     materials_note: Option<String>,
     snapshot_ms: f64,
     active_bricks: usize,

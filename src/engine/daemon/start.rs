@@ -96,6 +96,10 @@ impl Engine {
         ws.sim.channels_mut().take_dirty();
         ws.set_seed(cfg.seed);
         let mut dirty_chunks = DirtyChunks::default();
+        // A stored name keeps its stored id for `materials.lua` and the
+        // scripts (regression: a material declared before the others
+        // shifted their ids, under voxels stored with the old ones).
+        persistence::seed_materials(&db, &mut world)?;
         load_scripts(&cfg, &mut world, &mut ws)?;
         // The stored chunks go over the generated world once the scripts
         // have registered their channels, so channel ids are the same as in

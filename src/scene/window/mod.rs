@@ -289,6 +289,17 @@ impl RenderWindow {
         self.changed.get_or_insert_with(Vec::new);
     }
 
+    /// Colour the window's world with the engine's palette (the
+    /// simulation's and `materials.lua`'s colours; a hot reload recolours).
+    /// Bricks whose LOD colours change count as changed. Columns generated
+    /// later keep the generator's colours in their LOD averages.
+    pub fn set_palette(&mut self, palette: crate::world::Palette) {
+        let recoloured = self.world.set_palette(palette);
+        if let Some(c) = self.changed.as_mut() {
+            c.extend(recoloured);
+        }
+    }
+
     /// The bricks whose grid cells changed since the last call (empty
     /// unless [`track_changes`](Self::track_changes) was called).
     pub fn take_changed(&mut self) -> Vec<IVec3> {

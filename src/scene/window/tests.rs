@@ -216,3 +216,39 @@ fn a_moved_region_is_copied_and_the_columns_it_left_are_fetched_with_the_overlay
     }
     assert_grid_follows(w.world(), &w.world().store);
 }
+
+/// The engine's palette reaches the window's world (a hot reload of
+/// `materials.lua` recolours; the simulation's colours too), and the
+/// bricks whose LOD colours it changes are reported as changed.
+#[test]
+fn a_new_palette_recolours_the_window_and_reports_its_bricks() {
+    let g = gen_(None);
+    let settings = WindowSettings {
+        radius: 1,
+        budget_bytes: 64 << 20,
+        fetchers: 1,
+    };
+    let mut w =
+        RenderWindow::new(g, None, settings, DVec3::new(0.0, 40.0, 0.0), None, None).unwrap();
+    assert!(w.settle(Duration::from_secs(30)));
+    w.track_changes();
+    let store = w.world().store();
+    let (b, id) = store
+        .iter()
+        .find_map(|(b, c)| match c {
+            crate::world::Cell::Mixed(id) => Some((b, id)),
+            _ => None,
+        })
+        .expect("a mixed brick");
+    let mut dense = [0u8; crate::world::BRICK_VOXELS];
+    store.read_dense(b, &mut dense);
+    let m = *dense.iter().find(|&&m| m != 0).unwrap();
+    let before = store.pool().get(id).unwrap().lod_rgb();
+    let mut palette = store.palette().clone();
+    let old = palette.rgb(m);
+    palette.set(m, [255 - old[0], 255 - old[1], 255 - old[2]]);
+    w.set_palette(palette.clone());
+    assert_eq!(w.world().store().palette(), &palette);
+    assert!(w.take_changed().contains(&b));
+    assert_ne!(w.world().store().pool().get(id).unwrap().lod_rgb(), before);
+}

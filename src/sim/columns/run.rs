@@ -239,15 +239,18 @@ impl WorldSim {
     }
 
     /// Register the materials of a `materials.lua` and colour them in the
-    /// palette (ids are stable: a name keeps its id).
+    /// palette (ids are stable: a name keeps its id). Returns the names it
+    /// declares and the bricks whose LOD colours changed with the palette
+    /// (see [`SceneWorld::set_palette`]).
     pub fn load_materials(
         &mut self,
         world: &mut SceneWorld,
         src: &ScriptSource,
-    ) -> Result<Vec<String>, SimError> {
+    ) -> Result<(Vec<String>, Vec<glam::IVec3>), SimError> {
         let names = crate::sim::runtime::materials::load_materials(src, &mut world.materials)?;
-        world.edit(|s, m| m.apply(s.palette_mut()));
-        Ok(names)
+        let mut palette = world.store().palette().clone();
+        world.materials.apply(&mut palette);
+        Ok((names, world.set_palette(palette)))
     }
 
     /// Key every script's random numbers with the world's seed.
