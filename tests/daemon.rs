@@ -1006,3 +1006,50 @@ fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_i
     run_ok(&cfg2, &state2, "--ticks", 2);
     assert_eq!(stored_materials(&cfg2, &state2).0, live);
 }
+
+/// Regression: the world hash followed the order channels were registered
+/// in, and counted channels without data. A reload that renamed a channel
+/// (lava's `poured` to `spilled`) left the old name registered, so the
+/// engine printed one hash when it stopped and another when the same store
+/// resumed, with no change to the world.
+#[test]
+fn a_reload_that_renames_a_channel_keeps_the_hash_across_a_resume() {
+    let (cfg, state, addr) = setup("renamedchannel");
+    let lava_src =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/lava.lua")).unwrap();
+    add_script(&cfg, "lava.lua", &lava_src);
+    let scripts = cfg.parent().unwrap().join("scripts");
+    std::fs::copy(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/materials.lua"),
+        scripts.join("materials.lua"),
+    )
+    .unwrap();
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str("[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n");
+    std::fs::write(&cfg, text).unwrap();
+    let mut cmd = run_cmd(&cfg, &state);
+    cmd.arg("--paused")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let child = Daemon(Some(cmd.spawn().unwrap()));
+    wait_ready(&addr);
+    // Five ticks with `poured`, then five with `spilled`.
+    assert_eq!(post(&addr, &state, "/step", "5").0, 200);
+    wait_status(&addr, "five ticks", |s| s["tick"] == 5);
+    let renamed = lava_src.replace("poured", "spilled");
+    assert_ne!(renamed, lava_src);
+    save_like_an_editor(&scripts.join("lava.lua"), &renamed);
+    wait_status(&addr, "the reload", |s| s["scripts"][1]["reloads"] == 1);
+    assert_eq!(post(&addr, &state, "/step", "5").0, 200);
+    wait_status(&addr, "ten ticks", |s| s["tick"] == 10);
+    let out = stop(child);
+    assert!(out.status.success());
+    let said = String::from_utf8_lossy(&out.stdout);
+    let at_stop = said
+        .lines()
+        .find_map(|l| l.strip_prefix("stopped at tick 10 (world hash "))
+        .unwrap_or_else(|| panic!("{said}"))
+        .trim_end_matches(')')
+        .to_string();
+    assert_eq!(hash_at(&cfg, &state, 10), at_stop);
+}

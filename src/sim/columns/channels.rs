@@ -147,7 +147,8 @@ impl ChannelStore {
             .fold(0.0f64, |m, v| m.max(v.abs()))
     }
 
-    /// Hash of every channel's bits, in a fixed order.
+    /// Hash of every channel's bits: tiles in coordinate order, channels
+    /// in name order within a tile.
     pub fn hash(&self) -> u64 {
         let mut keys: Vec<&TileCoord> = self.tiles.keys().collect();
         keys.sort_by_key(|k| (k.y, k.x));
@@ -156,11 +157,23 @@ impl ChannelStore {
             h ^= v;
             h = h.wrapping_mul(0x0100_0000_01b3);
         };
+        // Channels by name, not id: ids follow the order channels were
+        // registered in, which a hot reload that renames a channel changes
+        // and a restart does not repeat (regression: a world stopped after
+        // such a reload printed one hash at the stop, another at resume).
+        let mut order: Vec<usize> = (0..self.names.len()).collect();
+        order.sort_by(|&a, &b| self.names[a].cmp(&self.names[b]));
+        let named: Vec<u64> = self
+            .names
+            .iter()
+            .map(|n| crate::persist::bytes::fnv1a(n.as_bytes()))
+            .collect();
         for k in keys {
-            for (i, slot) in self.tiles[k].iter().enumerate() {
-                if let Some(d) = slot {
+            let slots = &self.tiles[k];
+            for &i in &order {
+                if let Some(Some(d)) = slots.get(i) {
                     mix(((k.x as u32 as u64) << 32) | k.y as u32 as u64);
-                    mix(i as u64);
+                    mix(named[i]);
                     for v in d.iter() {
                         mix(v.to_bits());
                     }
@@ -176,6 +189,38 @@ mod tests {
     use super::*;
     use crate::sim::tile::TILE_CELLS;
     use glam::IVec2;
+
+    /// Regression: the hash mixed channel ids, which follow the order of
+    /// registration; a reload that renamed a channel registered the new
+    /// name after the old, a restart before it, and the same world hashed
+    /// two ways.
+    #[test]
+    fn the_hash_does_not_depend_on_the_order_channels_were_registered_in() {
+        let t = IVec2::new(2, -1);
+        let (mut d1, mut d2) = ([0.0; TILE_CELLS], [0.0; TILE_CELLS]);
+        d1[3] = 1.25;
+        d2[7] = -2.0;
+        let mut a = ChannelStore::default();
+        let (old, x, y) = (a.channel("old"), a.channel("x"), a.channel("y"));
+        a.set(t, x, &d1);
+        a.set(t, y, &d2);
+        let mut b = ChannelStore::default();
+        let (y, x) = (b.channel("y"), b.channel("x"));
+        b.set(t, y, &d2);
+        b.set(t, x, &d1);
+        assert_eq!(
+            a.hash(),
+            b.hash(),
+            "an empty channel and the order do not count"
+        );
+        a.set(t, old, &d1);
+        assert_ne!(a.hash(), b.hash(), "data in another channel counts");
+        let mut c = ChannelStore::default();
+        let (x, y) = (c.channel("x"), c.channel("y"));
+        c.set(t, x, &d2);
+        c.set(t, y, &d1);
+        assert_ne!(c.hash(), b.hash(), "which channel holds what counts");
+    }
 
     #[test]
     fn dry_tiles_hold_no_array_and_zeroing_frees_it() {

@@ -98,14 +98,26 @@ impl VoxelChannels {
             .sum()
     }
 
-    /// A hash of every channel (sorted), for determinism checks.
+    /// A hash of the channels' data, for determinism checks: channels in
+    /// name order, bricks in coordinate order, and only channels that hold
+    /// data. Ids are left out: they follow the order channels were
+    /// registered in, which a hot reload that renames a channel changes
+    /// and a restart does not repeat (regression: a world stopped after
+    /// such a reload printed one hash at the stop and another when it
+    /// resumed).
     pub fn hash(&self) -> u64 {
         let mut h = 0xcbf2_9ce4_8422_2325u64;
         let mut mix = |v: u64| {
             h ^= v;
             h = h.wrapping_mul(0x0100_0000_01b3);
         };
-        for (name, d) in self.names.iter().zip(&self.data) {
+        let mut order: Vec<usize> = (0..self.names.len())
+            .filter(|&i| !self.data[i].is_empty())
+            .collect();
+        order.sort_by(|&a, &b| self.names[a].cmp(&self.names[b]));
+        for i in order {
+            let (name, d) = (&self.names[i], &self.data[i]);
+            mix(name.len() as u64);
             name.bytes().for_each(|b| mix(b as u64));
             let mut keys: Vec<&IVec3> = d.keys().collect();
             keys.sort_by_key(|k| (k.z, k.y, k.x));
@@ -118,5 +130,42 @@ impl VoxelChannels {
             }
         }
         h
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression: the hash followed the order channels were registered
+    /// in and counted channels without data; a reload that renamed a
+    /// channel left the old name registered, so a world hashed one way at
+    /// its stop and another when it resumed.
+    #[test]
+    fn the_hash_does_not_depend_on_the_order_channels_were_registered_in() {
+        let b = IVec3::new(1, -2, 3);
+        let (mut v1, mut v2) = ([0f32; VOXEL_CELLS], [0f32; VOXEL_CELLS]);
+        v1[3] = 1.25;
+        v2[500] = -2.0;
+        let mut a = VoxelChannels::default();
+        let (old, x, y) = (a.channel("old"), a.channel("x"), a.channel("y"));
+        a.set(x, b, &v1);
+        a.set(y, b, &v2);
+        let mut c = VoxelChannels::default();
+        let (y, x) = (c.channel("y"), c.channel("x"));
+        c.set(y, b, &v2);
+        c.set(x, b, &v1);
+        assert_eq!(
+            a.hash(),
+            c.hash(),
+            "an empty channel and the order do not count"
+        );
+        a.set(old, b, &v1);
+        assert_ne!(a.hash(), c.hash(), "data in another channel counts");
+        let mut d = VoxelChannels::default();
+        let (x, y) = (d.channel("x"), d.channel("y"));
+        d.set(x, b, &v2);
+        d.set(y, b, &v1);
+        assert_ne!(d.hash(), c.hash(), "which channel holds what counts");
     }
 }
