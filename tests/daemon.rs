@@ -920,21 +920,10 @@ fn the_viewers_timeline_starts_with_the_history_on_disk() {
 /// same edits made while the engine was stopped give.
 #[test]
 fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_it() {
-    let (cfg, state, addr) = setup("livematerials");
-    let lava_src =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/lava.lua")).unwrap();
-    add_script(&cfg, "lava.lua", &lava_src);
-    let scripts = cfg.parent().unwrap().join("scripts");
+    let (cfg, state, addr, scripts) = lava_world("livematerials");
+    let lava_src = shipped_script("lava.lua");
     let materials = scripts.join("materials.lua");
-    let shipped = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/scripts/materials.lua"
-    ))
-    .unwrap();
-    std::fs::write(&materials, &shipped).unwrap();
-    let mut text = std::fs::read_to_string(&cfg).unwrap();
-    text.push_str("[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n");
-    std::fs::write(&cfg, text).unwrap();
+    let shipped = shipped_script("materials.lua");
     let child = start(&cfg, &state);
     wait_ready(&addr);
     let lava = |pred: &dyn Fn(&serde_json::Value) -> bool| {
@@ -990,17 +979,8 @@ fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_i
     assert_eq!(palette[id(&live, "obsidian") as usize], [30, 20, 40]);
 
     // The same edits made while the engine was stopped give the same ids.
-    let (cfg2, state2, _) = setup("livematerials-restart");
-    add_script(&cfg2, "lava.lua", &lava_src);
-    std::fs::write(
-        cfg2.parent().unwrap().join("scripts/materials.lua"),
-        &shipped,
-    )
-    .unwrap();
-    std::fs::copy(&cfg, &cfg2).unwrap();
-    edit_config(&cfg2, "livematerials", "livematerials-restart");
+    let (cfg2, state2, _, scripts2) = lava_world("livematerials-restart");
     run_ok(&cfg2, &state2, "--ticks", 2);
-    let scripts2 = cfg2.parent().unwrap().join("scripts");
     std::fs::write(scripts2.join("lava.lua"), &v2).unwrap();
     std::fs::write(scripts2.join("materials.lua"), &declared).unwrap();
     run_ok(&cfg2, &state2, "--ticks", 2);
@@ -1014,19 +994,8 @@ fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_i
 /// resumed, with no change to the world.
 #[test]
 fn a_reload_that_renames_a_channel_keeps_the_hash_across_a_resume() {
-    let (cfg, state, addr) = setup("renamedchannel");
-    let lava_src =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/lava.lua")).unwrap();
-    add_script(&cfg, "lava.lua", &lava_src);
-    let scripts = cfg.parent().unwrap().join("scripts");
-    std::fs::copy(
-        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/materials.lua"),
-        scripts.join("materials.lua"),
-    )
-    .unwrap();
-    let mut text = std::fs::read_to_string(&cfg).unwrap();
-    text.push_str("[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n");
-    std::fs::write(&cfg, text).unwrap();
+    let (cfg, state, addr, scripts) = lava_world("renamedchannel");
+    let lava_src = shipped_script("lava.lua");
     let mut cmd = run_cmd(&cfg, &state);
     cmd.arg("--paused")
         .stdout(Stdio::piped())

@@ -1364,25 +1364,8 @@ fn damage_anywhere_in_the_store_file_is_one_line_never_a_panic_or_an_abort() {
 #[test]
 fn a_material_declared_before_the_others_keeps_their_stored_ids_across_a_restart() {
     let run_lava = |name: &str| {
-        let (cfg, state, _) = setup(name);
-        add_script(
-            &cfg,
-            "lava.lua",
-            &std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/lava.lua"))
-                .unwrap(),
-        );
-        let materials = cfg.parent().unwrap().join("scripts/materials.lua");
-        std::fs::copy(
-            concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/materials.lua"),
-            &materials,
-        )
-        .unwrap();
-        let mut text = std::fs::read_to_string(&cfg).unwrap();
-        text.push_str(
-            "[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n",
-        );
-        std::fs::write(&cfg, text).unwrap();
-        (cfg, state, materials)
+        let (cfg, state, _, scripts) = lava_world(name);
+        (cfg, state, scripts.join("materials.lua"))
     };
     let (cfg_a, state_a, _) = run_lava("matids-a");
     let uninterrupted = hash_at(&cfg_a, &state_a, 12);

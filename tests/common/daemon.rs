@@ -119,6 +119,36 @@ pub fn add_script(cfg: &Path, name: &str, text: &str) {
     );
 }
 
+/// The world of `setup` with the shipped `lava.lua` after water, the
+/// shipped `materials.lua` beside it and a 2³ `lava_source` placed; its
+/// (config, state, address, scripts directory).
+#[allow(dead_code)]
+pub fn lava_world(name: &str) -> (PathBuf, PathBuf, String, PathBuf) {
+    let (cfg, state, addr) = setup(name);
+    add_script(&cfg, "lava.lua", &shipped_script("lava.lua"));
+    let scripts = cfg.parent().unwrap().join("scripts");
+    std::fs::write(
+        scripts.join("materials.lua"),
+        shipped_script("materials.lua"),
+    )
+    .unwrap();
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str("[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n");
+    std::fs::write(&cfg, text).unwrap();
+    (cfg, state, addr, scripts)
+}
+
+/// The text of a shipped script (`scripts/NAME`).
+#[allow(dead_code)]
+pub fn shipped_script(name: &str) -> String {
+    std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scripts")
+            .join(name),
+    )
+    .unwrap()
+}
+
 pub fn start(cfg: &Path, state: &Path) -> Daemon {
     spawn(&mut run_cmd(cfg, state))
 }
