@@ -188,3 +188,42 @@ fn a_backup_leaves_the_files_beside_it_alone() {
     let n = std::fs::read_dir(&d).unwrap().count();
     assert_eq!(n, 3, "the backup and the two decoys, no temp left");
 }
+
+/// Regression (hostile probe): when the world hash came to take channels by
+/// name, the format number stayed, and every backup and checkpoint written
+/// before was refused as corrupt ("world hash … differs from the
+/// recorded …"); a legacy state directory then restarted from tick 0. Files
+/// of versions 1 to 4 are checked against the hash they were written with,
+/// and newer ones against the new hash only.
+#[test]
+fn a_version_4_file_with_the_hash_by_id_still_loads() {
+    let d = dir("v4hash");
+    let mut s = state(11, 2);
+    // Two channels whose ids and names are in different orders, so the two
+    // hashes differ.
+    let mut d2 = [0.0; 64];
+    d2[3] = -0.5;
+    let a = s.channels.channel("a_second");
+    s.channels.set(IVec2::new(0, 0), a, &d2);
+    let by_id = checkpoint::world_hash_by_id(&s.store, &s.channels);
+    assert_ne!(by_id, checkpoint::world_hash(&s.store, &s.channels));
+    let (path, _) = checkpoint::write(&d, &s).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let with_header = |version: u32, hash: u64| {
+        let mut b = bytes.clone();
+        b[4..8].copy_from_slice(&version.to_le_bytes());
+        b[16..24].copy_from_slice(&hash.to_le_bytes());
+        let crc = crc32fast::hash(&b[..36]);
+        b[36..40].copy_from_slice(&crc.to_le_bytes());
+        b
+    };
+    let (back, _) = checkpoint::parse(&with_header(4, by_id), true).unwrap();
+    let back = back.unwrap();
+    assert_eq!(back.tick, 11);
+    assert_eq!(
+        checkpoint::world_hash(&back.store, &back.channels),
+        checkpoint::world_hash(&s.store, &s.channels)
+    );
+    let err = checkpoint::parse(&with_header(5, by_id), true).unwrap_err();
+    assert!(err.contains("differs from the recorded"), "{err}");
+}

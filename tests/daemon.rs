@@ -966,7 +966,9 @@ fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_i
     let st = lava(&|s| s["error"].is_null() && s["reloads"].as_u64() > Some(reloads));
     let note = st["materials_note"].as_str().unwrap_or_default();
     assert!(
-        note.contains("applied: 1 new material (obsidian), 1 recoloured"),
+        note.contains(
+            "applied: 1 new material (obsidian), 1 recoloured, 0 with a new kind or density"
+        ),
         "{st}"
     );
     let out = stop(child);

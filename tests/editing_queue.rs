@@ -118,3 +118,34 @@ fn a_copy_fed_only_deltas_of_the_published_bricks_stays_identical() {
         );
     }
 }
+
+/// A recolour (a hot reload of `materials.lua`) travels as the palette
+/// alone: the copy recolours its own bricks, which `apply_delta` reports,
+/// and every brick's LOD colour then equals the world's.
+#[test]
+fn a_new_palette_recolours_the_copy_without_sending_its_bricks() {
+    let spec: SceneSpec = "terrain".parse().unwrap();
+    let mut world = build_scene(&spec, IVec3::new(64, 48, 64), 7, &ProgressBar::hidden()).unwrap();
+    let mut copy = world.clone();
+    let mut palette = world.store().palette().clone();
+    for m in 1..=255u8 {
+        let c = palette.rgb(m);
+        palette.set(m, [c[2], 255 - c[0], c[1]]);
+    }
+    let recoloured = world.set_palette(palette);
+    assert!(recoloured.len() > 10, "{} bricks", recoloured.len());
+    let delta = world.delta(&[]);
+    assert!(delta.bricks.is_empty());
+    let mut reported = copy.apply_delta(delta);
+    reported.sort_by_key(|b| (b.z, b.y, b.x));
+    let mut expected = recoloured.clone();
+    expected.sort_by_key(|b| (b.z, b.y, b.x));
+    assert_eq!(reported, expected);
+    let lod = |w: &brickworld::scene::SceneWorld, b: IVec3| match w.store().cell(b) {
+        brickworld::world::Cell::Mixed(id) => w.store().pool().get(id).map(|r| r.lod_rgb()),
+        _ => None,
+    };
+    for (b, _) in world.store().iter() {
+        assert_eq!(lod(&copy, b), lod(&world, b), "{b}");
+    }
+}

@@ -135,11 +135,14 @@ impl RenderThread {
                     let t = Instant::now();
                     let full = matches!(job.world, FrameWorld::Full(_));
                     let palette_before = mirror.as_ref().map(|m| m.store().palette().clone());
+                    // The bricks a delta changed, and those a new palette
+                    // recoloured.
+                    let mut delta_changed = Vec::new();
                     match job.world {
                         FrameWorld::Full(w) => mirror = Some(*w),
                         FrameWorld::Delta(d) => match mirror.as_mut() {
                             Some(m) => {
-                                m.apply_delta(d);
+                                delta_changed = m.apply_delta(d);
                             }
                             None => {
                                 crate::say!(
@@ -210,8 +213,10 @@ impl RenderThread {
                         // it (slides too); a resident one, the job's bricks.
                         let changed = if settings.stream.is_some() {
                             &window_changed
-                        } else {
+                        } else if full {
                             &job.dirty
+                        } else {
+                            &delta_changed
                         };
                         g.apply_edits(ctx, world.grid(), world.store().pool(), changed);
                         if palette_changed {

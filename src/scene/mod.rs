@@ -342,7 +342,9 @@ impl SceneWorld {
     /// Bring a copy up to date with a [`delta`](Self::delta) of the world it
     /// was copied from (grid patched); returns the bricks changed.
     pub fn apply_delta(&mut self, delta: WorldDelta) -> Vec<IVec3> {
-        *self.store.palette_mut() = delta.palette;
+        // A new palette (a hot reload of `materials.lua`) recolours this
+        // copy's own bricks: the engine does not send them.
+        let mut changed = self.set_palette(delta.palette);
         let encoded: Vec<(IVec3, crate::world::BrickContent)> = delta
             .bricks
             .into_par_iter()
@@ -361,7 +363,8 @@ impl SceneWorld {
             self.store.set_brick(b, content);
         }
         self.materials = delta.materials;
-        self.apply_edits()
+        changed.extend(self.apply_edits());
+        changed
     }
 
     /// Three documented viewpoints from the bounds: a distant overview, a

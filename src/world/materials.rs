@@ -79,8 +79,10 @@ pub enum MaterialError {
     /// A name that is not letters, digits and `_`, or `air`.
     #[error("material name '{0}' must be letters, digits and '_' (and not 'air')")]
     BadName(String),
-    /// Every id is taken.
-    #[error("no free material id for '{0}' (all 255 are taken)")]
+    /// Every id a new name may take is taken.
+    #[error(
+        "no free material id for '{0}': ids 1 to 251 are all taken (a name keeps its id for the world's life, even once no file declares it, since voxels may hold it)"
+    )]
     Full(String),
     /// A property out of range.
     #[error("material '{name}': {msg}")]
@@ -90,6 +92,14 @@ pub enum MaterialError {
         /// What is wrong.
         msg: String,
     },
+}
+
+/// A name as an error shows it: at most 80 characters.
+fn cut(name: &str) -> String {
+    match name.char_indices().nth(80) {
+        Some((i, _)) => format!("{}… ({} bytes)", &name[..i], name.len()),
+        None => name.to_string(),
+    }
 }
 
 /// Named materials with stable ids.
@@ -124,7 +134,7 @@ impl MaterialRegistry {
     ) -> Result<MaterialId, MaterialError> {
         Self::check(name, &def)?;
         if id == 0 {
-            return Err(MaterialError::BadName(name.into()));
+            return Err(MaterialError::BadName(cut(name)));
         }
         if let Some(Some((old, _))) = self.defs.get(id as usize) {
             let old = old.clone();
@@ -150,7 +160,7 @@ impl MaterialRegistry {
         let id = (1..=251u8)
             .rev()
             .find(|&i| self.defs[i as usize].is_none())
-            .ok_or_else(|| MaterialError::Full(name.into()))?;
+            .ok_or_else(|| MaterialError::Full(cut(name)))?;
         self.register_at(id, name, def)
     }
 
@@ -165,7 +175,7 @@ impl MaterialRegistry {
 
     fn check(name: &str, def: &MaterialDef) -> Result<(), MaterialError> {
         if !Self::valid_name(name) {
-            return Err(MaterialError::BadName(name.into()));
+            return Err(MaterialError::BadName(cut(name)));
         }
         if !(def.density.is_finite() && def.density >= 0.0) {
             return Err(MaterialError::Bad {

@@ -175,6 +175,24 @@ impl<'p> BrickRef<'p> {
             .any(|&id| wanted[id as usize])
     }
 
+    /// The LOD colour (RGB565) the brick would have if it were encoded
+    /// afresh with `palette`: its solid voxels' mean colour, as
+    /// [`Brick`]'s encoding computes it.
+    pub fn lod565_with(&self, palette: &super::Palette) -> u16 {
+        let mask = self.mask();
+        let (mut sum, mut solid) = ([0u64; 3], 0u64);
+        for (z, &word) in mask.iter().enumerate() {
+            self.for_each_material(z, word, |m| {
+                let c = palette.rgb(m);
+                for k in 0..3 {
+                    sum[k] += c[k] as u64;
+                }
+                solid += 1;
+            });
+        }
+        to565(sum.map(|c| c.checked_div(solid).unwrap_or(0) as u8))
+    }
+
     /// Material at brick-local `(x, y, z)`, 0 if empty.
     pub fn material(&self, x: i32, y: i32, z: i32) -> u8 {
         self.material_index(super::voxel_index(x, y, z))
@@ -326,6 +344,16 @@ impl BrickPool {
             pool: self,
             slot: id.index as usize,
         })
+    }
+
+    /// Give brick `id` the LOD colour `lod565` (see
+    /// [`BrickRef::lod565_with`]); false for a stale id.
+    pub fn set_lod565(&mut self, id: BrickId, lod565: u16) -> bool {
+        if !self.valid(id) {
+            return false;
+        }
+        self.meta[id.index as usize].lod565 = lod565;
+        true
     }
 
     /// Replace the brick behind `id` in place. Returns false for a stale id.

@@ -290,38 +290,41 @@ impl BrickStore {
         }
     }
 
-    /// Re-encode the mixed bricks that hold a material `changed` names,
-    /// after the palette gave it a new colour: a mixed brick's LOD colour
-    /// is its voxels' average in the palette (the grid's pointers and the
-    /// GPU's stand-ins carry it). Each is recorded as modified (for the
-    /// grid and the renderer) but takes no edit tick: its voxels are the
-    /// same. Uniform bricks are left alone: their colour is their one
-    /// material's, read from the palette. Returns how many were re-encoded.
+    /// New LOD colours for the mixed bricks that hold a material `changed`
+    /// names, after the palette gave it a new colour: a mixed brick's LOD
+    /// colour is its voxels' mean colour in the palette (the grid's
+    /// pointers and the GPU's stand-ins carry it). Each is recorded as
+    /// modified (for the grid and the renderer) but takes no edit tick:
+    /// its voxels are the same. Uniform bricks are left alone: their colour
+    /// is their one material's, read from the palette. The bricks are found
+    /// from their local palettes and their colours computed in parallel
+    /// (a hostile probe's 593 000 bricks held the engine 1.7 s when each
+    /// was re-encoded). Returns how many.
     pub fn recolour(&mut self, changed: &[bool; 256]) -> usize {
+        use rayon::prelude::*;
         if !changed.iter().any(|&c| c) {
             return 0;
         }
-        let mut mixed: Vec<(IVec3, super::BrickId)> = self
+        let cells: Vec<(IVec3, BrickId)> = self
             .entries
             .iter()
             .filter_map(|(b, e)| match e.cell {
                 Cell::Mixed(id) => Some((*b, id)),
                 _ => None,
             })
-            .filter(|(_, id)| self.pool.get(*id).is_some_and(|br| br.holds_any(changed)))
             .collect();
-        mixed.sort_by_key(|(b, _)| (b.z, b.y, b.x));
-        let mut dense = [0u8; BRICK_VOXELS];
-        for &(b, id) in &mixed {
-            self.read_dense(b, &mut dense);
-            let lod = self.pool.get(id).map(|br| br.lod());
-            if let (BrickContent::Mixed(brick), Some(lod)) =
-                (BrickContent::from_dense(&dense, &self.palette), lod)
-            {
-                // The coarser levels' materials stay as they were (a copy
-                // may carry another brick's).
-                self.pool.replace(id, brick.with_lod(lod));
-            }
+        let (pool, palette) = (&self.pool, &self.palette);
+        let mut mixed: Vec<(IVec3, BrickId, u16)> = cells
+            .into_par_iter()
+            .filter_map(|(b, id)| {
+                let br = pool.get(id)?;
+                br.holds_any(changed)
+                    .then(|| (b, id, br.lod565_with(palette)))
+            })
+            .collect();
+        mixed.sort_by_key(|(b, _, _)| (b.z, b.y, b.x));
+        for &(b, id, lod565) in &mixed {
+            self.pool.set_lod565(id, lod565);
             if self.modified_set.insert(b) {
                 self.modified.push(b);
             }

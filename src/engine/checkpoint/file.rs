@@ -231,7 +231,11 @@ pub fn parse(
     }
     let raw = lz4_flex::decompress_size_prepended(payload).map_err(|e| format!("LZ4: {e}"))?;
     let mut state = decode(tick, version, &raw)?;
-    let got = world_hash(&state.store, &state.channels);
+    let got = if version >= 5 {
+        world_hash(&state.store, &state.channels)
+    } else {
+        super::world_hash_by_id(&state.store, &state.channels)
+    };
     if got != hash {
         return Err(format!(
             "world hash {got:#x} differs from the recorded {hash:#x}"

@@ -63,7 +63,10 @@ pub use payload::{MAX_TICK, decode};
 
 const MAGIC: &[u8; 4] = b"BWCK";
 /// 4: a trailing section with the scripts' health (tag 2) may follow.
-const VERSION: u32 = 4;
+/// 5: the header's world hash takes channels by name, in name order, and
+/// only those holding data ([`world_hash`]); files of 1 to 4 are checked
+/// against the hash they were written with ([`world_hash_by_id`]).
+const VERSION: u32 = 5;
 /// Largest LZ4 expansion (LZ4's worst-case ratio is about 255:1): a size
 /// prefix claiming more is corrupt, refused before anything is allocated.
 const MAX_LZ4_RATIO: usize = 255;
@@ -208,6 +211,19 @@ pub struct WorldState {
 
 /// Hash of the bricks (sorted by coordinate) and the channels.
 pub fn world_hash(store: &BrickStore, channels: &ChannelStore) -> u64 {
+    bricks_hash(store, channels.hash())
+}
+
+/// [`world_hash`] as format versions 1 to 4 recorded it: the channels
+/// hashed by id ([`ChannelStore::hash_by_id`]). Kept to check those files
+/// (regression, hostile probe: when the hash came to take channels by
+/// name, every earlier backup was called corrupt).
+pub fn world_hash_by_id(store: &BrickStore, channels: &ChannelStore) -> u64 {
+    bricks_hash(store, channels.hash_by_id())
+}
+
+/// The bricks (sorted by coordinate) hashed, then `channels`.
+fn bricks_hash(store: &BrickStore, channels: u64) -> u64 {
     let mut keys: Vec<IVec3> = store.iter().map(|(b, _)| b).collect();
     keys.sort_by_key(|k| (k.z, k.y, k.x));
     let mut h = 0xcbf2_9ce4_8422_2325u64;
@@ -224,7 +240,7 @@ pub fn world_hash(store: &BrickStore, channels: &ChannelStore) -> u64 {
             mix(u64::from_le_bytes(c.try_into().expect("8 bytes")));
         }
     }
-    mix(channels.hash());
+    mix(channels);
     h
 }
 

@@ -138,18 +138,29 @@ impl Engine {
         let recoloured = (1..=255u8)
             .filter(|&id| now.rgb(id) != palette.rgb(id) && before.get(id).is_some())
             .count();
-        // Their voxels are the same: nothing to commit, only to draw.
+        // Their voxels are the same: nothing to commit. The renderer's copy
+        // recolours its own with the palette the next frame brings.
         let redrawn = bricks.len();
-        self.dirty_pending.extend(bricks);
+        let retyped = names
+            .iter()
+            .filter_map(|n| before.id(n))
+            .filter(|&id| {
+                let kd = |r: &crate::world::MaterialRegistry| {
+                    r.get(id).map(|(_, d)| (d.kind, d.density))
+                };
+                kd(&before) != kd(&self.world.materials)
+            })
+            .count();
+        // At most ten names: a file may declare 251.
+        let listed = match added.len() {
+            0 => String::new(),
+            n if n <= 10 => format!(" ({})", added.join(", ")),
+            n => format!(" ({} and {} more)", added[..10].join(", "), n - 10),
+        };
         let msg = format!(
-            "{shown} applied: {} new material{}{}, {recoloured} recoloured ({redrawn} bricks redrawn)",
+            "{shown} applied: {} new material{}{listed}, {recoloured} recoloured, {retyped} with a new kind or density ({redrawn} bricks redrawn)",
             added.len(),
             if added.len() == 1 { "" } else { "s" },
-            if added.is_empty() {
-                String::new()
-            } else {
-                format!(" ({})", added.join(", "))
-            },
         );
         crate::say!("{msg}");
         self.materials_note = Some(msg);

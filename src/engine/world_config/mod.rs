@@ -101,13 +101,7 @@ pub struct WorldConfigError {
 /// a key was printed raw, and a 100 000-character tracer name made a
 /// 100 KB line).
 fn shown(text: &str) -> String {
-    let text = crate::sim::runtime::log::escape_controls(text, false);
-    let n = text.chars().count();
-    if n <= SHOWN_CHARS {
-        return text.into_owned();
-    }
-    let head: String = text.chars().take(SHOWN_CHARS).collect();
-    format!("{head}… ({} more characters)", n - SHOWN_CHARS)
+    crate::sim::runtime::log::shown(text, SHOWN_CHARS)
 }
 
 /// Characters of a config error's field and reason that are shown.

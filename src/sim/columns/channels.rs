@@ -147,20 +147,21 @@ impl ChannelStore {
             .fold(0.0f64, |m, v| m.max(v.abs()))
     }
 
-    /// Hash of every channel's bits: tiles in coordinate order, channels
-    /// in name order within a tile.
+    /// The hash checkpoint files of format versions 1 to 4 recorded: tiles
+    /// in coordinate order, channels by id. Kept only to check those files;
+    /// [`hash`](Self::hash) is the world's.
+    pub fn hash_by_id(&self) -> u64 {
+        let order: Vec<usize> = (0..self.names.len()).collect();
+        self.hash_in(&order, |i| i as u64)
+    }
+
+    /// Hash of every channel's bits: tiles in coordinate order, channels in
+    /// name order within a tile, each named by its name's hash. Ids are
+    /// left out: they follow the order channels were registered in, which
+    /// a hot reload that renames a channel changes and a restart does not
+    /// repeat (regression: a world stopped after such a reload printed one
+    /// hash at the stop, another at resume).
     pub fn hash(&self) -> u64 {
-        let mut keys: Vec<&TileCoord> = self.tiles.keys().collect();
-        keys.sort_by_key(|k| (k.y, k.x));
-        let mut h = 0xcbf2_9ce4_8422_2325u64;
-        let mut mix = |v: u64| {
-            h ^= v;
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        };
-        // Channels by name, not id: ids follow the order channels were
-        // registered in, which a hot reload that renames a channel changes
-        // and a restart does not repeat (regression: a world stopped after
-        // such a reload printed one hash at the stop, another at resume).
         let mut order: Vec<usize> = (0..self.names.len()).collect();
         order.sort_by(|&a, &b| self.names[a].cmp(&self.names[b]));
         let named: Vec<u64> = self
@@ -168,12 +169,25 @@ impl ChannelStore {
             .iter()
             .map(|n| crate::persist::bytes::fnv1a(n.as_bytes()))
             .collect();
+        self.hash_in(&order, |i| named[i])
+    }
+
+    /// The tiles (in coordinate order) and, within each, the channels of
+    /// `order` that hold data, each mixed in as `key(id)` then its bits.
+    fn hash_in(&self, order: &[usize], key: impl Fn(usize) -> u64) -> u64 {
+        let mut keys: Vec<&TileCoord> = self.tiles.keys().collect();
+        keys.sort_by_key(|k| (k.y, k.x));
+        let mut h = 0xcbf2_9ce4_8422_2325u64;
+        let mut mix = |v: u64| {
+            h ^= v;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        };
         for k in keys {
             let slots = &self.tiles[k];
-            for &i in &order {
+            for &i in order {
                 if let Some(Some(d)) = slots.get(i) {
                     mix(((k.x as u32 as u64) << 32) | k.y as u32 as u64);
-                    mix(named[i]);
+                    mix(key(i));
                     for v in d.iter() {
                         mix(v.to_bits());
                     }

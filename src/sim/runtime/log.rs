@@ -32,6 +32,18 @@ fn logs() -> &'static Mutex<FxHashMap<String, ScriptLog>> {
     LOGS.get_or_init(Default::default)
 }
 
+/// User text as a message shows it: control characters escaped, and at
+/// most `max` characters, the rest counted ("… (N more characters)").
+pub fn shown(text: &str, max: usize) -> String {
+    let text = escape_controls(text, false);
+    let n = text.chars().count();
+    if n <= max {
+        return text.into_owned();
+    }
+    let head: String = text.chars().take(max).collect();
+    format!("{head}… ({} more characters)", n - max)
+}
+
 /// Text from a script (a `log` line, an error message) made safe for one
 /// line of the daemon's log: control characters and bidirectional
 /// overrides become escapes (`\n`, `\u{1b}`, `\u{202e}`), so a script

@@ -56,9 +56,33 @@ pub fn load_materials(
         ));
     };
     let mut defs: Vec<(String, MaterialDef)> = Vec::new();
-    for pair in t.pairs::<String, Value>() {
-        let (name, v) =
-            pair.map_err(|e| err(src, None, format!("material names must be strings: {e}")))?;
+    for pair in t.pairs::<Value, Value>() {
+        let (key, v) = pair.map_err(|e| err(src, None, format!("cannot read the table: {e}")))?;
+        // A list (`{ {color = …}, … }`) or a number key made materials
+        // named "1", "2"… (regression, hostile probe).
+        let Value::String(key) = key else {
+            return Err(err(
+                src,
+                None,
+                format!(
+                    "material names must be strings (name = {{ color, kind, density }}); a key is {}",
+                    super::declare::a(key.type_name())
+                ),
+            ));
+        };
+        let name = key.to_string_lossy();
+        if !MaterialRegistry::valid_name(&name) {
+            // Cut: a 4 MB name was echoed whole into every `/status`
+            // (regression, hostile probe).
+            return Err(err(
+                src,
+                None,
+                format!(
+                    "material name '{}' must be 1 to 64 letters, digits and '_' (and not 'air')",
+                    super::log::shown(&name, 80)
+                ),
+            ));
+        }
         let Value::Table(d) = v else {
             return Err(err(
                 src,
@@ -104,9 +128,13 @@ fn parse_def(src: &ScriptSource, name: &str, d: &Table) -> Result<MaterialDef, S
     )?;
     let mut rgb = [0u8; 3];
     for (k, c) in rgb.iter_mut().enumerate() {
-        let v: f64 = color
-            .get(k + 1)
-            .map_err(|_| bad("color must be {r, g, b}".into()))?;
+        // Numbers only: "12" was taken as 12, where a density of "2" is
+        // refused (regression, hostile probe).
+        let v: f64 = match color.get::<Value>(k + 1) {
+            Ok(Value::Number(n)) => n,
+            Ok(Value::Integer(n)) => n as f64,
+            _ => return Err(bad("color must be 3 numbers {r, g, b}".into())),
+        };
         if !(0.0..=255.0).contains(&v) {
             return Err(bad(format!("colour component {v} is outside 0..=255")));
         }
