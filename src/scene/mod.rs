@@ -256,10 +256,11 @@ impl SceneWorld {
         self.bounds
     }
 
-    /// Give the world `palette`. A brick's LOD colour is the average of its
-    /// voxels' colours, so the bricks holding a material whose colour
-    /// changes are re-encoded ([`BrickStore::recolour`]); they are returned
-    /// (their voxels are the same: for the renderer, not for a commit).
+    /// Give the world `palette`. A mixed brick's LOD colour is the mean of
+    /// its voxels' colours, so the mixed bricks holding a material whose
+    /// colour changes get new ones ([`BrickStore::recolour`]); they are
+    /// returned (their voxels are the same: for the renderer, not for a
+    /// commit).
     pub fn set_palette(&mut self, palette: crate::world::Palette) -> Vec<IVec3> {
         let ((), recoloured) = self.edit(|s, _| {
             let mut changed = [false; 256];

@@ -415,6 +415,17 @@ mod tests {
         let mut fresh = BrickStore::new(s.palette().clone());
         fresh.set_brick(IVec3::X, s.content(IVec3::X));
         assert_eq!(after, fresh.pool().get(id(&fresh, 1)).unwrap().lod_rgb());
+        // A mixed brick of one material, too.
+        s.palette_mut().set(6, [3, 200, 90]);
+        let mut changed = [false; 256];
+        changed[6] = true;
+        assert_eq!(s.recolour(&changed), 2);
+        let mut fresh = BrickStore::new(s.palette().clone());
+        fresh.set_brick(IVec3::new(2, 0, 0), s.content(IVec3::new(2, 0, 0)));
+        assert_eq!(
+            s.pool().get(id(&s, 2)).unwrap().lod_rgb(),
+            fresh.pool().get(id(&fresh, 2)).unwrap().lod_rgb()
+        );
         let mut again = [0u8; BRICK_VOXELS];
         s.read_dense(IVec3::X, &mut again);
         assert_eq!(again, dense, "the voxels are the same");

@@ -231,10 +231,15 @@ pub fn parse(
     }
     let raw = lz4_flex::decompress_size_prepended(payload).map_err(|e| format!("LZ4: {e}"))?;
     let mut state = decode(tick, version, &raw)?;
+    // Version 4 files may hold either hash: builds of one session wrote
+    // the hash by name before the version became 5 (review).
     let got = if version >= 5 {
         world_hash(&state.store, &state.channels)
     } else {
-        super::world_hash_by_id(&state.store, &state.channels)
+        match super::world_hash_by_id(&state.store, &state.channels) {
+            by_id if by_id != hash && version == 4 => world_hash(&state.store, &state.channels),
+            by_id => by_id,
+        }
     };
     if got != hash {
         return Err(format!(
