@@ -106,12 +106,25 @@ pub struct Brick {
     lod: BrickLod,
 }
 
+/// The mean colour of a dense brick's solid voxels under `palette` (black
+/// for an empty one): a mixed brick's LOD colour.
+fn mean_rgb(dense: &[u8; BRICK_VOXELS], palette: &Palette) -> [u8; 3] {
+    let (mut sum, mut solid) = ([0u64; 3], 0u64);
+    for &m in dense.iter().filter(|&&m| m != 0) {
+        let c = palette.rgb(m);
+        for k in 0..3 {
+            sum[k] += c[k] as u64;
+        }
+        solid += 1;
+    }
+    sum.map(|c| c.checked_div(solid).unwrap_or(0) as u8)
+}
+
 impl Brick {
     fn from_dense_mixed(dense: &[u8; BRICK_VOXELS], palette: &Palette) -> Self {
         let mut mask = [0u64; 8];
         let mut seen = [false; 256];
         let mut local: Vec<u8> = Vec::new();
-        let mut sum = [0u64; 3];
         let mut solid = 0u64;
         for (i, &m) in dense.iter().enumerate() {
             if m != 0 {
@@ -119,10 +132,6 @@ impl Brick {
                 if !seen[m as usize] {
                     seen[m as usize] = true;
                     local.push(m);
-                }
-                let c = palette.rgb(m);
-                for k in 0..3 {
-                    sum[k] += c[k] as u64;
                 }
                 solid += 1;
             }
@@ -156,7 +165,7 @@ impl Brick {
                 }
             }
         }
-        let lod_rgb = sum.map(|c| c.checked_div(solid).unwrap_or(0) as u8);
+        let lod_rgb = mean_rgb(dense, palette);
         Brick {
             mask,
             local_palette: local.into_boxed_slice(),
@@ -249,6 +258,16 @@ impl Brick {
     /// from afar, like its original.
     pub fn with_lod(mut self, lod: BrickLod) -> Self {
         self.lod = lod;
+        self
+    }
+
+    /// The same brick with its LOD colour computed from `palette`: for a
+    /// brick encoded with another palette (a terrain generator's) that
+    /// enters a world coloured by the engine's.
+    pub fn with_palette(mut self, palette: &Palette) -> Self {
+        let mut dense = [0u8; BRICK_VOXELS];
+        self.to_dense(&mut dense);
+        self.lod_rgb = mean_rgb(&dense, palette);
         self
     }
 

@@ -291,8 +291,8 @@ impl RenderWindow {
 
     /// Colour the window's world with the engine's palette (the
     /// simulation's and `materials.lua`'s colours; a hot reload recolours).
-    /// Bricks whose LOD colours change count as changed. Columns generated
-    /// later keep the generator's colours in their LOD averages.
+    /// Bricks whose LOD colours change count as changed; columns that enter
+    /// later take their LOD colours from it too.
     pub fn set_palette(&mut self, palette: crate::world::Palette) {
         let recoloured = self.world.set_palette(palette);
         if let Some(c) = self.changed.as_mut() {
@@ -430,9 +430,21 @@ impl RenderWindow {
         }
     }
 
+    /// Put generated (or cached, or stored) bricks into the window. Mixed
+    /// bricks were encoded with the generator's palette: once the engine's
+    /// palette differs (a simulation's colours, `materials.lua`), their LOD
+    /// colours are computed again from the window's.
     fn install(&mut self, bricks: &Bricks) {
+        let palette = (self.world.store.palette() != self.gen_.palette())
+            .then(|| self.world.store.palette().clone());
         for (b, content) in bricks {
-            self.world.store.set_brick(*b, content.clone());
+            let content = match (content, &palette) {
+                (BrickContent::Mixed(brick), Some(p)) => {
+                    BrickContent::Mixed(brick.clone().with_palette(p))
+                }
+                _ => content.clone(),
+            };
+            self.world.store.set_brick(*b, content);
         }
     }
 

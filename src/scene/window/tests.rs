@@ -252,3 +252,51 @@ fn a_new_palette_recolours_the_window_and_reports_its_bricks() {
     assert!(w.take_changed().contains(&b));
     assert_ne!(w.world().store().pool().get(id).unwrap().lod_rgb(), before);
 }
+
+/// Regression: columns that entered the window after a new palette kept
+/// the generator's colours in their LOD colours (a hot reload of
+/// `materials.lua` showed old colours on far terrain that streamed in
+/// later). Every mixed brick now has the LOD colour of the same brick
+/// encoded afresh with the window's palette.
+#[test]
+fn columns_entering_after_a_new_palette_take_its_lod_colours() {
+    let g = gen_(None);
+    let settings = WindowSettings {
+        radius: 1,
+        budget_bytes: 64 << 20,
+        fetchers: 1,
+    };
+    let mut w =
+        RenderWindow::new(g, None, settings, DVec3::new(0.0, 40.0, 0.0), None, None).unwrap();
+    assert!(w.settle(Duration::from_secs(30)));
+    let mut palette = w.world().store().palette().clone();
+    for m in 1..=255u8 {
+        let c = palette.rgb(m);
+        palette.set(m, [255 - c[0], 255 - c[1], 255 - c[2]]);
+    }
+    w.set_palette(palette.clone());
+    // Far enough that every column is new.
+    w.update(DVec3::new(2000.0, 40.0, 1000.0), None, &[]);
+    assert!(w.settle(Duration::from_secs(30)));
+    let store = w.world().store();
+    let mut fresh = BrickStore::new(palette);
+    let mut mixed = 0;
+    for (b, cell) in store.iter() {
+        let crate::world::Cell::Mixed(id) = cell else {
+            continue;
+        };
+        let mut dense = [0u8; crate::world::BRICK_VOXELS];
+        store.read_dense(b, &mut dense);
+        fresh.set_brick(b, BrickContent::from_dense(&dense, fresh.palette()));
+        let crate::world::Cell::Mixed(fid) = fresh.cell(b) else {
+            panic!("brick {b} is mixed")
+        };
+        assert_eq!(
+            store.pool().get(id).unwrap().lod_rgb(),
+            fresh.pool().get(fid).unwrap().lod_rgb(),
+            "brick {b}"
+        );
+        mixed += 1;
+    }
+    assert!(mixed > 100, "{mixed} mixed bricks");
+}
