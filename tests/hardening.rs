@@ -1289,3 +1289,85 @@ fn silent_connections_cannot_lock_other_clients_out() {
     drop(flood);
     assert_success(&stop(d));
 }
+
+/// Whether the server's end of the loopback connection from `client` is
+/// still open (established, or waiting for the server to close it), from
+/// `/proc/net/tcp`.
+fn server_end_open(server: &str, client: std::net::SocketAddr) -> bool {
+    let port: u16 = server.rsplit(':').next().unwrap().parse().unwrap();
+    let (local, remote) = (format!(":{port:04X}"), format!(":{:04X}", client.port()));
+    std::fs::read_to_string("/proc/net/tcp")
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.split_whitespace().collect::<Vec<_>>())
+        .any(|f| {
+            f.len() > 3
+                && f[1].ends_with(&local)
+                && f[2].ends_with(&remote)
+                && matches!(f[3], "01" | "08")
+        })
+}
+
+/// Regression (HTTP fuzzing round): a client that shut its sending side
+/// after a command that waits for the engine (`/checkpoint`, `/params`)
+/// got no answer, though the command ran. Half-closed clients are now
+/// answered, and a viewer that leaves its event stream on a paused engine
+/// still frees its connection: the stream's keep-alive comments find the
+/// closed socket (with half-close on, hyper no longer notices the close
+/// by reading).
+#[test]
+fn a_half_closed_client_gets_its_answer_and_a_closed_viewer_frees_its_connection() {
+    let (cfg, state, addr) = setup("half-close");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let tok = token(&state);
+    assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    for path in ["/checkpoint", "/pause"] {
+        let mut s = TcpStream::connect(&addr).unwrap();
+        s.write_all(
+            format!("POST {path} HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {tok}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
+                .as_bytes(),
+        )
+        .unwrap();
+        s.shutdown(std::net::Shutdown::Write).unwrap();
+        let line = reply_line(&mut s, Duration::from_secs(15));
+        assert!(line.starts_with("HTTP/1.1 200"), "{path}: {line:?}");
+    }
+    // A viewer leaves its stream while the engine is paused (nothing else
+    // is sent on it): its descriptor is released.
+    let mut viewer = TcpStream::connect(&addr).unwrap();
+    viewer
+        .write_all(b"GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n")
+        .unwrap();
+    viewer
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let mut b = [0u8; 64];
+    let n = viewer.read(&mut b).unwrap_or(0);
+    let head = String::from_utf8_lossy(&b[..n]);
+    assert!(head.starts_with("HTTP/1.1 200"), "{head}");
+    let me = viewer.local_addr().unwrap();
+    assert!(
+        server_end_open(&addr, me),
+        "the stream's connection is seen"
+    );
+    // Everything sent is read, so that closing sends a plain FIN, as a
+    // browser's does (unread data would make it a reset, which hyper
+    // notices either way).
+    viewer
+        .set_read_timeout(Some(Duration::from_millis(300)))
+        .unwrap();
+    let mut sink = [0u8; 4096];
+    while matches!(viewer.read(&mut sink), Ok(n) if n > 0) {}
+    drop(viewer);
+    let t = Instant::now();
+    while server_end_open(&addr, me) {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "a closed viewer's connection stayed open"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert_success(&stop(d));
+}

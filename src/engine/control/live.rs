@@ -22,7 +22,8 @@
 //! frame event only says "the latest frame is N", so a skipped one loses
 //! nothing). The engine and the render thread only ever store values
 //! ([`tokio::sync::watch`], a mutex held for a copy); they never wait for a
-//! viewer. A client that has read nothing for [`STALL_LIMIT`] is
+//! viewer. A stream with nothing to say sends a comment every
+//! [`KEEPALIVE`], which finds a viewer that left. A client that has read nothing for [`STALL_LIMIT`] is
 //! disconnected, and at most [`MAX_VIEWERS`] streams are served at once;
 //! past that a new viewer takes the longest-connected one's slot
 //! ([`Viewers`]).
@@ -53,6 +54,10 @@ pub const QUEUE: usize = 8;
 pub const STALL_LIMIT: Duration = Duration::from_secs(30);
 /// Timeline rows kept for the charts.
 pub const TIMELINE_ROWS: usize = 4096;
+/// A stream with nothing else to send sends a comment this often, so that
+/// a viewer that left is found by the write failing (the server lets
+/// clients half-close, so it does not learn of a close by reading).
+pub const KEEPALIVE: Duration = Duration::from_secs(5);
 /// A viewer keeps the camera this long after its last move.
 pub const CAMERA_LEASE: Duration = Duration::from_secs(3);
 
@@ -340,6 +345,7 @@ pub fn stream(shared: Arc<Shared>, slot: ViewerSlot, state: Arc<AtomicU8>) -> Ev
         let mut last_status = String::new();
         let (mut since, mut epoch) = (0u64, u64::MAX);
         let mut stalled_since: Option<Instant> = None;
+        let mut last_sent = Instant::now();
         let mut tick = tokio::time::interval(STATUS_EVERY);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         // Reconnect quickly after a restart of the engine.
@@ -351,7 +357,10 @@ pub fn stream(shared: Arc<Shared>, slot: ViewerSlot, state: Arc<AtomicU8>) -> Ev
         loop {
             for e in pending.drain(..) {
                 match tx.try_send(e) {
-                    Ok(()) => stalled_since = None,
+                    Ok(()) => {
+                        stalled_since = None;
+                        last_sent = Instant::now();
+                    }
                     Err(mpsc::error::TrySendError::Full(_)) => {
                         // This client is slow: drop the event for it alone.
                         let s = *stalled_since.get_or_insert_with(Instant::now);
@@ -388,6 +397,9 @@ pub fn stream(shared: Arc<Shared>, slot: ViewerSlot, state: Arc<AtomicU8>) -> Ev
                     if !rows.columns.is_empty() && (!rows.rows.is_empty() || rows.epoch != epoch) {
                         (since, epoch) = (rows.next, rows.epoch);
                         pending.push(event("rows", &rows));
+                    }
+                    if pending.is_empty() && last_sent.elapsed() >= KEEPALIVE {
+                        pending.push(Bytes::from_static(b": keep-alive\n\n"));
                     }
                 }
             }

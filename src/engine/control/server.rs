@@ -247,12 +247,14 @@ async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>, me: Arc<Conn>
         .timer(TokioTimer::new())
         .header_read_timeout(HEADER_TIMEOUT)
         .max_buf_size(MAX_HEADER_BYTES)
-        // Half-close stays off: with it on, hyper stops watching for a
-        // client that leaves mid-request or mid-stream, and a closed
-        // viewer's event stream held its slot for ever on a paused engine
-        // (found by review). A client that shuts its sending side before
-        // reading the answer may get none (its command may still be
-        // carried out, as `ctl` says of a command without an answer).
+        // A client may shut its sending side and still read the answer
+        // (regression: one that did so after `/checkpoint` got none,
+        // though the command ran). With half-close on, hyper no longer
+        // learns of a close by reading, so a viewer that left an event
+        // stream on a paused engine held its slot for ever (found by
+        // review): streams now send a comment every `live::KEEPALIVE`,
+        // and the failed write ends the connection.
+        .half_close(true)
         .serve_connection(TokioIo::new(stream), service);
     tokio::pin!(conn);
     let born = tokio::time::Instant::now();
