@@ -21,6 +21,7 @@ pub mod progress;
 pub mod scene;
 pub mod sim;
 pub mod sim_cmd;
+pub mod text;
 pub mod trace;
 pub mod verify;
 pub mod world;

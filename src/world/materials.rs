@@ -94,12 +94,9 @@ pub enum MaterialError {
     },
 }
 
-/// A name as an error shows it: at most 80 characters.
+/// A name as an error shows it: escaped, at most 80 characters.
 fn cut(name: &str) -> String {
-    match name.char_indices().nth(80) {
-        Some((i, _)) => format!("{}… ({} bytes)", &name[..i], name.len()),
-        None => name.to_string(),
-    }
+    crate::text::shown(name, 80)
 }
 
 /// Named materials with stable ids.

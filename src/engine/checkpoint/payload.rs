@@ -284,7 +284,7 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
             if id == 0 || !crate::world::MaterialRegistry::valid_name(&name) {
                 return Err(format!(
                     "material {id} is named '{}', which no material may be",
-                    crate::sim::runtime::log::escape_controls(&name, false)
+                    crate::text::escape_controls(&name, false)
                 ));
             }
             if !(density.is_finite() && density >= 0.0) {

@@ -94,13 +94,10 @@ pub(super) fn percent_decoded(segment: &str) -> Option<String> {
     String::from_utf8(out).ok()
 }
 
-/// A name from a request, shortened for an error message.
+/// A name from a request as an error message shows it: escaped, at most
+/// 64 characters.
 pub(super) fn shown(name: &str) -> String {
-    if name.chars().count() > 64 {
-        format!("{}…", name.chars().take(64).collect::<String>())
-    } else {
-        name.to_string()
-    }
+    crate::text::shown(name, 64)
 }
 
 /// Whether a request naming `host` (a `Host` header: a name or IP, and

@@ -101,7 +101,7 @@ pub struct WorldConfigError {
 /// a key was printed raw, and a 100 000-character tracer name made a
 /// 100 KB line).
 fn shown(text: &str) -> String {
-    crate::sim::runtime::log::shown(text, SHOWN_CHARS)
+    crate::text::shown(text, SHOWN_CHARS)
 }
 
 /// Characters of a config error's field and reason that are shown.

@@ -63,7 +63,7 @@ pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
     // The name is in every message about the script: one that would print
     // a newline, a terminal escape or a bidirectional override is refused
     // (regression, hostile probe), named with those characters escaped.
-    let name = crate::sim::runtime::log::escape_controls(&stem, false).into_owned();
+    let name = crate::text::escape_controls(&stem, false).into_owned();
     if name != stem {
         return Err(SimError::Declaration {
             script: name,

@@ -58,7 +58,7 @@ pub(super) fn one_line(msg: &str) -> String {
         Some((i, _)) => format!("{}… (cut at {MAX_ERROR_CHARS} characters)", &msg[..i]),
         None => msg.to_string(),
     };
-    super::log::escape_controls(&cut, false).into_owned()
+    crate::text::escape_controls(&cut, false).into_owned()
 }
 
 #[cfg(test)]

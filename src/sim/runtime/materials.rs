@@ -22,7 +22,7 @@ fn err(src: &ScriptSource, name: Option<&str>, msg: String) -> SimError {
         script: src.name.clone(),
         line: name.and_then(|n| src.text.lines().position(|l| l.contains(n)).map(|i| i + 1)),
         // Names in it come from the script: no raw control characters.
-        msg: super::log::escape_controls(&msg, false).into_owned(),
+        msg: crate::text::escape_controls(&msg, false).into_owned(),
     }
 }
 
@@ -79,7 +79,7 @@ pub fn load_materials(
                 None,
                 format!(
                     "material name '{}' must be 1 to 64 letters, digits and '_' (and not 'air')",
-                    super::log::shown(&name, 80)
+                    crate::text::shown(&name, 80)
                 ),
             ));
         }
