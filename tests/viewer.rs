@@ -548,21 +548,10 @@ fn a_viewer_that_reads_nothing_is_closed_after_the_stall_limit() {
         s.local_addr().unwrap().port(),
         s.peer_addr().unwrap().port(),
     );
-    // /proc/net/tcp: "sl local rem st …", ports in hex. The server's end
-    // of the connection leaves ESTABLISHED (01) when the server closes it:
-    // its FIN waits behind data this client never reads (FIN_WAIT1).
-    let closed_by_server = || {
-        !std::fs::read_to_string("/proc/net/tcp")
-            .unwrap()
-            .lines()
-            .any(|l| {
-                let f: Vec<&str> = l.split_whitespace().collect();
-                f.len() > 3
-                    && f[1].ends_with(&format!(":{remote:04X}"))
-                    && f[2].ends_with(&format!(":{local:04X}"))
-                    && f[3] == "01"
-            })
-    };
+    // The server's end of the connection leaves ESTABLISHED (01) when the
+    // server closes it: its FIN waits behind data this client never reads
+    // (FIN_WAIT1).
+    let closed_by_server = || !server_end_in(remote, local, &["01"]);
     let t0 = status(&addr)["tick"].as_u64().unwrap();
     while !closed_by_server() {
         assert!(

@@ -300,3 +300,24 @@ pub fn hash_at(cfg: &Path, state: &Path, end: u64) -> String {
 pub fn stderr_of_ticks(cfg: &Path, state: &Path, ticks: u64) -> String {
     run_ok(cfg, state, "--ticks", ticks).1
 }
+
+/// Whether this machine's end of the loopback TCP connection between
+/// `server_port` (the daemon's) and `client_port` is in one of `states`
+/// (`/proc/net/tcp`'s hex codes: "01" established, "08" waiting for the
+/// server to close). `/proc/net/tcp` lists "sl local rem st …", ports in
+/// hex.
+#[allow(dead_code)]
+pub fn server_end_in(server_port: u16, client_port: u16, states: &[&str]) -> bool {
+    let (local, remote) = (format!(":{server_port:04X}"), format!(":{client_port:04X}"));
+    std::fs::read_to_string("/proc/net/tcp")
+        .unwrap()
+        .lines()
+        .skip(1)
+        .any(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            f.len() > 3
+                && f[1].ends_with(&local)
+                && f[2].ends_with(&remote)
+                && states.contains(&f[3])
+        })
+}
