@@ -10,6 +10,26 @@ fn gen_(size: Option<IVec3>) -> Arc<ChunkGen> {
     Arc::new(ChunkGen::new(&SceneSpec::Terrain { caves: false }, size, 64, 4).unwrap())
 }
 
+/// A settled window of radius 1 over unbounded terrain, around the origin.
+fn settled_window() -> RenderWindow {
+    let settings = WindowSettings {
+        radius: 1,
+        budget_bytes: 64 << 20,
+        fetchers: 1,
+    };
+    let mut w = RenderWindow::new(
+        gen_(None),
+        None,
+        settings,
+        DVec3::new(0.0, 40.0, 0.0),
+        None,
+        None,
+    )
+    .unwrap();
+    assert!(w.settle(Duration::from_secs(30)));
+    w
+}
+
 /// Every cell of `world`'s (toroidal) grid is occupied exactly where a
 /// grid built afresh from `bricks` is.
 fn assert_grid_follows(world: &SceneWorld, bricks: &BrickStore) {
@@ -222,15 +242,7 @@ fn a_moved_region_is_copied_and_the_columns_it_left_are_fetched_with_the_overlay
 /// bricks whose LOD colours it changes are reported as changed.
 #[test]
 fn a_new_palette_recolours_the_window_and_reports_its_bricks() {
-    let g = gen_(None);
-    let settings = WindowSettings {
-        radius: 1,
-        budget_bytes: 64 << 20,
-        fetchers: 1,
-    };
-    let mut w =
-        RenderWindow::new(g, None, settings, DVec3::new(0.0, 40.0, 0.0), None, None).unwrap();
-    assert!(w.settle(Duration::from_secs(30)));
+    let mut w = settled_window();
     w.track_changes();
     let store = w.world().store();
     let (b, id) = store
@@ -260,15 +272,7 @@ fn a_new_palette_recolours_the_window_and_reports_its_bricks() {
 /// encoded afresh with the window's palette.
 #[test]
 fn columns_entering_after_a_new_palette_take_its_lod_colours() {
-    let g = gen_(None);
-    let settings = WindowSettings {
-        radius: 1,
-        budget_bytes: 64 << 20,
-        fetchers: 1,
-    };
-    let mut w =
-        RenderWindow::new(g, None, settings, DVec3::new(0.0, 40.0, 0.0), None, None).unwrap();
-    assert!(w.settle(Duration::from_secs(30)));
+    let mut w = settled_window();
     let mut palette = w.world().store().palette().clone();
     for m in 1..=255u8 {
         let c = palette.rgb(m);
