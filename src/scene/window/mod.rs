@@ -422,7 +422,7 @@ impl RenderWindow {
         }
         if self.columns.get(&col) == Some(&Column::Coarse) {
             self.clear(col);
-            self.install(&bricks);
+            self.install_generated(&bricks);
             // When it leaves, its bricks move into the cache.
             self.columns.insert(col, Column::Exact);
         } else if !self.columns.contains_key(&col) {
@@ -430,11 +430,12 @@ impl RenderWindow {
         }
     }
 
-    /// Put generated (or cached, or stored) bricks into the window. Mixed
-    /// bricks were encoded with the generator's palette: once the engine's
-    /// palette differs (a simulation's colours, `materials.lua`), their LOD
-    /// colours are computed again from the window's.
-    fn install(&mut self, bricks: &Bricks) {
+    /// Put generated bricks (with any stored edits over them) into the
+    /// window. They were encoded with the generator's palette: once the
+    /// engine's palette differs (a simulation's colours, `materials.lua`),
+    /// the LOD colours of mixed bricks are computed again from the
+    /// window's.
+    fn install_generated(&mut self, bricks: &Bricks) {
         let palette = (self.world.store.palette() != self.gen_.palette())
             .then(|| self.world.store.palette().clone());
         for (b, content) in bricks {
@@ -445,6 +446,13 @@ impl RenderWindow {
                 _ => content.clone(),
             };
             self.world.store.set_brick(*b, content);
+        }
+    }
+
+    /// Put bricks encoded with the window's palette into the window.
+    fn install(&mut self, bricks: &Bricks) {
+        for (b, content) in bricks {
+            self.world.store.set_brick(*b, content.clone());
         }
     }
 
@@ -477,7 +485,9 @@ impl RenderWindow {
             self.columns.insert(col, Column::Exact);
             return;
         }
-        if let Some(bricks) = self.cache.take(col, self.gen_.palette()) {
+        // Cached columns are kept as voxels and encoded afresh, with the
+        // window's palette.
+        if let Some(bricks) = self.cache.take(col, self.world.store.palette()) {
             self.stats.cache_hits += 1;
             self.install(&bricks);
             self.columns.insert(col, Column::Exact);

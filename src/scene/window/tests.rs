@@ -265,25 +265,11 @@ fn a_new_palette_recolours_the_window_and_reports_its_bricks() {
     assert_ne!(w.world().store().pool().get(id).unwrap().lod_rgb(), before);
 }
 
-/// Regression: columns that entered the window after a new palette kept
-/// the generator's colours in their LOD colours (a hot reload of
-/// `materials.lua` showed old colours on far terrain that streamed in
-/// later). Every mixed brick now has the LOD colour of the same brick
-/// encoded afresh with the window's palette.
-#[test]
-fn columns_entering_after_a_new_palette_take_its_lod_colours() {
-    let mut w = settled_window();
-    let mut palette = w.world().store().palette().clone();
-    for m in 1..=255u8 {
-        let c = palette.rgb(m);
-        palette.set(m, [255 - c[0], 255 - c[1], 255 - c[2]]);
-    }
-    w.set_palette(palette.clone());
-    // Far enough that every column is new.
-    w.update(DVec3::new(2000.0, 40.0, 1000.0), None, &[]);
-    assert!(w.settle(Duration::from_secs(30)));
+/// Every mixed brick of `w` has the LOD colour of the same brick encoded
+/// afresh with `palette`; returns how many there are.
+fn assert_lod_colours_follow(w: &RenderWindow, palette: &crate::world::Palette) -> usize {
     let store = w.world().store();
-    let mut fresh = BrickStore::new(palette);
+    let mut fresh = BrickStore::new(palette.clone());
     let mut mixed = 0;
     for (b, cell) in store.iter() {
         let crate::world::Cell::Mixed(id) = cell else {
@@ -302,5 +288,34 @@ fn columns_entering_after_a_new_palette_take_its_lod_colours() {
         );
         mixed += 1;
     }
+    mixed
+}
+
+/// Regression: columns that entered the window after a new palette kept
+/// the generator's colours in their LOD colours (a hot reload of
+/// `materials.lua` showed old colours on far terrain that streamed in
+/// later). Every mixed brick now has the LOD colour of the same brick
+/// encoded afresh with the window's palette, whether its column was
+/// generated or came back from the cache.
+#[test]
+fn columns_entering_after_a_new_palette_take_its_lod_colours() {
+    let mut w = settled_window();
+    let mut palette = w.world().store().palette().clone();
+    for m in 1..=255u8 {
+        let c = palette.rgb(m);
+        palette.set(m, [255 - c[0], 255 - c[1], 255 - c[2]]);
+    }
+    w.set_palette(palette.clone());
+    // Far enough that every column is new.
+    w.update(DVec3::new(2000.0, 40.0, 1000.0), None, &[]);
+    assert!(w.settle(Duration::from_secs(30)));
+    let mixed = assert_lod_colours_follow(&w, &palette);
+    assert!(mixed > 100, "{mixed} mixed bricks");
+    // Back: the first columns come from the cache, kept as voxels.
+    let hits = w.stats().cache_hits;
+    w.update(DVec3::new(0.0, 40.0, 0.0), None, &[]);
+    assert!(w.settle(Duration::from_secs(30)));
+    assert!(w.stats().cache_hits > hits, "the cache was not used");
+    let mixed = assert_lod_colours_follow(&w, &palette);
     assert!(mixed > 100, "{mixed} mixed bricks");
 }
