@@ -1290,13 +1290,6 @@ fn silent_connections_cannot_lock_other_clients_out() {
     assert_success(&stop(d));
 }
 
-/// Whether the server's end of the loopback connection from `client` is
-/// still open (established, or waiting for the server to close it).
-fn server_end_open(server: &str, client: std::net::SocketAddr) -> bool {
-    let port: u16 = server.rsplit(':').next().unwrap().parse().unwrap();
-    server_end_in(port, client.port(), &["01", "08"])
-}
-
 /// Regression (HTTP fuzzing round): a client that shut its sending side
 /// after a command that waits for the engine (`/checkpoint`, `/params`)
 /// got no answer, though the command ran. Half-closed clients are now
@@ -1304,6 +1297,7 @@ fn server_end_open(server: &str, client: std::net::SocketAddr) -> bool {
 /// still frees its connection: the stream's keep-alive comments find the
 /// closed socket (with half-close on, hyper no longer notices the close
 /// by reading).
+#[cfg(target_os = "linux")]
 #[test]
 fn a_half_closed_client_gets_its_answer_and_a_closed_viewer_frees_its_connection() {
     let (cfg, state, addr) = setup("half-close");
@@ -1320,7 +1314,11 @@ fn a_half_closed_client_gets_its_answer_and_a_closed_viewer_frees_its_connection
         .unwrap();
         s.shutdown(std::net::Shutdown::Write).unwrap();
         let line = reply_line(&mut s, Duration::from_secs(15));
-        assert!(line.starts_with("HTTP/1.1 200"), "{path}: {line:?}");
+        // 202: the engine had not answered within its wait (a slow disk).
+        assert!(
+            line.starts_with("HTTP/1.1 200") || line.starts_with("HTTP/1.1 202"),
+            "{path}: {line:?}"
+        );
     }
     // A viewer leaves its stream while the engine is paused (nothing else
     // is sent on it): its descriptor is released.
@@ -1335,24 +1333,29 @@ fn a_half_closed_client_gets_its_answer_and_a_closed_viewer_frees_its_connection
     let n = viewer.read(&mut b).unwrap_or(0);
     let head = String::from_utf8_lossy(&b[..n]);
     assert!(head.starts_with("HTTP/1.1 200"), "{head}");
-    let me = viewer.local_addr().unwrap();
-    assert!(
-        server_end_open(&addr, me),
-        "the stream's connection is seen"
-    );
-    // Everything sent is read, so that closing sends a plain FIN, as a
-    // browser's does (unread data would make it a reset, which hyper
-    // notices either way).
+    let port: u16 = addr.rsplit(':').next().unwrap().parse().unwrap();
+    let me = viewer.local_addr().unwrap().port();
+    let inode = server_end_inode(port, me).expect("the stream's connection is listed");
+    assert!(holds_socket(d.id(), inode), "the server holds the stream");
+    // Everything sent is read, and the stream has gone quiet (a paused
+    // engine's status settles within a few events), so that closing sends
+    // a plain FIN, as a browser's does, and nothing but the keep-alive is
+    // written after it (unread data would make the close a reset, and a
+    // later event would draw one: hyper notices either).
     viewer
-        .set_read_timeout(Some(Duration::from_millis(300)))
+        .set_read_timeout(Some(Duration::from_millis(1500)))
         .unwrap();
-    let mut sink = [0u8; 4096];
-    while matches!(viewer.read(&mut sink), Ok(n) if n > 0) {}
+    let (mut sink, drained) = ([0u8; 4096], Instant::now());
+    while drained.elapsed() < Duration::from_secs(10)
+        && matches!(viewer.read(&mut sink), Ok(n) if n > 0)
+    {}
     drop(viewer);
+    // Found by the second keep-alive write at the latest (the first draws
+    // the reset): about 10 s.
     let t = Instant::now();
-    while server_end_open(&addr, me) {
+    while holds_socket(d.id(), inode) {
         assert!(
-            t.elapsed() < Duration::from_secs(30),
+            t.elapsed() < Duration::from_secs(40),
             "a closed viewer's connection stayed open"
         );
         std::thread::sleep(Duration::from_millis(200));

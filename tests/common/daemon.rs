@@ -301,23 +301,46 @@ pub fn stderr_of_ticks(cfg: &Path, state: &Path, ticks: u64) -> String {
     run_ok(cfg, state, "--ticks", ticks).1
 }
 
-/// Whether this machine's end of the loopback TCP connection between
-/// `server_port` (the daemon's) and `client_port` is in one of `states`
-/// (`/proc/net/tcp`'s hex codes: "01" established, "08" waiting for the
-/// server to close). `/proc/net/tcp` lists "sl local rem st …", ports in
-/// hex.
-#[allow(dead_code)]
-pub fn server_end_in(server_port: u16, client_port: u16, states: &[&str]) -> bool {
+/// The state (hex code) and socket inode of the server's end of the
+/// loopback TCP connection between `server_port` (the daemon's) and
+/// `client_port`, from `/proc/net/tcp` ("sl local rem st … inode", ports
+/// in hex). None once the kernel has dropped it.
+fn server_end(server_port: u16, client_port: u16) -> Option<(String, u64)> {
     let (local, remote) = (format!(":{server_port:04X}"), format!(":{client_port:04X}"));
     std::fs::read_to_string("/proc/net/tcp")
         .unwrap()
         .lines()
         .skip(1)
-        .any(|l| {
+        .find_map(|l| {
             let f: Vec<&str> = l.split_whitespace().collect();
-            f.len() > 3
-                && f[1].ends_with(&local)
-                && f[2].ends_with(&remote)
-                && states.contains(&f[3])
+            (f.len() > 9 && f[1].ends_with(&local) && f[2].ends_with(&remote))
+                .then(|| (f[3].to_string(), f[9].parse().unwrap_or(0)))
         })
+}
+
+/// Whether the server's end of the connection between `server_port` and
+/// `client_port` is in one of `states` ("01" established, "08" waiting
+/// for the server to close it).
+#[allow(dead_code)]
+pub fn server_end_in(server_port: u16, client_port: u16, states: &[&str]) -> bool {
+    server_end(server_port, client_port).is_some_and(|(st, _)| states.contains(&st.as_str()))
+}
+
+/// The socket inode of the server's end of that connection, while the
+/// kernel lists it.
+#[allow(dead_code)]
+pub fn server_end_inode(server_port: u16, client_port: u16) -> Option<u64> {
+    server_end(server_port, client_port).map(|(_, inode)| inode)
+}
+
+/// Whether process `pid` holds a descriptor of socket `inode`: a server
+/// has closed a connection only when this is false (the kernel may drop
+/// the connection from its table earlier, once a reset comes back).
+#[allow(dead_code)]
+pub fn holds_socket(pid: u32, inode: u64) -> bool {
+    let want = format!("socket:[{inode}]");
+    std::fs::read_dir(format!("/proc/{pid}/fd")).is_ok_and(|d| {
+        d.flatten()
+            .any(|e| std::fs::read_link(e.path()).is_ok_and(|t| t.to_string_lossy() == want))
+    })
 }

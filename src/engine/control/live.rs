@@ -55,8 +55,11 @@ pub const STALL_LIMIT: Duration = Duration::from_secs(30);
 /// Timeline rows kept for the charts.
 pub const TIMELINE_ROWS: usize = 4096;
 /// A stream with nothing else to send sends a comment this often, so that
-/// a viewer that left is found by the write failing (the server lets
-/// clients half-close, so it does not learn of a close by reading).
+/// a viewer that left is found by a write failing (the server lets
+/// clients half-close, so it does not learn of a close by reading): the
+/// first write after the close draws a reset, the second fails, so a
+/// viewer that left is found within about two of these. A host that
+/// vanishes without a word is found only by TCP's retransmission limit.
 pub const KEEPALIVE: Duration = Duration::from_secs(5);
 /// A viewer keeps the camera this long after its last move.
 pub const CAMERA_LEASE: Duration = Duration::from_secs(3);
