@@ -427,6 +427,49 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
     stop(d);
 }
 
+/// Regression (viewer probe): moving the camera of a paused engine showed
+/// nothing, as frames came only every `frames.every` ticks. A camera move
+/// (and a return to the path) renders a view of the present tick for the
+/// live viewers as soon as the renderer is idle, without stepping and
+/// without a file in the frames directory, which keeps one frame per
+/// `frames.every` ticks.
+#[test]
+fn a_camera_move_shows_at_once_even_paused() {
+    let (cfg, state, addr) = setup("viewer-camera-paused");
+    let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
+    wait_ready(&addr);
+    let frames = |addr: &str| status(addr)["frames"].as_u64().unwrap();
+    let on_disk = || {
+        std::fs::read_dir(state.join("frames")).map_or(0, |d| {
+            d.flatten()
+                .filter(|e| e.file_name().to_string_lossy().starts_with("frame-"))
+                .count()
+        })
+    };
+    let (tick, before, files) = (status(&addr)["tick"].clone(), frames(&addr), on_disk());
+    let wait_for_frame = |after: u64| {
+        let t = Instant::now();
+        while frames(&addr) <= after {
+            assert!(
+                t.elapsed() < Duration::from_secs(30),
+                "no frame after the camera moved"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    };
+    let cam = "{\"eye\": [-20, 60, -20], \"target\": [24, 10, 24], \"fov\": 45}";
+    assert_eq!(post(&addr, &state, "/camera", cam).0, 200);
+    wait_for_frame(before);
+    let (code, png) = request(&addr, "GET", "/frame.png", None, "").unwrap();
+    assert_eq!(code, 200, "{png}");
+    let shown = frames(&addr);
+    assert_eq!(post(&addr, &state, "/camera/path", "").0, 200);
+    wait_for_frame(shown);
+    assert_eq!(status(&addr)["tick"], tick, "nothing stepped");
+    assert_eq!(on_disk(), files, "a view went into the frames directory");
+    stop(d);
+}
+
 /// A script with nothing awake for it is shown as sleeping, not running.
 #[test]
 fn a_script_with_nothing_awake_is_shown_sleeping() {

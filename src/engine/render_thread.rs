@@ -51,6 +51,9 @@ pub struct FrameJob {
     /// moved): the chunk columns the region covered since the last whole
     /// world and no longer does, to be fetched again from the store.
     pub left: Vec<glam::IVec2>,
+    /// Written to the frames directory (false: a view for the live
+    /// viewers only, rendered because the camera moved).
+    pub keep: bool,
 }
 
 /// Counters the render thread publishes (read by `/status` and the timeline).
@@ -228,23 +231,26 @@ impl RenderThread {
                         draw(&mut gpu, world, &job.camera, o, &st)
                     });
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
-                    match write_frame(&settings.frames_dir, job.tick, &png) {
-                        Ok(path) => {
-                            written.push(path, png.len() as u64);
-                            if frame_error.take().is_some() {
-                                crate::say!("frames are written again to {}", settings.frames_dir.display());
+                    // A view rendered for a camera move is for the live viewers only.
+                    if job.keep {
+                        match write_frame(&settings.frames_dir, job.tick, &png) {
+                            Ok(path) => {
+                                written.push(path, png.len() as u64);
+                                if frame_error.take().is_some() {
+                                    crate::say!("frames are written again to {}", settings.frames_dir.display());
+                                }
                             }
-                        }
-                        Err(e) => {
-                            // Said once a minute, not silently dropped
-                            // (regression: a full disk or a bad frames.dir
-                            // left no trace); the live frame still serves.
-                            if frame_error.is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60)) {
-                                crate::say!(
-                                    "warning: cannot write frame {}: {e} (the live view goes on; said at most once a minute)",
-                                    settings.frames_dir.join(format!("frame-{:08}.png", job.tick)).display()
-                                );
-                                frame_error = Some(Instant::now());
+                            Err(e) => {
+                                // Said once a minute, not silently dropped
+                                // (regression: a full disk or a bad frames.dir
+                                // left no trace); the live frame still serves.
+                                if frame_error.is_none_or(|t: Instant| t.elapsed() >= Duration::from_secs(60)) {
+                                    crate::say!(
+                                        "warning: cannot write frame {}: {e} (the live view goes on; said at most once a minute)",
+                                        settings.frames_dir.join(format!("frame-{:08}.png", job.tick)).display()
+                                    );
+                                    frame_error = Some(Instant::now());
+                                }
                             }
                         }
                     }

@@ -229,6 +229,7 @@ impl Engine {
                     // Committed with the state: a region that follows the
                     // camera must follow it after a resume too.
                     self.camera_override = Some(CameraOverride { eye, target, fov });
+                    self.view_due = true;
                 }
                 Command::Params {
                     script,
@@ -259,6 +260,7 @@ impl Engine {
                 Command::CameraPath => {
                     self.camera = self.cfg.camera;
                     self.camera_override = None;
+                    self.view_due = true;
                 }
             }
         }

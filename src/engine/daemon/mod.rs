@@ -164,6 +164,9 @@ pub struct Engine {
     /// Whether the render thread holds its copy of the world (then frame
     /// jobs carry only deltas).
     mirror_sent: bool,
+    /// The camera moved since the last frame: a view is rendered as soon
+    /// as the renderer is idle, paused or between frame ticks.
+    view_due: bool,
     paused: bool,
     steps_left: u64,
     notes: Vec<ScriptNotes>,
@@ -234,9 +237,11 @@ impl Engine {
                 }
                 self.collect_dirty(&report);
                 self.offer_frame();
+                self.offer_view();
                 self.periodic_commit(started.elapsed());
                 self.record_timeline(&report);
             } else {
+                self.offer_view();
                 std::thread::sleep(std::time::Duration::from_millis(5));
             }
             self.publish_status();

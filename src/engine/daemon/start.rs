@@ -246,6 +246,7 @@ impl Engine {
             dirty_pending: FxHashSet::default(),
             dirty_chunks,
             mirror_sent: false,
+            view_due: false,
             paused: opts.paused,
             steps_left: 0,
             notes: vec![ScriptNotes::default(); n],

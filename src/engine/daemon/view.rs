@@ -1,7 +1,8 @@
 //! Where the engine looks and what it shows: the camera at a tick
 //! ([`Engine::camera_at`]), the region the column scripts run on
 //! ([`Engine::sim_region`]) and the frames offered to the render thread
-//! ([`Engine::offer_frame`]).
+//! ([`Engine::offer_frame`], and [`Engine::offer_view`] after a camera
+//! move).
 
 use std::time::Instant;
 
@@ -24,9 +25,30 @@ impl Engine {
             self.renderer.skip();
             return;
         }
+        self.send_frame(tick, true);
+    }
+
+    /// After the camera moved (`/camera`, `/camera/path`): a frame of the
+    /// present tick for the live view, as soon as the renderer is idle, so
+    /// that a moved camera shows while the engine is paused or between
+    /// frame ticks (regression, viewer probe: dragging a paused world
+    /// showed nothing). It is not written to the frames directory, which
+    /// keeps one frame per `frames.every` ticks.
+    pub(super) fn offer_view(&mut self) {
+        if !self.view_due || !self.renderer.ready() {
+            return;
+        }
+        self.send_frame(self.ws.sim.tick(), false);
+    }
+
+    /// Hand the renderer the world at `tick` (whole the first time, then
+    /// the bricks changed since) and the camera then; `keep`: written to
+    /// the frames directory.
+    fn send_frame(&mut self, tick: u64, keep: bool) {
         let Ok(cam) = self.camera_at(tick) else {
             return;
         };
+        self.view_due = false;
         // The render thread keeps its own copy: the first job carries the
         // world, every later one only the bricks that changed since.
         let copy = Instant::now();
@@ -48,6 +70,7 @@ impl Engine {
             dirty,
             camera: cam,
             left,
+            keep,
         };
         match self.renderer.offer(job) {
             Ok(()) => {
@@ -56,7 +79,10 @@ impl Engine {
                     f.delivered();
                 }
             }
-            Err(back) => self.dirty_pending.extend(back),
+            Err(back) => {
+                self.dirty_pending.extend(back);
+                self.view_due |= !keep;
+            }
         }
     }
 
