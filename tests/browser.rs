@@ -284,13 +284,59 @@ fn the_viewer_works_in_a_real_browser() {
         "document.getElementById('conn').textContent",
         |v| v.as_str().is_some_and(|s| s.contains("connection lost")),
     );
+    // The engine comes back (with a new token): the page reconnects by
+    // itself, its charts hold each tick once (regression, viewer probe:
+    // the history the new stream sends was appended to the old, so the
+    // charts showed it twice), and the old token is dropped with a word
+    // (regression: the page still said "control enabled" and every click
+    // failed).
+    save_like_an_editor(
+        &water,
+        include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua")),
+    );
+    let daemon = start(&cfg, &state);
+    wait_ready(&addr);
+    b.wait_for(
+        "the page reconnects",
+        30,
+        "document.getElementById('conn').textContent",
+        |v| v == "live",
+    );
+    let ticks = b.wait_for(
+        "the charts' rows arrive",
+        20,
+        "window.bw.ticks()",
+        |v| v.as_array().is_some_and(|a| a.len() > 3),
+    );
+    let ticks: Vec<f64> = ticks
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_f64)
+        .collect();
+    assert!(
+        ticks.windows(2).all(|w| w[0] < w[1]),
+        "each tick once, in order: {ticks:?}"
+    );
+    b.wait_for(
+        "the stale token is dropped",
+        20,
+        "getComputedStyle(document.getElementById('readonly')).display !== 'none' && document.getElementById('authmsg').textContent",
+        |v| v.as_str().is_some_and(|s| s.contains("refused")),
+    );
+    assert!(
+        b.page_errors().is_empty(),
+        "page errors: {:?}",
+        b.page_errors()
+    );
+    stop(daemon);
 }
 
 /// Mask the live parts, screenshot, compare with the golden image.
 fn check_golden(b: &mut Browser) {
     b.eval(
         "(() => { const s = document.createElement('style'); s.id = 'mask'; \
-         s.textContent = 'header .stat, #view, #charts svg, #charts .v, .ms, .script pre, #toast { visibility: hidden !important }'; \
+         s.textContent = 'header .stat, #view, #charts svg, #charts .v, #charts .rng, #charts .leg, .ms, .script pre, #toast { visibility: hidden !important }'; \
          document.head.appendChild(s); return true; })()",
     );
     std::thread::sleep(Duration::from_millis(300));
