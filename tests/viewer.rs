@@ -196,6 +196,24 @@ fn parameter_changes_get_the_engines_verdict_and_viewers_share_the_camera_by_lea
         std::thread::sleep(Duration::from_millis(50));
     }
     assert_eq!(status(&addr)["camera"]["eye"][1], 60.0);
+    // A viewer's return to the path is held to the lease too (regression,
+    // viewer probe: any page took the camera from the viewer holding it);
+    // the holder's own return, and an administrative one, are not.
+    assert_eq!(post(&addr, &state, "/camera", &cam("a")).0, 200);
+    let (code, body) = post(&addr, &state, "/camera/path", "{\"viewer\": \"b\"}");
+    assert_eq!(code, 409, "{body}");
+    assert_eq!(
+        post(&addr, &state, "/camera/path", "{\"viewer\": \"bad id!\"}").0,
+        400
+    );
+    assert_eq!(
+        post(&addr, &state, "/camera/path", "{\"viewr\": \"a\"}").0,
+        400
+    );
+    assert_eq!(
+        post(&addr, &state, "/camera/path", "{\"viewer\": \"a\"}").0,
+        200
+    );
     // Back to the world's path.
     assert_eq!(post(&addr, &state, "/camera/path", "").0, 200);
     while status(&addr)["camera"]["mode"] != "path" {

@@ -44,7 +44,26 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             }
             Ok(Command::Step(n))
         }
-        "/camera/path" => Ok(Command::CameraPath),
+        "/camera/path" => {
+            // An empty body: an administrative return, which always wins; a
+            // viewer names itself and is held to the camera lease like its
+            // moves (found by the viewer probe: any page took the camera
+            // from the viewer holding it).
+            #[derive(serde::Deserialize)]
+            #[serde(deny_unknown_fields)]
+            struct Back {
+                viewer: Option<String>,
+            }
+            let viewer = if body.trim().is_empty() {
+                None
+            } else {
+                let b: Back = serde_json::from_str(body)
+                    .map_err(|e| bad(format!("camera/path JSON: {e}")))?;
+                b.viewer
+            };
+            check_viewer(viewer.as_deref())?;
+            Ok(Command::CameraPath { viewer })
+        }
         "/camera" => {
             #[derive(serde::Deserialize)]
             #[serde(deny_unknown_fields)]
@@ -72,18 +91,7 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             }
             crate::trace::Camera::new(c.eye.into(), c.target.into(), fov, 8, 8)
                 .map_err(|e| bad(e.to_string()))?;
-            if let Some(v) = &c.viewer
-                && (v.is_empty()
-                    || v.len() > 64
-                    || !v
-                        .chars()
-                        .all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_'))
-            {
-                return Err(bad(format!(
-                    "viewer id '{}' must be 1 to 64 letters, digits, '-' or '_'",
-                    shown(v)
-                )));
-            }
+            check_viewer(c.viewer.as_deref())?;
             Ok(Command::Camera {
                 eye: c.eye,
                 target: c.target,
@@ -179,6 +187,28 @@ impl<'de> serde::Deserialize<'de> for UniqueNumbers {
             }
         }
         d.deserialize_map(Visit)
+    }
+}
+
+/// A viewer id, if given, is 1 to 64 letters, digits, '-' or '_'.
+fn check_viewer(viewer: Option<&str>) -> Result<(), (u16, String)> {
+    match viewer {
+        Some(v)
+            if v.is_empty()
+                || v.len() > 64
+                || !v
+                    .chars()
+                    .all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_') =>
+        {
+            Err((
+                400,
+                format!(
+                    "viewer id '{}' must be 1 to 64 letters, digits, '-' or '_'",
+                    shown(v)
+                ),
+            ))
+        }
+        _ => Ok(()),
     }
 }
 

@@ -194,7 +194,11 @@ pub enum Command {
         verdict: live::VerdictSlot,
     },
     /// Go back to the world's configured camera (path).
-    CameraPath,
+    CameraPath {
+        /// The viewer asking (held to the camera lease); None: `ctl` or
+        /// another administrative call, which always wins.
+        viewer: Option<String>,
+    },
     /// Set a camera.
     Camera {
         /// Eye.

@@ -94,6 +94,20 @@ pub(super) fn percent_decoded(segment: &str) -> Option<String> {
     String::from_utf8(out).ok()
 }
 
+/// Who a command claims the camera lease for: a move's viewer (None, an
+/// administrative move, clears the lease), or a viewer returning the
+/// camera to its path; nothing for other commands and an administrative
+/// return.
+fn lease_claim(cmd: &Command) -> Option<Option<&str>> {
+    match cmd {
+        Command::Camera { viewer, .. } => Some(viewer.as_deref()),
+        Command::CameraPath {
+            viewer: Some(v), ..
+        } => Some(Some(v.as_str())),
+        _ => None,
+    }
+}
+
 /// A name from a request as an error message shows it: escaped, at most
 /// 64 characters.
 pub(super) fn shown(name: &str) -> String {
@@ -384,12 +398,12 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
                             "{MAX_QUEUED_COMMANDS} commands are already waiting for the engine; try again"
                         ),
                     ))
-                } else if let Command::Camera { viewer, .. } = &cmd
+                } else if let Some(viewer) = lease_claim(&cmd)
                     && let Err(msg) = shared
                         .camera_lease
                         .lock()
                         .expect("lease lock")
-                        .take(viewer.as_deref(), Instant::now())
+                        .take(viewer, Instant::now())
                 {
                     Some((409, msg))
                 } else {

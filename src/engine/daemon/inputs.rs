@@ -257,7 +257,7 @@ impl Engine {
                         verdict.send(Err(msg));
                     }
                 }
-                Command::CameraPath => {
+                Command::CameraPath { .. } => {
                     self.camera = self.cfg.camera;
                     self.camera_override = None;
                     self.view_due = true;
