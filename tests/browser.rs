@@ -302,12 +302,9 @@ fn the_viewer_works_in_a_real_browser() {
         "document.getElementById('conn').textContent",
         |v| v == "live",
     );
-    let ticks = b.wait_for(
-        "the charts' rows arrive",
-        20,
-        "window.bw.ticks()",
-        |v| v.as_array().is_some_and(|a| a.len() > 3),
-    );
+    let ticks = b.wait_for("the charts' rows arrive", 20, "window.bw.ticks()", |v| {
+        v.as_array().is_some_and(|a| a.len() > 3)
+    });
     let ticks: Vec<f64> = ticks
         .as_array()
         .unwrap()
