@@ -3,16 +3,21 @@
 //! that a script's log line, a config error, a request's echoed path and
 //! a material name are all made safe the same way.
 
-/// User text as a message shows it: control characters escaped, and at
-/// most `max` characters, the rest counted ("… (N more characters)").
+/// User text as a message shows it: at most `max` of its characters, the
+/// rest counted ("… (N more characters)"), with control characters
+/// escaped. The text is cut before it is escaped, so an escape is never
+/// cut in half (`\u{20…`).
 pub fn shown(text: &str, max: usize) -> String {
-    let text = escape_controls(text, false);
     let n = text.chars().count();
     if n <= max {
-        return text.into_owned();
+        return escape_controls(text, false).into_owned();
     }
-    let head: String = text.chars().take(max).collect();
-    format!("{head}… ({} more characters)", n - max)
+    let end = text.char_indices().nth(max).map_or(text.len(), |(i, _)| i);
+    format!(
+        "{}… ({} more characters)",
+        escape_controls(&text[..end], false),
+        n - max
+    )
 }
 
 /// Text from a script (a `log` line, an error message) made safe for one
@@ -65,5 +70,7 @@ mod tests {
         assert_eq!(shown("ééé", 2), "éé… (1 more characters)");
         assert_eq!(shown("a\nb", 10), "a\\nb");
         assert_eq!(shown("short", 5), "short");
+        // Regression: the cut fell inside an escape ("\u{20…").
+        assert_eq!(shown("ab\u{202e}cd", 3), "ab\\u{202e}… (2 more characters)");
     }
 }
