@@ -45,10 +45,12 @@ impl Engine {
     /// the bricks changed since) and the camera then; `keep`: written to
     /// the frames directory.
     fn send_frame(&mut self, tick: u64, keep: bool) {
+        // Cleared first: a camera that cannot be placed is not retried
+        // every loop.
+        self.view_due = false;
         let Ok(cam) = self.camera_at(tick) else {
             return;
         };
-        self.view_due = false;
         // The render thread keeps its own copy: the first job carries the
         // world, every later one only the bricks that changed since.
         let copy = Instant::now();

@@ -422,7 +422,7 @@ impl RenderWindow {
         }
         if self.columns.get(&col) == Some(&Column::Coarse) {
             self.clear(col);
-            self.install_generated(&bricks);
+            self.install_generated(bricks);
             // When it leaves, its bricks move into the cache.
             self.columns.insert(col, Column::Exact);
         } else if !self.columns.contains_key(&col) {
@@ -435,24 +435,22 @@ impl RenderWindow {
     /// engine's palette differs (a simulation's colours, `materials.lua`),
     /// the LOD colours of mixed bricks are computed again from the
     /// window's.
-    fn install_generated(&mut self, bricks: &Bricks) {
+    fn install_generated(&mut self, bricks: Bricks) {
         let palette = (self.world.store.palette() != self.gen_.palette())
             .then(|| self.world.store.palette().clone());
         for (b, content) in bricks {
             let content = match (content, &palette) {
-                (BrickContent::Mixed(brick), Some(p)) => {
-                    BrickContent::Mixed(brick.clone().with_palette(p))
-                }
-                _ => content.clone(),
+                (BrickContent::Mixed(brick), Some(p)) => BrickContent::Mixed(brick.with_palette(p)),
+                (content, _) => content,
             };
-            self.world.store.set_brick(*b, content);
+            self.world.store.set_brick(b, content);
         }
     }
 
     /// Put bricks encoded with the window's palette into the window.
-    fn install(&mut self, bricks: &Bricks) {
+    fn install(&mut self, bricks: Bricks) {
         for (b, content) in bricks {
-            self.world.store.set_brick(*b, content.clone());
+            self.world.store.set_brick(b, content);
         }
     }
 
@@ -489,13 +487,13 @@ impl RenderWindow {
         // window's palette.
         if let Some(bricks) = self.cache.take(col, self.world.store.palette()) {
             self.stats.cache_hits += 1;
-            self.install(&bricks);
+            self.install(bricks);
             self.columns.insert(col, Column::Exact);
             return;
         }
         let mut coarse = Vec::new();
         self.gen_.generate_coarse(col, &mut coarse);
-        self.install(&coarse);
+        self.install(coarse);
         self.columns.insert(col, Column::Coarse);
     }
 
