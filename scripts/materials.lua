@@ -1,7 +1,8 @@
 -- materials.lua: the materials the shipped voxel scripts use. Add your own
 -- here: a name, a colour, a kind (solid, liquid, granular or gas) and a
 -- density relative to water. Ids are given by the engine and stay the same
--- for a world's whole life, across hot reloads and restarts.
+-- for a world's whole life, across hot reloads and restarts (a restart frees
+-- the ids of names no file declares and no voxel holds once few are left).
 return {
   sand = { color = { 218, 196, 140 }, kind = "granular", density = 1.6 },
   lava = { color = { 255, 96, 24 }, kind = "liquid", density = 3.1 },

@@ -63,6 +63,38 @@ fn a_chunk_round_trips_and_replaces_what_was_there() {
 }
 
 #[test]
+fn held_materials_are_exactly_the_materials_a_chunk_holds() {
+    let key = ChunkKey(IVec3::new(-3, 1, -7));
+    let (store, vox) = sample(key);
+    let blob = chunk::encode_chunk(key, &store, &vox);
+    let mut held = [false; 256];
+    chunk::held_materials(&blob, &mut held).unwrap();
+    // What decoding the whole chunk finds, voxel by voxel.
+    let mut expect = [false; 256];
+    let mut dense = [0u8; 512];
+    for i in 0..512 {
+        if !matches!(store.cell(key.brick(i)), brickworld::world::Cell::Empty) {
+            store.read_dense(key.brick(i), &mut dense);
+            dense.iter().for_each(|&m| expect[m as usize] = true);
+        }
+    }
+    assert_eq!(held, expect);
+    assert!(
+        held[7] && held[3] && !held[9],
+        "the brick outside is not in it"
+    );
+    // A blob decode refuses is refused here too, never half-read.
+    for at in 0..blob.len() {
+        let mut b = blob.clone();
+        b[at] ^= 0x41;
+        assert!(
+            chunk::held_materials(&b, &mut [false; 256]).is_err(),
+            "flip at {at}"
+        );
+    }
+}
+
+#[test]
 fn a_column_round_trips() {
     let key = ColumnKey(IVec2::new(-1, 2));
     let mut ch = ChannelStore::default();

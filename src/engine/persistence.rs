@@ -204,6 +204,72 @@ pub fn seed_materials(db: &WorldDb, world: &mut SceneWorld) -> Result<(), StoreE
     Ok(())
 }
 
+/// Below this many free material ids, a start looks for ids to reclaim
+/// (see [`reclaim_materials`]); above it the scan of the store is not worth
+/// its time.
+pub const RECLAIM_BELOW: usize = 32;
+
+/// What [`reclaim_materials`] did.
+#[derive(Debug, Default, PartialEq)]
+pub struct Reclaimed {
+    /// Names forgotten, their ids free for new names.
+    pub freed: Vec<String>,
+    /// Names nothing declares that stored voxels still hold: kept.
+    pub held: usize,
+    /// Why nothing was reclaimed although names could have been (a chunk
+    /// that could not be read may hold any of them).
+    pub skipped: Option<String>,
+}
+
+/// Free the ids of materials that nothing declares and no stored voxel
+/// holds; run at a start once fewer than [`RECLAIM_BELOW`] ids are free,
+/// after [`seed_materials`] and before `materials.lua` and the scripts load.
+///
+/// A name keeps its id while the engine runs, even once no file declares
+/// it, since voxels may hold it (and a running script may have resolved
+/// it); renaming materials often enough would otherwise fill the registry
+/// for the world's life. At a start the store holds every voxel that was
+/// not generated (generated voxels hold the scene's materials, which are
+/// `declared`), so a name that is neither declared nor held by a stored
+/// chunk can go. The commit after writes the registry without it. Any
+/// chunk that cannot be read stops the reclaim: it may hold any id.
+pub fn reclaim_materials(
+    db: &WorldDb,
+    world: &mut SceneWorld,
+    declared: &FxHashSet<String>,
+) -> Result<Reclaimed, StoreError> {
+    let mut out = Reclaimed::default();
+    if world.materials.free_ids() >= RECLAIM_BELOW {
+        return Ok(out);
+    }
+    let orphans: Vec<(u8, String)> = world
+        .materials
+        .names()
+        .into_iter()
+        .filter(|(_, n)| !declared.contains(n))
+        .collect();
+    if orphans.is_empty() {
+        return Ok(out);
+    }
+    let mut held = [false; 256];
+    for k in db.chunk_keys()? {
+        let Some(blob) = db.chunk(k)? else { continue };
+        if let Err(e) = chunk::held_materials(&blob, &mut held) {
+            out.skipped = Some(format!("{k} cannot be read ({e})"));
+            return Ok(out);
+        }
+    }
+    for (id, name) in orphans {
+        if held[id as usize] {
+            out.held += 1;
+        } else {
+            world.materials.remove(&name);
+            out.freed.push(name);
+        }
+    }
+    Ok(out)
+}
+
 /// What [`restore_chunks`] found besides the chunks.
 #[derive(Debug)]
 pub struct Restored {

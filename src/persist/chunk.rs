@@ -310,16 +310,12 @@ pub fn decode_chunk_payload(
     let mut dense = [0u8; BRICK_VOXELS];
     for _ in 0..n {
         let i = local(&mut r, &mut seen)?;
-        let content = match r.u8()? {
-            1 => match r.u8()? {
-                0 => return Err("a uniform brick of material 0".into()),
-                m => BrickContent::Uniform(m),
-            },
-            2 => {
-                dense.copy_from_slice(r.take(BRICK_VOXELS)?);
+        let content = match read_brick(&mut r)? {
+            RawBrick::Uniform(m) => BrickContent::Uniform(m),
+            RawBrick::Dense(raw) => {
+                dense.copy_from_slice(raw);
                 BrickContent::from_dense(&dense, palette)
             }
-            t => return Err(format!("unknown brick tag {t}")),
         };
         data.bricks.push((key.brick(i), content));
     }
@@ -346,6 +342,43 @@ pub fn decode_chunk_payload(
     }
     r.finish()?;
     Ok(data)
+}
+
+/// A stored brick as its blob holds it.
+enum RawBrick<'a> {
+    /// Every voxel of one material (never air).
+    Uniform(u8),
+    /// One material byte per voxel.
+    Dense(&'a [u8]),
+}
+
+/// Read one brick's tag and materials.
+fn read_brick<'a>(r: &mut Reader<'a>) -> Result<RawBrick<'a>, String> {
+    match r.u8()? {
+        1 => match r.u8()? {
+            0 => Err("a uniform brick of material 0".into()),
+            m => Ok(RawBrick::Uniform(m)),
+        },
+        2 => Ok(RawBrick::Dense(r.take(BRICK_VOXELS)?)),
+        t => Err(format!("unknown brick tag {t}")),
+    }
+}
+
+/// Mark in `held` every material a chunk blob's voxels hold (air
+/// included where a brick is mixed), reading only its bricks: what a
+/// scan of the store for materials still in use needs.
+pub fn held_materials(blob: &[u8], held: &mut [bool; 256]) -> Result<(), String> {
+    let payload = unseal(CHUNK_MAGIC, blob, MAX_CHUNK_PAYLOAD)?;
+    let mut r = Reader::new(&payload);
+    let n = r.count(CHUNK_CELLS, "brick")?;
+    for _ in 0..n {
+        let _index = r.u16()?;
+        match read_brick(&mut r)? {
+            RawBrick::Uniform(m) => held[m as usize] = true,
+            RawBrick::Dense(raw) => raw.iter().for_each(|&m| held[m as usize] = true),
+        }
+    }
+    Ok(())
 }
 
 /// Keep, of a blob's channels `(name, data)`, those whose names the

@@ -6,7 +6,10 @@
 //!   terrain's `grass`, `rock`…, the simulation's `water`, `snow`,
 //!   `sediment`); scripts' `materials.lua` adds more.
 //! - A name keeps its id for the life of a world: re-registering it (a hot
-//!   reload) may change its colour or properties, never its id. New names
+//!   reload) may change its colour or properties, never its id. Only a
+//!   start may [`remove`](MaterialRegistry::remove) a name, one that no
+//!   file declares and no stored voxel holds
+//!   (`engine::persistence::reclaim_materials`). New names
 //!   take the highest free id, counting down from 251, so they do not collide
 //!   with scene palettes that count up from 1.
 //! - Checkpoints save the name of every id (see [`MaterialRegistry::names`]),
@@ -81,7 +84,7 @@ pub enum MaterialError {
     BadName(String),
     /// Every id a new name may take is taken.
     #[error(
-        "no free material id for '{0}': ids 1 to 251 are all taken (a name keeps its id for the world's life, even once no file declares it, since voxels may hold it)"
+        "no free material id for '{0}': ids 1 to 251 are all taken (a name no file declares keeps its id while the engine runs, since voxels may hold it; a restart frees the ids of names that nothing declares and no stored voxel holds)"
     )]
     Full(String),
     /// A property out of range.
@@ -104,6 +107,9 @@ fn cut(name: &str) -> String {
 pub struct MaterialRegistry {
     defs: Vec<Option<(String, MaterialDef)>>,
     by_name: FxHashMap<String, MaterialId>,
+    /// Names [`remove`](Self::remove)d: a stored registry may still list
+    /// them (see [`disagreement`](Self::disagreement)).
+    removed: rustc_hash::FxHashSet<String>,
 }
 
 impl Default for MaterialRegistry {
@@ -118,6 +124,7 @@ impl MaterialRegistry {
         MaterialRegistry {
             defs: vec![None; 256],
             by_name: FxHashMap::default(),
+            removed: Default::default(),
         }
     }
 
@@ -143,6 +150,7 @@ impl MaterialRegistry {
             self.defs[prev as usize] = None;
         }
         self.defs[id as usize] = Some((name.to_string(), def));
+        self.removed.remove(name);
         Ok(id)
     }
 
@@ -159,6 +167,22 @@ impl MaterialRegistry {
             .find(|&i| self.defs[i as usize].is_none())
             .ok_or_else(|| MaterialError::Full(cut(name)))?;
         self.register_at(id, name, def)
+    }
+
+    /// How many ids a new name could still take (of 1 to 251).
+    pub fn free_ids(&self) -> usize {
+        (1..=251usize).filter(|&i| self.defs[i].is_none()).count()
+    }
+
+    /// Forget `name`, freeing its id for a new name; its id, or None if it
+    /// was not registered. Only for a name no voxel holds (see
+    /// `engine::persistence::reclaim_materials`): a voxel holding the id
+    /// would take the next name given it.
+    pub fn remove(&mut self, name: &str) -> Option<MaterialId> {
+        let id = self.by_name.remove(name)?;
+        self.defs[id as usize] = None;
+        self.removed.insert(name.to_string());
+        Some(id)
     }
 
     /// Whether `name` may name a material: 1 to 64 ASCII letters, digits
@@ -264,11 +288,13 @@ impl MaterialRegistry {
 
     /// The first of `stored`'s materials that this registry lacks or gives
     /// another id, as "name (id N)": None when every stored name keeps its
-    /// id here.
+    /// id here. Names this registry [`remove`](Self::remove)d on purpose
+    /// do not count.
     pub fn disagreement(&self, stored: &MaterialRegistry) -> Option<String> {
         stored
             .names()
             .into_iter()
+            .filter(|(_, name)| !self.removed.contains(name))
             .find(|(id, name)| self.id(name) != Some(*id))
             .map(|(id, name)| format!("{name} (id {id})"))
     }
@@ -349,5 +375,23 @@ mod tests {
             r.register("one_more", def(1)),
             Err(MaterialError::Full(_))
         ));
+        assert_eq!(r.free_ids(), 0);
+        // A name removed frees its id for the next new name, and only it.
+        let id = r.id("m7").unwrap();
+        assert_eq!(r.remove("m7"), Some(id));
+        assert_eq!((r.id("m7"), r.get(id), r.free_ids()), (None, None, 1));
+        assert_eq!(r.remove("m7"), None);
+        assert_eq!(r.register("one_more", def(2)).unwrap(), id);
+        assert_eq!(r.free_ids(), 0);
+        // A stored registry that still lists the removed name agrees;
+        // one whose other names moved does not.
+        let mut stored = MaterialRegistry::new();
+        stored.register_at(id, "m7", def(1)).unwrap();
+        stored
+            .register_at(r.id("m8").unwrap(), "m8", def(1))
+            .unwrap();
+        assert_eq!(r.disagreement(&stored), None);
+        stored.register_at(1, "m9", def(1)).unwrap();
+        assert!(r.disagreement(&stored).unwrap().starts_with("m9 (id 1)"));
     }
 }

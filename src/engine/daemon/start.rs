@@ -99,7 +99,18 @@ impl Engine {
         // A stored name keeps its stored id for `materials.lua` and the
         // scripts (regression: a material declared before the others
         // shifted their ids, under voxels stored with the old ones).
+        // The scene declares its materials (and the simulation's).
+        let scene: Vec<(u8, String)> = world.materials.names();
         persistence::seed_materials(&db, &mut world)?;
+        // Names no file declares any more keep their stored ids; once few
+        // ids are left, those that no stored voxel holds are freed before
+        // `materials.lua` loads (else a file that needs one more id could
+        // never start again).
+        if world.materials.free_ids() < persistence::RECLAIM_BELOW {
+            let mut declared = declared_materials(&cfg)?;
+            declared.extend(scene.into_iter().map(|(_, n)| n));
+            say_reclaimed(&persistence::reclaim_materials(&db, &mut world, &declared)?);
+        }
         load_scripts(&cfg, &mut world, &mut ws)?;
         // The stored chunks go over the generated world once the scripts
         // have registered their channels, so channel ids are the same as in
@@ -379,6 +390,56 @@ pub(crate) fn load_scripts(
         }
     }
     Ok(())
+}
+
+/// The material names `materials.lua` and the config's scripts declare
+/// (a script's `materials`, `only`, `keep_awake` and `fills`), read
+/// without registering anything: a dry pass of [`load_scripts`], whose
+/// errors are the same.
+fn declared_materials(cfg: &WorldConfig) -> Result<FxHashSet<String>> {
+    let mut declared = FxHashSet::default();
+    if let Some(src) = materials_source(cfg)? {
+        let mut scratch = crate::world::MaterialRegistry::new();
+        declared.extend(crate::sim::runtime::materials::load_materials(
+            &src,
+            &mut scratch,
+        )?);
+    }
+    for s in &cfg.scripts {
+        let (_, spec) = crate::sim::ScriptVm::load(&load_source(cfg, &s.file)?, Limits::default())
+            .with_context(|| format!("cannot load script {}", s.file))?;
+        declared.extend(
+            (spec.materials.into_iter())
+                .chain(spec.only)
+                .chain(spec.keep_awake)
+                .chain(spec.fills.into_iter().map(|(_, m)| m)),
+        );
+    }
+    Ok(declared)
+}
+
+/// Say what [`persistence::reclaim_materials`] did, if anything.
+fn say_reclaimed(r: &persistence::Reclaimed) {
+    if let Some(why) = &r.skipped {
+        crate::say!(
+            "warning: material ids were not reclaimed: {why}; names no file declares keep their ids"
+        );
+    }
+    if !r.freed.is_empty() {
+        let n = r.freed.len();
+        let listed = if n <= 10 {
+            r.freed.join(", ")
+        } else {
+            format!("{} and {} more", r.freed[..10].join(", "), n - 10)
+        };
+        crate::say!(
+            "materials: freed {n} id{} of names that nothing declares and no stored voxel holds ({listed}); {} such name{} still held by voxels keep{} theirs",
+            if n == 1 { "" } else { "s" },
+            r.held,
+            if r.held == 1 { "" } else { "s" },
+            if r.held == 1 { "s" } else { "" },
+        );
+    }
 }
 
 /// A world's first start (nothing stored yet): place the config's boxes,
