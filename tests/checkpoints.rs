@@ -225,8 +225,71 @@ fn a_version_4_file_with_the_hash_by_id_still_loads() {
         checkpoint::world_hash(&s.store, &s.channels)
     );
     // Builds of one session wrote version 4 with the hash by name.
-    let by_name = checkpoint::world_hash(&s.store, &s.channels);
+    let by_name = checkpoint::world_hash_v5(&s.store, &s.channels);
     assert!(checkpoint::parse(&with_header(4, by_name), true).is_ok());
     let err = checkpoint::parse(&with_header(5, by_id), true).unwrap_err();
     assert!(err.contains("differs from the recorded"), "{err}");
+    // Version 5 recorded the hash by name mixed by FNV-1a; version 6 that
+    // of XXH3 (regression, modder probe: FNV-1a over whole words let two
+    // worlds collide). Each is checked against its own only.
+    let xxh3 = checkpoint::world_hash(&s.store, &s.channels);
+    assert_ne!(xxh3, by_name);
+    assert!(checkpoint::parse(&with_header(5, by_name), true).is_ok());
+    assert!(checkpoint::parse(&with_header(6, xxh3), true).is_ok());
+    for (version, hash) in [(5, xxh3), (6, by_name)] {
+        let err = checkpoint::parse(&with_header(version, hash), true).unwrap_err();
+        assert!(err.contains("differs from the recorded"), "{err}");
+    }
+    assert_eq!(&bytes[4..8], &6u32.to_le_bytes(), "files are written as 6");
+}
+
+/// Regression (modder probe): the world hash mixed whole 64-bit words by
+/// FNV-1a, whose multiply carries a bit only upwards, so a change in a
+/// word's top byte (a voxel at x ≡ 7 (mod 8)) reached only the hash's top
+/// byte and worlds collided one time in 256; a channel value's sign bit
+/// reached only bit 63, so two sign flips cancelled. Under the old mixing
+/// the probe's 144 worlds differ only in the hash's top byte (so some must
+/// collide); under the world hash they all hash apart.
+#[test]
+fn worlds_that_fnv_over_whole_words_confused_hash_apart() {
+    let world = |a: u8, b: u8| {
+        let mut s = state(1, 0);
+        s.store.set_voxel(IVec3::new(7, 20, 7), a);
+        s.store.set_voxel(IVec3::new(15, 20, 7), b);
+        s
+    };
+    let low = |h: u64| h & ((1 << 56) - 1);
+    let (mut old_low, mut new_low, mut new) = (Vec::new(), Vec::new(), Vec::new());
+    for a in 1..=12 {
+        for b in 1..=12 {
+            let w = world(a, b);
+            old_low.push(low(checkpoint::world_hash_v5(&w.store, &w.channels)));
+            let h = checkpoint::world_hash(&w.store, &w.channels);
+            new_low.push(low(h));
+            new.push(h);
+        }
+    }
+    assert!(
+        old_low.iter().all(|&h| h == old_low[0]),
+        "the probe's weakness"
+    );
+    new.sort_unstable();
+    new.dedup();
+    assert_eq!(new.len(), 144, "every world hashes apart");
+    new_low.sort_unstable();
+    new_low.dedup();
+    assert_eq!(new_low.len(), 144, "and not only in the top byte");
+    let signs = |s: f64| {
+        let mut c = ChannelStore::default();
+        let foo = c.channel("foo");
+        c.set(IVec2::new(0, 0), foo, &[s; 64]);
+        c.set(IVec2::new(1, 0), foo, &[s; 64]);
+        c
+    };
+    let (p, n) = (signs(1.0), signs(-1.0));
+    assert_eq!(
+        p.hash_with(brickworld::persist::bytes::Mixing::Words),
+        n.hash_with(brickworld::persist::bytes::Mixing::Words)
+    );
+    assert_ne!(p.hash(), n.hash());
 }

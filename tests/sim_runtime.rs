@@ -5,6 +5,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use brickworld::persist::bytes::Mixing;
 use brickworld::sim::native::ShallowWater;
 use brickworld::sim::tile::{TILE_CELLS, cell};
 use brickworld::sim::{Kernel, Limits, ScriptSource, SimError, Simulation};
@@ -85,11 +86,19 @@ fn steps_are_bit_identical_for_1_2_and_8_threads() {
         let (h, i) = common::on_threads(threads, || {
             let mut sim = dam_break(Kernel::Lua);
             run(&mut sim, 40, 0.02);
-            (sim.channels().hash(), sim.channels().hash_by_id())
+            let words = sim.channels().hash_with(Mixing::Words);
+            (sim.channels().hash(), (sim.channels().hash_by_id(), words))
         });
         hashes.push(h);
         by_id.push(i);
     }
+    // Mixed by FNV-1a, the hash by name is the pin before XXH3: the steps
+    // did not change with the hash.
+    assert!(
+        by_id.iter().all(|&(_, w)| w == 0x2471_8d35_5282_e74e),
+        "{by_id:x?}"
+    );
+    let by_id: Vec<u64> = by_id.iter().map(|&(i, _)| i).collect();
     // The hash by id, which checks checkpoint files of versions 1 to 4,
     // is the one this pin held before the hash took channels by name.
     assert!(
@@ -117,8 +126,11 @@ fn steps_are_bit_identical_for_1_2_and_8_threads() {
 /// purpose to 0x164c_f8fa_eaed_650f when bed friction (default 0.02) was added;
 /// changed on purpose to 0x2471_8d35_5282_e74e when the channel hash came to
 /// mix each channel's name instead of its id (ids follow the order of
-/// registration, which hot reloads change): the same steps, hashed anew.
-const PINNED_DAM_BREAK_HASH: u64 = 0x2471_8d35_5282_e74e;
+/// registration, which hot reloads change): the same steps, hashed anew;
+/// changed on purpose to 0x9fa8_3eab_b73e_3bc6 when the words came to be
+/// mixed by XXH3 instead of FNV-1a (under which two sign flips of channel
+/// values cancelled): the same steps again, as the FNV-1a pin shows.
+const PINNED_DAM_BREAK_HASH: u64 = 0x9fa8_3eab_b73e_3bc6;
 
 #[test]
 fn water_is_conserved_to_round_off() {

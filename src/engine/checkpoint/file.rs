@@ -233,11 +233,15 @@ pub fn parse(
     let mut state = decode(tick, version, &raw)?;
     // Version 4 files may hold either hash: builds of one session wrote
     // the hash by name before the version became 5 (review).
-    let got = if version >= 5 {
+    let got = if version >= 6 {
         world_hash(&state.store, &state.channels)
+    } else if version == 5 {
+        super::world_hash_v5(&state.store, &state.channels)
     } else {
         match super::world_hash_by_id(&state.store, &state.channels) {
-            by_id if by_id != hash && version == 4 => world_hash(&state.store, &state.channels),
+            by_id if by_id != hash && version == 4 => {
+                super::world_hash_v5(&state.store, &state.channels)
+            }
             by_id => by_id,
         }
     };

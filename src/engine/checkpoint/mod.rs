@@ -49,6 +49,7 @@ use std::path::{Path, PathBuf};
 use glam::IVec3;
 use thiserror::Error;
 
+use crate::persist::bytes::{Mixing, StateHasher};
 use crate::sim::ChannelStore;
 use crate::world::{BRICK_VOXELS, BrickStore};
 
@@ -64,9 +65,11 @@ pub use payload::{MAX_TICK, decode};
 const MAGIC: &[u8; 4] = b"BWCK";
 /// 4: a trailing section with the scripts' health (tag 2) may follow.
 /// 5: the header's world hash takes channels by name, in name order, and
-/// only those holding data ([`world_hash`]); files of 1 to 4 are checked
-/// against the hash they were written with ([`world_hash_by_id`]).
-const VERSION: u32 = 5;
+/// only those holding data; files of 1 to 4 are checked against the hash
+/// they were written with ([`world_hash_by_id`]).
+/// 6: the same words mixed by XXH3 ([`world_hash`]); files of 5 are checked
+/// against FNV-1a's ([`world_hash_v5`]).
+const VERSION: u32 = 6;
 /// Largest LZ4 expansion (LZ4's worst-case ratio is about 255:1): a size
 /// prefix claiming more is corrupt, refused before anything is allocated.
 const MAX_LZ4_RATIO: usize = 255;
@@ -211,37 +214,37 @@ pub struct WorldState {
 
 /// Hash of the bricks (sorted by coordinate) and the channels.
 pub fn world_hash(store: &BrickStore, channels: &ChannelStore) -> u64 {
-    bricks_hash(store, channels.hash())
+    bricks_hash(store, channels.hash(), Mixing::Xxh3)
+}
+
+/// [`world_hash`] as format version 5 recorded it: the same words, mixed
+/// by FNV-1a ([`Mixing::Words`]). Kept to check those files.
+pub fn world_hash_v5(store: &BrickStore, channels: &ChannelStore) -> u64 {
+    bricks_hash(store, channels.hash_with(Mixing::Words), Mixing::Words)
 }
 
 /// [`world_hash`] as format versions 1 to 4 recorded it: the channels
-/// hashed by id ([`ChannelStore::hash_by_id`]). Kept to check those files
-/// (regression, hostile probe: when the hash came to take channels by
-/// name, every earlier backup was called corrupt).
+/// hashed by id ([`ChannelStore::hash_by_id`]), mixed by FNV-1a. Kept to
+/// check those files (regression, hostile probe: when the hash came to
+/// take channels by name, every earlier backup was called corrupt).
 pub fn world_hash_by_id(store: &BrickStore, channels: &ChannelStore) -> u64 {
-    bricks_hash(store, channels.hash_by_id())
+    bricks_hash(store, channels.hash_by_id(), Mixing::Words)
 }
 
 /// The bricks (sorted by coordinate) hashed, then `channels`.
-fn bricks_hash(store: &BrickStore, channels: u64) -> u64 {
+fn bricks_hash(store: &BrickStore, channels: u64, mixing: Mixing) -> u64 {
     let mut keys: Vec<IVec3> = store.iter().map(|(b, _)| b).collect();
     keys.sort_by_key(|k| (k.z, k.y, k.x));
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    let mut mix = |v: u64| {
-        h ^= v;
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    };
+    let mut h = StateHasher::new(mixing);
     let mut dense = [0u8; BRICK_VOXELS];
     for k in keys {
-        mix(((k.x as u32 as u64) << 32) | k.y as u32 as u64);
-        mix(k.z as u32 as u64);
+        h.word(((k.x as u32 as u64) << 32) | k.y as u32 as u64);
+        h.word(k.z as u32 as u64);
         store.read_dense(k, &mut dense);
-        for c in dense.chunks(8) {
-            mix(u64::from_le_bytes(c.try_into().expect("8 bytes")));
-        }
+        h.words(&dense);
     }
-    mix(channels);
-    h
+    h.word(channels);
+    h.finish()
 }
 
 /// A world to checkpoint, borrowed from a running engine.

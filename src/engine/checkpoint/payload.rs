@@ -166,8 +166,8 @@ const SECTION_HEALTH: u32 = 2;
 /// could not be resumed).
 pub const MAX_TICK: u64 = 1 << 53;
 
-/// Decode a decompressed payload of format `version` (1 to 5; 5 changed
-/// only the header's hash). Never
+/// Decode a decompressed payload of format `version` (1 to 6; 5 and 6
+/// changed only the header's hash). Never
 /// panics, whatever the bytes: every count is checked against what is left,
 /// and a tick past [`MAX_TICK`] is refused.
 pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, String> {

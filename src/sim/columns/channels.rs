@@ -7,6 +7,7 @@
 
 use rustc_hash::{FxHashMap, FxHashSet};
 
+use crate::persist::bytes::{Mixing, StateHasher};
 use crate::sim::tile::{TILE_CELLS, TileCoord};
 
 /// Small `Copy` handle to a channel in a [`ChannelStore`].
@@ -152,7 +153,7 @@ impl ChannelStore {
     /// [`hash`](Self::hash) is the world's.
     pub fn hash_by_id(&self) -> u64 {
         let order: Vec<usize> = (0..self.names.len()).collect();
-        self.hash_in(&order, |i| i as u64)
+        self.hash_in(&order, |i| i as u64, Mixing::Words)
     }
 
     /// Hash of every channel's bits: tiles in coordinate order, channels in
@@ -162,6 +163,12 @@ impl ChannelStore {
     /// repeat (regression: a world stopped after such a reload printed one
     /// hash at the stop, another at resume).
     pub fn hash(&self) -> u64 {
+        self.hash_with(Mixing::Xxh3)
+    }
+
+    /// [`hash`](Self::hash) with the given mixing ([`Mixing::Words`] is
+    /// what checkpoint files of format 5 recorded).
+    pub fn hash_with(&self, mixing: Mixing) -> u64 {
         let mut order: Vec<usize> = (0..self.names.len()).collect();
         order.sort_by(|&a, &b| self.names[a].cmp(&self.names[b]));
         let named: Vec<u64> = self
@@ -169,32 +176,28 @@ impl ChannelStore {
             .iter()
             .map(|n| crate::persist::bytes::fnv1a(n.as_bytes()))
             .collect();
-        self.hash_in(&order, |i| named[i])
+        self.hash_in(&order, |i| named[i], mixing)
     }
 
     /// The tiles (in coordinate order) and, within each, the channels of
     /// `order` that hold data, each mixed in as `key(id)` then its bits.
-    fn hash_in(&self, order: &[usize], key: impl Fn(usize) -> u64) -> u64 {
+    fn hash_in(&self, order: &[usize], key: impl Fn(usize) -> u64, mixing: Mixing) -> u64 {
         let mut keys: Vec<&TileCoord> = self.tiles.keys().collect();
         keys.sort_by_key(|k| (k.y, k.x));
-        let mut h = 0xcbf2_9ce4_8422_2325u64;
-        let mut mix = |v: u64| {
-            h ^= v;
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        };
+        let mut h = StateHasher::new(mixing);
         for k in keys {
             let slots = &self.tiles[k];
             for &i in order {
                 if let Some(Some(d)) = slots.get(i) {
-                    mix(((k.x as u32 as u64) << 32) | k.y as u32 as u64);
-                    mix(key(i));
+                    h.word(((k.x as u32 as u64) << 32) | k.y as u32 as u64);
+                    h.word(key(i));
                     for v in d.iter() {
-                        mix(v.to_bits());
+                        h.word(v.to_bits());
                     }
                 }
             }
         }
-        h
+        h.finish()
     }
 }
 

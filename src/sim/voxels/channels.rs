@@ -8,6 +8,7 @@
 use glam::IVec3;
 use rustc_hash::{FxHashMap, FxHashSet};
 
+use crate::persist::bytes::{Mixing, StateHasher};
 use crate::sim::script::VOXEL_CELLS;
 
 /// A channel id (index into [`VoxelChannels`]).
@@ -106,11 +107,8 @@ impl VoxelChannels {
     /// such a reload printed one hash at the stop and another when it
     /// resumed).
     pub fn hash(&self) -> u64 {
-        let mut h = 0xcbf2_9ce4_8422_2325u64;
-        let mut mix = |v: u64| {
-            h ^= v;
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        };
+        let mut h = StateHasher::new(Mixing::Xxh3);
+        let mut mix = |v: u64| h.word(v);
         let mut order: Vec<usize> = (0..self.names.len())
             .filter(|&i| !self.data[i].is_empty())
             .collect();
@@ -129,7 +127,7 @@ impl VoxelChannels {
                 }
             }
         }
-        h
+        h.finish()
     }
 }
 
