@@ -17,14 +17,19 @@ an upper bound for viewers on other machines. It does not include a
 browser's decoding and drawing (the browser test reports that latency as
 seen by the page).
 """
-import argparse, json, os, re, socket, statistics, subprocess, sys, tempfile, threading, time
+import argparse, json, os, re, shutil, socket, statistics, subprocess, sys, tempfile, threading, time
+
+class Refused(Exception):
+    """The engine answered, but not with 200 (a wrong Host gets 403)."""
 
 def free_port():
     s = socket.socket(); s.bind(("127.0.0.1", 0)); p = s.getsockname()[1]; s.close(); return p
 
 def get(addr, path):
     s = socket.create_connection(addr, timeout=10)
-    s.sendall(f"GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n".encode())
+    # The engine answers 403 to a Host that is neither an IP nor localhost
+    # (its DNS-rebinding guard): name the address it listens on.
+    s.sendall(f"GET {path} HTTP/1.1\r\nHost: {addr[0]}:{addr[1]}\r\nConnection: close\r\n\r\n".encode())
     data = b""
     while True:
         c = s.recv(1 << 20)
@@ -32,6 +37,9 @@ def get(addr, path):
         data += c
     s.close()
     head, _, body = data.partition(b"\r\n\r\n")
+    if not head.startswith(b"HTTP/1.1 200"):
+        line = head.split(b"\r\n")[0].decode(errors="replace")
+        raise Refused(f"GET {path}: {line}")
     return head, body
 
 def status(addr):
@@ -43,7 +51,7 @@ class Viewer(threading.Thread):
         self.addr, self.stop, self.lat, self.frames = addr, False, [], 0
     def run(self):
         s = socket.create_connection(self.addr, timeout=30)
-        s.sendall(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+        s.sendall(f"GET /events HTTP/1.1\r\nHost: {self.addr[0]}:{self.addr[1]}\r\n\r\n".encode())
         buf, first = b"", True
         while not self.stop:
             try:
@@ -92,6 +100,7 @@ def main():
         while True:
             try:
                 if status(addr)["frames"] >= 2: break
+            except Refused as e: sys.exit(f"error: the engine refused the bench's request: {e}")
             except Exception: pass
             if time.time() - t > 300 or eng.poll() is not None: sys.exit("error: the engine did not start")
             time.sleep(0.2)
@@ -119,6 +128,7 @@ def main():
             with open(o.json, "w") as f: json.dump(out, f, indent=2)
     finally:
         eng.terminate(); eng.wait(timeout=60)
+        shutil.rmtree(state, ignore_errors=True)
 
 if __name__ == "__main__":
     main()
