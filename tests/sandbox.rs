@@ -60,6 +60,19 @@ fn runtime_error(sim: &mut Simulation) -> String {
     r.errors[0].to_string()
 }
 
+/// Regression (modder probe): `error("first line\nsecond line")` was
+/// reported as "…: first line", the rest gone without a mark. The whole
+/// message is shown on one line, its break escaped, and still no stack
+/// traceback.
+#[test]
+fn an_error_of_several_lines_is_shown_whole_on_one_line() {
+    let mut sim = sim_with(&[script("lines", "error(\"first line\\nsecond line\")")]);
+    let e = runtime_error(&mut sim);
+    assert!(e.contains("first line\\nsecond line"), "{e}");
+    assert!(!e.contains('\n') && !e.contains("traceback"), "{e}");
+    assert!(e.starts_with("lines.lua:4: "), "its line: {e}");
+}
+
 #[test]
 fn fault_07_pcall_cannot_catch_the_budget() {
     let mut sim = sim_with(&[script(
@@ -132,7 +145,12 @@ fn fault_08_globals_are_read_only() {
 fn fault_09_math_random_is_gone_and_c_random_is_deterministic() {
     let mut sim = sim_with(&[script("rnd", "local x = math.random()")]);
     let e = runtime_error(&mut sim);
-    assert!(e.contains("call a nil value"), "{e}");
+    // Named as removed, with what to use (docs walk: a bare "attempt to
+    // call a nil value").
+    assert!(
+        e.contains("call a nil value (a misspelt name, or one the sandbox removes: print, loadstring, load, require, math.random…; use log(...) and c.random(...))"),
+        "{e}"
+    );
 
     // c.random: a pure function of (seed, tick, script, position): the same
     // world for 1 and 4 threads, and a different one for another seed.
@@ -180,15 +198,15 @@ fn fault_10_huge_channel_values_are_refused_with_script_channel_and_column() {
         SimError::OutOfBounds {
             script,
             channel,
-            column,
+            place: brickworld::sim::Place::Column(x, z),
             value,
             ..
         } => {
             assert_eq!(script, "wall");
             assert_eq!(channel, "wall_v");
             assert_eq!(*value, 1e9);
-            assert_eq!(column.0 % 8, 1);
-            assert_eq!(column.1 % 8, 1);
+            assert_eq!(x % 8, 1);
+            assert_eq!(z % 8, 1);
         }
         other => panic!("{other}"),
     }

@@ -125,6 +125,34 @@ impl LowestError {
     }
 }
 
+/// Where a channel value lies: a column of a column channel, or a voxel
+/// of a voxel channel (regression, modder probe: a voxel channel's range
+/// error said "at column (8, 0)").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Place {
+    /// Column (x, z).
+    Column(i32, i32),
+    /// Voxel `index` (x + 8·y + 64·z) of brick `brick`.
+    Voxel {
+        /// Index in the brick.
+        index: u16,
+        /// Brick coordinate.
+        brick: [i32; 3],
+    },
+}
+
+impl std::fmt::Display for Place {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Place::Column(x, z) => write!(f, "column ({x}, {z})"),
+            Place::Voxel {
+                index,
+                brick: [x, y, z],
+            } => write!(f, "voxel {index} of brick ({x}, {y}, {z})"),
+        }
+    }
+}
+
 /// A number for a message: plain when moderate, in scientific notation
 /// when huge or tiny (a 1e300 is not printed as 301 digits).
 pub fn fmt_num(v: f64) -> String {
@@ -178,8 +206,10 @@ pub enum SimError {
         /// Message.
         msg: String,
     },
-    /// A step produced NaN, infinity or a negative value in a non-negative channel.
-    #[error("{script}.lua: step rejected as unstable: {msg}")]
+    /// A step produced NaN, infinity or a negative value in a non-negative
+    /// channel, or changed the total of a conserved one (the message says
+    /// which: not every one is an instability).
+    #[error("{script}.lua: step rejected: {msg}")]
     Unstable {
         /// Script name.
         script: String,
@@ -188,14 +218,14 @@ pub enum SimError {
     },
     /// A step wrote a channel value outside its bound (the script's declared
     /// range, or by default ± [`step::DEFAULT_BOUND_HEIGHTS`] world heights).
-    #[error("{script}.lua: step rejected: channel '{channel}' = {} at column ({}, {}) is outside its bound [{}, {}] ({why})", fmt_num(*value), column.0, column.1, fmt_num(bound.0), fmt_num(bound.1))]
+    #[error("{script}.lua: step rejected: channel '{channel}' = {} at {} is outside its bound [{}, {}] ({why})", fmt_num(*value), place, fmt_num(bound.0), fmt_num(bound.1))]
     OutOfBounds {
         /// Script name.
         script: String,
         /// Channel.
         channel: String,
-        /// Column (x, z).
-        column: (i32, i32),
+        /// Where the value lies.
+        place: Place,
         /// The value written.
         value: f64,
         /// The bound.

@@ -250,7 +250,7 @@ pub(super) fn run_script(
             return Err(SimError::OutOfBounds {
                 script: s.spec.name.clone(),
                 channel: name.clone(),
-                column: (
+                place: crate::sim::Place::Column(
                     t.x * TILE + (c as i32 % TILE),
                     t.y * TILE + (c as i32 / TILE),
                 ),
@@ -280,7 +280,9 @@ pub(super) fn run_script(
                     if x.is_finite() {
                         ", below 0 in a channel declared nonnegative (a write of a negative value, or a step too large: reduce dt or enable sub-stepping)"
                     } else {
-                        "; reduce dt (or enable sub-stepping)"
+                        // A kernel may have written it: not only an
+                        // unstable step (docs walk).
+                        ", not a finite number: a kernel wrote it, or the step went unstable (then reduce dt or enable sub-stepping)"
                     }
                 ),
             });

@@ -18,7 +18,7 @@ use super::native::{NativeBrick, VoxelNativeKernel};
 use super::step::BOUNDARY;
 use crate::sim::script::{MAT, VOXEL_CELLS, VOXEL_HALO};
 use crate::sim::{Limits, ScriptSource, ScriptSpec, SimError, StepKey};
-use crate::world::{BRICK_EDGE, BrickStore};
+use crate::world::BrickStore;
 
 /// How a voxel script's kernels run.
 #[derive(Clone)]
@@ -292,7 +292,7 @@ pub(super) fn run_script(
             return Err(SimError::Unstable {
                 script: spec.name.clone(),
                 msg: format!(
-                    "conserved channel '{}' drifted from {was} to {after} in one step (tolerance {tol:.3e})",
+                    "conserved channel '{}' drifted from {was} to {after} in one step (tolerance {tol:.3e}): the step's writes do not conserve it",
                     spec.channels[i]
                 ),
             });
@@ -320,7 +320,7 @@ fn check_channel(
         return Err(SimError::Unstable {
             script: spec.name.clone(),
             msg: format!(
-                "channel '{}' = {x} at voxel {} of brick ({}, {}, {})",
+                "channel '{}' = {x} at voxel {} of brick ({}, {}, {}), not a finite number: a kernel wrote it, or the step went unstable",
                 spec.channels[i], c, b.x, b.y, b.z
             ),
         });
@@ -337,15 +337,21 @@ fn check_channel(
         });
     }
     if let Some(r) = spec.ranges.iter().find(|r| r.0 == spec.channels[i])
-        && let Some(x) = v.iter().find(|&&x| (x as f64) < r.1 || (x as f64) > r.2)
+        && let Some((c, x)) = v
+            .iter()
+            .enumerate()
+            .find(|(_, x)| (**x as f64) < r.1 || (**x as f64) > r.2)
     {
         return Err(SimError::OutOfBounds {
             script: spec.name.clone(),
             channel: r.0.clone(),
-            column: (b.x * BRICK_EDGE, b.z * BRICK_EDGE),
+            place: crate::sim::Place::Voxel {
+                index: c as u16,
+                brick: b.to_array(),
+            },
             value: *x as f64,
             bound: (r.1, r.2),
-            why: format!("its declared range, in brick ({}, {}, {})", b.x, b.y, b.z),
+            why: "its declared range".into(),
         });
     }
     Ok(())

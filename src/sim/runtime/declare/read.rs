@@ -19,9 +19,10 @@ use crate::sim::runtime::spec::ScriptSource;
 /// parameters have their own, lower bounds).
 pub const MAX_LIST: usize = 1024;
 
-/// The first line of one of Luau's errors, without its `runtime error:`
-/// or `syntax error:` tag, and the line it names in `src` if it starts with `src`'s own
-/// location (which it then loses).
+/// The message of one of Luau's errors (all its lines, up to the stack
+/// traceback), without its `runtime error:` or `syntax error:` tag, and the
+/// line it names in `src` if it starts with `src`'s own location (which it
+/// then loses). Callers escape its line breaks for a one-line error.
 pub(in crate::sim::runtime) fn lua_text(
     src: &ScriptSource,
     e: &mlua::Error,
@@ -29,14 +30,29 @@ pub(in crate::sim::runtime) fn lua_text(
     lua_text_of(&src.name, &e.to_string())
 }
 
+/// What a call of nil is told: the functions the sandbox removed, and what
+/// to use instead.
+pub const SANDBOX_HINT: &str = " (a misspelt name, or one the sandbox removes: print, loadstring, load, require, math.random…; use log(...) and c.random(...))";
+
 /// [`lua_text`] of error text `text` raised by script `name`.
 pub(in crate::sim::runtime) fn lua_text_of(name: &str, text: &str) -> (Option<usize>, String) {
+    // All of the message: a script's `error("a\nb")` lost its second line
+    // without a mark (regression, modder probe).
     let first = text
-        .lines()
-        .next()
-        .unwrap_or("")
+        .rsplit_once("\nstack traceback:")
+        .map_or(text, |(head, _)| head)
+        .trim_end()
         .trim_start_matches("runtime error: ")
         .trim_start_matches("syntax error: ");
+    // Luau names no function here: say which ones the sandbox removed
+    // (docs walk: `print()` got a bare "attempt to call a nil value").
+    let hinted;
+    let first = if first.ends_with("attempt to call a nil value") {
+        hinted = format!("{first}{SANDBOX_HINT}");
+        hinted.as_str()
+    } else {
+        first
+    };
     let own = format!("{name}.lua:");
     if let Some(rest) = first.strip_prefix(&own)
         && let Some((line, msg)) = rest.split_once(": ")
