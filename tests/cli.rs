@@ -955,6 +955,22 @@ fn configs_and_scripts_must_be_regular_files() {
         ],
         "larger than the 4194304-byte limit",
     );
+    // Regression (docs walk): a script that is not a .lua file was named
+    // after one that does not exist ("README.lua:1: syntax error").
+    let md = tmp("notes.md");
+    std::fs::write(&md, "# notes\n").unwrap();
+    expect_failure(
+        &[
+            "sim",
+            "--script",
+            md.to_str().unwrap(),
+            "--steps",
+            "1",
+            "--size",
+            "16x16x16",
+        ],
+        "notes.md: a script is a .lua file",
+    );
 }
 
 /// Regression (review): a `sim` whose script failed replaced an existing
@@ -1481,8 +1497,18 @@ fn a_small_chart_that_cannot_be_written_is_an_error_and_keeps_the_old_one() {
             .output()
             .unwrap()
     };
-    assert_success(&bench("", &chart));
-    let before = std::fs::read(&chart).unwrap();
+    // The chart's size follows its measured figures (their digits, the
+    // axes' labels): a run whose chart falls outside 4..8 KiB, where the
+    // bug lived, is run again, a few times at most (once in about twenty
+    // runs on a loaded machine, it fell outside).
+    let mut before = Vec::new();
+    for _ in 0..5 {
+        assert_success(&bench("", &chart));
+        before = std::fs::read(&chart).unwrap();
+        if before.len() > 4096 && before.len() < 8192 {
+            break;
+        }
+    }
     assert!(
         before.len() > 4096 && before.len() < 8192,
         "{}",

@@ -149,7 +149,7 @@ impl Engine {
                 }
                 let hash = persistence::engine_hash(&world, &ws);
                 crate::say!(
-                    "resumed {} at tick {} ({} stored chunks, world hash {hash:#018x})",
+                    "resumed {} at tick {} ({} stored chunks and chunk columns, world hash {hash:#018x})",
                     db.path().display(),
                     r.state.tick,
                     r.chunks

@@ -78,6 +78,18 @@ pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
         script: name.clone(),
         msg: e.to_string(),
     })?;
+    // Messages call a script `NAME.lua`: another file would be named
+    // after one that does not exist (regression, docs walk: `sim --script
+    // README.md` reported "README.lua:1: syntax error").
+    if path.extension().is_none_or(|e| e != "lua") {
+        return Err(SimError::File {
+            script: name,
+            msg: format!(
+                "{}: a script is a .lua file (messages name it after its stem)",
+                crate::text::shown(&path.display().to_string(), 200)
+            ),
+        });
+    }
     // A byte-order mark, which some editors write, is not Luau: it is
     // dropped, as TOML drops it in a world config (regression, fuzzing:
     // a materials.lua saved with one was a syntax error).
