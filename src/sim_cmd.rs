@@ -46,19 +46,50 @@ pub fn run(s: &SimSettings) -> Result<()> {
         }
         let pb = bar("simulating", s.steps);
         let t0 = Instant::now();
-        let (mut cells, mut bricks, mut failed) = (0u64, 0usize, Vec::new());
+        let (mut cells, mut bricks) = (0u64, 0usize);
+        // Per script, the first error since it last loaded: a run ends
+        // failed while any is left (a reload under --watch clears its own).
+        let mut failed: Vec<Option<crate::sim::SimError>> = vec![None; ws.script_count()];
+        // Scripts whose reload was refused, retried when materials.lua changes.
+        let mut refused: Vec<std::path::PathBuf> = Vec::new();
         let mut last_active = 0;
         let mut max_sub = 1;
         for _ in 0..s.steps {
             for w in &mut watchers {
-                for path in w.poll() {
+                let mut changed = w.poll();
+                // materials.lua is applied too (regression, modder probe:
+                // --watch ignored it, and a script refused for an undeclared
+                // material was never retried); then the refused scripts.
+                if let Some(m) = changed.iter().position(|p| p.file_name().is_some_and(|n| n == "materials.lua")) {
+                    let path = changed.remove(m);
+                    match read_script(&path).map_err(anyhow::Error::from).and_then(|src| Ok(ws.load_materials(&mut world, &src)?)) {
+                        Ok((names, _)) => {
+                            pb.suspend(|| crate::say!("applied {} ({} materials)", path.display(), names.len()));
+                            changed.extend(refused.drain(..).filter(|p| !changed.contains(p)).collect::<Vec<_>>());
+                        }
+                        Err(e) => pb.suspend(|| crate::say!("warning: kept the materials: {e:#}")),
+                    }
+                }
+                for path in changed {
                     match ws.reload(&world, &path) {
-                        Ok(Some(_)) => pb.suspend(|| crate::say!("reloaded {}", path.display())),
+                        Ok(Some((i, _))) => {
+                            pb.suspend(|| crate::say!("reloaded {}", path.display()));
+                            failed[i] = None;
+                            refused.retain(|p| *p != path);
+                        }
                         Ok(None) => {}
-                        Err(e) => pb.suspend(|| crate::say!("warning: kept the last good version: {e}")),
+                        Err(e) => {
+                            pb.suspend(|| crate::say!("warning: kept the last good version: {e}"));
+                            if !refused.contains(&path) {
+                                refused.push(path);
+                            }
+                        }
                     }
                 }
             }
+            // The tick the kernels see (the label was one more; modder probe).
+            let tick = ws.sim.tick();
+            let before: Vec<bool> = (0..ws.script_count()).map(|i| ws.suspended(i).is_some()).collect();
             let (r, n) = if s.cfl > 0.0 { ws.step_within_cfl(&mut world, s.dt, s.cfl) } else { (ws.step(&mut world, s.dt), 1) };
             max_sub = max_sub.max(n);
             for (i, t) in script_ms.iter_mut().enumerate() {
@@ -70,11 +101,21 @@ pub fn run(s: &SimSettings) -> Result<()> {
             cells += r.active_tiles as u64 * 64 * n as u64;
             last_active = r.active_tiles;
             bricks += r.bricks.len();
-            if let Some(e) = r.errors.into_iter().next()
-                && failed.is_empty()
-            {
-                pb.suspend(|| crate::say!("warning: step {} rejected: {e}", ws.sim.tick()));
-                failed.push(e);
+            // Each script's first failure, and its suspension, are said (a
+            // headless run has no /status; regression, modder probe: only
+            // the run's first failure was).
+            for e in r.errors {
+                if let Some(i) = ws.script_index(e.step_script())
+                    && failed[i].is_none()
+                {
+                    pb.suspend(|| crate::say!("warning: the step at tick {tick} was rejected: {e}"));
+                    failed[i] = Some(e);
+                }
+            }
+            for (i, was) in before.into_iter().enumerate() {
+                if let Some(e) = ws.suspended(i).filter(|_| !was) {
+                    pb.suspend(|| crate::say!("warning: {}.lua is suspended after {} failed steps in a row: {e}", ws.spec(i).name, ws.failures(i)));
+                }
             }
             pb.inc(1);
         }
@@ -111,7 +152,7 @@ pub fn run(s: &SimSettings) -> Result<()> {
         }
         // A failed run writes no image: an existing --out stays as it was
         // (regression: it was replaced, then the run exited 1).
-        if let Some(e) = failed.first() {
+        if let Some(e) = failed.iter().flatten().next() {
             bail!("a script failed during the run, so no image was written (first error: {e})");
         }
         let view = s.view.view.unwrap_or_else(|| world.default_views()[1]);

@@ -981,7 +981,7 @@ fn a_failed_sim_leaves_its_out_file_alone() {
     std::fs::write(
         &script,
         "return { channels = { \"f\" }, passes = { { name = \"p\", reads = {}, writes = { \"f\" },\n\
-         kernel = function(c) if c.tick >= 1 then error(\"always\") end end } } }",
+         kernel = function(c) if c.tick >= 1 then error(\"always at \" .. c.tick) end end } } }",
     )
     .unwrap();
     let out = tmp("kept.png");
@@ -994,7 +994,7 @@ fn a_failed_sim_leaves_its_out_file_alone() {
             "--script",
             script.to_str().unwrap(),
             "--steps",
-            "2",
+            "5",
             "--size",
             "16x16x16",
             "--out",
@@ -1005,6 +1005,18 @@ fn a_failed_sim_leaves_its_out_file_alone() {
     let err = String::from_utf8_lossy(&run.stderr);
     assert_eq!(run.status.code(), Some(1), "{err}");
     common::cli::assert_no_panic(&err, "sim");
+    // The failure is labelled with the tick the kernel saw, and the
+    // suspension that follows three failures is said too (regression,
+    // modder probe: "step 2 rejected" for tick 1, and no word of it).
+    assert!(
+        err.contains("the step at tick 1 was rejected: fails.lua:2: pass 'p' on tile")
+            && err.contains("always at 1"),
+        "{err}"
+    );
+    assert!(
+        err.contains("warning: fails.lua is suspended after 3 failed steps in a row"),
+        "{err}"
+    );
     let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error:")).collect();
     assert!(
         errors.len() == 1 && errors[0].contains("no image was written"),

@@ -177,3 +177,81 @@ fn a_scripts_directory_removed_and_made_again_is_watched_anew() {
     );
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Regression (modder probe): `sim --watch` ignored `materials.lua`, so a
+/// script whose reload was refused for an undeclared material stayed
+/// refused after the material was declared. Now the file is applied and
+/// the refused script is reloaded, as the daemon does.
+#[test]
+fn sim_watch_applies_materials_lua_and_retries_a_refused_script() {
+    use std::io::BufRead;
+    let dir = std::env::temp_dir().join(format!("brickworld-simwatch-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let mat = |names: &[&str]| {
+        let body: String = names
+            .iter()
+            .map(|n| {
+                format!("  {n} = {{ color = {{ 1, 2, 3 }}, kind = \"solid\", density = 1 }},\n")
+            })
+            .collect();
+        format!("return {{\n{body}}}\n")
+    };
+    let grow = |names: &str| {
+        format!(
+            "return {{ grid = \"voxels\", materials = {{ {names} }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"mat\" }},\n\
+             kernel = function(c, bx, by, bz) end }} }} }}\n"
+        )
+    };
+    std::fs::write(dir.join("materials.lua"), mat(&["moss"])).unwrap();
+    std::fs::write(dir.join("grow.lua"), grow("\"moss\"")).unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args([
+            "sim", "--size", "16x16x16", "--steps", "10000000", "--watch", "--out",
+        ])
+        .arg(dir.join("out.png"))
+        .arg("--script")
+        .arg(dir.join("grow.lua"))
+        .stderr(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for l in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = tx.send(l);
+        }
+    });
+    let mut seen = Vec::new();
+    let mut wait_for = |needle: &str| {
+        let t = Instant::now();
+        while t.elapsed() < Duration::from_secs(30) {
+            match rx.recv_timeout(Duration::from_millis(100)) {
+                Ok(l) => {
+                    seen.push(l);
+                    if seen.last().unwrap().contains(needle) {
+                        return true;
+                    }
+                }
+                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return false,
+                Err(_) => {}
+            }
+        }
+        false
+    };
+    // Let it start and its watcher settle.
+    std::thread::sleep(Duration::from_millis(1500));
+    save_like_an_editor(&dir.join("grow.lua"), &grow("\"moss\", \"lichen\""));
+    let refused = wait_for("unknown material 'lichen'");
+    save_like_an_editor(&dir.join("materials.lua"), &mat(&["moss", "lichen"]));
+    let applied = wait_for("materials.lua (2 materials)");
+    let reloaded = wait_for("reloaded");
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(refused && applied && reloaded, "{seen:#?}");
+    assert!(seen.last().unwrap().contains("grow.lua"), "{seen:#?}");
+}

@@ -51,6 +51,16 @@ impl SimError {
         matches!(self, SimError::Runtime { msg, .. }
             if msg.contains(&format!("{} exceeded", runtime::interrupt::TIME_BUDGET)))
     }
+
+    /// The script a step's error names ("" for errors of no one script).
+    pub fn step_script(&self) -> &str {
+        match self {
+            SimError::Runtime { script, .. }
+            | SimError::Unstable { script, .. }
+            | SimError::OutOfBounds { script, .. } => script.as_str(),
+            _ => "",
+        }
+    }
 }
 
 /// The most channel names a world's registry holds, built-ins included

@@ -131,12 +131,7 @@ const ANNOUNCE_EVERY: std::time::Duration = std::time::Duration::from_secs(60);
 
 /// The script a step's error names ("" for errors of no one script).
 fn error_script(e: &SimError) -> &str {
-    match e {
-        SimError::Runtime { script, .. }
-        | SimError::Unstable { script, .. }
-        | SimError::OutOfBounds { script, .. } => script.as_str(),
-        _ => "",
-    }
+    e.step_script()
 }
 
 /// The running engine.
