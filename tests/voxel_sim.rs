@@ -752,3 +752,34 @@ fn a_voxel_scripts_nonnegative_channel_refuses_negative_values() {
         }
     }
 }
+
+/// Regression (modder probe): the load test ran every pass in one VM
+/// without filling the channels again, so a pass that wrote into its read
+/// buffer showed the next pass its scribble, at load only (a step fills
+/// them afresh for every pass): a script could be refused at load for
+/// what no step would ever show it.
+#[test]
+fn the_load_test_shows_each_pass_fresh_channels() {
+    let reg = shipped_registry();
+    let store = BrickStore::new(Palette::grey_ramp());
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 16, 16), 1);
+    let text = r#"return {
+      grid = "voxels", channels = { "q" },
+      passes = {
+        { name = "one", reads = { "q" }, writes = { "q" }, kernel = function(c)
+            buffer.writef32(c.r.q, 0, 1e30)
+            buffer.writef32(c.w.q, 4, 1e30)
+          end },
+        { name = "two", reads = { "q" }, writes = { "q" }, kernel = function(c)
+            if buffer.readf32(c.r.q, 0) ~= 0 then error("a scribble in c.r.q") end
+            buffer.writef32(c.w.q, 4, 0)
+          end },
+      },
+    }"#;
+    let src = ScriptSource {
+        name: "scribble".into(),
+        text: text.into(),
+    };
+    sim.add_script(src, Limits::default(), &reg)
+        .expect("no step shows pass two a scribble in its read buffer");
+}

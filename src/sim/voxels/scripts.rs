@@ -209,6 +209,15 @@ impl VoxelSim {
                         .expect("a voxel VM has material buffers");
                     halo.write_bytes(0, &[sample; VOXEL_HALO]);
                     own.write_bytes(0, &[sample; VOXEL_CELLS]);
+                    // Channels are 0 for every pass, as a step fills them
+                    // afresh (regression, modder probe: a pass that wrote
+                    // into its read buffers showed the next pass its
+                    // scribbles, here only).
+                    for ch in 0..spec.channels.len() {
+                        for b in [vm.read_buffer(ch), vm.write_buffer(ch)] {
+                            b.write_bytes(0, &vec![0u8; b.len()]);
+                        }
+                    }
                 })
             })
             .map_err(|e| match e {
