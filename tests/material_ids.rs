@@ -60,8 +60,8 @@ fn a_restart_frees_the_ids_of_names_nothing_declares_and_no_voxel_holds() {
     assert_eq!(id(&after, "old8"), None);
     assert!((0..40).all(|i| id(&after, &format!("new{i}")).is_some()));
 
-    // The world is the same: a further restart resumes the stored hash and
-    // frees nothing more (it is not nearly full now).
+    // A further restart frees nothing more (it is not nearly full now, and
+    // the file asks for no new id).
     let (said, log) = run_ok(&cfg, &state, "--ticks", 1);
     assert!(!log.contains("materials: freed"), "{log}");
     assert!(
@@ -93,4 +93,30 @@ fn a_name_a_script_still_uses_is_not_freed() {
     assert!(log.contains("materials: freed 230 ids"), "{log}");
     let (after, _) = stored_materials(&cfg, &state);
     assert_eq!(id(&after, "basalt"), Some(basalt), "lava.lua uses it");
+}
+
+/// Regression (review): the ids were freed only while fewer than 32 were
+/// free, so with 34 free a rename to 40 new names failed at every start,
+/// for good. A start also frees them when `materials.lua` asks for more
+/// new ids than are free.
+#[test]
+fn a_rename_that_needs_more_ids_than_are_free_starts() {
+    let (cfg, state, _, scripts) = lava_world("reclaim-needed");
+    materials_with(&scripts, "old", 200);
+    run_ok(&cfg, &state, "--ticks", 2);
+    let (before, _) = stored_materials(&cfg, &state);
+    let free = 251
+        - before
+            .iter()
+            .filter(|(id, _)| (1..=251).contains(id))
+            .count();
+    assert!(
+        (32..40).contains(&free),
+        "{free} ids free: the case needs 32..40"
+    );
+    materials_with(&scripts, "new", 40);
+    let (_, log) = run_ok(&cfg, &state, "--ticks", 2);
+    assert!(log.contains("materials: freed 200 ids"), "{log}");
+    let (after, _) = stored_materials(&cfg, &state);
+    assert!(after.iter().any(|(_, n)| n == "new39"), "{after:?}");
 }

@@ -83,7 +83,7 @@ fn held_materials_are_exactly_the_materials_a_chunk_holds() {
         held[7] && held[3] && !held[9],
         "the brick outside is not in it"
     );
-    // A blob decode refuses is refused here too, never half-read.
+    // A blob whose checksum fails is refused, never half-read.
     for at in 0..blob.len() {
         let mut b = blob.clone();
         b[at] ^= 0x41;

@@ -205,8 +205,9 @@ pub fn seed_materials(db: &WorldDb, world: &mut SceneWorld) -> Result<(), StoreE
 }
 
 /// Below this many free material ids, a start looks for ids to reclaim
-/// (see [`reclaim_materials`]); above it the scan of the store is not worth
-/// its time.
+/// (see [`reclaim_materials`]), as it does whenever `materials.lua` asks
+/// for more new ids than are free; otherwise the scan of the store is not
+/// worth its time.
 pub const RECLAIM_BELOW: usize = 32;
 
 /// What [`reclaim_materials`] did.
@@ -222,8 +223,9 @@ pub struct Reclaimed {
 }
 
 /// Free the ids of materials that nothing declares and no stored voxel
-/// holds; run at a start once fewer than [`RECLAIM_BELOW`] ids are free,
-/// after [`seed_materials`] and before `materials.lua` and the scripts load.
+/// holds; run at a start once fewer than [`RECLAIM_BELOW`] ids are free or
+/// `materials.lua` needs more than are free, after [`seed_materials`] and
+/// before `materials.lua` and the scripts load.
 ///
 /// A name keeps its id while the engine runs, even once no file declares
 /// it, since voxels may hold it (and a running script may have resolved
@@ -239,9 +241,6 @@ pub fn reclaim_materials(
     declared: &FxHashSet<String>,
 ) -> Result<Reclaimed, StoreError> {
     let mut out = Reclaimed::default();
-    if world.materials.free_ids() >= RECLAIM_BELOW {
-        return Ok(out);
-    }
     let orphans: Vec<(u8, String)> = world
         .materials
         .names()

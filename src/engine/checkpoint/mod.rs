@@ -15,9 +15,9 @@
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `BWCK` |
-//! | 4 | format version (5; versions 1 to 4 are still read) |
+//! | 4 | format version (6; versions 1 to 5 are still read) |
 //! | 8 | tick |
-//! | 8 | world hash (bricks + channels), checked on load (by id before 5) |
+//! | 8 | world hash (bricks + channels; XXH3 since 6, FNV-1a over words before, channels by id before 5), checked on load |
 //! | 8 | compressed payload length |
 //! | 4 | CRC-32 of the payload |
 //! | 4 | CRC-32 of the 36 bytes above |

@@ -98,7 +98,9 @@ impl Engine {
     ///
     /// - A declared name keeps its id and takes its new colour, kind and
     ///   density; a new name takes a free id, the one the next start would
-    ///   give it (the store's registry goes under `materials.lua` there).
+    ///   give it (the store's registry goes under `materials.lua` there),
+    ///   unless that start first frees ids no voxel holds
+    ///   (`persistence::reclaim_materials`).
     /// - A name it no longer declares stays registered: voxels and scripts
     ///   may hold its id.
     /// - Bricks holding a recoloured material get new LOD colours, and go

@@ -103,10 +103,14 @@ impl Engine {
         let scene: Vec<(u8, String)> = world.materials.names();
         persistence::seed_materials(&db, &mut world)?;
         // Names no file declares any more keep their stored ids; once few
-        // ids are left, those that no stored voxel holds are freed before
-        // `materials.lua` loads (else a file that needs one more id could
-        // never start again).
-        if world.materials.free_ids() < persistence::RECLAIM_BELOW {
+        // ids are left, or `materials.lua` needs more new ones than are
+        // free, those that no stored voxel holds are freed before it loads
+        // (else a file that needs more ids could never start again;
+        // regression, review: a rename of 40 names with 34 ids free failed
+        // at every start, as only the first rule was checked).
+        let wanted = materials_wanted(&cfg, &world.materials)?;
+        let free = world.materials.free_ids();
+        if free < persistence::RECLAIM_BELOW || wanted > free {
             let mut declared = declared_materials(&cfg)?;
             declared.extend(scene.into_iter().map(|(_, n)| n));
             say_reclaimed(&persistence::reclaim_materials(&db, &mut world, &declared)?);
@@ -390,6 +394,17 @@ pub(crate) fn load_scripts(
         }
     }
     Ok(())
+}
+
+/// How many new ids `materials.lua` asks of `registry`: its names that
+/// `registry` lacks (scripts name only registered materials).
+fn materials_wanted(cfg: &WorldConfig, registry: &crate::world::MaterialRegistry) -> Result<usize> {
+    let Some(src) = materials_source(cfg)? else {
+        return Ok(0);
+    };
+    let mut scratch = crate::world::MaterialRegistry::new();
+    let names = crate::sim::runtime::materials::load_materials(&src, &mut scratch)?;
+    Ok(names.iter().filter(|n| registry.id(n).is_none()).count())
 }
 
 /// The material names `materials.lua` and the config's scripts declare
