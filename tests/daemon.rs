@@ -1024,3 +1024,39 @@ fn a_reload_that_renames_a_channel_keeps_the_hash_across_a_resume() {
         .to_string();
     assert_eq!(hash_at(&cfg, &state, 10), at_stop);
 }
+
+/// Regression (docs walk): a script's CFL sub-steps each count as a
+/// failed step, so a streak could begin and suspend the script in one
+/// tick; the log then said only the suspension, though the README says it
+/// says both. The beginning is said first.
+#[test]
+fn a_streak_that_suspends_a_script_in_one_tick_is_said_to_begin_too() {
+    let (cfg, state, _) = setup("onetickstreak");
+    let scripts = cfg.parent().unwrap().join("scripts");
+    std::fs::create_dir_all(&scripts).unwrap();
+    let water = shipped_script("water.lua").replacen(
+        "kernel = function(c)",
+        "kernel = function(c) if c.tick > 0 then error('late boom') end",
+        1,
+    );
+    std::fs::write(scripts.join("water.lua"), water).unwrap();
+    edit_config(
+        &cfg,
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
+        scripts.to_str().unwrap(),
+    );
+    // A tiny dx: many sub-steps once there is water (after tick 0).
+    edit_config(
+        &cfg,
+        "params = { rain = 0.2 }",
+        "params = { rain = 0.2, dx = 0.001 }",
+    );
+    let err = stderr_of_ticks(&cfg, &state, 3);
+    let began = err.find("warning: water.lua failed a step: ");
+    let suspended = err.find("warning: water.lua is suspended after ");
+    assert!(
+        began.is_some() && suspended.is_some() && began < suspended,
+        "{err}"
+    );
+    assert!(err.contains("late boom"), "{err}");
+}

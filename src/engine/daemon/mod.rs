@@ -331,16 +331,14 @@ impl Engine {
     fn announce_failures(&mut self, before: &[(u32, bool)], r: &StepReport) {
         for (i, &(failed, suspended)) in before.iter().enumerate() {
             let name = &self.ws.spec(i).name;
-            if let Some(e) = self.ws.suspended(i) {
-                if !suspended {
-                    crate::say!(
-                        "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it): {e}",
-                        self.ws.failures(i)
-                    );
-                }
+            let now_suspended = self.ws.suspended(i).is_some();
+            if suspended {
                 continue;
             }
-            let began = failed == 0 && self.ws.failures(i) > 0;
+            // A streak may begin and suspend the script in one tick (its
+            // CFL sub-steps each count): the beginning is said first
+            // (regression, docs walk: only the suspension was said).
+            let began = failed == 0 && (self.ws.failures(i) > 0 || now_suspended);
             let quiet = self.notes[i]
                 .announced
                 .is_none_or(|t| t.elapsed() >= ANNOUNCE_EVERY);
@@ -350,6 +348,12 @@ impl Engine {
             {
                 crate::say!("warning: {name}.lua failed a step: {e}");
                 self.notes[i].announced = Some(Instant::now());
+            }
+            if let Some(e) = self.ws.suspended(i) {
+                crate::say!(
+                    "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it): {e}",
+                    self.ws.failures(i)
+                );
             }
         }
     }
