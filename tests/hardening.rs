@@ -1082,7 +1082,24 @@ fn a_refused_start_removes_only_the_state_directory_it_made() {
         !err.contains(":?") && err.matches("missing.lua").count() == 1,
         "{err}"
     );
+    // The config and its field too (docs walk: neither was named).
+    assert!(err.contains("world.toml: scripts[0].file: "), "{err}");
     assert!(!state.exists(), "left behind: {err}");
+    // So is a `[[place]]` material only the start can check.
+    edit_config(&cfg, "file = \"missing.lua\"", "file = \"water.lua\"");
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str("[[place]]\nmaterial = \"unobtainium\"\nat = [1, 1, 1]\n");
+    std::fs::write(&cfg, text).unwrap();
+    let out = run_cmd(&cfg, &state)
+        .arg("--ticks")
+        .arg("1")
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(
+        &out,
+        "an unknown place material",
+        "world.toml: place[0].material: unknown material 'unobtainium'",
+    );
     std::fs::create_dir_all(&state).unwrap();
     std::fs::write(state.join("notes.txt"), "mine").unwrap();
     let out = run_cmd(&cfg, &state)

@@ -385,7 +385,7 @@ pub(crate) fn load_scripts(
     }
     for (i, s) in cfg.scripts.iter().enumerate() {
         let id = ws
-            .add_script(world, load_source(cfg, &s.file)?, Limits::default())
+            .add_script(world, script_source(cfg, i)?, Limits::default())
             .with_context(|| format!("cannot load script {}", s.file))?;
         ws.set_every(id, s.every);
         for (k, v) in &s.params {
@@ -394,6 +394,14 @@ pub(crate) fn load_scripts(
         }
     }
     Ok(())
+}
+
+/// The source of the config's script `i`; a file that cannot be read is
+/// named with the config and field that name it (docs walk: "cannot read
+/// …/wter.lua" said neither).
+fn script_source(cfg: &WorldConfig, i: usize) -> Result<crate::sim::ScriptSource> {
+    load_source(cfg, &cfg.scripts[i].file)
+        .with_context(|| format!("{}: scripts[{i}].file", cfg.file))
 }
 
 /// How many new ids `materials.lua` asks of `registry`: its names that
@@ -420,8 +428,8 @@ fn declared_materials(cfg: &WorldConfig) -> Result<FxHashSet<String>> {
             &mut scratch,
         )?);
     }
-    for s in &cfg.scripts {
-        let (_, spec) = crate::sim::ScriptVm::load(&load_source(cfg, &s.file)?, Limits::default())
+    for (i, s) in cfg.scripts.iter().enumerate() {
+        let (_, spec) = crate::sim::ScriptVm::load(&script_source(cfg, i)?, Limits::default())
             .with_context(|| format!("cannot load script {}", s.file))?;
         declared.extend(
             (spec.materials.into_iter())
@@ -470,8 +478,8 @@ fn first_start(
     for (i, p) in cfg.place.iter().enumerate() {
         let id = world.materials.id(&p.material).with_context(|| {
             format!(
-                "place[{i}].material: unknown material '{}' (declare it in materials.lua)",
-                p.material
+                "{}: place[{i}].material: unknown material '{}' (declare it in materials.lua)",
+                cfg.file, p.material
             )
         })?;
         let (lo, hi) = world.bounds();

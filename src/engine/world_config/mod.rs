@@ -250,6 +250,10 @@ pub struct CameraSettings {
 /// A validated world config.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WorldConfig {
+    /// The config's file as its errors name it (`<embedded default>` for
+    /// the built-in world): errors found only when the world starts name
+    /// it too.
+    pub file: String,
     /// Where the voxels come from.
     pub source: SceneSpec,
     /// Size of procedural sources; x and z are 0 when unbounded.
@@ -409,6 +413,7 @@ impl WorldConfig {
         let hosts = validate::hosts(at, raw.control.hosts)?;
         let place = validate::place(at, &raw.place)?;
         Ok(WorldConfig {
+            file: crate::text::shown(file, 200),
             place,
             source_text: raw.world.source,
             config_hash: crate::persist::bytes::fnv1a(text.as_bytes()),
