@@ -21,6 +21,30 @@ fn materials_with(scripts: &Path, prefix: &str, extra: usize) {
     std::fs::write(scripts.join("materials.lua"), text).unwrap();
 }
 
+/// A lava world (see `lava_world`) whose `materials.lua` also declares
+/// `old0` to `old{n-1}`, run for two ticks; its config, state, scripts
+/// folder and stored registry.
+fn world_with_old_names(
+    name: &str,
+    n: usize,
+) -> (
+    std::path::PathBuf,
+    std::path::PathBuf,
+    std::path::PathBuf,
+    Vec<(u8, String)>,
+) {
+    let (cfg, state, _, scripts) = lava_world(name);
+    materials_with(&scripts, "old", n);
+    run_ok(&cfg, &state, "--ticks", 2);
+    let (stored, _) = stored_materials(&cfg, &state);
+    (cfg, state, scripts, stored)
+}
+
+/// The id of `name` in a registry listing.
+fn id(m: &[(u8, String)], name: &str) -> Option<u8> {
+    m.iter().find(|e| e.1 == name).map(|e| e.0)
+}
+
 /// Regression: a name no longer declared kept its id for the world's life,
 /// so a world whose materials were renamed often enough could take no new
 /// name, ever, and a start with one new name failed for good.
@@ -34,7 +58,6 @@ fn a_restart_frees_the_ids_of_names_nothing_declares_and_no_voxel_holds() {
     std::fs::write(&cfg, text).unwrap();
     run_ok(&cfg, &state, "--ticks", 2);
     let (before, _) = stored_materials(&cfg, &state);
-    let id = |m: &[(u8, String)], n: &str| m.iter().find(|e| e.1 == n).map(|e| e.0);
     let old7 = id(&before, "old7").unwrap();
     let lava = id(&before, "lava").unwrap();
     assert!(before.len() > 230, "{before:?}");
@@ -75,11 +98,7 @@ fn a_restart_frees_the_ids_of_names_nothing_declares_and_no_voxel_holds() {
 /// uses it still loads.
 #[test]
 fn a_name_a_script_still_uses_is_not_freed() {
-    let (cfg, state, _, scripts) = lava_world("reclaim-used");
-    materials_with(&scripts, "old", 230);
-    run_ok(&cfg, &state, "--ticks", 2);
-    let (before, _) = stored_materials(&cfg, &state);
-    let id = |m: &[(u8, String)], n: &str| m.iter().find(|e| e.1 == n).map(|e| e.0);
+    let (cfg, state, scripts, before) = world_with_old_names("reclaim-used", 230);
     // lava.lua lists basalt; materials.lua stops declaring it.
     let basalt = id(&before, "basalt").unwrap();
     let text = std::fs::read_to_string(scripts.join("materials.lua")).unwrap();
@@ -101,10 +120,7 @@ fn a_name_a_script_still_uses_is_not_freed() {
 /// new ids than are free.
 #[test]
 fn a_rename_that_needs_more_ids_than_are_free_starts() {
-    let (cfg, state, _, scripts) = lava_world("reclaim-needed");
-    materials_with(&scripts, "old", 200);
-    run_ok(&cfg, &state, "--ticks", 2);
-    let (before, _) = stored_materials(&cfg, &state);
+    let (cfg, state, scripts, before) = world_with_old_names("reclaim-needed", 200);
     let free = 251
         - before
             .iter()
