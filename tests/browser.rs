@@ -85,6 +85,16 @@ fn wait_status(addr: &str, what: &str, ok: impl Fn(&Value) -> bool) -> Value {
 }
 
 /// Set an input's value as typing would and fire `change`.
+/// Wait until the page's header says its event stream is live.
+fn wait_live(b: &mut Browser, what: &str, secs: u64) {
+    b.wait_for(
+        what,
+        secs,
+        "document.getElementById('conn').textContent",
+        |v| v == "live",
+    );
+}
+
 fn type_into(b: &mut Browser, selector: &str, value: &str) {
     b.eval(&format!(
         "(() => {{ const i = document.querySelector({sel}); i.value = {val}; i.dispatchEvent(new Event('change')); return true; }})()",
@@ -110,12 +120,7 @@ fn the_viewer_works_in_a_real_browser() {
     b.navigate(&format!("http://{addr}/"));
 
     // Loads, connects, shows frames that change.
-    b.wait_for(
-        "the event stream connects",
-        20,
-        "document.getElementById('conn').textContent",
-        |v| v == "live",
-    );
+    wait_live(&mut b, "the event stream connects", 20);
     let first = b.wait_for("a frame arrives", 20, "window.bw.lastSeq || 0", |v| {
         v.as_u64() > Some(0)
     });
@@ -296,12 +301,7 @@ fn the_viewer_works_in_a_real_browser() {
     );
     let daemon = start(&cfg, &state);
     wait_ready(&addr);
-    b.wait_for(
-        "the page reconnects",
-        30,
-        "document.getElementById('conn').textContent",
-        |v| v == "live",
-    );
+    wait_live(&mut b, "the page reconnects", 30);
     let ticks = b.wait_for("the charts' rows arrive", 20, "window.bw.ticks()", |v| {
         v.as_array().is_some_and(|a| a.len() > 3)
     });

@@ -108,10 +108,14 @@ impl Engine {
         // (else a file that needs more ids could never start again;
         // regression, review: a rename of 40 names with 34 ids free failed
         // at every start, as only the first rule was checked).
-        let wanted = materials_wanted(&cfg, &world.materials)?;
+        let listed = materials_lua_names(&cfg)?;
+        let wanted = listed
+            .iter()
+            .filter(|n| world.materials.id(n).is_none())
+            .count();
         let free = world.materials.free_ids();
         if free < persistence::RECLAIM_BELOW || wanted > free {
-            let mut declared = declared_materials(&cfg)?;
+            let mut declared = declared_materials(&cfg, listed)?;
             declared.extend(scene.into_iter().map(|(_, n)| n));
             say_reclaimed(&persistence::reclaim_materials(&db, &mut world, &declared)?);
         }
@@ -404,30 +408,27 @@ fn script_source(cfg: &WorldConfig, i: usize) -> Result<crate::sim::ScriptSource
         .with_context(|| format!("{}: scripts[{i}].file", cfg.file))
 }
 
-/// How many new ids `materials.lua` asks of `registry`: its names that
-/// `registry` lacks (scripts name only registered materials).
-fn materials_wanted(cfg: &WorldConfig, registry: &crate::world::MaterialRegistry) -> Result<usize> {
+/// The names `materials.lua` declares (none without one), read without
+/// registering anything; its errors are those [`load_scripts`] gives.
+/// Only it can ask for new ids: scripts name registered materials only.
+fn materials_lua_names(cfg: &WorldConfig) -> Result<Vec<String>> {
     let Some(src) = materials_source(cfg)? else {
-        return Ok(0);
+        return Ok(Vec::new());
     };
     let mut scratch = crate::world::MaterialRegistry::new();
-    let names = crate::sim::runtime::materials::load_materials(&src, &mut scratch)?;
-    Ok(names.iter().filter(|n| registry.id(n).is_none()).count())
+    Ok(crate::sim::runtime::materials::load_materials(
+        &src,
+        &mut scratch,
+    )?)
 }
 
-/// The material names `materials.lua` and the config's scripts declare
-/// (a script's `materials`, `only`, `keep_awake` and `fills`), read
-/// without registering anything: a dry pass of [`load_scripts`], whose
-/// errors are the same.
-fn declared_materials(cfg: &WorldConfig) -> Result<FxHashSet<String>> {
-    let mut declared = FxHashSet::default();
-    if let Some(src) = materials_source(cfg)? {
-        let mut scratch = crate::world::MaterialRegistry::new();
-        declared.extend(crate::sim::runtime::materials::load_materials(
-            &src,
-            &mut scratch,
-        )?);
-    }
+/// The material names declared by `materials.lua` (`listed`, from
+/// [`materials_lua_names`]) and the config's scripts (a script's
+/// `materials`, `only`, `keep_awake` and `fills`), read without
+/// registering anything: a dry pass of [`load_scripts`], whose errors are
+/// the same.
+fn declared_materials(cfg: &WorldConfig, listed: Vec<String>) -> Result<FxHashSet<String>> {
+    let mut declared: FxHashSet<String> = listed.into_iter().collect();
     for (i, s) in cfg.scripts.iter().enumerate() {
         let (_, spec) = crate::sim::ScriptVm::load(&script_source(cfg, i)?, Limits::default())
             .with_context(|| format!("cannot load script {}", s.file))?;
