@@ -59,6 +59,49 @@ fn water_drains_over_every_edge_and_world_plus_drained_is_conserved() {
     );
 }
 
+/// Regression (known gap, docs walk): a column script's CFL sub-steps each
+/// counted as a failed step, so a script failing in every sub-step was
+/// suspended within one tick. A tick counts one failure, however many of
+/// its sub-steps failed: the script is suspended at its third failed tick.
+#[test]
+fn a_script_failing_in_every_cfl_sub_step_counts_one_failed_step_a_tick() {
+    let mut world = terrain(IVec3::new(32, 32, 32), 2);
+    let mut ws = WorldSim::with_edges(&mut world, false);
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"))
+        .unwrap()
+        .replacen(
+            "kernel = function(c)",
+            "kernel = function(c) if c.tick > 0 then error('late boom') end",
+            1,
+        );
+    let i = ws
+        .add_lua(
+            ScriptSource {
+                name: "water".into(),
+                text: text.into(),
+            },
+            Limits::default(),
+        )
+        .unwrap();
+    let (r, _) = ws.step_within_cfl(&mut world, 0.05, 0.5);
+    assert!(r.errors.is_empty(), "tick 0 runs: {:?}", r.errors);
+    // A tiny dx and a sheet of water: many sub-steps from tick 1 on.
+    ws.set_param(i, "dx", 0.001).unwrap();
+    let w = ws.sim.channels_mut().channel("water");
+    for tz in 0..4 {
+        for tx in 0..4 {
+            ws.sim.channels_mut().set(IVec2::new(tx, tz), w, &[3.0; 64]);
+        }
+    }
+    for tick in 1..=3u32 {
+        let (r, n) = ws.step_within_cfl(&mut world, 0.05, 0.5);
+        assert!(n > 3, "tick {tick}: only {n} sub-steps");
+        assert!(!r.errors.is_empty(), "tick {tick} did not fail");
+        assert_eq!(ws.failures(i), tick, "tick {tick}, {n} sub-steps");
+        assert_eq!(ws.suspended(i).is_some(), tick == 3, "tick {tick}");
+    }
+}
+
 /// Audit: two claims of `sim` had no test. With closed edges (`sim
 /// --closed-edges`, the ground's boundary of 1e9 a wall) no water leaves and
 /// the total is conserved to round-off; and the CFL sub-steps keep

@@ -335,9 +335,10 @@ impl Engine {
             if suspended {
                 continue;
             }
-            // A streak may begin and suspend the script in one tick (its
-            // CFL sub-steps each count): the beginning is said first
-            // (regression, docs walk: only the suspension was said).
+            // Should a streak begin and suspend the script in one step
+            // (no rule does that today: a tick's CFL sub-steps count one
+            // failure), the beginning is said first (regression, docs walk:
+            // only the suspension was said).
             let began = failed == 0 && (self.ws.failures(i) > 0 || now_suspended);
             let quiet = self.notes[i]
                 .announced

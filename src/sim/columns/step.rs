@@ -81,8 +81,12 @@ pub(super) struct Loaded {
     pub(super) limits: Limits,
     /// Run on ticks that are multiples of this.
     pub(super) every: u64,
-    /// Failed steps in a row.
+    /// Failed steps in a row: ticks, however many CFL sub-steps each
+    /// took.
     pub(super) failures: u32,
+    /// The tick whose step last failed, so that a tick's sub-steps count
+    /// one failure between them.
+    pub(super) failed_tick: Option<u64>,
     /// Why the script is suspended, if it is.
     pub(super) suspended: Option<SimError>,
 }
@@ -379,6 +383,7 @@ impl Simulation {
             limits,
             every: 1,
             failures: 0,
+            failed_tick: None,
             suspended: None,
         })
     }
@@ -398,6 +403,7 @@ impl Simulation {
     /// Give script `i` the health a rebuilt simulation carries over.
     pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
         self.scripts[i].failures = failures;
+        self.scripts[i].failed_tick = None;
         self.scripts[i].suspended = suspended;
     }
 
@@ -482,8 +488,9 @@ impl Simulation {
                 Ok(written) => {
                     // A step that ran on no tile proves nothing: a failing
                     // script stays failing (regression: its world fell asleep
-                    // and the streak reset).
-                    if !ws.active.is_empty() {
+                    // and the streak reset). Nor does a later sub-step of a
+                    // tick that already failed.
+                    if !ws.active.is_empty() && script.failed_tick != Some(self.tick) {
                         script.failures = 0;
                     }
                     // Which tiles changed is found in parallel; the store is
@@ -515,7 +522,13 @@ impl Simulation {
                     }
                 }
                 Err(e) => {
-                    script.failures = script.failures.saturating_add(1);
+                    // One failure a tick, however many CFL sub-steps failed
+                    // in it (regression: each counted, so a script failing
+                    // in every sub-step was suspended within one tick).
+                    if script.failed_tick != Some(self.tick) {
+                        script.failures = script.failures.saturating_add(1);
+                        script.failed_tick = Some(self.tick);
+                    }
                     if script.failures >= SUSPEND_AFTER {
                         script.suspended = Some(e.clone());
                     }
