@@ -233,7 +233,7 @@ fn fault_11_a_failing_script_is_suspended_and_the_others_run_on() {
     let ok = script("fine", "buffer.writef64(c.w.fine_v, 0, c.tick)");
     let bad = script("stuck", "while true do end");
     let mut sim = sim_with(&[ok, bad]);
-    for i in 1..=brickworld::sim::step::SUSPEND_AFTER {
+    for i in 1..=brickworld::sim::SUSPEND_AFTER {
         let r = sim.step(0.1);
         assert_eq!(r.errors.len(), 1, "step {i}");
         assert_eq!(sim.failures(1), i);
@@ -714,7 +714,7 @@ fn a_suspension_for_the_time_budget_is_not_kept_across_a_restart() {
     };
     ws.add_script(&world, spin("slow"), by_clock).unwrap();
     ws.add_script(&world, spin("stuck"), small()).unwrap();
-    for _ in 0..=brickworld::sim::step::SUSPEND_AFTER {
+    for _ in 0..=brickworld::sim::SUSPEND_AFTER {
         ws.sim.wake_all();
         ws.step(&mut world, 0.1);
     }

@@ -10,8 +10,12 @@
 //!   succeeded), [`native`] (the Rust reference water kernel), [`run`] (a
 //!   simulation coupled to a scene) and [`writeback`] (ground, snow and
 //!   water surfaces written into bricks, recording dirty bricks).
+//! - [`voxels`]: scripts over the bricks' voxels themselves.
+//! - [`health`]: each script's failed steps in a row and its suspension,
+//!   the same rule for both grids.
 
 pub mod columns;
+pub mod health;
 pub mod runtime;
 pub mod voxels;
 
@@ -22,6 +26,7 @@ pub use runtime::{embedded, reload, script};
 use thiserror::Error;
 
 pub use channels::{ChannelId, ChannelStore};
+pub use health::{Health, SUSPEND_AFTER};
 pub use reload::ScriptWatcher;
 pub use run::{WorldSim, read_optional_script, read_script};
 pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm, StepKey};

@@ -384,8 +384,7 @@ fn read_health(r: &mut Reader) -> Result<Vec<ScriptHealth>, String> {
         };
         // Only failing or suspended scripts are stored, once each; a
         // streak long enough to suspend is stored suspended.
-        let limit =
-            crate::sim::columns::step::SUSPEND_AFTER.min(crate::sim::voxels::step::SUSPEND_AFTER);
+        let limit = crate::sim::SUSPEND_AFTER;
         if failures == 0
             || failures > MAX_STORED_FAILURES
             || (suspended.is_none() && failures >= limit)

@@ -26,14 +26,12 @@ use rustc_hash::{FxHashMap, FxHashSet};
 use super::exec::{StepContext, StepScratch, WorkSet, run_script};
 use crate::sim::SimError;
 use crate::sim::channels::{ChannelId, ChannelStore};
+use crate::sim::health::Health;
 use crate::sim::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
 use crate::sim::tile::{HALO_CELLS, TILE_CELLS, TileCoord, neighbourhood};
 
 /// Steps without change before a tile sleeps.
 pub const SLEEP_AFTER: u8 = 2;
-/// Failed steps in a row after which a script is suspended until it is
-/// reloaded: a broken script must not cost every step its whole budget.
-pub const SUSPEND_AFTER: u32 = 3;
 /// Channels without a declared range are bounded by ± this many world
 /// heights (a script that copies the halo's wall value into `ground`, say,
 /// is stopped before the write-back allocates bricks up to it).
@@ -81,14 +79,8 @@ pub(super) struct Loaded {
     pub(super) limits: Limits,
     /// Run on ticks that are multiples of this.
     pub(super) every: u64,
-    /// Failed steps in a row: ticks, however many CFL sub-steps each
-    /// took.
-    pub(super) failures: u32,
-    /// The tick whose step last failed, so that a tick's sub-steps count
-    /// one failure between them.
-    pub(super) failed_tick: Option<u64>,
-    /// Why the script is suspended, if it is.
-    pub(super) suspended: Option<SimError>,
+    /// Failed steps in a row, and why the script is suspended.
+    pub(super) health: Health,
 }
 
 /// What one step did.
@@ -195,14 +187,15 @@ impl Simulation {
     }
 
     /// Why script `index` is suspended, if it is (it failed
-    /// [`SUSPEND_AFTER`] steps in a row; a reload resumes it).
+    /// [`SUSPEND_AFTER`](crate::sim::SUSPEND_AFTER) steps in a row; a
+    /// reload resumes it).
     pub fn suspended(&self, index: usize) -> Option<&SimError> {
-        self.scripts[index].suspended.as_ref()
+        self.scripts[index].health.suspended()
     }
 
     /// Failed steps in a row of script `index`.
     pub fn failures(&self, index: usize) -> u32 {
-        self.scripts[index].failures
+        self.scripts[index].health.failures()
     }
 
     /// The channels.
@@ -382,9 +375,7 @@ impl Simulation {
             kernel,
             limits,
             every: 1,
-            failures: 0,
-            failed_tick: None,
-            suspended: None,
+            health: Health::default(),
         })
     }
 
@@ -395,16 +386,14 @@ impl Simulation {
             src: s.src.clone(),
             limits: s.limits,
             every: s.every,
-            failures: s.failures,
-            suspended: s.suspended.clone(),
+            failures: s.health.failures(),
+            suspended: s.health.suspended().cloned(),
         }
     }
 
     /// Give script `i` the health a rebuilt simulation carries over.
     pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
-        self.scripts[i].failures = failures;
-        self.scripts[i].failed_tick = None;
-        self.scripts[i].suspended = suspended;
+        self.scripts[i].health = Health::restored(failures, suspended);
     }
 
     /// Run script `index` only on ticks that are multiples of `every` (≥ 1).
@@ -479,7 +468,7 @@ impl Simulation {
         };
         let mut script_ms = vec![0.0; self.scripts.len()];
         for (si, script) in self.scripts.iter_mut().enumerate() {
-            if !self.tick.is_multiple_of(script.every) || script.suspended.is_some() {
+            if !self.tick.is_multiple_of(script.every) || script.health.suspended().is_some() {
                 continue;
             }
             let t0 = std::time::Instant::now();
@@ -490,8 +479,8 @@ impl Simulation {
                     // script stays failing (regression: its world fell asleep
                     // and the streak reset). Nor does a later sub-step of a
                     // tick that already failed.
-                    if !ws.active.is_empty() && script.failed_tick != Some(self.tick) {
-                        script.failures = 0;
+                    if !ws.active.is_empty() {
+                        script.health.succeeded(self.tick);
                     }
                     // Which tiles changed is found in parallel; the store is
                     // written serially, in sorted tile order.
@@ -522,16 +511,7 @@ impl Simulation {
                     }
                 }
                 Err(e) => {
-                    // One failure a tick, however many CFL sub-steps failed
-                    // in it (regression: each counted, so a script failing
-                    // in every sub-step was suspended within one tick).
-                    if script.failed_tick != Some(self.tick) {
-                        script.failures = script.failures.saturating_add(1);
-                        script.failed_tick = Some(self.tick);
-                    }
-                    if script.failures >= SUSPEND_AFTER {
-                        script.suspended = Some(e.clone());
-                    }
+                    script.health.failed(self.tick, &e);
                     errors.push(e);
                 }
             }

@@ -11,7 +11,7 @@ use super::native::VoxelNativeKernel;
 use super::schedule::{MatSet, set_of};
 use super::step::{BOUNDARY, VoxelSim};
 use crate::sim::script::{Grid, VOXEL_CELLS, VOXEL_HALO};
-use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
+use crate::sim::{Health, Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
 use crate::world::MaterialRegistry;
 
 /// A loaded voxel script and its state.
@@ -27,8 +27,8 @@ pub(super) struct Loaded {
     pub(super) limits: Limits,
     pub(super) kernel: VoxelKernel,
     pub(super) every: u64,
-    pub(super) failures: u32,
-    pub(super) suspended: Option<SimError>,
+    /// Failed steps in a row, and why the script is suspended.
+    pub(super) health: Health,
 }
 
 impl VoxelSim {
@@ -44,7 +44,7 @@ impl VoxelSim {
 
     /// Why script `i` is suspended, if it is.
     pub fn suspended(&self, i: usize) -> Option<&SimError> {
-        self.scripts[i].suspended.as_ref()
+        self.scripts[i].health.suspended()
     }
 
     /// Current parameter values of script `i` (spec order).
@@ -54,7 +54,7 @@ impl VoxelSim {
 
     /// Failed steps in a row of script `i`.
     pub fn failures(&self, i: usize) -> u32 {
-        self.scripts[i].failures
+        self.scripts[i].health.failures()
     }
 
     /// Replace script `i` with a new version (its materials must be
@@ -111,15 +111,14 @@ impl VoxelSim {
             src: s.src.clone(),
             limits: s.limits,
             every: s.every,
-            failures: s.failures,
-            suspended: s.suspended.clone(),
+            failures: s.health.failures(),
+            suspended: s.health.suspended().cloned(),
         }
     }
 
     /// Give script `i` the health a rebuilt simulation carries over.
     pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
-        self.scripts[i].failures = failures;
-        self.scripts[i].suspended = suspended;
+        self.scripts[i].health = Health::restored(failures, suspended);
     }
 
     /// Run script `i` on ticks that are multiples of `every`.
@@ -277,8 +276,7 @@ impl VoxelSim {
             limits,
             kernel: VoxelKernel::Lua,
             every: 1,
-            failures: 0,
-            suspended: None,
+            health: Health::default(),
         });
         Ok(self.scripts.len() - 1)
     }

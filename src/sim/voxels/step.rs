@@ -32,8 +32,6 @@ use crate::sim::script::VOXEL_CELLS;
 use crate::sim::{SimError, StepKey};
 use crate::world::{BRICK_EDGE, BrickStore, MaterialRegistry};
 
-/// Failed steps in a row before a voxel script is suspended.
-pub const SUSPEND_AFTER: u32 = 3;
 /// The material kernels see outside the world's bounds (a wall).
 pub const BOUNDARY: u8 = 255;
 
@@ -223,7 +221,7 @@ impl VoxelSim {
         for si in 0..self.scripts.len() {
             let (every, suspended) = {
                 let s = &self.scripts[si];
-                (s.every, s.suspended.is_some())
+                (s.every, s.health.suspended().is_some())
             };
             if suspended || !self.tick.is_multiple_of(every) {
                 continue;
@@ -263,7 +261,7 @@ impl VoxelSim {
             match result {
                 Ok(work) => {
                     if !cands.is_empty() {
-                        s.failures = 0;
+                        s.health.succeeded(self.tick);
                     }
                     for ci in work.changed_mats() {
                         let (b, mats) = (work.cands[ci], &work.mats[ci]);
@@ -292,10 +290,7 @@ impl VoxelSim {
                     }
                 }
                 Err(e) => {
-                    s.failures = s.failures.saturating_add(1);
-                    if s.failures >= SUSPEND_AFTER {
-                        s.suspended = Some(e.clone());
-                    }
+                    s.health.failed(self.tick, &e);
                     report.errors.push(e);
                 }
             }
