@@ -7,7 +7,7 @@
 ---@alias brickworld.Field buffer
 
 ---@class brickworld.Context
----@field dt number               Time step in seconds.
+---@field dt number               Seconds this run covers: the world's step, times N for `every = N`.
 ---@field p table<string, number> Parameter values (read-only).
 ---@field r table<string, brickworld.Field> Halo buffers of the channels the pass reads (previous generation).
 ---@field w table<string, brickworld.Field> Output buffers of the channels the pass writes (pre-filled with current values).

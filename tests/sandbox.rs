@@ -1459,3 +1459,29 @@ fn huge_lists_are_refused_by_their_bounds() {
     ));
     assert!(e.contains("declares 257 passes, more than 256"), "{e}");
 }
+
+/// Regression (known gap): `c.dt` was the world's step even for a script
+/// run every N ticks, so `snow.lua`, run every 2 ticks in the default
+/// world, added half its nominal snowfall a second. A script run every N
+/// ticks now sees `c.dt` = N·dt: over the same ticks it integrates a rate
+/// to what a script run every tick does.
+#[test]
+fn a_column_script_run_every_n_ticks_sees_n_times_the_step_as_c_dt() {
+    let text = "return { channels = { \"acc\" }, passes = { { name = \"p\", reads = { \"acc\" }, writes = { \"acc\" },\n\
+        kernel = function(c) buffer.writef64(c.w.acc, 0, buffer.readf64(c.w.acc, 0) + c.dt) end } } }";
+    let total = |every: u64| {
+        let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(1, 1));
+        let i = sim
+            .add_script(src("acc", text), Kernel::Lua, small())
+            .unwrap();
+        sim.set_every(i, every);
+        for _ in 0..4 {
+            assert!(sim.step(0.05).errors.is_empty());
+        }
+        let id = sim.channels().find("acc").unwrap();
+        sim.channels().get(IVec2::ZERO, id).unwrap()[0]
+    };
+    // Ticks 0 to 3: every tick 4 × 0.05; every 2 ticks (0 and 2) 2 × 0.1.
+    assert!((total(1) - 0.2).abs() < 1e-12, "{}", total(1));
+    assert!((total(2) - 0.2).abs() < 1e-12, "{}", total(2));
+}

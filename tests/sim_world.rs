@@ -569,3 +569,21 @@ fn a_script_file_name_with_control_characters_is_refused() {
         );
     }
 }
+
+/// A water script run every 2 ticks steps by 2·dt, so its CFL sub-steps
+/// are those of a step twice as long (they were counted for dt, so its
+/// sub-steps could break the CFL limit by 2×).
+#[test]
+fn a_script_run_every_n_ticks_is_sub_stepped_for_n_times_the_step() {
+    let mut world = terrain(IVec3::new(32, 32, 32), 2);
+    let mut ws = WorldSim::with_edges(&mut world, false);
+    let i = add_shipped(&mut ws, "water");
+    let w = ws.sim.channels_mut().channel("water");
+    for tz in 0..4 {
+        ws.sim.channels_mut().set(IVec2::new(0, tz), w, &[12.0; 64]);
+    }
+    let once = ws.substeps_for(0.4, 0.5);
+    assert!(once > 2, "{once}");
+    ws.set_every(i, 2);
+    assert_eq!(ws.substeps_for(0.2, 0.5), once);
+}

@@ -783,3 +783,32 @@ fn the_load_test_shows_each_pass_fresh_channels() {
     sim.add_script(src, Limits::default(), &reg)
         .expect("no step shows pass two a scribble in its read buffer");
 }
+
+/// Regression (known gap): a voxel script run every N ticks saw `c.dt` =
+/// dt, not the N·dt its run covers (as column scripts did); it now sees
+/// N·dt, so a rate integrated over the same ticks comes to the same total.
+#[test]
+fn a_voxel_script_run_every_n_ticks_sees_n_times_the_step_as_c_dt() {
+    let (reg, sand) = registry();
+    let text = "return { grid = \"voxels\", channels = { \"acc\" }, passes = { { name = \"p\", reads = { \"acc\" }, writes = { \"acc\" },\n\
+        kernel = function(c) buffer.writef32(c.w.acc, 0, buffer.readf32(c.r.acc, 111 * 4) + c.dt) end } } }";
+    let total = |every: u64| {
+        let mut store = poured(1, sand);
+        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 48, 32), 1);
+        let src = ScriptSource {
+            name: "acc".into(),
+            text: text.into(),
+        };
+        let i = sim.add_script(src, Limits::default(), &reg).unwrap();
+        sim.set_every(i, every);
+        for _ in 0..4 {
+            let r = sim.step(&mut store, &reg, 0.05);
+            assert!(r.errors.is_empty(), "{:?}", r.errors);
+        }
+        let id = sim.channels().find("acc").unwrap();
+        sim.channels().get(id, IVec3::ZERO).unwrap()[0]
+    };
+    // Ticks 0 to 3: every tick 4 × 0.05; every 2 ticks (0 and 2) 2 × 0.1.
+    assert!((total(1) - 0.2).abs() < 1e-6, "{}", total(1));
+    assert!((total(2) - 0.2).abs() < 1e-6, "{}", total(2));
+}

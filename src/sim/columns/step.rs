@@ -443,6 +443,8 @@ impl Simulation {
 
     /// Advance every script by `dt`. A script whose step fails is rolled
     /// back alone (reported in [`StepReport::errors`]); the others commit.
+    /// A script run every N ticks (see [`set_every`](Self::set_every)) is
+    /// advanced by N·`dt` on the ticks it runs.
     pub fn step(&mut self, dt: f64) -> StepReport {
         let serial = STEP_SERIAL.fetch_add(1, Ordering::Relaxed);
         let (lo, hi) = match self.region {
@@ -459,18 +461,21 @@ impl Simulation {
         let ws = WorkSet::new(&tiles, lo, hi);
         let mut errors = Vec::new();
         let mut changed: FxHashSet<TileCoord> = FxHashSet::default();
-        let ctx = StepContext {
-            dt,
-            serial,
-            seed: self.seed,
-            tick: self.tick,
-            default_bound: self.default_bound,
-        };
         let mut script_ms = vec![0.0; self.scripts.len()];
         for (si, script) in self.scripts.iter_mut().enumerate() {
             if !self.tick.is_multiple_of(script.every) || script.health.suspended().is_some() {
                 continue;
             }
+            // A script run every N ticks covers N steps' time: its `c.dt`
+            // is N·dt (regression: it was dt, so such a script integrated a
+            // rate at 1/N of its nominal value).
+            let ctx = StepContext {
+                dt: dt * script.every as f64,
+                serial,
+                seed: self.seed,
+                tick: self.tick,
+                default_bound: self.default_bound,
+            };
             let t0 = std::time::Instant::now();
             let result = run_script(script, &self.channels, &ws, &ctx, &mut self.scratch);
             match result {

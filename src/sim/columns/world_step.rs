@@ -29,7 +29,9 @@ impl WorldSim {
             let m = |name: &str| ch.find(name).map_or(0.0, |id| ch.max_abs(id));
             let speed =
                 c.velocities.iter().map(|v| m(v)).fold(0.0, f64::max) + (g * m(&c.depth)).sqrt();
-            n = n.max(((dt * speed / (cfl * dx)).ceil() as u32).clamp(1, MAX_SUBSTEPS));
+            // A script run every N ticks steps by N·dt.
+            let its_dt = dt * self.sim.every(i) as f64;
+            n = n.max(((its_dt * speed / (cfl * dx)).ceil() as u32).clamp(1, MAX_SUBSTEPS));
         }
         n
     }

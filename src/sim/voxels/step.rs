@@ -198,8 +198,9 @@ impl VoxelSim {
         }
     }
 
-    /// Advance every voxel script by `dt`; changed materials go through
-    /// `store`'s recorded edit path. A failed script is rolled back alone.
+    /// Advance every voxel script by `dt` (one run every N ticks by N·`dt`);
+    /// changed materials go through `store`'s recorded edit path. A failed
+    /// script is rolled back alone.
     pub fn step(
         &mut self,
         store: &mut BrickStore,
@@ -248,7 +249,9 @@ impl VoxelSim {
                 &cands,
                 (self.lo, self.hi),
                 &valid,
-                dt,
+                // Run every N ticks: it covers N steps' time (as the column
+                // scripts do).
+                dt * every as f64,
                 serial,
                 key,
             );
