@@ -1608,3 +1608,44 @@ fn a_folder_as_the_world_config_is_named_once_and_plainly() {
     assert_eq!(err.matches(dir.to_str().unwrap()).count(), 1, "{err}");
     assert!(!err.contains("(file)"), "{err}");
 }
+
+/// Regression (panic audit): `log()` copied each argument whole into Rust
+/// memory and held every line of a kernel call until its verdict, outside
+/// the VM's 64 MiB limit, so a kernel logging an 8 MiB string 400 times
+/// held 3.2 GB and, under a 1.5 GB address-space limit, aborted `sim`
+/// ("memory allocation of 8388608 bytes failed"). A line now copies only
+/// what it can show, and a call holds at most the lines a second accepts.
+#[test]
+fn a_kernel_logging_huge_strings_stays_within_its_memory() {
+    let dir = common::cli::tmp("logbomb", "x");
+    let dir = dir.parent().unwrap();
+    let script = dir.join("logbomb.lua");
+    std::fs::write(
+        &script,
+        "local big = string.rep(\"z\", 8 * 1024 * 1024)\n\
+         return { channels = { \"ground\", \"water\" },\n\
+         passes = { { name = \"rain\", reads = { \"water\" }, writes = { \"water\" },\n\
+         kernel = function(c) for i = 1, 400 do log(big, 1) end end } } }\n",
+    )
+    .unwrap();
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 1500000 && exec '{}' sim --size 16x16x16 --script '{}' --steps 2 --threads 2 --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            script.display(),
+            dir.join("o.png").display()
+        ))
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    // The line is cut to the 200 characters a line keeps (the load
+    // test's lines fill the second's 20).
+    let line = err
+        .lines()
+        .find(|l| l.starts_with("[logbomb] (load test) zz"))
+        .unwrap_or_else(|| panic!("no logged line: {err}"));
+    assert!(line.ends_with("z…"), "{line}");
+    assert_eq!(line.matches('z').count(), 200 - "(load test) ".len(), "{line}");
+}

@@ -8,11 +8,15 @@ use super::script::Limits;
 use crate::sim::SimError;
 
 /// `log()` lines of the kernel call in flight, held back until its verdict:
-/// a call run again after running out of memory logs once, not twice.
+/// a call run again after running out of memory logs once, not twice. At
+/// most [`PER_SECOND`](crate::sim::runtime::log::PER_SECOND) lines are held
+/// (no more could be accepted in one second); the rest are only counted.
 #[derive(Default)]
 pub(super) struct HeldLog {
     pub(super) on: bool,
     pub(super) lines: Vec<String>,
+    /// Lines past the most held, counted as dropped when released.
+    pub(super) extra: u64,
 }
 
 /// A fresh Luau VM with the sandbox every script runs in: only `math`,
@@ -59,18 +63,29 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     lua.set_app_data(HeldLog::default());
     let log = lua
         .create_function(move |lua, args: mlua::Variadic<Value>| {
-            let parts: Vec<String> = args
+            use crate::sim::runtime::log::{LogPart, PER_SECOND, line_of};
+            if let Some(mut held) = lua.app_data_mut::<HeldLog>()
+                && held.on
+                && held.lines.len() >= PER_SECOND as usize
+            {
+                held.extra += 1;
+                return Ok(());
+            }
+            let strings: Vec<Option<mlua::BorrowedBytes>> = args
                 .iter()
                 .map(|v| match v {
-                    Value::Nil => "nil".into(),
-                    Value::Boolean(b) => b.to_string(),
-                    Value::Integer(i) => i.to_string(),
-                    Value::Number(n) => n.to_string(),
-                    Value::String(s) => s.to_string_lossy(),
-                    other => other.type_name().to_string(),
+                    Value::String(s) => Some(s.as_bytes()),
+                    _ => None,
                 })
                 .collect();
-            let line = parts.join("\t");
+            let line = line_of(args.iter().zip(&strings).map(|(v, b)| match (v, b) {
+                (_, Some(b)) => LogPart::Bytes(b),
+                (Value::Nil, _) => LogPart::Text("nil".into()),
+                (Value::Boolean(b), _) => LogPart::Text(b.to_string()),
+                (Value::Integer(i), _) => LogPart::Text(i.to_string()),
+                (Value::Number(n), _) => LogPart::Text(n.to_string()),
+                (other, _) => LogPart::Text(other.type_name().to_string()),
+            }));
             if let Some(mut held) = lua.app_data_mut::<HeldLog>()
                 && held.on
             {

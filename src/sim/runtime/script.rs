@@ -372,21 +372,26 @@ impl ScriptVm {
             let _discarded = self.hold_log(true);
             self.collect_garbage();
         }
-        for line in self.hold_log(false) {
+        let (lines, extra) = self.hold_log(false);
+        for line in lines {
             crate::sim::runtime::log::push(&self.name, line);
         }
+        crate::sim::runtime::log::drop_lines(&self.name, extra);
         result
     }
 
     /// Hold back `log()` lines (`on`) or stop; returns and forgets the
-    /// lines held so far.
-    fn hold_log(&self, on: bool) -> Vec<String> {
+    /// lines held so far, and how many more were logged past the most held.
+    fn hold_log(&self, on: bool) -> (Vec<String>, u64) {
         match self.lua.app_data_mut::<HeldLog>() {
             Some(mut held) => {
                 held.on = on;
-                std::mem::take(&mut held.lines)
+                (
+                    std::mem::take(&mut held.lines),
+                    std::mem::take(&mut held.extra),
+                )
             }
-            None => Vec::new(),
+            None => (Vec::new(), 0),
         }
     }
 
