@@ -91,6 +91,19 @@ pub struct BenchReport {
     pub scene_build_s: f64,
     /// The brickmap with beam starts (its hits count in `agree` too).
     pub brickmap_beam: BeamFigures,
+    /// The brickmap's primary hits alone (no shading, sky or image), per
+    /// view: what a peer that only intersects rays is compared with (its
+    /// hits count in `agree` too).
+    pub brickmap_hits_only: HitsOnlyFigures,
+}
+
+/// The brickmap's primary rays traced for their hits alone, per view.
+#[derive(Debug, Clone, Serialize)]
+pub struct HitsOnlyFigures {
+    /// Mrays/s of each view (the rays made and traced; nothing shaded).
+    pub view_mrays_per_s: Vec<f64>,
+    /// Speed relative to the brickmap's rendered frames, per view.
+    pub view_speedup: Vec<f64>,
 }
 
 /// The brickmap with beam starts, per view.
@@ -184,9 +197,10 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
 
     let pb = bar(
         "bench",
-        (views.len() * (built.len() + 1)) as u64 * s.repeat as u64,
+        (views.len() * (built.len() + 2)) as u64 * s.repeat as u64,
     );
     let mut beam_times = vec![0f64; cameras.len()];
+    let mut hits_times = vec![0f64; cameras.len()];
     let opts = RenderOptions::default();
     let palette = world.store().palette();
     let pixels = (s.view.width * s.view.height) as u64;
@@ -228,6 +242,18 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
             pb.inc(1);
         }
         beam_times[vi] = best;
+        // The brickmap's hits alone: tracing without shading or image.
+        let mut best = f64::INFINITY;
+        for _ in 0..s.repeat {
+            let t = Instant::now();
+            let hits = crate::trace::trace_hits(&brickmap, cam, &opts);
+            best = best.min(t.elapsed().as_secs_f64());
+            if let Some(r) = &reference {
+                mismatches += r.iter().zip(&hits).filter(|(a, b)| a != b).count() as u64;
+            }
+            pb.inc(1);
+        }
+        hits_times[vi] = best;
     }
     pb.finish_and_clear();
     let brickmap_i = built.len() - 1;
@@ -240,6 +266,14 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
             .collect(),
     };
 
+    let hits_only = HitsOnlyFigures {
+        view_mrays_per_s: hits_times.iter().map(|t| pixels as f64 / t / 1e6).collect(),
+        view_speedup: hits_times
+            .iter()
+            .zip(&times[brickmap_i])
+            .map(|(h, p)| p / h)
+            .collect(),
+    };
     for (si, (structure, tracer, build_s)) in built.iter().enumerate() {
         let total: f64 = times[si].iter().sum();
         let rays = pixels * cameras.len() as u64;
@@ -288,6 +322,7 @@ fn measure(s: &BenchTracersSettings) -> Result<BenchReport> {
         grid_voxels: ext.as_u64vec3().element_product(),
         scene_build_s,
         brickmap_beam: beam,
+        brickmap_hits_only: hits_only,
     })
 }
 
@@ -362,6 +397,11 @@ fn print_table(r: &BenchReport) {
         "brickmap with beam starts: {} Mrays/s per view, {} x the plain brickmap",
         per_view(&r.brickmap_beam.view_mrays_per_s),
         per_view(&r.brickmap_beam.view_speedup)
+    );
+    println!(
+        "brickmap hits alone (no shading): {} Mrays/s per view, {} x the rendered frames",
+        per_view(&r.brickmap_hits_only.view_mrays_per_s),
+        per_view(&r.brickmap_hits_only.view_speedup)
     );
     println!(
         "agreement: {} mismatches in {} rays",

@@ -40,7 +40,9 @@ pub use dense::DenseGrid;
 pub use lod::lod_level;
 pub use output::{write_npy, write_png};
 pub use ray::{Frame, Hit, Ray};
-pub use render::{RenderOptions, RenderOutput, Shading, jitter_sample, render, supersample};
+pub use render::{
+    RenderOptions, RenderOutput, Shading, jitter_sample, render, supersample, trace_hits,
+};
 pub use svo::Svo;
 
 /// Errors building a tracing structure.

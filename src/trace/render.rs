@@ -368,6 +368,66 @@ pub fn render(
     }
 }
 
+/// The primary hits of `camera`'s view alone: the rays [`render`] traces
+/// (with `opts.lod`, from the eye, no beam starts), with no shading, sky,
+/// depth or image. The hits are [`render`]'s, bit for bit (tested); this
+/// is what a peer that only intersects rays (Embree's `rtcIntersect1`,
+/// which returns a distance, a primitive and a normal) is compared with.
+pub fn trace_hits(tracer: &dyn Tracer, camera: &Camera, opts: &RenderOptions) -> Vec<Option<Hit>> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut hits = vec![None; w * h];
+    let frame = tracer.frame();
+    let origin = frame.to_local(camera.eye);
+    let far = far_eye(camera.eye - frame.anchor.as_dvec3());
+    let lod_k = opts.lod * camera.pixel_angle() as f32;
+    let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
+    let cols: Vec<f64> = (0..w)
+        .map(|i| camera.column_factor(i as f64 + jx))
+        .collect();
+    let rows_b: Vec<f64> = (0..h).map(|j| camera.row_factor(j as f64 + jy)).collect();
+    hits.par_chunks_mut(w * TILE)
+        .enumerate()
+        .for_each(|(band, hits)| {
+            let rows = hits.len() / w;
+            for tx in (0..w).step_by(TILE) {
+                for r in 0..rows {
+                    let j = band * TILE + r;
+                    for i in tx..(tx + TILE).min(w) {
+                        let dir = camera.direction_from(cols[i], rows_b[j]);
+                        hits[r * w + i] = match far {
+                            None => tracer.trace_from(
+                                &Ray::new(origin, dir.as_vec3()),
+                                0.0,
+                                f32::INFINITY,
+                                lod_k,
+                            ),
+                            Some(local) => {
+                                let (ray, shift) = near_start(local, dir);
+                                shift.and_then(|shift| {
+                                    let hit = if shift > 0.0 {
+                                        tracer.trace_skipped(
+                                            &ray,
+                                            f32::INFINITY,
+                                            lod_k,
+                                            shift as f32,
+                                        )
+                                    } else {
+                                        tracer.trace_from(&ray, 0.0, f32::INFINITY, lod_k)
+                                    }?;
+                                    Some(Hit {
+                                        t: (hit.t as f64 + shift) as f32,
+                                        ..hit
+                                    })
+                                })
+                            }
+                        };
+                    }
+                }
+            }
+        });
+    hits
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
