@@ -1647,5 +1647,9 @@ fn a_kernel_logging_huge_strings_stays_within_its_memory() {
         .find(|l| l.starts_with("[logbomb] (load test) zz"))
         .unwrap_or_else(|| panic!("no logged line: {err}"));
     assert!(line.ends_with("z…"), "{line}");
-    assert_eq!(line.matches('z').count(), 200 - "(load test) ".len(), "{line}");
+    assert_eq!(
+        line.matches('z').count(),
+        200 - "(load test) ".len(),
+        "{line}"
+    );
 }

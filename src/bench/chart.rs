@@ -197,8 +197,8 @@ fn draw_xy(
         .x_label_area_size(40)
         .y_label_area_size(64)
         .build_cartesian_2d(
-            (x0 / 1.5..x1 * 1.5).log_scale(),
-            (y0 / 2.0..y1 * 2.0).log_scale(),
+            log_axis(x0, x1, 1.5).log_scale(),
+            log_axis(y0, y1, 2.0).log_scale(),
         )?;
     chart
         .configure_mesh()
@@ -230,6 +230,19 @@ fn draw_xy(
     Ok(())
 }
 
+/// Most decades a log axis spans: plotters divides the axis's ends, and an
+/// infinite ratio made its tick placement loop for ever (regression, panic
+/// audit: a timeline with 1e-10 and 9e299 in one column hung `chart`).
+const MOST_DECADES: i32 = 250;
+
+/// A log axis from `lo` to `hi` (both within 1e±300) with a `margin` factor
+/// at each end; past [`MOST_DECADES`] decades its low end is raised (the
+/// points below it fall off the chart).
+fn log_axis(lo: f64, hi: f64, margin: f64) -> std::ops::Range<f64> {
+    let (lo, hi) = (lo / margin, hi * margin);
+    lo.max(hi / 10f64.powi(MOST_DECADES))..hi
+}
+
 /// A log axis's tick as a person writes it: three significant digits at
 /// most, no trailing zeros (plotters printed `0.30000000000000004`).
 fn tick_label(v: f64) -> String {
@@ -247,6 +260,17 @@ fn tick_label(v: f64) -> String {
 
 #[cfg(test)]
 mod tick_tests {
+    #[test]
+    fn a_chart_spanning_three_hundred_decades_is_drawn() {
+        let series = [super::Series {
+            name: "water",
+            color: super::BLUE,
+            points: vec![(1.0, 1e-10), (2.0, 9e299), (1e-299, 1e299)],
+        }];
+        let svg = super::xy_svg(std::path::Path::new("t.svg"), "t", "x", "y", &series).unwrap();
+        assert!(svg.contains("<svg"), "{svg}");
+    }
+
     #[test]
     fn ticks_are_short() {
         assert_eq!(super::tick_label(0.30000000000000004), "0.3");
