@@ -684,7 +684,8 @@ fn a_second_signal_exits_at_once() {
     let _ = std::process::Command::new("kill")
         .args(["-TERM", &pid])
         .status();
-    std::thread::sleep(Duration::from_millis(500));
+    // Past the second within which a second signal is the same request.
+    std::thread::sleep(Duration::from_millis(1500));
     let t = Instant::now();
     let _ = std::process::Command::new("kill")
         .args(["-TERM", &pid])
@@ -703,6 +704,57 @@ fn a_second_signal_exits_at_once() {
     // Whatever was on disk before is still good: the store opens, holds
     // the last commit, and the stalled commit did not land.
     assert_eq!(stored_tick(&cfg, &state), Some(20));
+}
+
+/// Regression (operator probe): GNU `timeout` sends SIGTERM to the engine
+/// and then to its process group, so one request arrived as two signals
+/// microseconds apart; the second exited at once, without the final
+/// commit (one run in three under `timeout` lost its last ticks). Two
+/// signals within a second are one request: the engine stops after the
+/// step in flight and commits the tick it stopped at.
+#[test]
+fn two_signals_at_once_are_one_request_and_keep_the_final_commit() {
+    let (cfg, state, addr) = setup("twoatonce");
+    // Every commit takes 1.5 s (test hook), so the second signal arrives
+    // while the final commit is being written.
+    let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "1500"));
+    wait_ready(&addr);
+    wait_status(&addr, "no steps", |s| s["tick"].as_u64().unwrap() >= 3);
+    assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    let paused = |before: Option<u64>| {
+        wait_status(&addr, "pausing", |s| {
+            s["paused"] == true
+                && s["steps_pending"] == 0
+                && before.is_none_or(|t| s["tick"].as_u64() != Some(t))
+        })["tick"]
+            .as_u64()
+            .unwrap()
+    };
+    let mut tick = paused(None);
+    if tick.is_multiple_of(40) {
+        assert_eq!(post(&addr, &state, "/step", "1").0, 200);
+        tick = paused(Some(tick));
+    }
+    let pid = d.id().to_string();
+    let kill = || {
+        std::process::Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+    };
+    let _ = kill();
+    // Apart enough to arrive as two signals, not one pending signal.
+    std::thread::sleep(Duration::from_millis(100));
+    let _ = kill();
+    let t = Instant::now();
+    let code = loop {
+        if let Some(s) = d.try_wait().unwrap() {
+            break s;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "it did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(code.success(), "{code:?}");
+    assert_eq!(stored_tick(&cfg, &state), Some(tick));
 }
 
 /// Regression (hostile probe): a checkpoint whose valid checksums cover an

@@ -58,6 +58,10 @@ use crate::sim::{ScriptSource, ScriptWatcher, SimError, StepReport, WorldSim, re
 /// How long a stop waits for the step in flight before interrupting its
 /// scripts.
 pub const STOP_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+/// A second SIGINT/SIGTERM this soon after the first is the same request
+/// (GNU `timeout` signals the engine and then its process group); a later
+/// one exits at once, without a final checkpoint.
+pub const SAME_REQUEST: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// A step that took at least this long is committed at once, whatever
 /// `checkpoint.every` says: the next one may be cut by a stop, which drops
