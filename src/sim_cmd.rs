@@ -17,6 +17,9 @@ pub fn run(s: &SimSettings) -> Result<()> {
     let pool = thread_pool(s.view.threads)?;
     pool.install(|| {
         let mut world = build_world(&s.scene)?;
+        if let Some(msg) = crate::sim::run::reserved_conflicts(&world.materials) {
+            anyhow::bail!("{msg}");
+        }
         let mut ws = WorldSim::with_edges(&mut world, s.drain);
         ws.set_seed(s.scene.seed);
         // A materials.lua beside the first script names the voxel scripts' materials.

@@ -215,3 +215,86 @@ fn bad_files_give_clear_errors() {
     write_gray_png(&tall, 1, 1, png::BitDepth::Sixteen, &60000u16.to_be_bytes());
     expect_error(SceneSpec::Heightmap(tall), "taller than");
 }
+
+/// A one-row model whose voxel `k` has colour index `colours[k]` (0-based,
+/// as `dot_vox` reports it), written to `name`.
+fn row_model(name: &str, colours: &[u8]) -> PathBuf {
+    use dot_vox::{DotVoxData, Model, Size, Voxel};
+    let data = DotVoxData {
+        version: 150,
+        index_map: Vec::new(),
+        models: vec![Model {
+            size: Size {
+                x: colours.len() as u32,
+                y: 1,
+                z: 1,
+            },
+            voxels: colours
+                .iter()
+                .enumerate()
+                .map(|(k, &i)| Voxel {
+                    x: k as u8,
+                    y: 0,
+                    z: 0,
+                    i,
+                })
+                .collect(),
+        }],
+        palette: dot_vox::DEFAULT_PALETTE.to_vec(),
+        materials: Vec::new(),
+        scenes: Vec::new(),
+        layers: Vec::new(),
+    };
+    let path = tmp(name);
+    let mut bytes = Vec::new();
+    data.write_vox(&mut bytes).unwrap();
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+/// Regression (panic audit): a model's voxels of colours 252 to 254 held
+/// the material ids simulations keep for water, snow and sediment, so once
+/// a simulation ran they became water (a red voxel counted as liquid), with
+/// no error. They now take ids the model does not use, with their colours;
+/// a model of more than 251 colours, which cannot, is refused by `sim`.
+#[test]
+fn vox_colours_on_the_simulations_ids_move_out_of_their_way() {
+    let colours = [0u8, 5, 251, 252, 253];
+    let path = row_model("sim_ids.vox", &colours);
+    let world = build_scene(&SceneSpec::Vox(path), IVec3::ONE, 1, &ProgressBar::hidden()).unwrap();
+    let (lo, _) = world.bounds();
+    let held: Vec<u8> = (0..5)
+        .map(|k| world.store().voxel(lo + IVec3::new(k, 0, 0)))
+        .collect();
+    assert!(held.iter().all(|&m| (1..252).contains(&m)), "{held:?}");
+    assert_eq!(held[..2], [1, 6], "other colours keep their ids");
+    let mut distinct = held.clone();
+    distinct.sort();
+    distinct.dedup();
+    assert_eq!(distinct.len(), 5, "{held:?}");
+    for (k, &m) in held.iter().enumerate() {
+        let c = dot_vox::DEFAULT_PALETTE[colours[k] as usize];
+        assert_eq!(world.store().palette().rgb(m), [c.r, c.g, c.b], "voxel {k}");
+    }
+    for id in 252..=254u8 {
+        assert!(world.materials.get(id).is_none(), "id {id} is taken");
+    }
+    // 255 colours: the simulations' ids cannot be freed, and `sim` says so.
+    let all: Vec<u8> = (0..=254).collect();
+    let full = row_model("full.vox", &all);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["sim", "--steps", "1", "--script"])
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"))
+        .arg("--out")
+        .arg(tmp("full.png"))
+        .arg("--scene")
+        .arg(format!("vox:{}", full.display()))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("hold ids 252 to 254, which simulations keep for water, snow and sediment"),
+        "{err}"
+    );
+}

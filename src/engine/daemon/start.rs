@@ -99,6 +99,9 @@ impl Engine {
         let stream_plan = stream_plan.map(|(plan, _)| plan);
         // A region that follows the camera has closed edges (see
         // `follow.rs`); a fixed one drains over them like a small world.
+        if let Some(msg) = crate::sim::run::reserved_conflicts(&world.materials) {
+            anyhow::bail!("{}: {msg}", cfg.file);
+        }
         let mut ws = WorldSim::with_edges(&mut world, follow.is_none());
         // The ground read from the generated world is regenerated on every
         // start: not a change to commit.

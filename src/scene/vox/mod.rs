@@ -9,7 +9,11 @@
 //! Files without a scene graph place each model at the origin.
 //!
 //! **Colours.** Voxel colour index `i` (0-based, as `dot_vox` reports it)
-//! becomes material `i + 1`, coloured by the file's palette entry `i`.
+//! becomes material `i + 1`, coloured by the file's palette entry `i`,
+//! except materials 252 to 254, which the simulations keep for water, snow
+//! and sediment: a model's voxels of those take the lowest ids it does not
+//! use, with their colours (a model of more than 251 colours cannot run
+//! simulations).
 
 mod layout;
 
@@ -170,7 +174,38 @@ pub fn voxels(data: &dot_vox::DotVoxData) -> Result<(Vec<(IVec3, u8)>, Palette),
     for (i, c) in data.palette.iter().enumerate().take(255) {
         palette.set(i as u8 + 1, [c.r, c.g, c.b]);
     }
+    keep_simulation_ids_free(&mut out, &mut palette);
     Ok((out, palette))
+}
+
+/// Move the voxels of materials 252 to 254 (colour indices 251 to 253),
+/// which the simulations keep for water, snow and sediment, to ids the
+/// model does not use, with their colours (regression, panic audit: a
+/// model's red voxels of colour 252 became liquid water once a simulation
+/// ran). A model using more than 251 colours keeps them where they are;
+/// a simulation then refuses the world (see
+/// [`reserved_conflicts`](crate::sim::run::reserved_conflicts)).
+fn keep_simulation_ids_free(voxels: &mut [(IVec3, u8)], palette: &mut Palette) {
+    use crate::sim::writeback::{SEDIMENT, WATER};
+    let mut used = [false; 256];
+    for &(_, m) in voxels.iter() {
+        used[m as usize] = true;
+    }
+    let taken: Vec<u8> = (WATER..=SEDIMENT).filter(|&m| used[m as usize]).collect();
+    let free: Vec<u8> = (1..WATER).filter(|&m| !used[m as usize]).collect();
+    if taken.is_empty() || free.len() < taken.len() {
+        return;
+    }
+    let mut to = [0u8; 256];
+    for (k, &m) in taken.iter().enumerate() {
+        to[m as usize] = free[k];
+        palette.set(free[k], palette.rgb(m));
+    }
+    for (_, m) in voxels.iter_mut() {
+        if to[*m as usize] != 0 {
+            *m = to[*m as usize];
+        }
+    }
 }
 
 /// The largest voxel coordinate a file may place, in absolute value.

@@ -19,6 +19,29 @@ use crate::sim::{ScriptSpec, ScriptVm};
 /// that needs more runs at this many, and the limit is not met.
 pub const MAX_SUBSTEPS: u32 = 256;
 
+/// The materials of `materials` that hold the ids simulations keep for
+/// water, snow and sediment (252 to 254) under other names, as a message
+/// for the user; `None` when there is none. A simulation would take those
+/// ids over, so the world's voxels of those materials would become water,
+/// snow or sediment (regression, panic audit); only a `.vox` model of more
+/// than 251 colours can hold them (the loader moves fewer out of the way).
+pub fn reserved_conflicts(materials: &crate::world::MaterialRegistry) -> Option<String> {
+    use super::writeback::{SEDIMENT, SNOW, WATER};
+    let held: Vec<String> = [(WATER, "water"), (SNOW, "snow"), (SEDIMENT, "sediment")]
+        .into_iter()
+        .filter_map(|(id, sim)| {
+            let (name, _) = materials.get(id)?;
+            (name != sim).then(|| format!("{name} (id {id})"))
+        })
+        .collect();
+    (!held.is_empty()).then(|| {
+        format!(
+            "the world's materials {} hold ids 252 to 254, which simulations keep for water, snow and sediment; a .vox model can use at most 251 colours to run them",
+            held.join(", ")
+        )
+    })
+}
+
 /// A simulation coupled to a scene's voxels.
 pub struct WorldSim {
     /// The column simulation.
