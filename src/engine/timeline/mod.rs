@@ -176,6 +176,9 @@ pub struct Timeline {
     /// Their names.
     extra_names: Vec<String>,
     written: u64,
+    /// Since a row could not be written: the first such row's tick and
+    /// how many were lost, until one is written again.
+    failing: Option<(u64, u64)>,
 }
 
 pub use crate::scene::budget::{rss_kb, rss_kb_of};
@@ -222,6 +225,7 @@ impl Timeline {
             extra: extra.len(),
             extra_names: extra.to_vec(),
             written: 0,
+            failing: None,
         };
         t.written = t.file.metadata().map_or(0, |m| m.len());
         Ok(t)
@@ -246,9 +250,12 @@ impl Timeline {
         Ok(file)
     }
 
-    /// Append a row (errors are ignored: the timeline must never stop the
-    /// engine). Past [`ROTATE_BYTES`] the file becomes `timeline.1.csv`
-    /// (replacing the one before) and a fresh one starts.
+    /// Append a row. Errors never stop the engine: the first row that
+    /// cannot be written is said, and so is the first written again, with
+    /// the ticks lost in between (regression, operator probe: rows were
+    /// lost without a word while the disk was full). Past
+    /// [`ROTATE_BYTES`] the file becomes `timeline.1.csv` (replacing the
+    /// one before) and a fresh one starts.
     pub fn record(&mut self, r: &Row) {
         let mut line = format!(
             "{},{:.3},{},{},{:.3},{},{},{:.9},{:.9},{:.9},{:.9}",
@@ -294,13 +301,33 @@ impl Timeline {
                 Err(_) => self.written = 0,
             }
         }
-        if self.file.write_all(line.as_bytes()).is_ok() {
-            self.written += line.len() as u64;
-        } else {
-            // A row cut by a full disk is taken back, so the next one does
-            // not start in its middle (regression, hostile probe: torn
-            // rows that `chart` then left out).
-            let _ = self.file.set_len(self.written);
+        match self.file.write_all(line.as_bytes()) {
+            Ok(()) => {
+                self.written += line.len() as u64;
+                if let Some((first, lost)) = self.failing.take() {
+                    crate::say!(
+                        "{} is written again; {lost} row(s) from tick {first} to tick {} are missing from it",
+                        self.path.display(),
+                        r.tick.saturating_sub(1)
+                    );
+                }
+            }
+            Err(e) => {
+                // A row cut by a full disk is taken back, so the next one
+                // does not start in its middle (regression, hostile probe:
+                // torn rows that `chart` then left out).
+                let _ = self.file.set_len(self.written);
+                match &mut self.failing {
+                    Some((_, lost)) => *lost += 1,
+                    None => {
+                        crate::say!(
+                            "warning: cannot append to {}: {e}; its rows are lost until it can be written again",
+                            self.path.display()
+                        );
+                        self.failing = Some((r.tick, 1));
+                    }
+                }
+            }
         }
     }
 
@@ -344,9 +371,16 @@ impl Timeline {
             [header, &text[keep..]].concat()
         };
         let aside = aside_path(&self.path);
-        std::fs::write(&aside, &dropped).with_context(|| {
-            format!("cannot copy {} to {}", self.path.display(), aside.display())
-        })?;
+        if let Err(e) = std::fs::write(&aside, &dropped) {
+            // No empty or partial copy is left behind (regression,
+            // operator probe: each start on a full disk left a 0-byte one).
+            let _ = std::fs::remove_file(&aside);
+            bail!(
+                "cannot copy the rows after tick {tick} of {} to {}: {e}; they stay, so the ticks run again appear twice",
+                self.path.display(),
+                aside.display()
+            );
+        }
         self.file.set_len(keep as u64).with_context(cannot)?;
         self.written = keep as u64;
         prune_aside(&self.path);
@@ -383,6 +417,36 @@ mod tests {
         std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
         let e = Timeline::open(&zero, &[]).err().unwrap().to_string();
         assert!(e.contains("is not a regular file"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Regression (operator probe): rows that could not be written (a full
+    /// disk) were lost without a word. The first lost row starts a count
+    /// (and is said), the next row written ends it (and says which ticks
+    /// are missing); the file holds exactly the rows written.
+    #[cfg(unix)]
+    #[test]
+    fn rows_lost_to_a_full_disk_are_counted_and_said() {
+        let dir = std::env::temp_dir().join(format!("bw-timeline-full-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("timeline.csv");
+        let mut t = Timeline::open(&path, &[]).unwrap();
+        t.record(&row(1));
+        let good = std::mem::replace(&mut t.file, File::create("/dev/full").unwrap());
+        t.record(&row(2));
+        t.record(&row(3));
+        assert_eq!(t.failing, Some((2, 2)));
+        t.file = good;
+        t.record(&row(4));
+        assert_eq!(t.failing, None);
+        let text = std::fs::read_to_string(&path).unwrap();
+        let ticks: Vec<&str> = text
+            .lines()
+            .skip(1)
+            .map(|l| l.split(',').next().unwrap())
+            .collect();
+        assert_eq!(ticks, ["1", "4"]);
         let _ = std::fs::remove_dir_all(&dir);
     }
 
