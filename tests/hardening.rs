@@ -757,6 +757,45 @@ fn two_signals_at_once_are_one_request_and_keep_the_final_commit() {
     assert_eq!(stored_tick(&cfg, &state), Some(tick));
 }
 
+/// Regression (operator probe): with its state directory deleted and a new
+/// one made at the same place (another engine's), a running engine wrote
+/// its frames into the new one (and could prune files there). Frames go
+/// only into the folder the engine started with; one replaced since gets
+/// none, and the log says why.
+#[test]
+fn frames_never_go_into_a_frames_folder_made_after_the_start() {
+    let (cfg, state, addr) = setup("framesgone");
+    let d = spawn(&mut run_cmd(&cfg, &state));
+    wait_ready(&addr);
+    let frames = state.join("frames");
+    let pngs = |dir: &Path| -> usize {
+        std::fs::read_dir(dir)
+            .map(|r| {
+                r.filter(|e| {
+                    e.as_ref()
+                        .is_ok_and(|e| e.file_name().to_string_lossy().ends_with(".png"))
+                })
+                .count()
+            })
+            .unwrap_or(0)
+    };
+    let t = Instant::now();
+    while pngs(&frames) == 0 {
+        assert!(t.elapsed() < Duration::from_secs(60), "no frame written");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::fs::remove_dir_all(&frames).unwrap();
+    std::fs::create_dir_all(&frames).unwrap();
+    let tick = status(&addr)["tick"].as_u64().unwrap();
+    wait_status(&addr, "no steps", |s| {
+        s["tick"].as_u64().unwrap() >= tick + 15
+    });
+    assert_eq!(pngs(&frames), 0, "frames went into the new folder");
+    let out = stop(d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("deleted or replaced"), "{err}");
+}
+
 /// Regression (hostile probe): a checkpoint whose valid checksums cover an
 /// LZ4 payload claiming gigabytes aborted the engine on every start.
 #[test]

@@ -127,7 +127,16 @@ impl RenderThread {
             .spawn(move || {
                 let mut gpu: Option<(GpuContext, GpuBrickmap)> = None;
                 let mut gpu_tried = false;
-                let mut written = FrameFiles::scan(&settings.frames_dir);
+                // The frames folder the engine started with, held open and
+                // written through its descriptor: one deleted or replaced
+                // since (a new state directory, another engine's) gets no
+                // frames and loses none to pruning (regression, operator
+                // probe: a stale engine wrote its frames into the state
+                // directory of the engine started after it; the folder's
+                // inode number is reused at once, so it cannot tell them).
+                let held = std::fs::File::open(&settings.frames_dir).ok();
+                let frames_at = held_folder(held.as_ref()).unwrap_or_else(|| settings.frames_dir.clone());
+                let mut written = FrameFiles::scan(&frames_at);
                 // When a frame file last failed to be written, if the last one did.
                 let mut frame_error: Option<Instant> = None;
                 // The render thread's own copy of the world, kept current by
@@ -233,7 +242,16 @@ impl RenderThread {
                     let png = png_bytes(job.camera.width, job.camera.height, &rgb);
                     // A view rendered for a camera move is for the live viewers only.
                     if job.keep {
-                        match write_frame(&settings.frames_dir, job.tick, &png) {
+                        let wrote = write_frame(&frames_at, job.tick, &png).map_err(|e| {
+                            if e.kind() == std::io::ErrorKind::NotFound && held.is_some() {
+                                std::io::Error::other(
+                                    "its folder was deleted or replaced while the engine runs (a new state directory?), so no frame goes there",
+                                )
+                            } else {
+                                e
+                            }
+                        });
+                        match wrote {
                             Ok(path) => {
                                 written.push(path, png.len() as u64);
                                 if frame_error.take().is_some() {
@@ -375,4 +393,21 @@ fn draw(
         }
     }
     render(&world.brickmap(), camera, world.store().palette(), opts).rgb
+}
+
+/// The path of a folder held open as `dir`, through its descriptor
+/// (`/proc/self/fd/N`): it names the folder opened even after the path it
+/// was opened by names another one. `None` without `/proc`.
+fn held_folder(dir: Option<&std::fs::File>) -> Option<PathBuf> {
+    #[cfg(unix)]
+    {
+        use std::os::fd::AsRawFd;
+        let p = PathBuf::from(format!("/proc/self/fd/{}", dir?.as_raw_fd()));
+        p.is_dir().then_some(p)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = dir;
+        None
+    }
 }
