@@ -311,3 +311,69 @@ fn the_store_overlay_shows_what_a_moving_region_left_behind() {
         .collect();
     assert_eq!(shown_in_stored, stored);
 }
+
+/// Regression (panic audit): a fixed region drains into a moat ring of
+/// made-up ground around it, stored with the region's chunk columns. A
+/// backup of such a region imported into the same world without `[stream]`
+/// (or the state resumed with the region moved) laid that moat over real
+/// columns: their ground became 0 or the moat's under intact voxels, and
+/// the world lost half its ground total. Stored columns now apply only to
+/// the tiles the stored world simulated as its own, and only onto this
+/// world's own tiles: the imported world evolves as a fresh one does.
+#[test]
+fn a_regions_backup_imported_into_the_whole_world_keeps_its_ground() {
+    let dir = std::env::temp_dir().join(format!("brickworld-stream-moat-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let config = |name: &str, stream: &str| {
+        let cfg = dir.join(name);
+        std::fs::write(
+            &cfg,
+            format!(
+                "[world]\nsource = \"terrain\"\nsize = [256, 64, 256]\nseed = 3\n{stream}\
+                 [sim]\ndt = 0.05\nscripts_dir = \"{}/scripts\"\n{}\
+                 [[scripts]]\nfile = \"water.lua\"\nparams = {{ rain = 0.5 }}\n\
+                 [camera]\nmode = \"fixed\"\neye = [96.0, 80.0, 20.0]\ntarget = [96.0, 30.0, 96.0]\n\
+                 [render]\nwidth = 32\nheight = 18\ntracer = \"cpu\"\n[control]\naddr = \"127.0.0.1:0\"\n",
+                env!("CARGO_MANIFEST_DIR"),
+                if stream.is_empty() {
+                    ""
+                } else {
+                    "region = { min = [64, 64], max = [128, 128] }\n"
+                }
+            ),
+        )
+        .unwrap();
+        cfg
+    };
+    let region = config(
+        "region.toml",
+        "[stream]\nview_distance = 64.0\nmemory_budget = \"256MiB\"\nfetchers = 1\n",
+    );
+    let whole = config("whole.toml", "");
+    run_ok(&region, &dir.join("a"), "--ticks", 10);
+    let backup = dir.join("a.bwc");
+    for (verb, cfg, state) in [("export", &region, "a"), ("import", &whole, "b")] {
+        let out = backup_cmd(verb, &backup, cfg, dir.join(state))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    run_ok(&whole, &dir.join("b"), "--ticks", 10);
+    run_ok(&whole, &dir.join("c"), "--ticks", 20);
+    let ground_at_20 = |state: &str| -> String {
+        let text = std::fs::read_to_string(dir.join(state).join("timeline.csv")).unwrap();
+        let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
+        let col = header
+            .iter()
+            .position(|h| *h == "ground_plus_sediment")
+            .unwrap();
+        let row = text.lines().find(|l| l.starts_with("20,")).unwrap();
+        row.split(',').nth(col).unwrap().to_string()
+    };
+    assert_eq!(ground_at_20("b"), ground_at_20("c"));
+}

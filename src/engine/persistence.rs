@@ -335,6 +335,25 @@ pub fn restore_chunks(
         let (a, b) = (k.min_brick(), k.min_brick() + (chunk::CHUNK_BRICKS - 1));
         a.cmple(bmax).all() && b.cmpge(bmin).all()
     };
+    // The tiles the stored world simulated as its own. A world whose
+    // simulated area was another (a streamed region elsewhere, or none)
+    // also stored the moat ring around that area: made-up ground that must
+    // not land on this world's real columns, which keep the ground read
+    // from their voxels (regression, panic audit: a region's backup
+    // imported into the whole world, or a region moved in the config,
+    // zeroed the ground of 8 chunk columns under intact voxels). With the
+    // same area, everything stored applies: its moat is this run's moat.
+    // Nor does a stored real column land on this run's moat.
+    let same_area = st.bounds == (lo, hi);
+    let (amin, amax) = crate::sim::writeback::tiles_of(st.bounds.0, st.bounds.1);
+    let (wmin, wmax) = crate::sim::writeback::tiles_of(lo, hi);
+    let stored_area = |t: crate::sim::tile::TileCoord| {
+        same_area
+            || (t.cmpge(amin).all()
+                && t.cmplt(amax).all()
+                && t.cmpge(wmin).all()
+                && t.cmplt(wmax).all())
+    };
     let (tmin, tmax) = ws.sim.tile_bounds();
     let in_sim = |k: &ColumnKey| {
         let a = k.tile(0);
@@ -422,7 +441,7 @@ pub fn restore_chunks(
                     let known = |n: &str| c.find(n).is_some();
                     let dropped = chunk::fit_channels(&mut data.channels, known, c.channels().count());
                     corrupt.extend(too_many_channels(&k.to_string(), &dropped));
-                    chunk::apply_column(k, &data, ws.sim.channels_mut());
+                    chunk::apply_column(k, &data, ws.sim.channels_mut(), stored_area);
                     n += 1;
                 }
                 Err(e) => {

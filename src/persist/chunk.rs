@@ -526,21 +526,27 @@ pub fn decode_column_payload(key: ColumnKey, payload: &[u8]) -> Result<ColumnDat
     Ok(data)
 }
 
-/// Replace chunk column `key` of `channels` by `data` (tiles the column
-/// does not hold are cleared).
-pub fn apply_column(key: ColumnKey, data: &ColumnData, channels: &mut ChannelStore) {
+/// Replace the tiles of chunk column `key` that `keep` accepts by `data`'s
+/// (those the column does not hold are cleared); the others are left as
+/// they are.
+pub fn apply_column(
+    key: ColumnKey,
+    data: &ColumnData,
+    channels: &mut ChannelStore,
+    keep: impl Fn(crate::sim::tile::TileCoord) -> bool,
+) {
     let zero = [0f64; TILE_CELLS];
     let ids: Vec<crate::sim::ChannelId> = channels.channels().map(|(id, _)| id).collect();
     for id in ids {
         for i in 0..64 {
-            if channels.get(key.tile(i), id).is_some() {
+            if keep(key.tile(i)) && channels.get(key.tile(i), id).is_some() {
                 channels.set(key.tile(i), id, &zero);
             }
         }
     }
     for (name, tiles) in &data.channels {
         let id = channels.channel(name);
-        for (t, v) in tiles {
+        for (t, v) in tiles.iter().filter(|(t, _)| keep(*t)) {
             channels.set(*t, id, v);
         }
     }
