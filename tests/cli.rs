@@ -706,6 +706,27 @@ fn conflicting_or_useless_outputs_and_flags_are_refused_up_front() {
         ],
         "is too small: the process already holds",
     );
+    // Regression (panic audit): a flight past the ±10^9 voxels a world's
+    // coordinates reach "flew" 10^12 voxels with the window pinned at the
+    // edge, exit 0; 1e300 blamed the camera.
+    for (far, step) in [("1e12", "2.5e11"), ("1e300", "1e295")] {
+        expect_failure(
+            &[
+                "bench",
+                "flight",
+                "--json",
+                j,
+                "--distance",
+                far,
+                "--step",
+                step,
+                "--frame-every",
+                far,
+                "--no-wait",
+            ],
+            "past the ±10^9 voxels a world's coordinates reach",
+        );
+    }
 }
 
 /// Regression (hostile probe): past `ulimit -f` the kernel's SIGXFSZ killed

@@ -87,6 +87,18 @@ pub fn run(
         CameraMode::Line { velocity } if velocity.length() > 0.0 => velocity.normalize(),
         _ => DVec3::X,
     };
+    // The render window's coordinates stop at ±10^9 voxels: a flight past
+    // them went on "flying" with the window pinned at the edge and
+    // reported the distance as flown (regression, panic audit).
+    let end = eye0 + dir * distance;
+    if !end.is_finite() || end.abs().max_element() > 1e9 {
+        bail!(
+            "--distance {distance}: the flight would end at ({:.0}, {:.0}, {:.0}), past the ±10^9 voxels a world's coordinates reach",
+            end.x,
+            end.y,
+            end.z
+        );
+    }
     let settings = WindowSettings {
         radius: WindowSettings::radius_for(stream.view_distance),
         budget_bytes: stream.memory_budget,
