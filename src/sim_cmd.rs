@@ -32,6 +32,9 @@ pub fn run(s: &SimSettings) -> Result<()> {
             ws.add_script(&world, src, Limits::default()).context("cannot load the script")?;
         }
         ws.vox.apply_fills(world.store(), &world.materials);
+        if let Some(w) = crate::sim::run::below_zero_warning(&ws, &world) {
+            crate::say!("{w}");
+        }
         for p in &s.params {
             let index = ws.script_index(&p.script)
                 .with_context(|| format!("--param names script '{}', which is not loaded", p.script))?;

@@ -298,3 +298,53 @@ fn vox_colours_on_the_simulations_ids_move_out_of_their_way() {
         "{err}"
     );
 }
+
+/// Regression (panic audit): column scripts see the world from y = 0 up,
+/// and a `.vox` model is centred on the origin, so they saw nothing of its
+/// lower half without a word. `sim` (and the engine) now say so when a
+/// column script runs on a world reaching below y = 0, and not for voxel
+/// scripts, which see all of it.
+#[test]
+fn column_scripts_on_a_world_below_zero_are_warned() {
+    use dot_vox::{DotVoxData, Model, Size, Voxel};
+    let data = DotVoxData {
+        version: 150,
+        index_map: Vec::new(),
+        models: vec![Model {
+            size: Size { x: 2, y: 2, z: 8 },
+            voxels: (0..8)
+                .map(|z| Voxel {
+                    x: 0,
+                    y: 0,
+                    z,
+                    i: 3,
+                })
+                .collect(),
+        }],
+        palette: dot_vox::DEFAULT_PALETTE.to_vec(),
+        materials: Vec::new(),
+        scenes: Vec::new(),
+        layers: Vec::new(),
+    };
+    let path = tmp("tower.vox");
+    let mut bytes = Vec::new();
+    data.write_vox(&mut bytes).unwrap();
+    std::fs::write(&path, bytes).unwrap();
+    let sim = |script: &str| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .args(["sim", "--steps", "1", "--script"])
+            .arg(format!("{}/scripts/{script}", env!("CARGO_MANIFEST_DIR")))
+            .arg("--out")
+            .arg(tmp("tower.png"))
+            .arg("--scene")
+            .arg(format!("vox:{}", path.display()))
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{out:?}");
+        String::from_utf8_lossy(&out.stderr).to_string()
+    };
+    let warned =
+        "column scripts see the world from y = 0 up, and this world reaches down to y = -4";
+    assert!(sim("water.lua").contains(warned));
+    assert!(!sim("water3d.lua").contains("column scripts see"));
+}

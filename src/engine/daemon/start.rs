@@ -132,6 +132,9 @@ impl Engine {
             say_reclaimed(&persistence::reclaim_materials(&db, &mut world, &declared)?);
         }
         load_scripts(&cfg, &mut world, &mut ws)?;
+        if let Some(w) = crate::sim::run::below_zero_warning(&ws, &world) {
+            crate::say!("{w}");
+        }
         // The stored chunks go over the generated world once the scripts
         // have registered their channels, so channel ids are the same as in
         // a run that never stopped.

@@ -42,6 +42,21 @@ pub fn reserved_conflicts(materials: &crate::world::MaterialRegistry) -> Option<
     })
 }
 
+/// What a world reaching below y = 0 loses to column scripts, which see
+/// the world from y = 0 up (their ground, snow and water heights start
+/// there), as a warning; `None` when `ws` runs no column script or the
+/// world starts at or above 0 (regression, panic audit: a `.vox` model is
+/// centred on the origin, and column scripts saw nothing of its lower half,
+/// without a word).
+pub fn below_zero_warning(ws: &WorldSim, world: &SceneWorld) -> Option<String> {
+    let lo = world.bounds().0.y;
+    (lo < 0 && ws.sim.script_count() > 0).then(|| {
+        format!(
+            "warning: column scripts see the world from y = 0 up, and this world reaches down to y = {lo} (a .vox model is centred on the origin): they see nothing below y = 0; voxel scripts (grid = \"voxels\") see all of it"
+        )
+    })
+}
+
 /// A simulation coupled to a scene's voxels.
 pub struct WorldSim {
     /// The column simulation.
