@@ -574,7 +574,7 @@ fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
         err.lines()
             .last()
             .unwrap()
-            .starts_with("error: the final commit failed (the previous commit is kept)"),
+            .starts_with("error: the final commit failed (nothing of it was written; the store keeps what it last committed, if anything)"),
         "{err}"
     );
     // It stopped only at tick 300 (`--until-tick`), when the final commit

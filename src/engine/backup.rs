@@ -210,7 +210,7 @@ fn import_into(
     }
     if store_file.exists() && !WorldDb::readable(dir) {
         bail!(
-            "{} exists but cannot be read (locked by a running engine, or damaged); import into an empty --state directory (nothing was changed)",
+            "{} exists but cannot be read (locked by a running engine, left unclosed by an engine stopped before its first commit, or damaged); import into an empty --state directory (nothing was changed)",
             store_file.display()
         );
     }
@@ -245,7 +245,7 @@ fn import_into(
                 dir.display()
             );
         }
-        write_everything(&mut db, st)
+        write_everything(&mut db, st).with_context(|| format!("cannot import into {}", dir.display()))
     })();
     match written {
         Ok(stats) => {

@@ -516,7 +516,13 @@ fn first_start(
         // Import the file's world whole, now: from here on the
         // store is the world, and the file is not needed.
         dirty_chunks.everything(world, ws);
-        let st = persistence::commit(db, dirty_chunks, world, ws, None)?;
+        let st = persistence::commit(db, dirty_chunks, world, ws, None).with_context(|| {
+            format!(
+                "cannot store {} in {} on the world's first start",
+                cfg.source_text,
+                db.path().display()
+            )
+        })?;
         crate::say!(
             "imported {} into {} ({} chunks, {} bytes)",
             cfg.source_text,

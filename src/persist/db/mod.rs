@@ -119,7 +119,7 @@ pub enum StoreError {
         manifest: PathBuf,
     },
     /// A commit failed; nothing of it is on disk.
-    #[error("commit failed (the previous commit is kept): {0}")]
+    #[error("commit failed (nothing of it was written; the store keeps what it last committed, if anything): {0}")]
     Commit(String),
 }
 
