@@ -1149,6 +1149,28 @@ fn special_files_in_the_state_directory_are_refused_not_waited_on() {
     }
 }
 
+/// Regression (operator probe): `manifest.json` is a copy for people and
+/// tools, yet a copy that could not be written (deleted, on a full disk)
+/// refused the start, calling it "unreadable". It is a warning now, the
+/// run goes on, and no temporary file is left.
+#[test]
+fn a_manifest_copy_that_cannot_be_written_is_a_warning() {
+    let (cfg, state, _) = setup("manifest-copy");
+    run_ok(&cfg, &state, "--ticks", 1);
+    std::fs::remove_file(state.join("manifest.json")).unwrap();
+    // Where the copy is first written: a folder, so the write fails.
+    std::fs::create_dir(state.join("manifest.json.tmp")).unwrap();
+    let (_, err) = run_ok(&cfg, &state, "--ticks", 1);
+    assert!(
+        err.contains("warning: cannot write") && err.contains("the manifest's copy"),
+        "{err}"
+    );
+    std::fs::remove_dir(state.join("manifest.json.tmp")).unwrap();
+    run_ok(&cfg, &state, "--ticks", 1);
+    assert!(state.join("manifest.json").is_file());
+    assert!(!state.join("manifest.json.tmp").exists());
+}
+
 /// Regression (hostile probe): a start refused for a missing script left a
 /// state directory it had made (a lock, a token and an empty store) behind.
 /// A directory that was there before is kept, with what it held.

@@ -245,7 +245,8 @@ fn import_into(
                 dir.display()
             );
         }
-        write_everything(&mut db, st).with_context(|| format!("cannot import into {}", dir.display()))
+        write_everything(&mut db, st)
+            .with_context(|| format!("cannot import into {}", dir.display()))
     })();
     match written {
         Ok(stats) => {

@@ -119,7 +119,9 @@ pub enum StoreError {
         manifest: PathBuf,
     },
     /// A commit failed; nothing of it is on disk.
-    #[error("commit failed (nothing of it was written; the store keeps what it last committed, if anything): {0}")]
+    #[error(
+        "commit failed (nothing of it was written; the store keeps what it last committed, if anything): {0}"
+    )]
     Commit(String),
 }
 
@@ -278,11 +280,17 @@ impl WorldDb {
         if stored.as_deref() != Some(&json[..]) {
             this.put_meta("manifest", &json)?;
         }
-        if read_manifest(&manifest_path).as_deref() != Some(&json[..]) {
-            write_atomic(&manifest_path, &json).map_err(|e| StoreError::Manifest {
-                path: manifest_path.clone(),
-                msg: e.to_string(),
-            })?;
+        // `manifest.json` is a copy for people and tools (the store's own,
+        // just checked, is what counts): one that cannot be written is a
+        // warning, not a start refused as "unreadable" (regression,
+        // operator probe: a deleted copy on a full disk stopped the start).
+        if read_manifest(&manifest_path).as_deref() != Some(&json[..])
+            && let Err(e) = write_atomic(&manifest_path, &json)
+        {
+            warnings.push(format!(
+                "cannot write {}, the manifest's copy for people and tools: {e} (the store's own manifest is intact; the copy is written again at the next start)",
+                manifest_path.display()
+            ));
         }
         Ok((this, warnings))
     }
