@@ -271,6 +271,43 @@ fn near_start(local: glam::DVec3, dir: glam::DVec3) -> (Ray, Option<f64>) {
     (ray, (t_in <= t_out && t_in.is_finite()).then_some(t_in))
 }
 
+/// What a frame's primary rays share, computed once per frame for
+/// [`render`] and [`trace_hits`] alike.
+struct PrimaryRays {
+    /// The eye in the tracer's local coordinates.
+    origin: Vec3,
+    /// An eye so far away that its local f32 coordinates are no longer
+    /// exact integers (the DDA refuses such origins): each ray starts where
+    /// it enters the exact range instead, found in f64 (regression: such an
+    /// eye saw nothing). Never the case within 2^23 voxels of the anchor,
+    /// which keeps every other image bit for bit as it was.
+    far: Option<DVec3>,
+    /// The level-of-detail factor: the same f32 product the GPU shader is
+    /// given.
+    lod_k: f32,
+    /// Each column's and row's part of the direction.
+    cols: Vec<f64>,
+    rows: Vec<f64>,
+}
+
+impl PrimaryRays {
+    fn new(tracer: &dyn Tracer, camera: &Camera, opts: &RenderOptions) -> Self {
+        let frame = tracer.frame();
+        let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
+        PrimaryRays {
+            origin: frame.to_local(camera.eye),
+            far: far_eye(camera.eye - frame.anchor.as_dvec3()),
+            lod_k: opts.lod * camera.pixel_angle() as f32,
+            cols: (0..camera.width)
+                .map(|i| camera.column_factor(i as f64 + jx))
+                .collect(),
+            rows: (0..camera.height)
+                .map(|j| camera.row_factor(j as f64 + jy))
+                .collect(),
+        }
+    }
+}
+
 /// Render `camera`'s view of `tracer` on the current rayon pool.
 pub fn render(
     tracer: &dyn Tracer,
@@ -282,22 +319,13 @@ pub fn render(
     let mut rgb = vec![0u8; w * h * 3];
     let mut depth = vec![f32::INFINITY; w * h];
     let mut hits = vec![None; w * h];
-    let frame = tracer.frame();
-    let origin = frame.to_local(camera.eye);
-    // An eye so far away that its local f32 coordinates are no longer exact
-    // integers (the DDA refuses such origins): each ray starts where it
-    // enters the exact range instead, found in f64 (regression: such an
-    // eye saw nothing). Never the case within 2^23 voxels of the anchor,
-    // which keeps every other image bit for bit as it was.
-    let far = far_eye(camera.eye - frame.anchor.as_dvec3());
-    // The same f32 product the GPU shader is given.
-    let lod_k = opts.lod * camera.pixel_angle() as f32;
-    let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
-    // Each column's and row's part of the direction, once per frame.
-    let cols: Vec<f64> = (0..w)
-        .map(|i| camera.column_factor(i as f64 + jx))
-        .collect();
-    let rows_b: Vec<f64> = (0..h).map(|j| camera.row_factor(j as f64 + jy)).collect();
+    let PrimaryRays {
+        origin,
+        far,
+        lod_k,
+        cols,
+        rows: rows_b,
+    } = PrimaryRays::new(tracer, camera, opts);
     let bw = camera.width.div_ceil(super::BEAM);
     let starts: Option<Vec<f32>> = (opts.beam && far.is_none()).then(|| {
         let bh = camera.height.div_ceil(super::BEAM);
@@ -376,15 +404,13 @@ pub fn render(
 pub fn trace_hits(tracer: &dyn Tracer, camera: &Camera, opts: &RenderOptions) -> Vec<Option<Hit>> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut hits = vec![None; w * h];
-    let frame = tracer.frame();
-    let origin = frame.to_local(camera.eye);
-    let far = far_eye(camera.eye - frame.anchor.as_dvec3());
-    let lod_k = opts.lod * camera.pixel_angle() as f32;
-    let [jx, jy] = opts.jitter.unwrap_or([0.5, 0.5]);
-    let cols: Vec<f64> = (0..w)
-        .map(|i| camera.column_factor(i as f64 + jx))
-        .collect();
-    let rows_b: Vec<f64> = (0..h).map(|j| camera.row_factor(j as f64 + jy)).collect();
+    let PrimaryRays {
+        origin,
+        far,
+        lod_k,
+        cols,
+        rows: rows_b,
+    } = PrimaryRays::new(tracer, camera, opts);
     hits.par_chunks_mut(w * TILE)
         .enumerate()
         .for_each(|(band, hits)| {
