@@ -343,18 +343,20 @@ pub fn restore_chunks(
     // imported into the whole world, or a region moved in the config,
     // zeroed the ground of 8 chunk columns under intact voxels). With the
     // same area, everything stored applies: its moat is this run's moat.
-    // Nor does a stored real column land on this run's moat.
+    // Nor does a stored real tile land on this run's moat; one outside
+    // this run's simulated area is kept as it was (it is committed again
+    // with its column, not lost).
     let same_area = st.bounds == (lo, hi);
-    let (amin, amax) = crate::sim::writeback::tiles_of(st.bounds.0, st.bounds.1);
-    let (wmin, wmax) = crate::sim::writeback::tiles_of(lo, hi);
-    let stored_area = |t: crate::sim::tile::TileCoord| {
-        same_area
-            || (t.cmpge(amin).all()
-                && t.cmplt(amax).all()
-                && t.cmpge(wmin).all()
-                && t.cmplt(wmax).all())
+    let inside = |t: crate::sim::tile::TileCoord, (a, b): (IVec2, IVec2)| {
+        t.cmpge(a).all() && t.cmplt(b).all()
     };
+    let stored_tiles = crate::sim::writeback::tiles_of(st.bounds.0, st.bounds.1);
+    let own_tiles = crate::sim::writeback::tiles_of(lo, hi);
     let (tmin, tmax) = ws.sim.tile_bounds();
+    let stored_area = |t: crate::sim::tile::TileCoord| {
+        let moat = inside(t, (tmin, tmax)) && !inside(t, own_tiles);
+        same_area || (inside(t, stored_tiles) && !moat)
+    };
     let in_sim = |k: &ColumnKey| {
         let a = k.tile(0);
         let b = a + (chunk::CHUNK_BRICKS - 1);
