@@ -99,21 +99,6 @@ pub fn no_signal_past_file_size_limit() {
     }
 }
 
-/// The (device, inode) of the file or folder at `path`, if there is one:
-/// what tells a path still names what the engine opened from a path that
-/// was deleted or replaced since (a new state directory at the same place).
-pub fn identity(path: &Path) -> Option<(u64, u64)> {
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::MetadataExt;
-        std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
-    }
-    #[cfg(not(unix))]
-    {
-        std::fs::metadata(path).ok().map(|_| (0, 0))
-    }
-}
-
 /// Whether something other than a regular file (a FIFO, a device, a
 /// directory) is at `path`: a file the engine reads or appends to there
 /// would block or never end.

@@ -791,17 +791,7 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
             assert_success(&out);
         };
         ctl(&["pause"]);
-        // Paused with no step queued: the tick the engine holds, after
-        // `before` (a step asked for has run).
-        let paused = |before: Option<u64>| {
-            wait_status(&addr, "pausing", |s| {
-                s["paused"] == true
-                    && s["steps_pending"] == 0
-                    && before.is_none_or(|t| s["tick"].as_u64() != Some(t))
-            })["tick"]
-                .as_u64()
-                .unwrap()
-        };
+        let paused = |before: Option<u64>| paused_tick(&addr, before);
         let mut tick = paused(None);
         if tick.is_multiple_of(40) {
             ctl(&["step", "1"]);

@@ -216,29 +216,19 @@ fn bad_files_give_clear_errors() {
     expect_error(SceneSpec::Heightmap(tall), "taller than");
 }
 
-/// A one-row model whose voxel `k` has colour index `colours[k]` (0-based,
-/// as `dot_vox` reports it), written to `name`.
-fn row_model(name: &str, colours: &[u8]) -> PathBuf {
-    use dot_vox::{DotVoxData, Model, Size, Voxel};
+/// A one-model `.vox` file of `size` holding `voxels`, written to `name`.
+fn model_file(name: &str, size: [u32; 3], voxels: Vec<dot_vox::Voxel>) -> PathBuf {
+    use dot_vox::{DotVoxData, Model, Size};
     let data = DotVoxData {
         version: 150,
         index_map: Vec::new(),
         models: vec![Model {
             size: Size {
-                x: colours.len() as u32,
-                y: 1,
-                z: 1,
+                x: size[0],
+                y: size[1],
+                z: size[2],
             },
-            voxels: colours
-                .iter()
-                .enumerate()
-                .map(|(k, &i)| Voxel {
-                    x: k as u8,
-                    y: 0,
-                    z: 0,
-                    i,
-                })
-                .collect(),
+            voxels,
         }],
         palette: dot_vox::DEFAULT_PALETTE.to_vec(),
         materials: Vec::new(),
@@ -250,6 +240,36 @@ fn row_model(name: &str, colours: &[u8]) -> PathBuf {
     data.write_vox(&mut bytes).unwrap();
     std::fs::write(&path, bytes).unwrap();
     path
+}
+
+/// A one-row model whose voxel `k` has colour index `colours[k]` (0-based,
+/// as `dot_vox` reports it), written to `name`.
+fn row_model(name: &str, colours: &[u8]) -> PathBuf {
+    let voxels = colours
+        .iter()
+        .enumerate()
+        .map(|(k, &i)| dot_vox::Voxel {
+            x: k as u8,
+            y: 0,
+            z: 0,
+            i,
+        })
+        .collect();
+    model_file(name, [colours.len() as u32, 1, 1], voxels)
+}
+
+/// `sim` for one step of the shipped `script` on the `.vox` model at
+/// `path`.
+fn sim_on(path: &Path, script: &str) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["sim", "--steps", "1", "--script"])
+        .arg(format!("{}/scripts/{script}", env!("CARGO_MANIFEST_DIR")))
+        .arg("--out")
+        .arg(tmp("sim_on.png"))
+        .arg("--scene")
+        .arg(format!("vox:{}", path.display()))
+        .output()
+        .unwrap()
 }
 
 /// Regression (panic audit): a model's voxels of colours 252 to 254 held
@@ -282,15 +302,7 @@ fn vox_colours_on_the_simulations_ids_move_out_of_their_way() {
     // 255 colours: the simulations' ids cannot be freed, and `sim` says so.
     let all: Vec<u8> = (0..=254).collect();
     let full = row_model("full.vox", &all);
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .args(["sim", "--steps", "1", "--script"])
-        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"))
-        .arg("--out")
-        .arg(tmp("full.png"))
-        .arg("--scene")
-        .arg(format!("vox:{}", full.display()))
-        .output()
-        .unwrap();
+    let out = sim_on(&full, "water.lua");
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(
@@ -306,40 +318,17 @@ fn vox_colours_on_the_simulations_ids_move_out_of_their_way() {
 /// scripts, which see all of it.
 #[test]
 fn column_scripts_on_a_world_below_zero_are_warned() {
-    use dot_vox::{DotVoxData, Model, Size, Voxel};
-    let data = DotVoxData {
-        version: 150,
-        index_map: Vec::new(),
-        models: vec![Model {
-            size: Size { x: 2, y: 2, z: 8 },
-            voxels: (0..8)
-                .map(|z| Voxel {
-                    x: 0,
-                    y: 0,
-                    z,
-                    i: 3,
-                })
-                .collect(),
-        }],
-        palette: dot_vox::DEFAULT_PALETTE.to_vec(),
-        materials: Vec::new(),
-        scenes: Vec::new(),
-        layers: Vec::new(),
-    };
-    let path = tmp("tower.vox");
-    let mut bytes = Vec::new();
-    data.write_vox(&mut bytes).unwrap();
-    std::fs::write(&path, bytes).unwrap();
+    let voxels = (0..8)
+        .map(|z| dot_vox::Voxel {
+            x: 0,
+            y: 0,
+            z,
+            i: 3,
+        })
+        .collect();
+    let path = model_file("tower.vox", [2, 2, 8], voxels);
     let sim = |script: &str| {
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
-            .args(["sim", "--steps", "1", "--script"])
-            .arg(format!("{}/scripts/{script}", env!("CARGO_MANIFEST_DIR")))
-            .arg("--out")
-            .arg(tmp("tower.png"))
-            .arg("--scene")
-            .arg(format!("vox:{}", path.display()))
-            .output()
-            .unwrap();
+        let out = sim_on(&path, script);
         assert!(out.status.success(), "{out:?}");
         String::from_utf8_lossy(&out.stderr).to_string()
     };

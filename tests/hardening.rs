@@ -721,15 +721,7 @@ fn two_signals_at_once_are_one_request_and_keep_the_final_commit() {
     wait_ready(&addr);
     wait_status(&addr, "no steps", |s| s["tick"].as_u64().unwrap() >= 3);
     assert_eq!(post(&addr, &state, "/pause", "").0, 200);
-    let paused = |before: Option<u64>| {
-        wait_status(&addr, "pausing", |s| {
-            s["paused"] == true
-                && s["steps_pending"] == 0
-                && before.is_none_or(|t| s["tick"].as_u64() != Some(t))
-        })["tick"]
-            .as_u64()
-            .unwrap()
-    };
+    let paused = |before: Option<u64>| paused_tick(&addr, before);
     let mut tick = paused(None);
     if tick.is_multiple_of(40) {
         assert_eq!(post(&addr, &state, "/step", "1").0, 200);

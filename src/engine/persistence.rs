@@ -335,17 +335,16 @@ pub fn restore_chunks(
         let (a, b) = (k.min_brick(), k.min_brick() + (chunk::CHUNK_BRICKS - 1));
         a.cmple(bmax).all() && b.cmpge(bmin).all()
     };
-    // The tiles the stored world simulated as its own. A world whose
-    // simulated area was another (a streamed region elsewhere, or none)
-    // also stored the moat ring around that area: made-up ground that must
-    // not land on this world's real columns, which keep the ground read
-    // from their voxels (regression, panic audit: a region's backup
-    // imported into the whole world, or a region moved in the config,
-    // zeroed the ground of 8 chunk columns under intact voxels). With the
-    // same area, everything stored applies: its moat is this run's moat.
-    // Nor does a stored real tile land on this run's moat; one outside
-    // this run's simulated area is kept as it was (it is committed again
-    // with its column, not lost).
+    // Which stored tiles apply. With the same simulated area as the store's
+    // world, all of them: its moat is this run's moat. With another (a
+    // streamed region elsewhere, or none), only the tiles that world
+    // simulated as its own, and none onto this run's moat: the stored moat
+    // ring is made-up ground that must not land on real columns, which
+    // keep the ground read from their voxels (regression, panic audit: a
+    // region's backup imported into the whole world, or a region moved in
+    // the config, zeroed the ground of 8 chunk columns under intact
+    // voxels). A stored tile outside this run's area is kept as it was, so
+    // it is committed again with its column, not lost.
     let same_area = st.bounds == (lo, hi);
     let inside = |t: crate::sim::tile::TileCoord, (a, b): (IVec2, IVec2)| {
         t.cmpge(a).all() && t.cmplt(b).all()

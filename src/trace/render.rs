@@ -319,13 +319,8 @@ pub fn render(
     let mut rgb = vec![0u8; w * h * 3];
     let mut depth = vec![f32::INFINITY; w * h];
     let mut hits = vec![None; w * h];
-    let PrimaryRays {
-        origin,
-        far,
-        lod_k,
-        cols,
-        rows: rows_b,
-    } = PrimaryRays::new(tracer, camera, opts);
+    let rays = PrimaryRays::new(tracer, camera, opts);
+    let (origin, far, lod_k) = (rays.origin, rays.far, rays.lod_k);
     let bw = camera.width.div_ceil(super::BEAM);
     let starts: Option<Vec<f32>> = (opts.beam && far.is_none()).then(|| {
         let bh = camera.height.div_ceil(super::BEAM);
@@ -348,7 +343,7 @@ pub fn render(
                 for r in 0..rows {
                     let j = band * TILE + r;
                     for i in tx..(tx + TILE).min(w) {
-                        let dir = camera.direction_from(cols[i], rows_b[j]);
+                        let dir = camera.direction_from(rays.cols[i], rays.rows[j]);
                         let (ray, shift) = match far {
                             None => (Ray::new(origin, dir.as_vec3()), Some(0.0)),
                             Some(local) => near_start(local, dir),
@@ -404,13 +399,8 @@ pub fn render(
 pub fn trace_hits(tracer: &dyn Tracer, camera: &Camera, opts: &RenderOptions) -> Vec<Option<Hit>> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut hits = vec![None; w * h];
-    let PrimaryRays {
-        origin,
-        far,
-        lod_k,
-        cols,
-        rows: rows_b,
-    } = PrimaryRays::new(tracer, camera, opts);
+    let rays = PrimaryRays::new(tracer, camera, opts);
+    let (origin, far, lod_k) = (rays.origin, rays.far, rays.lod_k);
     hits.par_chunks_mut(w * TILE)
         .enumerate()
         .for_each(|(band, hits)| {
@@ -419,7 +409,7 @@ pub fn trace_hits(tracer: &dyn Tracer, camera: &Camera, opts: &RenderOptions) ->
                 for r in 0..rows {
                     let j = band * TILE + r;
                     for i in tx..(tx + TILE).min(w) {
-                        let dir = camera.direction_from(cols[i], rows_b[j]);
+                        let dir = camera.direction_from(rays.cols[i], rays.rows[j]);
                         hits[r * w + i] = match far {
                             None => tracer.trace_from(
                                 &Ray::new(origin, dir.as_vec3()),

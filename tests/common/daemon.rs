@@ -170,6 +170,19 @@ pub fn status(addr: &str) -> serde_json::Value {
     serde_json::from_str(&body).unwrap()
 }
 
+/// The tick of a paused engine once no step is queued, after `before`
+/// when given (a step asked for has run).
+#[allow(dead_code)]
+pub fn paused_tick(addr: &str, before: Option<u64>) -> u64 {
+    wait_status(addr, "pausing", |s| {
+        s["paused"] == true
+            && s["steps_pending"] == 0
+            && before.is_none_or(|t| s["tick"].as_u64() != Some(t))
+    })["tick"]
+        .as_u64()
+        .unwrap()
+}
+
 /// `/status` once `ok` holds for it (polled every 20 ms); a panic naming
 /// `what` after 60 s.
 #[allow(dead_code)]
