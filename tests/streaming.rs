@@ -381,4 +381,45 @@ fn a_regions_backup_imported_into_the_whole_world_keeps_its_ground() {
         row.split(',').nth(col).unwrap().to_string()
     };
     assert_eq!(ground_at_20("b"), ground_at_20("c"));
+    // The region moved east by one chunk column: the old region's tiles in
+    // the column the new moat touches are not simulated, but are committed
+    // again as they were, not lost.
+    let moved = dir.join("moved.toml");
+    let text = std::fs::read_to_string(&region).unwrap();
+    std::fs::write(
+        &moved,
+        text.replace(
+            "min = [64, 64], max = [128, 128]",
+            "min = [128, 64], max = [192, 128]",
+        ),
+    )
+    .unwrap();
+    let copied = std::process::Command::new("cp")
+        .arg("-r")
+        .arg(dir.join("a"))
+        .arg(dir.join("d"))
+        .status()
+        .unwrap();
+    assert!(copied.success());
+    run_ok(&moved, &dir.join("d"), "--ticks", 10);
+    let old_ground = |state: &str| {
+        use brickworld::persist::{ColumnKey, WorldDb, chunk};
+        let identity = brickworld::engine::world_config::WorldConfig::load(&region)
+            .unwrap()
+            .identity();
+        let (db, _) = WorldDb::open(&dir.join(state), &identity).unwrap();
+        let key = ColumnKey(glam::IVec2::new(1, 1));
+        let data = chunk::decode_column(key, &db.column(key).unwrap().unwrap()).unwrap();
+        let (_, tiles) = data
+            .channels
+            .into_iter()
+            .find(|(n, _)| n == "ground")
+            .unwrap();
+        tiles
+            .into_iter()
+            .find(|(t, _)| *t == glam::IVec2::new(8, 8))
+            .map(|(_, v)| v.to_vec())
+            .expect("the old region's tile (8, 8) is stored")
+    };
+    assert_eq!(old_ground("a"), old_ground("d"));
 }
