@@ -106,6 +106,43 @@ pub fn is_there_but_not_a_file(path: &Path) -> bool {
     std::fs::metadata(path).is_ok_and(|m| !m.is_file())
 }
 
+/// The path of a folder held open as `dir`, through its descriptor
+/// (`/proc/self/fd/N`): it names the folder opened even after the path it
+/// was opened by names another one (a state directory deleted and made
+/// again, another engine's). `None` without `/proc`.
+pub fn held_folder(dir: &std::fs::File) -> Option<PathBuf> {
+    #[cfg(unix)]
+    {
+        use std::os::fd::AsRawFd;
+        let p = PathBuf::from(format!("/proc/self/fd/{}", dir.as_raw_fd()));
+        p.is_dir().then_some(p)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = dir;
+        None
+    }
+}
+
+/// Whether `path` names the file open as `file` (the same device and
+/// inode). The file is held open, so its inode cannot be reused while
+/// this is asked. Without Unix metadata, true.
+pub fn names_open_file(path: &Path, file: &std::fs::File) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (std::fs::metadata(path), file.metadata()) {
+            (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = (path, file);
+        true
+    }
+}
+
 /// Open `path` to read it, [`without_waiting`].
 pub fn open_for_reading(path: &Path) -> std::io::Result<std::fs::File> {
     without_waiting(std::fs::OpenOptions::new().read(true)).open(path)

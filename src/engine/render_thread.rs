@@ -135,7 +135,10 @@ impl RenderThread {
                 // directory of the engine started after it; the folder's
                 // inode number is reused at once, so it cannot tell them).
                 let held = std::fs::File::open(&settings.frames_dir).ok();
-                let frames_at = held_folder(held.as_ref()).unwrap_or_else(|| settings.frames_dir.clone());
+                let frames_at = held
+                    .as_ref()
+                    .and_then(crate::files::held_folder)
+                    .unwrap_or_else(|| settings.frames_dir.clone());
                 let mut written = FrameFiles::scan(&frames_at);
                 // When a frame file last failed to be written, if the last one did.
                 let mut frame_error: Option<Instant> = None;
@@ -395,19 +398,3 @@ fn draw(
     render(&world.brickmap(), camera, world.store().palette(), opts).rgb
 }
 
-/// The path of a folder held open as `dir`, through its descriptor
-/// (`/proc/self/fd/N`): it names the folder opened even after the path it
-/// was opened by names another one. `None` without `/proc`.
-fn held_folder(dir: Option<&std::fs::File>) -> Option<PathBuf> {
-    #[cfg(unix)]
-    {
-        use std::os::fd::AsRawFd;
-        let p = PathBuf::from(format!("/proc/self/fd/{}", dir?.as_raw_fd()));
-        p.is_dir().then_some(p)
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = dir;
-        None
-    }
-}

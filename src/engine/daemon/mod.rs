@@ -152,7 +152,6 @@ pub struct Engine {
     db: WorldDb,
     watcher: Option<ScriptWatcher>,
     timeline: Timeline,
-    timeline_path: PathBuf,
     camera: CameraSettings,
     /// The camera set through `/camera` (stored with each commit).
     camera_override: Option<CameraOverride>,

@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use super::Engine;
 use crate::engine::control::{ParamStatus, ScriptStatus, Status};
-use crate::engine::timeline::{Row, Timeline};
+use crate::engine::timeline::Row;
 use crate::sim::{StepReport, WorldSim};
 
 impl Engine {
@@ -19,7 +19,7 @@ impl Engine {
         // (the old file is moved aside) rather than shifted columns.
         let columns = timeline_columns(&self.ws);
         if columns != self.timeline.extra_columns()
-            && let Ok(t) = Timeline::open(&self.timeline_path, &columns)
+            && let Ok(t) = self.timeline.reopen(&columns)
         {
             self.timeline = t;
         }

@@ -276,7 +276,6 @@ impl Engine {
             db,
             watcher,
             timeline,
-            timeline_path: opts.state.join("timeline.csv"),
             dirty_pending: FxHashSet::default(),
             dirty_chunks,
             mirror_sent: false,

@@ -94,6 +94,24 @@ const MAX_HEADER_BYTES: u64 = 1 << 20;
 /// A timeline file is rotated to `timeline.1.csv` past this size.
 pub const ROTATE_BYTES: u64 = 32 << 20;
 
+/// Where the timeline named `path` is reached: in the folder held open
+/// as `folder`, where there is one.
+fn reached(path: &Path, folder: Option<&File>) -> std::path::PathBuf {
+    match (folder.and_then(crate::files::held_folder), path.file_name()) {
+        (Some(dir), Some(name)) => dir.join(name),
+        _ => path.to_path_buf(),
+    }
+}
+
+/// `other`, a file in the timeline's folder reached through the held
+/// folder, named as the user names that folder (beside `path`).
+fn beside(path: &Path, other: &Path) -> std::path::PathBuf {
+    match other.file_name() {
+        Some(name) => path.with_file_name(name),
+        None => other.to_path_buf(),
+    }
+}
+
 /// A free name beside `path` for a timeline set aside:
 /// `timeline.<unix seconds>.csv` (a second one in the same second must not
 /// overwrite the first).
@@ -169,7 +187,14 @@ fn prune_aside(path: &Path) {
 /// An append-only CSV timeline.
 pub struct Timeline {
     file: File,
+    /// The path it was opened by, as messages name it.
     path: std::path::PathBuf,
+    /// Its folder, held open: the file is opened again there, never in
+    /// another folder made at the same path since.
+    folder: Option<File>,
+    /// Said that `path` no longer names `file` and it could not be made
+    /// again (said once until it can).
+    astray: bool,
     header: String,
     /// Per-script columns in the header.
     extra: usize,
@@ -188,6 +213,30 @@ impl Timeline {
     /// per-script columns `extra` after the fixed ones. An existing file
     /// with another header is renamed `timeline.<unix seconds>.csv` first.
     pub fn open(path: &Path, extra: &[String]) -> Result<Self> {
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        Self::open_in(path, File::open(dir).ok(), extra)
+    }
+
+    /// The same file opened again, in the folder held since the start,
+    /// with the per-script columns `extra` (a file there with another
+    /// header is moved aside first, as [`Timeline::open`] does).
+    pub fn reopen(&self, extra: &[String]) -> Result<Self> {
+        let folder = self.folder.as_ref().and_then(|f| f.try_clone().ok());
+        Self::open_in(&self.path, folder, extra)
+    }
+
+    /// Where the file is reached: through the held folder where there is
+    /// one, so a folder made at the same path since is never written.
+    fn at(&self) -> std::path::PathBuf {
+        reached(&self.path, self.folder.as_ref())
+    }
+
+
+    fn open_in(path: &Path, folder: Option<File>, extra: &[String]) -> Result<Self> {
+        let at = reached(path, folder.as_ref());
         let header = COLUMNS
             .iter()
             .map(|c| c.to_string())
@@ -197,30 +246,33 @@ impl Timeline {
         // Only a regular file is read or appended to: a FIFO there hung the
         // engine at start (and it ignored SIGTERM), a link to /dev/zero
         // filled memory looking for a newline (regression).
-        if crate::files::is_there_but_not_a_file(path) {
+        if crate::files::is_there_but_not_a_file(&at) {
             bail!(
                 "{} is not a regular file: move it away (the engine writes its timeline there)",
                 path.display()
             );
         }
-        if let Ok(f) = crate::files::open_for_reading(path) {
+        if let Ok(f) = crate::files::open_for_reading(&at) {
             let mut first = String::new();
             let _ = BufReader::new(f.take(MAX_HEADER_BYTES)).read_line(&mut first);
             if first.trim_end() != header {
-                let aside = aside_path(path);
-                std::fs::rename(path, &aside).with_context(|| {
+                let aside = aside_path(&at);
+                std::fs::rename(&at, &aside).with_context(|| {
                     format!(
                         "cannot move {} aside to {}",
                         path.display(),
-                        aside.display()
+                        beside(path, &aside).display()
                     )
                 })?;
-                prune_aside(path);
+                prune_aside(&at);
             }
         }
         let mut t = Timeline {
-            file: Self::create(path, &header)?,
+            file: Self::create(&at, &header)
+                .with_context(|| format!("cannot open {}", path.display()))?,
             path: path.to_path_buf(),
+            folder,
+            astray: false,
             header,
             extra: extra.len(),
             extra_names: extra.to_vec(),
@@ -236,18 +288,43 @@ impl Timeline {
         &self.extra_names
     }
 
-    fn create(path: &Path, header: &str) -> Result<File> {
+    fn create(path: &Path, header: &str) -> std::io::Result<File> {
         let fresh = !path.exists();
-        let mut file = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .with_context(|| format!("cannot open {}", path.display()))?;
+        let mut file = OpenOptions::new().create(true).append(true).open(path)?;
         if fresh {
-            writeln!(file, "{header}")
-                .with_context(|| format!("cannot write {}", path.display()))?;
+            writeln!(file, "{header}")?;
         }
         Ok(file)
+    }
+
+    /// Open the file again when its path no longer names it (deleted,
+    /// moved, or replaced while the engine ran): rows went on into the
+    /// file held open, which nothing named, without a word (regression,
+    /// operator probe). When it cannot be made again (a folder is there),
+    /// that is said once and rows go on into the file held open.
+    fn follow_path(&mut self, tick: u64) {
+        if crate::files::names_open_file(&self.at(), &self.file) {
+            return;
+        }
+        match self.reopen(&self.extra_names) {
+            Ok(t) => {
+                crate::say!(
+                    "{} was moved, removed or replaced while the engine ran: a new one starts at tick {tick}",
+                    self.path.display()
+                );
+                self.file = t.file;
+                self.written = t.written;
+                self.astray = false;
+            }
+            Err(e) if !self.astray => {
+                self.astray = true;
+                crate::say!(
+                    "warning: {} was moved, removed or replaced while the engine ran, and cannot be made again: {e:#}; rows from tick {tick} go on into the file the engine holds open, which that path no longer names, until it can",
+                    self.path.display()
+                );
+            }
+            Err(_) => {}
+        }
     }
 
     /// Append a row. Errors never stop the engine: the first row that
@@ -286,10 +363,12 @@ impl Timeline {
             line.push_str(&v);
         }
         line.push('\n');
+        self.follow_path(r.tick);
+        let at = self.at();
         if self.written + line.len() as u64 > ROTATE_BYTES
-            && std::fs::rename(&self.path, self.path.with_extension("1.csv")).is_ok()
+            && std::fs::rename(&at, at.with_extension("1.csv")).is_ok()
         {
-            match Self::create(&self.path, &self.header) {
+            match Self::create(&at, &self.header) {
                 Ok(f) => {
                     self.file = f;
                     self.written = self.header.len() as u64 + 1;
@@ -343,7 +422,8 @@ impl Timeline {
     /// if anything was dropped.
     pub fn drop_rows_after(&mut self, tick: u64) -> Result<Option<std::path::PathBuf>> {
         let cannot = || format!("cannot trim {}", self.path.display());
-        let text = crate::files::read_bounded(&self.path, ROTATE_BYTES * 2).with_context(cannot)?;
+        let at = self.at();
+        let text = crate::files::read_bounded(&at, ROTATE_BYTES * 2).with_context(cannot)?;
         let mut keep = 0usize;
         for (i, line) in text.split_inclusive(|&b| b == b'\n').enumerate() {
             if !line.ends_with(b"\n") {
@@ -370,7 +450,7 @@ impl Timeline {
         } else {
             [header, &text[keep..]].concat()
         };
-        let aside = aside_path(&self.path);
+        let aside = aside_path(&at);
         if let Err(e) = std::fs::write(&aside, &dropped) {
             // No empty or partial copy is left behind (regression,
             // operator probe: each start on a full disk left a 0-byte one).
@@ -378,13 +458,13 @@ impl Timeline {
             bail!(
                 "cannot copy the rows after tick {tick} of {} to {}: {e}; they stay, so the ticks run again appear twice",
                 self.path.display(),
-                aside.display()
+                beside(&self.path, &aside).display()
             );
         }
         self.file.set_len(keep as u64).with_context(cannot)?;
         self.written = keep as u64;
-        prune_aside(&self.path);
-        Ok(Some(aside))
+        prune_aside(&at);
+        Ok(Some(beside(&self.path, &aside)))
     }
 }
 
@@ -433,11 +513,15 @@ mod tests {
         let path = dir.join("timeline.csv");
         let mut t = Timeline::open(&path, &[]).unwrap();
         t.record(&row(1));
+        // The file becomes /dev/full, and its path too (a path that no
+        // longer names the file held is opened again).
         let good = std::mem::replace(&mut t.file, File::create("/dev/full").unwrap());
+        let folder = t.folder.take();
+        t.path = "/dev/full".into();
         t.record(&row(2));
         t.record(&row(3));
         assert_eq!(t.failing, Some((2, 2)));
-        t.file = good;
+        (t.file, t.folder, t.path) = (good, folder, path.clone());
         t.record(&row(4));
         assert_eq!(t.failing, None);
         let text = std::fs::read_to_string(&path).unwrap();
@@ -448,6 +532,76 @@ mod tests {
             .collect();
         assert_eq!(ticks, ["1", "4"]);
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    fn ticks_in(path: &Path) -> Vec<String> {
+        let text = std::fs::read_to_string(path).unwrap();
+        assert!(text.starts_with("tick,"), "a header first: {text}");
+        text.lines()
+            .skip(1)
+            .map(|l| l.split(',').next().unwrap().to_string())
+            .collect()
+    }
+
+    /// Regression (operator probe): a `timeline.csv` removed, or replaced
+    /// by a folder, while the engine ran took its rows into the file held
+    /// open, which nothing named, without a word. A removed file starts
+    /// again (with its header); a folder there is said, its rows go on
+    /// into the held file, and once the folder is gone a new file starts.
+    #[cfg(unix)]
+    #[test]
+    fn a_timeline_removed_or_replaced_while_running_starts_again() {
+        let dir = std::env::temp_dir().join(format!("bw-timeline-gone-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("timeline.csv");
+        let mut t = Timeline::open(&path, &["ms:x".to_string()]).unwrap();
+        t.record(&row(1));
+        std::fs::remove_file(&path).unwrap();
+        t.record(&row(2));
+        assert_eq!(ticks_in(&path), ["2"]);
+        // Moved away: the moved file keeps its rows, a new one starts.
+        std::fs::rename(&path, dir.join("old.csv")).unwrap();
+        t.record(&row(3));
+        assert_eq!(ticks_in(&dir.join("old.csv")), ["2"]);
+        assert_eq!(ticks_in(&path), ["3"]);
+        // A folder in its place: said once, and nothing is written into it.
+        std::fs::remove_file(&path).unwrap();
+        std::fs::create_dir(&path).unwrap();
+        t.record(&row(4));
+        t.record(&row(5));
+        assert!(t.astray);
+        assert_eq!(std::fs::read_dir(&path).unwrap().count(), 0);
+        std::fs::remove_dir(&path).unwrap();
+        t.record(&row(6));
+        assert!(!t.astray);
+        assert_eq!(ticks_in(&path), ["6"]);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The timeline is written in the folder it was opened in, never in
+    /// another made at the same path since (the frames' rule: a stale
+    /// engine must not write into a new engine's state directory).
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_timeline_never_writes_into_a_folder_made_at_its_path_since() {
+        let base = std::env::temp_dir().join(format!("bw-timeline-swap-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        let dir = base.join("state");
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("timeline.csv");
+        let mut t = Timeline::open(&path, &[]).unwrap();
+        t.record(&row(1));
+        std::fs::rename(&dir, base.join("moved")).unwrap();
+        std::fs::create_dir(&dir).unwrap();
+        t.record(&row(2));
+        // A reload that changes the columns opens it again: in the old folder.
+        let mut t = t.reopen(&["ms:y".to_string()]).unwrap();
+        t.record(&row(3));
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
+        let moved = base.join("moved").join("timeline.csv");
+        assert_eq!(ticks_in(&moved), ["3"]);
+        let _ = std::fs::remove_dir_all(&base);
     }
 
     #[test]
