@@ -397,4 +397,3 @@ fn draw(
     }
     render(&world.brickmap(), camera, world.store().palette(), opts).rgb
 }
-

@@ -234,7 +234,6 @@ impl Timeline {
         reached(&self.path, self.folder.as_ref())
     }
 
-
     fn open_in(path: &Path, folder: Option<File>, extra: &[String]) -> Result<Self> {
         let at = reached(path, folder.as_ref());
         let header = COLUMNS
