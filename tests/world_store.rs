@@ -919,6 +919,32 @@ fn a_backup_with_forged_bounds_is_refused_clearly() {
     }
 }
 
+/// Regression (closing a known gap): a backup whose materials hold ids 252
+/// to 254 under other names (a `.vox` model of more than 251 colours) was
+/// imported with exit 0, and only the start refused it. The import refuses
+/// it, naming the materials, and writes no store.
+#[test]
+fn a_backup_whose_materials_hold_the_simulations_ids_is_refused_by_import() {
+    use brickworld::engine::checkpoint::SimExtras;
+    use brickworld::world::MaterialKind;
+    let (cfg, state, _) = setup("reservedids");
+    let bounds = (IVec3::ZERO, IVec3::new(48, 32, 48));
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.set_voxel(IVec3::new(5, 5, 5), 253);
+    let mut extras = SimExtras::default();
+    extras.materials = vec![
+        (1, "stone".into(), MaterialKind::Solid, 1.0),
+        (253, "m253".into(), MaterialKind::Solid, 1.0),
+    ];
+    let file = state.parent().unwrap().join("reserved.bwc");
+    let channels = ChannelStore::default();
+    write_backup(&cfg, &file, &store, bounds, &channels, &[], &extras);
+    let into = state.parent().unwrap().join("reserved-into");
+    let out = import(&file, &cfg, &into);
+    common::cli::assert_clear_failure(&out, "materials on the simulations' ids", "m253 (id 253)");
+    assert!(!into.exists(), "a refused import leaves no directory");
+}
+
 /// Regression (fuzzing): a backup whose bounds were forged to miss part of
 /// its world imported with exit 0, and the bricks, voxel channels and
 /// column channels outside them were dropped without a word. Each is now

@@ -26,6 +26,13 @@ fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
             world.store().palette(),
         );
     }
+    // A simulation re-registers ids 252 to 254 as water, snow and
+    // sediment: stored materials there would change names in the copy, and
+    // the start would refuse the world anyway (regression: only the start
+    // refused such a world, after the import had said it succeeded).
+    if let Some(msg) = crate::sim::run::reserved_conflicts(&world.materials) {
+        bail!("{msg} (nothing was changed)");
+    }
     let mut ws = WorldSim::with_edges(&mut world, true);
     ws.sim.set_channels(st.channels);
     ws.vox.set_channels(st.extras.voxel_channels.clone());
