@@ -931,11 +931,13 @@ fn a_backup_whose_materials_hold_the_simulations_ids_is_refused_by_import() {
     let bounds = (IVec3::ZERO, IVec3::new(48, 32, 48));
     let mut store = BrickStore::new(Palette::grey_ramp());
     store.set_voxel(IVec3::new(5, 5, 5), 253);
-    let mut extras = SimExtras::default();
-    extras.materials = vec![
-        (1, "stone".into(), MaterialKind::Solid, 1.0),
-        (253, "m253".into(), MaterialKind::Solid, 1.0),
-    ];
+    let extras = SimExtras {
+        materials: vec![
+            (1, "stone".into(), MaterialKind::Solid, 1.0),
+            (253, "m253".into(), MaterialKind::Solid, 1.0),
+        ],
+        ..SimExtras::default()
+    };
     let file = state.parent().unwrap().join("reserved.bwc");
     let channels = ChannelStore::default();
     write_backup(&cfg, &file, &store, bounds, &channels, &[], &extras);
