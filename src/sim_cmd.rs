@@ -96,6 +96,7 @@ impl<'a> SimRun<'a> {
             ws.add_script(&world, src, Limits::default())
                 .context("cannot load the script")?;
         }
+        ws.check_memory()?;
         ws.vox.apply_fills(world.store(), &world.materials);
         if let Some(w) = crate::sim::run::below_zero_warning(&ws, &world) {
             crate::say!("{w}");

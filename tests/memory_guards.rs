@@ -554,3 +554,121 @@ fn a_large_script_runs_the_same_world_as_a_small_one() {
     assert_eq!(small, large);
     assert!(small_png == large_png, "the final images differ");
 }
+
+/// `bash -c "ulimit -v KB && exec brickworld ARGS"`.
+fn capped(kb: u64, args: &str) -> Output {
+    std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v {kb} && exec '{}' {args}",
+            env!("CARGO_BIN_EXE_brickworld")
+        ))
+        .output()
+        .unwrap()
+}
+
+/// Regression (scale probe): the column simulation's channels were not
+/// counted. Three scripts on a 6144 × 4096 world, which fits alone,
+/// aborted at their first step with "memory allocation failed"
+/// (status 134). They are refused before any step, with the need.
+#[test]
+fn column_scripts_larger_than_memory_are_refused_before_the_first_step() {
+    let scripts = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+    let out_png = tmp("colsim-oom", "out.png");
+    let args = format!(
+        "sim --size 6144x8x4096 --steps 2 --script '{}' --script '{}' --script '{}' --out '{}'",
+        scripts.join("water.lua").display(),
+        scripts.join("erosion.lua").display(),
+        scripts.join("snow.lua").display(),
+        out_png.display()
+    );
+    let out = capped(3_000_000, &args);
+    assert_clear_failure(
+        &out,
+        "three column scripts over 6144 x 4096",
+        "the column simulation: not enough memory",
+    );
+    assert!(!out_png.exists(), "nothing is written");
+}
+
+/// An endless world's config with `view_distance` and `memory_budget`.
+fn endless_world(name: &str, view_distance: f64, budget: &str) -> PathBuf {
+    let text =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("worlds/endless.toml"))
+            .unwrap()
+            .replace(
+                "view_distance = 768.0",
+                &format!("view_distance = {view_distance:.1}"),
+            )
+            .replace(
+                "memory_budget = \"512MiB\"",
+                &format!("memory_budget = \"{budget}\""),
+            )
+            .replace(
+                "scripts_dir = \"../scripts\"",
+                &format!(
+                    "scripts_dir = \"{}\"",
+                    Path::new(env!("CARGO_MANIFEST_DIR"))
+                        .join("scripts")
+                        .display()
+                ),
+            );
+    assert!(text.contains(&format!("memory_budget = \"{budget}\"")));
+    let path = tmp(name, "world.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// Regression (scale probe): a view distance whose window cannot fit, and
+/// a memory budget larger than the machine (1 TiB), aborted `bench flight`
+/// and the engine with "memory allocation failed" (status 134). The window
+/// that cannot fit is refused with its need, by `bench flight` and by the
+/// engine at start; a budget past what the process can have is lowered to
+/// it, with a warning, and the flight runs.
+#[test]
+fn a_view_window_or_budget_larger_than_memory_is_refused_or_lowered() {
+    let far = endless_world("window-oom", 16384.0, "15.7GiB");
+    let json = far.with_file_name("flight.json");
+    let out = capped(
+        6_000_000,
+        &format!(
+            "bench flight --world '{}' --distance 200 --json '{}'",
+            far.display(),
+            json.display()
+        ),
+    );
+    assert_clear_failure(&out, "a window of 16384 voxels' view", "not enough memory");
+    let state = far.with_file_name("state");
+    let out = capped(
+        6_000_000,
+        &format!(
+            "run '{}' --state '{}' --addr 127.0.0.1:0 --ticks 1",
+            far.display(),
+            state.display()
+        ),
+    );
+    assert_clear_failure(
+        &out,
+        "the engine with a 16384-voxel view",
+        "not enough memory",
+    );
+    let big = endless_world("budget-oom", 768.0, "1TiB");
+    let json = big.with_file_name("flight.json");
+    let out = capped(
+        4_000_000,
+        &format!(
+            "bench flight --world '{}' --distance 300 --json '{}'",
+            big.display(),
+            json.display()
+        ),
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("the window keeps to"), "{err}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert!(
+        report["budget_bytes"].as_u64().unwrap() < 4_000_000 * 1024,
+        "the report gives the budget kept to: {report}"
+    );
+}

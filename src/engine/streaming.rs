@@ -315,6 +315,21 @@ pub fn check_budget(
             budget::human((need + need / 16).next_multiple_of(1 << 20)),
         );
     }
+    crate::scene::RenderWindow::check_fits(plan.window.radius, plan.gen_.height())?;
+    // The machine must have it too, whatever the budget says (regression,
+    // scale probe: the minimum's advice, followed on a smaller machine,
+    // aborted the engine with "memory allocation failed").
+    let have = now + budget::headroom_bytes();
+    if need > have {
+        bail!(
+            "one view needs at least {} (with a window of {} chunk columns for the view distance), more than this process can have: {} ({} held, {} more available); lower [stream] view_distance or shrink [sim] region (or radius)",
+            budget::human(need),
+            window_cols,
+            budget::human(have),
+            budget::human(now),
+            budget::human(have - now)
+        );
+    }
     plan.window.budget_bytes = budget;
     Ok(())
 }

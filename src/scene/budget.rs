@@ -82,22 +82,68 @@ pub fn available_bytes() -> u64 {
     {
         avail = avail.min(kb * 1024);
     }
-    let read_u64 = |p: &str| {
-        std::fs::read_to_string(p)
-            .ok()
-            .and_then(|s| s.trim().parse::<u64>().ok())
-    };
-    if let (Some(max), Some(cur)) = (
-        read_u64("/sys/fs/cgroup/memory.max"),
-        read_u64("/sys/fs/cgroup/memory.current"),
-    ) {
-        avail = avail.min(max.saturating_sub(cur));
+    if let Ok(groups) = std::fs::read_to_string("/proc/self/cgroup")
+        && let Some(room) = cgroup_room(Path::new("/sys/fs/cgroup"), &groups)
+    {
+        avail = avail.min(room);
     }
     if let Some(v) = address_space_limit() {
         // The address space also holds code and mappings: keep a margin.
         avail = avail.min(v.saturating_sub(256 << 20));
     }
     avail
+}
+
+/// What this process's memory cgroups leave it: at each level from its own
+/// group up to the hierarchy's root, the limit less the usage, the least
+/// of them; `None` without a limit. `groups` is `/proc/self/cgroup`, and
+/// `root` where the hierarchies are mounted: v2 (`0::PATH`) at `root` or
+/// `root/unified`, with `memory.max` and `memory.current`; v1's memory
+/// controller (`N:...memory...:PATH`) at `root/memory`, with
+/// `memory.limit_in_bytes` and `memory.usage_in_bytes` (regression, scale
+/// probe: only `root/memory.max` was read, so a v1 limit or a v2 group
+/// below the root was not seen, and a world that could not fit was built
+/// until the OOM killer ended it).
+fn cgroup_room(root: &Path, groups: &str) -> Option<u64> {
+    let read_u64 = |p: &Path| {
+        std::fs::read_to_string(p)
+            .ok()
+            .and_then(|s| s.trim().parse::<u64>().ok())
+    };
+    let mut room: Option<u64> = None;
+    let mut walk = |mount: &Path, group: &str, limit: &str, usage: &str| {
+        let mut dir = mount.join(group.trim_start_matches('/'));
+        loop {
+            if let (Some(max), Some(cur)) = (read_u64(&dir.join(limit)), read_u64(&dir.join(usage)))
+            {
+                let left = max.saturating_sub(cur);
+                room = Some(room.map_or(left, |r| r.min(left)));
+            }
+            if dir == mount || !dir.pop() || !dir.starts_with(mount) {
+                break;
+            }
+        }
+    };
+    for line in groups.lines() {
+        let mut parts = line.splitn(3, ':');
+        let (Some(_), Some(controllers), Some(group)) = (parts.next(), parts.next(), parts.next())
+        else {
+            continue;
+        };
+        if controllers.is_empty() {
+            for mount in [root.to_path_buf(), root.join("unified")] {
+                walk(&mount, group, "memory.max", "memory.current");
+            }
+        } else if controllers.split(',').any(|c| c == "memory") {
+            walk(
+                &root.join("memory"),
+                group,
+                "memory.limit_in_bytes",
+                "memory.usage_in_bytes",
+            );
+        }
+    }
+    room
 }
 
 /// This process's address-space limit in bytes (`ulimit -v`), if set.
@@ -246,5 +292,52 @@ mod tests {
         assert_eq!(super::human(486 << 20), "486 MiB");
         assert_eq!(super::human(3 << 29), "1.5 GiB");
         assert_eq!(super::human(2048), "2 KiB");
+    }
+
+    /// Regression (scale probe): a v1 memory limit, and a v2 limit on a
+    /// group below the root, were not seen. Each level from the process's
+    /// group up counts, and the tightest wins; "max" and v1's unlimited
+    /// value leave the room as it is.
+    #[test]
+    fn cgroup_limits_of_v1_and_of_nested_v2_groups_are_seen() {
+        let root = std::env::temp_dir().join(format!("bw-cgroup-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let put = |dir: &str, files: &[(&str, &str)]| {
+            let d = root.join(dir);
+            std::fs::create_dir_all(&d).unwrap();
+            for (name, text) in files {
+                std::fs::write(d.join(name), text).unwrap();
+            }
+        };
+        let v1 = [
+            ("memory.limit_in_bytes", "9223372036854771712\n"),
+            ("memory.usage_in_bytes", "1000\n"),
+        ];
+        put("memory", &v1);
+        put("memory/jobs", &v1);
+        put(
+            "memory/jobs/one",
+            &[
+                ("memory.limit_in_bytes", "2147483648\n"),
+                ("memory.usage_in_bytes", "1073741824\n"),
+            ],
+        );
+        let v1_groups = "9:name=systemd:/\n4:cpu,memory:/jobs/one\n0::/\n";
+        assert_eq!(super::cgroup_room(&root, v1_groups), Some(1 << 30));
+        // v2: the parent's limit is the tighter one.
+        put("a", &[("memory.max", "max\n"), ("memory.current", "5\n")]);
+        put(
+            "a/b",
+            &[("memory.max", "3000\n"), ("memory.current", "1000\n")],
+        );
+        put(
+            "a/b/c",
+            &[("memory.max", "10000\n"), ("memory.current", "500\n")],
+        );
+        assert_eq!(super::cgroup_room(&root, "0::/a/b/c\n"), Some(2000));
+        // No limit anywhere: nothing said.
+        assert_eq!(super::cgroup_room(&root, "0::/a\n"), None);
+        assert_eq!(super::cgroup_room(&root, "garbage\n"), None);
+        let _ = std::fs::remove_dir_all(&root);
     }
 }

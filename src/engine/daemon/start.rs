@@ -132,6 +132,8 @@ impl Engine {
             say_reclaimed(&persistence::reclaim_materials(&db, &mut world, &declared)?);
         }
         load_scripts(&cfg, &mut world, &mut ws)?;
+        ws.check_memory()
+            .with_context(|| format!("{}: [sim] scripts", cfg.file))?;
         if let Some(w) = crate::sim::run::below_zero_warning(&ws, &world) {
             crate::say!("{w}");
         }

@@ -151,13 +151,13 @@ impl RenderWindow {
         overlay: Option<ColumnOverlay>,
     ) -> Result<Self, SceneError> {
         let r = settings.radius.max(1);
+        let center = Self::column_of(eye);
+        let (lo, hi) = Self::bounds(center, r, gen_.height());
         let settings = WindowSettings {
             radius: r,
             fetchers: settings.fetchers.max(1),
-            ..settings
+            budget_bytes: Self::affordable(settings.budget_bytes, hi - lo)?,
         };
-        let center = Self::column_of(eye);
-        let (lo, hi) = Self::bounds(center, r, gen_.height());
         let world = SceneWorld::new(BrickStore::new(gen_.palette().clone()), lo, hi)?;
         let (req_tx, req_rx) = unbounded::<Request>();
         let (res_tx, res_rx) = unbounded::<Answer>();
@@ -209,6 +209,64 @@ impl RenderWindow {
         w.world.store.take_modified();
         w.request();
         Ok(w)
+    }
+
+    /// `budget`, or less where the machine has less: the window (a box of
+    /// `size` voxels, estimated as a built world of that size is: its grid
+    /// and every column's bricks) must fit what this process may still
+    /// allocate, and the budget must not promise the cache more than that
+    /// (regression, scale probe: a view distance whose window could not
+    /// fit, or a budget of 1 TiB on a machine of a few GiB, aborted the
+    /// engine and `bench flight` with "memory allocation failed", or had
+    /// them killed out of memory).
+    fn affordable(budget: u64, size: IVec3) -> Result<u64, SceneError> {
+        use crate::scene::budget::{headroom_bytes, human, rss_kb};
+        Self::check_size(size)?;
+        let room = headroom_bytes();
+        // A quarter kept back: tables grow by doubling, the old beside the new.
+        let most = rss_kb() * 1024 + room / 4 * 3;
+        if budget > most {
+            crate::say!(
+                "warning: the memory budget {} is more than this process can have ({} with what it may still allocate): the window keeps to {}",
+                human(budget),
+                human(most),
+                human(most)
+            );
+            return Ok(most);
+        }
+        Ok(budget)
+    }
+
+    /// Refuse a window of `radius` chunk columns over a world of `height`
+    /// voxels that would not fit what this process may still allocate
+    /// (the engine asks at start, before the renderer opens it).
+    pub fn check_fits(radius: i32, height: i32) -> Result<(), SceneError> {
+        let (lo, hi) = Self::bounds(IVec2::ZERO, radius.max(1), height);
+        Self::check_size(hi - lo)
+    }
+
+    fn check_size(size: IVec3) -> Result<(), SceneError> {
+        use crate::scene::budget::{headroom_bytes, human, world_bytes};
+        let (need, room) = (world_bytes(size), headroom_bytes());
+        if need > room {
+            return Err(SceneError::OutOfMemory {
+                what: "the view window".into(),
+                msg: format!(
+                    "a window of {} by {} voxels needs about {}; {} is available: lower [stream] view_distance",
+                    size.x,
+                    size.z,
+                    human(need),
+                    human(room)
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// The memory budget the window keeps to: the one asked for, or less
+    /// where the machine has less.
+    pub fn budget_bytes(&self) -> u64 {
+        self.settings.budget_bytes
     }
 
     fn column_of(eye: DVec3) -> IVec2 {
