@@ -737,14 +737,7 @@ fn two_signals_at_once_are_one_request_and_keep_the_final_commit() {
     // Apart enough to arrive as two signals, not one pending signal.
     std::thread::sleep(Duration::from_millis(100));
     let _ = kill();
-    let t = Instant::now();
-    let code = loop {
-        if let Some(s) = d.try_wait().unwrap() {
-            break s;
-        }
-        assert!(t.elapsed() < Duration::from_secs(30), "it did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let code = wait_for_exit(&mut d, 30);
     assert!(code.success(), "{code:?}");
     assert_eq!(stored_tick(&cfg, &state), Some(tick));
 }
@@ -1487,4 +1480,149 @@ fn a_half_closed_client_gets_its_answer_and_a_closed_viewer_frees_its_connection
         std::thread::sleep(Duration::from_millis(200));
     }
     assert_success(&stop(d));
+}
+
+/// Regression (concurrency probe): a command answered 200 just before a
+/// stop was dropped: the loop ended without applying the queue, so a
+/// camera set then was lost across the restart, though it is committed
+/// state. Commands queued before the stop are applied before the final
+/// commit, and one sent once the stop has begun gets 503, not 200.
+#[test]
+fn a_command_answered_before_a_stop_is_applied_and_committed() {
+    let (cfg, state, addr) = setup("cmdbeforestop");
+    // Every commit takes 1.5 s (test hook): the loop is held in the
+    // commit a /commit asks for while the camera is queued behind it.
+    let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "1500"));
+    wait_ready(&addr);
+    assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    paused_tick(&addr, None);
+    let commit = {
+        let (addr, state) = (addr.clone(), state.clone());
+        std::thread::spawn(move || post(&addr, &state, "/commit", "").0)
+    };
+    std::thread::sleep(Duration::from_millis(300));
+    let cam = "{\"eye\": [41, 31, 41], \"target\": [20, 5, 20], \"fov\": 45}";
+    assert_eq!(post(&addr, &state, "/camera", cam).0, 200);
+    let _ = std::process::Command::new("kill")
+        .args(["-TERM", &d.id().to_string()])
+        .status();
+    // The stop has begun: a command now is refused, not answered 200.
+    std::thread::sleep(Duration::from_millis(100));
+    let (code, body) = post(&addr, &state, "/pause", "");
+    assert_eq!(code, 503, "{body}");
+    assert!(body.contains("stopping"), "{body}");
+    assert_eq!(commit.join().unwrap(), 200);
+    let code = wait_for_exit(&mut d, 30);
+    assert!(code.success(), "{code:?}");
+    let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
+    wait_ready(&addr);
+    let camera = status(&addr)["camera"].clone();
+    assert_eq!(camera["mode"], "set", "{camera}");
+    assert_eq!(
+        camera["eye"],
+        serde_json::json!([41.0, 31.0, 41.0]),
+        "{camera}"
+    );
+    assert!(stop(d).status.success());
+}
+
+/// Regression (concurrency probe): while the engine loaded its world,
+/// `/status` answered made-up defaults (tick 0, no scripts, not paused,
+/// even for a resumed, paused world), and commands were checked against
+/// them ("no script named 'water'"). Both get 503 "starting" until the
+/// world is loaded; the first status then is the loaded world's.
+#[test]
+fn the_api_says_it_is_starting_until_the_world_is_loaded() {
+    let (cfg, state, addr) = setup("apistarting");
+    let first = run_cmd(&cfg, &state)
+        .args(["--ticks", "3"])
+        .output()
+        .unwrap();
+    assert!(first.status.success());
+    // Polled from the moment the process starts (the server listens
+    // before the world is loaded), every answer checked.
+    let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
+    let t = Instant::now();
+    let (mut starting, mut answered) = (0, None);
+    while t.elapsed() < Duration::from_secs(60) {
+        match brickworld::engine::ctl::request(&addr, "GET", "/status", None, "") {
+            Ok((503, body)) => {
+                assert!(body.contains("the engine is starting"), "{body}");
+                let (code, body) =
+                    brickworld::engine::ctl::request(&addr, "POST", "/pause", Some("x"), "")
+                        .unwrap();
+                // Refused as starting (or, once loaded, for the wrong token).
+                assert!(code == 503 || code == 401, "{code} {body}");
+                starting += 1;
+            }
+            Ok((200, body)) => {
+                answered = Some(serde_json::from_str::<serde_json::Value>(&body).unwrap());
+                break;
+            }
+            Ok((code, body)) => panic!("{code} {body}"),
+            Err(_) => {}
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let s = answered.expect("the engine answered /status");
+    // The first answer is the loaded world's, never the defaults.
+    assert_eq!(s["tick"], 3, "{s}");
+    assert_eq!(s["paused"], true, "{s}");
+    assert!(!s["scripts"].as_array().unwrap().is_empty(), "{s}");
+    eprintln!("{starting} answers said the engine was starting");
+    assert!(stop(d).status.success());
+}
+
+/// Regression (concurrency probe): a stop during a start longer than
+/// STOP_GRACE (5 s) interrupted every script, the start's own smoke tests
+/// included: the engine failed with "materials.lua: interrupted", exit 1.
+/// While the world loads no step is in flight: the start finishes, and the
+/// engine stops cleanly with its final commit.
+#[test]
+fn a_stop_during_a_long_start_stops_cleanly_once_loaded() {
+    let (cfg, state, _) = setup("stopslowstart");
+    let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_START_STALL_MS", "6500"));
+    std::thread::sleep(Duration::from_millis(800));
+    let _ = std::process::Command::new("kill")
+        .args(["-INT", &d.id().to_string()])
+        .status();
+    let code = wait_for_exit(&mut d, 60);
+    let mut err = String::new();
+    d.stderr.take().unwrap().read_to_string(&mut err).unwrap();
+    assert!(code.success(), "{code:?}: {err}");
+    assert!(!err.contains("interrupted"), "{err}");
+    assert!(err.contains("stopping once the world is loaded"), "{err}");
+    assert_eq!(stored_tick(&cfg, &state), Some(0));
+}
+
+/// Regression (scale probe): a `[[place]]` box that overlaps the world
+/// only in part was said to be "outside the world", without the config's
+/// name. It is refused as not lying wholly inside, naming the file.
+#[test]
+fn a_place_box_partly_outside_the_world_is_named_as_such() {
+    let (cfg, state, _) = setup("placepartly");
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str("[[place]]\nmaterial = \"water\"\nat = [0, 0, 0]\nsize = [65536, 8, 8]\n");
+    std::fs::write(&cfg, text).unwrap();
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "1"])
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(
+        &out,
+        "a place box partly outside",
+        "world.toml: place[0]: the box at [0, 0, 0] of size [65536, 8, 8] does not lie wholly inside the world",
+    );
+}
+
+/// `d`'s exit status once it has exited; a panic after `secs` seconds.
+fn wait_for_exit(d: &mut Daemon, secs: u64) -> std::process::ExitStatus {
+    let t = Instant::now();
+    loop {
+        if let Some(s) = d.try_wait().unwrap() {
+            return s;
+        }
+        assert!(t.elapsed() < Duration::from_secs(secs), "it did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }

@@ -164,10 +164,24 @@ pub fn spawn(cmd: &mut Command) -> Daemon {
     ))
 }
 
+/// Whether an answer is the engine's 503 while it loads its world.
+fn starting(code: u16, body: &str) -> bool {
+    code == 503 && body.contains("the engine is starting")
+}
+
+/// `/status`, once the engine has loaded its world (until then it answers
+/// 503, for up to 60 s).
 pub fn status(addr: &str) -> serde_json::Value {
-    let (code, body) = request(addr, "GET", "/status", None, "").unwrap();
-    assert_eq!(code, 200, "{body}");
-    serde_json::from_str(&body).unwrap()
+    let t = Instant::now();
+    loop {
+        let (code, body) = request(addr, "GET", "/status", None, "").unwrap();
+        if starting(code, &body) && t.elapsed() < Duration::from_secs(60) {
+            std::thread::sleep(Duration::from_millis(20));
+            continue;
+        }
+        assert_eq!(code, 200, "{body}");
+        return serde_json::from_str(&body).unwrap();
+    }
 }
 
 /// The tick of a paused engine once no step is queued, after `before`
@@ -221,8 +235,18 @@ pub fn token(state: &Path) -> String {
     std::fs::read_to_string(state.join("control.token")).unwrap()
 }
 
+/// POST `body` to `path` with the token, once the engine has loaded its
+/// world (until then it answers 503, for up to 60 s).
 pub fn post(addr: &str, state: &Path, path: &str, body: &str) -> (u16, String) {
-    request(addr, "POST", path, Some(&token(state)), body).unwrap()
+    let t = Instant::now();
+    loop {
+        let (code, reply) = request(addr, "POST", path, Some(&token(state)), body).unwrap();
+        if starting(code, &reply) && t.elapsed() < Duration::from_secs(60) {
+            std::thread::sleep(Duration::from_millis(20));
+            continue;
+        }
+        return (code, reply);
+    }
 }
 
 pub fn stop(mut daemon: Daemon) -> std::process::Output {

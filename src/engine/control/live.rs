@@ -388,6 +388,11 @@ pub fn stream(shared: Arc<Shared>, slot: ViewerSlot, state: Arc<AtomicU8>) -> Ev
                     pending.push(event("frame", &f));
                 }
                 _ = tick.tick() => {
+                    // Nothing before the world is loaded: the status then
+                    // is made-up defaults (concurrency probe).
+                    if !shared.started.load(std::sync::atomic::Ordering::Acquire) {
+                        continue;
+                    }
                     // A copy under the lock, encoded outside it: the engine
                     // publishing status never waits for a viewer's encoding.
                     let copy = shared.status.lock().expect("status lock").clone();

@@ -236,6 +236,10 @@ pub struct Shared {
     pub hosts: Vec<String>,
     /// Set to stop everything.
     pub shutdown: AtomicBool,
+    /// Set once the world is loaded and its status published: until then
+    /// `/status` and commands get 503 (there is no state to show or to
+    /// check a command against).
+    pub started: AtomicBool,
     /// The latest rendered frame, for live viewers.
     pub frame_events: tokio::sync::watch::Sender<live::FrameEvent>,
     /// The timeline's last rows, for the viewer's charts.
@@ -258,6 +262,7 @@ impl Shared {
             token,
             hosts,
             shutdown: AtomicBool::new(false),
+            started: AtomicBool::new(false),
             frame_events: tokio::sync::watch::Sender::new(live::FrameEvent::default()),
             timeline: Mutex::new(live::TimelineRing::default()),
             camera_lease: Mutex::new(live::CameraLease::default()),

@@ -215,6 +215,21 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
             ),
         );
     }
+    // Until the world is loaded there is nothing to show or change:
+    // `/status` answered made-up defaults (tick 0, not paused, no scripts,
+    // even for a resumed or paused world) and commands were checked
+    // against them (regression, concurrency probe). The viewer's page and
+    // its event stream (which waits) are served.
+    if !shared.started.load(std::sync::atomic::Ordering::Acquire)
+        && path != "/"
+        && path != "/events"
+        && allowed_method(&path).is_some()
+    {
+        return error(
+            503,
+            "the engine is starting (loading the world): try again shortly",
+        );
+    }
     // HEAD is GET without the body (hyper leaves the body out); an event
     // stream is not opened for it.
     let as_get = method == Method::HEAD && path != "/events";
@@ -391,7 +406,17 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
             // before the camera lease is taken or renewed.
             let refused = {
                 let mut q = shared.commands.lock().expect("command lock");
-                if q.len() >= MAX_QUEUED_COMMANDS {
+                // Decided under the queue's lock: the engine takes the
+                // queue for the last time under it, after setting the flag,
+                // so a command either is applied or is told it was not
+                // (regression, concurrency probe: commands answered 200
+                // while the engine was stopping were never applied).
+                if shared.shutdown.load(std::sync::atomic::Ordering::Acquire) {
+                    Some((
+                        503,
+                        "the engine is stopping: the command was not applied".to_string(),
+                    ))
+                } else if q.len() >= MAX_QUEUED_COMMANDS {
                     Some((
                         503,
                         format!(
@@ -425,6 +450,9 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
                     error(500, &format!("the commit failed: {reason}"))
                 }
                 Ok(Ok(Err(reason))) => error(409, &reason),
+                // The engine let the command go unapplied: it stopped in
+                // the middle of a step, whose world is not kept.
+                Ok(Err(_)) => error(503, "the engine stopped before it could apply the command"),
                 // The engine is busy (a long step) or stopping: queued.
                 _ => json(
                     202,

@@ -412,8 +412,23 @@ impl Engine {
         }
     }
 
-    /// Stop: a final commit, the frame in flight, then the server.
+    /// Stop: the commands queued before the stop, a final commit, the
+    /// frame in flight, then the server.
     fn finish(mut self) -> Result<()> {
+        // Commands arriving from now on are refused (503); those already
+        // queued were answered 200 and are applied, so a camera set just
+        // before the stop is committed with the world (regression,
+        // concurrency probe: it was dropped, and the restart showed the
+        // camera as it was before). The flag is set before the queue is
+        // taken, under its lock (see routes.rs).
+        self.shared.shutdown.store(true, Ordering::Release);
+        if self.step_cut {
+            // Half a step is not committed: its commands go unapplied,
+            // and those waiting for a verdict are told so.
+            self.shared.commands.lock().expect("command lock").clear();
+        } else {
+            self.apply_commands();
+        }
         if self.step_cut {
             crate::say!(
                 "a step was still running {} s after the stop request: its scripts were interrupted and the step is dropped; the world stays as last committed",

@@ -79,6 +79,15 @@ impl Engine {
                     std::process::exit(130);
                 }
                 first = Some(std::time::Instant::now());
+                // While the world is still loading no step is in flight,
+                // and the loop checks the flag before each: interrupting
+                // the scripts would fail the start's own smoke tests
+                // (regression, concurrency probe: a stop during a start of
+                // over 5 s ended in "materials.lua: interrupted", exit 1).
+                if !s.started.load(Ordering::Acquire) {
+                    crate::say!("stopping once the world is loaded");
+                    return;
+                }
                 std::thread::spawn(|| {
                     std::thread::sleep(super::STOP_GRACE);
                     crate::sim::interrupt::stop_all();
@@ -130,6 +139,15 @@ impl Engine {
             let mut declared = declared_materials(&cfg, listed)?;
             declared.extend(scene.into_iter().map(|(_, n)| n));
             say_reclaimed(&persistence::reclaim_materials(&db, &mut world, &declared)?);
+        }
+        // `BRICKWORLD_TEST_START_STALL_MS`: a pause before the scripts
+        // load, so a test can stop a start that takes longer than
+        // STOP_GRACE. Unset in normal use.
+        if let Some(ms) = std::env::var("BRICKWORLD_TEST_START_STALL_MS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+        {
+            std::thread::sleep(std::time::Duration::from_millis(ms));
         }
         load_scripts(&cfg, &mut world, &mut ws)?;
         ws.check_memory()
@@ -300,6 +318,7 @@ impl Engine {
         // also sees the tick and where it was resumed from (regression: a
         // restart test read `loaded_from: null` in between).
         engine.publish_status();
+        engine.shared.started.store(true, Ordering::Release);
         Ok(engine)
     }
 }
@@ -501,10 +520,19 @@ fn first_start(
         })?;
         let (lo, hi) = world.bounds();
         if p.at.cmplt(lo).any() || (p.at + p.size).cmpgt(hi).any() {
+            // Named as what it is: a box that overlaps the world only in
+            // part was said to be "outside" it (scale probe), and on a
+            // streamed world the box is placed in its simulated region.
             bail!(
-                "place[{i}]: the box at {} of size {} is outside the world [{lo}, {hi})",
+                "{}: place[{i}]: the box at {} of size {} does not lie wholly inside the {} [{lo}, {hi})",
+                cfg.file,
                 p.at,
-                p.size
+                p.size,
+                if cfg.stream.is_some() {
+                    "simulated region"
+                } else {
+                    "world"
+                }
             );
         }
         let ((), changed) = world.edit(|s, _| s.fill_box(p.at, p.at + p.size, id));
