@@ -1553,6 +1553,12 @@ fn the_api_says_it_is_starting_until_the_world_is_loaded() {
                         .unwrap();
                 // Refused as starting (or, once loaded, for the wrong token).
                 assert!(code == 503 || code == 401, "{code} {body}");
+                // The token is this engine's from the start: a stale one is
+                // told so at once (review: a viewer kept a stale token).
+                let (code, body) =
+                    brickworld::engine::ctl::request(&addr, "POST", "/auth", Some("x"), "")
+                        .unwrap();
+                assert_eq!(code, 401, "{body}");
                 starting += 1;
             }
             Ok((200, body)) => {

@@ -653,6 +653,20 @@ fn a_view_window_or_budget_larger_than_memory_is_refused_or_lowered() {
         "not enough memory",
     );
     let big = endless_world("budget-oom", 768.0, "1TiB");
+    // The engine keeps to what it can have, and says so at start (review:
+    // the start and `/status` named the 1 TiB asked for).
+    let out = capped(
+        4_000_000,
+        &format!(
+            "run '{}' --state '{}' --addr 127.0.0.1:0 --ticks 1",
+            big.display(),
+            big.with_file_name("state").display()
+        ),
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("it keeps to that"), "{err}");
+    assert!(!err.contains("memory budget 1.0 TiB\n"), "{err}");
     let json = big.with_file_name("flight.json");
     let out = capped(
         4_000_000,

@@ -100,7 +100,9 @@ pub fn available_bytes() -> u64 {
 /// `root` where the hierarchies are mounted: v2 (`0::PATH`) at `root` or
 /// `root/unified`, with `memory.max` and `memory.current`; v1's memory
 /// controller (`N:...memory...:PATH`) at `root/memory`, with
-/// `memory.limit_in_bytes` and `memory.usage_in_bytes` (regression, scale
+/// `memory.limit_in_bytes` and `memory.usage_in_bytes`; usage less the
+/// inactive page cache (`memory.stat`), which the kernel reclaims first
+/// (regression, scale
 /// probe: only `root/memory.max` was read, so a v1 limit or a v2 group
 /// below the root was not seen, and a world that could not fit was built
 /// until the OOM killer ended it).
@@ -110,12 +112,28 @@ fn cgroup_room(root: &Path, groups: &str) -> Option<u64> {
             .ok()
             .and_then(|s| s.trim().parse::<u64>().ok())
     };
+    // The page cache's inactive part is reclaimed before the limit bites:
+    // usage counts it, and in a container it fills usage up to the limit
+    // (review: every start there was refused with "24 MiB available").
+    let inactive = |dir: &Path, key: &str| {
+        std::fs::read_to_string(dir.join("memory.stat"))
+            .ok()?
+            .lines()
+            .find_map(|l| {
+                l.strip_prefix(key)?
+                    .strip_prefix(' ')?
+                    .trim()
+                    .parse::<u64>()
+                    .ok()
+            })
+    };
     let mut room: Option<u64> = None;
-    let mut walk = |mount: &Path, group: &str, limit: &str, usage: &str| {
+    let mut walk = |mount: &Path, group: &str, limit: &str, usage: &str, cache: &str| {
         let mut dir = mount.join(group.trim_start_matches('/'));
         loop {
             if let (Some(max), Some(cur)) = (read_u64(&dir.join(limit)), read_u64(&dir.join(usage)))
             {
+                let cur = cur.saturating_sub(inactive(&dir, cache).unwrap_or(0));
                 let left = max.saturating_sub(cur);
                 room = Some(room.map_or(left, |r| r.min(left)));
             }
@@ -132,7 +150,13 @@ fn cgroup_room(root: &Path, groups: &str) -> Option<u64> {
         };
         if controllers.is_empty() {
             for mount in [root.to_path_buf(), root.join("unified")] {
-                walk(&mount, group, "memory.max", "memory.current");
+                walk(
+                    &mount,
+                    group,
+                    "memory.max",
+                    "memory.current",
+                    "inactive_file",
+                );
             }
         } else if controllers.split(',').any(|c| c == "memory") {
             walk(
@@ -140,6 +164,7 @@ fn cgroup_room(root: &Path, groups: &str) -> Option<u64> {
                 group,
                 "memory.limit_in_bytes",
                 "memory.usage_in_bytes",
+                "total_inactive_file",
             );
         }
     }
@@ -324,6 +349,13 @@ mod tests {
         );
         let v1_groups = "9:name=systemd:/\n4:cpu,memory:/jobs/one\n0::/\n";
         assert_eq!(super::cgroup_room(&root, v1_groups), Some(1 << 30));
+        // Inactive page cache counts as room (it is reclaimed first).
+        put(
+            "memory/jobs/one",
+            &[("memory.stat", "cache 900\ntotal_inactive_file 1000\n")],
+        );
+        assert_eq!(super::cgroup_room(&root, v1_groups), Some((1 << 30) + 1000));
+        std::fs::remove_file(root.join("memory/jobs/one/memory.stat")).unwrap();
         // v2: the parent's limit is the tighter one.
         put("a", &[("memory.max", "max\n"), ("memory.current", "5\n")]);
         put(
@@ -335,6 +367,11 @@ mod tests {
             &[("memory.max", "10000\n"), ("memory.current", "500\n")],
         );
         assert_eq!(super::cgroup_room(&root, "0::/a/b/c\n"), Some(2000));
+        put(
+            "a/b",
+            &[("memory.stat", "active_file 7\ninactive_file 600\n")],
+        );
+        assert_eq!(super::cgroup_room(&root, "0::/a/b/c\n"), Some(2600));
         // No limit anywhere: nothing said.
         assert_eq!(super::cgroup_room(&root, "0::/a\n"), None);
         assert_eq!(super::cgroup_room(&root, "garbage\n"), None);

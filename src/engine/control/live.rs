@@ -388,23 +388,23 @@ pub fn stream(shared: Arc<Shared>, slot: ViewerSlot, state: Arc<AtomicU8>) -> Ev
                     pending.push(event("frame", &f));
                 }
                 _ = tick.tick() => {
-                    // Nothing before the world is loaded: the status then
-                    // is made-up defaults (concurrency probe).
-                    if !shared.started.load(std::sync::atomic::Ordering::Acquire) {
-                        continue;
-                    }
-                    // A copy under the lock, encoded outside it: the engine
-                    // publishing status never waits for a viewer's encoding.
-                    let copy = shared.status.lock().expect("status lock").clone();
-                    let status = serde_json::to_string(&copy).unwrap_or_default();
-                    if status != last_status {
-                        pending.push(Bytes::from(format!("event: status\ndata: {status}\n\n")));
-                        last_status = status;
-                    }
-                    let rows = shared.timeline.lock().expect("timeline lock").since(since, epoch);
-                    if !rows.columns.is_empty() && (!rows.rows.is_empty() || rows.epoch != epoch) {
-                        (since, epoch) = (rows.next, rows.epoch);
-                        pending.push(event("rows", &rows));
+                    // Nothing before the world is loaded but keep-alives:
+                    // the status then is made-up defaults (concurrency
+                    // probe).
+                    if shared.started.load(std::sync::atomic::Ordering::Acquire) {
+                        // A copy under the lock, encoded outside it: the engine
+                        // publishing status never waits for a viewer's encoding.
+                        let copy = shared.status.lock().expect("status lock").clone();
+                        let status = serde_json::to_string(&copy).unwrap_or_default();
+                        if status != last_status {
+                            pending.push(Bytes::from(format!("event: status\ndata: {status}\n\n")));
+                            last_status = status;
+                        }
+                        let rows = shared.timeline.lock().expect("timeline lock").since(since, epoch);
+                        if !rows.columns.is_empty() && (!rows.rows.is_empty() || rows.epoch != epoch) {
+                            (since, epoch) = (rows.next, rows.epoch);
+                            pending.push(event("rows", &rows));
+                        }
                     }
                     if pending.is_empty() && last_sent.elapsed() >= KEEPALIVE {
                         pending.push(Bytes::from_static(b": keep-alive\n\n"));

@@ -220,9 +220,13 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
     // even for a resumed or paused world) and commands were checked
     // against them (regression, concurrency probe). The viewer's page and
     // its event stream (which waits) are served.
+    // `/auth` only checks the token, which is this engine's from the
+    // start: a viewer reconnecting to a restarted engine learns at once
+    // that its old token is stale (review).
     if !shared.started.load(std::sync::atomic::Ordering::Acquire)
         && path != "/"
         && path != "/events"
+        && path != "/auth"
         && allowed_method(&path).is_some()
     {
         return error(

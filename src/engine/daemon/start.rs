@@ -106,6 +106,12 @@ impl Engine {
             .filter(|(_, rule)| rule.follows())
             .map(|(plan, rule)| super::follow::Follow::new(plan.gen_.clone(), *rule));
         let stream_plan = stream_plan.map(|(plan, _)| plan);
+        // `/status` shows the budget kept to, lowered where the machine
+        // has less than the config asks (review).
+        let mut cfg = cfg;
+        if let (Some(st), Some(plan)) = (cfg.stream.as_mut(), &stream_plan) {
+            st.memory_budget = plan.window.budget_bytes;
+        }
         // A region that follows the camera has closed edges (see
         // `follow.rs`); a fixed one drains over them like a small world.
         if let Some(msg) = crate::sim::run::reserved_conflicts(&world.materials) {
