@@ -9,7 +9,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use glam::DVec3;
 use indicatif::ProgressBar;
 
 use crate::app::{build_world, thread_pool};
@@ -17,7 +16,7 @@ use crate::config::SimSettings;
 use crate::progress::bar;
 use crate::scene::SceneWorld;
 use crate::sim::{Limits, ScriptWatcher, SimError, WorldSim, read_script};
-use crate::trace::{Camera, RenderOptions, render, write_png};
+use crate::trace::{RenderOptions, render, write_png};
 
 /// Run the `sim` command.
 pub fn run(s: &SimSettings) -> Result<()> {
@@ -297,14 +296,7 @@ impl<'a> SimRun<'a> {
         if let Some(e) = self.failed.iter().flatten().next() {
             bail!("a script failed during the run, so no image was written (first error: {e})");
         }
-        let view = s.view.view.unwrap_or_else(|| self.world.default_views()[1]);
-        let cam = Camera::new(
-            DVec3::from(view.eye),
-            DVec3::from(view.target),
-            view.fov,
-            s.view.width,
-            s.view.height,
-        )?;
+        let cam = s.view.camera(self.world.default_views()[1])?;
         let opts = RenderOptions {
             shadows: s.shadows,
             ..Default::default()

@@ -678,7 +678,7 @@ fn a_view_window_or_budget_larger_than_memory_is_refused_or_lowered() {
     );
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{err}");
-    assert!(err.contains("the window keeps to"), "{err}");
+    assert!(err.contains("it keeps to that"), "{err}");
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert!(

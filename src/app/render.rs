@@ -5,12 +5,11 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use glam::DVec3;
 
 use super::{build_world, thread_pool};
 use crate::config::RenderSettings;
 use crate::progress::bar;
-use crate::trace::{Camera, RenderOptions, Structure, Tracer, render, write_npy, write_png};
+use crate::trace::{RenderOptions, Structure, Tracer, render, write_npy, write_png};
 
 pub(super) fn run_render(s: RenderSettings) -> Result<()> {
     crate::scene::budget::check_images("render", s.view.width, s.view.height, 1)?;
@@ -18,21 +17,10 @@ pub(super) fn run_render(s: RenderSettings) -> Result<()> {
     pool.install(|| {
         let t0 = Instant::now();
         let world = build_world(&s.scene)?;
-        let view = s.view.view.unwrap_or_else(|| {
-            let mut v = world.default_views()[0];
-            if let Some(f) = s.view.fov {
-                v.fov = f;
-            }
-            v
-        });
-        let camera = Camera::new(
-            DVec3::from(view.eye),
-            DVec3::from(view.target),
-            view.fov,
-            s.view.width,
-            s.view.height,
-        )
-        .context("invalid camera")?;
+        let camera = s
+            .view
+            .camera(world.default_views()[0])
+            .context("invalid camera")?;
         let opts = RenderOptions {
             shadows: s.shadows,
             fog: s.fog,

@@ -70,6 +70,22 @@ pub struct ViewSettings {
 }
 
 impl ViewSettings {
+    /// The camera of these settings: the explicit view, or `default` with
+    /// `--fov` applied, at the image size.
+    pub fn camera(&self, default: View) -> Result<crate::trace::Camera, crate::trace::CameraError> {
+        let view = self.view.unwrap_or(View {
+            fov: self.fov.unwrap_or(default.fov),
+            ..default
+        });
+        crate::trace::Camera::new(
+            DVec3::from(view.eye),
+            DVec3::from(view.target),
+            view.fov,
+            self.width,
+            self.height,
+        )
+    }
+
     /// Validate view flags with default image size `w`×`h`.
     pub fn from_args(a: &ViewArgs, w: u32, h: u32) -> Result<Self, ConfigError> {
         let fov = a
@@ -397,5 +413,43 @@ impl SimSettings {
             cfl: parse_num("--cfl", &a.cfl, 0.0f64, 1.0)?,
             drain: !a.closed_edges,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression (review): `render` applied `--fov` to the scene's default
+    /// view, `sim` ignored it there. Both take their camera from here: an
+    /// explicit view as given, the default one with `--fov`.
+    #[test]
+    fn the_fov_flag_applies_to_the_default_view_and_an_explicit_view_stands() {
+        let default = View {
+            eye: [0.0, 10.0, -20.0],
+            target: [0.0, 0.0, 0.0],
+            fov: 50.0,
+        };
+        let mut v = ViewSettings {
+            view: None,
+            fov: Some(20.0),
+            width: 32,
+            height: 16,
+            threads: None,
+        };
+        let cam = v.camera(default).unwrap();
+        assert_eq!(cam.fov_deg, 20.0);
+        assert_eq!(cam.eye, DVec3::new(0.0, 10.0, -20.0));
+        assert_eq!((cam.width, cam.height), (32, 16));
+        v.fov = None;
+        assert_eq!(v.camera(default).unwrap().fov_deg, 50.0);
+        v.view = Some(View {
+            eye: [1.0, 2.0, 3.0],
+            target: [4.0, 0.0, 6.0],
+            fov: 35.0,
+        });
+        v.fov = Some(20.0);
+        let cam = v.camera(default).unwrap();
+        assert_eq!((cam.eye, cam.fov_deg), (DVec3::new(1.0, 2.0, 3.0), 35.0));
     }
 }

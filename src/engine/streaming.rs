@@ -332,17 +332,6 @@ pub fn check_budget(
     }
     // A budget past what the process can have is lowered to it (the
     // window does the same; here so the start says the budget kept to).
-    let most = now + budget::headroom_bytes() / 4 * 3;
-    let budget = if budget > most {
-        crate::say!(
-            "warning: the memory budget {} is more than this process can have ({}): it keeps to that",
-            budget::human(budget),
-            budget::human(most)
-        );
-        most.max(need)
-    } else {
-        budget
-    };
-    plan.window.budget_bytes = budget;
+    plan.window.budget_bytes = budget::within_reach(budget).max(need);
     Ok(())
 }

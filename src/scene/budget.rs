@@ -209,6 +209,24 @@ pub fn headroom_bytes() -> u64 {
     }
 }
 
+/// `budget`, lowered to the most this process can hold (what it holds
+/// now and three quarters of what it may still allocate: tables grow by
+/// doubling, the old beside the new), with a warning naming both when it
+/// is lowered (regression, scale probe: a budget of 1 TiB on a machine of
+/// a few GiB let a streamed world's cache grow until the process aborted).
+pub fn within_reach(budget: u64) -> u64 {
+    let most = rss_kb() * 1024 + headroom_bytes() / 4 * 3;
+    if budget > most {
+        crate::say!(
+            "warning: the memory budget {} is more than this process can have ({}): it keeps to that",
+            human(budget),
+            human(most)
+        );
+        return most;
+    }
+    budget
+}
+
 /// Human-readable bytes.
 pub fn human(b: u64) -> String {
     match b {

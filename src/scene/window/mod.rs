@@ -220,21 +220,8 @@ impl RenderWindow {
     /// engine and `bench flight` with "memory allocation failed", or had
     /// them killed out of memory).
     fn affordable(budget: u64, size: IVec3) -> Result<u64, SceneError> {
-        use crate::scene::budget::{headroom_bytes, human, rss_kb};
         Self::check_size(size)?;
-        let room = headroom_bytes();
-        // A quarter kept back: tables grow by doubling, the old beside the new.
-        let most = rss_kb() * 1024 + room / 4 * 3;
-        if budget > most {
-            crate::say!(
-                "warning: the memory budget {} is more than this process can have ({} with what it may still allocate): the window keeps to {}",
-                human(budget),
-                human(most),
-                human(most)
-            );
-            return Ok(most);
-        }
-        Ok(budget)
+        Ok(crate::scene::budget::within_reach(budget))
     }
 
     /// Refuse a window of `radius` chunk columns over a world of `height`
