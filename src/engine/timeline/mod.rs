@@ -192,6 +192,9 @@ pub struct Timeline {
     /// Its folder, held open: the file is opened again there, never in
     /// another folder made at the same path since.
     folder: Option<File>,
+    /// Where the file is reached: through the held folder where there is
+    /// one (found once, at open; the descriptor's path does not change).
+    at: std::path::PathBuf,
     /// Said that `path` no longer names `file` and it could not be made
     /// again (said once until it can).
     astray: bool,
@@ -226,12 +229,6 @@ impl Timeline {
     pub fn reopen(&self, extra: &[String]) -> Result<Self> {
         let folder = self.folder.as_ref().and_then(|f| f.try_clone().ok());
         Self::open_in(&self.path, folder, extra)
-    }
-
-    /// Where the file is reached: through the held folder where there is
-    /// one, so a folder made at the same path since is never written.
-    fn at(&self) -> std::path::PathBuf {
-        reached(&self.path, self.folder.as_ref())
     }
 
     fn open_in(path: &Path, folder: Option<File>, extra: &[String]) -> Result<Self> {
@@ -271,6 +268,7 @@ impl Timeline {
                 .with_context(|| format!("cannot open {}", path.display()))?,
             path: path.to_path_buf(),
             folder,
+            at: at.clone(),
             astray: false,
             header,
             extra: extra.len(),
@@ -302,7 +300,7 @@ impl Timeline {
     /// operator probe). When it cannot be made again (a folder is there),
     /// that is said once and rows go on into the file held open.
     fn follow_path(&mut self, tick: u64) {
-        if crate::files::names_open_file(&self.at(), &self.file) {
+        if crate::files::names_open_file(&self.at, &self.file) {
             return;
         }
         match self.reopen(&self.extra_names) {
@@ -363,7 +361,7 @@ impl Timeline {
         }
         line.push('\n');
         self.follow_path(r.tick);
-        let at = self.at();
+        let at = self.at.clone();
         if self.written + line.len() as u64 > ROTATE_BYTES
             && std::fs::rename(&at, at.with_extension("1.csv")).is_ok()
         {
@@ -421,7 +419,7 @@ impl Timeline {
     /// if anything was dropped.
     pub fn drop_rows_after(&mut self, tick: u64) -> Result<Option<std::path::PathBuf>> {
         let cannot = || format!("cannot trim {}", self.path.display());
-        let at = self.at();
+        let at = self.at.clone();
         let text = crate::files::read_bounded(&at, ROTATE_BYTES * 2).with_context(cannot)?;
         let mut keep = 0usize;
         for (i, line) in text.split_inclusive(|&b| b == b'\n').enumerate() {
@@ -515,12 +513,11 @@ mod tests {
         // The file becomes /dev/full, and its path too (a path that no
         // longer names the file held is opened again).
         let good = std::mem::replace(&mut t.file, File::create("/dev/full").unwrap());
-        let folder = t.folder.take();
-        t.path = "/dev/full".into();
+        let at = std::mem::replace(&mut t.at, "/dev/full".into());
         t.record(&row(2));
         t.record(&row(3));
         assert_eq!(t.failing, Some((2, 2)));
-        (t.file, t.folder, t.path) = (good, folder, path.clone());
+        (t.file, t.at) = (good, at);
         t.record(&row(4));
         assert_eq!(t.failing, None);
         let text = std::fs::read_to_string(&path).unwrap();
