@@ -686,3 +686,42 @@ fn a_view_window_or_budget_larger_than_memory_is_refused_or_lowered() {
         "the report gives the budget kept to: {report}"
     );
 }
+
+/// Regression (scale probe): a fixed simulated region too large for its
+/// memory budget was built in full before its refusal, so a 6144² region
+/// under a 512 MiB budget grew the engine to 1.8 GiB first. It is refused
+/// while it is built, once its bricks pass what the budget leaves them.
+#[test]
+fn a_region_too_large_for_its_budget_is_refused_before_it_is_built_whole() {
+    let world = endless_world("region-over-budget", 768.0, "128MiB");
+    let text = std::fs::read_to_string(&world)
+        .unwrap()
+        .replace("max = [256, 256]", "max = [6144, 6144]");
+    assert!(text.contains("max = [6144, 6144]"));
+    std::fs::write(&world, text).unwrap();
+    let state = world.with_file_name("state");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["run", &world.display().to_string()])
+        .args(["--state", &state.display().to_string()])
+        .args(["--addr", "127.0.0.1:0", "--ticks", "1"])
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "a 6144² region under 128 MiB",
+        "memory budget 128 MiB is too small for the simulated region",
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    let (built, columns) = err
+        .split("after ")
+        .nth(1)
+        .and_then(|t| {
+            let mut w = t.split_whitespace();
+            let built: u64 = w.next()?.parse().ok()?;
+            let columns: u64 = w.nth(2)?.parse().ok()?;
+            Some((built, columns))
+        })
+        .unwrap_or_else(|| panic!("no count of columns built: {err}"));
+    assert_eq!(columns, 96 * 96, "{err}");
+    assert!(built < columns, "refused after {built} of {columns}: {err}");
+}

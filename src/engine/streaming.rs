@@ -63,11 +63,7 @@ impl std::fmt::Debug for StreamPlan {
 
 /// Bytes a world's bricks and grid hold (the same measure the window uses).
 pub fn world_bytes(world: &SceneWorld) -> u64 {
-    let store = world.store();
-    (store.pool().bytes()
-        + store.pool().index_bytes()
-        + world.grid().bytes()
-        + store.non_empty_bricks() * 24) as u64
+    crate::scene::store_bytes(world.store()) + world.grid().bytes() as u64
 }
 
 /// Where a streamed world's simulated region lies, in chunk columns.
@@ -180,7 +176,17 @@ pub fn columns_of_bounds(lo: IVec3, hi: IVec3) -> (IVec2, IVec2) {
 
 /// Build chunk columns `[lo, hi)` of a streamed world (its simulated
 /// region), refusing a region the machine cannot hold.
-pub fn build_columns(gen_: &ChunkGen, (lo, hi): (IVec2, IVec2)) -> Result<SceneWorld> {
+pub fn build_columns(gen_: &ChunkGen, cols: (IVec2, IVec2)) -> Result<SceneWorld> {
+    build_columns_within(gen_, cols, u64::MAX, &indicatif::ProgressBar::hidden())
+}
+
+/// [`build_columns`], refused as soon as its bricks pass `limit` bytes.
+fn build_columns_within(
+    gen_: &ChunkGen,
+    (lo, hi): (IVec2, IVec2),
+    limit: u64,
+    pb: &indicatif::ProgressBar,
+) -> Result<SceneWorld> {
     let cols = (hi - lo).as_i64vec2();
     budget::check_world(
         "sim.region (or radius)",
@@ -190,7 +196,7 @@ pub fn build_columns(gen_: &ChunkGen, (lo, hi): (IVec2, IVec2)) -> Result<SceneW
             (cols.y * CHUNK_VOXELS as i64).min(1 << 20) as i32,
         ),
     )?;
-    gen_.build_region(lo, hi)
+    gen_.build_region_within(lo, hi, limit, pb)
         .context("cannot build the simulated region")
 }
 
@@ -204,12 +210,41 @@ pub fn generator(cfg: &WorldConfig) -> Result<(Arc<ChunkGen>, RegionRule)> {
 
 /// Build the simulated region of a streamed world, chunk columns
 /// `[lo, hi)`, and the plan for streaming the rest.
+///
+/// A region that cannot fit in the memory budget is refused while it is
+/// built, once its bricks pass what the budget leaves for them (what the
+/// process holds now, and the region twice where it `follows` the camera,
+/// are counted as [`check_budget`] counts them), rather than after the
+/// whole region is built (regression, scale probe: a 6144² region under a
+/// 512 MiB budget grew the process to 1.8 GiB before its refusal).
 pub fn build_region(
     gen_: Arc<ChunkGen>,
     (lo, hi): (IVec2, IVec2),
     stream: &StreamSettings,
+    follows: bool,
 ) -> Result<(SceneWorld, StreamPlan)> {
-    let world = build_columns(&gen_, (lo, hi))?;
+    let copies = if follows { 2 } else { 1 };
+    let held = budget::rss_kb() * 1024;
+    let limit = stream.memory_budget.saturating_sub(held) / copies;
+    let pb = crate::progress::bar("region", 0);
+    let built = build_columns_within(&gen_, (lo, hi), limit, &pb);
+    pb.finish_and_clear();
+    let world = match built {
+        Ok(world) => world,
+        Err(e) => match e.downcast_ref::<crate::scene::SceneError>() {
+            Some(over @ crate::scene::SceneError::RegionOverLimit { .. }) => bail!(
+                "memory budget {} is too small for the simulated region: {over} (the engine holds {} besides{}); raise --memory-budget or [stream] memory_budget, or shrink [sim] region (or radius)",
+                budget::human(stream.memory_budget),
+                budget::human(held),
+                if follows {
+                    ", and the region is held twice while it moves"
+                } else {
+                    ""
+                },
+            ),
+            _ => return Err(e),
+        },
+    };
     let plan = StreamPlan {
         gen_,
         live: (lo, hi),

@@ -8,6 +8,7 @@
 //! a generated chunk is never stored until something edits it.
 
 use glam::{IVec2, IVec3};
+use indicatif::ProgressBar;
 use rayon::prelude::*;
 
 use super::heightfield::{Heightfield, column};
@@ -23,6 +24,12 @@ pub const CHUNK_VOXELS: i32 = CHUNK_BRICKS * BRICK_EDGE;
 /// The chunk column holding voxel column (`x`, `z`).
 pub fn chunk_column_of(x: i32, z: i32) -> IVec2 {
     IVec2::new(x.div_euclid(CHUNK_VOXELS), z.div_euclid(CHUNK_VOXELS))
+}
+
+/// The bytes a store's bricks take: the pool's slots and index, and each
+/// non-empty brick's entry. A region's [`SceneWorld`] adds its grid.
+pub fn store_bytes(store: &BrickStore) -> u64 {
+    (store.pool().bytes() + store.pool().index_bytes() + store.non_empty_bricks() * 24) as u64
 }
 
 /// A procedural terrain that generates chunk columns on demand.
@@ -154,6 +161,22 @@ impl ChunkGen {
     /// simulation keeps resident. Its bounds are the columns' voxels, the
     /// whole height.
     pub fn build_region(&self, lo: IVec2, hi: IVec2) -> Result<SceneWorld, SceneError> {
+        self.build_region_within(lo, hi, u64::MAX, &ProgressBar::hidden())
+    }
+
+    /// [`build_region`](Self::build_region), refusing as soon as the
+    /// region's bricks pass `limit` bytes (as [`store_bytes`] counts them),
+    /// so that a region too large for a memory budget is refused after
+    /// building no more than the budget, not the whole region. Columns are
+    /// generated in batches, each inserted before the next is made, so the
+    /// build never holds the region twice; `pb` counts columns.
+    pub fn build_region_within(
+        &self,
+        lo: IVec2,
+        hi: IVec2,
+        limit: u64,
+        pb: &ProgressBar,
+    ) -> Result<SceneWorld, SceneError> {
         let (lo, hi) = match self.columns {
             Some((a, b)) => (lo.max(a), hi.min(b)),
             None => (lo, hi),
@@ -164,17 +187,31 @@ impl ChunkGen {
         let cols: Vec<IVec2> = (lo.y..hi.y)
             .flat_map(|z| (lo.x..hi.x).map(move |x| IVec2::new(x, z)))
             .collect();
-        let parts: Vec<Vec<(IVec3, BrickContent)>> = cols
-            .par_iter()
-            .map(|c| {
-                let mut v = Vec::new();
-                self.generate(*c, &mut v);
-                v
-            })
-            .collect();
+        pb.set_length(cols.len() as u64);
         let mut store = BrickStore::new(self.palette.clone());
-        for (b, content) in parts.into_iter().flatten() {
-            store.set_brick(b, content);
+        let batch = (rayon::current_num_threads() * 16).max(64);
+        for (i, part) in cols.chunks(batch).enumerate() {
+            let made: Vec<Vec<(IVec3, BrickContent)>> = part
+                .par_iter()
+                .map(|c| {
+                    let mut v = Vec::new();
+                    self.generate(*c, &mut v);
+                    v
+                })
+                .collect();
+            for (b, content) in made.into_iter().flatten() {
+                store.set_brick(b, content);
+            }
+            pb.inc(part.len() as u64);
+            let bytes = store_bytes(&store);
+            if bytes > limit {
+                return Err(SceneError::RegionOverLimit {
+                    built: (i * batch + part.len()) as u64,
+                    columns: cols.len() as u64,
+                    bytes,
+                    limit,
+                });
+            }
         }
         let ext = self.terrain.extent();
         let v0 = lo * CHUNK_VOXELS;
@@ -217,6 +254,42 @@ mod tests {
         assert_eq!(n, region.store.non_empty_bricks());
         assert!(n > 100);
         assert_eq!(region.materials.id("grass"), Some(1));
+    }
+
+    /// A region built in batches under a limit is the whole build when it
+    /// fits, and is refused part-way, not after the last column, when it
+    /// does not (regression, scale probe: a region too large for its
+    /// budget was built in full before its refusal).
+    #[test]
+    fn a_region_over_its_limit_is_refused_part_way() {
+        let g = ChunkGen::new(&SceneSpec::Terrain { caves: false }, None, 128, 4).unwrap();
+        let (lo, hi) = (IVec2::new(-6, -5), IVec2::new(9, 11));
+        let whole = g.build_region(lo, hi).unwrap();
+        let bytes = store_bytes(&whole.store);
+        let pb = ProgressBar::hidden();
+        let fits = g.build_region_within(lo, hi, bytes, &pb).unwrap();
+        assert_eq!(pb.position(), 15 * 16);
+        assert_eq!(fits.bounds, whole.bounds);
+        assert_eq!(
+            fits.store.non_empty_bricks(),
+            whole.store.non_empty_bricks()
+        );
+        for (b, _) in whole.store.iter() {
+            assert_eq!(fits.store.content(b), whole.store.content(b), "brick {b}");
+        }
+        match g.build_region_within(lo, hi, bytes / 3, &ProgressBar::hidden()) {
+            Err(SceneError::RegionOverLimit {
+                built,
+                columns,
+                bytes: at,
+                limit,
+            }) => {
+                assert_eq!(columns, 15 * 16);
+                assert!(built < columns, "refused after {built} of {columns}");
+                assert!(at > limit && at < bytes, "{at} against {limit} and {bytes}");
+            }
+            other => panic!("expected a refusal, got {:?}", other.map(|w| w.bounds)),
+        }
     }
 
     #[test]

@@ -23,7 +23,7 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use thiserror::Error;
 
-pub use chunkgen::{CHUNK_BRICKS, CHUNK_VOXELS, ChunkGen, chunk_column_of};
+pub use chunkgen::{CHUNK_BRICKS, CHUNK_VOXELS, ChunkGen, chunk_column_of, store_bytes};
 pub use heightfield::{Heightfield, voxelize};
 pub use heightmap::Heightmap;
 pub use noise::Noise;
@@ -99,6 +99,22 @@ pub enum SceneError {
     /// A region with no chunk column inside the world.
     #[error("the region holds no part of the world")]
     EmptyRegion,
+    /// A region that passed its memory limit while it was built.
+    #[error(
+        "the region's bricks passed {} after {built} of its {columns} chunk columns, over the {} it may take",
+        budget::human(*bytes),
+        budget::human(*limit)
+    )]
+    RegionOverLimit {
+        /// Columns built when it was refused.
+        built: u64,
+        /// Columns in the region.
+        columns: u64,
+        /// Bytes its bricks took then.
+        bytes: u64,
+        /// The limit.
+        limit: u64,
+    },
 }
 
 impl SceneError {

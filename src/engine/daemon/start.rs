@@ -377,7 +377,7 @@ fn build_world(
                 }
                 _ => rule.around(initial_eye(cfg)),
             };
-            let (world, mut plan) = streaming::build_region(gen_, columns, st)?;
+            let (world, mut plan) = streaming::build_region(gen_, columns, st, rule.follows())?;
             plan.overlay = Some(streaming::store_overlay(db.reader(), &plan.gen_));
             streaming::check_budget(&world, &mut plan, st.memory_budget, rule.follows())?;
             crate::say!(
