@@ -250,11 +250,12 @@ impl GpuBrickmap {
                     res.last_seen[slot as usize] = frame_no;
                     res.owner.insert(slot, index);
                     res.slot_of.insert(index, id);
-                    let (masks, meta, arena) = res.mirror.raw();
-                    let mask_words: Vec<u32> = masks[slot as usize]
-                        .iter()
-                        .flat_map(|w| [*w as u32, (*w >> 32) as u32])
-                        .collect();
+                    let (mask, meta, block) = res.mirror.raw_slot(slot).expect("inserted above");
+                    let mut mask_words = [0u32; 16];
+                    for (k, w) in mask.iter().enumerate() {
+                        mask_words[2 * k] = *w as u32;
+                        mask_words[2 * k + 1] = (*w >> 32) as u32;
+                    }
                     ctx.queue.write_buffer(
                         &self.masks,
                         slot as u64 * 64,
@@ -263,13 +264,12 @@ impl GpuBrickmap {
                     ctx.queue.write_buffer(
                         &self.meta,
                         slot as u64 * META_BYTES,
-                        bytemuck::cast_slice(&meta[slot as usize]),
+                        bytemuck::cast_slice(&meta),
                     );
                     stats.upload_bytes += 64 + META_BYTES;
                     if let Some((off, len)) = res.mirror.arena_block(slot) {
                         // Arena writes must be 4-byte aligned: blocks are 16-byte aligned.
-                        ctx.queue
-                            .write_buffer(&self.arena, off as u64, &arena[off..off + len]);
+                        ctx.queue.write_buffer(&self.arena, off as u64, block);
                         stats.upload_bytes += len as u64;
                     }
                     stats.uploads += 1;

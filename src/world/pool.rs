@@ -404,6 +404,21 @@ impl BrickPool {
         (&self.masks, meta, &self.arena)
     }
 
+    /// One slot's part of [`raw`](Self::raw): its mask, its metadata
+    /// words and its material block (empty for a one-material brick), for
+    /// uploading a single brick without converting every slot's metadata
+    /// (regression: the GPU's streaming path did that for every brick it
+    /// uploaded, about 1 MiB made and dropped per brick with a full pool).
+    /// `None` for a slot past the pool's end.
+    pub fn raw_slot(&self, index: u32) -> Option<(&[u64; 8], [u32; GPU_META_WORDS], &[u8])> {
+        let i = index as usize;
+        let m = self.meta.get(i)?;
+        let block = self
+            .arena_block(index)
+            .map_or(&[][..], |(off, len)| &self.arena[off..off + len]);
+        Some((&self.masks[i], gpu_meta(m), block))
+    }
+
     /// Byte range `(offset, len)` of slot `index`'s material block in the
     /// arena, `None` for a one-material brick (or a free slot).
     pub fn arena_block(&self, index: u32) -> Option<(usize, usize)> {
@@ -469,6 +484,32 @@ mod tests {
         |i| if i % 7 == 0 { 0 } else { 1 + (i % 13) as u8 },
         |i| if i % 2 == 0 { 0 } else { 1 + (i % 200) as u8 },
     ];
+
+    /// Each slot's `raw_slot` is its part of `raw`: mask, metadata and
+    /// material block, for one- and many-material bricks and free slots.
+    #[test]
+    fn raw_slot_is_the_slots_part_of_raw() {
+        let mut pool = BrickPool::default();
+        let ids: Vec<BrickId> = (0..12)
+            .map(|k| pool.insert(brick_from(PATTERNS[k % PATTERNS.len()])))
+            .collect();
+        pool.remove(ids[5]);
+        let (masks, meta, arena) = pool.raw();
+        for i in 0..meta.len() as u32 {
+            let (mask, words, block) = pool.raw_slot(i).unwrap();
+            assert_eq!(mask, &masks[i as usize]);
+            assert_eq!(words, meta[i as usize]);
+            let want = pool
+                .arena_block(i)
+                .map_or(&[][..], |(o, l)| &arena[o..o + l]);
+            assert_eq!(block, want);
+        }
+        assert!(
+            pool.arena_block(ids[2].index()).is_some(),
+            "a block is checked"
+        );
+        assert!(pool.raw_slot(meta.len() as u32).is_none());
+    }
 
     #[test]
     fn stale_ids_are_rejected_after_slot_reuse() {
