@@ -1632,3 +1632,63 @@ fn wait_for_exit(d: &mut Daemon, secs: u64) -> std::process::ExitStatus {
         std::thread::sleep(Duration::from_millis(20));
     }
 }
+
+/// Regression (hot-edit probe): a script saved while the engine was
+/// starting was never reloaded (the folder's watch began only once the
+/// world was loaded), so the old rule ran on while the file said
+/// otherwise, with nothing said. The watch now begins before any script
+/// is read: the save is reloaded once the engine is up.
+#[test]
+fn a_script_saved_while_the_engine_starts_is_reloaded_once_it_is_up() {
+    let (cfg, state, addr) = setup("savestart");
+    add_script(&cfg, "snow.lua", &shipped_script("snow.lua"));
+    let water = cfg.parent().unwrap().join("scripts/water.lua");
+    let d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_START_STALL_MS", "2500"));
+    std::thread::sleep(Duration::from_millis(1000));
+    let (code, body) = request(&addr, "GET", "/status", None, "").unwrap();
+    assert!(code == 503 && body.contains("starting"), "{code} {body}");
+    let mut text = std::fs::read_to_string(&water).unwrap();
+    text.push_str("\n-- saved while the engine started\n");
+    std::fs::write(&water, text).unwrap();
+    wait_status(&addr, "the reload of a save made during the start", |s| {
+        s["scripts"][0]["reloads"] == 1
+    });
+    let out = stop(d);
+    assert!(out.status.success());
+}
+
+/// Regression (hot-edit probe): a parameter edited in the world config was
+/// overridden by the stored value at the next start, which said only that
+/// "new settings apply from now on". The stored value is kept (parameters
+/// are committed state, as `ctl param` sets them), and the start says so,
+/// with the command that applies the config's.
+#[test]
+fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
+    let (cfg, state, _) = setup("paramoverride");
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "1"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    edit_config(&cfg, "params = { rain = 0.2 }", "params = { rain = 0.3 }");
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "2"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("the world config sets water.rain = 0.3, but the stored state holds 0.2")
+            && err.contains("brickworld ctl param water rain 0.3"),
+        "{err}"
+    );
+    // With the config and the state in agreement, nothing is said.
+    edit_config(&cfg, "params = { rain = 0.3 }", "params = { rain = 0.2 }");
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "3"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("the stored state holds"), "{err}");
+}

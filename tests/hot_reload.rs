@@ -255,3 +255,52 @@ fn sim_watch_applies_materials_lua_and_retries_a_refused_script() {
     assert!(refused && applied && reloaded, "{seen:#?}");
     assert!(seen.last().unwrap().contains("grow.lua"), "{seen:#?}");
 }
+
+/// A scratch folder of this test's own.
+fn scratch(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("brickworld-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// Regression (hot-edit probe): a script that is a link was not reloaded
+/// when the file it points to was edited (the folder's watch sees the
+/// link, not its target); a restart loaded the edit. It is reported
+/// within the watcher's recheck.
+#[cfg(unix)]
+#[test]
+fn a_linked_script_is_reported_when_its_target_is_edited() {
+    let dir = scratch("reload-link");
+    let outside = scratch("reload-link-target");
+    let target = outside.join("heater.lua");
+    std::fs::write(&target, V1).unwrap();
+    let link = dir.join("heater.lua");
+    std::os::unix::fs::symlink(&target, &link).unwrap();
+    let mut watcher = ScriptWatcher::new(&dir, Duration::from_millis(150)).unwrap();
+    assert!(watcher.poll().is_empty());
+    std::thread::sleep(Duration::from_millis(50));
+    std::fs::write(&target, V1.replace("+ c.p.rate", "+ 10 * c.p.rate")).unwrap();
+    assert_eq!(wait_for_change(&mut watcher), vec![link.clone()]);
+    // Nothing more once it was reported.
+    std::thread::sleep(Duration::from_millis(1200));
+    assert!(watcher.poll().is_empty());
+}
+
+/// Regression (hot-edit probe): a script edited while its folder could
+/// not be read failed to reload ("Permission denied"), and was never
+/// tried again once the folder could be read: a change to the folder's
+/// own permissions names no script. It now reports every script.
+#[cfg(unix)]
+#[test]
+fn scripts_are_reported_again_when_their_folders_permissions_change() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = scratch("reload-chmod");
+    std::fs::write(dir.join("a.lua"), V1).unwrap();
+    std::fs::write(dir.join("b.lua"), V1).unwrap();
+    let mut watcher = ScriptWatcher::new(&dir, Duration::from_millis(150)).unwrap();
+    std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700)).unwrap();
+    let mut got = wait_for_change(&mut watcher);
+    got.sort();
+    assert_eq!(got, vec![dir.join("a.lua"), dir.join("b.lua")]);
+}

@@ -129,6 +129,26 @@ impl Engine {
         // The scene declares its materials (and the simulation's).
         let scene: Vec<(u8, String)> = world.materials.names();
         persistence::seed_materials(&db, &mut world)?;
+        // Hot reload: the scripts directory is watched; a changed script is
+        // compiled and smoke-tested in a fresh VM and swapped in between
+        // steps; a broken one keeps the last good version running. The
+        // watch starts before `materials.lua` and the scripts are read, so
+        // a save during the start is reloaded once it is done (regression,
+        // hot-edit probe: it was never seen, and the old rule ran on).
+        let watcher = if cfg.scripts_embedded {
+            crate::say!(
+                "note: the default world's scripts are built in; `brickworld init DIR` writes editable copies (hot reload watches them)"
+            );
+            None
+        } else {
+            match ScriptWatcher::new(&cfg.scripts_dir, std::time::Duration::from_millis(150)) {
+                Ok(w) => Some(w),
+                Err(e) => {
+                    crate::say!("warning: hot reload is off: {e}");
+                    None
+                }
+            }
+        };
         // Names no file declares any more keep their stored ids; once few
         // ids are left, or `materials.lua` needs more new ones than are
         // free, those that no stored voxel holds are freed before it loads
@@ -196,6 +216,9 @@ impl Engine {
                 for w in persistence::apply_state(&r.state, &mut ws) {
                     crate::say!("warning: {w}");
                 }
+                for w in config_params_not_in_effect(&cfg, &ws) {
+                    crate::say!("warning: {w}");
+                }
                 let hash = persistence::engine_hash(&world, &ws);
                 crate::say!(
                     "resumed {} at tick {} ({} stored chunks and chunk columns, world hash {hash:#018x})",
@@ -231,23 +254,6 @@ impl Engine {
             shared.clone(),
         )
         .context("cannot start the render thread")?;
-        // Hot reload: the scripts directory is watched; a changed script is
-        // compiled and smoke-tested in a fresh VM and swapped in between
-        // steps; a broken one keeps the last good version running.
-        let watcher = if cfg.scripts_embedded {
-            crate::say!(
-                "note: the default world's scripts are built in; `brickworld init DIR` writes editable copies (hot reload watches them)"
-            );
-            None
-        } else {
-            match ScriptWatcher::new(&cfg.scripts_dir, std::time::Duration::from_millis(150)) {
-                Ok(w) => Some(w),
-                Err(e) => {
-                    crate::say!("warning: hot reload is off: {e}");
-                    None
-                }
-            }
-        };
         let mut timeline =
             Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
         // The timeline never stops the engine: a trim that fails is said.
@@ -327,6 +333,40 @@ impl Engine {
         engine.shared.started.store(true, Ordering::Release);
         Ok(engine)
     }
+}
+
+/// The parameters the world config sets that a resumed state overrides:
+/// parameters are committed state (`ctl param` changes them while the
+/// engine runs), so the stored value is kept, and this says so, with the
+/// command that applies the config's (regression, hot-edit probe: a
+/// `params` value edited in the config was overridden at the next start,
+/// which said only that new settings apply from now on).
+fn config_params_not_in_effect(cfg: &WorldConfig, ws: &WorldSim) -> Vec<String> {
+    let mut out = Vec::new();
+    for set in &cfg.scripts {
+        let name = set.file.strip_suffix(".lua").unwrap_or(&set.file);
+        let Some(i) = ws.script_index(name) else {
+            continue;
+        };
+        let spec = ws.spec(i);
+        let values = ws.params(i);
+        for (k, &want) in &set.params {
+            let Some(j) = spec.params.iter().position(|p| &p.name == k) else {
+                continue;
+            };
+            let have = values[j];
+            if have != want {
+                out.push(format!(
+                    "{}: the world config sets {name}.{k} = {}, but the stored state holds {} (set while the engine ran, or by an earlier config): the stored value is kept; `brickworld ctl param {name} {k} {}` applies the config's",
+                    cfg.file,
+                    crate::sim::fmt_num(want),
+                    crate::sim::fmt_num(have),
+                    crate::sim::fmt_num(want),
+                ));
+            }
+        }
+    }
+    out
 }
 
 /// Open (or create) the world store in `state`, refusing another world's,

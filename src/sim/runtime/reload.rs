@@ -31,12 +31,84 @@ pub struct ScriptWatcher {
     pending: FxHashMap<PathBuf, Instant>,
     debounce: Duration,
     dir: PathBuf,
+    /// `dir` made absolute: the paths it reports are named as the watch's
+    /// events name them, so one change is not reported twice.
+    abs: PathBuf,
     /// The watched directory's identity (device, inode), if known.
     identity: Option<(u64, u64)>,
     checked: Instant,
     notes: Vec<String>,
     /// The last failure to watch the directory anew, said once.
     last_failure: Option<String>,
+    /// What each `.lua` link in the directory pointed at when last looked
+    /// at (the target's identity, size and times; `None` when dangling):
+    /// the directory's watch sees a link replaced, not its target edited.
+    links: FxHashMap<PathBuf, Option<Target>>,
+}
+
+/// A link target's identity, size and change times.
+type Target = (u64, u64, u64, i64, i64, i64, i64);
+
+fn target(path: &Path) -> Option<Target> {
+    let m = std::fs::metadata(path).ok()?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        Some((
+            m.dev(),
+            m.ino(),
+            m.len(),
+            m.mtime(),
+            m.mtime_nsec(),
+            m.ctime(),
+            m.ctime_nsec(),
+        ))
+    }
+    #[cfg(not(unix))]
+    {
+        let t = m
+            .modified()
+            .ok()?
+            .duration_since(std::time::UNIX_EPOCH)
+            .ok()?;
+        Some((
+            0,
+            0,
+            m.len(),
+            t.as_secs() as i64,
+            t.subsec_nanos() as i64,
+            0,
+            0,
+        ))
+    }
+}
+
+/// The `.lua` links in `dir` and what they point at.
+fn scan_links(dir: &Path) -> FxHashMap<PathBuf, Option<Target>> {
+    let mut out = FxHashMap::default();
+    let Ok(rd) = std::fs::read_dir(dir) else {
+        return out;
+    };
+    for e in rd.flatten() {
+        let p = e.path();
+        if p.extension().is_some_and(|x| x == "lua") && e.file_type().is_ok_and(|t| t.is_symlink())
+        {
+            let t = target(&p);
+            out.insert(p, t);
+        }
+    }
+    out
+}
+
+/// The `.lua` files in `dir`.
+fn lua_files(dir: &Path) -> Vec<PathBuf> {
+    let Ok(rd) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    rd.flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|x| x == "lua"))
+        .collect()
 }
 
 /// How often the watched directory's identity is checked.
@@ -85,6 +157,16 @@ fn watch(dir: &Path, tx: crossbeam_channel::Sender<PathBuf>) -> Result<Watch, Si
         {
             flag.store(true, Ordering::Relaxed);
         }
+        // The directory's own permissions or owner changed: a script that
+        // could not be read may be readable now, and no event names it
+        // (regression, hot-edit probe: an edit made while the folder was
+        // unreadable failed, and was never tried again). The directory's
+        // path, which is no `.lua`, asks for all of its scripts.
+        if matches!(ev.kind, EventKind::Modify(ModifyKind::Metadata(_)))
+            && ev.paths.iter().any(|p| p == &own)
+        {
+            let _ = tx.send(own.clone());
+        }
         // Removals too: a deleted script is then reported (its reload
         // fails, the loaded version runs on, and /status says why);
         // regression: it was said nowhere.
@@ -114,6 +196,7 @@ impl ScriptWatcher {
     pub fn new(dir: &Path, debounce: Duration) -> Result<Self, SimError> {
         let (tx, events) = unbounded();
         let watcher = watch(dir, tx.clone())?;
+        let abs = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
         Ok(ScriptWatcher {
             watcher: Some(watcher),
             events,
@@ -121,10 +204,12 @@ impl ScriptWatcher {
             pending: FxHashMap::default(),
             debounce,
             dir: dir.to_path_buf(),
+            abs: abs.clone(),
             identity: identity(dir),
             checked: Instant::now(),
             notes: Vec::new(),
             last_failure: None,
+            links: scan_links(&abs),
         })
     }
 
@@ -140,6 +225,16 @@ impl ScriptWatcher {
             return;
         }
         self.checked = now;
+        // A script that is a link: its target edited in place (regression,
+        // hot-edit probe: such edits were never reloaded; a restart loaded
+        // them). Looked at once per recheck.
+        let links = scan_links(&self.abs);
+        for (p, t) in &links {
+            if self.links.get(p).is_some_and(|old| old != t) {
+                self.pending.insert(p.clone(), now);
+            }
+        }
+        self.links = links;
         let id = identity(&self.dir);
         let lost = self
             .watcher
@@ -168,13 +263,8 @@ impl ScriptWatcher {
                 self.notes.push(format!(
                     "the scripts directory {shown} was replaced: watching the new one and reloading its scripts"
                 ));
-                if let Ok(rd) = std::fs::read_dir(&self.dir) {
-                    for e in rd.flatten() {
-                        let p = e.path();
-                        if p.extension().is_some_and(|e| e == "lua") {
-                            self.pending.insert(p, now);
-                        }
-                    }
+                for p in lua_files(&self.abs) {
+                    self.pending.insert(p, now);
                 }
             }
             Err(e) => {
@@ -195,8 +285,15 @@ impl ScriptWatcher {
     pub fn poll(&mut self) -> Vec<PathBuf> {
         let now = Instant::now();
         self.recheck(now);
-        for p in self.events.try_iter() {
-            self.pending.insert(p, now);
+        let events: Vec<PathBuf> = self.events.try_iter().collect();
+        for p in events {
+            if p.extension().is_some_and(|x| x == "lua") {
+                self.pending.insert(p, now);
+            } else {
+                for p in lua_files(&self.abs) {
+                    self.pending.insert(p, now);
+                }
+            }
         }
         let mut ready: Vec<PathBuf> = self
             .pending
