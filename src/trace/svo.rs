@@ -363,11 +363,6 @@ impl Svo {
         }
         count
     }
-
-    /// Edge of the root cube in voxels.
-    pub fn root_edge(&self) -> u32 {
-        1 << self.root_shift
-    }
 }
 
 /// Like [`combine`] but never collapses: used only for a fully solid root.

@@ -331,12 +331,6 @@ impl BrickGrid {
         &self.cells
     }
 
-    /// The occupancy bits as 64-bit words (bit i = occupancy cell i, x
-    /// fastest), in physical order like [`pointers`](Self::pointers).
-    pub fn occupancy_words(&self) -> &[u64] {
-        &self.occ
-    }
-
     /// Bytes of the pointer array and the occupancy layer.
     pub fn bytes(&self) -> usize {
         self.cells.len() * 4 + self.occ.len() * 8 + self.coarse.bytes()

@@ -430,11 +430,6 @@ impl BrickPool {
         Some((off, (self.arena[off + 2] as usize + 1) * CLASS))
     }
 
-    /// Bytes of material arena allocated so far (its high-water mark).
-    pub fn arena_len(&self) -> usize {
-        self.arena.len()
-    }
-
     /// Slot capacity in use (live and free slots).
     pub fn slots(&self) -> usize {
         self.masks.len()

@@ -10,7 +10,7 @@
 use glam::{DVec3, IVec3};
 use rustc_hash::{FxHashMap, FxHashSet};
 
-use super::brick::{BRICK_EDGE, BRICK_SHIFT, BRICK_VOXELS, BrickContent, voxel_index};
+use super::brick::{BRICK_EDGE, BRICK_VOXELS, BrickContent, voxel_index};
 use super::palette::Palette;
 use super::pool::{BrickId, BrickPool};
 
@@ -339,11 +339,6 @@ impl BrickStore {
         std::mem::take(&mut self.modified)
     }
 
-    /// Number of bricks changed since the last [`take_modified`](Self::take_modified).
-    pub fn modified_len(&self) -> usize {
-        self.modified.len()
-    }
-
     /// Every non-empty brick coordinate and its cell, in no particular order.
     pub fn iter(&self) -> impl Iterator<Item = (IVec3, Cell)> + '_ {
         self.entries.iter().map(|(k, e)| (*k, e.cell))
@@ -371,12 +366,6 @@ impl BrickStore {
         let mut it = self.entries.keys();
         let first = *it.next()?;
         Some(it.fold((first, first), |(lo, hi), &k| (lo.min(k), hi.max(k))))
-    }
-
-    /// Voxel-space bounds `[min, max)` of the non-empty bricks (brick-granular).
-    pub fn voxel_bounds(&self) -> Option<(IVec3, IVec3)> {
-        self.brick_bounds()
-            .map(|(lo, hi)| (lo << BRICK_SHIFT, (hi + IVec3::ONE) << BRICK_SHIFT))
     }
 }
 

@@ -76,12 +76,12 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
             let c: Cam =
                 serde_json::from_str(body).map_err(|e| bad(format!("camera JSON: {e}")))?;
             let fov = c.fov.unwrap_or(50.0);
-            if c.eye
-                .iter()
-                .chain(&c.target)
-                .any(|v| !v.is_finite() || v.abs() > 1e9)
-            {
-                return Err(bad("camera coordinates must be within ±1e9".into()));
+            for (name, p) in [("eye", c.eye), ("target", c.target)] {
+                if p.iter().any(|v| !v.is_finite() || v.abs() > 1e9) {
+                    return Err(bad(format!(
+                        "camera {name}: every coordinate must be finite and within ±1e9 voxels"
+                    )));
+                }
             }
             if !(crate::trace::MIN_FOV..=crate::trace::MAX_FOV).contains(&fov) {
                 return Err(bad(format!(

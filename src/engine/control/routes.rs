@@ -274,21 +274,9 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
             r
         }
         (&Method::GET, "/timeline") => {
-            let q = req.uri().query().unwrap_or("");
-            let arg = |k: &str| {
-                q.split('&')
-                    .filter_map(|kv| kv.split_once('='))
-                    .find(|(a, _)| *a == k)
-                    .map(|(_, v)| v.parse::<u64>())
-            };
-            let (since, epoch) = match (arg("since"), arg("epoch")) {
-                (Some(Err(_)), _) | (_, Some(Err(_))) => {
-                    return error(400, "since and epoch must be whole numbers");
-                }
-                (s, e) => (
-                    s.map_or(Ok(0), |v| v).unwrap_or(0),
-                    e.map_or(Ok(u64::MAX), |v| v).unwrap_or(u64::MAX),
-                ),
+            let (since, epoch) = match timeline_query(req.uri().query().unwrap_or("")) {
+                Ok(q) => q,
+                Err(msg) => return error(400, &msg),
             };
             // Copy the rows out and let go of the lock before encoding: the
             // engine pushes a row every tick under the same lock, and an open
@@ -465,5 +453,66 @@ async fn post(req: Request<Incoming>, path: &str, shared: &Shared) -> Reply {
             }
         }
         Err((code, msg)) => error(code, &msg),
+    }
+}
+
+/// `/timeline`'s query: `since` (default 0) and `epoch` (default: any),
+/// whole numbers. Another key, a key without a value, or a key given twice
+/// is refused, naming it (regression, code-habits audit: `?sinse=5` was
+/// ignored and every row sent, and a bad value did not say which key).
+fn timeline_query(q: &str) -> Result<(u64, u64), String> {
+    let (mut since, mut epoch) = (None, None);
+    for kv in q.split('&').filter(|kv| !kv.is_empty()) {
+        let Some((k, v)) = kv.split_once('=') else {
+            return Err(format!(
+                "query parameter '{}' has no value (expected since=N or epoch=N)",
+                crate::text::shown(kv, 40)
+            ));
+        };
+        let slot = match k {
+            "since" => &mut since,
+            "epoch" => &mut epoch,
+            _ => {
+                return Err(format!(
+                    "unknown query parameter '{}' (expected since or epoch)",
+                    crate::text::shown(k, 40)
+                ));
+            }
+        };
+        if slot.is_some() {
+            return Err(format!("query parameter {k} is given twice"));
+        }
+        *slot = Some(v.parse::<u64>().map_err(|_| {
+            format!(
+                "{k} must be a whole number, not '{}'",
+                crate::text::shown(v, 40)
+            )
+        })?);
+    }
+    Ok((since.unwrap_or(0), epoch.unwrap_or(u64::MAX)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::timeline_query;
+
+    #[test]
+    fn timeline_queries_name_what_is_wrong() {
+        assert_eq!(timeline_query(""), Ok((0, u64::MAX)));
+        assert_eq!(timeline_query("since=5&epoch=2"), Ok((5, 2)));
+        assert_eq!(timeline_query("epoch=3&"), Ok((0, 3)));
+        for (q, said) in [
+            (
+                "sinse=5",
+                "unknown query parameter 'sinse' (expected since or epoch)",
+            ),
+            ("since", "query parameter 'since' has no value"),
+            ("since=5&since=6", "query parameter since is given twice"),
+            ("epoch=-1", "epoch must be a whole number, not '-1'"),
+            ("since=1e3", "since must be a whole number, not '1e3'"),
+        ] {
+            let e = timeline_query(q).unwrap_err();
+            assert!(e.starts_with(said), "{q}: {e}");
+        }
     }
 }
