@@ -278,14 +278,7 @@ impl SceneWorld {
     /// returned (their voxels are the same: for the renderer, not for a
     /// commit).
     pub fn set_palette(&mut self, palette: crate::world::Palette) -> Vec<IVec3> {
-        let ((), recoloured) = self.edit(|s, _| {
-            let mut changed = [false; 256];
-            for (id, c) in changed.iter_mut().enumerate().skip(1) {
-                *c = s.palette().rgb(id as u8) != palette.rgb(id as u8);
-            }
-            *s.palette_mut() = palette;
-            s.recolour(&changed);
-        });
+        let (_, recoloured) = self.edit(|s, _| s.set_palette(palette));
         recoloured
     }
 

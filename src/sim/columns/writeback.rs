@@ -28,12 +28,14 @@ pub const SNOW: u8 = 253;
 /// Material of ground deposited by erosion.
 pub const SEDIMENT: u8 = 254;
 
-/// Colours of the simulation materials.
+/// Colours of the simulation materials (bricks already holding them get
+/// new LOD colours, recorded as modified).
 pub fn set_palette(store: &mut BrickStore) {
-    let p = store.palette_mut();
+    let mut p = store.palette().clone();
     p.set(WATER, [64, 118, 196]);
     p.set(SNOW, [246, 248, 252]);
     p.set(SEDIMENT, [168, 140, 100]);
+    store.set_palette(p);
 }
 
 /// Height of the top solid voxel + 1 of every column of tile `t`, scanning
