@@ -12,9 +12,7 @@
 
 use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Read, Write};
-use std::path::Path;
-
-use anyhow::{Context, Result, bail};
+use std::path::{Path, PathBuf};
 
 mod chart;
 pub use chart::{Table, chart, read, read_tail};
@@ -211,6 +209,56 @@ pub struct Timeline {
 
 pub use crate::scene::budget::{rss_kb, rss_kb_of};
 
+/// What can go wrong with the timeline file. The daemon says each in one
+/// line; none stops a running engine (see [`Timeline::push`]).
+#[derive(Debug, thiserror::Error)]
+pub enum TimelineError {
+    /// Something other than a regular file is at the timeline's path.
+    #[error(
+        "{} is not a regular file: move it away (the engine writes its timeline there)",
+        path.display()
+    )]
+    NotAFile {
+        /// The timeline's path.
+        path: PathBuf,
+    },
+    /// The OS refused what `what` says was being done (not a `source`:
+    /// the text says it, and a chain would print it twice).
+    #[error("{what}: {error}")]
+    Io {
+        /// What was being done, and to which file.
+        what: String,
+        /// What the OS said.
+        error: std::io::Error,
+    },
+    /// The file could not be read back.
+    #[error("cannot trim {}: {error}", path.display())]
+    Read {
+        /// The timeline's path.
+        path: PathBuf,
+        /// Why.
+        error: crate::files::FileError,
+    },
+    /// The rows after a tick could not be copied aside, so they stay.
+    #[error(
+        "cannot copy the rows after tick {tick} of {} to {}: {error}; they stay, so the ticks run again appear twice",
+        path.display(),
+        aside.display()
+    )]
+    CopyAside {
+        /// The tick after which rows were to be dropped.
+        tick: u64,
+        /// The timeline's path.
+        path: PathBuf,
+        /// Where they were to be copied.
+        aside: PathBuf,
+        /// What the OS said.
+        error: std::io::Error,
+    },
+}
+
+type Result<T> = std::result::Result<T, TimelineError>;
+
 impl Timeline {
     /// Open (creating, with a header) the timeline at `path`, with the
     /// per-script columns `extra` after the fixed ones. An existing file
@@ -243,29 +291,31 @@ impl Timeline {
         // engine at start (and it ignored SIGTERM), a link to /dev/zero
         // filled memory looking for a newline (regression).
         if crate::files::is_there_but_not_a_file(&at) {
-            bail!(
-                "{} is not a regular file: move it away (the engine writes its timeline there)",
-                path.display()
-            );
+            return Err(TimelineError::NotAFile {
+                path: path.to_path_buf(),
+            });
         }
         if let Ok(f) = crate::files::open_for_reading(&at) {
             let mut first = String::new();
             let _ = BufReader::new(f.take(MAX_HEADER_BYTES)).read_line(&mut first);
             if first.trim_end() != header {
                 let aside = aside_path(&at);
-                std::fs::rename(&at, &aside).with_context(|| {
-                    format!(
+                std::fs::rename(&at, &aside).map_err(|error| TimelineError::Io {
+                    what: format!(
                         "cannot move {} aside to {}",
                         path.display(),
                         beside(path, &aside).display()
-                    )
+                    ),
+                    error,
                 })?;
                 prune_aside(&at);
             }
         }
         let mut t = Timeline {
-            file: Self::create(&at, &header)
-                .with_context(|| format!("cannot open {}", path.display()))?,
+            file: Self::create(&at, &header).map_err(|error| TimelineError::Io {
+                what: format!("cannot open {}", path.display()),
+                error,
+            })?,
             path: path.to_path_buf(),
             folder,
             at: at.clone(),
@@ -418,9 +468,13 @@ impl Timeline {
     /// crash probe: 29 MiB more a crash). Returns where they were copied,
     /// if anything was dropped.
     pub fn drop_rows_after(&mut self, tick: u64) -> Result<Option<std::path::PathBuf>> {
-        let cannot = || format!("cannot trim {}", self.path.display());
         let at = self.at.clone();
-        let text = crate::files::read_bounded(&at, ROTATE_BYTES * 2).with_context(cannot)?;
+        let text = crate::files::read_bounded(&at, ROTATE_BYTES * 2).map_err(|error| {
+            TimelineError::Read {
+                path: self.path.clone(),
+                error,
+            }
+        })?;
         let mut keep = 0usize;
         for (i, line) in text.split_inclusive(|&b| b == b'\n').enumerate() {
             if !line.ends_with(b"\n") {
@@ -452,13 +506,19 @@ impl Timeline {
             // No empty or partial copy is left behind (regression,
             // operator probe: each start on a full disk left a 0-byte one).
             let _ = std::fs::remove_file(&aside);
-            bail!(
-                "cannot copy the rows after tick {tick} of {} to {}: {e}; they stay, so the ticks run again appear twice",
-                self.path.display(),
-                beside(&self.path, &aside).display()
-            );
+            return Err(TimelineError::CopyAside {
+                tick,
+                path: self.path.clone(),
+                aside: beside(&self.path, &aside),
+                error: e,
+            });
         }
-        self.file.set_len(keep as u64).with_context(cannot)?;
+        self.file
+            .set_len(keep as u64)
+            .map_err(|error| TimelineError::Io {
+                what: format!("cannot trim {}", self.path.display()),
+                error,
+            })?;
         self.written = keep as u64;
         prune_aside(&at);
         Ok(Some(beside(&self.path, &aside)))
