@@ -165,9 +165,11 @@ impl ChunkGen {
     }
 
     /// [`build_region`](Self::build_region), refusing as soon as the
-    /// region's bricks pass `limit` bytes (as [`store_bytes`] counts them),
-    /// so that a region too large for a memory budget is refused after
-    /// building no more than the budget, not the whole region. Columns are
+    /// region's bricks pass `limit` bytes (as [`store_bytes`] counts them)
+    /// with columns still to build, so that a region too large for a
+    /// memory budget is refused after building no more than the budget,
+    /// not the whole region (a region whose last batch passes the limit is
+    /// returned: the caller's own check then names its exact need). Columns are
     /// generated in batches, each inserted before the next is made, so the
     /// build never holds the region twice; `pb` counts columns.
     pub fn build_region_within(
@@ -204,9 +206,11 @@ impl ChunkGen {
             }
             pb.inc(part.len() as u64);
             let bytes = store_bytes(&store);
-            if bytes > limit {
+            let built = i * batch + part.len();
+            // Once it is whole, the caller's check names the exact need.
+            if bytes > limit && built < cols.len() {
                 return Err(SceneError::RegionOverLimit {
-                    built: (i * batch + part.len()) as u64,
+                    built: built as u64,
                     columns: cols.len() as u64,
                     bytes,
                     limit,

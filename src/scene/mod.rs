@@ -101,9 +101,10 @@ pub enum SceneError {
     EmptyRegion,
     /// A region that passed its memory limit while it was built.
     #[error(
-        "the region's bricks passed {} after {built} of its {columns} chunk columns, over the {} it may take",
+        "the region's bricks passed {} after {built} of its {columns} chunk columns, over the {} it may take (the whole region would take about {})",
         budget::human(*bytes),
-        budget::human(*limit)
+        budget::human(*limit),
+        budget::human((*bytes as f64 * *columns as f64 / (*built).max(1) as f64) as u64)
     )]
     RegionOverLimit {
         /// Columns built when it was refused.
