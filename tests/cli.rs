@@ -321,10 +321,23 @@ fn gpu_tracer_renders_or_falls_back_to_the_cpu_with_one_line() {
     let npy = tmp("g.npy");
     let depth = [std::ffi::OsStr::new("--depth-out"), npy.as_os_str()];
     let run = |envs: &[(&str, &str)]| render_with("gpu", &png, &depth, envs);
-    // Whatever the machine has, the command succeeds and writes both files.
+    // Whatever the machine has, the command succeeds and writes both files;
+    // with an adapter required, the GPU drew it (claims audit: a silent
+    // fall-back to the CPU passed).
     let out = run(&[]);
     assert_success(&out);
     assert!(std::fs::metadata(&npy).unwrap().len() > 0);
+    if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() == Ok("1") {
+        let said = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(
+            said.contains("on the GPU") && !said.contains("on the CPU"),
+            "{said}"
+        );
+    }
     // With no Vulkan driver at all: one warning line, then the CPU renders.
     let out = run(&NO_VULKAN);
     let err = String::from_utf8_lossy(&out.stderr);

@@ -423,3 +423,36 @@ fn a_regions_backup_imported_into_the_whole_world_keeps_its_ground() {
     };
     assert_eq!(old_ground("a"), old_ground("d"));
 }
+
+/// The water drained over the edges so far: the `drained` column of the
+/// last row of the state's `timeline.csv`.
+fn drained(state: &Path) -> f64 {
+    let text = std::fs::read_to_string(state.join("timeline.csv")).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = header.iter().position(|c| *c == "drained").unwrap();
+    let last = lines.last().expect("a row");
+    last.split(',').nth(col).unwrap().parse().unwrap()
+}
+
+/// What the README says of a streamed world's region edges (claims audit:
+/// only a library test held them, to a resident world's region): a fixed
+/// region is the engine's whole world and drains over its edges into a
+/// moat, as a small world does; a region that follows the camera has
+/// closed edges, so the water it holds stays in the world as it moves.
+#[test]
+fn a_fixed_region_drains_over_its_edges_and_a_following_one_does_not() {
+    const STILL: &str =
+        "[camera]\nmode = \"fixed\"\neye = [576.0, 120.0, 500.0]\ntarget = [576.0, 40.0, 576.0]\n";
+    let (cfg, state) = streamed("edges-fixed", "size = [1024, 96, 1024]", STILL);
+    run_ok(&cfg, &state, "--ticks", 120);
+    assert!(drained(&state) > 0.0, "the fixed region drained nothing");
+    let (cfg, state) = streamed("edges-follow", "size = [1024, 96, 1024]", STILL);
+    common::daemon::edit_config(
+        &cfg,
+        "region = { min = [512, 512], max = [640, 640] }",
+        "radius = 64.0",
+    );
+    run_ok(&cfg, &state, "--ticks", 120);
+    assert_eq!(drained(&state), 0.0, "the following region drained water");
+}

@@ -143,7 +143,12 @@ fn the_event_stream_pushes_frames_status_and_timeline_rows() {
     );
     // Frames are fetched when an event says so, never polled on a timer.
     assert!(!page.contains("setInterval"), "the page polls");
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 #[test]
@@ -223,7 +228,12 @@ fn parameter_changes_get_the_engines_verdict_and_viewers_share_the_camera_by_lea
         );
         std::thread::sleep(Duration::from_millis(50));
     }
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 fn ctl(state: &Path, addr: &str, args: &[&str]) -> std::process::Output {
@@ -325,7 +335,12 @@ fn ctl_params_reads_values_and_ctl_log_prints_a_scripts_lines_once() {
         followed, kept,
         "following printed a line twice or missed one"
     );
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// Read `s` for at most `limit`: true once the server closes it, or once
@@ -442,7 +457,12 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
         );
         std::thread::sleep(Duration::from_millis(200));
     }
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// Regression (viewer probe): moving the camera of a paused engine showed
@@ -485,7 +505,12 @@ fn a_camera_move_shows_at_once_even_paused() {
     wait_for_frame(shown);
     assert_eq!(status(&addr)["tick"], tick, "nothing stepped");
     assert_eq!(on_disk(), files, "a view went into the frames directory");
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// A script with nothing awake for it is shown as sleeping, not running.
@@ -516,7 +541,12 @@ fn a_script_with_nothing_awake_is_shown_sleeping() {
         );
         std::thread::sleep(Duration::from_millis(50));
     }
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// Audit: "`status` events at most every 250 ms and only when it changed"
@@ -567,7 +597,12 @@ fn status_events_come_at_most_every_250_ms_and_only_when_it_changed() {
             "a paused engine's status changed"
         );
     }
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// Audit: "a client that has read nothing for 30 s is closed" had no test.
@@ -631,5 +666,10 @@ fn a_viewer_that_reads_nothing_is_closed_after_the_stall_limit() {
     assert!(t1 > t0, "the engine stalled: tick {t0} then {t1}");
     eprintln!("stalled stream closed after {waited:?}");
     drop(s);
-    stop(d);
+    let out = stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
