@@ -1051,6 +1051,9 @@ fn a_failed_sim_leaves_its_out_file_alone() {
         err.contains("warning: fails.lua is suspended after 3 failed steps in a row"),
         "{err}"
     );
+    // Each said once, though the script failed three times (claims audit).
+    assert_eq!(err.matches("was rejected").count(), 1, "{err}");
+    assert_eq!(err.matches("is suspended").count(), 1, "{err}");
     let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error:")).collect();
     assert!(
         errors.len() == 1 && errors[0].contains("no image was written"),

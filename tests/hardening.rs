@@ -633,15 +633,21 @@ fn fault_22_the_default_world_runs_from_any_directory_and_init_writes_it_out() {
     ] {
         assert!(dir.join(f).exists(), "{f}");
     }
-    // The written world loads, and init never overwrites.
+    // The written world loads, and init never overwrites: an edited file
+    // keeps its text (claims audit: only the refusal was checked).
     brickworld::engine::world_config::WorldConfig::load(&dir.join("mod/world.toml")).unwrap();
+    let edited = dir.join("mod/scripts/water.lua");
+    std::fs::write(&edited, "-- my own water\n").unwrap();
     let again = common::cli::bin()
         .current_dir(&dir)
         .args(["init", "mod"])
         .output()
         .unwrap();
     common::cli::assert_clear_failure(&again, "init over an existing world", "already exists");
-    let _ = Path::new("");
+    assert_eq!(
+        std::fs::read_to_string(&edited).unwrap(),
+        "-- my own water\n"
+    );
 }
 
 #[test]
@@ -847,6 +853,54 @@ fn a_file_size_limit_is_an_error_not_a_silent_kill() {
     common::cli::assert_no_panic(&err, "the run");
 }
 
+/// Every route that takes a POST (the README's table).
+const POST_ROUTES: [&str; 8] = [
+    "/pause",
+    "/resume",
+    "/step",
+    "/commit",
+    "/camera",
+    "/camera/path",
+    "/scripts/water/params",
+    "/auth",
+];
+
+/// Every POST route refuses a request without the token, or with a wrong
+/// one, with 401 and leaves the engine as it was (claims audit: only
+/// `/pause`, `/step`, `/resume` and `/auth` were checked).
+#[test]
+fn every_post_route_needs_the_token() {
+    let (cfg, state, addr) = setup("posttoken");
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let before = status(&addr);
+    for path in POST_ROUTES {
+        for auth in [
+            "",
+            "Authorization: Bearer 00112233445566778899aabbccddeeff\r\n",
+        ] {
+            let body = "{}";
+            let line = raw(
+                &addr,
+                format!(
+                    "POST {path} HTTP/1.1\r\nHost: localhost\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                    body.len()
+                )
+                .as_bytes(),
+            );
+            assert!(line.contains(" 401 "), "POST {path} ({auth:?}): {line}");
+        }
+    }
+    let after = status(&addr);
+    assert_eq!(after["paused"], before["paused"]);
+    assert_eq!(after["camera"], before["camera"]);
+    assert_eq!(
+        after["scripts"][0]["params"],
+        before["scripts"][0]["params"]
+    );
+    assert_success(&stop(d));
+}
+
 /// Regression (hostile probe): the `Host` header was not checked, so a web
 /// page whose DNS name was rebound to 127.0.0.1 could read `/status` and
 /// frames through its visitor's browser. Names other than IPs, localhost
@@ -889,6 +943,20 @@ fn a_request_naming_a_foreign_host_is_refused() {
         format!("GET /status HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nHost: rebound.example\r\nConnection: close\r\n\r\n").as_bytes(),
     );
     assert!(line.contains(" 400 "), "two Host headers: {line}");
+    // POSTs too, with the right token (claims audit: only GETs were held
+    // to "every route").
+    let tok = std::fs::read_to_string(state.join("control.token")).unwrap();
+    let tok = tok.trim();
+    for path in POST_ROUTES {
+        let line = raw(
+            &addr,
+            format!("POST {path} HTTP/1.1\r\nHost: rebound.example:{port}\r\nAuthorization: Bearer {tok}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n").as_bytes(),
+        );
+        assert!(line.contains(" 403 "), "POST {path}: {line}");
+    }
+    // A request with no Host at all (no browser sends one) is served.
+    let line = raw(&addr, b"GET /status HTTP/1.0\r\n\r\n");
+    assert!(line.contains(" 200 "), "no Host: {line}");
     for host in [
         addr.clone(),
         format!("localhost:{port}"),
