@@ -283,8 +283,18 @@ fn a_linked_script_is_reported_when_its_target_is_edited() {
     std::fs::write(&target, V1.replace("+ c.p.rate", "+ 10 * c.p.rate")).unwrap();
     assert_eq!(wait_for_change(&mut watcher), vec![link.clone()]);
     // Nothing more once it was reported.
-    std::thread::sleep(Duration::from_millis(1200));
+    std::thread::sleep(Duration::from_millis(2500));
     assert!(watcher.poll().is_empty());
+    // A link pointed elsewhere is reported once, not by its event and
+    // again by the next look at its target (review).
+    let other = outside.join("other.lua");
+    std::fs::write(&other, V1).unwrap();
+    let tmp = dir.join("heater.lua.new");
+    std::os::unix::fs::symlink(&other, &tmp).unwrap();
+    std::fs::rename(&tmp, &link).unwrap();
+    assert_eq!(wait_for_change(&mut watcher), vec![link.clone()]);
+    std::thread::sleep(Duration::from_millis(2500));
+    assert!(watcher.poll().is_empty(), "reported twice");
 }
 
 /// Regression (hot-edit probe): a script edited while its folder could
@@ -303,4 +313,17 @@ fn scripts_are_reported_again_when_their_folders_permissions_change() {
     let mut got = wait_for_change(&mut watcher);
     got.sort();
     assert_eq!(got, vec![dir.join("a.lua"), dir.join("b.lua")]);
+    // A change of the folder's times alone (`touch`) asks for nothing
+    // (review: it reloaded every script).
+    let when = std::time::SystemTime::now() - Duration::from_secs(3600);
+    std::fs::File::open(&dir)
+        .unwrap()
+        .set_times(
+            std::fs::FileTimes::new()
+                .set_modified(when)
+                .set_accessed(when),
+        )
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    assert!(watcher.poll().is_empty());
 }

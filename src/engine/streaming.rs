@@ -232,16 +232,38 @@ pub fn build_region(
     let world = match built {
         Ok(world) => world,
         Err(e) => match e.downcast_ref::<crate::scene::SceneError>() {
-            Some(over @ crate::scene::SceneError::RegionOverLimit { .. }) => bail!(
-                "memory budget {} is too small for the simulated region: {over} (the engine holds {} besides{}); raise --memory-budget or [stream] memory_budget, or shrink [sim] region (or radius)",
-                budget::human(stream.memory_budget),
-                budget::human(held),
-                if follows {
-                    ", and the region is held twice while it moves"
-                } else {
-                    ""
-                },
-            ),
+            Some(&crate::scene::SceneError::RegionOverLimit {
+                built,
+                columns,
+                bytes,
+                ..
+            }) => {
+                // What the whole region would take, from its first columns,
+                // and the least budget that could then hold it as
+                // `check_budget` counts (the engine's copy and the
+                // renderer's), which names the exact minimum once the
+                // region is whole (review: a part-way refusal named none).
+                let whole = (bytes as f64 * columns as f64 / built.max(1) as f64) as u64;
+                // A lower bound: the process holds its copy with tables and
+                // the allocator's slack (about twice its bytes, measured).
+                let least = held
+                    + (1 + copies) * whole
+                    + RUNTIME_MARGIN
+                    + crate::persist::db::STORE_CACHE_BYTES as u64;
+                bail!(
+                    "memory budget {} is too small for the simulated region: after {built} of its {columns} chunk columns its bricks took {}, so the whole region would take about {}, held {}, beside the {} the engine holds; raise --memory-budget or [stream] memory_budget well past {} (once the region is built, the start names the exact minimum), or shrink [sim] region (or radius)",
+                    budget::human(stream.memory_budget),
+                    budget::human(bytes),
+                    budget::human(whole),
+                    if follows {
+                        "three times (the engine's copy, the renderer's, and a second while it moves)"
+                    } else {
+                        "twice (the engine's copy and the renderer's)"
+                    },
+                    budget::human(held),
+                    budget::human(least.next_multiple_of(1 << 20)),
+                )
+            }
             _ => return Err(e),
         },
     };

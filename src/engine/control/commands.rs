@@ -216,6 +216,30 @@ fn check_viewer(viewer: Option<&str>) -> Result<(), (u16, String)> {
 mod tests {
     use super::*;
 
+    /// Regression (review): a parameter sent through the API was parsed
+    /// one unit in the last place off the same text in the world config
+    /// (serde_json's fast float parse), so `ctl param water rain
+    /// 0.012345678901234567` stored another value than the config's, and
+    /// the start warned of the difference for ever. JSON numbers now parse
+    /// exactly, as Rust's `str::parse` does.
+    #[test]
+    fn api_parameters_parse_exactly_as_the_config_does() {
+        for text in [
+            "0.012345678901234567",
+            "0.1",
+            "2.2250738585072014e-308",
+            "1e-320",
+            "123456789.12345678",
+            "0.30000000000000004",
+        ] {
+            let map = serde_json::from_str::<UniqueNumbers>(&format!("{{\"p\": {text}}}"))
+                .unwrap()
+                .0;
+            let want: f64 = text.parse().unwrap();
+            assert_eq!(map["p"].to_bits(), want.to_bits(), "{text}");
+        }
+    }
+
     /// Regression (hostile probe): a step count past 64 bits was said not
     /// to be a whole number, and then quoted as 18446744073709551615 (the
     /// limit it was read as), a number the client never sent.

@@ -11,13 +11,14 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use rustc_hash::FxHashSet;
 
+use super::super::checkpoint::CameraOverride;
 use super::super::control::{CheckpointRef, ControlServer, Shared};
 use super::super::persistence::{self, DirtyChunks};
 use super::super::render_thread::{RenderSettings, RenderThread};
 use super::super::state_dir;
 use super::super::streaming::{self, RegionRule, StreamPlan};
 use super::super::timeline::Timeline;
-use super::super::world_config::WorldConfig;
+use super::super::world_config::{CameraMode, CameraSettings, WorldConfig};
 use super::report::{ring_columns, timeline_columns};
 use super::{DaemonOptions, Engine, ScriptNotes, load_source, materials_source};
 use crate::persist::WorldDb;
@@ -59,42 +60,7 @@ impl Engine {
         let shared = Arc::new(Shared::new(token.clone(), cfg.hosts.clone()));
         // Listen before any work: a taken port is a clear error at once.
         let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
-        {
-            // The first SIGINT/SIGTERM stops after the step in flight, with
-            // a final checkpoint; a step still running after STOP_GRACE is
-            // interrupted (and not committed). A second signal exits at
-            // once (the last checkpoint on disk stays good), unless it
-            // came within SAME_REQUEST of the first: GNU timeout signals
-            // the engine and then its process group, so one request
-            // arrives twice (regression, operator probe: a run under
-            // `timeout` lost its final commit one time in three).
-            let s = shared.clone();
-            let mut first: Option<std::time::Instant> = None;
-            ctrlc::set_handler(move || {
-                if s.shutdown.swap(true, Ordering::Relaxed) {
-                    if first.is_some_and(|t| t.elapsed() < super::SAME_REQUEST) {
-                        return;
-                    }
-                    crate::say!("second signal: exiting now, without a final checkpoint");
-                    std::process::exit(130);
-                }
-                first = Some(std::time::Instant::now());
-                // While the world is still loading no step is in flight,
-                // and the loop checks the flag before each: interrupting
-                // the scripts would fail the start's own smoke tests
-                // (regression, concurrency probe: a stop during a start of
-                // over 5 s ended in "materials.lua: interrupted", exit 1).
-                if !s.started.load(Ordering::Acquire) {
-                    crate::say!("stopping once the world is loaded");
-                    return;
-                }
-                std::thread::spawn(|| {
-                    std::thread::sleep(super::STOP_GRACE);
-                    crate::sim::interrupt::stop_all();
-                });
-            })
-            .context("cannot install the SIGINT/SIGTERM handler")?;
-        }
+        install_signal_handler(&shared)?;
         let mut db = open_store(&opts.state, &cfg)?;
         // Written once the store is this engine's: a second engine refused
         // by the store's own lock replaced the running engine's token
@@ -112,11 +78,11 @@ impl Engine {
         if let (Some(st), Some(plan)) = (cfg.stream.as_mut(), &stream_plan) {
             st.memory_budget = plan.window.budget_bytes;
         }
-        // A region that follows the camera has closed edges (see
-        // `follow.rs`); a fixed one drains over them like a small world.
         if let Some(msg) = crate::sim::run::reserved_conflicts(&world.materials) {
             anyhow::bail!("{}: {msg}", cfg.file);
         }
+        // A region that follows the camera has closed edges (see
+        // `follow.rs`); a fixed one drains over them like a small world.
         let mut ws = WorldSim::with_edges(&mut world, follow.is_none());
         // The ground read from the generated world is regenerated on every
         // start: not a change to commit.
@@ -129,43 +95,8 @@ impl Engine {
         // The scene declares its materials (and the simulation's).
         let scene: Vec<(u8, String)> = world.materials.names();
         persistence::seed_materials(&db, &mut world)?;
-        // Hot reload: the scripts directory is watched; a changed script is
-        // compiled and smoke-tested in a fresh VM and swapped in between
-        // steps; a broken one keeps the last good version running. The
-        // watch starts before `materials.lua` and the scripts are read, so
-        // a save during the start is reloaded once it is done (regression,
-        // hot-edit probe: it was never seen, and the old rule ran on).
-        let watcher = if cfg.scripts_embedded {
-            crate::say!(
-                "note: the default world's scripts are built in; `brickworld init DIR` writes editable copies (hot reload watches them)"
-            );
-            None
-        } else {
-            match ScriptWatcher::new(&cfg.scripts_dir, std::time::Duration::from_millis(150)) {
-                Ok(w) => Some(w),
-                Err(e) => {
-                    crate::say!("warning: hot reload is off: {e}");
-                    None
-                }
-            }
-        };
-        // Names no file declares any more keep their stored ids; once few
-        // ids are left, or `materials.lua` needs more new ones than are
-        // free, those that no stored voxel holds are freed before it loads
-        // (else a file that needs more ids could never start again;
-        // regression, review: a rename of 40 names with 34 ids free failed
-        // at every start, as only the first rule was checked).
-        let listed = materials_lua_names(&cfg)?;
-        let wanted = listed
-            .iter()
-            .filter(|n| world.materials.id(n).is_none())
-            .count();
-        let free = world.materials.free_ids();
-        if free < persistence::RECLAIM_BELOW || wanted > free {
-            let mut declared = declared_materials(&cfg, listed)?;
-            declared.extend(scene.into_iter().map(|(_, n)| n));
-            say_reclaimed(&persistence::reclaim_materials(&db, &mut world, &declared)?);
-        }
+        let watcher = start_watcher(&cfg);
+        reconcile_materials(&cfg, &db, &mut world, scene)?;
         // `BRICKWORLD_TEST_START_STALL_MS`: a pause before the scripts
         // load, so a test can stop a start that takes longer than
         // STOP_GRACE. Unset in normal use.
@@ -176,6 +107,10 @@ impl Engine {
             std::thread::sleep(std::time::Duration::from_millis(ms));
         }
         load_scripts(&cfg, &mut world, &mut ws)?;
+        let watcher = watcher.unwrap_or_else(|e| {
+            crate::say!("warning: hot reload is off: {e}");
+            None
+        });
         ws.check_memory()
             .with_context(|| format!("{}: [sim] scripts", cfg.file))?;
         if let Some(w) = crate::sim::run::below_zero_warning(&ws, &world) {
@@ -195,54 +130,22 @@ impl Engine {
                 whole_columns: follow.is_some(),
             },
         )?;
-        let mut loaded_from = None;
-        let mut camera = cfg.camera;
-        let mut camera_override = None;
-        match &resumed {
-            None => first_start(&cfg, &mut db, &mut world, &mut ws, &mut dirty_chunks)?,
-            Some(r) => {
-                if let Some(c) = r.state.extras.camera {
-                    camera = super::super::world_config::CameraSettings {
-                        mode: super::super::world_config::CameraMode::Fixed,
-                        eye: Some(glam::DVec3::from(c.eye)),
-                        target: Some(glam::DVec3::from(c.target)),
-                        fov: c.fov,
-                    };
-                    camera_override = Some(c);
+        let Loaded {
+            camera,
+            camera_override,
+            loaded_from,
+        } = match &resumed {
+            None => {
+                first_start(&cfg, &mut db, &mut world, &mut ws, &mut dirty_chunks)?;
+                Loaded {
+                    camera: cfg.camera,
+                    camera_override: None,
+                    loaded_from: None,
                 }
-                for c in &r.corrupt {
-                    crate::say!("warning: {c}");
-                }
-                for w in persistence::apply_state(&r.state, &mut ws) {
-                    crate::say!("warning: {w}");
-                }
-                for w in config_params_not_in_effect(&cfg, &ws) {
-                    crate::say!("warning: {w}");
-                }
-                let hash = persistence::engine_hash(&world, &ws);
-                crate::say!(
-                    "resumed {} at tick {} ({} stored chunks and chunk columns, world hash {hash:#018x})",
-                    db.path().display(),
-                    r.state.tick,
-                    r.chunks
-                );
-                loaded_from = Some(CheckpointRef {
-                    tick: r.state.tick,
-                    hash: format!("{hash:#018x}"),
-                });
             }
-        }
-        let frames_dir = opts.state.join(&cfg.frames_dir);
-        // Named by its field (regression, hostile probe: `dir = "/dev/null"`
-        // said "cannot create /dev/null: File exists").
-        if frames_dir.exists() && !frames_dir.is_dir() {
-            anyhow::bail!(
-                "frames.dir: {} is not a folder (frames are written into one)",
-                frames_dir.display()
-            );
-        }
-        std::fs::create_dir_all(&frames_dir)
-            .with_context(|| format!("frames.dir: cannot create {}", frames_dir.display()))?;
+            Some(r) => resume(&cfg, &db, &world, &mut ws, r),
+        };
+        let frames_dir = frames_folder(&opts.state, &cfg)?;
         let renderer = RenderThread::spawn(
             RenderSettings {
                 look: cfg.look,
@@ -254,32 +157,7 @@ impl Engine {
             shared.clone(),
         )
         .context("cannot start the render thread")?;
-        let mut timeline =
-            Timeline::open(&opts.state.join("timeline.csv"), &timeline_columns(&ws))?;
-        // The timeline never stops the engine: a trim that fails is said.
-        match timeline.drop_rows_after(ws.sim.tick()) {
-            Ok(Some(aside)) => crate::say!(
-                "timeline: rows after tick {} (to be run again) dropped; they are kept in {}",
-                ws.sim.tick(),
-                aside.display()
-            ),
-            Ok(None) => {}
-            Err(e) => crate::say!("warning: {e:#}"),
-        }
-        // The viewer's charts start from the history on disk, not empty
-        // after every restart (regression, docs walk). Only rows of the
-        // same columns: another header was moved aside by `open`.
-        let names = ring_columns(timeline_columns(&ws));
-        if let Ok(past) = crate::engine::timeline::read_tail(
-            &opts.state.join("timeline.csv"),
-            crate::engine::control::live::TIMELINE_ROWS,
-        ) && past.columns == names
-            && let Ok(mut ring) = shared.timeline.lock()
-        {
-            for row in past.rows {
-                ring.push(&names, row);
-            }
-        }
+        let timeline = open_timeline(&opts.state, &ws, &shared)?;
         println!(
             "brickworld is running: viewer http://{}/ (control token in {}: {token})",
             server.addr,
@@ -333,6 +211,190 @@ impl Engine {
         engine.shared.started.store(true, Ordering::Release);
         Ok(engine)
     }
+}
+
+/// Where a start left off: the camera (a resumed world's stored one, if
+/// set) and the checkpoint it resumed from.
+struct Loaded {
+    camera: CameraSettings,
+    camera_override: Option<CameraOverride>,
+    loaded_from: Option<CheckpointRef>,
+}
+
+/// Apply a resumed world's stored state over the loaded scripts, saying
+/// what it could not keep and which config parameters it overrides.
+fn resume(
+    cfg: &WorldConfig,
+    db: &WorldDb,
+    world: &SceneWorld,
+    ws: &mut WorldSim,
+    r: &persistence::Restored,
+) -> Loaded {
+    let mut camera = cfg.camera;
+    let mut camera_override = None;
+    if let Some(c) = r.state.extras.camera {
+        camera = CameraSettings {
+            mode: CameraMode::Fixed,
+            eye: Some(glam::DVec3::from(c.eye)),
+            target: Some(glam::DVec3::from(c.target)),
+            fov: c.fov,
+        };
+        camera_override = Some(c);
+    }
+    for c in &r.corrupt {
+        crate::say!("warning: {c}");
+    }
+    for w in persistence::apply_state(&r.state, ws) {
+        crate::say!("warning: {w}");
+    }
+    for w in config_params_not_in_effect(cfg, ws) {
+        crate::say!("warning: {w}");
+    }
+    let hash = persistence::engine_hash(world, ws);
+    crate::say!(
+        "resumed {} at tick {} ({} stored chunks and chunk columns, world hash {hash:#018x})",
+        db.path().display(),
+        r.state.tick,
+        r.chunks
+    );
+    Loaded {
+        camera,
+        camera_override,
+        loaded_from: Some(CheckpointRef {
+            tick: r.state.tick,
+            hash: format!("{hash:#018x}"),
+        }),
+    }
+}
+
+/// The frames folder, made if missing; something else at its path is
+/// refused, naming the field (regression, hostile probe: `dir =
+/// "/dev/null"` said "cannot create /dev/null: File exists").
+fn frames_folder(state: &Path, cfg: &WorldConfig) -> Result<std::path::PathBuf> {
+    let frames_dir = state.join(&cfg.frames_dir);
+    if frames_dir.exists() && !frames_dir.is_dir() {
+        anyhow::bail!(
+            "frames.dir: {} is not a folder (frames are written into one)",
+            frames_dir.display()
+        );
+    }
+    std::fs::create_dir_all(&frames_dir)
+        .with_context(|| format!("frames.dir: cannot create {}", frames_dir.display()))?;
+    Ok(frames_dir)
+}
+
+/// The timeline, with the rows after the resumed tick dropped (they run
+/// again), and the viewer's charts filled from its history on disk.
+fn open_timeline(state: &Path, ws: &WorldSim, shared: &Shared) -> Result<Timeline> {
+    let mut timeline = Timeline::open(&state.join("timeline.csv"), &timeline_columns(ws))?;
+    // The timeline never stops the engine: a trim that fails is said.
+    match timeline.drop_rows_after(ws.sim.tick()) {
+        Ok(Some(aside)) => crate::say!(
+            "timeline: rows after tick {} (to be run again) dropped; they are kept in {}",
+            ws.sim.tick(),
+            aside.display()
+        ),
+        Ok(None) => {}
+        Err(e) => crate::say!("warning: {e:#}"),
+    }
+    // The viewer's charts start from the history on disk, not empty
+    // after every restart (regression, docs walk). Only rows of the
+    // same columns: another header was moved aside by `open`.
+    let names = ring_columns(timeline_columns(ws));
+    if let Ok(past) = crate::engine::timeline::read_tail(
+        &state.join("timeline.csv"),
+        crate::engine::control::live::TIMELINE_ROWS,
+    ) && past.columns == names
+        && let Ok(mut ring) = shared.timeline.lock()
+    {
+        for row in past.rows {
+            ring.push(&names, row);
+        }
+    }
+    Ok(timeline)
+}
+
+/// Hot reload: the scripts directory is watched; a changed script is
+/// compiled and smoke-tested in a fresh VM and swapped in between steps; a
+/// broken one keeps the last good version running. The watch starts
+/// before `materials.lua` and the scripts are read, so a save during the
+/// start is reloaded once it is done (regression, hot-edit probe: it was
+/// never seen, and the old rule ran on).
+/// A folder that cannot be watched is said once the scripts have loaded
+/// (review: a missing folder's "hot reload is off" came before the error
+/// that named the missing script).
+fn start_watcher(cfg: &WorldConfig) -> Result<Option<ScriptWatcher>, crate::sim::SimError> {
+    if cfg.scripts_embedded {
+        crate::say!(
+            "note: the default world's scripts are built in; `brickworld init DIR` writes editable copies (hot reload watches them)"
+        );
+        Ok(None)
+    } else {
+        ScriptWatcher::new(&cfg.scripts_dir, std::time::Duration::from_millis(150)).map(Some)
+    }
+}
+
+/// Names no file declares any more keep their stored ids; once few ids
+/// are left, or `materials.lua` needs more new ones than are free, those
+/// that no stored voxel holds are freed before it loads (else a file that
+/// needs more ids could never start again; regression, review: a rename
+/// of 40 names with 34 ids free failed at every start, as only the first
+/// rule was checked). `scene`: the names the scene itself declares.
+fn reconcile_materials(
+    cfg: &WorldConfig,
+    db: &WorldDb,
+    world: &mut SceneWorld,
+    scene: Vec<(u8, String)>,
+) -> Result<()> {
+    let listed = materials_lua_names(cfg)?;
+    let wanted = listed
+        .iter()
+        .filter(|n| world.materials.id(n).is_none())
+        .count();
+    let free = world.materials.free_ids();
+    if free < persistence::RECLAIM_BELOW || wanted > free {
+        let mut declared = declared_materials(cfg, listed)?;
+        declared.extend(scene.into_iter().map(|(_, n)| n));
+        say_reclaimed(&persistence::reclaim_materials(db, world, &declared)?);
+    }
+    Ok(())
+}
+
+/// The first SIGINT/SIGTERM stops after the step in flight, with a final
+/// checkpoint; a step still running after STOP_GRACE is interrupted (and
+/// not committed). A second signal exits at once (the last checkpoint on
+/// disk stays good), unless it came within SAME_REQUEST of the first: GNU
+/// timeout signals the engine and then its process group, so one request
+/// arrives twice (regression, operator probe: a run under `timeout` lost
+/// its final commit one time in three).
+fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
+    let s = shared.clone();
+    let mut first: Option<std::time::Instant> = None;
+    ctrlc::set_handler(move || {
+        if s.shutdown.swap(true, Ordering::Relaxed) {
+            if first.is_some_and(|t| t.elapsed() < super::SAME_REQUEST) {
+                return;
+            }
+            crate::say!("second signal: exiting now, without a final checkpoint");
+            std::process::exit(130);
+        }
+        first = Some(std::time::Instant::now());
+        // While the world is still loading no step is in flight,
+        // and the loop checks the flag before each: interrupting
+        // the scripts would fail the start's own smoke tests
+        // (regression, concurrency probe: a stop during a start of
+        // over 5 s ended in "materials.lua: interrupted", exit 1).
+        if !s.started.load(Ordering::Acquire) {
+            crate::say!("stopping once the world is loaded");
+            return;
+        }
+        std::thread::spawn(|| {
+            std::thread::sleep(super::STOP_GRACE);
+            crate::sim::interrupt::stop_all();
+        });
+    })
+    .context("cannot install the SIGINT/SIGTERM handler")?;
+    Ok(())
 }
 
 /// The parameters the world config sets that a resumed state overrides:

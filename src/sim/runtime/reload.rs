@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, unbounded};
 use notify::event::ModifyKind;
 use notify::{EventKind, RecursiveMode, Watcher};
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 
 use crate::sim::SimError;
 
@@ -44,6 +44,27 @@ pub struct ScriptWatcher {
     /// at (the target's identity, size and times; `None` when dangling):
     /// the directory's watch sees a link replaced, not its target edited.
     links: FxHashMap<PathBuf, Option<Target>>,
+    /// Links whose target changed at the last recheck: reported once it
+    /// has not changed for a whole recheck (a target being written is not
+    /// read half-way).
+    settling: FxHashSet<PathBuf>,
+    /// The folder's permissions and owner: a change of them asks for every
+    /// script again, a change of its times does not.
+    access: Option<(u32, u32, u32)>,
+}
+
+/// A folder's permission bits and owner.
+fn access(dir: &Path) -> Option<(u32, u32, u32)> {
+    let m = std::fs::metadata(dir).ok()?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::{MetadataExt, PermissionsExt};
+        Some((m.permissions().mode(), m.uid(), m.gid()))
+    }
+    #[cfg(not(unix))]
+    {
+        Some((m.permissions().readonly() as u32, 0, 0))
+    }
 }
 
 /// A link target's identity, size and change times.
@@ -210,6 +231,8 @@ impl ScriptWatcher {
             notes: Vec::new(),
             last_failure: None,
             links: scan_links(&abs),
+            settling: FxHashSet::default(),
+            access: access(&abs),
         })
     }
 
@@ -231,9 +254,12 @@ impl ScriptWatcher {
         let links = scan_links(&self.abs);
         for (p, t) in &links {
             if self.links.get(p).is_some_and(|old| old != t) {
+                self.settling.insert(p.clone());
+            } else if self.settling.remove(p) {
                 self.pending.insert(p.clone(), now);
             }
         }
+        self.settling.retain(|p| links.contains_key(p));
         self.links = links;
         let id = identity(&self.dir);
         let lost = self
@@ -288,10 +314,24 @@ impl ScriptWatcher {
         let events: Vec<PathBuf> = self.events.try_iter().collect();
         for p in events {
             if p.extension().is_some_and(|x| x == "lua") {
+                // A link replaced is reported by its event: what it points
+                // at now is the known target (review: a re-pointed link
+                // was reloaded twice, by its event and by the recheck).
+                if let Some(known) = self.links.get_mut(&p) {
+                    *known = target(&p);
+                    self.settling.remove(&p);
+                }
                 self.pending.insert(p, now);
             } else {
-                for p in lua_files(&self.abs) {
-                    self.pending.insert(p, now);
+                // The folder's attributes: only a change of its
+                // permissions or owner asks for every script (review: a
+                // `touch` of the folder reloaded them all).
+                let now_access = access(&self.abs);
+                if now_access != self.access {
+                    self.access = now_access;
+                    for p in lua_files(&self.abs) {
+                        self.pending.insert(p, now);
+                    }
                 }
             }
         }
