@@ -147,18 +147,15 @@ fn load_world_config(
 
 fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
     use crate::engine::world_config::WorldConfig;
+    let flags = crate::config::RunSettings::from_args(a)?;
     let mut world = match &a.world {
         Some(p) => WorldConfig::load(p)?,
         None => WorldConfig::default_world(),
     };
-    if let Some(addr) = &a.addr {
-        world.addr = addr.parse().map_err(|_| {
-            anyhow::anyhow!("invalid --addr '{addr}': expected an IP address and a port, e.g. 127.0.0.1:7878 (not a host name)")
-        })?;
+    if let Some(addr) = flags.addr {
+        world.addr = addr;
     }
-    if let Some(text) = &a.memory_budget {
-        let bytes = crate::engine::world_config::parse_bytes(text)
-            .map_err(|e| anyhow::anyhow!("invalid --memory-budget: {e}"))?;
+    if let Some(bytes) = flags.memory_budget {
         match world.stream.as_mut() {
             Some(st) => st.memory_budget = bytes,
             None => anyhow::bail!(
@@ -166,17 +163,14 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
             ),
         }
     }
-    if let Some(dir) = &a.scripts {
-        world.scripts_dir = dir.clone();
+    if let Some(dir) = flags.scripts {
+        world.scripts_dir = dir;
         world.scripts_embedded = false;
-    }
-    if a.ticks == Some(0) {
-        anyhow::bail!("invalid --ticks 0: at least one tick");
     }
     crate::engine::daemon::run(crate::engine::daemon::DaemonOptions {
         world,
         state: a.state.clone(),
-        max_ticks: a.ticks,
+        max_ticks: flags.ticks,
         until_tick: a.until_tick,
         paused: a.paused,
     })

@@ -323,6 +323,52 @@ impl BenchTracersSettings {
     }
 }
 
+/// The flags `run` lays over a world config, validated (the config itself
+/// is loaded and validated by [`crate::engine::world_config`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RunSettings {
+    /// `--addr`: the control server's address.
+    pub addr: Option<std::net::SocketAddr>,
+    /// `--memory-budget` in bytes (a streamed world's).
+    pub memory_budget: Option<u64>,
+    /// `--scripts`: the scripts directory.
+    pub scripts: Option<PathBuf>,
+    /// `--ticks`: stop after this many (at least one).
+    pub ticks: Option<u64>,
+}
+
+impl RunSettings {
+    /// Validate `run`'s flags.
+    pub fn from_args(a: &crate::cli::RunArgs) -> Result<Self, ConfigError> {
+        let addr = match &a.addr {
+            Some(text) => Some(text.parse().map_err(|_| {
+                bad(
+                    "--addr",
+                    text,
+                    "expected an IP address and a port, e.g. 127.0.0.1:7878 (not a host name)",
+                )
+            })?),
+            None => None,
+        };
+        let memory_budget = match &a.memory_budget {
+            Some(text) => Some(
+                crate::engine::world_config::parse_bytes(text)
+                    .map_err(|e| bad("--memory-budget", text, e))?,
+            ),
+            None => None,
+        };
+        if a.ticks == Some(0) {
+            return Err(bad("--ticks", "0", "at least one tick"));
+        }
+        Ok(RunSettings {
+            addr,
+            memory_budget,
+            scripts: a.scripts.clone(),
+            ticks: a.ticks,
+        })
+    }
+}
+
 /// A parameter override `SCRIPT.NAME=VALUE`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ParamOverride {
@@ -419,6 +465,46 @@ impl SimSettings {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `run`'s flags are validated here, each error naming its flag
+    /// (code-habits audit: they were checked inline in `app/`).
+    #[test]
+    fn run_flags_are_validated_naming_the_flag() {
+        let args = |extra: &[&str]| {
+            let mut v = vec!["brickworld", "run"];
+            v.extend_from_slice(extra);
+            match <crate::cli::Cli as clap::Parser>::try_parse_from(v)
+                .unwrap()
+                .command
+            {
+                crate::cli::Command::Run(a) => a,
+                _ => unreachable!(),
+            }
+        };
+        let ok = RunSettings::from_args(&args(&[
+            "--addr",
+            "127.0.0.1:9",
+            "--memory-budget",
+            "1.5GiB",
+            "--ticks",
+            "3",
+        ]))
+        .unwrap();
+        assert_eq!(ok.addr, Some("127.0.0.1:9".parse().unwrap()));
+        assert_eq!(ok.memory_budget, Some(3 << 29));
+        assert_eq!(ok.ticks, Some(3));
+        for (flags, says) in [
+            (&["--addr", "box.lan:1"][..], "invalid --addr 'box.lan:1'"),
+            (
+                &["--memory-budget", "lots"],
+                "invalid --memory-budget 'lots'",
+            ),
+            (&["--ticks", "0"], "invalid --ticks '0'"),
+        ] {
+            let e = RunSettings::from_args(&args(flags)).unwrap_err();
+            assert!(e.to_string().starts_with(says), "{e}");
+        }
+    }
 
     /// Regression (review): `render` applied `--fov` to the scene's default
     /// view, `sim` ignored it there. Both take their camera from here: an
