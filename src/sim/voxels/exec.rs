@@ -141,9 +141,12 @@ impl Working {
 }
 
 /// A pass's output for one candidate: materials and written channels.
-struct BrickOut {
-    mat: [u8; VOXEL_CELLS],
-    chans: Vec<[f32; VOXEL_CELLS]>,
+/// One brick's outputs of a pass: views into buffers made once per step
+/// for every candidate (code-habits audit: a `Vec` was made for every
+/// brick in every pass).
+struct BrickOut<'a> {
+    mat: &'a mut [u8; VOXEL_CELLS],
+    chans: &'a mut [[f32; VOXEL_CELLS]],
 }
 
 /// Per-worker scratch: the halos and the byte image of one channel.
@@ -193,6 +196,15 @@ pub(super) fn run_script(
         .filter_map(|c| spec.channels.iter().position(|x| x == c))
         .collect();
     let before: Vec<(f64, f64)> = conserved.iter().map(|&i| work.sums(i)).collect();
+    // Every pass's outputs, for every candidate, in two buffers made once.
+    let most_writes = spec
+        .passes
+        .iter()
+        .map(|p| p.writes.len())
+        .max()
+        .unwrap_or(0);
+    let mut mats_out = vec![[0u8; VOXEL_CELLS]; cands.len()];
+    let mut chans_out = vec![[0.0f32; VOXEL_CELLS]; cands.len() * most_writes.max(1)];
     for (pi, pass) in spec.passes.iter().enumerate() {
         let writes_mat = pass.writes.iter().any(|w| w == MAT);
         let ridx: Vec<usize> = pass
@@ -205,65 +217,75 @@ pub(super) fn run_script(
             .iter()
             .filter_map(|w| spec.channels.iter().position(|c| c == w))
             .collect();
-        let mut outs: Vec<BrickOut> = (0..cands.len())
-            .map(|_| BrickOut {
-                mat: [0; VOXEL_CELLS],
-                chans: vec![[0.0; VOXEL_CELLS]; widx.len()],
-            })
-            .collect();
+        // A chunk of at least one, cut to the pass's writes (none is
+        // possible: a pass may write only materials).
+        let width = widx.len().max(1);
         let w = &work;
         let failed = crate::sim::LowestError::new();
-        outs.par_iter_mut().enumerate().for_each_init(
-            || Scratch {
-                mat: [0; VOXEL_HALO],
-                chans: vec![[0.0; VOXEL_HALO]; nch],
-                bytes: vec![0; VOXEL_HALO * 4],
-            },
-            |sc, (ci, out)| {
-                failed.run(ci, || -> Result<(), SimError> {
-                    let b = cands[ci];
-                    gather(&w.neighbours(ci, &w.mats), BOUNDARY, &mut sc.mat);
-                    for &i in &ridx {
-                        let nbr = w.neighbours(ci, &w.chans[i]);
-                        // Outside the bounds a channel reads 0.
-                        let nbr = nbr.map(|n| Some(n.unwrap_or(&ZERO_F32)));
-                        gather(&nbr, 0.0, &mut sc.chans[i]);
-                    }
-                    let own = &w.mats[nbr_self(w, ci)];
-                    out.mat = *own;
-                    for (j, &i) in widx.iter().enumerate() {
-                        out.chans[j] = w.chans[i][nbr_self(w, ci)];
-                    }
-                    match job.kernel {
-                        VoxelKernel::Native(k) => {
-                            k.run(
-                                pi,
-                                NativeBrick {
-                                    brick: b,
-                                    dt,
-                                    params: job.params,
-                                    materials: job.material_ids,
-                                    mat: &sc.mat,
-                                    reads: &sc.chans,
-                                    mat_out: &mut out.mat,
-                                    writes: &mut out.chans,
-                                },
-                            );
-                            Ok(())
+        mats_out
+            .par_iter_mut()
+            .zip(chans_out[..cands.len() * width].par_chunks_mut(width))
+            .map(|(mat, chans)| BrickOut {
+                mat,
+                chans: &mut chans[..widx.len()],
+            })
+            .enumerate()
+            .for_each_init(
+                || Scratch {
+                    mat: [0; VOXEL_HALO],
+                    chans: vec![[0.0; VOXEL_HALO]; nch],
+                    bytes: vec![0; VOXEL_HALO * 4],
+                },
+                |sc, (ci, mut out)| {
+                    failed.run(ci, || -> Result<(), SimError> {
+                        let b = cands[ci];
+                        gather(&w.neighbours(ci, &w.mats), BOUNDARY, &mut sc.mat);
+                        for &i in &ridx {
+                            let nbr = w.neighbours(ci, &w.chans[i]);
+                            // Outside the bounds a channel reads 0.
+                            let nbr = nbr.map(|n| Some(n.unwrap_or(&ZERO_F32)));
+                            gather(&nbr, 0.0, &mut sc.chans[i]);
                         }
-                        VoxelKernel::Lua => {
-                            run_lua(job, pi, &ridx, &widx, sc, out, b, (dt, serial, key))
+                        let own = &w.mats[nbr_self(w, ci)];
+                        *out.mat = *own;
+                        for (j, &i) in widx.iter().enumerate() {
+                            out.chans[j] = w.chans[i][nbr_self(w, ci)];
                         }
-                    }
-                });
-            },
-        );
+                        match job.kernel {
+                            VoxelKernel::Native(k) => {
+                                k.run(
+                                    pi,
+                                    NativeBrick {
+                                        brick: b,
+                                        dt,
+                                        params: job.params,
+                                        materials: job.material_ids,
+                                        mat: &sc.mat,
+                                        reads: &sc.chans,
+                                        mat_out: out.mat,
+                                        writes: out.chans,
+                                    },
+                                );
+                                Ok(())
+                            }
+                            VoxelKernel::Lua => {
+                                run_lua(job, pi, &ridx, &widx, sc, &mut out, b, (dt, serial, key))
+                            }
+                        }
+                    });
+                },
+            );
         failed.result()?;
         // Commit the pass (every brick of it read the previous generation).
-        for (ci, out) in outs.into_iter().enumerate() {
+        for (ci, (mat, chans)) in mats_out
+            .iter()
+            .zip(chans_out.chunks(width))
+            .take(cands.len())
+            .enumerate()
+        {
             let b = cands[ci];
             if writes_mat {
-                if let Some(&bad) = out.mat.iter().find(|&&v| !valid[v as usize]) {
+                if let Some(&bad) = mat.iter().find(|&&v| !valid[v as usize]) {
                     return Err(SimError::Runtime {
                         script: spec.name.clone(),
                         pass: pass.name.clone(),
@@ -275,10 +297,10 @@ pub(super) fn run_script(
                         ),
                     });
                 }
-                work.mats[ci] = out.mat;
+                work.mats[ci] = *mat;
             }
             for (j, &i) in widx.iter().enumerate() {
-                let v = &out.chans[j];
+                let v = &chans[j];
                 check_channel(spec, i, b, v)?;
                 work.chans[i][ci] = *v;
             }
@@ -366,7 +388,7 @@ fn run_lua(
     ridx: &[usize],
     widx: &[usize],
     sc: &mut Scratch,
-    out: &mut BrickOut,
+    out: &mut BrickOut<'_>,
     b: IVec3,
     (dt, serial, key): (f64, u64, StepKey),
 ) -> Result<(), SimError> {
@@ -382,7 +404,7 @@ fn run_lua(
                 .material_buffers()
                 .expect("a voxel VM has material buffers");
             mr.write_bytes(0, &sc.mat);
-            mw.write_bytes(0, &out.mat);
+            mw.write_bytes(0, &out.mat[..]);
             for &i in ridx {
                 to_le_bytes(&sc.chans[i], &mut sc.bytes);
                 vm.read_buffer(i).write_bytes(0, &sc.bytes);
@@ -395,7 +417,7 @@ fn run_lua(
         })?;
         if writes_mat {
             let (_, mw) = vm.material_buffers().expect("voxel VM");
-            out.mat = mw.read_bytes::<VOXEL_CELLS>(0);
+            *out.mat = mw.read_bytes::<VOXEL_CELLS>(0);
         }
         for (j, &i) in widx.iter().enumerate() {
             let raw: [u8; VOXEL_CELLS * 4] = vm.write_buffer(i).read_bytes(0);
