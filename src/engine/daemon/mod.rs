@@ -38,12 +38,13 @@ mod init;
 mod inputs;
 mod rate;
 mod report;
+mod scripts;
 mod start;
 mod view;
 
 pub use init::init;
 
-pub(crate) use start::load_scripts;
+pub(crate) use scripts::load_scripts;
 
 use super::checkpoint::CameraOverride;
 use super::persistence::{self, DirtyChunks};
