@@ -245,7 +245,12 @@ fn a_port_in_use_and_a_bad_config_are_clear_errors() {
     let out = run_cmd(&cfg, &state).output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
-    assert!(err.contains(&format!("cannot listen on {addr}")), "{err}");
+    assert!(
+        err.contains(&format!(
+            "world.toml: control.addr (or --addr): cannot listen on {addr}"
+        )),
+        "{err}"
+    );
     common::cli::assert_no_panic(&err, "the engine");
     std::fs::write(
         &cfg,

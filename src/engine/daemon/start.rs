@@ -61,7 +61,9 @@ impl Engine {
         let token = state_dir::new_token()?;
         let shared = Arc::new(Shared::new(token.clone(), cfg.hosts.clone()));
         // Listen before any work: a taken port is a clear error at once.
-        let server = ControlServer::start(cfg.addr, shared.clone()).map_err(anyhow::Error::msg)?;
+        // Named by its field (a taken port is the usual cause).
+        let server = ControlServer::start(cfg.addr, shared.clone())
+            .map_err(|e| anyhow::anyhow!("{}: control.addr (or --addr): {e}", cfg.file))?;
         install_signal_handler(&shared)?;
         let mut db = open_store(&opts.state, &cfg)?;
         // Written once the store is this engine's: a second engine refused
