@@ -242,6 +242,17 @@ pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File
         .file_name()
         .map(|n| n.to_string_lossy().to_string())
         .unwrap_or_else(|| "out".into());
+    // The temporary's name must fit where the destination's does: a name
+    // of up to 255 bytes is cut to 200, so `.NAME.PID-N.tmp` stays within
+    // the limit (regression, odd-paths probe: a 251-byte name failed with
+    // "File name too long", for the temporary's sake).
+    let name = match name
+        .char_indices()
+        .find(|&(i, c)| i + c.len_utf8() > TEMP_NAME_BYTES)
+    {
+        Some((i, _)) => name[..i].to_string(),
+        None => name,
+    };
     sweep_stale_temps(dir, &name);
     loop {
         let n = NEXT.fetch_add(1, Ordering::Relaxed);
@@ -257,6 +268,9 @@ pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File
         }
     }
 }
+
+/// The most bytes of a destination's name its temporary's name keeps.
+const TEMP_NAME_BYTES: usize = 200;
 
 /// Temporary files older than this, of a process that is gone, are removed.
 const STALE_TEMP: std::time::Duration = std::time::Duration::from_secs(60);

@@ -37,7 +37,11 @@ pub mod runtime_dir;
 macro_rules! say {
     ($($arg:tt)*) => {{
         use std::io::Write as _;
-        let _ = writeln!(std::io::stderr(), $($arg)*);
+        // One line, whatever a path or name in it holds: control characters
+        // are escaped (regression, odd-paths probe: a path with ESC set the
+        // terminal's title, one with a newline split the error in two).
+        let line = format!($($arg)*);
+        let _ = writeln!(std::io::stderr(), "{}", $crate::text::escape_controls(&line, true));
     }};
 }
 

@@ -1690,3 +1690,25 @@ fn a_kernel_logging_huge_strings_stays_within_its_memory() {
         "{line}"
     );
 }
+
+/// Regression (odd-paths probe): a path with control characters reached
+/// the terminal raw in the error line (ESC set the terminal's title, a
+/// newline split the line in two). Every line the binary says is escaped.
+#[test]
+fn control_characters_in_a_path_are_escaped_in_the_error_line() {
+    let out = bin()
+        .args([
+            "render",
+            "--size",
+            "16x16x16",
+            "--out",
+            "no\u{1b}]0;PWNED\u{7}dir\nx/x.png",
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(!err.contains('\u{1b}') && !err.contains('\u{7}'), "{err:?}");
+    assert_eq!(err.trim_end().lines().count(), 1, "{err:?}");
+    assert!(err.contains("\\u{1b}"), "{err:?}");
+}

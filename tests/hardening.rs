@@ -1211,17 +1211,35 @@ fn a_manifest_copy_that_cannot_be_written_is_a_warning() {
     let (cfg, state, _) = setup("manifest-copy");
     run_ok(&cfg, &state, "--ticks", 1);
     std::fs::remove_file(state.join("manifest.json")).unwrap();
-    // Where the copy is first written: a folder, so the write fails.
-    std::fs::create_dir(state.join("manifest.json.tmp")).unwrap();
+    // A folder where the copy goes: its write fails.
+    std::fs::create_dir(state.join("manifest.json")).unwrap();
     let (_, err) = run_ok(&cfg, &state, "--ticks", 1);
     assert!(
         err.contains("warning: cannot write") && err.contains("the manifest's copy"),
         "{err}"
     );
-    std::fs::remove_dir(state.join("manifest.json.tmp")).unwrap();
+    std::fs::remove_dir(state.join("manifest.json")).unwrap();
+    // A link or a FIFO at the old fixed temporary name is neither written
+    // through nor waited on (regression, odd-paths probe: the link's file
+    // became the manifest, the FIFO hung the start).
+    let precious = state.with_file_name("precious.txt");
+    std::fs::write(&precious, "mine").unwrap();
+    std::os::unix::fs::symlink(&precious, state.join("manifest.json.tmp")).unwrap();
+    run_ok(&cfg, &state, "--ticks", 1);
+    assert_eq!(std::fs::read_to_string(&precious).unwrap(), "mine");
+    assert!(state.join("manifest.json").is_file());
+    std::fs::remove_file(state.join("manifest.json.tmp")).unwrap();
+    mkfifo(&state.join("manifest.json.tmp"));
+    std::fs::remove_file(state.join("manifest.json")).unwrap();
     run_ok(&cfg, &state, "--ticks", 1);
     assert!(state.join("manifest.json").is_file());
-    assert!(!state.join("manifest.json.tmp").exists());
+    let temps: Vec<String> = std::fs::read_dir(&state)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with(".manifest.json") && n.ends_with(".tmp"))
+        .collect();
+    assert!(temps.is_empty(), "{temps:?}");
 }
 
 /// Regression (hostile probe): a start refused for a missing script left a

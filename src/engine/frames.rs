@@ -26,6 +26,29 @@ pub fn frame_tick(name: &str) -> Option<u64> {
     (format!("{tick:08}") == digits).then_some(tick)
 }
 
+/// A frame the engine was writing when it was killed: the old fixed name
+/// `.frame-NNNNNNNN.png.tmp`, or `.frame-NNNNNNNN.png.PID-N.tmp` of a
+/// process that is gone (a running engine's is left alone).
+fn engine_temp(name: &str) -> bool {
+    let Some(rest) = name.strip_prefix('.').and_then(|n| n.strip_suffix(".tmp")) else {
+        return false;
+    };
+    if frame_tick(rest).is_some() {
+        return true;
+    }
+    let Some((frame, pid)) = rest.rsplit_once('.').and_then(|(f, tag)| {
+        let (pid, n) = tag.split_once('-')?;
+        let digits = |t: &str| !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit());
+        (digits(pid) && digits(n)).then_some((f, pid))
+    }) else {
+        return false;
+    };
+    frame_tick(frame).is_some()
+        && pid != std::process::id().to_string()
+        && !std::path::Path::new("/proc").join(pid).exists()
+        && std::path::Path::new("/proc/self").exists()
+}
+
 impl FrameFiles {
     /// The frames already in `dir` (a missing directory has none), oldest
     /// first by tick (a tick past 8 digits sorts after, not before).
@@ -38,12 +61,7 @@ impl FrameFiles {
                         // A frame half-written when the engine was killed
                         // (`.frame-NNNNNNNN.png.tmp`, the engine's own name):
                         // removed, not kept for ever.
-                        let temp = e.file_name().to_str().is_some_and(|n| {
-                            n.strip_prefix('.')
-                                .and_then(|n| n.strip_suffix(".tmp"))
-                                .and_then(frame_tick)
-                                .is_some()
-                        });
+                        let temp = e.file_name().to_str().is_some_and(engine_temp);
                         if temp {
                             let _ = std::fs::remove_file(e.path());
                         }
@@ -98,9 +116,13 @@ impl FrameFiles {
 /// final name (a failed write removes its temporary file). Returns the
 /// frame's path.
 pub fn write_frame(dir: &std::path::Path, tick: u64, png: &[u8]) -> std::io::Result<PathBuf> {
+    use std::io::Write as _;
     let path = dir.join(format!("frame-{tick:08}.png"));
-    let tmp = dir.join(format!(".frame-{tick:08}.png.tmp"));
-    match std::fs::write(&tmp, png).and_then(|_| std::fs::rename(&tmp, &path)) {
+    // A fresh temporary (`create_new`), never one at a fixed name: a link
+    // planted at `.frame-N.png.tmp` was written through (regression,
+    // odd-paths probe).
+    let (tmp, mut f) = crate::files::fresh_temp_beside(&path)?;
+    match f.write_all(png).and_then(|_| std::fs::rename(&tmp, &path)) {
         Ok(()) => Ok(path),
         Err(e) => {
             let _ = std::fs::remove_file(&tmp);
@@ -143,10 +165,28 @@ mod tests {
         assert_eq!(path, dir.join("frame-00000007.png"));
         assert_eq!(std::fs::read(&path).unwrap(), b"new frame");
         assert_eq!(std::fs::read(&witness).unwrap(), b"old", "written in place");
-        // The temporary name is taken by a folder: the write fails cleanly.
-        std::fs::create_dir(dir.join(".frame-00000008.png.tmp")).unwrap();
-        assert!(super::write_frame(&dir, 8, b"x").is_err());
-        assert!(!dir.join("frame-00000008.png").exists());
+        // Something at the old fixed temporary name, a link to a user's
+        // file, is never written through (regression, odd-paths probe).
+        let precious = dir.join("precious");
+        std::fs::write(&precious, b"mine").unwrap();
+        std::os::unix::fs::symlink(&precious, dir.join(".frame-00000008.png.tmp")).unwrap();
+        super::write_frame(&dir, 8, b"frame 8").unwrap();
+        assert_eq!(std::fs::read(&precious).unwrap(), b"mine");
+        assert_eq!(
+            std::fs::read(dir.join("frame-00000008.png")).unwrap(),
+            b"frame 8"
+        );
+        // A write that fails (a folder where the frame goes) fails cleanly,
+        // leaving no temporary.
+        std::fs::create_dir(dir.join("frame-00000009.png")).unwrap();
+        assert!(super::write_frame(&dir, 9, b"x").is_err());
+        let left: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().to_string())
+            .filter(|n| n.contains("00000009") && n.ends_with(".tmp"))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

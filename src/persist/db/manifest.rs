@@ -70,12 +70,14 @@ pub(super) fn read_manifest(path: &Path) -> Option<Vec<u8>> {
 /// folder synced.
 pub(super) fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     use std::io::Write;
-    let tmp = path.with_extension("json.tmp");
-    let written = std::fs::File::create(&tmp).and_then(|mut f| {
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    });
+    // A fresh temporary (`create_new`), never one at a fixed name: a link
+    // planted there was written through, a FIFO hung the start (regression,
+    // odd-paths probe).
+    let (tmp, mut f) = crate::files::fresh_temp_beside(path)?;
+    let written = f
+        .write_all(bytes)
+        .and_then(|_| f.sync_all())
+        .and_then(|_| std::fs::rename(&tmp, path));
     if let Err(e) = written {
         // No empty or partial copy is left behind (operator probe).
         let _ = std::fs::remove_file(&tmp);
