@@ -1712,3 +1712,127 @@ fn control_characters_in_a_path_are_escaped_in_the_error_line() {
     assert_eq!(err.trim_end().lines().count(), 1, "{err:?}");
     assert!(err.contains("\\u{1b}"), "{err:?}");
 }
+
+/// Regression (odd-paths probe): outputs over the command's own inputs.
+/// `render --scene heightmap:in.png --out in.png` replaced the heightmap
+/// with its render, and `export` wrote a backup over the world config it
+/// was given (exit 0); `sim --out` and the benches' `--json` in a missing
+/// folder failed only once the work was done; a 251-byte output name
+/// failed for its temporary's sake. Each is refused before the work (the
+/// inputs left as they were), or written.
+#[test]
+fn outputs_over_inputs_are_refused_and_output_paths_checked_first() {
+    let dir = tmp("io");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    // A 16 × 16 heightmap.
+    let map = dir.join("in.png");
+    {
+        let f = std::fs::File::create(&map).unwrap();
+        let mut enc = png::Encoder::new(f, 16, 16);
+        enc.set_color(png::ColorType::Grayscale);
+        let mut w = enc.write_header().unwrap();
+        w.write_image_data(&[40u8; 256]).unwrap();
+    }
+    let before = std::fs::read(&map).unwrap();
+    let scene = format!("heightmap:{}", map.display());
+    let m = map.to_str().unwrap();
+    expect_failure(
+        &["render", "--scene", &scene, "--out", m],
+        "is the scene file this command reads",
+    );
+    assert_eq!(std::fs::read(&map).unwrap(), before);
+    // export over its own world config.
+    let out = bin()
+        .current_dir(&dir)
+        .args(["init", "w"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let cfg = dir.join("w/world.toml");
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    let small = text
+        .lines()
+        .map(|l| {
+            if l.starts_with("size = ") {
+                "size = [32, 32, 32]"
+            } else {
+                l
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    std::fs::write(&cfg, &small).unwrap();
+    let state = dir.join("w/state");
+    let (c, s) = (cfg.to_str().unwrap(), state.to_str().unwrap());
+    let out = bin()
+        .args([
+            "run",
+            c,
+            "--state",
+            s,
+            "--ticks",
+            "1",
+            "--addr",
+            "127.0.0.1:0",
+        ])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    expect_failure(
+        &["export", c, "--world", c, "--state", s],
+        "is the world config export reads",
+    );
+    let water = dir.join("w/scripts/water.lua");
+    let water_text = std::fs::read_to_string(&water).unwrap();
+    expect_failure(
+        &[
+            "export",
+            water.to_str().unwrap(),
+            "--world",
+            c,
+            "--state",
+            s,
+        ],
+        "lies in the scripts directory",
+    );
+    assert_eq!(std::fs::read_to_string(&cfg).unwrap(), small);
+    assert_eq!(std::fs::read_to_string(&water).unwrap(), water_text);
+    // Missing folders, found before any work.
+    let missing = dir.join("nowhere/x.json");
+    let t = std::time::Instant::now();
+    expect_failure(
+        &["bench", "voxels", "--json", missing.to_str().unwrap()],
+        "does not exist",
+    );
+    expect_failure(
+        &[
+            "sim",
+            "--size",
+            "64x32x64",
+            "--steps",
+            "1000",
+            "--script",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"),
+            "--out",
+            dir.join("nowhere/x.png").to_str().unwrap(),
+        ],
+        "does not exist",
+    );
+    assert!(
+        t.elapsed() < std::time::Duration::from_secs(20),
+        "{:?}",
+        t.elapsed()
+    );
+    // A long name (251 bytes) is written.
+    let long = dir.join(format!("{}.png", "a".repeat(247)));
+    let out = bin()
+        .args([
+            "render", "--size", "16x16x16", "--width", "8", "--height", "8",
+        ])
+        .args(["--out", long.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    assert!(long.is_file());
+}

@@ -2,7 +2,7 @@
 //! benchmark with a progress bar, writes its JSON (and chart) and prints
 //! a summary.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
 use super::{build_world, thread_pool};
 use crate::config::SceneSettings;
@@ -132,6 +132,7 @@ pub(super) fn run_bench_sim(a: &crate::cli::BenchSimArgs) -> Result<()> {
             );
         }
     }
+    crate::config::check_bench_outputs(&a.json, None)?;
     let pool = bench_pool(a.steps, a.threads)?;
     pool.install(|| {
         let pb = bar("bench sim", 0);
@@ -215,6 +216,13 @@ pub(super) fn run_bench_flight(a: &crate::cli::BenchFlightArgs) -> Result<()> {
             std::path::Path::new("worlds"),
         )?,
     };
+    // The output is checked before the flight, and is not the config it
+    // flies (regression, odd-paths probe: a missing folder failed after
+    // the whole run; `--json W --world W` replaced the config).
+    crate::config::check_bench_outputs(&a.json, None)?;
+    if let Some(w) = &a.world {
+        crate::config::not_an_input("--json", &a.json, &[("world config", w)])?;
+    }
     if let (Some(text), Some(st)) = (&a.memory_budget, cfg.stream.as_mut()) {
         st.memory_budget = crate::engine::world_config::parse_bytes(text)
             .map_err(|e| anyhow::anyhow!("invalid --memory-budget: {e}"))?;
@@ -222,8 +230,7 @@ pub(super) fn run_bench_flight(a: &crate::cli::BenchFlightArgs) -> Result<()> {
     let pb = bar("flight (steps)", 0);
     let r = crate::bench::flight::run(&cfg, a.distance, a.step, a.frame_every, !a.no_wait, &pb)?;
     pb.finish_and_clear();
-    std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
-        .with_context(|| format!("cannot write {}", a.json.display()))?;
+    crate::bench::write_json(&a.json, &r)?;
     println!(
         "flew {:.0} voxels in {:.1} s ({:.0} voxels/s{}): resident memory peaked at {} against a budget of {} ({:+.1} %), baseline {}; {} slides of {:.1} ms mean, {:.1} ms worst; {} frames of {:.0} ms, {:.0} % of columns still coarse when drawn; {} columns generated, {} from the cache, {} evicted",
         r.distance,
@@ -254,6 +261,7 @@ pub(super) fn run_bench_store(a: &crate::cli::BenchStoreArgs) -> Result<()> {
         anyhow::bail!("invalid --size {}: at most 2^34 voxels", a.size);
     }
     crate::scene::budget::check_world("the terrain", size)?;
+    crate::config::check_bench_outputs(&a.json, None)?;
     if a.chunks == 0 {
         anyhow::bail!("invalid --chunks 0: at least 1 chunk");
     }
@@ -264,8 +272,7 @@ pub(super) fn run_bench_store(a: &crate::cli::BenchStoreArgs) -> Result<()> {
     pb.enable_steady_tick(std::time::Duration::from_millis(200));
     let r = crate::bench::store::run(size, a.chunks, a.repeats, &a.dir)?;
     pb.finish_and_clear();
-    std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
-        .with_context(|| format!("cannot write {}", a.json.display()))?;
+    crate::bench::write_json(&a.json, &r)?;
     println!(
         "store on terrain {}x{}x{} ({} chunks): commit of {} chunks + {} columns {:.0} ms best ({:?}), {} bytes ({:.0} per blob); store file {} bytes; generate {:.0} ms, restore {:.0} ms",
         r.size[0],
@@ -300,13 +307,13 @@ pub(super) fn run_bench_voxels(a: &crate::cli::BenchVoxelsArgs) -> Result<()> {
             a.size
         );
     }
+    crate::config::check_bench_outputs(&a.json, None)?;
     let pool = bench_pool(a.steps, a.threads)?;
     pool.install(|| {
         let pb = bar("bench voxels", 4);
         let r = crate::bench::voxels::run(size, a.steps as usize, || pb.inc(1));
         pb.finish_and_clear();
-        std::fs::write(&a.json, serde_json::to_string_pretty(&r)? + "\n")
-            .with_context(|| format!("cannot write {}", a.json.display()))?;
+        crate::bench::write_json(&a.json, &r)?;
         print_voxels(&r);
         Ok(())
     })

@@ -67,11 +67,16 @@ pub fn run(cli: Cli) -> Result<()> {
                     "invalid --minutes {minutes}: must be in 0.5..=1440 (the report compares fifths of one-second samples)"
                 );
             }
+            // Checked before the soak, not after its minutes (regression,
+            // odd-paths probe).
+            crate::config::check_bench_outputs(&json, None)?;
+            if let Some(w) = &world {
+                crate::config::not_an_input("--json", &json, &[("world config", w)])?;
+            }
             let pb = bar("soak (s)", 0);
             let r = crate::bench::soak::run(world.as_deref(), minutes, &state, &pb)?;
             pb.finish_and_clear();
-            std::fs::write(&json, serde_json::to_string_pretty(&r)? + "\n")
-                .with_context(|| format!("cannot write {}", json.display()))?;
+            crate::bench::write_json(&json, &r)?;
             println!(
                 "{:.1} min, {} ticks ({:.1}/s); RSS growth after warm-up {:+.2} % (end points), {:+.2} % (peak), {:+.2} % (median); max dirty queue {}; frames {} ({} skipped); /status p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; frame {:.1} ms; ground+sediment drift {:.2e}",
                 r.minutes,

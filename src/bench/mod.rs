@@ -11,6 +11,14 @@ pub mod stream;
 pub mod tracers;
 pub mod voxels;
 
+/// Write a command's JSON results through a temporary beside `json`,
+/// replacing it only once written (the flag was checked before the work
+/// with [`crate::config::check_bench_outputs`]).
+pub fn write_json(json: &std::path::Path, value: &impl serde::Serialize) -> anyhow::Result<()> {
+    let text = serde_json::to_string_pretty(value)? + "\n";
+    write_outputs(json, &text, None, |_| Ok(()))
+}
+
 /// Write a bench's JSON and, if asked, its chart (`draw` draws it into the
 /// file it is given), so that a failure leaves
 /// both files as they were: the chart is drawn into a temporary file beside

@@ -5,7 +5,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use glam::{IVec2, IVec3};
 use serde::Serialize;
 
@@ -226,7 +226,6 @@ pub fn run(
         scaling,
         voxels,
     };
-    std::fs::write(json, serde_json::to_string_pretty(&report)? + "\n")
-        .with_context(|| format!("cannot write {}", json.display()))?;
+    super::write_json(json, &report)?;
     Ok(report)
 }

@@ -12,8 +12,8 @@ use crate::cli::{BenchTracersArgs, RenderArgs, SceneArgs, SimArgs, ViewArgs};
 use crate::scene::{SceneSpec, View};
 use crate::trace::Structure;
 pub use values::{
-    ConfigError, MAX_LOD, MAX_XZ, MAX_Y, MIN_LOD, check_bench_outputs, check_extension, lod_c,
-    lod_in_range, parse_size, parse_vec3,
+    ConfigError, MAX_LOD, MAX_XZ, MAX_Y, MIN_LOD, check_bench_outputs, check_extension,
+    check_output, lod_c, lod_in_range, not_an_input, parse_size, parse_vec3, same_file,
 };
 use values::{bad, parse_num};
 
@@ -199,8 +199,15 @@ impl RenderSettings {
         if let Some(d) = &a.depth_out {
             check_extension("--depth-out", d, "npy")?;
         }
+        let scene = SceneSettings::from_args(&a.scene, RENDER_DEFAULT_SIZE)?;
+        if let Some(file) = scene.spec.file() {
+            values::not_an_input("--out", &a.out, &[("scene file", file)])?;
+            if let Some(d) = &a.depth_out {
+                values::not_an_input("--depth-out", d, &[("scene file", file)])?;
+            }
+        }
         Ok(RenderSettings {
-            scene: SceneSettings::from_args(&a.scene, RENDER_DEFAULT_SIZE)?,
+            scene,
             view: ViewSettings::from_args(&a.view, 960, 540)?,
             structure: a
                 .structure
@@ -446,8 +453,19 @@ impl SimSettings {
             });
         }
         check_extension("--out", &a.out, "png")?;
+        // Before the simulation, not after it (regression, odd-paths probe:
+        // a missing folder failed once every step had run), and not over a
+        // file it reads.
+        check_output("--out", &a.out)?;
+        let scene = SceneSettings::from_args(&a.scene, SIM_DEFAULT_SIZE)?;
+        let mut inputs: Vec<(&str, &std::path::Path)> =
+            a.scripts.iter().map(|p| ("script", p.as_path())).collect();
+        if let Some(f) = scene.spec.file() {
+            inputs.push(("scene file", f));
+        }
+        not_an_input("--out", &a.out, &inputs)?;
         Ok(SimSettings {
-            scene: SceneSettings::from_args(&a.scene, SIM_DEFAULT_SIZE)?,
+            scene,
             view: ViewSettings::from_args(&a.view, 960, 540)?,
             scripts: a.scripts.clone(),
             steps: parse_num("--steps", &a.steps, 1u64, 10_000_000)?,

@@ -131,20 +131,7 @@ pub fn check_extension(flag: &'static str, path: &Path, ext: &str) -> Result<(),
 /// with exit 0), a chart named `.svg`, and each in a folder that exists and
 /// not itself a folder (regression: found only after the whole run).
 pub fn check_bench_outputs(json: &Path, chart: Option<&Path>) -> Result<(), ConfigError> {
-    let placed = |flag: &'static str, p: &Path| -> Result<(), ConfigError> {
-        let shown = p.display().to_string();
-        if p.is_dir() {
-            return Err(bad(flag, &shown, "is a folder: name a file"));
-        }
-        match p.parent() {
-            Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => Err(bad(
-                flag,
-                &shown,
-                format!("its folder {} does not exist", dir.display()),
-            )),
-            _ => Ok(()),
-        }
-    };
+    let placed = check_output;
     placed("--json", json)?;
     if let Some(chart) = chart {
         if same_file(chart, json) {
@@ -163,6 +150,48 @@ pub fn check_bench_outputs(json: &Path, chart: Option<&Path>) -> Result<(), Conf
 /// Whether `a` and `b` name the same file however they are spelled
 /// (`./r.svg`, `a/../r.svg`, a symbolic or hard link), for outputs that
 /// must not overwrite each other.
+/// An output file `p` (given with `flag`) can be made: it names a file,
+/// not a folder (nor ends in '/'), in a folder that exists. Checked before
+/// the work, so that a run is not lost to its output's path.
+pub fn check_output(flag: &'static str, p: &Path) -> Result<(), ConfigError> {
+    let shown = p.display().to_string();
+    if p.is_dir() || p.as_os_str().as_encoded_bytes().ends_with(b"/") {
+        return Err(bad(flag, &shown, "is a folder: name a file"));
+    }
+    match p.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => Err(bad(
+            flag,
+            &shown,
+            format!("its folder {} does not exist", dir.display()),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// `out` (given with `flag`) is none of the command's `inputs` (each named
+/// by what it is): an output over an input destroys what the command read
+/// (regression, odd-paths probe: `render --scene heightmap:in.png --out
+/// in.png` replaced the heightmap with its render, `export` wrote a backup
+/// over the world config it was given).
+pub fn not_an_input(
+    flag: &'static str,
+    out: &Path,
+    inputs: &[(&str, &Path)],
+) -> Result<(), ConfigError> {
+    for (what, input) in inputs {
+        if same_file(out, input) {
+            return Err(bad(
+                flag,
+                &out.display().to_string(),
+                format!("is the {what} this command reads: name another file"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Whether `a` and `b` name the same file (by identity where both exist,
+/// else by their resolved paths).
 pub fn same_file(a: &Path, b: &Path) -> bool {
     let resolved = |p: &Path| {
         let dir = match p.parent() {

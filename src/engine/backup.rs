@@ -376,6 +376,38 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
         bail!("{} holds no world store (nothing to export)", dir.display());
     }
     check_export_target(dir, out)?;
+    // Nor over what it reads: the config, its scripts, the world's source
+    // (regression, odd-paths probe: `export world.toml --world world.toml`
+    // replaced the config with the backup, exit 0).
+    let config = Path::new(&cfg.file);
+    let mut inputs: Vec<(&str, &Path)> = vec![("world config", config)];
+    if let Some(f) = cfg.source.file() {
+        inputs.push(("world's source file", f));
+    }
+    for (what, input) in &inputs {
+        if crate::config::same_file(out, input) {
+            bail!(
+                "{} is the {what} export reads: name another file (nothing was written)",
+                out.display()
+            );
+        }
+    }
+    if !cfg.scripts_embedded
+        && let (Ok(scripts), Some(parent)) = (cfg.scripts_dir.canonicalize(), out.parent())
+        && (if parent.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            parent
+        })
+        .canonicalize()
+        .is_ok_and(|p| p == scripts)
+    {
+        bail!(
+            "{} lies in the scripts directory {}: name a file elsewhere (nothing was written)",
+            out.display(),
+            cfg.scripts_dir.display()
+        );
+    }
     if cfg.stream.is_some()
         && matches!(
             cfg.sim_region,

@@ -152,6 +152,14 @@ pub enum SceneSpec {
 }
 
 impl SceneSpec {
+    /// The file a heightmap or .vox scene is read from.
+    pub fn file(&self) -> Option<&Path> {
+        match self {
+            SceneSpec::Heightmap(p) | SceneSpec::Vox(p) => Some(p),
+            _ => None,
+        }
+    }
+
     /// Whether `--size` applies.
     pub fn is_procedural(&self) -> bool {
         !matches!(self, SceneSpec::Heightmap(_) | SceneSpec::Vox(_))
