@@ -45,6 +45,41 @@ macro_rules! say {
     }};
 }
 
+/// `println!` for lines that echo user paths or names: control characters
+/// are escaped, as [`say!`] does on standard error (regression, odd-paths
+/// probe: a state folder with a newline in its name split `run`'s line).
+#[macro_export]
+macro_rules! tell {
+    ($($arg:tt)*) => {{
+        let line = format!($($arg)*);
+        println!("{}", $crate::text::escape_controls(&line, true));
+    }};
+}
+
+/// A path as a shell reads it back: quoted when it holds anything but
+/// plain characters (regression, odd-paths probe: `init 'my world'`
+/// suggested `brickworld run my world/world.toml`).
+///
+/// ```
+/// use std::path::Path;
+/// use brickworld::shell_quoted;
+/// assert_eq!(shell_quoted(Path::new("w/world.toml")), "w/world.toml");
+/// assert_eq!(shell_quoted(Path::new("my world/world.toml")), "'my world/world.toml'");
+/// assert_eq!(shell_quoted(Path::new("it's")), r"'it'\''s'");
+/// ```
+pub fn shell_quoted(p: &std::path::Path) -> String {
+    let t = p.to_string_lossy();
+    let plain = !t.is_empty()
+        && !t.starts_with('-')
+        && t.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "/._-+,:@%".contains(c));
+    if plain {
+        t.into_owned()
+    } else {
+        format!("'{}'", t.replace('\'', "'\\''"))
+    }
+}
+
 /// Replace Rust's panic message with a one-line report (no backtrace unless
 /// `RUST_BACKTRACE` is set): a panic is a bug, but users should not see a
 /// wall of frames.

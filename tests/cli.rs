@@ -1836,3 +1836,44 @@ fn outputs_over_inputs_are_refused_and_output_paths_checked_first() {
     assert_success(&out);
     assert!(long.is_file());
 }
+
+/// Regression (odd-paths probe): `init 'my world'` suggested `brickworld
+/// run my world/world.toml`, and `init -- -w` a flag; lines that echo a
+/// path on standard output let control characters through. The suggestion
+/// is quoted as a shell reads it back, and the lines are escaped.
+#[test]
+fn init_suggests_a_command_the_shell_reads_back() {
+    let dir = tmp("init-quoted");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = bin()
+        .current_dir(&dir)
+        .args(["init", "my world"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        said.contains("brickworld run 'my world/world.toml'"),
+        "{said}"
+    );
+    let out = bin()
+        .current_dir(&dir)
+        .args(["init", "--", "-w"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.contains("brickworld run ./-w/world.toml"), "{said}");
+    let out = bin()
+        .current_dir(&dir)
+        .args(["init", "bell\u{7}dir"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        !said.contains('\u{7}') && said.contains("\\u{7}"),
+        "{said:?}"
+    );
+}

@@ -23,18 +23,18 @@ pub fn run(cli: Cli) -> Result<()> {
             let cfg = load_world_config(world.as_deref())?;
             let (tick, hash) = crate::engine::backup::export_world(&cfg, &state, &out)?;
             match hash {
-                Some(hash) => println!(
+                Some(hash) => crate::tell!(
                     "exported tick {tick} to {} (world hash {hash:#018x})",
                     out.display()
                 ),
-                None => println!("exported tick {tick} to {}", out.display()),
+                None => crate::tell!("exported tick {tick} to {}", out.display()),
             }
             Ok(())
         }
         Command::Import { file, world, state } => {
             let cfg = load_world_config(world.as_deref())?;
             let st = crate::engine::backup::import_world(&cfg, &state, &file)?;
-            println!(
+            crate::tell!(
                 "imported {} into {} ({} chunks, {} chunk columns, {} bytes)",
                 file.display(),
                 state.display(),
@@ -46,11 +46,18 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Init { dir } => {
             for p in crate::engine::daemon::init(&dir)? {
-                println!("wrote {}", p.display());
+                crate::tell!("wrote {}", p.display());
             }
-            println!(
+            let cfg = dir.join("world.toml");
+            // `./-x` rather than `-x`, so the suggestion is not a flag.
+            let cfg = if cfg.is_relative() && cfg.to_string_lossy().starts_with('-') {
+                std::path::Path::new(".").join(cfg)
+            } else {
+                cfg
+            };
+            crate::tell!(
                 "run it with: brickworld run {} (scripts reload when saved)",
-                dir.join("world.toml").display()
+                crate::shell_quoted(&cfg)
             );
             Ok(())
         }
@@ -98,7 +105,7 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Chart { state } => {
             for p in crate::engine::timeline::chart(&state)? {
-                println!("{}", p.display());
+                crate::tell!("{}", p.display());
             }
             Ok(())
         }

@@ -162,7 +162,7 @@ impl Engine {
         )
         .context("cannot start the render thread")?;
         let timeline = open_timeline(&opts.state, &ws, &shared)?;
-        println!(
+        crate::tell!(
             "brickworld is running: viewer http://{}/ (control token in {}: {token})",
             server.addr,
             token_path.display()
