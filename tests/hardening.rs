@@ -1784,3 +1784,28 @@ fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!err.contains("the stored state holds"), "{err}");
 }
+
+/// Regression (odd-paths probe): a scripts folder that is a link loop was
+/// refused with "cannot read loop/materials.lua", naming neither the
+/// config nor its field.
+#[cfg(unix)]
+#[test]
+fn a_scripts_folder_that_cannot_be_read_is_named_by_its_field() {
+    let (cfg, state, _) = setup("scriptsloop");
+    let looped = cfg.parent().unwrap().join("loop");
+    std::os::unix::fs::symlink(&looped, &looped).unwrap();
+    edit_config(
+        &cfg,
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
+        looped.to_str().unwrap(),
+    );
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "1"])
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(
+        &out,
+        "a looping scripts folder",
+        "world.toml: sim.scripts_dir: cannot read",
+    );
+}

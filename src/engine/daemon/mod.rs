@@ -105,9 +105,11 @@ fn materials_source(cfg: &WorldConfig) -> Result<Option<ScriptSource>> {
     if cfg.scripts_embedded {
         return Ok(crate::sim::embedded::script("materials.lua"));
     }
-    Ok(crate::sim::read_optional_script(
-        &cfg.scripts_dir.join("materials.lua"),
-    )?)
+    // A scripts folder that cannot be read (a link loop, a file) is named
+    // with its config and field (regression, odd-paths probe: "cannot read
+    // loopx/materials.lua" said neither).
+    crate::sim::read_optional_script(&cfg.scripts_dir.join("materials.lua"))
+        .map_err(|e| anyhow::anyhow!("{}: sim.scripts_dir: {e}", cfg.file))
 }
 
 /// Per-script messages shown in `/status`.
