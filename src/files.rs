@@ -281,30 +281,12 @@ const STALE_TEMP: std::time::Duration = std::time::Duration::from_secs(60);
 /// Only names of exactly that form are touched, and only where `/proc`
 /// says the process is gone.
 fn sweep_stale_temps(dir: &Path, name: &str) {
-    if !Path::new("/proc/self").exists() {
-        return;
-    }
-    let prefix = format!(".{name}.");
     let Ok(entries) = std::fs::read_dir(dir) else {
         return;
     };
     for e in entries.flatten() {
         let file = e.file_name();
-        let Some(rest) = file
-            .to_str()
-            .and_then(|f| f.strip_prefix(&prefix))
-            .and_then(|f| f.strip_suffix(".tmp"))
-        else {
-            continue;
-        };
-        let Some((pid, n)) = rest.split_once('-') else {
-            continue;
-        };
-        let digits = |t: &str| !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit());
-        if !digits(pid) || !digits(n) || pid == std::process::id().to_string() {
-            continue;
-        }
-        if Path::new("/proc").join(pid).exists() {
+        if file.to_str().and_then(temp_of_gone_process) != Some(name) {
             continue;
         }
         let old = e
@@ -318,6 +300,22 @@ fn sweep_stale_temps(dir: &Path, name: &str) {
             let _ = std::fs::remove_file(e.path());
         }
     }
+}
+
+/// The destination's name, if `file` is a temporary `.NAME.PID-N.tmp` made
+/// by [`fresh_temp_beside`] in a process that no longer runs (where
+/// `/proc` can say; elsewhere none is).
+pub fn temp_of_gone_process(file: &str) -> Option<&str> {
+    let rest = file.strip_prefix('.')?.strip_suffix(".tmp")?;
+    let (name, tag) = rest.rsplit_once('.')?;
+    let (pid, n) = tag.split_once('-')?;
+    let digits = |t: &str| !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit());
+    let gone = digits(pid)
+        && digits(n)
+        && pid != std::process::id().to_string()
+        && Path::new("/proc/self").exists()
+        && !Path::new("/proc").join(pid).exists();
+    gone.then_some(name)
 }
 
 /// A file being written beside its destination, which it replaces only on

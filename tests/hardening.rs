@@ -1757,18 +1757,9 @@ fn a_script_saved_while_the_engine_starts_is_reloaded_once_it_is_up() {
 #[test]
 fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
     let (cfg, state, _) = setup("paramoverride");
-    let out = run_cmd(&cfg, &state)
-        .args(["--ticks", "1"])
-        .output()
-        .unwrap();
-    assert_success(&out);
+    run_ok(&cfg, &state, "--ticks", 1);
     edit_config(&cfg, "params = { rain = 0.2 }", "params = { rain = 0.3 }");
-    let out = run_cmd(&cfg, &state)
-        .args(["--ticks", "2"])
-        .output()
-        .unwrap();
-    assert_success(&out);
-    let err = String::from_utf8_lossy(&out.stderr);
+    let (_, err) = run_ok(&cfg, &state, "--ticks", 2);
     assert!(
         err.contains("the world config sets water.rain = 0.3, but the stored state holds 0.2")
             && err.contains("brickworld ctl param water rain 0.3"),
@@ -1776,12 +1767,7 @@ fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
     );
     // With the config and the state in agreement, nothing is said.
     edit_config(&cfg, "params = { rain = 0.3 }", "params = { rain = 0.2 }");
-    let out = run_cmd(&cfg, &state)
-        .args(["--ticks", "3"])
-        .output()
-        .unwrap();
-    assert_success(&out);
-    let err = String::from_utf8_lossy(&out.stderr);
+    let (_, err) = run_ok(&cfg, &state, "--ticks", 3);
     assert!(!err.contains("the stored state holds"), "{err}");
 }
 

@@ -30,23 +30,14 @@ pub fn frame_tick(name: &str) -> Option<u64> {
 /// `.frame-NNNNNNNN.png.tmp`, or `.frame-NNNNNNNN.png.PID-N.tmp` of a
 /// process that is gone (a running engine's is left alone).
 fn engine_temp(name: &str) -> bool {
-    let Some(rest) = name.strip_prefix('.').and_then(|n| n.strip_suffix(".tmp")) else {
-        return false;
-    };
-    if frame_tick(rest).is_some() {
-        return true;
-    }
-    let Some((frame, pid)) = rest.rsplit_once('.').and_then(|(f, tag)| {
-        let (pid, n) = tag.split_once('-')?;
-        let digits = |t: &str| !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit());
-        (digits(pid) && digits(n)).then_some((f, pid))
-    }) else {
-        return false;
-    };
-    frame_tick(frame).is_some()
-        && pid != std::process::id().to_string()
-        && !std::path::Path::new("/proc").join(pid).exists()
-        && std::path::Path::new("/proc/self").exists()
+    let fixed = name
+        .strip_prefix('.')
+        .and_then(|n| n.strip_suffix(".tmp"))
+        .and_then(frame_tick);
+    fixed.is_some()
+        || crate::files::temp_of_gone_process(name)
+            .and_then(frame_tick)
+            .is_some()
 }
 
 impl FrameFiles {
