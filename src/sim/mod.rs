@@ -28,7 +28,8 @@ use thiserror::Error;
 pub use channels::{ChannelId, ChannelStore};
 pub use health::{Health, SUSPEND_AFTER};
 pub use reload::ScriptWatcher;
-pub use run::{WorldSim, read_optional_script, read_script};
+pub use run::WorldSim;
+pub use runtime::source_file::{MAX_SCRIPT_BYTES, read_optional_script, read_script};
 pub use script::{Limits, ParamSpec, PassSpec, ScriptSource, ScriptSpec, ScriptVm, StepKey};
 pub use step::{Kernel, Simulation, StepReport};
 

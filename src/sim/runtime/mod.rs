@@ -2,7 +2,7 @@
 //! ([`spec`], read by [`declare`]), the sandboxed Luau VMs that run it under
 //! budgets that cannot be caught ([`script`]), the Lua prelude that keeps
 //! out-of-memory uncatchable and addresses hidden (`prelude`),
-//! deterministic randomness ([`random`]), hot reload, the scripts built
+//! deterministic randomness ([`random`]), script files ([`source_file`]), hot reload, the scripts built
 //! into the binary, and how source becomes code in each VM ([`compile`]).
 
 pub mod compile;
@@ -17,5 +17,6 @@ pub mod random;
 pub mod reload;
 mod sandbox;
 pub mod script;
+pub mod source_file;
 pub mod spec;
 pub mod vms;

@@ -28,12 +28,19 @@
 //! the size prefix is checked before decompression, every count against
 //! the chunk's capacity.
 
-use glam::{IVec2, IVec3};
+mod column;
+mod key;
+
+pub use column::{
+    ColumnData, TileArrays, apply_column, column_payload, decode_column, decode_column_payload,
+    encode_column,
+};
+pub use key::{ChunkKey, ColumnKey};
+
+use glam::IVec3;
 use rustc_hash::FxHashSet;
 
 use super::bytes::{Reader, Writer};
-use crate::sim::ChannelStore;
-use crate::sim::tile::TILE_CELLS;
 use crate::sim::voxels::VoxelChannels;
 use crate::world::{BRICK_VOXELS, BrickContent, BrickStore, Cell, Palette};
 
@@ -51,124 +58,9 @@ pub const MAX_CHANNELS: usize = crate::sim::MAX_CHANNELS;
 const MAX_CHUNK_PAYLOAD: usize = 8
     + CHUNK_CELLS * (3 + BRICK_VOXELS)
     + MAX_CHANNELS * (8 + 256 + CHUNK_CELLS * (2 + 4 * BRICK_VOXELS));
-/// The largest payload a column blob can decompress to.
-const MAX_COLUMN_PAYLOAD: usize = 4 + MAX_CHANNELS * (8 + 256 + 64 * (1 + 8 * TILE_CELLS));
-
-/// A chunk's coordinate: brick coordinate `>> 3` on every axis.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct ChunkKey(pub IVec3);
-
-impl ChunkKey {
-    /// The chunk holding brick `b`.
-    #[inline]
-    pub fn of_brick(b: IVec3) -> Self {
-        ChunkKey(b >> CHUNK_SHIFT)
-    }
-
-    /// The chunk's first brick.
-    pub fn min_brick(self) -> IVec3 {
-        self.0 << CHUNK_SHIFT
-    }
-
-    /// Brick coordinate of local index `i` (`x + 8y + 64z`).
-    #[inline]
-    pub fn brick(self, i: usize) -> IVec3 {
-        let i = i as i32;
-        self.min_brick() + IVec3::new(i & 7, (i >> 3) & 7, i >> 6)
-    }
-
-    /// The store key: big-endian with the sign bit flipped, so keys sort by
-    /// (x, y, z) as signed numbers.
-    pub fn to_bytes(self) -> [u8; 12] {
-        key_bytes(&[self.0.x, self.0.y, self.0.z])
-    }
-
-    /// The inverse of [`to_bytes`](Self::to_bytes).
-    pub fn from_bytes(b: &[u8]) -> Option<Self> {
-        let v = key_from_bytes::<3>(b)?;
-        Some(ChunkKey(IVec3::new(v[0], v[1], v[2])))
-    }
-}
-
-impl std::fmt::Display for ChunkKey {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let v = self.min_brick() * crate::world::BRICK_EDGE;
-        write!(
-            f,
-            "chunk ({}, {}, {}) at voxel ({}, {}, {})",
-            self.0.x, self.0.y, self.0.z, v.x, v.y, v.z
-        )
-    }
-}
-
-/// A chunk column's coordinate: tile (brick column) coordinate `>> 3`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct ColumnKey(pub IVec2);
-
-impl ColumnKey {
-    /// The chunk column holding tile `t`.
-    #[inline]
-    pub fn of_tile(t: IVec2) -> Self {
-        ColumnKey(t >> CHUNK_SHIFT)
-    }
-
-    /// Tile of local index `i` (`x + 8z`).
-    pub fn tile(self, i: usize) -> IVec2 {
-        let i = i as i32;
-        (self.0 << CHUNK_SHIFT) + IVec2::new(i & 7, i >> 3)
-    }
-
-    /// The store key (see [`ChunkKey::to_bytes`]).
-    pub fn to_bytes(self) -> [u8; 8] {
-        key_bytes(&[self.0.x, self.0.y])
-    }
-
-    /// The inverse of [`to_bytes`](Self::to_bytes).
-    pub fn from_bytes(b: &[u8]) -> Option<Self> {
-        let v = key_from_bytes::<2>(b)?;
-        Some(ColumnKey(IVec2::new(v[0], v[1])))
-    }
-}
-
-impl std::fmt::Display for ColumnKey {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "chunk column ({}, {})", self.0.x, self.0.y)
-    }
-}
-
-fn key_bytes<const N: usize, const B: usize>(v: &[i32; N]) -> [u8; B] {
-    let mut out = [0u8; B];
-    for (i, x) in v.iter().enumerate() {
-        out[i * 4..i * 4 + 4].copy_from_slice(&((*x as u32) ^ 0x8000_0000).to_be_bytes());
-    }
-    out
-}
-
-/// The largest chunk (or chunk column) coordinate a key may hold.
-const MAX_KEY: u32 = 1 << 24;
-
-fn key_from_bytes<const N: usize>(b: &[u8]) -> Option<[i32; N]> {
-    if b.len() != N * 4 {
-        return None;
-    }
-    let mut v = [0i32; N];
-    for (i, x) in v.iter_mut().enumerate() {
-        let u = u32::from_be_bytes(b[i * 4..i * 4 + 4].try_into().ok()?);
-        *x = (u ^ 0x8000_0000) as i32;
-        // Chunks (64 voxels) of a world within ±2^30 voxels: anything
-        // larger is not a key this engine wrote, and would overflow the
-        // brick and voxel coordinates computed from it.
-        if x.unsigned_abs() > MAX_KEY {
-            return None;
-        }
-    }
-    Some(v)
-}
 
 /// One voxel channel's arrays in a chunk, by brick.
 pub type VoxelArrays = Vec<(IVec3, Box<[f32; BRICK_VOXELS]>)>;
-/// One column channel's values in a chunk column, by tile.
-pub type TileArrays = Vec<(IVec2, Box<[f64; TILE_CELLS]>)>;
 
 /// A decoded chunk: its bricks (absent = empty) and voxel channels.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -179,15 +71,7 @@ pub struct ChunkData {
     pub voxel: Vec<(String, VoxelArrays)>,
 }
 
-/// A decoded chunk column: per channel name, the tiles holding values.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct ColumnData {
-    /// Per channel name, (tile, values).
-    pub channels: Vec<(String, TileArrays)>,
-}
-
 const CHUNK_MAGIC: &[u8; 4] = b"BWCH";
-const COLUMN_MAGIC: &[u8; 4] = b"BWCO";
 
 fn seal(magic: &[u8; 4], payload: &[u8]) -> Vec<u8> {
     let packed = lz4_flex::compress_prepend_size(payload);
@@ -454,100 +338,6 @@ pub fn apply_chunk(
         let id = voxel.channel(name);
         for (b, v) in arrays {
             voxel.set(id, *b, v);
-        }
-    }
-}
-
-/// Encode chunk column `key` of the column channels.
-pub fn encode_column(key: ColumnKey, channels: &ChannelStore) -> Vec<u8> {
-    seal(COLUMN_MAGIC, &column_payload(key, channels))
-}
-
-/// A column blob's payload, before LZ4 and the checksum.
-pub fn column_payload(key: ColumnKey, channels: &ChannelStore) -> Vec<u8> {
-    let mut w = Writer::default();
-    let present: Vec<(crate::sim::ChannelId, &str, Vec<usize>)> = channels
-        .channels()
-        .map(|(id, name)| {
-            let tiles = (0..64)
-                .filter(|&i| channels.get(key.tile(i), id).is_some())
-                .collect();
-            (id, name, tiles)
-        })
-        .filter(|(_, _, t): &(_, _, Vec<usize>)| !t.is_empty())
-        .collect();
-    w.u32(present.len() as u32);
-    for (id, name, tiles) in present {
-        w.str(name);
-        w.u32(tiles.len() as u32);
-        for i in tiles {
-            w.u8(i as u8);
-            for v in channels.get(key.tile(i), id).expect("listed").iter() {
-                w.f64(*v);
-            }
-        }
-    }
-    w.0
-}
-
-/// Decode a chunk column blob.
-pub fn decode_column(key: ColumnKey, blob: &[u8]) -> Result<ColumnData, String> {
-    decode_column_payload(key, &unseal(COLUMN_MAGIC, blob, MAX_COLUMN_PAYLOAD)?)
-}
-
-/// Decode a column blob's payload (after the checksum and LZ4).
-pub fn decode_column_payload(key: ColumnKey, payload: &[u8]) -> Result<ColumnData, String> {
-    let mut r = Reader::new(payload);
-    let n = r.count(MAX_CHANNELS, "channel")?;
-    let mut data = ColumnData::default();
-    let mut names = FxHashSet::default();
-    for _ in 0..n {
-        let name = r.str()?;
-        if !names.insert(name.clone()) {
-            return Err(format!("channel {name} appears twice"));
-        }
-        let m = r.count(64, "tile")?;
-        let mut seen = [false; 64];
-        let mut tiles = Vec::with_capacity(m);
-        for _ in 0..m {
-            let i = r.u8()? as usize;
-            if i >= 64 || std::mem::replace(&mut seen[i], true) {
-                return Err(format!("tile index {i} is out of range or repeated"));
-            }
-            let mut v = Box::new([0f64; TILE_CELLS]);
-            for d in v.iter_mut() {
-                *d = r.f64()?;
-            }
-            tiles.push((key.tile(i), v));
-        }
-        data.channels.push((name, tiles));
-    }
-    r.finish()?;
-    Ok(data)
-}
-
-/// Replace the tiles of chunk column `key` that `keep` accepts by `data`'s
-/// (those the column does not hold are cleared); the others are left as
-/// they are.
-pub fn apply_column(
-    key: ColumnKey,
-    data: &ColumnData,
-    channels: &mut ChannelStore,
-    keep: impl Fn(crate::sim::tile::TileCoord) -> bool,
-) {
-    let zero = [0f64; TILE_CELLS];
-    let ids: Vec<crate::sim::ChannelId> = channels.channels().map(|(id, _)| id).collect();
-    for id in ids {
-        for i in 0..64 {
-            if keep(key.tile(i)) && channels.get(key.tile(i), id).is_some() {
-                channels.set(key.tile(i), id, &zero);
-            }
-        }
-    }
-    for (name, tiles) in &data.channels {
-        let id = channels.channel(name);
-        for (t, v) in tiles.iter().filter(|(t, _)| keep(*t)) {
-            channels.set(*t, id, v);
         }
     }
 }

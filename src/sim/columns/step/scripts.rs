@@ -1,0 +1,177 @@
+//! A simulation's scripts: loading one (checked against the column grid,
+//! the channel registry's room and a smoke test on a sample tile before it
+//! is registered), replacing it on a hot reload with its parameters carried
+//! over, and each script's parameters, rate and health.
+
+use super::{Kernel, Loaded, Simulation};
+use crate::sim::SimError;
+use crate::sim::channels::ChannelId;
+use crate::sim::health::Health;
+use crate::sim::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
+
+impl Simulation {
+    /// Load a script (validated and smoke-tested on a sample tile). Returns
+    /// its index.
+    pub fn add_script(
+        &mut self,
+        src: ScriptSource,
+        kernel: Kernel,
+        limits: Limits,
+    ) -> Result<usize, SimError> {
+        let loaded = self.prepare(src, kernel, limits)?;
+        self.scripts.push(loaded);
+        Ok(self.scripts.len() - 1)
+    }
+
+    /// Replace script `index` with a new version, keeping parameter values
+    /// that still exist (clamped into a narrowed range, with a warning in the
+    /// returned list). On error the old version stays. A suspended script
+    /// runs again.
+    pub fn replace_script(
+        &mut self,
+        index: usize,
+        src: ScriptSource,
+    ) -> Result<Vec<String>, SimError> {
+        let (kernel, limits) = (
+            self.scripts[index].kernel.clone(),
+            self.scripts[index].limits,
+        );
+        let mut loaded = self.prepare(src, kernel, limits)?;
+        let old = &self.scripts[index];
+        loaded.every = old.every;
+        let (values, warnings) =
+            crate::sim::script::carry_params(&old.spec, &old.params, &loaded.spec);
+        loaded.params = values;
+        self.scripts[index] = loaded;
+        self.wake_all();
+        Ok(warnings)
+    }
+
+    fn prepare(
+        &mut self,
+        src: ScriptSource,
+        kernel: Kernel,
+        limits: Limits,
+    ) -> Result<Loaded, SimError> {
+        let (mut vm, spec) = ScriptVm::load(&src, limits)?;
+        if spec.grid != crate::sim::script::Grid::Columns {
+            return Err(SimError::Declaration {
+                script: spec.name.clone(),
+                line: None,
+                msg: "a voxel script (grid = \"voxels\") cannot run on the column grid".into(),
+            });
+        }
+        let (ch, n) = (&self.channels, self.channels.channels().count());
+        crate::sim::channel_room(&spec.name, &spec.channels, |c| ch.find(c).is_some(), n)?;
+        let boundary: Vec<f64> = spec
+            .channels
+            .iter()
+            .map(|c| {
+                spec.boundary
+                    .iter()
+                    .find(|(n, _)| n == c)
+                    .map_or(0.0, |(_, v)| *v)
+            })
+            .collect();
+        let nonneg = spec
+            .nonnegative
+            .iter()
+            .filter_map(|n| spec.channels.iter().position(|c| c == n))
+            .collect();
+        let params: Vec<f64> = spec.params.iter().map(|p| p.default).collect();
+        // Smoke test: every pass once on a dry sample tile, in this fresh VM.
+        if matches!(kernel, Kernel::Lua) {
+            crate::sim::runtime::log::at_load(|| -> Result<(), SimError> {
+                vm.begin_step(
+                    0.01,
+                    &spec,
+                    &params,
+                    StepKey::new(self.seed, 0, &spec.name),
+                    &[],
+                )?;
+                for (pi, pass) in spec.passes.iter().enumerate() {
+                    vm.run(pi, &pass.name, 0, 0, |_| {})?;
+                }
+                Ok(())
+            })?;
+        }
+        // Registered only once the script has passed every check: a
+        // rejected reload must leave the world's registry as it was
+        // (regression: its channels stayed and filled the bound).
+        let ids: Vec<ChannelId> = spec
+            .channels
+            .iter()
+            .map(|c| self.channels.channel(c))
+            .collect();
+        Ok(Loaded {
+            uid: crate::sim::runtime::vms::VmId::new(),
+            src,
+            spec,
+            params,
+            ids,
+            boundary,
+            nonneg,
+            kernel,
+            limits,
+            every: 1,
+            health: Health::default(),
+        })
+    }
+
+    /// Script `i`'s source, limits, rate and health, for a rebuild.
+    pub fn script_state(&self, i: usize) -> crate::sim::ScriptState {
+        let s = &self.scripts[i];
+        crate::sim::ScriptState {
+            src: s.src.clone(),
+            limits: s.limits,
+            every: s.every,
+            failures: s.health.failures(),
+            suspended: s.health.suspended().cloned(),
+        }
+    }
+
+    /// Give script `i` the health a rebuilt simulation carries over.
+    pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
+        self.scripts[i].health = Health::restored(failures, suspended);
+    }
+
+    /// Run script `index` only on ticks that are multiples of `every` (≥ 1).
+    pub fn set_every(&mut self, index: usize, every: u64) {
+        self.scripts[index].every = every.max(1);
+    }
+
+    /// The tick interval of script `index`.
+    pub fn every(&self, index: usize) -> u64 {
+        self.scripts[index].every
+    }
+
+    /// Declarations of script `index`.
+    pub fn spec(&self, index: usize) -> &ScriptSpec {
+        &self.scripts[index].spec
+    }
+
+    /// Number of scripts.
+    pub fn script_count(&self) -> usize {
+        self.scripts.len()
+    }
+
+    /// The index of the script called `name`, if one is loaded.
+    pub fn script_index(&self, name: &str) -> Option<usize> {
+        (0..self.scripts.len()).find(|&i| self.spec(i).name == name)
+    }
+
+    /// Current parameter values of script `index` (spec order).
+    pub fn params(&self, index: usize) -> &[f64] {
+        &self.scripts[index].params
+    }
+
+    /// Change a parameter; refused outside its declared range. Takes effect
+    /// at the next step, with no restart.
+    pub fn set_param(&mut self, index: usize, name: &str, value: f64) -> Result<(), SimError> {
+        let s = &mut self.scripts[index];
+        let i = s.spec.param_index(name, value)?;
+        s.params[i] = value;
+        self.wake_all();
+        Ok(())
+    }
+}
