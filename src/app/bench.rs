@@ -39,20 +39,19 @@ pub(super) fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
         .unwrap_or(0.0);
     let mut world = build_world(&scene)?;
     let pb = bar("bench stream", 0);
-    let r = crate::bench::stream::run(
-        &mut world,
-        a.view,
-        a.width,
-        a.height,
-        a.uploads,
-        a.pool,
-        RenderOptions {
+    let setup = crate::bench::stream::StreamSetup {
+        view: a.view,
+        width: a.width,
+        height: a.height,
+        budget: a.uploads,
+        pool_slots: a.pool,
+        opts: RenderOptions {
             lod,
             beam: a.beam,
             ..Default::default()
         },
-        &pb,
-    )?;
+    };
+    let r = crate::bench::stream::run(&mut world, &setup, &pb)?;
     pb.finish_and_clear();
     let pts: Vec<(f64, f64)> = r
         .uploads_per_frame

@@ -78,18 +78,38 @@ pub struct StreamReport {
     pub material_bytes_dxt1: u64,
 }
 
-/// Run the streaming benchmark on `world` from view `view` of its three.
-#[allow(clippy::too_many_arguments)]
+/// What the streaming benchmark runs: a view, a frame size, a streaming
+/// budget, a starting pool and the render options.
+#[derive(Clone, Debug)]
+pub struct StreamSetup {
+    /// Which of the world's three bench views.
+    pub view: usize,
+    /// Frame width in pixels.
+    pub width: u32,
+    /// Frame height in pixels.
+    pub height: u32,
+    /// Bricks uploaded per frame at most.
+    pub budget: u32,
+    /// Slots the pool starts with.
+    pub pool_slots: u32,
+    /// Level of detail, beams and shading.
+    pub opts: RenderOptions,
+}
+
+/// Run the streaming benchmark on `world` as `setup` says.
 pub fn run(
     world: &mut SceneWorld,
-    view: usize,
-    width: u32,
-    height: u32,
-    budget: u32,
-    pool_slots: u32,
-    opts: RenderOptions,
+    setup: &StreamSetup,
     progress: &indicatif::ProgressBar,
 ) -> Result<StreamReport> {
+    let StreamSetup {
+        view,
+        width,
+        height,
+        budget,
+        pool_slots,
+        opts,
+    } = *setup;
     let lod = opts.lod;
     let ctx = GpuContext::new()?;
     let v = world.default_views()[view];

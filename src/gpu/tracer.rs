@@ -58,6 +58,17 @@ fn palette_words(palette: &Palette) -> Vec<u32> {
         .collect()
 }
 
+/// What the GPU's brick buffers start with: the grid's GPU pointers
+/// (`shadow`), the pool's masks, metadata and material arena as words, and
+/// how many slots the pool has.
+struct Contents {
+    shadow: Vec<u32>,
+    masks: Vec<u32>,
+    meta: Vec<u32>,
+    arena: Vec<u32>,
+    slots: u32,
+}
+
 impl GpuBrickmap {
     /// Upload `palette` (a hot reload of `materials.lua` recolours
     /// materials; the bricks' LOD colours come with their edits).
@@ -135,18 +146,14 @@ impl GpuBrickmap {
             .flat_map(|m| m.iter().flat_map(|w| [*w as u32, (*w >> 32) as u32]))
             .collect();
         let meta_words: Vec<u32> = meta.iter().flat_map(|m| *m).collect();
-        Self::build(
-            ctx,
-            grid,
-            palette,
+        let contents = Contents {
             shadow,
-            mask_words,
-            meta_words,
-            words_of(arena),
-            masks.len() as u32,
-            None,
-            1,
-        )
+            masks: mask_words,
+            meta: meta_words,
+            arena: words_of(arena),
+            slots: masks.len() as u32,
+        };
+        Self::build(ctx, grid, palette, contents, None, 1)
     }
 
     /// Start streaming: every mixed brick unloaded, carrying its LOD colour.
@@ -196,15 +203,18 @@ impl GpuBrickmap {
             last_seen: vec![0; cfg.pool_slots as usize],
             cfg,
         };
+        let contents = Contents {
+            shadow,
+            masks: vec![0; cfg.pool_slots as usize * 16],
+            meta: vec![0; cfg.pool_slots as usize * GPU_META_WORDS],
+            arena: vec![0; (cfg.arena_bytes as usize).div_ceil(4)],
+            slots: cfg.pool_slots,
+        };
         Self::build(
             ctx,
             grid,
             palette,
-            shadow,
-            vec![0; cfg.pool_slots as usize * 16],
-            vec![0; cfg.pool_slots as usize * GPU_META_WORDS],
-            vec![0; (cfg.arena_bytes as usize).div_ceil(4)],
-            cfg.pool_slots,
+            contents,
             Some(residency),
             cfg.feedback_capacity,
         )
@@ -221,19 +231,21 @@ impl GpuBrickmap {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn build(
         ctx: &GpuContext,
         grid: &BrickGrid,
         palette: &Palette,
-        shadow: Vec<u32>,
-        masks: Vec<u32>,
-        meta: Vec<u32>,
-        arena: Vec<u32>,
-        slots: u32,
+        contents: Contents,
         residency: Option<Residency>,
         feedback_capacity: u32,
     ) -> Result<Self, GpuError> {
+        let Contents {
+            shadow,
+            masks,
+            meta,
+            arena,
+            slots,
+        } = contents;
         let dev = &ctx.device;
         let limit = ctx.limits.max_storage_buffer_binding_size;
         let pal = palette_words(palette);

@@ -10,6 +10,7 @@ use rustc_hash::FxHashMap;
 use super::step::{DEFAULT_BOUND_HEIGHTS, Kernel, Loaded, MIN_BOUND_HEIGHT};
 use crate::sim::SimError;
 use crate::sim::channels::ChannelStore;
+use crate::sim::runtime::vms::{PassChannels, StepStamp};
 use crate::sim::script::StepKey;
 use crate::sim::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, neighbourhood};
 
@@ -156,8 +157,12 @@ pub(super) fn run_script(
     ctx: &StepContext,
     scratch: &mut StepScratch,
 ) -> Result<Vec<usize>, SimError> {
-    let (dt, serial) = (ctx.dt, ctx.serial);
-    let key = StepKey::new(ctx.seed, ctx.tick, &s.spec.name);
+    let dt = ctx.dt;
+    let stamp = StepStamp {
+        dt,
+        serial: ctx.serial,
+        key: StepKey::new(ctx.seed, ctx.tick, &s.spec.name),
+    };
     let n = s.spec.channels.len();
     // Dense previous generation of every channel this script uses, gathered
     // in parallel into the reused buffers.
@@ -200,9 +205,14 @@ pub(super) fn run_script(
                     let t = ws.tiles[w];
                     match &s.kernel {
                         Kernel::Native(kern) => kern.run(pi, dt, &s.params, reads, writes),
-                        Kernel::Lua => run_lua(
-                            s, pi, t, dt, serial, key, &read_idx, &write_idx, reads, writes,
-                        )?,
+                        Kernel::Lua => {
+                            let io = PassChannels {
+                                pass: pi,
+                                reads: &read_idx,
+                                writes: &write_idx,
+                            };
+                            run_lua(s, io, t, stamp, reads, writes)?
+                        }
                     }
                     for (j, &i) in write_idx.iter().enumerate() {
                         out[j] = writes[i];
@@ -293,24 +303,21 @@ pub(super) fn run_script(
 
 /// One tile of one pass in this thread's VM of the script (loaded on first
 /// use, prepared once per step).
-#[allow(clippy::too_many_arguments)]
 fn run_lua(
     s: &Loaded,
-    pass: usize,
+    io: PassChannels<'_>,
     t: TileCoord,
-    dt: f64,
-    serial: u64,
-    key: StepKey,
-    read_idx: &[usize],
-    write_idx: &[usize],
+    stamp: StepStamp,
     reads: &[[f64; HALO_CELLS]],
     writes: &mut [[f64; TILE_CELLS]],
 ) -> Result<(), SimError> {
+    let PassChannels {
+        pass,
+        reads: read_idx,
+        writes: write_idx,
+    } = io;
     crate::sim::runtime::vms::with_vm(s.uid.get(), &s.src, s.limits, |vm, prepared| {
-        if *prepared != serial {
-            vm.begin_step(dt, &s.spec, &s.params, key, &[])?;
-            *prepared = serial;
-        }
+        stamp.prepare(vm, prepared, (&s.spec, &s.params, &[]))?;
         // Luau buffers hold little-endian f64s: on a little-endian machine
         // the values' own bytes are copied straight in and out.
         let mut rb = [0u8; HALO_CELLS * 8];

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use rustc_hash::FxHashMap;
 
-use crate::sim::{Limits, ScriptSource, ScriptVm, SimError};
+use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
 
 /// Most scripts' VMs kept per thread (a reload makes a new one).
 const MAX_CACHED: usize = 32;
@@ -83,6 +83,47 @@ pub fn cached_here() -> usize {
         sweep(&mut map);
         map.len()
     })
+}
+
+/// One step of one script as its VMs see it: the step's `dt`, its serial
+/// (a VM is prepared once per serial) and its random key.
+#[derive(Clone, Copy, Debug)]
+pub struct StepStamp {
+    /// Simulated time the step covers.
+    pub dt: f64,
+    /// The step's serial: a VM prepared for it is not prepared again.
+    pub serial: u64,
+    /// The step's random key.
+    pub key: StepKey,
+}
+
+impl StepStamp {
+    /// Prepare `vm` for this step unless it already is: `prepared` holds
+    /// the serial it was last prepared for.
+    pub fn prepare(
+        &self,
+        vm: &mut ScriptVm,
+        prepared: &mut u64,
+        (spec, params, materials): (&ScriptSpec, &[f64], &[u8]),
+    ) -> Result<(), SimError> {
+        if *prepared != self.serial {
+            vm.begin_step(self.dt, spec, params, self.key, materials)?;
+            *prepared = self.serial;
+        }
+        Ok(())
+    }
+}
+
+/// One pass of a script and the channels it reads and writes, as indices
+/// into the script's channels.
+#[derive(Clone, Copy, Debug)]
+pub struct PassChannels<'a> {
+    /// The pass's index in its script.
+    pub pass: usize,
+    /// Channels it reads.
+    pub reads: &'a [usize],
+    /// Channels it writes.
+    pub writes: &'a [usize],
 }
 
 /// Run `f` with this thread's VM for the script loaded as `uid` (loading

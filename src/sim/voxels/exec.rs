@@ -16,8 +16,9 @@ use super::channels::{VoxelChannelId, VoxelChannels};
 use super::halo::{SELF, gather, neighbour_offset};
 use super::native::{NativeBrick, VoxelNativeKernel};
 use super::step::BOUNDARY;
+use crate::sim::runtime::vms::{PassChannels, StepStamp};
 use crate::sim::script::{MAT, VOXEL_CELLS, VOXEL_HALO};
-use crate::sim::{Limits, ScriptSource, ScriptSpec, SimError, StepKey};
+use crate::sim::{Limits, ScriptSource, ScriptSpec, SimError};
 use crate::world::BrickStore;
 
 /// How a voxel script's kernels run.
@@ -175,7 +176,6 @@ fn from_le_bytes(src: &[u8], dst: &mut [f32]) {
 
 /// Run every pass of one script over `cands`; on success the working set
 /// holds the new generation of the candidates.
-#[allow(clippy::too_many_arguments)]
 pub(super) fn run_script(
     job: &Job<'_>,
     store: &BrickStore,
@@ -183,10 +183,9 @@ pub(super) fn run_script(
     cands: &[IVec3],
     bounds: (IVec3, IVec3),
     valid: &[bool; 256],
-    dt: f64,
-    serial: u64,
-    key: StepKey,
+    stamp: StepStamp,
 ) -> Result<Working, SimError> {
+    let dt = stamp.dt;
     let spec = job.spec;
     let mut work = Working::build(store, channels, job.channel_ids, cands, bounds);
     let nch = job.channel_ids.len();
@@ -269,7 +268,12 @@ pub(super) fn run_script(
                                 Ok(())
                             }
                             VoxelKernel::Lua => {
-                                run_lua(job, pi, &ridx, &widx, sc, &mut out, b, (dt, serial, key))
+                                let io = PassChannels {
+                                    pass: pi,
+                                    reads: &ridx,
+                                    writes: &widx,
+                                };
+                                run_lua(job, io, sc, &mut out, b, stamp)
                             }
                         }
                     });
@@ -381,24 +385,23 @@ fn check_channel(
 
 /// Cross one brick into this worker's VM for the script, run pass `pi`'s
 /// kernel and read its outputs back: one buffer copy per channel each way.
-#[allow(clippy::too_many_arguments)]
 fn run_lua(
     job: &Job<'_>,
-    pi: usize,
-    ridx: &[usize],
-    widx: &[usize],
+    io: PassChannels<'_>,
     sc: &mut Scratch,
     out: &mut BrickOut<'_>,
     b: IVec3,
-    (dt, serial, key): (f64, u64, StepKey),
+    stamp: StepStamp,
 ) -> Result<(), SimError> {
+    let PassChannels {
+        pass: pi,
+        reads: ridx,
+        writes: widx,
+    } = io;
     let pass = &job.spec.passes[pi];
     let writes_mat = pass.writes.iter().any(|w| w == MAT);
     crate::sim::runtime::vms::with_vm(job.uid, job.src, job.limits, |vm, prepared| {
-        if *prepared != serial {
-            vm.begin_step(dt, job.spec, job.params, key, job.material_ids)?;
-            *prepared = serial;
-        }
+        stamp.prepare(vm, prepared, (job.spec, job.params, job.material_ids))?;
         vm.run_voxel(pi, &pass.name, b.to_array(), |vm| {
             let (mr, mw) = vm
                 .material_buffers()

@@ -28,6 +28,7 @@ use super::channels::VoxelChannels;
 use super::exec::{Job, run_script};
 use super::schedule::{MatSet, presence_of};
 use super::scripts::Loaded;
+use crate::sim::runtime::vms::StepStamp;
 use crate::sim::script::VOXEL_CELLS;
 use crate::sim::{SimError, StepKey};
 use crate::world::{BRICK_EDGE, BrickStore, MaterialRegistry};
@@ -249,11 +250,13 @@ impl VoxelSim {
                 &cands,
                 (self.lo, self.hi),
                 &valid,
-                // Run every N ticks: it covers N steps' time (as the column
-                // scripts do).
-                dt * every as f64,
-                serial,
-                key,
+                StepStamp {
+                    // Run every N ticks: it covers N steps' time (as the
+                    // column scripts do).
+                    dt: dt * every as f64,
+                    serial,
+                    key,
+                },
             );
             let s = &mut self.scripts[si];
             // Bricks this script changed, woken at once so that the next
