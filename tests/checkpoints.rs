@@ -100,7 +100,7 @@ fn truncated_or_foreign_files_are_reported_not_loaded() {
         checkpoint::read(&path)
             .unwrap_err()
             .to_string()
-            .contains("bad magic")
+            .contains("is not a brickworld checkpoint or backup")
     );
     let checkpoint::Latest { found, skipped } = checkpoint::latest(&d).unwrap();
     assert!(found.is_none() && skipped.len() == 1);

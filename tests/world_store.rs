@@ -830,8 +830,33 @@ fn export_never_replaces_the_world_store_or_a_special_file() {
     }
     assert_eq!(crc32fast::hash(&std::fs::read(&store).unwrap()), before);
     assert!(!state.join("ckpt-0000000000000003.bwc").exists());
-    // A backup may still be written beside the store, under its own name.
+    // A backup may still be written beside the store, under its own name,
+    // and written again over itself.
     common::cli::assert_success(&export(&state.join("backup.bwc")));
+    common::cli::assert_success(&export(&state.join("backup.bwc")));
+    // Regression (newcomer walk): any other existing file was replaced
+    // (`export notes.txt` wrote a backup over the notes, exit 0).
+    let notes = state.parent().unwrap().join("notes.txt");
+    std::fs::write(&notes, "keep me\n").unwrap();
+    let o = export(&notes);
+    common::cli::assert_clear_failure(&o, "export over a text file", "is not a brickworld backup");
+    assert_eq!(std::fs::read_to_string(&notes).unwrap(), "keep me\n");
+    // Importing a file that is not a backup says what it is not, rather
+    // than calling it corrupt (a world store is copied, not imported).
+    let o = bin()
+        .arg("import")
+        .arg(&store)
+        .arg("--world")
+        .arg(&cfg)
+        .arg("--state")
+        .arg(state.parent().unwrap().join("import-a-store"))
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(
+        &o,
+        "import of a world store",
+        "is not a brickworld checkpoint or backup",
+    );
     // The world still resumes.
     hash_at(&cfg, &state, 4);
 }

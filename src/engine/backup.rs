@@ -367,6 +367,23 @@ fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Refuse an export over an existing file of another kind (regression,
+/// newcomer walk: `export notes.txt` replaced the notes with a backup, exit
+/// 0). An earlier backup, or an empty file, may be replaced.
+fn check_not_another_kind(out: &Path) -> Result<()> {
+    if let Ok(meta) = std::fs::metadata(out)
+        && meta.is_file()
+        && meta.len() > 0
+        && !super::checkpoint::begins_as_checkpoint(out)
+    {
+        bail!(
+            "{} exists and is not a brickworld backup: export would replace it, so name another path or remove it first (nothing was written)",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
 /// `brickworld export`: open the store of state directory `dir` (locked, so
 /// a running engine is a clear error), restore its world, and write it to
 /// `out`. Returns the tick and the world hash ([`engine_hash`], as `run`
@@ -408,6 +425,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
             cfg.scripts_dir.display()
         );
     }
+    check_not_another_kind(out)?;
     if cfg.stream.is_some()
         && matches!(
             cfg.sim_region,

@@ -73,7 +73,11 @@ impl Checkpoints {
             match read_checked(&path, false) {
                 Ok((_, id)) if matches_world(identity.as_ref(), id.as_ref()) => good.push(path),
                 Ok(_) => {}
-                Err(CheckpointError::Corrupt { .. }) => quarantine(&path),
+                // A checkpoint's name on another kind of file is a damaged
+                // checkpoint too.
+                Err(CheckpointError::Corrupt { .. } | CheckpointError::NotACheckpoint { .. }) => {
+                    quarantine(&path)
+                }
                 Err(_) => {}
             }
         }
@@ -124,7 +128,7 @@ impl Checkpoints {
                         found = Some((path, st));
                     }
                 },
-                Err(e @ CheckpointError::Corrupt { .. }) => {
+                Err(e @ (CheckpointError::Corrupt { .. } | CheckpointError::NotACheckpoint { .. })) => {
                     warnings.push(format!("{e}; renamed to *.corrupt and skipped"));
                     quarantine(&path);
                 }

@@ -87,6 +87,11 @@ pub(super) fn read_checked(
         .take(HEADER as u64 + 4)
         .read_to_end(&mut head)
         .map_err(|e| io(path, e))?;
+    if head.len() >= MAGIC.len() && head[..MAGIC.len()] != MAGIC[..] {
+        return Err(CheckpointError::NotACheckpoint {
+            path: path.to_path_buf(),
+        });
+    }
     let (version, payload_len) = check_header(&head).map_err(corrupt)?;
     let mut id_block = Vec::new();
     if version >= 2 {

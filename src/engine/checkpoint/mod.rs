@@ -88,6 +88,12 @@ pub enum CheckpointError {
         /// The error.
         error: std::io::Error,
     },
+    /// A file that is not a checkpoint at all: another kind of file.
+    #[error("{} is not a brickworld checkpoint or backup (it does not begin with BWCK): `brickworld export` makes backups, and a world store (world.redb) is copied, not imported", path.display())]
+    NotACheckpoint {
+        /// The file.
+        path: PathBuf,
+    },
     /// A checkpoint file is damaged.
     #[error("checkpoint {} is corrupt: {msg}", path.display())]
     Corrupt {
@@ -96,6 +102,15 @@ pub enum CheckpointError {
         /// What failed to verify.
         msg: String,
     },
+}
+
+/// Whether the file at `path` begins as a checkpoint does (its magic), so
+/// that writing one over it replaces a checkpoint and nothing else.
+pub fn begins_as_checkpoint(path: &Path) -> bool {
+    use std::io::Read;
+    let mut head = [0u8; 4];
+    std::fs::File::open(path).is_ok_and(|f| f.take(4).read_exact(&mut head).is_ok())
+        && &head == MAGIC
 }
 
 fn io(path: &Path, error: std::io::Error) -> CheckpointError {
