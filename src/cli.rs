@@ -49,7 +49,7 @@ pub enum Command {
         #[arg(long, default_value = "state")]
         state: PathBuf,
     },
-    /// Talk to a running engine: status, pause, resume, step [N], commit, param SCRIPT NAME VALUE.
+    /// Talk to a running engine: status, pause, resume, step [N], commit, param SCRIPT NAME VALUE, params [SCRIPT], log [SCRIPT], camera path.
     Ctl(CtlArgs),
     /// Run the daemon for M minutes and report memory, queues, latency and drift.
     Soak {
@@ -85,7 +85,8 @@ pub enum Command {
 #[derive(Debug, Subcommand)]
 pub enum VerifyCommand {
     /// The simulation scripts: Ritter dam break, lake at rest, conservation,
-    /// talus angle, stability sweep, determinism.
+    /// talus angle, stability sweep, determinism; and the voxel scripts:
+    /// U-tube, sand pile, lava cooling, cave fill, stability, determinism.
     Sims(VerifySimsArgs),
 }
 
@@ -136,10 +137,10 @@ pub struct RunArgs {
 #[derive(Clone, Debug, Args)]
 pub struct CtlArgs {
     /// Engine address HOST:PORT
-    #[arg(long, default_value = "127.0.0.1:7878")]
+    #[arg(long, default_value = crate::engine::ctl::DEFAULT_ADDR)]
     pub addr: String,
     /// State directory holding control.token
-    #[arg(long, default_value = "state")]
+    #[arg(long, default_value = crate::engine::ctl::DEFAULT_STATE)]
     pub state: PathBuf,
     /// `log`: print the lines there are and exit, instead of following
     #[arg(long)]
@@ -239,7 +240,7 @@ pub struct BenchVoxelsArgs {
     /// Write the results as JSON here
     #[arg(long)]
     pub json: PathBuf,
-    /// World size XxYxZ in voxels (Y at least 48; the pool fills y < 40)
+    /// World size XxYxZ in voxels (X and Z multiples of 16 of at least 32, Y at least 48; the pool fills y < 40)
     #[arg(long, default_value = "256x48x256")]
     pub size: String,
     /// Timed steps per measurement

@@ -91,6 +91,14 @@ impl<'a> SimRun<'a> {
             ws.load_materials(&mut world, &m)?;
         }
         for path in &s.scripts {
+            // Regression (newcomer walk): it was read as a script, and
+            // refused for its material names ("unknown key 'basalt'").
+            if path.file_name().is_some_and(|n| n == "materials.lua") {
+                bail!(
+                    "{}: materials.lua lists the world's materials and is not a simulation script; sim reads it from beside the first --script",
+                    crate::text::shown(&path.display().to_string(), 200)
+                );
+            }
             let src = read_script(path)?;
             ws.add_script(&world, src, Limits::default())
                 .context("cannot load the script")?;
@@ -251,16 +259,28 @@ impl<'a> SimRun<'a> {
     /// and the world's totals.
     fn report(&self, secs: f64) {
         let (s, ws, t) = (self.s, &self.ws, &self.totals);
-        crate::say!(
-            "{} steps in {:.2} s ({:.1} steps/s, {:.1} M column updates/s, up to {} sub-steps); {} tiles active at the end; {} dirty bricks published",
-            s.steps,
-            secs,
-            s.steps as f64 / secs,
-            t.cells as f64 / secs / 1e6,
-            t.max_sub,
-            t.last_active,
-            t.bricks
-        );
+        // Column figures only where column scripts ran (regression,
+        // newcomer walk: voxel scripts alone printed "0 tiles active").
+        if t.cells > 0 {
+            crate::say!(
+                "{} steps in {:.2} s ({:.1} steps/s, {:.1} M column updates/s, up to {} sub-steps); {} tiles active at the end; {} dirty bricks published",
+                s.steps,
+                secs,
+                s.steps as f64 / secs,
+                t.cells as f64 / secs / 1e6,
+                t.max_sub,
+                t.last_active,
+                t.bricks
+            );
+        } else {
+            crate::say!(
+                "{} steps in {:.2} s ({:.1} steps/s); {} dirty bricks published",
+                s.steps,
+                secs,
+                s.steps as f64 / secs,
+                t.bricks
+            );
+        }
         if t.max_sub >= crate::sim::columns::run::MAX_SUBSTEPS {
             crate::say!(
                 "warning: some steps needed the most sub-steps there are ({}); the CFL limit may not have been met there: use a smaller --dt or a larger --cfl",
@@ -274,17 +294,20 @@ impl<'a> SimRun<'a> {
                 ms / s.steps.max(1) as f64
             );
             for (name, total) in ws.conserved_totals(i) {
-                crate::say!("    conserved {name}: {total:.6}");
+                crate::say!("    conserved {name}: {}", six_places(total));
             }
         }
         // Conserved quantities (sources such as rain and snowfall add to them).
         for name in ["water", "ground", "sediment", "snow"] {
             if let Some(id) = ws.sim.channels().find(name) {
-                crate::say!("  total {name}: {:.6}", ws.sim.channels().total(id));
+                crate::say!(
+                    "  total {name}: {}",
+                    six_places(ws.sim.channels().total(id))
+                );
             }
         }
         if s.drain {
-            crate::say!("  water drained over the edges: {:.6}", ws.drained);
+            crate::say!("  water drained over the edges: {}", six_places(ws.drained));
         }
     }
 
@@ -321,5 +344,16 @@ fn folder_of(path: &Path) -> PathBuf {
     match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
+    }
+}
+
+/// `x` to six decimal places, with no minus sign on a value that rounds to
+/// zero (a sum of round-off printed "-0.000000").
+fn six_places(x: f64) -> String {
+    let s = format!("{x:.6}");
+    if s == "-0.000000" {
+        s[1..].to_string()
+    } else {
+        s
     }
 }

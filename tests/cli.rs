@@ -1877,3 +1877,63 @@ fn init_suggests_a_command_the_shell_reads_back() {
         "{said:?}"
     );
 }
+
+/// Regression (newcomer walk): under heavy rain the water script's
+/// discharge passed the default bound of 4 world heights (a channel 40
+/// deep flowing at 10 a second carries 400), so water was suspended at
+/// tick 30 of this run. It now declares its discharges' range and runs on.
+#[test]
+fn heavy_rain_does_not_suspend_water() {
+    let png = tmp("heavy-rain.png");
+    let out = bin()
+        .args(["sim", "--size", "96x96x96", "--script"])
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"))
+        .args(["--param", "water.rain=10", "--steps", "60", "--out"])
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("rejected"), "{err}");
+    assert!(png.exists());
+}
+
+/// Regression (newcomer walk): two easy mistakes were named after
+/// something else. `sim --script materials.lua` read the material list as
+/// a script ("unknown key 'basalt'"), and `run --scripts w/world.toml`
+/// blamed the config's `sim.scripts_dir`, which the user never set.
+#[test]
+fn the_materials_file_as_a_script_and_a_file_as_the_scripts_folder_are_named() {
+    expect_failure(
+        &[
+            "sim",
+            "--size",
+            "16x16x16",
+            "--steps",
+            "1",
+            "--script",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/materials.lua"),
+        ],
+        "materials.lua lists the world's materials and is not a simulation script",
+    );
+    let dir = tmp("scripts-flag");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("world.toml");
+    std::fs::write(&file, "").unwrap();
+    expect_failure(
+        &[
+            "run",
+            "--scripts",
+            file.to_str().unwrap(),
+            "--state",
+            dir.join("state").to_str().unwrap(),
+            "--ticks",
+            "1",
+        ],
+        "world.toml: not a folder (it names the folder that holds the world's scripts)",
+    );
+    assert!(
+        !dir.join("state").exists(),
+        "nothing is made for a refused run"
+    );
+}

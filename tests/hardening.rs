@@ -1082,6 +1082,57 @@ fn a_restored_failure_streak_shows_as_failing_before_any_step() {
     assert_success(&stop(d));
 }
 
+/// Regression (newcomer walk): a suspended script stayed suspended for
+/// good once its parameters were set back, and a built-in script (the
+/// default world's) cannot be edited or reloaded. A parameter change now
+/// lets it run again, and the log says so.
+#[test]
+fn a_suspended_script_runs_again_when_its_parameters_change() {
+    let (cfg, state, addr) = setup("unsuspend");
+    add_script(
+        &cfg,
+        "touchy.lua",
+        "return { channels = { \"f\" }, params = { bad = { default = 1, min = 0, max = 1 } },\n\
+         passes = { { name = \"p\", reads = {}, writes = { \"f\" },\n\
+         kernel = function(c) if c.tick >= 1 and c.p.bad > 0.5 then error(\"too bad\") end end } } }",
+    );
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let wait_for = |what: &str, ok: &dyn Fn(&serde_json::Value) -> bool| {
+        let t = Instant::now();
+        loop {
+            let s = status(&addr);
+            if ok(&s) {
+                return s;
+            }
+            assert!(t.elapsed() < Duration::from_secs(60), "never {what}: {s}");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    };
+    let s = wait_for("suspended", &|s| s["scripts"][1]["state"] == "suspended");
+    let why = s["scripts"][1]["error"].as_str().unwrap();
+    assert!(why.contains("or change one of its parameters"), "{why}");
+    let (code, body) = post(&addr, &state, "/scripts/touchy/params", "{\"bad\": 0}");
+    assert_eq!(code, 200, "{body}");
+    let since = status(&addr)["tick"].as_u64().unwrap();
+    // Four ticks later it has run without failing (three failures would
+    // have suspended it again).
+    let s = wait_for("four ticks on", &|s| {
+        s["tick"].as_u64().unwrap() >= since + 4
+    });
+    let script = &s["scripts"][1];
+    assert_ne!(script["state"], "suspended", "{s}");
+    assert_ne!(script["state"], "failing", "{s}");
+    assert_eq!(script["failures_in_a_row"], 0, "{s}");
+    let out = stop(d);
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("touchy.lua runs again: its parameters changed"),
+        "{err}"
+    );
+}
+
 /// Regression (hostile probe): kernels just under their time budget made a
 /// step of minutes, and SIGTERM waited for all of it. Now a step still
 /// running `STOP_GRACE` after the signal is interrupted and dropped, and
@@ -1756,13 +1807,17 @@ fn a_script_saved_while_the_engine_starts_is_reloaded_once_it_is_up() {
 /// with the command that applies the config's.
 #[test]
 fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
-    let (cfg, state, _) = setup("paramoverride");
+    let (cfg, state, addr) = setup("paramoverride");
     run_ok(&cfg, &state, "--ticks", 1);
     edit_config(&cfg, "params = { rain = 0.2 }", "params = { rain = 0.3 }");
     let (_, err) = run_ok(&cfg, &state, "--ticks", 2);
+    // The command reaches this engine: its address and state directory are
+    // not ctl's defaults (regression, newcomer walk: the hint said plain
+    // `brickworld ctl`, which could not reach an engine on another port).
+    let ctl = format!("brickworld ctl --addr {addr} --state {}", state.display());
     assert!(
         err.contains("the world config sets water.rain = 0.3, but the stored state holds 0.2")
-            && err.contains("brickworld ctl param water rain 0.3"),
+            && err.contains(&format!("`{ctl} param water rain 0.3`")),
         "{err}"
     );
     // With the config and the state in agreement, nothing is said.

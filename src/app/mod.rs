@@ -176,6 +176,14 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
         }
     }
     if let Some(dir) = flags.scripts {
+        // Named by its flag (regression, newcomer walk: `--scripts
+        // w/world.toml` was reported as the config's `sim.scripts_dir`).
+        if !dir.is_dir() {
+            anyhow::bail!(
+                "--scripts {}: not a folder (it names the folder that holds the world's scripts)",
+                crate::text::shown(&dir.display().to_string(), 200)
+            );
+        }
         world.scripts_dir = dir;
         world.scripts_embedded = false;
     }

@@ -176,6 +176,36 @@ fn with_trailing_options(a: &CtlArgs) -> Result<(CtlArgs, Vec<String>)> {
     Ok((out, words))
 }
 
+/// `ctl`'s default engine address.
+pub const DEFAULT_ADDR: &str = "127.0.0.1:7878";
+/// `ctl`'s default state directory.
+pub const DEFAULT_STATE: &str = "state";
+
+/// The `brickworld ctl` command that reaches the engine at `addr` with the
+/// token in `state`: the flags are given only where they are not `ctl`'s
+/// defaults (regression, newcomer walk: an engine on another address said
+/// to run `brickworld ctl resume`, which could not reach it).
+///
+/// ```
+/// use std::path::Path;
+/// use brickworld::engine::ctl::ctl_command;
+/// assert_eq!(ctl_command("127.0.0.1:7878".parse().unwrap(), Path::new("state")), "brickworld ctl");
+/// assert_eq!(
+///     ctl_command("127.0.0.1:7979".parse().unwrap(), Path::new("my state")),
+///     "brickworld ctl --addr 127.0.0.1:7979 --state 'my state'"
+/// );
+/// ```
+pub fn ctl_command(addr: std::net::SocketAddr, state: &std::path::Path) -> String {
+    let mut c = String::from("brickworld ctl");
+    if addr.to_string() != DEFAULT_ADDR {
+        c += &format!(" --addr {addr}");
+    }
+    if state != std::path::Path::new(DEFAULT_STATE) {
+        c += &format!(" --state {}", crate::shell_quoted(state));
+    }
+    c
+}
+
 /// Run `brickworld ctl`.
 pub fn run(a: &CtlArgs) -> Result<()> {
     let (a, words) = with_trailing_options(a)?;

@@ -106,7 +106,7 @@ pub fn choose(choice: TracerChoice) -> (Option<GpuContext>, String) {
         (Ok(ctx), TracerChoice::Auto) if ctx.is_software() => (
             None,
             format!(
-                "tracer: cpu (auto: the only GPU adapter, {}, is a software rasterizer, where the CPU tracer is faster; `tracer = \"gpu\"` forces it)",
+                "tracer: cpu (auto: the only GPU adapter, {}, is a software rasterizer, where the CPU tracer is faster; `--tracer gpu`, or `tracer = \"gpu\"` in a world config, forces it)",
                 ctx.describe()
             ),
         ),

@@ -252,6 +252,16 @@ impl Engine {
                         }
                     }
                     if refused.is_empty() {
+                        // A suspended script runs again once its parameters
+                        // change: it failed under other conditions (for a
+                        // built-in script, which cannot be edited, this is
+                        // the way back; regression, newcomer walk).
+                        if self.ws.suspended(i).is_some() {
+                            self.ws.set_health(i, 0, None);
+                            self.notes[i].step_error = None;
+                            self.notes[i].announced = None;
+                            crate::say!("{script}.lua runs again: its parameters changed");
+                        }
                         verdict.send(Ok(()));
                     } else {
                         let msg = format!("refused: {}", refused.join("; "));

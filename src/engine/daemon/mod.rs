@@ -358,7 +358,7 @@ impl Engine {
             }
             if let Some(e) = self.ws.suspended(i) {
                 crate::say!(
-                    "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it): {e}",
+                    "warning: {name}.lua is suspended after {} failed steps in a row (fix or reload it, or change one of its parameters): {e}",
                     self.ws.failures(i)
                 );
             }

@@ -62,7 +62,7 @@ impl Engine {
             Some(e) => (
                 "suspended",
                 Some(format!(
-                    "suspended after {} failed steps in a row (fix or reload it): {e}",
+                    "suspended after {} failed steps in a row (fix or reload it, or change one of its parameters): {e}",
                     sim.failures(i)
                 )),
             ),

@@ -147,7 +147,7 @@ impl Engine {
                     loaded_from: None,
                 }
             }
-            Some(r) => resume(&cfg, &db, &world, &mut ws, r),
+            Some(r) => resume(&cfg, &opts.state, &db, &world, &mut ws, r),
         };
         let frames_dir = frames_folder(&opts.state, &cfg)?;
         let renderer = RenderThread::spawn(
@@ -168,8 +168,9 @@ impl Engine {
             token_path.display()
         );
         if opts.paused {
+            let ctl = crate::engine::ctl::ctl_command(server.addr, &opts.state);
             crate::say!(
-                "paused at tick {}: `brickworld ctl resume` or `ctl step N` runs it",
+                "paused at tick {}: `{ctl} resume` or `{ctl} step N` runs it",
                 ws.sim.tick()
             );
         }
@@ -229,6 +230,7 @@ struct Loaded {
 /// what it could not keep and which config parameters it overrides.
 fn resume(
     cfg: &WorldConfig,
+    state: &Path,
     db: &WorldDb,
     world: &SceneWorld,
     ws: &mut WorldSim,
@@ -251,7 +253,8 @@ fn resume(
     for w in persistence::apply_state(&r.state, ws) {
         crate::say!("warning: {w}");
     }
-    for w in config_params_not_in_effect(cfg, ws) {
+    let ctl = crate::engine::ctl::ctl_command(cfg.addr, state);
+    for w in config_params_not_in_effect(cfg, ws, &ctl) {
         crate::say!("warning: {w}");
     }
     let hash = persistence::engine_hash(world, ws);
@@ -361,7 +364,7 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
 /// command that applies the config's (regression, hot-edit probe: a
 /// `params` value edited in the config was overridden at the next start,
 /// which said only that new settings apply from now on).
-fn config_params_not_in_effect(cfg: &WorldConfig, ws: &WorldSim) -> Vec<String> {
+fn config_params_not_in_effect(cfg: &WorldConfig, ws: &WorldSim, ctl: &str) -> Vec<String> {
     let mut out = Vec::new();
     for set in &cfg.scripts {
         let name = set.file.strip_suffix(".lua").unwrap_or(&set.file);
@@ -377,7 +380,7 @@ fn config_params_not_in_effect(cfg: &WorldConfig, ws: &WorldSim) -> Vec<String> 
             let have = values[j];
             if have != want {
                 out.push(format!(
-                    "{}: the world config sets {name}.{k} = {}, but the stored state holds {} (set while the engine ran, or by an earlier config): the stored value is kept; `brickworld ctl param {name} {k} {}` applies the config's",
+                    "{}: the world config sets {name}.{k} = {}, but the stored state holds {} (set while the engine ran, or by an earlier config): the stored value is kept; `{ctl} param {name} {k} {}` applies the config's",
                     cfg.file,
                     crate::sim::fmt_num(want),
                     crate::sim::fmt_num(have),

@@ -71,7 +71,7 @@ pub enum StoreError {
     },
     /// The store belongs to another world.
     #[error(
-        "the world store {} belongs to another world ({found}); this config describes {expected}: use another --state directory, or the config that made it",
+        "the world store {} belongs to another world ({found}); this config describes {expected}: use another --state directory, or the config that made it (`run CFG`; `--world CFG` for export and import)",
         path.display()
     )]
     Foreign {
