@@ -17,6 +17,7 @@
 pub mod columns;
 pub mod health;
 pub mod runtime;
+mod slot;
 pub mod voxels;
 
 pub use columns::{channels, native, run, step, tile, writeback};

@@ -11,25 +11,23 @@ use super::native::VoxelNativeKernel;
 use super::schedule::{MatSet, set_of};
 use super::step::{BOUNDARY, VoxelSim};
 use crate::sim::script::{Grid, VOXEL_CELLS, VOXEL_HALO};
-use crate::sim::{Health, Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
+use crate::sim::slot::ScriptSlot;
+use crate::sim::{Limits, ScriptSource, ScriptSpec, ScriptVm, SimError, StepKey};
 use crate::world::MaterialRegistry;
 
-/// A loaded voxel script and its state.
+/// A loaded voxel script: what both grids keep ([`ScriptSlot`], which it
+/// dereferences to), its channel and material ids, where it runs and its
+/// kernel.
 pub(super) struct Loaded {
-    pub(super) uid: crate::sim::runtime::vms::VmId,
-    pub(super) src: ScriptSource,
-    pub(super) spec: ScriptSpec,
-    pub(super) params: Vec<f64>,
+    pub(super) slot: ScriptSlot,
     pub(super) channel_ids: Vec<VoxelChannelId>,
     pub(super) material_ids: Vec<u8>,
     pub(super) only: Option<MatSet>,
     pub(super) keep_awake: MatSet,
-    pub(super) limits: Limits,
     pub(super) kernel: VoxelKernel,
-    pub(super) every: u64,
-    /// Failed steps in a row, and why the script is suspended.
-    pub(super) health: Health,
 }
+
+crate::sim::slot::extends_slot!(Loaded);
 
 impl VoxelSim {
     /// Number of scripts.
@@ -94,11 +92,7 @@ impl VoxelSim {
             .iter()
             .map(|c| self.channels.channel(c))
             .collect();
-        let old = &self.scripts[i];
-        new.every = old.every;
-        let (values, warnings) =
-            crate::sim::script::carry_params(&old.spec, &old.params, &new.spec);
-        new.params = values;
+        let warnings = new.slot.carry_over(&self.scripts[i].slot);
         self.scripts[i] = new;
         self.wake_all_known();
         Ok(warnings)
@@ -106,24 +100,17 @@ impl VoxelSim {
 
     /// Script `i`'s source, limits, rate and health, for a rebuild.
     pub fn script_state(&self, i: usize) -> crate::sim::ScriptState {
-        let s = &self.scripts[i];
-        crate::sim::ScriptState {
-            src: s.src.clone(),
-            limits: s.limits,
-            every: s.every,
-            failures: s.health.failures(),
-            suspended: s.health.suspended().cloned(),
-        }
+        self.scripts[i].state()
     }
 
     /// Give script `i` the health a rebuilt simulation carries over.
     pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
-        self.scripts[i].health = Health::restored(failures, suspended);
+        self.scripts[i].restore_health(failures, suspended);
     }
 
     /// Run script `i` on ticks that are multiples of `every`.
     pub fn set_every(&mut self, i: usize, every: u64) {
-        self.scripts[i].every = every.max(1);
+        self.scripts[i].set_every(every);
     }
 
     /// The tick interval of script `i`.
@@ -133,9 +120,7 @@ impl VoxelSim {
 
     /// Set a parameter (refused outside its declared range).
     pub fn set_param(&mut self, i: usize, name: &str, value: f64) -> Result<(), SimError> {
-        let s = &mut self.scripts[i];
-        let k = s.spec.param_index(name, value)?;
-        s.params[k] = value;
+        self.scripts[i].set_param(name, value)?;
         self.wake_all_known();
         Ok(())
     }
@@ -263,20 +248,13 @@ impl VoxelSim {
             .iter()
             .map(|c| self.channels.channel(c))
             .collect();
-        let params = defaults;
         self.scripts.push(Loaded {
-            uid: crate::sim::runtime::vms::VmId::new(),
-            src,
-            spec,
-            params,
+            slot: ScriptSlot::new(src, spec, limits),
             channel_ids,
             material_ids,
             only,
             keep_awake,
-            limits,
             kernel: VoxelKernel::Lua,
-            every: 1,
-            health: Health::default(),
         });
         Ok(self.scripts.len() - 1)
     }
@@ -309,7 +287,7 @@ impl VoxelSim {
         if let Some((what, declared, expected)) = mismatch {
             let s = self.scripts.pop().expect("added");
             return Err(SimError::Declaration {
-                script: s.spec.name,
+                script: s.slot.spec.name,
                 line: None,
                 msg: format!(
                     "the native kernel expects {what} {expected:?}, the script declares {declared:?}"

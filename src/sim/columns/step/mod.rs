@@ -28,8 +28,7 @@ use rustc_hash::{FxHashMap, FxHashSet};
 use super::exec::{StepContext, StepScratch, WorkSet, run_script};
 use crate::sim::SimError;
 use crate::sim::channels::{ChannelId, ChannelStore};
-use crate::sim::health::Health;
-use crate::sim::script::{Limits, ScriptSource, ScriptSpec};
+use crate::sim::slot::ScriptSlot;
 use crate::sim::tile::{HALO_CELLS, TILE_CELLS, TileCoord, neighbourhood};
 
 /// Steps without change before a tile sleeps.
@@ -68,22 +67,17 @@ pub enum Kernel {
 
 static STEP_SERIAL: AtomicU64 = AtomicU64::new(1);
 
-/// A loaded script: its declarations, channel ids, parameters and health.
+/// A loaded column script: what both grids keep ([`ScriptSlot`], which it
+/// dereferences to), its channel ids, boundary values and kernel.
 pub(super) struct Loaded {
-    pub(super) uid: crate::sim::runtime::vms::VmId,
-    pub(super) src: ScriptSource,
-    pub(super) spec: ScriptSpec,
-    pub(super) params: Vec<f64>,
+    pub(super) slot: ScriptSlot,
     pub(super) ids: Vec<ChannelId>,
     pub(super) boundary: Vec<f64>,
     pub(super) nonneg: Vec<usize>,
     pub(super) kernel: Kernel,
-    pub(super) limits: Limits,
-    /// Run on ticks that are multiples of this.
-    pub(super) every: u64,
-    /// Failed steps in a row, and why the script is suspended.
-    pub(super) health: Health,
 }
+
+crate::sim::slot::extends_slot!(Loaded);
 
 /// What one step did.
 #[derive(Clone, Debug, Default)]

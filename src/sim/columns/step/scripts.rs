@@ -6,8 +6,8 @@
 use super::{Kernel, Loaded, Simulation};
 use crate::sim::SimError;
 use crate::sim::channels::ChannelId;
-use crate::sim::health::Health;
 use crate::sim::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
+use crate::sim::slot::ScriptSlot;
 
 impl Simulation {
     /// Load a script (validated and smoke-tested on a sample tile). Returns
@@ -37,11 +37,7 @@ impl Simulation {
             self.scripts[index].limits,
         );
         let mut loaded = self.prepare(src, kernel, limits)?;
-        let old = &self.scripts[index];
-        loaded.every = old.every;
-        let (values, warnings) =
-            crate::sim::script::carry_params(&old.spec, &old.params, &loaded.spec);
-        loaded.params = values;
+        let warnings = loaded.slot.carry_over(&self.scripts[index].slot);
         self.scripts[index] = loaded;
         self.wake_all();
         Ok(warnings)
@@ -104,40 +100,27 @@ impl Simulation {
             .map(|c| self.channels.channel(c))
             .collect();
         Ok(Loaded {
-            uid: crate::sim::runtime::vms::VmId::new(),
-            src,
-            spec,
-            params,
+            slot: ScriptSlot::new(src, spec, limits),
             ids,
             boundary,
             nonneg,
             kernel,
-            limits,
-            every: 1,
-            health: Health::default(),
         })
     }
 
     /// Script `i`'s source, limits, rate and health, for a rebuild.
     pub fn script_state(&self, i: usize) -> crate::sim::ScriptState {
-        let s = &self.scripts[i];
-        crate::sim::ScriptState {
-            src: s.src.clone(),
-            limits: s.limits,
-            every: s.every,
-            failures: s.health.failures(),
-            suspended: s.health.suspended().cloned(),
-        }
+        self.scripts[i].state()
     }
 
     /// Give script `i` the health a rebuilt simulation carries over.
     pub fn set_health(&mut self, i: usize, failures: u32, suspended: Option<SimError>) {
-        self.scripts[i].health = Health::restored(failures, suspended);
+        self.scripts[i].restore_health(failures, suspended);
     }
 
     /// Run script `index` only on ticks that are multiples of `every` (≥ 1).
     pub fn set_every(&mut self, index: usize, every: u64) {
-        self.scripts[index].every = every.max(1);
+        self.scripts[index].set_every(every);
     }
 
     /// The tick interval of script `index`.
@@ -168,9 +151,7 @@ impl Simulation {
     /// Change a parameter; refused outside its declared range. Takes effect
     /// at the next step, with no restart.
     pub fn set_param(&mut self, index: usize, name: &str, value: f64) -> Result<(), SimError> {
-        let s = &mut self.scripts[index];
-        let i = s.spec.param_index(name, value)?;
-        s.params[i] = value;
+        self.scripts[index].set_param(name, value)?;
         self.wake_all();
         Ok(())
     }
