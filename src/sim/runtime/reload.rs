@@ -156,14 +156,17 @@ struct Watch {
     lost: Arc<AtomicBool>,
 }
 
-fn watch(dir: &Path, tx: crossbeam_channel::Sender<PathBuf>) -> Result<Watch, SimError> {
+/// Watch `dir`, whose absolute path is `own`: notify reports the
+/// directory's own events under the absolute path it watches (a relative
+/// `dir` is joined to the working directory), so they are compared with
+/// that (regression: a relative scripts dir, the usual case, never matched).
+fn watch(
+    dir: &Path,
+    own: PathBuf,
+    tx: crossbeam_channel::Sender<PathBuf>,
+) -> Result<Watch, SimError> {
     let lost = Arc::new(AtomicBool::new(false));
     let flag = lost.clone();
-    // notify reports the directory's own events under the absolute path
-    // it watches (a relative `dir` is joined to the working directory):
-    // compare with that (regression: a relative scripts dir, the usual
-    // case, never matched).
-    let own = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
     let mut watcher = notify::recommended_watcher(move |res: notify::Result<notify::Event>| {
         let Ok(ev) = res else { return };
         // The directory itself removed or renamed: its inode may come back
@@ -216,8 +219,8 @@ impl ScriptWatcher {
     /// Watch `dir`; a file is reported `debounce` after its last event.
     pub fn new(dir: &Path, debounce: Duration) -> Result<Self, SimError> {
         let (tx, events) = unbounded();
-        let watcher = watch(dir, tx.clone())?;
         let abs = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
+        let watcher = watch(dir, abs.clone(), tx.clone())?;
         Ok(ScriptWatcher {
             watcher: Some(watcher),
             events,
@@ -282,7 +285,7 @@ impl ScriptWatcher {
             ));
             return;
         }
-        match watch(&self.dir, self.tx.clone()) {
+        match watch(&self.dir, self.abs.clone(), self.tx.clone()) {
             Ok(w) => {
                 self.watcher = Some(w);
                 self.last_failure = None;
