@@ -841,6 +841,43 @@ fn export_never_replaces_the_world_store_or_a_special_file() {
     let o = export(&notes);
     common::cli::assert_clear_failure(&o, "export over a text file", "is not a brickworld backup");
     assert_eq!(std::fs::read_to_string(&notes).unwrap(), "keep me\n");
+    // Nor another world's backup (review: only the magic was checked, and
+    // another world's only backup was replaced).
+    let other = state.parent().unwrap().join("other.bwc");
+    let identity = brickworld::engine::checkpoint::WorldIdentity {
+        source: "terrain".into(),
+        size: [9, 9, 9],
+        seed: 5,
+        config_hash: 0,
+    };
+    let empty = BrickStore::new(brickworld::world::Palette::grey_ramp());
+    brickworld::engine::checkpoint::write_at(
+        &other,
+        brickworld::engine::checkpoint::WorldRef {
+            tick: 1,
+            store: &empty,
+            bounds: (IVec3::ZERO, IVec3::ONE),
+            channels: &ChannelStore::default(),
+            params: &[],
+            identity: Some(&identity),
+            extras: &Default::default(),
+        },
+    )
+    .unwrap();
+    let kept = std::fs::read(&other).unwrap();
+    let o = export(&other);
+    common::cli::assert_clear_failure(
+        &o,
+        "export over another world's backup",
+        "is a backup of another world",
+    );
+    assert_eq!(std::fs::read(&other).unwrap(), kept);
+    // Nor through a link, which the backup would replace.
+    let link = state.parent().unwrap().join("link.bwc");
+    std::os::unix::fs::symlink(state.join("backup.bwc"), &link).unwrap();
+    let o = export(&link);
+    common::cli::assert_clear_failure(&o, "export onto a link", "is a symbolic link");
+    assert!(link.symlink_metadata().unwrap().file_type().is_symlink());
     // Importing a file that is not a backup says what it is not, rather
     // than calling it corrupt (a world store is copied, not imported).
     let o = bin()

@@ -314,7 +314,7 @@ pub fn export(
         voxel_channels: ws.vox.channels().clone(),
         ..st.extras.clone()
     };
-    let hash = checkpoint::write_at(
+    let hash = checkpoint::write_backup(
         out,
         WorldRef {
             tick: st.tick,
@@ -325,6 +325,7 @@ pub fn export(
             identity: Some(identity),
             extras: &extras,
         },
+        identity,
     )?;
     Ok(hash)
 }
@@ -362,23 +363,6 @@ fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
             "{} lies inside the state directory {} and is not a NAME.bwc backup: export there could replace the world it reads; name a .bwc file or write elsewhere (nothing was written)",
             out.display(),
             dir.display()
-        );
-    }
-    Ok(())
-}
-
-/// Refuse an export over an existing file of another kind (regression,
-/// newcomer walk: `export notes.txt` replaced the notes with a backup, exit
-/// 0). An earlier backup, or an empty file, may be replaced.
-fn check_not_another_kind(out: &Path) -> Result<()> {
-    if let Ok(meta) = std::fs::metadata(out)
-        && meta.is_file()
-        && meta.len() > 0
-        && !super::checkpoint::begins_as_checkpoint(out)
-    {
-        bail!(
-            "{} exists and is not a brickworld backup: export would replace it, so name another path or remove it first (nothing was written)",
-            out.display()
         );
     }
     Ok(())
@@ -425,7 +409,13 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
             cfg.scripts_dir.display()
         );
     }
-    check_not_another_kind(out)?;
+    // Nor over anything but an earlier backup of this world.
+    if let Err(why) = super::checkpoint::backup_target(out, &cfg.identity()) {
+        bail!(
+            "{} {why}: export would replace it, so name another path or remove it first (nothing was written)",
+            out.display()
+        );
+    }
     if cfg.stream.is_some()
         && matches!(
             cfg.sim_region,

@@ -12,10 +12,103 @@ use super::{
     io, world_hash,
 };
 
+/// What an export may write over: the path is free, or holds an earlier
+/// backup of the same world (or an empty file).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BackupTarget {
+    /// Nothing is at the path.
+    Free,
+    /// An earlier backup of the same world, or an empty file.
+    Replaceable,
+}
+
+/// Whether a backup of `identity` may be written at `path`: nothing there,
+/// an empty file, or a backup of the same world that verifies. Anything
+/// else is kept, and the reason is the error (regression, newcomer walk
+/// and its review: `export notes.txt` replaced the notes, and an export
+/// replaced another world's only backup, exit 0).
+pub fn backup_target(path: &Path, identity: &WorldIdentity) -> Result<BackupTarget, String> {
+    let meta = match fs::symlink_metadata(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(BackupTarget::Free),
+        Err(e) => return Err(format!("cannot be looked at ({e})")),
+        Ok(m) => m,
+    };
+    if meta.file_type().is_symlink() {
+        return Err(
+            "is a symbolic link, which the backup would replace: name the file itself".into(),
+        );
+    }
+    if !meta.is_file() {
+        return Err("is not a regular file".into());
+    }
+    if meta.len() == 0 {
+        return Ok(BackupTarget::Replaceable);
+    }
+    match read_checked(path, false) {
+        Ok((_, Some(id))) if id.same_world(identity) => Ok(BackupTarget::Replaceable),
+        Ok((_, Some(id))) => Err(format!("is a backup of another world ({id})")),
+        Ok((_, None)) => Err("is a checkpoint that does not say which world it is".into()),
+        Err(CheckpointError::NotACheckpoint { .. }) => Err("is not a brickworld backup".into()),
+        Err(CheckpointError::Io { error, .. }) => Err(format!("cannot be read ({error})")),
+        Err(CheckpointError::Corrupt { msg, .. }) => Err(format!("is a damaged backup ({msg})")),
+    }
+}
+
+/// `brickworld export`'s write: [`write_at`], with the target looked at
+/// again just before the backup lands (see [`backup_target`]), and landed
+/// without replacing anything where the path was free, so a file made
+/// there meanwhile is kept.
+pub fn write_backup(
+    path: &Path,
+    state: WorldRef<'_>,
+    identity: &WorldIdentity,
+) -> Result<u64, CheckpointError> {
+    let refuse = |msg: String| CheckpointError::Io {
+        path: path.to_path_buf(),
+        error: std::io::Error::new(
+            std::io::ErrorKind::AlreadyExists,
+            format!("{msg}; nothing was written"),
+        ),
+    };
+    write_landing(path, state, |tmp| match backup_target(path, identity) {
+        Ok(BackupTarget::Replaceable) => fs::rename(tmp, path),
+        Ok(BackupTarget::Free) => match fs::hard_link(tmp, path) {
+            // A link is made only where nothing is: a file that appeared
+            // since is kept.
+            Ok(()) => {
+                let _ = fs::remove_file(tmp);
+                Ok(())
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Err(std::io::Error::new(
+                std::io::ErrorKind::AlreadyExists,
+                "a file appeared there while the backup was made",
+            )),
+            // A file system without hard links: rename (the look just made
+            // is the last).
+            Err(_) => fs::rename(tmp, path),
+        },
+        Err(msg) => Err(std::io::Error::new(std::io::ErrorKind::AlreadyExists, msg)),
+    })
+    .map_err(|e| match e {
+        CheckpointError::Io { error, .. } if error.kind() == std::io::ErrorKind::AlreadyExists => {
+            refuse(error.to_string())
+        }
+        other => other,
+    })
+}
+
 /// Write a checkpoint file at `path` (atomically: a temp file beside it,
-/// fsynced, renamed, the directory fsynced). Returns the world hash. This is
-/// also `brickworld export`'s single-file backup.
+/// fsynced, renamed, the directory fsynced). Returns the world hash.
 pub fn write_at(path: &Path, state: WorldRef<'_>) -> Result<u64, CheckpointError> {
+    write_landing(path, state, |tmp| fs::rename(tmp, path))
+}
+
+/// [`write_at`], landing the fsynced temporary file with `land`.
+fn write_landing(
+    path: &Path,
+    state: WorldRef<'_>,
+    land: impl FnOnce(&Path) -> std::io::Result<()>,
+) -> Result<u64, CheckpointError> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -42,7 +135,7 @@ pub fn write_at(path: &Path, state: WorldRef<'_>) -> Result<u64, CheckpointError
         f.write_all(&header)?;
         f.write_all(&payload)?;
         f.sync_all()?;
-        fs::rename(&tmp, path)
+        land(&tmp)
     })();
     if let Err(e) = result {
         let _ = fs::remove_file(&tmp);

@@ -58,7 +58,7 @@ pub mod file;
 pub mod payload;
 
 pub use dir::{Checkpoints, Latest, Opened, latest, list, write};
-pub use file::{parse, read, write_at};
+pub use file::{BackupTarget, backup_target, parse, read, write_at, write_backup};
 pub(crate) use payload::encode;
 pub use payload::{MAX_TICK, decode};
 
@@ -102,15 +102,6 @@ pub enum CheckpointError {
         /// What failed to verify.
         msg: String,
     },
-}
-
-/// Whether the file at `path` begins as a checkpoint does (its magic), so
-/// that writing one over it replaces a checkpoint and nothing else.
-pub fn begins_as_checkpoint(path: &Path) -> bool {
-    use std::io::Read;
-    let mut head = [0u8; 4];
-    std::fs::File::open(path).is_ok_and(|f| f.take(4).read_exact(&mut head).is_ok())
-        && &head == MAGIC
 }
 
 fn io(path: &Path, error: std::io::Error) -> CheckpointError {
