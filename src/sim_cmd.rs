@@ -261,7 +261,7 @@ impl<'a> SimRun<'a> {
         let (s, ws, t) = (self.s, &self.ws, &self.totals);
         // Column figures only where column scripts ran (regression,
         // newcomer walk: voxel scripts alone printed "0 tiles active").
-        if t.cells > 0 {
+        if ws.sim.script_count() > 0 {
             crate::say!(
                 "{} steps in {:.2} s ({:.1} steps/s, {:.1} M column updates/s, up to {} sub-steps); {} tiles active at the end; {} dirty bricks published",
                 s.steps,
@@ -306,7 +306,7 @@ impl<'a> SimRun<'a> {
                 );
             }
         }
-        if s.drain {
+        if s.drain && ws.sim.channels().find("water").is_some() {
             crate::say!("  water drained over the edges: {}", six_places(ws.drained));
         }
     }

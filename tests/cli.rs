@@ -1937,3 +1937,23 @@ fn the_materials_file_as_a_script_and_a_file_as_the_scripts_folder_are_named() {
         "nothing is made for a refused run"
     );
 }
+
+/// Regression (newcomer walk and its review): `sim` with voxel scripts
+/// alone printed the column grid's figures ("0 tiles active", "column
+/// updates/s", water drained over the edges) and "-0.000000".
+#[test]
+fn sim_with_voxel_scripts_alone_prints_no_column_figures() {
+    let out = bin()
+        .args(["sim", "--size", "64x64x64", "--steps", "3", "--script"])
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/sand.lua"))
+        .arg("--out")
+        .arg(tmp("voxels-alone.png"))
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("3 steps in "), "{err}");
+    for column in ["tiles active", "column updates", "drained", "-0.000000"] {
+        assert!(!err.contains(column), "{column}: {err}");
+    }
+}

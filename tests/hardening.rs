@@ -1112,6 +1112,12 @@ fn a_suspended_script_runs_again_when_its_parameters_change() {
     let s = wait_for("suspended", &|s| s["scripts"][1]["state"] == "suspended");
     let why = s["scripts"][1]["error"].as_str().unwrap();
     assert!(why.contains("or change one of its parameters"), "{why}");
+    // A value set to what it was changes nothing: still suspended (review).
+    let (code, body) = post(&addr, &state, "/scripts/touchy/params", "{\"bad\": 1}");
+    assert_eq!(code, 200, "{body}");
+    let tick = status(&addr)["tick"].as_u64().unwrap();
+    let s = wait_for("two ticks on", &|s| s["tick"].as_u64().unwrap() >= tick + 2);
+    assert_eq!(s["scripts"][1]["state"], "suspended", "{s}");
     let (code, body) = post(&addr, &state, "/scripts/touchy/params", "{\"bad\": 0}");
     assert_eq!(code, 200, "{body}");
     let since = status(&addr)["tick"].as_u64().unwrap();
@@ -1127,8 +1133,10 @@ fn a_suspended_script_runs_again_when_its_parameters_change() {
     let out = stop(d);
     assert_success(&out);
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("touchy.lua runs again: its parameters changed"),
+    assert_eq!(
+        err.matches("touchy.lua runs again: its parameters changed")
+            .count(),
+        1,
         "{err}"
     );
 }
@@ -1820,6 +1828,16 @@ fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
             && err.contains(&format!("`{ctl} param water rain 0.3`")),
         "{err}"
     );
+    // On port 0 the command names the port the engine was given (review:
+    // it said `--addr 127.0.0.1:0`, which reaches nothing).
+    let out = run_cmd(&cfg, &state)
+        .args(["--addr", "127.0.0.1:0", "--ticks", "1"])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("`brickworld ctl --addr 127.0.0.1:"), "{err}");
+    assert!(!err.contains("--addr 127.0.0.1:0 "), "{err}");
     // With the config and the state in agreement, nothing is said.
     edit_config(&cfg, "params = { rain = 0.3 }", "params = { rain = 0.2 }");
     let (_, err) = run_ok(&cfg, &state, "--ticks", 3);

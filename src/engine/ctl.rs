@@ -194,11 +194,20 @@ pub const DEFAULT_STATE: &str = "state";
 ///     ctl_command("127.0.0.1:7979".parse().unwrap(), Path::new("my state")),
 ///     "brickworld ctl --addr 127.0.0.1:7979 --state 'my state'"
 /// );
+/// assert_eq!(
+///     ctl_command("[::1]:7979".parse().unwrap(), Path::new("state")),
+///     "brickworld ctl --addr '[::1]:7979'"
+/// );
 /// ```
 pub fn ctl_command(addr: std::net::SocketAddr, state: &std::path::Path) -> String {
     let mut c = String::from("brickworld ctl");
     if addr.to_string() != DEFAULT_ADDR {
-        c += &format!(" --addr {addr}");
+        // Quoted where a shell would read it otherwise (IPv6's brackets
+        // are a glob pattern; review).
+        c += &format!(
+            " --addr {}",
+            crate::shell_quoted(std::path::Path::new(&addr.to_string()))
+        );
     }
     if state != std::path::Path::new(DEFAULT_STATE) {
         c += &format!(" --state {}", crate::shell_quoted(state));

@@ -245,6 +245,7 @@ impl Engine {
                         verdict.send(Err(format!("no script named '{script}' any more")));
                         continue;
                     };
+                    let before = self.ws.params(i).to_vec();
                     let mut refused = Vec::new();
                     for (k, v) in values {
                         if let Err(e) = self.ws.set_param(i, &k, v) {
@@ -255,8 +256,10 @@ impl Engine {
                         // A suspended script runs again once its parameters
                         // change: it failed under other conditions (for a
                         // built-in script, which cannot be edited, this is
-                        // the way back; regression, newcomer walk).
-                        if self.ws.suspended(i).is_some() {
+                        // the way back; regression, newcomer walk). A value
+                        // set to what it was changes nothing (review).
+                        if self.ws.suspended(i).is_some() && self.ws.params(i) != before.as_slice()
+                        {
                             self.ws.set_health(i, 0, None);
                             self.notes[i].step_error = None;
                             self.notes[i].announced = None;

@@ -64,6 +64,9 @@ impl Engine {
         // Named by its field (a taken port is the usual cause).
         let server = ControlServer::start(cfg.addr, shared.clone())
             .map_err(|e| anyhow::anyhow!("{}: control.addr (or --addr): {e}", cfg.file))?;
+        // The command that reaches this engine, as its hints give it (the
+        // bound address: port 0 picks one; review).
+        let ctl = crate::engine::ctl::ctl_command(server.addr, &opts.state);
         install_signal_handler(&shared)?;
         let mut db = open_store(&opts.state, &cfg)?;
         // Written once the store is this engine's: a second engine refused
@@ -147,7 +150,7 @@ impl Engine {
                     loaded_from: None,
                 }
             }
-            Some(r) => resume(&cfg, &opts.state, &db, &world, &mut ws, r),
+            Some(r) => resume(&cfg, &ctl, &db, &world, &mut ws, r),
         };
         let frames_dir = frames_folder(&opts.state, &cfg)?;
         let renderer = RenderThread::spawn(
@@ -168,7 +171,6 @@ impl Engine {
             token_path.display()
         );
         if opts.paused {
-            let ctl = crate::engine::ctl::ctl_command(server.addr, &opts.state);
             crate::say!(
                 "paused at tick {}: `{ctl} resume` or `{ctl} step N` runs it",
                 ws.sim.tick()
@@ -230,7 +232,7 @@ struct Loaded {
 /// what it could not keep and which config parameters it overrides.
 fn resume(
     cfg: &WorldConfig,
-    state: &Path,
+    ctl: &str,
     db: &WorldDb,
     world: &SceneWorld,
     ws: &mut WorldSim,
@@ -253,8 +255,7 @@ fn resume(
     for w in persistence::apply_state(&r.state, ws) {
         crate::say!("warning: {w}");
     }
-    let ctl = crate::engine::ctl::ctl_command(cfg.addr, state);
-    for w in config_params_not_in_effect(cfg, ws, &ctl) {
+    for w in config_params_not_in_effect(cfg, ws, ctl) {
         crate::say!("warning: {w}");
     }
     let hash = persistence::engine_hash(world, ws);
