@@ -1141,6 +1141,38 @@ fn a_suspended_script_runs_again_when_its_parameters_change() {
     );
 }
 
+/// The README says that steps asked for before a stop are not run: the
+/// engine ends the step in flight, commits and exits. Forty slow steps
+/// are queued, then the engine is stopped at once: it stops long before
+/// they could all have run, and its final commit is where it stopped.
+#[test]
+fn steps_queued_before_a_stop_are_not_run() {
+    let (cfg, state, addr) = setup("queuedstop");
+    // About 100 ms a step here (4 s for all 40); the tiles never sleep (the value
+    // written changes every tick).
+    add_script(
+        &cfg,
+        "busy.lua",
+        "return { channels = { \"f\" }, passes = { { name = \"p\", reads = {}, writes = { \"f\" },\n\
+         kernel = function(c) local n = 0; for i = 1, 500000 do n = n + i end\n\
+         for k = 0, 63 do buffer.writef64(c.w.f, k * 8, c.tick + n * 0) end end } } }",
+    );
+    let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
+    wait_ready(&addr);
+    let start = status(&addr)["tick"].as_u64().unwrap();
+    let t = Instant::now();
+    assert_eq!(post(&addr, &state, "/step", "40").0, 200);
+    let out = stop(d);
+    let took = t.elapsed();
+    assert_success(&out);
+    // The stop's commit is where the engine stopped.
+    let tick = stored_tick(&cfg, &state).expect("committed at the stop");
+    assert!(
+        tick < start + 40,
+        "all 40 queued steps ran ({took:?}): stopped at {tick}, from {start}"
+    );
+}
+
 /// Regression (hostile probe): kernels just under their time budget made a
 /// step of minutes, and SIGTERM waited for all of it. Now a step still
 /// running `STOP_GRACE` after the signal is interrupted and dropped, and
