@@ -1957,3 +1957,30 @@ fn sim_with_voxel_scripts_alone_prints_no_column_figures() {
         assert!(!err.contains(column), "{column}: {err}");
     }
 }
+
+/// Regression (odd-paths probe): a script whose file name is not UTF-8
+/// loaded, but its parameters could not be set from any command line (its
+/// name printed with U+FFFD). It is refused with one line.
+#[cfg(unix)]
+#[test]
+fn a_script_name_that_is_not_utf8_is_refused() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = tmp("non-utf8");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join(std::ffi::OsStr::from_bytes(b"w\xff.lua"));
+    std::fs::copy(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/sand.lua"),
+        &file,
+    )
+    .unwrap();
+    let out = bin()
+        .args(["sim", "--size", "16x16x16", "--steps", "1", "--script"])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "a non-UTF-8 script name",
+        "script file names must be UTF-8",
+    );
+}

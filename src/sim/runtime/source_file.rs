@@ -29,6 +29,17 @@ pub fn read_script(path: &Path) -> Result<ScriptSource, SimError> {
         .file_stem()
         .map(|s| s.to_string_lossy().to_string())
         .unwrap_or_else(|| "script".into());
+    // A script is named by its stem wherever a parameter is set: a name
+    // that is not UTF-8 loaded, but no command line could name it
+    // (regression, odd-paths probe).
+    if path.file_stem().is_some_and(|s| s.to_str().is_none()) {
+        return Err(SimError::Declaration {
+            script: crate::text::escape_controls(&stem, false).into_owned(),
+            line: None,
+            msg: "script file names must be UTF-8 (a script's parameters are set by its name)"
+                .into(),
+        });
+    }
     // The name is in every message about the script: one that would print
     // a newline, a terminal escape or a bidirectional override is refused
     // (regression, hostile probe), named with those characters escaped.
