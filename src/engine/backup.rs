@@ -411,10 +411,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
     }
     // Nor over anything but an earlier backup of this world.
     if let Err(why) = super::checkpoint::backup_target(out, &cfg.identity()) {
-        bail!(
-            "{} {why}: export would replace it, so name another path or remove it first (nothing was written)",
-            out.display()
-        );
+        bail!("{} {why} (nothing was written)", out.display());
     }
     if cfg.stream.is_some()
         && matches!(

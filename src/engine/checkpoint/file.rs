@@ -24,13 +24,16 @@ pub enum BackupTarget {
 
 /// Whether a backup of `identity` may be written at `path`: nothing there,
 /// an empty file, or a backup of the same world that verifies. Anything
-/// else is kept, and the reason is the error (regression, newcomer walk
-/// and its review: `export notes.txt` replaced the notes, and an export
-/// replaced another world's only backup, exit 0).
+/// else is kept, and the error says why and what to do (regression,
+/// newcomer walk and its review: `export notes.txt` replaced the notes,
+/// and an export replaced another world's only backup, exit 0).
 pub fn backup_target(path: &Path, identity: &WorldIdentity) -> Result<BackupTarget, String> {
+    let keep = |what: String| {
+        format!("{what}: export would replace it, so name another path or remove it first")
+    };
     let meta = match fs::symlink_metadata(path) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(BackupTarget::Free),
-        Err(e) => return Err(format!("cannot be looked at ({e})")),
+        Err(e) => return Err(format!("cannot be written ({e})")),
         Ok(m) => m,
     };
     if meta.file_type().is_symlink() {
@@ -39,62 +42,88 @@ pub fn backup_target(path: &Path, identity: &WorldIdentity) -> Result<BackupTarg
         );
     }
     if !meta.is_file() {
-        return Err("is not a regular file".into());
+        return Err("is not a regular file: name another path".into());
     }
     if meta.len() == 0 {
         return Ok(BackupTarget::Replaceable);
     }
+    if meta.len() < MAGIC.len() as u64 {
+        return Err(keep("is not a brickworld backup".into()));
+    }
     match read_checked(path, false) {
         Ok((_, Some(id))) if id.same_world(identity) => Ok(BackupTarget::Replaceable),
-        Ok((_, Some(id))) => Err(format!("is a backup of another world ({id})")),
-        Ok((_, None)) => Err("is a checkpoint that does not say which world it is".into()),
-        Err(CheckpointError::NotACheckpoint { .. }) => Err("is not a brickworld backup".into()),
-        Err(CheckpointError::Io { error, .. }) => Err(format!("cannot be read ({error})")),
-        Err(CheckpointError::Corrupt { msg, .. }) => Err(format!("is a damaged backup ({msg})")),
+        Ok((_, Some(id))) => Err(keep(format!("is a backup of another world ({id})"))),
+        Ok((_, None)) => Err(keep(
+            "is a checkpoint that does not say which world it is".into(),
+        )),
+        Err(CheckpointError::NotACheckpoint { .. }) => {
+            Err(keep("is not a brickworld backup".into()))
+        }
+        Err(CheckpointError::Io { error, .. }) => Err(keep(format!("cannot be read ({error})"))),
+        Err(CheckpointError::Corrupt { msg, .. }) => {
+            Err(keep(format!("is a damaged backup ({msg})")))
+        }
     }
 }
 
 /// `brickworld export`'s write: [`write_at`], with the target looked at
-/// again just before the backup lands (see [`backup_target`]), and landed
-/// without replacing anything where the path was free, so a file made
-/// there meanwhile is kept.
+/// again just before the backup lands (see [`backup_target`]). Where the
+/// path was free, it lands without replacing anything, so a file made
+/// there meanwhile is kept; over an earlier backup, the look just before
+/// the rename is the last.
 pub fn write_backup(
     path: &Path,
     state: WorldRef<'_>,
     identity: &WorldIdentity,
 ) -> Result<u64, CheckpointError> {
-    let refuse = |msg: String| CheckpointError::Io {
-        path: path.to_path_buf(),
-        error: std::io::Error::new(
-            std::io::ErrorKind::AlreadyExists,
-            format!("{msg}; nothing was written"),
-        ),
-    };
     write_landing(path, state, |tmp| match backup_target(path, identity) {
         Ok(BackupTarget::Replaceable) => fs::rename(tmp, path),
-        Ok(BackupTarget::Free) => match fs::hard_link(tmp, path) {
-            // A link is made only where nothing is: a file that appeared
-            // since is kept.
-            Ok(()) => {
-                let _ = fs::remove_file(tmp);
-                Ok(())
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Err(std::io::Error::new(
-                std::io::ErrorKind::AlreadyExists,
-                "a file appeared there while the backup was made",
-            )),
-            // A file system without hard links: rename (the look just made
-            // is the last).
-            Err(_) => fs::rename(tmp, path),
-        },
+        Ok(BackupTarget::Free) => land_on_free(tmp, path),
         Err(msg) => Err(std::io::Error::new(std::io::ErrorKind::AlreadyExists, msg)),
     })
     .map_err(|e| match e {
         CheckpointError::Io { error, .. } if error.kind() == std::io::ErrorKind::AlreadyExists => {
-            refuse(error.to_string())
+            CheckpointError::Io {
+                path: path.to_path_buf(),
+                error: std::io::Error::new(
+                    std::io::ErrorKind::AlreadyExists,
+                    format!("{error}; nothing was written"),
+                ),
+            }
         }
         other => other,
     })
+}
+
+/// Move `tmp` to the free path `path` without replacing a file that
+/// appeared there since: a rename that refuses to replace where the
+/// system has one, else a hard link (made only where nothing is), else,
+/// on a file system with neither, a plain rename.
+fn land_on_free(tmp: &Path, path: &Path) -> std::io::Result<()> {
+    let appeared = || {
+        std::io::Error::new(
+            std::io::ErrorKind::AlreadyExists,
+            "a file appeared there while the backup was made",
+        )
+    };
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        use nix::fcntl::{AT_FDCWD, RenameFlags, renameat2};
+        match renameat2(AT_FDCWD, tmp, AT_FDCWD, path, RenameFlags::RENAME_NOREPLACE) {
+            Ok(()) => return Ok(()),
+            Err(nix::errno::Errno::EEXIST) => return Err(appeared()),
+            // Not supported here: try a hard link.
+            Err(_) => {}
+        }
+    }
+    match fs::hard_link(tmp, path) {
+        Ok(()) => {
+            let _ = fs::remove_file(tmp);
+            Ok(())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Err(appeared()),
+        Err(_) => fs::rename(tmp, path),
+    }
 }
 
 /// Write a checkpoint file at `path` (atomically: a temp file beside it,
@@ -356,4 +385,31 @@ pub fn parse(
 pub fn read(path: &Path) -> Result<WorldState, CheckpointError> {
     let (state, _) = read_checked(path, true)?;
     Ok(state.expect("full read returns the state"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::land_on_free;
+
+    /// A file made at the export's path while the backup was being made
+    /// is kept, and the backup stays in its temporary (review: it was
+    /// replaced, exit 0); where the path is still free, the backup lands.
+    #[test]
+    fn landing_on_a_free_path_never_replaces_a_file_made_meanwhile() {
+        let dir = std::env::temp_dir().join(format!("bw-land-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let (tmp, path) = (dir.join(".b.tmp"), dir.join("b.bwc"));
+        std::fs::write(&tmp, "backup").unwrap();
+        std::fs::write(&path, "notes made meanwhile").unwrap();
+        let e = land_on_free(&tmp, &path).unwrap_err();
+        assert_eq!(e.kind(), std::io::ErrorKind::AlreadyExists, "{e}");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "notes made meanwhile");
+        assert_eq!(std::fs::read_to_string(&tmp).unwrap(), "backup");
+        std::fs::remove_file(&path).unwrap();
+        land_on_free(&tmp, &path).unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "backup");
+        assert!(!tmp.exists());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -258,8 +258,10 @@ impl Engine {
                         // built-in script, which cannot be edited, this is
                         // the way back; regression, newcomer walk). A value
                         // set to what it was changes nothing (review).
-                        if self.ws.suspended(i).is_some() && self.ws.params(i) != before.as_slice()
-                        {
+                        // (Compared bit for bit: 0 to -0 is a change too.)
+                        let changed = (self.ws.params(i).iter().zip(&before))
+                            .any(|(now, was)| now.to_bits() != was.to_bits());
+                        if self.ws.suspended(i).is_some() && changed {
                             self.ws.set_health(i, 0, None);
                             self.notes[i].step_error = None;
                             self.notes[i].announced = None;
