@@ -262,11 +262,60 @@ pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File
             .create_new(true)
             .open(&tmp)
         {
-            Ok(f) => return Ok((tmp, f)),
+            Ok(f) => {
+                if INTERRUPTIBLE.load(Ordering::Relaxed) {
+                    writing().push(tmp.clone());
+                }
+                return Ok((tmp, f));
+            }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
             Err(e) => return Err(e),
         }
     }
+}
+
+/// Whether an interrupt removes the temporary files being written (see
+/// [`remove_temps_on_interrupt`]); only then are they listed.
+static INTERRUPTIBLE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// The temporary files this process made since interrupts remove them.
+fn writing() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    static WRITING: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+    WRITING.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Remove the temporary files this process made since
+/// [`remove_temps_on_interrupt`]; returns how many were still there
+/// (those already renamed are gone, and stay so: their names are this
+/// process's own).
+pub fn remove_writing_temps() -> usize {
+    writing()
+        .drain(..)
+        .filter(|p| std::fs::remove_file(p).is_ok())
+        .count()
+}
+
+/// `tmp` has landed under its final name: an interrupt no longer removes
+/// anything of it.
+pub fn temp_landed(tmp: &Path) {
+    writing().retain(|p| p != tmp);
+}
+
+/// From now on, Ctrl-C or SIGTERM removes the temporary files this process
+/// is writing and exits with status 130: for a command that writes one
+/// large file and has no other use for signals (regression, review: an
+/// `export` stopped with Ctrl-C left a temporary as large as the backup,
+/// swept only by a later export to the same name). The engine handles its
+/// signals itself.
+pub fn remove_temps_on_interrupt() -> std::io::Result<()> {
+    INTERRUPTIBLE.store(true, Ordering::Relaxed);
+    ctrlc::set_handler(|| {
+        if remove_writing_temps() > 0 {
+            crate::say!("interrupted: the file being written was removed");
+        }
+        std::process::exit(130);
+    })
+    .map_err(std::io::Error::other)
 }
 
 /// The most bytes of a destination's name its temporary's name keeps.
@@ -415,6 +464,27 @@ pub(crate) fn mkfifo(path: &Path) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// What an interrupt removes: the temporaries being written, and not
+    /// one that has landed (the review's Ctrl-C during `export`; the
+    /// signal itself was tried by hand: exit 130, nothing left).
+    #[test]
+    fn an_interrupt_removes_the_temporaries_being_written_only() {
+        let dir = std::env::temp_dir().join(format!("bw-interrupt-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let (a, b) = (dir.join(".a.tmp"), dir.join(".b.tmp"));
+        for p in [&a, &b] {
+            std::fs::write(p, "x").unwrap();
+            writing().push(p.to_path_buf());
+        }
+        temp_landed(&b);
+        assert_eq!(remove_writing_temps(), 1);
+        assert!(!a.exists());
+        assert!(b.exists(), "a landed file is not removed");
+        assert_eq!(remove_writing_temps(), 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     /// `Staged::replacing` replaces a link at its destination instead of
     /// writing through it, and leaves no temporary file.

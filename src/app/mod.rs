@@ -20,6 +20,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Run(a) => run_daemon(&a),
         Command::Ctl(a) => crate::engine::ctl::run(&a),
         Command::Export { out, world, state } => {
+            crate::files::remove_temps_on_interrupt()?;
             let cfg = load_world_config(world.as_deref())?;
             let (tick, hash) = crate::engine::backup::export_world(&cfg, &state, &out)?;
             match hash {

@@ -164,7 +164,9 @@ fn write_landing(
         f.write_all(&header)?;
         f.write_all(&payload)?;
         f.sync_all()?;
-        land(&tmp)
+        land(&tmp)?;
+        crate::files::temp_landed(&tmp);
+        Ok(())
     })();
     if let Err(e) = result {
         let _ = fs::remove_file(&tmp);
@@ -404,7 +406,10 @@ mod tests {
         std::fs::write(&path, "notes made meanwhile").unwrap();
         let e = land_on_free(&tmp, &path).unwrap_err();
         assert_eq!(e.kind(), std::io::ErrorKind::AlreadyExists, "{e}");
-        assert_eq!(std::fs::read_to_string(&path).unwrap(), "notes made meanwhile");
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "notes made meanwhile"
+        );
         assert_eq!(std::fs::read_to_string(&tmp).unwrap(), "backup");
         std::fs::remove_file(&path).unwrap();
         land_on_free(&tmp, &path).unwrap();
