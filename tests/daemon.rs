@@ -679,13 +679,15 @@ fn a_stop_gives_the_frame_in_flight_3_s_then_abandons_it() {
 /// the engine applied it, gets 409 with the engine's reason. The engine
 /// reloads at the start of a turn, before it applies commands, and
 /// publishes `/status` only after them: a change queued while it steps
-/// (slowly here) meets the new range first.
+/// (slowly here) meets the new range first. A refused request changes
+/// nothing: the value set beside the refused one keeps its old value
+/// (regression: values before the refused one stayed applied).
 #[test]
 fn a_parameter_a_reload_narrowed_meanwhile_gets_409() {
     let (cfg, state, addr) = setup("paramrace");
     let script = |max: u32| {
         format!(
-            "return {{ channels = {{ \"s\" }}, params = {{ k = {{ default = 1, min = 0, max = {max} }} }},\n\
+            "return {{ channels = {{ \"s\" }}, params = {{ j = {{ default = 0, min = 0, max = 100000 }}, k = {{ default = 1, min = 0, max = {max} }} }},\n\
              passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"s\" }},\n\
              kernel = function(c) for i = 1, 3000000 do end end }} }} }}"
         )
@@ -693,16 +695,23 @@ fn a_parameter_a_reload_narrowed_meanwhile_gets_409() {
     add_script(&cfg, "slow.lua", &script(10));
     let d = start(&cfg, &state);
     wait_ready(&addr);
-    let set = || post(&addr, &state, "/scripts/slow/params", r#"{"k":5}"#);
-    assert_eq!(set().0, 200);
+    // `j` is listed first, so an engine that applied values one by one
+    // would set it before refusing `k`.
+    let set = |j: u32| {
+        let body = format!(r#"{{"j":{j},"k":5}}"#);
+        post(&addr, &state, "/scripts/slow/params", &body)
+    };
+    assert_eq!(set(1).0, 200);
     save_like_an_editor(&cfg.parent().unwrap().join("scripts/slow.lua"), &script(2));
     // Until the reload, 5 is applied; then the engine refuses it (409)
     // before `/status` shows the new range, and after that the server
     // refuses it itself (400).
     let mut answers = Vec::new();
     let t = Instant::now();
+    let mut j = 1;
     let refused = loop {
-        let (code, body) = set();
+        j += 1;
+        let (code, body) = set(j);
         answers.push(code);
         if code != 200 {
             break (code, body);
@@ -721,7 +730,18 @@ fn a_parameter_a_reload_narrowed_meanwhile_gets_409() {
             .is_some_and(|w| w.contains("refused"))
     });
     assert!(s["scripts"][1]["error"].is_null(), "{s}");
-    let (code, body) = set();
+    let params = s["scripts"][1]["params"].as_array().unwrap();
+    let value = |name: &str| {
+        let p = params.iter().find(|p| p["name"] == name).unwrap();
+        p["value"].as_f64().unwrap()
+    };
+    assert_eq!(
+        value("j"),
+        f64::from(j - 1),
+        "the refused request set j: {s}"
+    );
+    assert_eq!(value("k"), 2.0, "clamped into the narrowed range: {s}");
+    let (code, body) = set(j + 1);
     assert_eq!(code, 400, "{body}");
     assert!(stop(d).status.success());
 }

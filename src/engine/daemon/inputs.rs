@@ -245,14 +245,22 @@ impl Engine {
                         verdict.send(Err(format!("no script named '{script}' any more")));
                         continue;
                     };
+                    // All or nothing: every value is checked against the
+                    // script as it is now before any is set, so a refusal
+                    // leaves the parameters as they were (regression: the
+                    // values before a refused one stayed applied).
+                    let refused: Vec<String> = (values.iter())
+                        .filter_map(|(k, v)| self.ws.spec(i).param_index(k, *v).err())
+                        .map(|e| e.to_string())
+                        .collect();
                     let before = self.ws.params(i).to_vec();
-                    let mut refused = Vec::new();
-                    for (k, v) in values {
-                        if let Err(e) = self.ws.set_param(i, &k, v) {
-                            refused.push(e.to_string());
-                        }
-                    }
                     if refused.is_empty() {
+                        for (k, v) in values {
+                            // Checked just above, on this thread.
+                            if let Err(e) = self.ws.set_param(i, &k, v) {
+                                crate::say!("{e}");
+                            }
+                        }
                         // A suspended script runs again once its parameters
                         // change: it failed under other conditions (for a
                         // built-in script, which cannot be edited, this is
@@ -269,7 +277,7 @@ impl Engine {
                         }
                         verdict.send(Ok(()));
                     } else {
-                        let msg = format!("refused: {}", refused.join("; "));
+                        let msg = format!("refused, nothing changed: {}", refused.join("; "));
                         self.notes[i].warning = Some(msg.clone());
                         verdict.send(Err(msg));
                     }
