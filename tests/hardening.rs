@@ -1766,11 +1766,17 @@ fn the_api_says_it_is_starting_until_the_world_is_loaded() {
 /// STOP_GRACE (5 s) interrupted every script, the start's own smoke tests
 /// included: the engine failed with "materials.lua: interrupted", exit 1.
 /// While the world loads no step is in flight: the start finishes, and the
-/// engine stops cleanly with its final commit.
+/// engine stops cleanly with its final commit, without saying it runs.
 #[test]
 fn a_stop_during_a_long_start_stops_cleanly_once_loaded() {
     let (cfg, state, _) = setup("stopslowstart");
-    let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_START_STALL_MS", "6500"));
+    let child = run_cmd(&cfg, &state)
+        .env("BRICKWORLD_TEST_START_STALL_MS", "6500")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut d = Daemon(Some(child));
     std::thread::sleep(Duration::from_millis(800));
     let _ = std::process::Command::new("kill")
         .args(["-INT", &d.id().to_string()])
@@ -1781,6 +1787,12 @@ fn a_stop_during_a_long_start_stops_cleanly_once_loaded() {
     assert!(code.success(), "{code:?}: {err}");
     assert!(!err.contains("interrupted"), "{err}");
     assert!(err.contains("stopping once the world is loaded"), "{err}");
+    assert!(err.contains("the world is loaded: stopping"), "{err}");
+    // It never ran, so it does not say it is running (regression: it
+    // printed the viewer's address before stopping).
+    let mut out = String::new();
+    d.stdout.take().unwrap().read_to_string(&mut out).unwrap();
+    assert!(!out.contains("is running"), "{out}");
     assert_eq!(stored_tick(&cfg, &state), Some(0));
 }
 

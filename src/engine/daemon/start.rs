@@ -165,12 +165,19 @@ impl Engine {
         )
         .context("cannot start the render thread")?;
         let timeline = open_timeline(&opts.state, &ws, &shared)?;
-        crate::tell!(
-            "brickworld is running: viewer http://{}/ (control token in {}: {token})",
-            server.addr,
-            token_path.display()
-        );
-        if opts.paused {
+        // A stop asked for while the world loaded: the engine commits and
+        // ends before its first step, so it does not say it is running
+        // (regression: it printed the viewer's address, then stopped).
+        if shared.shutdown.load(Ordering::Relaxed) {
+            crate::say!("the world is loaded: stopping, as asked during the start");
+        } else {
+            crate::tell!(
+                "brickworld is running: viewer http://{}/ (control token in {}: {token})",
+                server.addr,
+                token_path.display()
+            );
+        }
+        if opts.paused && !shared.shutdown.load(Ordering::Relaxed) {
             crate::say!(
                 "paused at tick {}: `{ctl} resume` or `{ctl} step N` runs it",
                 ws.sim.tick()
