@@ -69,17 +69,27 @@ pub fn backup_target(path: &Path, identity: &WorldIdentity) -> Result<BackupTarg
 /// `brickworld export`'s write: [`write_at`], with the target looked at
 /// again just before the backup lands (see [`backup_target`]). Where the
 /// path was free, it lands without replacing anything, so a file made
-/// there meanwhile is kept; over an earlier backup, the look just before
-/// the rename is the last.
+/// there meanwhile is kept. Over an earlier backup, it replaces exactly
+/// the file that was checked: [`land_over`] swaps it out atomically and
+/// swaps back anything else found there.
 pub fn write_backup(
     path: &Path,
     state: WorldRef<'_>,
     identity: &WorldIdentity,
 ) -> Result<u64, CheckpointError> {
-    write_landing(path, state, |tmp| match backup_target(path, identity) {
-        Ok(BackupTarget::Replaceable) => fs::rename(tmp, path),
-        Ok(BackupTarget::Free) => land_on_free(tmp, path),
-        Err(msg) => Err(std::io::Error::new(std::io::ErrorKind::AlreadyExists, msg)),
+    write_landing(path, state, |tmp| {
+        let before = Seen::of(path);
+        match backup_target(path, identity) {
+            Ok(BackupTarget::Replaceable) => match before {
+                // Unchanged while it was checked: that is the file replaced.
+                Ok(before) if Seen::of(path).is_ok_and(|after| after == before) => {
+                    land_over(tmp, path, &before)
+                }
+                _ => Err(replaced_meanwhile()),
+            },
+            Ok(BackupTarget::Free) => land_on_free(tmp, path),
+            Err(msg) => Err(std::io::Error::new(std::io::ErrorKind::AlreadyExists, msg)),
+        }
     })
     .map_err(|e| match e {
         CheckpointError::Io { error, .. } if error.kind() == std::io::ErrorKind::AlreadyExists => {
@@ -93,6 +103,90 @@ pub fn write_backup(
         }
         other => other,
     })
+}
+
+/// What tells one file from another that took its place: the same inode,
+/// with the same size and modification time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Seen {
+    dev: u64,
+    ino: u64,
+    len: u64,
+    mtime: (i64, i64),
+}
+
+impl Seen {
+    fn of(path: &Path) -> std::io::Result<Seen> {
+        use std::os::unix::fs::MetadataExt;
+        let m = fs::symlink_metadata(path)?;
+        Ok(Seen {
+            dev: m.dev(),
+            ino: m.ino(),
+            len: m.len(),
+            mtime: (m.mtime(), m.mtime_nsec()),
+        })
+    }
+}
+
+fn replaced_meanwhile() -> std::io::Error {
+    std::io::Error::new(
+        std::io::ErrorKind::AlreadyExists,
+        "the earlier backup there was replaced or changed while this one was made",
+    )
+}
+
+/// Another's file that a failed swap back left at the temporary path:
+/// [`write_landing`] must not remove it.
+#[derive(Debug)]
+struct LeftAtTemp(String);
+
+impl std::fmt::Display for LeftAtTemp {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for LeftAtTemp {}
+
+/// Move `tmp` over `path`, replacing only the file `checked` saw there.
+/// Where the system can swap two names atomically (`renameat2` with
+/// `RENAME_EXCHANGE`), the backup swaps places with what is at `path`,
+/// which is then looked at: the checked file is removed; anything else (a
+/// file put there since the check) is swapped back and kept, and nothing
+/// is written. Elsewhere a plain rename follows the last look.
+fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        use nix::fcntl::{AT_FDCWD, RenameFlags, renameat2};
+        let swap = || renameat2(AT_FDCWD, tmp, AT_FDCWD, path, RenameFlags::RENAME_EXCHANGE);
+        match swap() {
+            Ok(()) => {
+                // `tmp` now names what was at `path`.
+                if Seen::of(tmp).is_ok_and(|s| s == *checked) {
+                    let _ = fs::remove_file(tmp);
+                    return Ok(());
+                }
+                // Another file: give it its name back.
+                if swap().is_ok() || land_on_free(tmp, path).is_ok() {
+                    return Err(replaced_meanwhile());
+                }
+                return Err(std::io::Error::other(LeftAtTemp(format!(
+                    "a file put at {} while the backup was made could not be put back, and is kept at {}; nothing was written",
+                    path.display(),
+                    tmp.display()
+                ))));
+            }
+            // The checked file has gone: the path is free.
+            Err(nix::errno::Errno::ENOENT) => return land_on_free(tmp, path),
+            // No atomic swap here: the last look stands.
+            Err(_) => {}
+        }
+    }
+    match Seen::of(path) {
+        Ok(s) if s == *checked => fs::rename(tmp, path),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => land_on_free(tmp, path),
+        _ => Err(replaced_meanwhile()),
+    }
 }
 
 /// Move `tmp` to the free path `path` without replacing a file that
@@ -169,7 +263,11 @@ fn write_landing(
         Ok(())
     })();
     if let Err(e) = result {
-        let _ = fs::remove_file(&tmp);
+        // Another's file may be all the temporary holds now (see
+        // [`land_over`]): that one is kept.
+        if !e.get_ref().is_some_and(|inner| inner.is::<LeftAtTemp>()) {
+            let _ = fs::remove_file(&tmp);
+        }
         return Err(io(path, e));
     }
     // The file has landed under its final name: it is this checkpoint, and
@@ -391,7 +489,54 @@ pub fn read(path: &Path) -> Result<WorldState, CheckpointError> {
 
 #[cfg(test)]
 mod tests {
-    use super::land_on_free;
+    use super::{Seen, land_on_free, land_over};
+
+    /// Over an earlier backup, only the file that was checked is replaced:
+    /// one put in its place since, or changed in place, is kept and the
+    /// backup stays in its temporary (gap: the look just before a plain
+    /// rename was the last check); the checked file, unchanged, is
+    /// replaced and leaves nothing behind; gone, the path is free.
+    #[test]
+    fn landing_over_a_backup_replaces_only_the_file_that_was_checked() {
+        let dir = std::env::temp_dir().join(format!("bw-over-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let (tmp, path) = (dir.join(".b.tmp"), dir.join("b.bwc"));
+        let read = |p: &std::path::Path| std::fs::read_to_string(p).unwrap();
+        std::fs::write(&tmp, "new backup").unwrap();
+        std::fs::write(&path, "old backup").unwrap();
+        // Another file renamed into its place.
+        let checked = Seen::of(&path).unwrap();
+        std::fs::write(dir.join("other"), "put there meanwhile").unwrap();
+        std::fs::rename(dir.join("other"), &path).unwrap();
+        let e = land_over(&tmp, &path, &checked).unwrap_err();
+        assert_eq!(e.kind(), std::io::ErrorKind::AlreadyExists, "{e}");
+        assert_eq!(read(&path), "put there meanwhile");
+        assert_eq!(read(&tmp), "new backup");
+        // The same file, changed in place.
+        let checked = Seen::of(&path).unwrap();
+        std::fs::write(&path, "put there meanwhile, then edited").unwrap();
+        assert!(land_over(&tmp, &path, &checked).is_err());
+        assert_eq!(read(&path), "put there meanwhile, then edited");
+        assert_eq!(read(&tmp), "new backup");
+        // Unchanged since the check: replaced, and nothing is left over.
+        let checked = Seen::of(&path).unwrap();
+        land_over(&tmp, &path, &checked).unwrap();
+        assert_eq!(read(&path), "new backup");
+        let names: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names, vec![std::ffi::OsString::from("b.bwc")]);
+        // Gone since the check: the backup lands on the free path.
+        std::fs::write(&tmp, "newer backup").unwrap();
+        let checked = Seen::of(&path).unwrap();
+        std::fs::remove_file(&path).unwrap();
+        land_over(&tmp, &path, &checked).unwrap();
+        assert_eq!(read(&path), "newer backup");
+        assert!(!tmp.exists());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     /// A file made at the export's path while the backup was being made
     /// is kept, and the backup stays in its temporary (review: it was
