@@ -1,5 +1,9 @@
 //! Command-line surface (clap). Values stay raw strings here; [`crate::config`]
 //! validates them into typed settings whose errors name the bad flag.
+//!
+//! The doc comments here are `--help` texts, where `[N]` means an optional
+//! argument, not a link.
+#![allow(rustdoc::broken_intra_doc_links)]
 
 use std::path::PathBuf;
 

@@ -5,9 +5,13 @@
 //!   heightmap PNGs, MagicaVoxel files).
 //! - [`trace`]: the exact DDA, three interchangeable CPU tracers (dense grid,
 //!   sparse voxel octree, brickmap), the camera and the tiled renderer.
-//! - [`bench`]: the `bench tracers` comparison and its chart.
+//! - [`bench`](mod@bench): the `bench tracers` comparison and its chart.
 //! - [`cli`], [`config`], [`app`]: the command line, its validation, and `run`.
 #![warn(missing_docs)]
+// The library serves the binary, its tests and examples: its docs are read
+// with `--document-private-items` (as `.ci/local` builds them), where a
+// link from a public item to a private one resolves.
+#![allow(rustdoc::private_intra_doc_links)]
 
 pub mod app;
 pub mod bench;

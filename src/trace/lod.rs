@@ -9,7 +9,7 @@
 //!
 //! **The level walk** (the GPU shader's, and here the reference tests
 //! hold the CPU to) is one stackless loop over the levels of
-//! [`crate::world::mip`]: at the current voxel it checks levels from the
+//! `world/mip.rs` ([`crate::world::CoarseLevels`]): at the current voxel it checks levels from the
 //! highest one whose cell changed down to the allowed level; the first
 //! empty level is walked as a coarse DDA, and a solid cell at the allowed
 //! level is the hit. Levels above the highest changed bit of the cell

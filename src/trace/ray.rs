@@ -36,7 +36,7 @@ pub struct Hit {
     /// Material of the voxel (never 0).
     pub material: u8,
     /// Level of detail of the cell hit: 0 a voxel, `s` a cube of `2^s`
-    /// voxels entered through `voxel` (see [`crate::world::mip`]).
+    /// voxels entered through `voxel` (see `world/mip.rs`).
     pub level: u8,
 }
 

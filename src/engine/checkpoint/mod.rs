@@ -40,7 +40,7 @@
 //! previous one is used; another world's is skipped with a warning.
 
 //!
-//! The parts: [`payload`] encodes and decodes the state itself, [`file`]
+//! The parts: [`payload`] encodes and decodes the state itself, [`file`](mod@file)
 //! frames it as one verified file, and [`dir`] keeps a state directory's
 //! set of them.
 

@@ -1,5 +1,5 @@
 //! The timeline: one CSV row per frame interval, appended to
-//! `STATE/timeline.csv`; [`chart`] reads it back and draws it
+//! `STATE/timeline.csv`; [`chart`](mod@chart) reads it back and draws it
 //! (`brickworld chart STATE`).
 //!
 //! The fixed [`COLUMNS`] come first, then one `ms:SCRIPT` column per script
@@ -141,7 +141,7 @@ pub struct Timeline {
 pub use crate::scene::budget::{rss_kb, rss_kb_of};
 
 /// What can go wrong with the timeline file. The daemon says each in one
-/// line; none stops a running engine (see [`Timeline::push`]).
+/// line; none stops a running engine (see [`Timeline::record`]).
 #[derive(Debug, thiserror::Error)]
 pub enum TimelineError {
     /// Something other than a regular file is at the timeline's path.

@@ -47,8 +47,8 @@ pub(super) fn get_in(
     Ok(v.map(|g| g.value().to_vec()))
 }
 
-/// A read-only handle on a [`WorldDb`]'s chunks for another thread (see
-/// [`WorldDb::reader`]). Cheap to clone.
+/// A read-only handle on a [`WorldDb`](super::WorldDb)'s chunks for another
+/// thread (see [`WorldDb::reader`](super::WorldDb::reader)). Cheap to clone.
 #[derive(Clone)]
 pub struct StoreReader {
     pub(super) db: Shared,

@@ -131,7 +131,7 @@ pub struct RenderWindow {
     results: Receiver<Answer>,
     workers: Vec<JoinHandle<()>>,
     stats: WindowStats,
-    /// Bricks whose grid cells changed since [`take_changed`]
+    /// Bricks whose grid cells changed since [`take_changed`](Self::take_changed)
     /// (RenderWindow::take_changed), kept only when tracked (for a GPU
     /// copy of the grid).
     changed: Option<Vec<IVec3>>,

@@ -93,7 +93,7 @@ impl<'p> BrickRef<'p> {
 
     /// The LOD colour (RGB565) the brick would have if it were encoded
     /// afresh with `palette`: its solid voxels' mean colour, as
-    /// [`Brick`]'s encoding computes it.
+    /// [`Brick`](crate::world::Brick)'s encoding computes it.
     pub fn lod565_with(&self, palette: &crate::world::Palette) -> u16 {
         let mask = self.mask();
         let (mut sum, mut solid) = ([0u64; 3], 0u64);
