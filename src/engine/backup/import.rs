@@ -1,54 +1,15 @@
-//! Single-file backups of a world store: [`export`] (the committed world as
-//! one checkpoint file), [`import`] (one into an empty state directory),
-//! and the migration of a state directory written by the whole-world
-//! checkpoints of earlier versions ([`migrate_legacy`]).
+//! `brickworld import`: a backup file into an empty state directory,
+//! guarded by the marker an interrupted import leaves ([`IMPORT_MARKER`]),
+//! and the contents checked against the world's bounds first.
 
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 
-use super::checkpoint::{self, SimExtras, WorldIdentity, WorldRef, WorldState};
-use super::persistence::{DirtyChunks, RestoreScope, engine_hash, restore_chunks};
-use super::world_config::WorldConfig;
-use crate::persist::{CommitStats, WorldDb, state};
-use crate::scene::SceneWorld;
-use crate::sim::WorldSim;
-
-/// Write the whole of a store's world into a fresh store: every chunk and
-/// chunk column of its bounds (an empty chunk overrides the source's) and
-/// the state. Used by [`import`] and [`migrate_legacy`].
-fn write_everything(db: &mut WorldDb, st: WorldState) -> Result<CommitStats> {
-    let mut world = SceneWorld::new(st.store, st.bounds.0, st.bounds.1)
-        .context("the imported world does not fit a brick grid")?;
-    if !st.extras.materials.is_empty() {
-        world.materials = crate::world::MaterialRegistry::from_entries(
-            &st.extras.materials,
-            world.store().palette(),
-        );
-    }
-    // A simulation re-registers ids 252 to 254 as water, snow and
-    // sediment: stored materials there would change names in the copy, and
-    // the start would refuse the world anyway (regression: only the start
-    // refused such a world, after the import had said it succeeded).
-    if let Some(msg) = crate::sim::run::reserved_conflicts(&world.materials) {
-        bail!("{msg} (nothing was changed)");
-    }
-    let mut ws = WorldSim::with_edges(&mut world, true);
-    ws.sim.set_channels(st.channels);
-    ws.vox.set_channels(st.extras.voxel_channels.clone());
-    let mut dirty = DirtyChunks::default();
-    dirty.everything(&world, &ws);
-    let (params, extras) = (st.params, st.extras);
-    let (chunks, cols) = dirty.encode(&world, &ws);
-    let blob = state::encode(
-        st.tick,
-        world.store().palette(),
-        world.bounds(),
-        &params,
-        &extras,
-    );
-    Ok(db.commit(&chunks, &cols, &blob)?)
-}
+use super::write_everything;
+use crate::engine::checkpoint::{self, WorldIdentity, WorldState};
+use crate::engine::world_config::WorldConfig;
+use crate::persist::{CommitStats, WorldDb};
 
 /// The file an import keeps in its state directory until the imported world
 /// is committed: the store is created (with its manifest) before the world
@@ -277,215 +238,6 @@ fn import_into(
     }
 }
 
-/// A state directory of an earlier version holds whole-world checkpoints
-/// and no store: write the newest good one into the store. Returns what was
-/// migrated (None: nothing to migrate). The old files are left in place.
-pub fn migrate_legacy(
-    db: &mut WorldDb,
-    dir: &Path,
-    identity: &WorldIdentity,
-) -> Result<Option<(std::path::PathBuf, u64)>> {
-    if db.state()?.is_some() || checkpoint::list(dir)?.is_empty() {
-        return Ok(None);
-    }
-    let (_, found, warnings) = checkpoint::Checkpoints::open(dir, identity.clone())?;
-    for w in warnings {
-        crate::say!("warning: {w}");
-    }
-    let Some((path, st)) = found else {
-        return Ok(None);
-    };
-    let tick = st.tick;
-    write_everything(db, st)?;
-    Ok(Some((path, tick)))
-}
-
-/// `brickworld export`: the world as restored from the store (regenerated,
-/// overlaid, with the state blob `st`) as one checkpoint file at `out`.
-/// Returns the world hash.
-pub fn export(
-    world: &SceneWorld,
-    ws: &WorldSim,
-    st: &WorldState,
-    identity: &WorldIdentity,
-    out: &Path,
-) -> Result<u64> {
-    let extras = SimExtras {
-        voxel_channels: ws.vox.channels().clone(),
-        ..st.extras.clone()
-    };
-    let hash = checkpoint::write_backup(
-        out,
-        WorldRef {
-            tick: st.tick,
-            store: world.store(),
-            bounds: world.bounds(),
-            channels: ws.sim.channels(),
-            params: &st.params,
-            identity: Some(identity),
-            extras: &extras,
-        },
-        identity,
-    )?;
-    Ok(hash)
-}
-
-/// Refuse an export whose file would replace something that is not a
-/// backup: a file of the state directory other than a `NAME.bwc` backup
-/// (the world store itself, before this was checked), or anything but a
-/// regular file (a device, a pipe, a directory: the write replaces the
-/// path with a new file).
-fn check_export_target(dir: &Path, out: &Path) -> Result<()> {
-    if let Ok(meta) = std::fs::metadata(out)
-        && !meta.is_file()
-    {
-        bail!(
-            "{} exists and is not a regular file: export writes a new file there, so name another path (nothing was written)",
-            out.display()
-        );
-    }
-    // Where the file would land: its parent resolved, plus its name.
-    let parent = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    // Inside the state directory only a backup's own kind of name may be
-    // written: every other file there is the engine's.
-    let name = out.file_name().map(|n| n.to_string_lossy().to_string());
-    let backup_name = name
-        .as_deref()
-        .is_some_and(|n| n.ends_with(".bwc") && !n.starts_with("ckpt-"));
-    if let (Ok(state), Ok(parent)) = (dir.canonicalize(), parent.canonicalize())
-        && parent.starts_with(&state)
-        && !backup_name
-    {
-        bail!(
-            "{} lies inside the state directory {} and is not a NAME.bwc backup: export there could replace the world it reads; name a .bwc file or write elsewhere (nothing was written)",
-            out.display(),
-            dir.display()
-        );
-    }
-    Ok(())
-}
-
-/// `brickworld export`: open the store of state directory `dir` (locked, so
-/// a running engine is a clear error), restore its world, and write it to
-/// `out`. Returns the tick and the world hash ([`engine_hash`], as `run`
-/// prints it), unless the world's scripts no longer load.
-pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, Option<u64>)> {
-    if !dir.join(crate::persist::db::DB_FILE).is_file() {
-        bail!("{} holds no world store (nothing to export)", dir.display());
-    }
-    check_export_target(dir, out)?;
-    // Nor over what it reads: the config, its scripts, the world's source
-    // (regression, odd-paths probe: `export world.toml --world world.toml`
-    // replaced the config with the backup, exit 0).
-    let config = Path::new(&cfg.file);
-    let mut inputs: Vec<(&str, &Path)> = vec![("world config", config)];
-    if let Some(f) = cfg.source.file() {
-        inputs.push(("world's source file", f));
-    }
-    for (what, input) in &inputs {
-        if crate::config::same_file(out, input) {
-            bail!(
-                "{} is the {what} export reads: name another file (nothing was written)",
-                out.display()
-            );
-        }
-    }
-    if !cfg.scripts_embedded
-        && let (Ok(scripts), Some(parent)) = (cfg.scripts_dir.canonicalize(), out.parent())
-        && (if parent.as_os_str().is_empty() {
-            Path::new(".")
-        } else {
-            parent
-        })
-        .canonicalize()
-        .is_ok_and(|p| p == scripts)
-    {
-        bail!(
-            "{} lies in the scripts directory {}: name a file elsewhere (nothing was written)",
-            out.display(),
-            cfg.scripts_dir.display()
-        );
-    }
-    // Nor over anything but an earlier backup of this world.
-    if let Err(why) = super::checkpoint::backup_target(out, &cfg.identity()) {
-        bail!("{} {why} (nothing was written)", out.display());
-    }
-    if cfg.stream.is_some()
-        && matches!(
-            cfg.sim_region,
-            super::world_config::SimRegion::AroundCamera { .. }
-        )
-    {
-        bail!(
-            "export writes one region, and this world's simulated region follows the camera: its store holds every place the region has been. Back it up by copying {} and {} while the engine is stopped (nothing was written)",
-            dir.join(crate::persist::db::DB_FILE).display(),
-            dir.join(crate::persist::db::MANIFEST_FILE).display()
-        );
-    }
-    let _lock = super::state_dir::lock(dir)?;
-    // Under the lock: a running import holds it (found by review: export
-    // called a live import "interrupted").
-    refuse_interrupted_import(dir)?;
-    let identity = cfg.identity();
-    let (db, _) = WorldDb::open(dir, &identity)?;
-    let mut world = match &cfg.stream {
-        // A streamed world's backup is its fixed simulated region.
-        Some(_) => {
-            let (gen_, rule) = super::streaming::generator(cfg)?;
-            let columns = rule.around(glam::DVec3::ZERO);
-            super::streaming::build_columns(&gen_, columns)?
-        }
-        None => {
-            let pb = crate::progress::bar("scene", 0);
-            let w = crate::scene::build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
-                .context("cannot build the world")?;
-            pb.finish_and_clear();
-            w
-        }
-    };
-    let mut ws = WorldSim::with_edges(&mut world, true);
-    ws.sim.channels_mut().take_dirty();
-    ws.set_seed(cfg.seed);
-    // The scripts register their channels before the stored chunks go
-    // over the world, as at start, so channel ids and the world hash are
-    // those `run` prints. A world whose scripts no longer load is still
-    // exported (its data is stored by channel name); only the hash is
-    // left out.
-    super::persistence::seed_materials(&db, &mut world)?;
-    let comparable = match super::daemon::load_scripts(cfg, &mut world, &mut ws) {
-        Ok(()) => true,
-        Err(e) => {
-            crate::say!(
-                "warning: {e:#}: exported all the same; the world hash is left out, as it would not match run's"
-            );
-            ws = WorldSim::with_edges(&mut world, true);
-            ws.sim.channels_mut().take_dirty();
-            // The simulation's colours again as stored.
-            super::persistence::seed_materials(&db, &mut world)?;
-            false
-        }
-    };
-    let mut dirty = DirtyChunks::default();
-    let scope = RestoreScope {
-        regenerable: cfg.source.is_procedural(),
-        region: cfg.stream.is_some(),
-        whole_columns: false,
-    };
-    let Some(r) = restore_chunks(&db, &mut world, &mut ws, &mut dirty, scope)? else {
-        bail!("{} was never committed (nothing to export)", dir.display());
-    };
-    for c in &r.corrupt {
-        crate::say!("warning: {c}");
-    }
-    export(&world, &ws, &r.state, &identity, out)?;
-    // The hash `run` prints when it stops and `resumed` at start (the
-    // file's own hash, which its reader checks, covers less).
-    Ok((r.state.tick, comparable.then(|| engine_hash(&world, &ws))))
-}
-
 /// `brickworld import`: lock state directory `dir` and [`import`] `file`.
 pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<CommitStats> {
     // A failed import leaves the directory as it found it (regression: it
@@ -496,7 +248,7 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
     // directory the other was importing into).
     let lock_file = dir.join("engine.lock");
     let had_lock = lock_file.exists();
-    let (lock, created) = super::state_dir::claim(dir)?;
+    let (lock, created) = crate::engine::state_dir::claim(dir)?;
     let result = import(file, dir, &cfg.identity());
     if result.is_err() {
         if created {
