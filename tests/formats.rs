@@ -4,6 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
+mod common;
+
 use brickworld::scene::{SceneError, SceneSpec, build_scene};
 use glam::IVec3;
 use indicatif::ProgressBar;
@@ -272,6 +274,53 @@ fn sim_on(path: &Path, script: &str) -> std::process::Output {
         .unwrap()
 }
 
+/// `run --ticks 1` of the engine on the `.vox` model at `path`, with the
+/// shipped `script`, in a fresh state directory `state` under this test's
+/// folder; returns the output and the state directory.
+fn run_on(path: &Path, script: &str, name: &str) -> (std::process::Output, PathBuf) {
+    let cfg = tmp(&format!("{name}.toml"));
+    std::fs::write(
+        &cfg,
+        format!(
+            "[world]\nsource = \"vox:{}\"\n[sim]\nscripts_dir = \"{}/scripts\"\n[[scripts]]\nfile = \"{script}\"\n\
+             [render]\nwidth = 16\nheight = 12\ntracer = \"cpu\"\n[control]\naddr = \"127.0.0.1:0\"\n",
+            path.display(),
+            env!("CARGO_MANIFEST_DIR")
+        ),
+    )
+    .unwrap();
+    let state = tmp(&format!("{name}-state"));
+    let _ = std::fs::remove_dir_all(&state);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .arg("run")
+        .arg(&cfg)
+        .arg("--state")
+        .arg(&state)
+        .args(["--ticks", "1"])
+        .env_remove("RUST_BACKTRACE")
+        .output()
+        .unwrap();
+    (out, state)
+}
+
+/// Claim (README, known gaps): the engine, like `sim`, refuses a `.vox`
+/// model whose colours hold the simulations' ids 252 to 254, in one line,
+/// and writes no store (claims audit: only `sim` and `import` were tested;
+/// without the check the engine would run water over those voxels and
+/// commit them).
+#[test]
+fn the_engine_refuses_a_vox_model_on_the_simulations_ids() {
+    let all: Vec<u8> = (0..=254).collect();
+    let full = row_model("full_run.vox", &all);
+    let (out, state) = run_on(&full, "water.lua", "full");
+    common::cli::assert_clear_failure(
+        &out,
+        "run on a 255-colour model",
+        "hold ids 252 to 254, which simulations keep for water, snow and sediment",
+    );
+    assert!(!state.exists(), "a refused start left {}", state.display());
+}
+
 /// Regression (panic audit): a model's voxels of colours 252 to 254 held
 /// the material ids simulations keep for water, snow and sediment, so once
 /// a simulation ran they became water (a red voxel counted as liquid), with
@@ -302,12 +351,10 @@ fn vox_colours_on_the_simulations_ids_move_out_of_their_way() {
     // 255 colours: the simulations' ids cannot be freed, and `sim` says so.
     let all: Vec<u8> = (0..=254).collect();
     let full = row_model("full.vox", &all);
-    let out = sim_on(&full, "water.lua");
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{err}");
-    assert!(
-        err.contains("hold ids 252 to 254, which simulations keep for water, snow and sediment"),
-        "{err}"
+    common::cli::assert_clear_failure(
+        &sim_on(&full, "water.lua"),
+        "sim on a 255-colour model",
+        "hold ids 252 to 254, which simulations keep for water, snow and sediment",
     );
 }
 
@@ -336,4 +383,13 @@ fn column_scripts_on_a_world_below_zero_are_warned() {
         "column scripts see the world from y = 0 up, and this world reaches down to y = -4";
     assert!(sim("water.lua").contains(warned));
     assert!(!sim("water3d.lua").contains("column scripts see"));
+    // The engine says it too (claims audit: only `sim` was tested).
+    let (out, _) = run_on(&path, "water.lua", "tower");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert_eq!(err.matches(warned).count(), 1, "{err}");
+    let (out, _) = run_on(&path, "water3d.lua", "tower3d");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(!err.contains("column scripts see"), "{err}");
 }

@@ -250,6 +250,26 @@ fn bad_scripts_are_rejected_at_load_with_name_and_line() {
 
     let e = load("return 42").unwrap_err();
     assert!(e.to_string().contains("must return a table"), "{e}");
+
+    // A buffer the pass does not list is an error naming the list, not nil
+    // (claims audit).
+    for (body, said) in [
+        (
+            "    local b = c.w.snow",
+            r#"c.w.snow: pass 'p' does not list "snow" in its writes"#,
+        ),
+        (
+            "    local b = c.r.height",
+            r#"c.r.height: pass 'p' does not list "height" in its reads"#,
+        ),
+    ] {
+        let e = load(&kernel_script(body)).unwrap_err();
+        assert!(e.to_string().contains(said), "{e}");
+        assert!(
+            matches!(e, SimError::Runtime { line: Some(5), .. }),
+            "{e:?}"
+        );
+    }
 }
 
 #[test]

@@ -534,6 +534,58 @@ fn one_pass(name: &str, decl: &str, reads: &str, writes: &str, body: &str) -> Sc
     }
 }
 
+/// Claim (README, voxel scripts): `c.w.mat` is writable when the pass
+/// lists `"mat"` in `writes` (claims audit: every test that wrote it
+/// listed it). A pass that does not list it has no `c.w.mat`, and using it
+/// is an error that says what to list (it was nil, and the kernel failed
+/// on "buffer expected, got nil"); so is a channel a pass does not read.
+/// The same pass listing `"mat"` changes the voxels and publishes them.
+#[test]
+fn c_w_mat_is_there_only_for_a_pass_that_lists_mat() {
+    let reg = shipped_registry();
+    let stone = reg.id("stone").unwrap();
+    let hash = |s: &BrickStore| brickworld::engine::checkpoint::world_hash(s, &Default::default());
+    let scribble = |reads: &str, writes: &str| {
+        one_pass(
+            "scribble",
+            r#"channels = { "x", "y" },"#,
+            reads,
+            writes,
+            r#"for i = 0, 511 do buffer.writeu8(c.w.mat, i, 0) end
+              buffer.writef32(c.w.x, 0, buffer.readf32(c.r.y, 0))"#,
+        )
+    };
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(15, 3, 15), stone);
+    let before = hash(&store);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::splat(16), 1);
+    for (reads, writes, said) in [
+        (
+            r#""y""#,
+            r#""x""#,
+            r#"c.w.mat: pass 'p' does not list "mat" in its writes"#,
+        ),
+        (
+            "",
+            r#""x", "mat""#,
+            r#"c.r.y: pass 'p' does not list "y" in its reads"#,
+        ),
+    ] {
+        let e = sim
+            .add_script(scribble(reads, writes), Limits::default(), &reg)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(said), "{e}");
+    }
+    sim.add_script(scribble(r#""y""#, r#""x", "mat""#), Limits::default(), &reg)
+        .unwrap();
+    let r = sim.step(&mut store, &reg, 0.05);
+    assert!(r.errors.is_empty(), "{:?}", r.errors);
+    assert_ne!(hash(&store), before, "the pass had no effect");
+    assert!(!store.take_modified().is_empty(), "nothing published");
+}
+
 /// Audit: `sky = true` runs on the top layer of bricks only, and outside
 /// the world the halo reads 255; neither had a test.
 #[test]

@@ -338,6 +338,22 @@ fn bad_configs_name_the_file_field_and_reason() {
     );
 }
 
+/// Claim (README): `render.lod = 0` is not refused, as `--lod 0` is: it
+/// turns level of detail off (claims audit: only refused values were
+/// tested). -0 does the same.
+#[test]
+fn render_lod_zero_turns_level_of_detail_off() {
+    for zero in ["0", "0.0", "-0.0"] {
+        let c = WorldConfig::parse(
+            "lod.toml",
+            &format!("[world]\nsource = \"terrain\"\n[render]\nlod = {zero}\n"),
+            Path::new("."),
+        )
+        .unwrap_or_else(|e| panic!("lod = {zero}: {e}"));
+        assert_eq!(c.look.lod.to_bits(), 0, "lod = {zero}");
+    }
+}
+
 /// The defaults the README states for a config that sets nothing: frames
 /// every 10 ticks, 200 kept within 256 MiB, commits every 500 ticks, the
 /// `auto` tracer, level of detail C = 1, occlusion and shadows on, beams

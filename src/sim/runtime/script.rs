@@ -194,6 +194,30 @@ impl ScriptVm {
         Ok((vm, spec))
     }
 
+    /// The metatable of pass `pass`'s `c.TABLE`, whose `__index` (called
+    /// only for a name the table lacks) raises an error naming the list
+    /// `LIST` the name is missing from, at the kernel's line (a Lua
+    /// function, so that level 2 is the line that read the name).
+    fn unlisted(&self, pass: &str, table: &str, list: &str) -> mlua::Result<Table> {
+        let make: Function = self
+            .lua
+            .load(
+                r#"local pass, tbl, list = ...
+                return function(_, k)
+                  local name = type(k) == "string" and k or ("[" .. type(k) .. "]")
+                  error("c." .. tbl .. "." .. name .. ": pass '" .. pass
+                    .. "' does not list \"" .. name .. "\" in its " .. list, 2)
+                end"#,
+            )
+            .set_name("=unlisted")
+            .into_function()?;
+        let index: Function = make.call((pass, table, list))?;
+        let mt = self.lua.create_table()?;
+        mt.set("__index", index)?;
+        mt.set_readonly(true);
+        Ok(mt)
+    }
+
     fn make_buffers(&mut self, spec: &ScriptSpec) -> mlua::Result<()> {
         let (halo, own) = match spec.grid {
             Grid::Columns => (HALO_CELLS * 8, TILE_CELLS * 8),
@@ -237,6 +261,11 @@ impl ScriptVm {
                 let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
                 w.set(name.as_str(), self.writes[i].clone())?;
             }
+            // A name the pass does not list is an error that says so
+            // (claims audit: `c.w.mat` in a pass that does not write "mat"
+            // was nil, and the kernel failed on "buffer expected, got nil").
+            r.set_metatable(Some(self.unlisted(&pass.name, "r", "reads")?))?;
+            w.set_metatable(Some(self.unlisted(&pass.name, "w", "writes")?))?;
             // Read-only, as `c` is: a table that kept what a kernel stored
             // in it would carry state from tile to tile on one VM, and the
             // result would depend on the thread count (regression).
