@@ -752,6 +752,11 @@ fn voxel_scripts_cannot_pass_the_worlds_channel_bound() {
         e.contains("would give the world 257 channels, more than 256"),
         "{e}"
     );
+    // It says what frees them (claims audit: the README said it did).
+    assert!(
+        e.contains("stay registered while the engine runs; a restart registers only"),
+        "{e}"
+    );
     let one = one_pass(
         "one",
         r#"channels = { "a", "old3" },"#,

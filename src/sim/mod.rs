@@ -90,7 +90,7 @@ pub(crate) fn channel_room(
             script: script.to_string(),
             line: None,
             msg: format!(
-                "its {new} new channels would give the world {} channels, more than {MAX_CHANNELS}",
+                "its {new} new channels would give the world {} channels, more than {MAX_CHANNELS} (channels of earlier versions of the scripts stay registered while the engine runs; a restart registers only the scripts' channels and those the stored world holds)",
                 registered + new
             ),
         });
