@@ -674,6 +674,38 @@ fn a_stop_gives_the_frame_in_flight_3_s_then_abandons_it() {
     assert!(frames.is_empty(), "{frames:?}");
 }
 
+/// Claim (README): the control token is printed at start, on the line
+/// that says the engine runs, and it is the token `STATE/control.token`
+/// holds, which the API accepts (claims audit: nothing compared them).
+#[test]
+fn the_token_printed_at_start_is_the_one_the_state_directory_holds() {
+    use std::io::BufRead;
+    let (cfg, state, addr) = setup("tokenline");
+    let child = run_cmd(&cfg, &state)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut d = Daemon(Some(child));
+    let out = d.0.as_mut().unwrap().stdout.take().unwrap();
+    let line = std::io::BufReader::new(out)
+        .lines()
+        .find(|l| l.as_ref().map_or(true, |l| l.contains("is running")))
+        .expect("the engine ended without saying it runs")
+        .unwrap();
+    wait_ready(&addr);
+    let token = token(&state);
+    let said = line
+        .rsplit_once(": ")
+        .map(|(_, t)| t.trim_end_matches(')'))
+        .unwrap_or_default();
+    assert_eq!(said, token.trim(), "{line}");
+    assert!(line.contains(&format!("http://{addr}/")), "{line}");
+    let (code, body) = request(&addr, "POST", "/auth", Some(said), "").unwrap();
+    assert_eq!(code, 200, "{body}");
+    assert!(stop(d).status.success());
+}
+
 /// Claim (README, `POST /scripts/NAME/params`): a value the server
 /// accepted against `/status`, whose range a hot reload narrowed before
 /// the engine applied it, gets 409 with the engine's reason. The engine

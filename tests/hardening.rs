@@ -1310,6 +1310,19 @@ fn a_manifest_copy_that_cannot_be_written_is_a_warning() {
         "{err}"
     );
     std::fs::remove_dir(state.join("manifest.json")).unwrap();
+    // An edited copy is rewritten from the store's own (claims audit: only
+    // a deleted one was tried).
+    run_ok(&cfg, &state, "--ticks", 1);
+    let good = std::fs::read_to_string(state.join("manifest.json")).unwrap();
+    std::fs::write(state.join("manifest.json"), "{\"edited\": true}").unwrap();
+    run_ok(&cfg, &state, "--ticks", 1);
+    let again = std::fs::read_to_string(state.join("manifest.json")).unwrap();
+    assert!(!again.contains("edited"), "{again}");
+    let fields = |text: &str| -> Vec<String> {
+        let v: serde_json::Value = serde_json::from_str(text).unwrap();
+        v.as_object().unwrap().keys().cloned().collect()
+    };
+    assert_eq!(fields(&again), fields(&good), "{again}");
     // A link or a FIFO at the old fixed temporary name is neither written
     // through nor waited on (regression, odd-paths probe: the link's file
     // became the manifest, the FIFO hung the start).

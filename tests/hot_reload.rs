@@ -256,6 +256,64 @@ fn sim_watch_applies_materials_lua_and_retries_a_refused_script() {
     assert!(seen.last().unwrap().contains("grow.lua"), "{seen:#?}");
 }
 
+/// Claim (README, `sim`): a run in which a script failed exits 1 without
+/// an image, *unless `--watch` reloaded every failed script since*
+/// (claims audit: only the failing side was tested). A script that fails
+/// from tick 2 is fixed by an editor's save while a slow script keeps the
+/// run going: the run ends with status 0 and writes its image.
+#[test]
+fn sim_watch_that_reloaded_a_failed_script_exits_0_with_its_image() {
+    use std::io::BufRead;
+    let dir = scratch("simwatchfix");
+    let busy = "return { channels = { \"b\" }, passes = { { name = \"p\", reads = {}, writes = { \"b\" },\n\
+         kernel = function(c) for i = 1, 300000 do end buffer.writef64(c.w.b, 0, c.tick) end } } }\n";
+    let flaky = |fails: bool| {
+        format!(
+            "return {{ channels = {{ \"s\" }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"s\" }},\n\
+             kernel = function(c) if {fails} and c.tick >= 2 then error(\"boom\") end buffer.writef64(c.w.s, 0, c.tick) end }} }} }}\n"
+        )
+    };
+    std::fs::write(dir.join("busy.lua"), busy).unwrap();
+    std::fs::write(dir.join("flaky.lua"), flaky(true)).unwrap();
+    let png = dir.join("out.png");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args([
+            "sim", "--size", "64x16x64", "--steps", "150", "--watch", "--out",
+        ])
+        .arg(&png)
+        .arg("--script")
+        .arg(dir.join("busy.lua"))
+        .arg("--script")
+        .arg(dir.join("flaky.lua"))
+        .stderr(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+    let mut seen = Vec::new();
+    for l in lines.by_ref().map_while(Result::ok) {
+        let failed = l.contains("boom");
+        seen.push(l);
+        if failed {
+            break;
+        }
+    }
+    save_like_an_editor(&dir.join("flaky.lua"), &flaky(false));
+    seen.extend(lines.map_while(Result::ok));
+    let status = child.wait().unwrap();
+    assert!(
+        seen.iter().any(|l| l.contains("boom")),
+        "it never failed: {seen:#?}"
+    );
+    assert!(
+        seen.iter()
+            .any(|l| l.contains("reloaded") && l.contains("flaky.lua")),
+        "the run ended before the reload (a faster machine needs more steps): {seen:#?}"
+    );
+    assert!(status.success(), "{status:?}: {seen:#?}");
+    assert!(png.is_file(), "{seen:#?}");
+}
+
 /// A scratch folder of this test's own.
 fn scratch(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("brickworld-{name}-{}", std::process::id()));

@@ -200,6 +200,50 @@ fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
     assert!(before == after, "voxels outside the world were written");
 }
 
+/// Claim (README, `sim`): with closed edges, a world whose x and z are not
+/// multiples of 8 keeps its partial tiles' outer cells in the simulation:
+/// rain falls there too and is conserved with the rest, nothing drains,
+/// and nothing is drawn outside the world (claims audit: every odd-size
+/// test drained its edges).
+#[test]
+fn closed_edges_keep_a_partial_tiles_outer_cells_and_conserve_their_rain() {
+    let size = IVec3::new(37, 32, 44);
+    let mut world = terrain(size, 7);
+    let outside = |world: &brickworld::scene::SceneWorld| -> Vec<u8> {
+        (0..32)
+            .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+            .filter(|v| v.x >= 37 || v.z >= 44)
+            .map(|v| world.store().voxel(v))
+            .collect()
+    };
+    let before = outside(&world);
+    let mut ws = WorldSim::with_edges(&mut world, false);
+    let water = add_shipped(&mut ws, "water");
+    let rain = 0.25;
+    ws.set_param(water, "rain", rain).unwrap();
+    let w = ws.sim.channels_mut().channel("water");
+    let start = ws.sim.channels().total(w);
+    let (steps, dt) = (60, 0.05);
+    for step in 0..steps {
+        let (r, _) = ws.step_within_cfl(&mut world, dt, 0.5);
+        assert!(r.errors.is_empty(), "step {step}: {:?}", r.errors);
+    }
+    assert_eq!(ws.drained, 0.0, "closed edges drained");
+    // Every cell of the 5 × 6 tiles, the 1 628 in the world and the 292
+    // past its edge, took its rain.
+    let fell = rain * dt * steps as f64 * (40.0 * 48.0);
+    let now = ws.sim.channels().total(w);
+    assert!(
+        (now - (start + fell)).abs() < 1e-9 * now,
+        "world {now} != {start} + rain {fell} (over the world's own cells alone: {})",
+        rain * dt * steps as f64 * (37.0 * 44.0)
+    );
+    assert!(
+        before == outside(&world),
+        "voxels outside the world were written"
+    );
+}
+
 /// Regression (hostile probe): on a world whose edge columns are at height
 /// 0 or 1 (a heightmap with a black sea border) the moat lies below 0, and
 /// the shipped erosion "dissolved" a negative amount of ground there once

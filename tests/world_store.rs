@@ -1465,6 +1465,25 @@ fn damage_anywhere_in_the_store_file_is_one_line_never_a_panic_or_an_abort() {
             }
             other => panic!("a flip at byte {off}: status {other:?}: {err}"),
         }
+        if out.status.code() == Some(1) && err.contains("damaged") && damaged == 1 {
+            // Claim (README): with RUST_BACKTRACE set, a developer's request
+            // for details, redb's report comes first, then the one line,
+            // and the status is still 1, never an abort (claims audit: no
+            // test set it).
+            let verbose = run_cmd(&cfg, &state)
+                .env("RUST_BACKTRACE", "1")
+                .args(["--until-tick", "110"])
+                .output()
+                .unwrap();
+            let err = String::from_utf8_lossy(&verbose.stderr);
+            assert_eq!(verbose.status.code(), Some(1), "{err}");
+            let last = err.lines().rfind(|l| !l.trim().is_empty()).unwrap_or("");
+            assert!(
+                last.starts_with("error: the world store is damaged"),
+                "{err}"
+            );
+            assert!(err.contains("panicked"), "redb's own report: {err}");
+        }
         if out.status.code() == Some(1) && err.contains("damaged") {
             let export = backup_cmd(
                 "export",
