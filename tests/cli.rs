@@ -347,6 +347,12 @@ fn gpu_tracer_renders_or_falls_back_to_the_cpu_with_one_line() {
             && err.contains("rendering on the CPU instead"),
         "{err}"
     );
+    // One line, as the README says (claims audit: only its text was
+    // checked); Mesa or the loader printing beside it would break it.
+    let warnings: Vec<&str> = (err.lines())
+        .filter(|l| !l.trim().is_empty() && !l.starts_with("rendered "))
+        .collect();
+    assert_eq!(warnings.len(), 1, "{err}");
     common::cli::assert_no_panic(&err, "render --tracer gpu");
     expect_failure(
         &["render", "--tracer", "tpu", "--out", png.to_str().unwrap()],

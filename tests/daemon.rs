@@ -296,6 +296,33 @@ fn status_matches_the_readme(s: &serde_json::Value) {
             "/status sends {k:?}, which the README's schema lacks"
         );
     }
+    // The top level, both ways (claims audit: a documented key never sent
+    // passed): the keys of the schema's outermost object.
+    let schema = line.split('`').nth(3).expect("the schema in backquotes");
+    let (mut depth, mut top, mut quoted, mut key) = (0, Vec::new(), false, String::new());
+    for c in schema.chars() {
+        match c {
+            '"' if quoted => {
+                quoted = false;
+                if depth == 1 {
+                    top.push(std::mem::take(&mut key));
+                }
+                key.clear();
+            }
+            '"' => quoted = true,
+            c if quoted => key.push(c),
+            '{' | '[' => depth += 1,
+            '}' | ']' => depth -= 1,
+            _ => {}
+        }
+    }
+    let sent_top: std::collections::BTreeSet<&str> =
+        s.as_object().unwrap().keys().map(String::as_str).collect();
+    let documented_top: std::collections::BTreeSet<&str> = top.iter().map(String::as_str).collect();
+    assert_eq!(
+        sent_top, documented_top,
+        "/status's top-level keys against the README's"
+    );
     let script = s["scripts"][0].as_object().unwrap();
     let listed = line.split("\"scripts\":[{").nth(1).unwrap();
     // The script's own keys: its text up to its closing brace, without

@@ -586,6 +586,47 @@ fn c_w_mat_is_there_only_for_a_pass_that_lists_mat() {
     assert!(!store.take_modified().is_empty(), "nothing published");
 }
 
+/// Claim (README, voxel scripts): `keep_awake = { … }` keeps bricks holding
+/// those materials from sleeping (claims audit: the grass test's bricks
+/// stayed awake for changing anyway). A script that changes nothing runs
+/// on dirt bricks step after step with `keep_awake = { "dirt" }`, and
+/// without it they sleep after two unchanged steps.
+#[test]
+fn keep_awake_keeps_unchanging_bricks_running() {
+    let reg = shipped_registry();
+    let dirt = reg.id("dirt").unwrap();
+    let idle = |decl: &str| one_pass("idle", decl, "", r#""mat""#, "");
+    let mut counts = Vec::new();
+    for decl in [
+        r#"materials = { "dirt" }, keep_awake = { "dirt" },"#,
+        r#"materials = { "dirt" },"#,
+    ] {
+        let mut store = BrickStore::new(Palette::grey_ramp());
+        store.fill_box(IVec3::ZERO, IVec3::new(15, 3, 15), dirt);
+        store.take_modified();
+        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::splat(16), 1);
+        sim.add_script(idle(decl), Limits::default(), &reg).unwrap();
+        let ran: Vec<usize> = (0..6)
+            .map(|_| {
+                let r = sim.step(&mut store, &reg, 0.05);
+                assert!(r.errors.is_empty() && r.changed.is_empty(), "{r:?}");
+                r.candidates
+            })
+            .collect();
+        counts.push(ran);
+    }
+    assert!(
+        counts[0].iter().all(|&n| n >= 4),
+        "kept awake: {:?}",
+        counts[0]
+    );
+    assert_eq!(
+        counts[1][5], 0,
+        "without keep_awake they sleep: {:?}",
+        counts[1]
+    );
+}
+
 /// Audit: `sky = true` runs on the top layer of bricks only, and outside
 /// the world the halo reads 255; neither had a test.
 #[test]
