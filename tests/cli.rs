@@ -862,6 +862,32 @@ fn ctl_says_an_unanswered_command_may_still_be_carried_out() {
         "pause",
     ];
     expect_failure(&args, "the command was sent and may still be carried out");
+    // An engine that takes the request and never answers (stopped with
+    // SIGSTOP, say) meets the deadline, which says the same (claims audit:
+    // only the closed connection was tried; the real deadline is 60 s).
+    let stopped = fake_server(|_| std::thread::sleep(std::time::Duration::from_secs(4)));
+    let late = |method: &str| {
+        brickworld::engine::ctl::request_within(
+            &stopped,
+            method,
+            "/pause",
+            Some("t0k3n"),
+            "",
+            std::time::Duration::from_secs(1),
+        )
+        .unwrap_err()
+        .to_string()
+    };
+    let e = late("POST");
+    assert!(
+        e.contains("did not answer within 1 s; the command was sent and may still be carried out"),
+        "{e}"
+    );
+    let e = late("GET");
+    assert!(
+        e.contains("did not answer within 1 s") && !e.contains("carried out"),
+        "{e}"
+    );
 }
 
 /// Regression (hostile probe): `ctl` printed whatever a non-engine server

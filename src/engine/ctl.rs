@@ -44,12 +44,24 @@ pub fn request(
     token: Option<&str>,
     body: &str,
 ) -> Result<(u16, String)> {
+    request_within(addr, method, path, token, body, DEADLINE)
+}
+
+/// [`request`] with its own deadline in place of [`DEADLINE`] (for tests).
+pub fn request_within(
+    addr: &str,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    body: &str,
+    deadline: Duration,
+) -> Result<(u16, String)> {
     let mut s = TcpStream::connect(addr).with_context(|| {
         format!("cannot reach the engine at {addr} (is `brickworld run` running?)")
     })?;
     let start = std::time::Instant::now();
-    s.set_read_timeout(Some(DEADLINE))?;
-    s.set_write_timeout(Some(DEADLINE))?;
+    s.set_read_timeout(Some(deadline))?;
+    s.set_write_timeout(Some(deadline))?;
     let auth = token
         .map(|t| format!("Authorization: Bearer {t}\r\n"))
         .unwrap_or_default();
@@ -76,7 +88,7 @@ pub fn request(
     let late = || {
         anyhow::anyhow!(
             "{addr} did not answer within {} s{unsure}",
-            DEADLINE.as_secs()
+            deadline.as_secs()
         )
     };
     // Regression (crash probe): an engine killed mid-request was "not HTTP".
@@ -88,7 +100,7 @@ pub fn request(
     let mut raw = Vec::new();
     let mut buf = [0u8; 64 << 10];
     loop {
-        let left = DEADLINE.saturating_sub(start.elapsed());
+        let left = deadline.saturating_sub(start.elapsed());
         if left.is_zero() {
             return Err(late());
         }
