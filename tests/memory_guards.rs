@@ -591,6 +591,48 @@ fn column_scripts_larger_than_memory_are_refused_before_the_first_step() {
     assert!(!out_png.exists(), "nothing is written");
 }
 
+/// Claim (README): the column simulation's need is checked by `sim` *and
+/// the engine* before the first step (claims audit: only `sim` was
+/// tested; without the check the engine aborted with status 134). The
+/// engine refuses in one line, naming the scripts, and leaves no state
+/// directory behind.
+#[test]
+fn the_engine_refuses_column_scripts_larger_than_memory_before_the_first_step() {
+    let dir = tmp("mem", "colsim-engine");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg = dir.join("w.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[world]\nsource = \"terrain\"\nsize = [6144, 8, 4096]\n[sim]\nscripts_dir = \"{}\"\n\
+             [[scripts]]\nfile = \"water.lua\"\n[[scripts]]\nfile = \"erosion.lua\"\n[[scripts]]\nfile = \"snow.lua\"\n\
+             [render]\nwidth = 16\nheight = 12\ntracer = \"cpu\"\n[control]\naddr = \"127.0.0.1:0\"\n",
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts").display()
+        ),
+    )
+    .unwrap();
+    let state = dir.join("state");
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 3000000 && exec '{}' run '{}' --state '{}' --ticks 1",
+            env!("CARGO_BIN_EXE_brickworld"),
+            cfg.display(),
+            state.display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "three column scripts over 6144 x 4096 in the engine",
+        "the column simulation: not enough memory",
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("[sim] scripts"), "{err}");
+    assert!(!state.exists(), "a refused start left its state directory");
+}
+
 /// An endless world's config with `view_distance` and `memory_budget`.
 fn endless_world(name: &str, view_distance: f64, budget: &str) -> PathBuf {
     let text =
