@@ -301,6 +301,26 @@ pub fn temp_landed(tmp: &Path) {
     writing().retain(|p| p != tmp);
 }
 
+/// Held while a file lands by swapping names with another (an export over
+/// an earlier backup): an interrupt waits for it, so it never acts on the
+/// moment a temporary's name holds another's file (review: a Ctrl-C
+/// during the swap back removed a file put at the path meanwhile).
+pub fn landing() -> std::sync::MutexGuard<'static, ()> {
+    static LANDING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LANDING.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// `tmp` is this process's temporary again (after [`temp_landed`]): an
+/// interrupt removes it, where interrupts remove temporaries.
+pub fn temp_writing(tmp: &Path) {
+    if INTERRUPTIBLE.load(Ordering::Relaxed) {
+        let mut w = writing();
+        if !w.iter().any(|p| p == tmp) {
+            w.push(tmp.to_path_buf());
+        }
+    }
+}
+
 /// From now on, Ctrl-C or SIGTERM removes the temporary files this process
 /// is writing and exits with status 130: for a command that writes one
 /// large file and has no other use for signals (regression, review: an
@@ -310,6 +330,7 @@ pub fn temp_landed(tmp: &Path) {
 pub fn remove_temps_on_interrupt() -> std::io::Result<()> {
     INTERRUPTIBLE.store(true, Ordering::Relaxed);
     ctrlc::set_handler(|| {
+        let _landing = landing();
         if remove_writing_temps() > 0 {
             crate::say!("interrupted: the file being written was removed");
         }

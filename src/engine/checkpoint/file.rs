@@ -135,18 +135,26 @@ fn replaced_meanwhile() -> std::io::Error {
     )
 }
 
-/// Another's file that a failed swap back left at the temporary path:
-/// [`write_landing`] must not remove it.
-#[derive(Debug)]
-struct LeftAtTemp(String);
+/// `NAME.kept-PID` beside `path`: where another's file goes when the
+/// backup has taken its place and it cannot go back.
+fn kept_name(path: &Path) -> std::path::PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(format!(".kept-{}", std::process::id()));
+    path.with_file_name(name)
+}
 
-impl std::fmt::Display for LeftAtTemp {
+/// A failed swap back left another's file at the temporary path, or moved
+/// it beside: [`write_landing`] must not remove the temporary.
+#[derive(Debug)]
+struct AnothersFile(String);
+
+impl std::fmt::Display for AnothersFile {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(&self.0)
     }
 }
 
-impl std::error::Error for LeftAtTemp {}
+impl std::error::Error for AnothersFile {}
 
 /// Move `tmp` over `path`, replacing only the file `checked` saw there.
 /// Where the system can swap two names atomically (`renameat2` with
@@ -159,6 +167,11 @@ fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
     {
         use nix::fcntl::{AT_FDCWD, RenameFlags, renameat2};
         let swap = || renameat2(AT_FDCWD, tmp, AT_FDCWD, path, RenameFlags::RENAME_EXCHANGE);
+        // From the swap on, `tmp` may name another's file: an interrupt
+        // waits until it is settled, and then must not remove it (review: a
+        // Ctrl-C just after the swap did).
+        let _landing = crate::files::landing();
+        crate::files::temp_landed(tmp);
         match swap() {
             Ok(()) => {
                 // `tmp` now names what was at `path`.
@@ -166,20 +179,40 @@ fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
                     let _ = fs::remove_file(tmp);
                     return Ok(());
                 }
-                // Another file: give it its name back.
-                if swap().is_ok() || land_on_free(tmp, path).is_ok() {
+                // Another file: give it its name back; `tmp` is the
+                // backup again, which the caller removes.
+                if swap().is_ok() {
+                    crate::files::temp_writing(tmp);
                     return Err(replaced_meanwhile());
                 }
-                return Err(std::io::Error::other(LeftAtTemp(format!(
-                    "a file put at {} while the backup was made could not be put back, and is kept at {}; nothing was written",
-                    path.display(),
-                    tmp.display()
+                // The backup has gone from `path` since: theirs goes back.
+                if land_on_free(tmp, path).is_ok() {
+                    return Err(replaced_meanwhile());
+                }
+                // The backup is at `path`, and theirs cannot go back: it
+                // is kept under a name no sweep of temporaries takes
+                // (review: it stayed at the temporary's name, which the
+                // next export to this path removed).
+                let kept = kept_name(path);
+                let at = match land_on_free(tmp, &kept) {
+                    Ok(()) => format!("it is kept as {}", kept.display()),
+                    Err(_) => format!(
+                        "it is kept at {} (a temporary's name, which a later export to this path removes: move it)",
+                        tmp.display()
+                    ),
+                };
+                return Err(std::io::Error::other(AnothersFile(format!(
+                    "a file was put at {0} while the backup was made, and could not be put back: {at}; the backup is at {0}",
+                    path.display()
                 ))));
             }
             // The checked file has gone: the path is free.
-            Err(nix::errno::Errno::ENOENT) => return land_on_free(tmp, path),
+            Err(nix::errno::Errno::ENOENT) => {
+                crate::files::temp_writing(tmp);
+                return land_on_free(tmp, path);
+            }
             // No atomic swap here: the last look stands.
-            Err(_) => {}
+            Err(_) => crate::files::temp_writing(tmp),
         }
     }
     match Seen::of(path) {
@@ -265,7 +298,7 @@ fn write_landing(
     if let Err(e) = result {
         // Another's file may be all the temporary holds now (see
         // [`land_over`]): that one is kept.
-        if !e.get_ref().is_some_and(|inner| inner.is::<LeftAtTemp>()) {
+        if !e.get_ref().is_some_and(|inner| inner.is::<AnothersFile>()) {
             let _ = fs::remove_file(&tmp);
         }
         return Err(io(path, e));
