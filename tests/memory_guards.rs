@@ -199,30 +199,38 @@ fn images_larger_than_memory_are_refused_with_the_need() {
 /// fields, before it builds its world.
 #[test]
 fn a_daemon_with_frames_larger_than_memory_is_refused_naming_the_fields() {
-    let dir = tmp("mem", "bigframe");
+    let (out, _) = engine_capped(
+        "bigframe",
+        "[world]\nsource = \"terrain\"\nsize = [48, 32, 48]\n[render]\nwidth = 8192\nheight = 8192\naa = 4\n[control]\naddr = \"127.0.0.1:0\"\n",
+    );
+    assert_clear_failure(
+        &out,
+        "8192x8192 frames",
+        "render.width/render.height: not enough memory",
+    );
+}
+
+/// `run --ticks 1` of a world whose config is `config`, in a folder
+/// `name` of its own, under a 3 GB address-space limit; the output and the
+/// state directory.
+fn engine_capped(name: &str, config: &str) -> (Output, PathBuf) {
+    let dir = tmp("mem", name);
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let cfg = dir.join("w.toml");
-    std::fs::write(
-        &cfg,
-        "[world]\nsource = \"terrain\"\nsize = [48, 32, 48]\n[render]\nwidth = 8192\nheight = 8192\naa = 4\n[control]\naddr = \"127.0.0.1:0\"\n",
-    )
-    .unwrap();
+    std::fs::write(&cfg, config).unwrap();
+    let state = dir.join("state");
     let out = std::process::Command::new("bash")
         .arg("-c")
         .arg(format!(
             "ulimit -v 3000000 && exec '{}' run '{}' --state '{}' --ticks 1",
             env!("CARGO_BIN_EXE_brickworld"),
             cfg.display(),
-            dir.join("state").display()
+            state.display()
         ))
         .output()
         .unwrap();
-    assert_clear_failure(
-        &out,
-        "8192x8192 frames",
-        "render.width/render.height: not enough memory",
-    );
+    (out, state)
 }
 
 /// A .vox whose scene graph is a chain of `levels` groups, each with two
@@ -598,31 +606,17 @@ fn column_scripts_larger_than_memory_are_refused_before_the_first_step() {
 /// directory behind.
 #[test]
 fn the_engine_refuses_column_scripts_larger_than_memory_before_the_first_step() {
-    let dir = tmp("mem", "colsim-engine");
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let cfg = dir.join("w.toml");
-    std::fs::write(
-        &cfg,
-        format!(
+    let (out, state) = engine_capped(
+        "colsim-engine",
+        &format!(
             "[world]\nsource = \"terrain\"\nsize = [6144, 8, 4096]\n[sim]\nscripts_dir = \"{}\"\n\
              [[scripts]]\nfile = \"water.lua\"\n[[scripts]]\nfile = \"erosion.lua\"\n[[scripts]]\nfile = \"snow.lua\"\n\
              [render]\nwidth = 16\nheight = 12\ntracer = \"cpu\"\n[control]\naddr = \"127.0.0.1:0\"\n",
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts").display()
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("scripts")
+                .display()
         ),
-    )
-    .unwrap();
-    let state = dir.join("state");
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -v 3000000 && exec '{}' run '{}' --state '{}' --ticks 1",
-            env!("CARGO_BIN_EXE_brickworld"),
-            cfg.display(),
-            state.display()
-        ))
-        .output()
-        .unwrap();
+    );
     assert_clear_failure(
         &out,
         "three column scripts over 6144 x 4096 in the engine",
