@@ -55,10 +55,12 @@ use crate::world::{BRICK_VOXELS, BrickStore};
 
 pub mod dir;
 pub mod file;
+pub mod landing;
 pub mod payload;
 
 pub use dir::{Checkpoints, Latest, Opened, latest, list, write};
-pub use file::{BackupTarget, backup_target, parse, read, write_at, write_backup};
+pub use file::{parse, read, write_at};
+pub use landing::{BackupTarget, backup_target, write_backup};
 pub(crate) use payload::encode;
 pub use payload::{MAX_TICK, decode};
 
