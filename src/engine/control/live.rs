@@ -93,7 +93,12 @@ pub struct TimelineRing {
     pub columns: Vec<String>,
     rows: VecDeque<(u64, Vec<f64>)>,
     next: u64,
-    /// Bumped when the columns change (a reload): viewers start over.
+    /// Changed when the columns change (a reload) and at every start:
+    /// clients start over. The first is the start's time in ms since the
+    /// Unix epoch, so an engine started again numbers its rows afresh under
+    /// another epoch (regression, long-run probe: a restart numbered them
+    /// from the rows read back under the same epoch 1, and a client that
+    /// kept its `since` got nothing until the count passed it).
     pub epoch: u64,
 }
 
@@ -116,7 +121,7 @@ impl TimelineRing {
         if self.columns != columns {
             self.columns = columns.to_vec();
             self.rows.clear();
-            self.epoch += 1;
+            self.epoch = (self.epoch + 1).max(unix_ms() as u64);
         }
         self.rows.push_back((self.next, values));
         self.next += 1;
@@ -512,5 +517,23 @@ mod tests {
             r.push(&cols2, vec![i as f64, 0.0]);
         }
         assert_eq!(r.since(0, c.epoch).rows.len(), TIMELINE_ROWS);
+    }
+
+    /// Two starts of the engine hand out rows under different epochs, so
+    /// a client's `since` from before a restart is not read against the
+    /// new numbering (regression, long-run probe).
+    #[test]
+    fn a_restart_starts_a_new_timeline_epoch() {
+        let cols = vec!["tick".to_string()];
+        let mut before = TimelineRing::default();
+        before.push(&cols, vec![1.0]);
+        std::thread::sleep(std::time::Duration::from_millis(3));
+        let mut after = TimelineRing::default();
+        after.push(&cols, vec![1.0]);
+        let (a, b) = (before.since(0, u64::MAX), after.since(0, u64::MAX));
+        assert_ne!(a.epoch, b.epoch);
+        // A client of the first start gets all of the second's rows.
+        let c = after.since(a.next + 100, a.epoch);
+        assert_eq!(c.rows.len(), 1);
     }
 }
