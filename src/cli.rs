@@ -140,9 +140,10 @@ pub struct RunArgs {
 /// `brickworld ctl`.
 #[derive(Clone, Debug, Args)]
 pub struct CtlArgs {
-    /// Engine address HOST:PORT
-    #[arg(long, default_value = crate::engine::ctl::DEFAULT_ADDR)]
-    pub addr: String,
+    /// Engine address HOST:PORT [default: the one the engine wrote to
+    /// STATE/control.addr, else 127.0.0.1:7878]
+    #[arg(long)]
+    pub addr: Option<String>,
     /// State directory holding control.token
     #[arg(long, default_value = crate::engine::ctl::DEFAULT_STATE)]
     pub state: PathBuf,

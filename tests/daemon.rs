@@ -733,6 +733,47 @@ fn the_token_printed_at_start_is_the_one_the_state_directory_holds() {
     assert!(stop(d).status.success());
 }
 
+/// Regression (long-run probe): an engine on port 0 picks its port, and
+/// `ctl --state` tried the default address. The engine writes the bound
+/// address to `STATE/control.addr`, and `ctl` uses it when no `--addr` is
+/// given; an `--addr` given still wins.
+#[test]
+fn ctl_finds_an_engine_on_port_0_through_its_state_directory() {
+    let (cfg, state, addr) = setup("port0");
+    edit_config(
+        &cfg,
+        &format!("addr = \"{addr}\""),
+        "addr = \"127.0.0.1:0\"",
+    );
+    let d = start(&cfg, &state);
+    let t = Instant::now();
+    let bound = loop {
+        if let Ok(text) = std::fs::read_to_string(state.join("control.addr"))
+            && text.ends_with('\n')
+        {
+            break text.trim().to_string();
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no control.addr");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_ne!(bound, "127.0.0.1:0");
+    wait_ready(&bound);
+    let ctl = |extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .args(["ctl", "--state"])
+            .arg(&state)
+            .args(extra)
+            .arg("pause")
+            .output()
+            .unwrap()
+    };
+    let out = ctl(&[]);
+    assert_success(&out);
+    let wrong = ctl(&["--addr", "127.0.0.1:1"]);
+    assert!(!wrong.status.success(), "--addr did not win");
+    assert!(stop(d).status.success());
+}
+
 /// Claim (README, `POST /scripts/NAME/params`): a value the server
 /// accepted against `/status`, whose range a hot reload narrowed before
 /// the engine applied it, gets 409 with the engine's reason. The engine

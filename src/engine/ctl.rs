@@ -176,7 +176,7 @@ fn with_trailing_options(a: &CtlArgs) -> Result<(CtlArgs, Vec<String>)> {
             "--no-follow" if inline.is_none() => out.no_follow = true,
             "--no-follow" => bail!("--no-follow takes no value"),
             "--help" => bail!("--help goes before the command words: brickworld ctl --help"),
-            "--addr" => out.addr = value("--addr")?,
+            "--addr" => out.addr = Some(value("--addr")?),
             "--state" => out.state = value("--state")?.into(),
             n if n.starts_with("--") => bail!(
                 "unknown option '{n}' for ctl (its options are --addr, --state and --no-follow)"
@@ -227,10 +227,29 @@ pub fn ctl_command(addr: std::net::SocketAddr, state: &std::path::Path) -> Strin
     c
 }
 
+/// `ctl`'s arguments with the engine's address worked out.
+struct Resolved<'a> {
+    addr: String,
+    args: &'a CtlArgs,
+}
+
+impl std::ops::Deref for Resolved<'_> {
+    type Target = CtlArgs;
+    fn deref(&self) -> &CtlArgs {
+        self.args
+    }
+}
+
 /// Run `brickworld ctl`.
 pub fn run(a: &CtlArgs) -> Result<()> {
-    let (a, words) = with_trailing_options(a)?;
-    let a = &a;
+    let (mut a, words) = with_trailing_options(a)?;
+    // The address given, else the one the engine of `--state` bound (an
+    // engine on port 0 picks its own; long-run probe: `ctl --state` could
+    // not find it), else the default.
+    let addr = a.addr.take().unwrap_or_else(|| {
+        crate::engine::state_dir::read_addr(&a.state).unwrap_or_else(|| DEFAULT_ADDR.to_string())
+    });
+    let a = &Resolved { addr, args: &a };
     let words: Vec<&str> = words.iter().map(|s| s.as_str()).collect();
     let token_path = a.state.join("control.token");
     let token = || {
@@ -449,7 +468,7 @@ mod tests {
     fn options_after_the_command_words_count() {
         let args = |words: &[&str]| {
             let a = CtlArgs {
-                addr: "127.0.0.1:7878".into(),
+                addr: Some("127.0.0.1:7878".into()),
                 state: "state".into(),
                 no_follow: false,
                 command: words.iter().map(|w| w.to_string()).collect(),

@@ -192,6 +192,28 @@ pub fn write_token(dir: &Path, token: &str) -> Result<PathBuf, StateDirError> {
     Ok(path)
 }
 
+/// The file in a state directory that names the address its engine's
+/// control server is bound to.
+pub const ADDR_FILE: &str = "control.addr";
+
+/// Write the bound control address `addr` to `dir/control.addr`, for
+/// `ctl --state` (an engine on port 0 picks its port).
+pub fn write_addr(dir: &Path, addr: std::net::SocketAddr) -> Result<PathBuf, StateDirError> {
+    let path = dir.join(ADDR_FILE);
+    std::fs::write(&path, format!("{addr}\n")).map_err(|error| StateDirError::Io {
+        path: path.clone(),
+        error,
+    })?;
+    Ok(path)
+}
+
+/// The address `dir/control.addr` names, if it holds one.
+pub fn read_addr(dir: &Path) -> Option<String> {
+    let text = crate::files::read_text(&dir.join(ADDR_FILE), 256).ok()?;
+    let addr: std::net::SocketAddr = text.trim().parse().ok()?;
+    Some(addr.to_string())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -71,6 +71,7 @@ impl Engine {
         // by the store's own lock replaced the running engine's token
         // (regression, hostile probe).
         let token_path = state_dir::write_token(&opts.state, &token)?;
+        state_dir::write_addr(&opts.state, server.addr)?;
         let (mut world, stream_plan) = build_world(&cfg, &db)?;
         let follow = stream_plan
             .as_ref()
