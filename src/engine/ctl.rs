@@ -486,9 +486,9 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(
-            (addr.as_str(), state, follow, words),
+            (addr.as_deref(), state, follow, words),
             (
-                "10.0.0.1:9",
+                Some("10.0.0.1:9"),
                 std::path::PathBuf::from("s2"),
                 false,
                 vec![
