@@ -3,6 +3,9 @@
 -- at or below the snow's angle of repose. Sliding is in flux form (amounts
 -- per face written first, then applied), so snow is conserved to round-off;
 -- two slide iterations run per step, and steps repeat until movement is small.
+-- `melt` takes that share of the snow away each second (after it falls), so
+-- a world under steady snowfall tends to `snowfall / melt` of snow instead
+-- of burying itself; at 0 (the default) snow only accumulates.
 
 local readf64, writef64 = buffer.readf64, buffer.writef64
 local max, min = math.max, math.min
@@ -61,6 +64,7 @@ return {
   boundary = { ground = 1e9 }, -- outside the world the ground is a wall
   params = {
     snowfall = { default = 0.0, min = 0, max = 10 },
+    melt = { default = 0.0, min = 0, max = 10 },
     repose = { default = 0.8, min = 0.05, max = 10 },
     slide_rate = { default = 0.2, min = 0, max = 0.49 },
   },
@@ -71,10 +75,12 @@ return {
       writes = { "snow" },
       kernel = function(c)
         local add = c.p.snowfall * c.dt
-        if add > 0 then
+        -- What is left after melting (1 without melt: no change at all).
+        local keep = 1 - min(1, c.p.melt * c.dt)
+        if add > 0 or keep < 1 then
           local w = c.w.snow
           for o = 0, 63 * 8, 8 do
-            writef64(w, o, readf64(w, o) + add)
+            writef64(w, o, (readf64(w, o) + add) * keep)
           end
         end
       end,

@@ -191,6 +191,67 @@ fn parameters_change_without_restart_and_are_range_checked() {
     ));
 }
 
+/// Claim (scripts/snow.lua, README): `melt` takes that share of the snow
+/// away each second after it falls, so steady snowfall tends to
+/// `snowfall / melt` instead of burying the world (regression, long-run
+/// probe: the default world's snow grew without end, the orbiting camera
+/// ended inside it, and snow was suspended at its channel bound). On flat
+/// ground, where nothing slides, every column follows the recurrence
+/// `s ← (s + snowfall·dt)·(1 − melt·dt)` bit for bit, and settles at its
+/// fixed point; without melt the snow only grows.
+#[test]
+fn snow_melt_settles_at_snowfall_over_melt() {
+    let snow_src = || {
+        let text =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/snow.lua"));
+        src("snow", &text.unwrap())
+    };
+    let (a, k, dt) = (0.5, 0.2, 0.05);
+    let mut sim = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
+    sim.add_script(snow_src(), Kernel::Lua, Limits::default())
+        .unwrap();
+    sim.set_param(0, "snowfall", a).unwrap();
+    sim.set_param(0, "melt", k).unwrap();
+    let mut want = 0.0f64;
+    for _ in 0..2000 {
+        run(&mut sim, 1, dt);
+        want = (want + a * dt) * (1.0 - k * dt);
+    }
+    let s = sim.channels().find("snow").unwrap();
+    for tz in 0..2 {
+        for tx in 0..2 {
+            let cells = sim.channels().get(IVec2::new(tx, tz), s).unwrap();
+            assert!(
+                cells.iter().all(|c| c.to_bits() == want.to_bits()),
+                "tile ({tx}, {tz}): {:?} against {want}",
+                &cells[..4]
+            );
+        }
+    }
+    // The recurrence's fixed point, within k·dt of the continuous a / k
+    // (melt comes after the step's snowfall).
+    let fixed = a * dt * (1.0 - k * dt) / (k * dt);
+    assert!(
+        (want - fixed).abs() < 1e-6 * fixed,
+        "{want} against {fixed}"
+    );
+    assert!(
+        (fixed - a / k).abs() <= 1.001 * k * dt * a / k,
+        "{fixed} against {}",
+        a / k
+    );
+    // Without melt, the same snowfall only accumulates.
+    let mut plain = Simulation::new(IVec2::ZERO, IVec2::new(2, 2));
+    plain
+        .add_script(snow_src(), Kernel::Lua, Limits::default())
+        .unwrap();
+    plain.set_param(0, "snowfall", a).unwrap();
+    run(&mut plain, 2000, dt);
+    let s = plain.channels().find("snow").unwrap();
+    let total = plain.channels().total(s) / (16.0 * 16.0);
+    assert!((total - a * dt * 2000.0).abs() < 1e-9 * total, "{total}");
+}
+
 const KERNEL_TEMPLATE: &str = r#"
 return {
   channels = { "water" },
