@@ -774,6 +774,40 @@ fn ctl_finds_an_engine_on_port_0_through_its_state_directory() {
     assert!(stop(d).status.success());
 }
 
+/// Regression (long-run probe): every script's `steps_per_s` was the
+/// engine's, so one run every 2 ticks showed twice its rate. It is the
+/// engine's divided by the script's `every`.
+#[test]
+fn a_scripts_rate_counts_its_own_runs() {
+    let (cfg, state, addr) = setup("script-rate");
+    add_script(
+        &cfg,
+        "slow.lua",
+        "return { channels = { \"s\" }, passes = { { name = \"p\", reads = {}, writes = { \"s\" },\n\
+         kernel = function(c) buffer.writef64(c.w.s, 0, c.tick) end } } }",
+    );
+    edit_config(
+        &cfg,
+        "file = \"slow.lua\"",
+        "file = \"slow.lua\"\nevery = 2",
+    );
+    let d = start(&cfg, &state);
+    wait_ready(&addr);
+    let s = wait_status(&addr, "a rate", |s| {
+        s["scripts"][0]["steps_per_s"].as_f64().unwrap_or(0.0) > 0.0
+    });
+    let (water, slow) = (
+        s["scripts"][0]["steps_per_s"].as_f64().unwrap(),
+        s["scripts"][1]["steps_per_s"].as_f64().unwrap(),
+    );
+    assert_eq!(s["scripts"][1]["name"], "slow", "{s}");
+    assert!(
+        (slow * 2.0 - water).abs() < 1e-9 * water,
+        "{water} and {slow}: {s}"
+    );
+    assert!(stop(d).status.success());
+}
+
 /// Claim (README, `POST /scripts/NAME/params`): a value the server
 /// accepted against `/status`, whose range a hot reload narrowed before
 /// the engine applied it, gets 409 with the engine's reason. The engine

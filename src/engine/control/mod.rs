@@ -48,7 +48,8 @@ pub struct ParamStatus {
 pub struct ScriptStatus {
     /// Script name.
     pub name: String,
-    /// Steps per second over the last second of running.
+    /// Its runs per second over the last second of running: the engine's
+    /// steps per second divided by its `every`.
     pub steps_per_s: f64,
     /// `running`, `sleeping` (it did no work for two of its intervals:
     /// nothing is awake for it), `failing` (its last step failed) or

@@ -85,7 +85,9 @@ impl Engine {
         };
         ScriptStatus {
             name: spec.name.clone(),
-            steps_per_s: self.rate.per_s(),
+            // A script run every N ticks runs at 1/N of the step rate
+            // (long-run probe: snow, every 2 ticks, showed water's rate).
+            steps_per_s: self.rate.per_s() / sim.every(i) as f64,
             state: state.into(),
             error,
             failures_in_a_row: sim.failures(i),
