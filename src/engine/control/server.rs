@@ -23,7 +23,11 @@
 //! - **Hold a connection for ever**: only a live viewer's event stream
 //!   outlives [`CONNECTION_LIFETIME`]; at most
 //!   [`MAX_VIEWERS`](super::live::MAX_VIEWERS) are served and one that
-//!   reads nothing for [`STALL_LIMIT`](super::live::STALL_LIMIT) is closed.
+//!   reads nothing for [`STALL_LIMIT`](super::live::STALL_LIMIT) is closed;
+//!   the kernel buffers at most about [`SEND_BUFFER`] twice for a client
+//!   that does not read (long-run probe: with Linux's own sizing a stalled
+//!   viewer pinned up to 4 MB, and its stall began to count only once that
+//!   had filled, minutes later).
 //! - **Hold up shutdown**: [`ControlServer::stop`] drops every connection
 //!   task without waiting for its client.
 
@@ -120,6 +124,18 @@ impl Drop for Busy {
 }
 /// Pause of the accept loop after an accept error (out of descriptors…).
 const ACCEPT_BACKOFF: Duration = Duration::from_millis(50);
+
+/// The send buffer asked of the kernel for each connection (Linux doubles
+/// it for its bookkeeping): enough for a frame or the timeline to flow at
+/// full speed to a local viewer, little for one that reads nothing.
+pub const SEND_BUFFER: usize = 128 << 10;
+
+/// Ask the kernel for a send buffer of [`SEND_BUFFER`] on `socket` (best
+/// effort: a refusal leaves the kernel's own size).
+fn bound_send_buffer(socket: &impl std::os::fd::AsFd) {
+    #[cfg(target_os = "linux")]
+    let _ = nix::sys::socket::setsockopt(socket, nix::sys::socket::sockopt::SndBuf, &SEND_BUFFER);
+}
 
 /// A running control server.
 pub struct ControlServer {
@@ -228,6 +244,7 @@ async fn accept_loop(
 
 async fn serve(stream: tokio::net::TcpStream, shared: Arc<Shared>, me: Arc<Conn>) {
     let _ = stream.set_nodelay(true);
+    bound_send_buffer(&stream);
     // Set once this connection answers with an event stream: a live viewer
     // may stay longer than CONNECTION_LIFETIME (the stream has its own
     // limits, see `live`), and once the stream ends the connection closes.
@@ -294,3 +311,22 @@ const WATCH_EVERY: Duration = Duration::from_secs(1);
 /// How long a connection whose event stream ended may finish what it is
 /// doing before it is dropped.
 const ENDED_GRACE: Duration = Duration::from_secs(2);
+
+#[cfg(test)]
+mod tests {
+    /// Each connection's send buffer is bounded (Linux reports twice what
+    /// was asked), so a client that reads nothing pins little memory and
+    /// is found stalled soon (long-run probe).
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_connections_send_buffer_is_bounded() {
+        use nix::sys::socket::{getsockopt, sockopt::SndBuf};
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let _client = std::net::TcpStream::connect(l.local_addr().unwrap()).unwrap();
+        let (server_end, _) = l.accept().unwrap();
+        super::bound_send_buffer(&server_end);
+        let got = getsockopt(&server_end, SndBuf).unwrap();
+        assert!(got <= 2 * super::SEND_BUFFER, "{got}");
+        assert!(got >= super::SEND_BUFFER, "{got}");
+    }
+}
