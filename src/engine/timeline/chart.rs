@@ -106,6 +106,35 @@ pub fn read_tail(path: &Path, rows: usize) -> Result<Table> {
     Ok(t)
 }
 
+/// The most points a chart's line keeps: a longer timeline is thinned.
+pub const MAX_CHART_POINTS: usize = 2000;
+
+/// `points` thinned to at most [`MAX_CHART_POINTS`]: consecutive runs of
+/// rows keep their lowest and highest value, in order, so spikes and dips
+/// stay drawn (long-run probe: a day's timeline drew one point per row,
+/// 13 MB of SVG at 11 000 rows and some 300 MB by the timeline's rotation).
+pub fn thin(points: Vec<(f64, f64)>) -> Vec<(f64, f64)> {
+    if points.len() <= MAX_CHART_POINTS {
+        return points;
+    }
+    let run = points.len().div_ceil(MAX_CHART_POINTS / 2);
+    let mut out = Vec::with_capacity(MAX_CHART_POINTS);
+    for chunk in points.chunks(run) {
+        let by_y = |a: &&(f64, f64), b: &&(f64, f64)| a.1.total_cmp(&b.1);
+        let (lo, hi) = (
+            chunk.iter().min_by(by_y).copied(),
+            chunk.iter().max_by(by_y).copied(),
+        );
+        match (lo, hi) {
+            (Some(lo), Some(hi)) if lo.0 <= hi.0 => out.extend([lo, hi]),
+            (Some(lo), Some(hi)) => out.extend([hi, lo]),
+            _ => {}
+        }
+    }
+    out.dedup();
+    out
+}
+
 /// `brickworld chart STATE`: draw the timeline as SVG charts in `STATE/charts`.
 pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
     use crate::bench::chart::Series;
@@ -169,10 +198,11 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
         Some(Series {
             name: table.columns[c].as_str(),
             color,
-            points: rows
-                .iter()
-                .map(|r| (r[0].max(1.0), r[c].abs().max(1e-9)))
-                .collect(),
+            points: thin(
+                rows.iter()
+                    .map(|r| (r[0].max(1.0), r[c].abs().max(1e-9)))
+                    .collect(),
+            ),
         })
     };
     let with_prefix = |prefix: &str| -> Vec<Series<'_>> {
@@ -330,6 +360,36 @@ mod tests {
             let e = chart(&dir).unwrap_err().to_string();
             assert!(e.contains("charts is not a folder"), "{e}");
             assert_eq!(std::fs::read_dir(&elsewhere).unwrap().count(), 0);
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Regression (long-run probe): a long timeline is drawn with at most
+    /// MAX_CHART_POINTS points a line, keeping each run's extremes: a
+    /// lone spike survives, the order stays, and short lines are whole.
+    #[test]
+    fn long_timelines_are_thinned_keeping_their_extremes() {
+        let short: Vec<(f64, f64)> = (0..10).map(|i| (i as f64, 1.0)).collect();
+        assert_eq!(thin(short.clone()), short);
+        let mut long: Vec<(f64, f64)> = (0..300_000).map(|i| (i as f64, (i % 7) as f64)).collect();
+        long[123_457].1 = 1e6;
+        long[200_001].1 = -5.0;
+        let t = thin(long);
+        assert!(t.len() <= MAX_CHART_POINTS, "{}", t.len());
+        assert!(t.contains(&(123_457.0, 1e6)) && t.contains(&(200_001.0, -5.0)));
+        assert!(t.windows(2).all(|w| w[0].0 < w[1].0), "out of order");
+        // And the SVG of a long run stays small.
+        let dir = std::env::temp_dir().join(format!("bw-chart-long-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut text = String::from("tick,water,rss_kb\n");
+        for i in 1..=100_000 {
+            text += &format!("{i},{},{}\n", 1000 + i % 13, 30_000 + i % 5);
+        }
+        std::fs::write(dir.join("timeline.csv"), text).unwrap();
+        for svg in chart(&dir).unwrap() {
+            let bytes = std::fs::metadata(&svg).unwrap().len();
+            assert!(bytes < 1 << 20, "{}: {bytes} bytes", svg.display());
         }
         std::fs::remove_dir_all(&dir).unwrap();
     }
