@@ -200,6 +200,39 @@ fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
     assert!(before == after, "voxels outside the world were written");
 }
 
+/// Regression (long-run probe): a value out of bounds in the ring of tiles
+/// around the world (where drained water and slid snow collect) was named
+/// by a column outside the world, with nothing to say what it was. The
+/// error says so there, and only there.
+#[test]
+fn a_bound_error_in_the_ring_around_the_world_says_where_that_is() {
+    let error_at = |tile: &str| {
+        let mut world = terrain(IVec3::new(16, 32, 16), 3);
+        let mut ws = WorldSim::with_edges(&mut world, true);
+        let text = format!(
+            "return {{ channels = {{ \"h\" }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"h\" }},\n\
+             kernel = function(c, tx, tz) if {tile} then buffer.writef64(c.w.h, 0, 1e9) end end }} }} }}"
+        );
+        let src = ScriptSource {
+            name: "spike".into(),
+            text: text.into(),
+        };
+        ws.add_lua(src, Limits::default()).unwrap();
+        let (r, _) = ws.step_within_cfl(&mut world, 0.05, 0.5);
+        r.errors[0].to_string()
+    };
+    let ring = error_at("tx == -1 and tz == 0");
+    assert!(
+        ring.contains("column (-8, 0)") && ring.contains("the ring of tiles around the world"),
+        "{ring}"
+    );
+    let inside = error_at("tx == 0 and tz == 0");
+    assert!(
+        inside.contains("column (0, 0)") && !inside.contains("ring"),
+        "{inside}"
+    );
+}
+
 /// Claim (README): column and voxel scripts run in one world, *columns
 /// first, in the same tick* (claims audit: nothing noticed the order). The
 /// water a column script's write-back draws in a step is seen by a voxel

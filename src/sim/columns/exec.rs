@@ -146,6 +146,7 @@ pub(super) struct StepContext {
     pub(super) seed: u64,
     pub(super) tick: u64,
     pub(super) default_bound: f64,
+    pub(super) world_columns: Option<(glam::IVec2, glam::IVec2)>,
 }
 
 /// Run one script's passes over the work set. Returns, for each channel it
@@ -257,13 +258,27 @@ pub(super) fn run_script(
         });
         if let Some((w, c, x)) = out_of_bounds {
             let t = ws.tiles[w as usize];
+            let column = glam::IVec2::new(
+                t.x * TILE + (c as i32 % TILE),
+                t.y * TILE + (c as i32 / TILE),
+            );
+            // A column of the ring around the world is nowhere a user can
+            // look: say what it is (long-run probe: snow suspended at
+            // "column (-8, 48)" of a world from 0 to 96).
+            let ring = ctx
+                .world_columns
+                .is_some_and(|(lo, hi)| column.cmplt(lo).any() || column.cmpge(hi).any());
+            let why = if ring {
+                format!(
+                    "{why}; the column lies in the ring of tiles around the world, where what leaves the world collects"
+                )
+            } else {
+                why
+            };
             return Err(SimError::OutOfBounds {
                 script: s.spec.name.clone(),
                 channel: name.clone(),
-                place: crate::sim::Place::Column(
-                    t.x * TILE + (c as i32 % TILE),
-                    t.y * TILE + (c as i32 / TILE),
-                ),
+                place: crate::sim::Place::Column(column.x, column.y),
                 value: x,
                 bound: (lo, hi),
                 why,

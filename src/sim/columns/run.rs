@@ -97,6 +97,7 @@ impl WorldSim {
         };
         let mut sim = Simulation::new(smin, smax);
         sim.set_world_height((hi.y - lo.y) as f64);
+        sim.set_world_columns(glam::IVec2::new(lo.x, lo.z), glam::IVec2::new(hi.x, hi.z));
         let mut sync = ColumnSync::new(hi.y);
         let g = sim.channels_mut().channel("ground");
         let mut lowest = f64::INFINITY;

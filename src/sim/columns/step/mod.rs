@@ -111,6 +111,9 @@ pub struct Simulation {
     seed: u64,
     /// Bound of channels without a declared range.
     default_bound: f64,
+    /// The world's own columns `[min, max)`, where the tiles around them
+    /// are a ring the world drains into (None: all of them are the world's).
+    world_columns: Option<(glam::IVec2, glam::IVec2)>,
     /// Tiles `[min, max)` a step runs on (None: all); see
     /// [`set_region`](Simulation::set_region).
     region: Option<(TileCoord, TileCoord)>,
@@ -149,6 +152,7 @@ impl Simulation {
             tick: 0,
             seed: 0,
             default_bound: f64::MAX,
+            world_columns: None,
             region: None,
             scratch: StepScratch::default(),
         }
@@ -163,6 +167,12 @@ impl Simulation {
     /// [`MIN_BOUND_HEIGHT`]) × [`DEFAULT_BOUND_HEIGHTS`].
     pub fn set_world_height(&mut self, height: f64) {
         self.default_bound = height.abs().max(MIN_BOUND_HEIGHT) * DEFAULT_BOUND_HEIGHTS;
+    }
+
+    /// The world's own columns `[min, max)`: an error at a column outside
+    /// them says it lies in the ring of tiles around the world.
+    pub fn set_world_columns(&mut self, min: glam::IVec2, max: glam::IVec2) {
+        self.world_columns = Some((min, max));
     }
 
     /// The active set and quiet counters (sorted, for checkpoints).
@@ -306,6 +316,7 @@ impl Simulation {
                 seed: self.seed,
                 tick: self.tick,
                 default_bound: self.default_bound,
+                world_columns: self.world_columns,
             };
             let t0 = std::time::Instant::now();
             let result = run_script(script, &self.channels, &ws, &ctx, &mut self.scratch);
