@@ -146,6 +146,16 @@ fn closed_edges_conserve_water_and_sub_steps_keep_the_cfl_limit() {
     );
 }
 
+/// The voxels of the 37 × 32 × 44 world's partial tiles that lie past its
+/// edge (x 37..40, z 44..48): never drawn into.
+fn past_the_edge(world: &brickworld::scene::SceneWorld) -> Vec<u8> {
+    (0..32)
+        .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
+        .filter(|v| v.x >= 37 || v.z >= 44)
+        .map(|v| world.store().voxel(v))
+        .collect()
+}
+
 /// Regression (hostile probe): on a world whose x or z is not a multiple
 /// of 8 the partial tiles' outer cells read as ground 0, the moat sank to
 /// 2 below that, and the shipped erosion failed ("sediment" negative in the
@@ -157,11 +167,7 @@ fn closed_edges_conserve_water_and_sub_steps_keep_the_cfl_limit() {
 fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
     let size = IVec3::new(37, 32, 44);
     let mut world = terrain(size, 7);
-    let before: Vec<u8> = (0..32)
-        .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
-        .filter(|v| v.x >= 37 || v.z >= 44)
-        .map(|v| world.store().voxel(v))
-        .collect();
+    let before = past_the_edge(&world);
     let mut ws = WorldSim::with_edges(&mut world, true);
     for name in ["water", "erosion"] {
         add_shipped(&mut ws, name);
@@ -192,11 +198,7 @@ fn a_world_whose_size_is_not_a_multiple_of_8_runs_water_and_erosion() {
         "world {now} + drained {} != {start}",
         ws.drained
     );
-    let after: Vec<u8> = (0..32)
-        .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
-        .filter(|v| v.x >= 37 || v.z >= 44)
-        .map(|v| world.store().voxel(v))
-        .collect();
+    let after = past_the_edge(&world);
     assert!(before == after, "voxels outside the world were written");
 }
 
@@ -294,14 +296,7 @@ fn column_scripts_run_before_voxel_scripts_in_the_same_tick() {
 fn closed_edges_keep_a_partial_tiles_outer_cells_and_conserve_their_rain() {
     let size = IVec3::new(37, 32, 44);
     let mut world = terrain(size, 7);
-    let outside = |world: &brickworld::scene::SceneWorld| -> Vec<u8> {
-        (0..32)
-            .flat_map(|y| (0..40).flat_map(move |x| (0..48).map(move |z| IVec3::new(x, y, z))))
-            .filter(|v| v.x >= 37 || v.z >= 44)
-            .map(|v| world.store().voxel(v))
-            .collect()
-    };
-    let before = outside(&world);
+    let before = past_the_edge(&world);
     let mut ws = WorldSim::with_edges(&mut world, false);
     let water = add_shipped(&mut ws, "water");
     let rain = 0.25;
@@ -324,7 +319,7 @@ fn closed_edges_keep_a_partial_tiles_outer_cells_and_conserve_their_rain() {
         rain * dt * steps as f64 * (37.0 * 44.0)
     );
     assert!(
-        before == outside(&world),
+        before == past_the_edge(&world),
         "voxels outside the world were written"
     );
 }

@@ -227,29 +227,16 @@ pub fn ctl_command(addr: std::net::SocketAddr, state: &std::path::Path) -> Strin
     c
 }
 
-/// `ctl`'s arguments with the engine's address worked out.
-struct Resolved<'a> {
-    addr: String,
-    args: &'a CtlArgs,
-}
-
-impl std::ops::Deref for Resolved<'_> {
-    type Target = CtlArgs;
-    fn deref(&self) -> &CtlArgs {
-        self.args
-    }
-}
-
 /// Run `brickworld ctl`.
 pub fn run(a: &CtlArgs) -> Result<()> {
-    let (mut a, words) = with_trailing_options(a)?;
+    let (a, words) = with_trailing_options(a)?;
     // The address given, else the one the engine of `--state` bound (an
     // engine on port 0 picks its own; long-run probe: `ctl --state` could
     // not find it), else the default.
-    let addr = a.addr.take().unwrap_or_else(|| {
+    let addr = a.addr.clone().unwrap_or_else(|| {
         crate::engine::state_dir::read_addr(&a.state).unwrap_or_else(|| DEFAULT_ADDR.to_string())
     });
-    let a = &Resolved { addr, args: &a };
+    let a = &a;
     let words: Vec<&str> = words.iter().map(|s| s.as_str()).collect();
     let token_path = a.state.join("control.token");
     let token = || {
@@ -263,10 +250,10 @@ pub fn run(a: &CtlArgs) -> Result<()> {
         })
     };
     match words.as_slice() {
-        ["params"] => return params(&a.addr, None),
-        ["params", script] => return params(&a.addr, Some(script)),
-        ["log"] => return log(&a.addr, None, !a.no_follow),
-        ["log", script] => return log(&a.addr, Some(script), !a.no_follow),
+        ["params"] => return params(&addr, None),
+        ["params", script] => return params(&addr, Some(script)),
+        ["log"] => return log(&addr, None, !a.no_follow),
+        ["log", script] => return log(&addr, Some(script), !a.no_follow),
         _ => {}
     }
     let (method, path, body) = match words.as_slice() {
@@ -299,12 +286,12 @@ pub fn run(a: &CtlArgs) -> Result<()> {
     } else {
         None
     };
-    let (code, body) = request(&a.addr, method, &path, tok.as_deref().map(str::trim), &body)?;
+    let (code, body) = request(&addr, method, &path, tok.as_deref().map(str::trim), &body)?;
     // Every answer of the engine, errors too, is JSON.
     if serde_json::from_str::<serde_json::Value>(&body).is_err() {
         bail!(
             "{} answered {code} with something that is not JSON: is it a brickworld engine?",
-            a.addr
+            addr
         );
     }
     println!("{}", body.trim());
@@ -326,7 +313,7 @@ pub fn run(a: &CtlArgs) -> Result<()> {
     if !done {
         bail!(
             "{} answered {code} without saying it was done: is it a brickworld engine?",
-            a.addr
+            addr
         );
     }
     // Accepted but not yet applied (the engine is busy in a step): not a

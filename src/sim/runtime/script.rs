@@ -194,28 +194,25 @@ impl ScriptVm {
         Ok((vm, spec))
     }
 
-    /// The metatable of pass `pass`'s `c.TABLE`, whose `__index` (called
-    /// only for a name the table lacks) raises an error naming the list
-    /// `LIST` the name is missing from, at the kernel's line (a Lua
-    /// function, so that level 2 is the line that read the name).
-    fn unlisted(&self, pass: &str, table: &str, list: &str) -> mlua::Result<Table> {
-        let make: Function = self
-            .lua
+    /// A function that makes the metatable of a pass's `c.r` or `c.w`:
+    /// `make(pass, "w", "writes")`. Its `__index` (called only for a name
+    /// the table lacks) raises an error naming the list the name is missing
+    /// from, at the kernel's line (a Lua function, so that level 2 is the
+    /// line that read the name).
+    fn unlisted_maker(&self) -> mlua::Result<Function> {
+        self.lua
             .load(
                 r#"local pass, tbl, list = ...
-                return function(_, k)
+                local mt = { __index = function(_, k)
                   local name = type(k) == "string" and k or ("[" .. type(k) .. "]")
                   error("c." .. tbl .. "." .. name .. ": pass '" .. pass
                     .. "' does not list \"" .. name .. "\" in its " .. list, 2)
-                end"#,
+                end }
+                table.freeze(mt)
+                return mt"#,
             )
             .set_name("=unlisted")
-            .into_function()?;
-        let index: Function = make.call((pass, table, list))?;
-        let mt = self.lua.create_table()?;
-        mt.set("__index", index)?;
-        mt.set_readonly(true);
-        Ok(mt)
+            .into_function()
     }
 
     fn make_buffers(&mut self, spec: &ScriptSpec) -> mlua::Result<()> {
@@ -233,6 +230,7 @@ impl ScriptVm {
                 self.lua.create_buffer_with_capacity(VOXEL_CELLS)?,
             ));
         }
+        let unlisted = self.unlisted_maker()?;
         for pass in &spec.passes {
             let r = self.lua.create_table()?;
             if let Some((mr, _)) = &self.mat {
@@ -264,8 +262,8 @@ impl ScriptVm {
             // A name the pass does not list is an error that says so
             // (claims audit: `c.w.mat` in a pass that does not write "mat"
             // was nil, and the kernel failed on "buffer expected, got nil").
-            r.set_metatable(Some(self.unlisted(&pass.name, "r", "reads")?))?;
-            w.set_metatable(Some(self.unlisted(&pass.name, "w", "writes")?))?;
+            r.set_metatable(Some(unlisted.call((pass.name.as_str(), "r", "reads"))?))?;
+            w.set_metatable(Some(unlisted.call((pass.name.as_str(), "w", "writes"))?))?;
             // Read-only, as `c` is: a table that kept what a kernel stored
             // in it would carry state from tile to tile on one VM, and the
             // result would depend on the thread count (regression).
