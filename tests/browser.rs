@@ -1,6 +1,7 @@
 //! The viewer in a real browser (issue 12): headless Chromium, driven over
 //! the DevTools protocol, against a running engine. It checks that the page
-//! loads without errors, frames arrive and change, the page is read-only
+//! loads without errors, frames arrive and change, a hidden tab fetches
+//! nothing and frees its stream, the page is read-only
 //! without a token and reports a wrong one, dragging moves the camera, a
 //! slider moved with the keyboard changes a parameter, a refused value and a
 //! non-number show their messages, a broken script shows its error with
@@ -129,6 +130,38 @@ fn the_viewer_works_in_a_real_browser() {
     });
     let img = b.eval("window.bw.lastSize");
     assert_eq!(img, json!([160, 100]), "the frame is shown at its size");
+
+    // A hidden tab fetches no frames and, once hidden for
+    // `bw.hiddenCloseMs`, closes its stream; shown again, it reconnects and
+    // fetches frames (regression, long-run probe: a tab left open in the
+    // background fetched every frame, some 20 GB a day).
+    b.eval(
+        "window.bw.hiddenCloseMs = 300; Object.defineProperty(document, 'hidden', { configurable: true, get: () => true }); document.dispatchEvent(new Event('visibilitychange')); true",
+    );
+    b.wait_for(
+        "a hidden tab closes its stream",
+        10,
+        "window.bw.stream()",
+        |v| v == -1,
+    );
+    std::thread::sleep(Duration::from_millis(200));
+    let shown = b.eval("window.bw.frames");
+    let rendered = status(&addr)["frames"].as_u64().unwrap();
+    wait_status(&addr, "the engine renders on", |s| {
+        s["frames"].as_u64() >= Some(rendered + 3)
+    });
+    assert_eq!(
+        b.eval("window.bw.frames"),
+        shown,
+        "a hidden tab fetched frames"
+    );
+    let conn = b.eval("document.getElementById('conn').textContent");
+    assert!(conn.as_str().unwrap().contains("hidden"), "{conn}");
+    b.eval("delete document.hidden; document.dispatchEvent(new Event('visibilitychange')); true");
+    wait_live(&mut b, "a shown tab reconnects", 20);
+    b.wait_for("a shown tab fetches frames", 20, "window.bw.frames", |v| {
+        v.as_u64() > shown.as_u64()
+    });
     assert!(
         b.page_errors().is_empty(),
         "errors on load: {:?}",
