@@ -1,234 +1,10 @@
-//! Guarded access to the files a user names.
-//!
-//! - **Reading** ([`read_bounded`], [`read_text`]) takes only a regular file
-//!   (after following links) of at most a stated size: a FIFO would block
-//!   for ever, `/dev/zero` would fill memory, and a file that grows while
-//!   read is cut at the bound. Each refusal is one line naming the file.
-//! - **Writing** ([`Staged`]) goes to a fresh temporary file beside the
-//!   destination, created with `create_new` so it never reuses a file that
-//!   is already there, and replaces the destination only on
-//!   [`Staged::commit`]. A command that fails half-way leaves every file it
-//!   was going to replace as it was. A link is followed (the file it names
-//!   is replaced), and a destination that is not a regular file (`/dev/null`,
-//!   a FIFO) is written directly, never replaced. Temporary files that a
-//!   killed or interrupted process left beside a destination are removed
-//!   by the next write to it, once a minute old.
-//!
-//! ```
-//! use brickworld::files::{Staged, read_text};
-//! let dir = std::env::temp_dir().join(format!("bw-files-doc-{}", std::process::id()));
-//! std::fs::create_dir_all(&dir).unwrap();
-//! let dest = dir.join("note.txt");
-//! let staged = Staged::new(&dest).unwrap();
-//! std::fs::write(staged.path(), "hello").unwrap();
-//! assert!(!dest.exists()); // nothing replaced before the commit
-//! staged.commit().unwrap();
-//! assert_eq!(read_text(&dest, 1 << 10).unwrap(), "hello");
-//! # std::fs::remove_dir_all(&dir).unwrap();
-//! ```
+//! Temporary files beside their destinations: made fresh, listed so that an
+//! interrupt removes them, swept when a gone process left them, and
+//! [`Staged`], the write that replaces its destination only on commit
+//! (see the parent module).
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-
-use thiserror::Error;
-
-/// Why a file could not be read.
-#[derive(Debug, Error)]
-pub enum FileError {
-    /// The OS refused.
-    // Not a `source`: the text already says it, and an error chain
-    // (`anyhow`'s context) printed it twice (regression).
-    #[error("cannot read {}: {error}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// What the OS said.
-        error: std::io::Error,
-    },
-    /// A directory, FIFO, socket or device.
-    #[error("{} is not a regular file", path.display())]
-    NotAFile {
-        /// The file.
-        path: PathBuf,
-    },
-    /// Larger than the caller's bound.
-    #[error("{} is larger than the {max}-byte limit ({size} bytes)", path.display())]
-    TooLarge {
-        /// The file.
-        path: PathBuf,
-        /// Its size (or the bytes read before the bound was passed).
-        size: u64,
-        /// The bound.
-        max: u64,
-    },
-    /// Not UTF-8 text.
-    #[error("{} is not UTF-8 text", path.display())]
-    NotText {
-        /// The file.
-        path: PathBuf,
-    },
-}
-
-/// `options` with `O_NONBLOCK` on Unix: opening a FIFO then returns at
-/// once instead of waiting for the other end (a regular file reads and
-/// writes as always).
-pub fn without_waiting(options: &mut std::fs::OpenOptions) -> &mut std::fs::OpenOptions {
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::OpenOptionsExt;
-        options.custom_flags(libc::O_NONBLOCK);
-    }
-    options
-}
-
-/// Make a write past the process's file size limit (`ulimit -f`,
-/// `RLIMIT_FSIZE`) fail with "File too large" instead of killing the
-/// process: the kernel sends `SIGXFSZ`, whose default action ends the
-/// process without a word, and with the signal blocked the write returns
-/// `EFBIG`, which every writer reports as the error it is (a daemon's
-/// commit keeps the last good checkpoint). Call it first in `main`, before
-/// any thread starts: threads inherit the mask. A no-op off Unix.
-pub fn no_signal_past_file_size_limit() {
-    #[cfg(unix)]
-    {
-        use nix::sys::signal::{SigSet, Signal};
-        // Blocking a signal cannot fail with a valid set; if it did, the
-        // default (a silent kill past the limit) is what remains.
-        let _ = SigSet::from(Signal::SIGXFSZ).thread_block();
-    }
-}
-
-/// Whether something other than a regular file (a FIFO, a device, a
-/// directory) is at `path`: a file the engine reads or appends to there
-/// would block or never end.
-pub fn is_there_but_not_a_file(path: &Path) -> bool {
-    std::fs::metadata(path).is_ok_and(|m| !m.is_file())
-}
-
-/// The path of a folder held open as `dir`, through its descriptor
-/// (`/proc/self/fd/N`): it names the folder opened even after the path it
-/// was opened by names another one (a state directory deleted and made
-/// again, another engine's). `None` without `/proc`.
-pub fn held_folder(dir: &std::fs::File) -> Option<PathBuf> {
-    #[cfg(unix)]
-    {
-        use std::os::fd::AsRawFd;
-        let p = PathBuf::from(format!("/proc/self/fd/{}", dir.as_raw_fd()));
-        p.is_dir().then_some(p)
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = dir;
-        None
-    }
-}
-
-/// Whether `path` names the file open as `file` (the same device and
-/// inode). The file is held open, so its inode cannot be reused while
-/// this is asked. Without Unix metadata, true.
-pub fn names_open_file(path: &Path, file: &std::fs::File) -> bool {
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::MetadataExt;
-        match (std::fs::metadata(path), file.metadata()) {
-            (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
-            _ => false,
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = (path, file);
-        true
-    }
-}
-
-/// Open `path` to read it, [`without_waiting`].
-pub fn open_for_reading(path: &Path) -> std::io::Result<std::fs::File> {
-    without_waiting(std::fs::OpenOptions::new().read(true)).open(path)
-}
-
-/// The whole of a regular file of at most `max` bytes.
-pub fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, FileError> {
-    let io = |error| FileError::Io {
-        path: path.to_path_buf(),
-        error,
-    };
-    let meta = std::fs::metadata(path).map_err(io)?;
-    if !meta.is_file() {
-        return Err(FileError::NotAFile {
-            path: path.to_path_buf(),
-        });
-    }
-    let too_large = |size| FileError::TooLarge {
-        path: path.to_path_buf(),
-        size,
-        max,
-    };
-    if meta.len() > max {
-        return Err(too_large(meta.len()));
-    }
-    let f = open_for_reading(path).map_err(io)?;
-    // Opened after the check, without blocking (a file swapped for a FIFO in
-    // between would block in `open` itself), and the type checked again on
-    // the open handle before anything is read.
-    if !f.metadata().map_err(io)?.is_file() {
-        return Err(FileError::NotAFile {
-            path: path.to_path_buf(),
-        });
-    }
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
-    f.take(max + 1).read_to_end(&mut bytes).map_err(io)?;
-    if bytes.len() as u64 > max {
-        return Err(too_large(bytes.len() as u64));
-    }
-    Ok(bytes)
-}
-
-/// [`read_bounded`] as UTF-8 text.
-pub fn read_text(path: &Path, max: u64) -> Result<String, FileError> {
-    String::from_utf8(read_bounded(path, max)?).map_err(|_| FileError::NotText {
-        path: path.to_path_buf(),
-    })
-}
-
-/// The file that marks a directory as scratch space this program made.
-pub const SCRATCH_MARKER: &str = ".brickworld-scratch";
-
-/// Make `dir` a fresh, empty scratch directory (holding only
-/// [`SCRATCH_MARKER`]): create it, or empty it if it is empty already or
-/// carries the marker. Any other directory, or a file, is refused and left
-/// untouched (regression: `bench store --dir` and `soak --state` deleted
-/// whatever directory they were given).
-pub fn fresh_scratch_dir(dir: &Path) -> Result<(), String> {
-    let shown = dir.display();
-    match std::fs::symlink_metadata(dir) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-        Err(e) => return Err(format!("cannot use {shown}: {e}")),
-        Ok(m) if !m.is_dir() => {
-            return Err(format!("{shown} exists and is not a directory"));
-        }
-        Ok(_) => {
-            let empty = std::fs::read_dir(dir)
-                .map_err(|e| format!("cannot read {shown}: {e}"))?
-                .next()
-                .is_none();
-            if !empty && !dir.join(SCRATCH_MARKER).is_file() {
-                return Err(format!(
-                    "{shown} already exists and was not made by brickworld (no {SCRATCH_MARKER} in it): \
-                     name a new or empty directory, or remove it yourself"
-                ));
-            }
-            std::fs::remove_dir_all(dir).map_err(|e| format!("cannot empty {shown}: {e}"))?;
-        }
-    }
-    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {shown}: {e}"))?;
-    std::fs::write(
-        dir.join(SCRATCH_MARKER),
-        "scratch space of brickworld: emptied without asking by the next run\n",
-    )
-    .map_err(|e| format!("cannot write in {shown}: {e}"))
-}
 
 /// A new, empty file `.NAME.PID-N.tmp` beside `dest`, opened for writing;
 /// created with `create_new`, so it is never a file that was already there.
@@ -472,18 +248,9 @@ impl Drop for Staged {
     }
 }
 
-/// Make a FIFO at `path`, for the unit tests of inputs that must not block.
-#[cfg(all(test, unix))]
-pub(crate) fn mkfifo(path: &Path) {
-    let made = std::process::Command::new("mkfifo")
-        .arg(path)
-        .status()
-        .unwrap();
-    assert!(made.success(), "mkfifo {}", path.display());
-}
-
 #[cfg(test)]
 mod tests {
+    use super::super::tests::dir;
     use super::*;
 
     /// What an interrupt removes: the temporaries being written, and not
@@ -534,13 +301,6 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
-    fn dir(name: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("bw-files-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&d);
-        std::fs::create_dir_all(&d).unwrap();
-        d
-    }
-
     /// Regression (hostile probe): a command killed or stopped with Ctrl-C
     /// mid-write left its hidden temporary file for good. The next write to
     /// the same destination removes those of gone processes, once a minute
@@ -578,71 +338,6 @@ mod tests {
         }
         assert_eq!(std::fs::read_to_string(&dest).unwrap(), "new");
         let _ = std::fs::remove_dir_all(&d);
-    }
-
-    #[test]
-    fn special_and_oversized_files_are_refused_before_reading() {
-        let d = dir("read");
-        let e = read_bounded(Path::new("/dev/zero"), 1 << 20).unwrap_err();
-        assert!(matches!(e, FileError::NotAFile { .. }), "{e}");
-        let e = read_bounded(&d, 1 << 20).unwrap_err();
-        assert!(e.to_string().ends_with("is not a regular file"), "{e}");
-        let f = d.join("big");
-        std::fs::write(&f, [0u8; 100]).unwrap();
-        let e = read_bounded(&f, 99).unwrap_err();
-        assert!(
-            e.to_string().contains("larger than the 99-byte limit"),
-            "{e}"
-        );
-        assert_eq!(read_bounded(&f, 100).unwrap().len(), 100);
-        std::fs::write(&f, [0xffu8; 4]).unwrap();
-        assert!(matches!(
-            read_text(&f, 10).unwrap_err(),
-            FileError::NotText { .. }
-        ));
-    }
-
-    /// Regression (review): opening a FIFO blocked in `open` itself, before
-    /// the handle's type could be checked.
-    #[cfg(unix)]
-    #[test]
-    fn opening_a_fifo_does_not_wait_for_a_writer() {
-        let fifo = dir("fifo").join("pipe");
-        mkfifo(&fifo);
-        // Returns at once (a blocking open would hang this test).
-        let f = open_for_reading(&fifo).unwrap();
-        assert!(!f.metadata().unwrap().is_file());
-        let e = read_bounded(&fifo, 1 << 20).unwrap_err();
-        assert!(matches!(e, FileError::NotAFile { .. }), "{e}");
-    }
-
-    #[test]
-    fn only_scratch_directories_are_emptied() {
-        let d = dir("scratch");
-        let mine = d.join("mine");
-        fresh_scratch_dir(&mine).unwrap();
-        std::fs::write(mine.join("world.redb"), "x").unwrap();
-        fresh_scratch_dir(&mine).unwrap();
-        assert!(!mine.join("world.redb").exists(), "emptied");
-        let theirs = d.join("theirs");
-        std::fs::create_dir_all(&theirs).unwrap();
-        std::fs::write(theirs.join("precious.txt"), "keep").unwrap();
-        let e = fresh_scratch_dir(&theirs).unwrap_err();
-        assert!(e.contains("was not made by brickworld"), "{e}");
-        assert_eq!(
-            std::fs::read_to_string(theirs.join("precious.txt")).unwrap(),
-            "keep"
-        );
-        let file = d.join("file");
-        std::fs::write(&file, "keep").unwrap();
-        assert!(
-            fresh_scratch_dir(&file)
-                .unwrap_err()
-                .contains("not a directory")
-        );
-        let empty = d.join("empty");
-        std::fs::create_dir_all(&empty).unwrap();
-        fresh_scratch_dir(&empty).unwrap();
     }
 
     #[test]
