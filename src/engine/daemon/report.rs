@@ -26,7 +26,7 @@ impl Engine {
         let stats = &self.renderer.stats;
         let row = Row {
             tick,
-            steps_per_s: self.rate.per_s(),
+            steps_per_s: self.rate.per_s(Instant::now()),
             active_bricks: r.active_tiles,
             dirty_bricks: self.dirty_pending.len(),
             frame_ms: stats.frame_ms(),
@@ -87,7 +87,7 @@ impl Engine {
             name: spec.name.clone(),
             // A script run every N ticks runs at 1/N of the step rate
             // (long-run probe: snow, every 2 ticks, showed water's rate).
-            steps_per_s: self.rate.per_s() / sim.every(i) as f64,
+            steps_per_s: self.rate.per_s(Instant::now()) / sim.every(i) as f64,
             state: state.into(),
             error,
             failures_in_a_row: sim.failures(i),
