@@ -3,7 +3,7 @@
 //! ranges), or a 4xx with the reason. The engine checks again when it
 //! applies a command, in case a hot reload changed the ranges meanwhile.
 
-use super::live::VerdictSlot;
+use super::exchange::VerdictSlot;
 use super::routes::{percent_decoded, shown};
 use super::{Command, Status};
 

@@ -12,6 +12,7 @@
 //! validated, queued (bounded) and applied by the engine loop between steps.
 
 pub mod commands;
+pub mod exchange;
 pub mod live;
 pub mod routes;
 pub mod server;
@@ -192,7 +193,7 @@ pub enum Command {
     /// Commit what changed to the world store now.
     Checkpoint {
         /// Where the engine says whether the commit was written.
-        verdict: live::VerdictSlot,
+        verdict: exchange::VerdictSlot,
     },
     /// Go back to the world's configured camera (path).
     CameraPath {
@@ -218,7 +219,7 @@ pub enum Command {
         /// Name → value.
         values: Vec<(String, f64)>,
         /// Where the engine says whether it applied them.
-        verdict: live::VerdictSlot,
+        verdict: exchange::VerdictSlot,
     },
 }
 
@@ -244,9 +245,9 @@ pub struct Shared {
     /// The latest rendered frame, for live viewers.
     pub frame_events: tokio::sync::watch::Sender<live::FrameEvent>,
     /// The timeline's last rows, for the viewer's charts.
-    pub timeline: Mutex<live::TimelineRing>,
+    pub timeline: Mutex<exchange::TimelineRing>,
     /// Which viewer holds the camera.
-    pub camera_lease: Mutex<live::CameraLease>,
+    pub camera_lease: Mutex<exchange::CameraLease>,
     /// Slots for live viewers' event streams.
     pub viewers: std::sync::Arc<live::Viewers>,
 }
@@ -265,8 +266,8 @@ impl Shared {
             shutdown: AtomicBool::new(false),
             started: AtomicBool::new(false),
             frame_events: tokio::sync::watch::Sender::new(live::FrameEvent::default()),
-            timeline: Mutex::new(live::TimelineRing::default()),
-            camera_lease: Mutex::new(live::CameraLease::default()),
+            timeline: Mutex::new(exchange::TimelineRing::default()),
+            camera_lease: Mutex::new(exchange::CameraLease::default()),
             viewers: std::sync::Arc::new(live::Viewers::default()),
         }
     }

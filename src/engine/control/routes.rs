@@ -37,7 +37,8 @@ use hyper::{Method, Request, Response, StatusCode};
 use serde::Serialize;
 
 use super::commands::parse_command;
-use super::live::{self, VerdictSlot};
+use super::exchange::VerdictSlot;
+use super::live;
 use super::server::BODY_TIMEOUT;
 use super::{Command, MAX_BODY, MAX_QUEUED_COMMANDS, Shared};
 

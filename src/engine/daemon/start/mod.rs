@@ -262,7 +262,7 @@ fn open_timeline(state: &Path, ws: &WorldSim, shared: &Shared) -> Result<Timelin
     let names = ring_columns(timeline_columns(ws));
     if let Ok(past) = crate::engine::timeline::read_tail(
         &state.join("timeline.csv"),
-        crate::engine::control::live::TIMELINE_ROWS,
+        crate::engine::control::exchange::TIMELINE_ROWS,
     ) && past.columns == names
         && let Ok(mut ring) = shared.timeline.lock()
     {
