@@ -569,10 +569,21 @@ fn status_events_come_at_most_every_250_ms_and_only_when_it_changed() {
         "{running} status events (at most {most})"
     );
     assert_eq!(post(&addr, &state, "/pause", "").0, 200);
+    // Paused, and its step rate has fallen to 0 (2 s after the last step:
+    // regression, long-run probe, a paused engine showed the rate of its
+    // last second of running).
     let settled = Instant::now();
-    while status(&addr)["paused"] != true && settled.elapsed() < Duration::from_secs(10) {
+    let at_rest =
+        |s: &serde_json::Value| s["paused"] == true && s["scripts"][0]["steps_per_s"] == 0.0;
+    while !at_rest(&status(&addr)) && settled.elapsed() < Duration::from_secs(10) {
         std::thread::sleep(Duration::from_millis(20));
     }
+    let s = status(&addr);
+    assert!(
+        at_rest(&s),
+        "a paused engine's steps_per_s: {}",
+        s["scripts"][0]["steps_per_s"]
+    );
     std::thread::sleep(Duration::from_millis(300));
     let t = Instant::now();
     let seen = events(&addr, |_| t.elapsed() > Duration::from_millis(1500));
