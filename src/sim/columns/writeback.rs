@@ -10,7 +10,9 @@
 //! can make the write-back allocate bricks outside the world. Only voxels
 //! between a column's own old and new surfaces are touched, never below its
 //! topmost solid voxel (a column cannot see a cave or an overhang's
-//! underside, so it must not write there), through
+//! underside, so it must not write there), and above its old ground only
+//! air and the column's own materials (water, snow, sediment) are
+//! changed: a voxel another script placed in its way is kept. All of it goes through
 //! [`BrickStore::edit_brick`], so every change is recorded as a dirty brick
 //! for the renderer.
 
@@ -80,6 +82,13 @@ pub struct ColumnSync {
     /// whose size is not a multiple of the tile has partial tiles, whose
     /// outer columns are simulated but never written into voxels.
     outside: FxHashMap<TileCoord, u64>,
+}
+
+/// Whether a voxel is air or a material the column write-back writes
+/// (water, snow, sediment): above a column's old ground, only these are
+/// the column's to change.
+fn is_column_voxel(m: u8) -> bool {
+    m == 0 || m == WATER || m == SNOW || m == SEDIMENT
 }
 
 /// Water shallower than this many voxels is not drawn.
@@ -204,6 +213,15 @@ impl ColumnSync {
                                 }
                                 let i = voxel_index(x, ly, z);
                                 let cur = d[i];
+                                // Above its old ground, a column owns only
+                                // air and what it writes: a voxel another
+                                // script placed there is kept (regression,
+                                // modder probe: water rising over sand a
+                                // voxel script had piled turned it to water,
+                                // and falling again cleared it).
+                                if y >= old[c][0] && !is_column_voxel(cur) {
+                                    continue;
+                                }
                                 d[i] = if y < gt {
                                     if cur == 0 || cur == WATER || cur == SNOW {
                                         SEDIMENT
@@ -284,5 +302,60 @@ mod tests {
         resumed.record(t, &[0.0; TILE_CELLS]);
         resumed.resync(&ch, t);
         assert_eq!(ran.last.get(&t), resumed.last.get(&t));
+    }
+
+    /// Regression (modder probe): a voxel script's sand on a column's
+    /// ground was turned to water when the column's water rose over it,
+    /// and cleared when the water fell: the write-back changes only air
+    /// and its own materials above the old ground.
+    #[test]
+    fn the_write_back_keeps_voxels_another_script_placed() {
+        const SAND: u8 = 7;
+        let t = TileCoord::new(0, 0);
+        let mut ch = ChannelStore::default();
+        let g = ch.channel("ground");
+        let w = ch.channel("water");
+        ch.set(t, g, &[4.0; TILE_CELLS]);
+        let mut store = BrickStore::new(Palette::grey_ramp());
+        store.edit_brick(IVec3::ZERO, |d| {
+            for z in 0..TILE {
+                for x in 0..TILE {
+                    for y in 0..4 {
+                        d[voxel_index(x, y, z)] = 1;
+                    }
+                }
+            }
+            // Sand on the ground of column (2, 3), two voxels high.
+            d[voxel_index(2, 4, 3)] = SAND;
+            d[voxel_index(2, 5, 3)] = SAND;
+        });
+        let mut sync = ColumnSync::new(32);
+        sync.record(t, &[4.0; TILE_CELLS]);
+        let at = |store: &BrickStore, x: i32, y: i32, z: i32| {
+            let mut d = [0u8; 512];
+            store.read_dense(IVec3::ZERO, &mut d);
+            d[voxel_index(x, y, z)]
+        };
+        // Water 3 deep rises over the sand: the sand stays, the water fills
+        // around it, and the column beside it fills.
+        ch.set(t, w, &[3.0; TILE_CELLS]);
+        sync.write(&ch, &[t], &mut store);
+        assert_eq!(at(&store, 2, 4, 3), SAND);
+        assert_eq!(at(&store, 2, 5, 3), SAND);
+        assert_eq!(at(&store, 2, 6, 3), WATER);
+        assert_eq!(at(&store, 1, 5, 3), WATER);
+        // The water drains away: the sand is still there, the water gone.
+        ch.set(t, w, &[0.0; TILE_CELLS]);
+        sync.write(&ch, &[t], &mut store);
+        assert_eq!(at(&store, 2, 4, 3), SAND);
+        assert_eq!(at(&store, 2, 5, 3), SAND);
+        assert_eq!(at(&store, 2, 6, 3), 0);
+        assert_eq!(at(&store, 1, 5, 3), 0);
+        // Erosion takes a voxel of ground from under it: the column's own
+        // ground changes as before, and the sand is left where it was.
+        ch.set(t, g, &[3.0; TILE_CELLS]);
+        sync.write(&ch, &[t], &mut store);
+        assert_eq!(at(&store, 2, 3, 3), 0);
+        assert_eq!(at(&store, 2, 4, 3), SAND);
     }
 }
