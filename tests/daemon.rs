@@ -168,6 +168,15 @@ fn status_pause_step_and_control_errors() {
     assert_eq!(post(&addr, &state, "/checkpoint", "").0, 200);
     let out = stop(child);
     assert_success(&out);
+    // The change is logged with its tick; the refused one is not
+    // (researcher probe: parameter changes were recorded nowhere).
+    let log = String::from_utf8_lossy(&out.stderr);
+    let line = log
+        .lines()
+        .find(|l| l.contains("water.rain = 0.5 (was "))
+        .unwrap_or_else(|| panic!("no line for the change: {log}"));
+    assert!(line.starts_with("tick "), "{line}");
+    assert!(!log.contains("water.rain = 99"), "{log}");
 }
 
 #[test]
@@ -1213,4 +1222,57 @@ fn a_streak_that_suspends_a_script_in_one_tick_is_said_to_begin_too() {
         err.contains("warning: water.lua is suspended after 3 failed steps in a row"),
         "{err}"
     );
+}
+
+/// Regression (researcher probe): the timeline's `dirty_bricks` read 0 in
+/// every row (the renderer's pending set had just been handed over with
+/// the frame), `ms:snow` read 0 in every row of a world running snow every
+/// 2 ticks (rows fell on ticks it did not run), and `active_bricks` read 0
+/// in a world of voxel scripts alone.
+#[test]
+fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
+    let (cfg, state, _) = setup("timelinecounts");
+    edit_config(
+        &cfg,
+        "params = { rain = 0.2 }\n",
+        "params = { rain = 0.2 }\n[[scripts]]\nfile = \"snow.lua\"\nevery = 2\nparams = { snowfall = 0.5 }\n",
+    );
+    edit_config(&cfg, "[frames]\nevery = 5", "[frames]\nevery = 4");
+    run_ok(&cfg, &state, "--until-tick", 40);
+    let t = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
+    let col = |name: &str| {
+        let i = t
+            .columns
+            .iter()
+            .position(|c| c == name)
+            .unwrap_or_else(|| panic!("{name}: {:?}", t.columns));
+        t.rows.iter().map(|r| r[i]).collect::<Vec<f64>>()
+    };
+    assert!(
+        col("dirty_bricks").iter().any(|&v| v > 0.0),
+        "{:?}",
+        col("dirty_bricks")
+    );
+    assert!(
+        col("ms:snow").iter().all(|&v| v > 0.0),
+        "{:?}",
+        col("ms:snow")
+    );
+    assert!(
+        col("active_bricks").iter().all(|&v| v > 0.0),
+        "{:?}",
+        col("active_bricks")
+    );
+
+    // Voxel scripts alone: rain3d runs on the top layer of bricks.
+    let (cfg, state, _) = setup("timelinevoxels");
+    edit_config(
+        &cfg,
+        "file = \"water.lua\"\nparams = { rain = 0.2 }",
+        "file = \"rain3d.lua\"\nparams = { rain = 0.0 }",
+    );
+    run_ok(&cfg, &state, "--until-tick", 20);
+    let t = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
+    let i = t.columns.iter().position(|c| c == "active_bricks").unwrap();
+    assert!(t.rows.iter().all(|r| r[i] > 0.0), "{:?}", t.rows);
 }

@@ -41,7 +41,9 @@ impl Engine {
             let index = self.ws.script_index(&name);
             match self.ws.reload(&self.world, path) {
                 Ok(Some((i, mut warnings))) => {
-                    crate::say!("reloaded {}", path.display());
+                    // With its tick: the log is where a researcher finds
+                    // when conditions changed (researcher probe).
+                    crate::say!("tick {}: reloaded {}", self.ws.sim.tick(), path.display());
                     // A parameter the config sets and the new version does
                     // not declare: running on is fine, but the next start
                     // refuses the config (regression: said nowhere).
@@ -255,10 +257,21 @@ impl Engine {
                         .collect();
                     let before = self.ws.params(i).to_vec();
                     if refused.is_empty() {
+                        let tick = self.ws.sim.tick();
                         for (k, v) in values {
+                            let was = self.ws.spec(i).param_index(&k, v).ok().map(|j| before[j]);
                             // Checked just above, on this thread.
                             if let Err(e) = self.ws.set_param(i, &k, v) {
                                 crate::say!("{e}");
+                                continue;
+                            }
+                            // Each change, with its tick, on standard error:
+                            // the timeline has no parameter columns, and a
+                            // researcher must be able to find when
+                            // conditions changed (researcher probe: recorded
+                            // nowhere).
+                            if let Some(was) = was.filter(|w| w.to_bits() != v.to_bits()) {
+                                crate::say!("tick {tick}: {script}.{k} = {v} (was {was})");
                             }
                         }
                         // A suspended script runs again once its parameters

@@ -289,10 +289,19 @@ impl Engine {
             }
         }
         self.rate.step(Instant::now());
-        self.active_bricks = r.active_tiles;
-        self.script_ms = (0..self.ws.script_count())
-            .map(|i| self.ws.script_ms(&r, i))
-            .collect();
+        self.active_bricks = report::active_count(&r);
+        // A script's time in its last run: a script run every N ticks
+        // keeps it between its runs (regression, researcher probe: one run
+        // every 2 ticks showed 0 ms in every timeline row, which fall on
+        // even ticks, where it does not run).
+        let ran_at = self.ws.sim.tick().saturating_sub(1);
+        let n = self.ws.script_count();
+        self.script_ms.resize(n, 0.0);
+        for i in 0..n {
+            if ran_at.is_multiple_of(self.ws.every(i)) {
+                self.script_ms[i] = self.ws.script_ms(&r, i);
+            }
+        }
         for (i, n) in self.notes.iter_mut().enumerate() {
             n.idle_steps = if self.ws.did_work(&r, i) {
                 0

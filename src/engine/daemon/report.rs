@@ -9,6 +9,14 @@ use crate::engine::control::{ParamStatus, ScriptStatus, Status};
 use crate::engine::timeline::Row;
 use crate::sim::{StepReport, WorldSim};
 
+/// What the timeline and `/status` call active bricks: the column
+/// scripts' awake tiles (each a column of 8×8 voxel columns; the moat's
+/// count too) plus the voxel scripts' candidate bricks (regression,
+/// researcher probe: a world of voxel scripts alone read 0).
+pub(super) fn active_count(r: &StepReport) -> usize {
+    r.active_tiles + r.voxel.candidates
+}
+
 impl Engine {
     pub(super) fn record_timeline(&mut self, r: &StepReport) {
         let tick = self.ws.sim.tick();
@@ -27,8 +35,11 @@ impl Engine {
         let row = Row {
             tick,
             steps_per_s: self.rate.per_s(Instant::now()),
-            active_bricks: r.active_tiles,
-            dirty_bricks: self.dirty_pending.len(),
+            active_bricks: active_count(r),
+            // The bricks this step changed: the renderer's pending set was
+            // just handed over with the frame (regression, researcher
+            // probe: the column read 0 in every row).
+            dirty_bricks: r.bricks.len(),
             frame_ms: stats.frame_ms(),
             bricks_streamed: stats.bricks_streamed(),
             rss_kb: crate::engine::timeline::rss_kb(),
@@ -36,9 +47,7 @@ impl Engine {
             ground_plus_sediment: total(&self.ws, "ground") + total(&self.ws, "sediment"),
             snow: total(&self.ws, "snow"),
             drained: self.ws.drained,
-            script_ms: (0..self.ws.script_count())
-                .map(|i| self.ws.script_ms(r, i))
-                .collect(),
+            script_ms: self.script_ms.clone(),
             conserved: (0..self.ws.script_count())
                 .flat_map(|i| self.ws.conserved_totals(i).into_iter().map(|(_, v)| v))
                 .collect(),
