@@ -323,6 +323,21 @@ fn bad_scripts_are_rejected_at_load_with_name_and_line() {
             "    local b = c.r.height",
             r#"c.r.height: pass 'p' does not list "height" in its reads"#,
         ),
+        // And so are a misspelt parameter, material or field of `c`
+        // (modder probe: they read as nil and failed lines later, on
+        // "attempt to compare number < nil").
+        (
+            "    local b = c.p.rte",
+            r#"declares no parameter "rte" (it declares none)"#,
+        ),
+        (
+            "    local b = c.m.grasss",
+            r#"does not list "grasss" in its materials (listed: air)"#,
+        ),
+        (
+            "    local b = c.dT",
+            r#"c.dT: the context has no field "dT" (it has dt, tick, random, p, m, r, w)"#,
+        ),
     ] {
         let e = load(&kernel_script(body)).unwrap_err();
         assert!(e.to_string().contains(said), "{e}");

@@ -19,4 +19,5 @@ mod sandbox;
 pub mod script;
 pub mod source_file;
 pub mod spec;
+mod strict;
 pub mod vms;

@@ -79,6 +79,8 @@ pub struct ScriptVm {
     write_tables: Vec<Table>,
     /// One context table per pass (`dt`, `p`, `r`, `w`), rebuilt each step.
     ctx: Vec<Table>,
+    /// The metatables of `c.p`, `c.m` and `c` ([`super::strict`]).
+    strict: Option<[Table; 3]>,
     name: String,
     limits: Limits,
     /// Whether the last call failed for want of memory (the soft limit or
@@ -150,6 +152,7 @@ impl ScriptVm {
             reads: Vec::new(),
             writes: Vec::new(),
             read_tables: Vec::new(),
+            strict: None,
             write_tables: Vec::new(),
             ctx: Vec::new(),
             name: src.name.clone(),
@@ -194,27 +197,6 @@ impl ScriptVm {
         Ok((vm, spec))
     }
 
-    /// A function that makes the metatable of a pass's `c.r` or `c.w`:
-    /// `make(pass, "w", "writes")`. Its `__index` (called only for a name
-    /// the table lacks) raises an error naming the list the name is missing
-    /// from, at the kernel's line (a Lua function, so that level 2 is the
-    /// line that read the name).
-    fn unlisted_maker(&self) -> mlua::Result<Function> {
-        self.lua
-            .load(
-                r#"local pass, tbl, list = ...
-                local mt = { __index = function(_, k)
-                  local name = type(k) == "string" and k or ("[" .. type(k) .. "]")
-                  error("c." .. tbl .. "." .. name .. ": pass '" .. pass
-                    .. "' does not list \"" .. name .. "\" in its " .. list, 2)
-                end }
-                table.freeze(mt)
-                return mt"#,
-            )
-            .set_name("=unlisted")
-            .into_function()
-    }
-
     fn make_buffers(&mut self, spec: &ScriptSpec) -> mlua::Result<()> {
         let (halo, own) = match spec.grid {
             Grid::Columns => (HALO_CELLS * 8, TILE_CELLS * 8),
@@ -230,7 +212,7 @@ impl ScriptVm {
                 self.lua.create_buffer_with_capacity(VOXEL_CELLS)?,
             ));
         }
-        let unlisted = self.unlisted_maker()?;
+        let make = super::strict::maker(&self.lua)?;
         for pass in &spec.passes {
             let r = self.lua.create_table()?;
             if let Some((mr, _)) = &self.mat {
@@ -262,8 +244,12 @@ impl ScriptVm {
             // A name the pass does not list is an error that says so
             // (claims audit: `c.w.mat` in a pass that does not write "mat"
             // was nil, and the kernel failed on "buffer expected, got nil").
-            r.set_metatable(Some(unlisted.call((pass.name.as_str(), "r", "reads"))?))?;
-            w.set_metatable(Some(unlisted.call((pass.name.as_str(), "w", "writes"))?))?;
+            r.set_metatable(Some(super::strict::unlisted(
+                &make, &pass.name, "r", "reads",
+            )?))?;
+            w.set_metatable(Some(super::strict::unlisted(
+                &make, &pass.name, "w", "writes",
+            )?))?;
             // Read-only, as `c` is: a table that kept what a kernel stored
             // in it would carry state from tile to tile on one VM, and the
             // result would depend on the thread count (regression).
@@ -272,6 +258,15 @@ impl ScriptVm {
             self.read_tables.push(r);
             self.write_tables.push(w);
         }
+        // Misspelt parameters, materials and fields of `c` too (modder
+        // probe: they read as nil, and failed lines later).
+        let names = spec.params.iter().map(|p| p.name.as_str());
+        let materials = spec.materials.iter().map(String::as_str);
+        self.strict = Some([
+            super::strict::unknown_param(&make, &spec.name, names)?,
+            super::strict::unknown_material(&make, &spec.name, materials)?,
+            super::strict::unknown_field(&make)?,
+        ]);
         Ok(())
     }
 
@@ -291,6 +286,9 @@ impl ScriptVm {
             for (name, id) in spec.materials.iter().zip(material_ids) {
                 m.set(name.as_str(), *id)?;
             }
+            if let Some([_, mm, _]) = &self.strict {
+                m.set_metatable(Some(mm.clone()))?;
+            }
             m.set_readonly(true);
             let random = self.lua.create_function(
                 move |_, (x, y, z, k): (f64, Option<f64>, Option<f64>, Option<f64>)| {
@@ -300,6 +298,9 @@ impl ScriptVm {
             let p = self.lua.create_table()?;
             for (s, v) in spec.params.iter().zip(params) {
                 p.set(s.name.as_str(), *v)?;
+            }
+            if let Some([pm, _, _]) = &self.strict {
+                p.set_metatable(Some(pm.clone()))?;
             }
             p.set_readonly(true);
             let mut out = Vec::with_capacity(self.read_tables.len());
@@ -312,6 +313,9 @@ impl ScriptVm {
                 c.set("m", m.clone())?;
                 c.set("r", r.clone())?;
                 c.set("w", w.clone())?;
+                if let Some([_, _, cm]) = &self.strict {
+                    c.set_metatable(Some(cm.clone()))?;
+                }
                 c.set_readonly(true);
                 out.push(c);
             }
