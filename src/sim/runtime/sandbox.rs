@@ -83,7 +83,7 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
                 (Value::Nil, _) => LogPart::Text("nil".into()),
                 (Value::Boolean(b), _) => LogPart::Text(b.to_string()),
                 (Value::Integer(i), _) => LogPart::Text(i.to_string()),
-                (Value::Number(n), _) => LogPart::Text(n.to_string()),
+                (Value::Number(n), _) => LogPart::Text(number_text(*n)),
                 (other, _) => LogPart::Text(other.type_name().to_string()),
             }));
             if let Some(mut held) = lua.app_data_mut::<HeldLog>()
@@ -126,4 +126,40 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     // replaced `setmetatable`).
     lua.set_compiler(super::compile::compiler());
     Ok(lua)
+}
+
+/// A number as `log` writes it: the shortest text that reads back as the
+/// same number, with an exponent past 10¹⁵ and below 10⁻⁴, as `tostring`
+/// does (regression, modder probe: `log(1e-300)` wrote 300 zeros, and the
+/// rest of the line was cut at the length limit).
+fn number_text(n: f64) -> String {
+    if n.is_nan() {
+        return "nan".into();
+    }
+    let a = n.abs();
+    if a.is_finite() && a != 0.0 && !(1e-4..1e15).contains(&a) {
+        format!("{n:e}")
+    } else {
+        n.to_string()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::number_text;
+
+    #[test]
+    fn log_writes_large_and_small_numbers_with_an_exponent() {
+        assert_eq!(number_text(1e20), "1e20");
+        assert_eq!(number_text(-1e-300), "-1e-300");
+        assert_eq!(number_text(3.4028234663852886e38), "3.4028234663852886e38");
+        assert_eq!(number_text(0.1), "0.1");
+        assert_eq!(number_text(12345.5), "12345.5");
+        assert_eq!(number_text(0.0), "0");
+        assert_eq!(number_text(f64::INFINITY), "inf");
+        assert_eq!(number_text(f64::NAN), "nan");
+        for n in [1e20, 1e-300, 0.1, 2.5e-7, 123456789.125] {
+            assert_eq!(number_text(n).parse::<f64>().unwrap(), n);
+        }
+    }
 }
