@@ -192,8 +192,16 @@ impl<'a> SimRun<'a> {
     /// and is retried when `materials.lua` changes.
     fn reload(&mut self, path: &Path, pb: &ProgressBar) {
         match self.ws.reload(&self.world, path) {
-            Ok(Some((i, _))) => {
-                pb.suspend(|| crate::say!("reloaded {}", path.display()));
+            Ok(Some((i, warnings))) => {
+                pb.suspend(|| {
+                    crate::say!("reloaded {}", path.display());
+                    // A value clamped into a narrowed range, as the engine
+                    // says it (regression, modder probe: `sim --watch`
+                    // clamped in silence).
+                    for w in &warnings {
+                        crate::say!("warning: {w}");
+                    }
+                });
                 self.failed[i] = None;
                 self.refused.retain(|p| p != path);
             }

@@ -314,6 +314,71 @@ fn sim_watch_that_reloaded_a_failed_script_exits_0_with_its_image() {
     assert!(png.is_file(), "{seen:#?}");
 }
 
+/// Regression (modder probe): `sim --watch` clamped a parameter into a
+/// range a save narrowed without a word, where the engine warns.
+#[test]
+fn sim_watch_says_when_a_narrowed_range_clamps_a_parameter() {
+    use std::io::BufRead;
+    let dir = scratch("simwatchclamp");
+    let script = |max: u32| {
+        format!(
+            "return {{ channels = {{ \"s\" }}, params = {{ v = {{ default = 1, min = 0, max = {max} }} }}, passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ \"s\" }},\n\
+             kernel = function(c) for i = 1, 20000 do end buffer.writef64(c.w.s, 0, c.p.v + c.tick) end }} }} }}\n"
+        )
+    };
+    std::fs::write(dir.join("vv.lua"), script(10)).unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args([
+            "sim",
+            "--size",
+            "16x16x16",
+            "--steps",
+            "10000000",
+            "--watch",
+            "--param",
+            "vv.v=8",
+            "--out",
+        ])
+        .arg(dir.join("out.png"))
+        .arg("--script")
+        .arg(dir.join("vv.lua"))
+        .stderr(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for l in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = tx.send(l);
+        }
+    });
+    std::thread::sleep(Duration::from_millis(1500));
+    save_like_an_editor(&dir.join("vv.lua"), &script(5));
+    let mut seen = Vec::new();
+    let t = Instant::now();
+    while t.elapsed() < Duration::from_secs(30)
+        && !seen.iter().any(|l: &String| l.contains("clamped"))
+    {
+        if let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) {
+            seen.push(l);
+        }
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    let line = seen
+        .iter()
+        .find(|l| l.contains("clamped"))
+        .unwrap_or_else(|| panic!("{seen:#?}"));
+    assert!(
+        line.starts_with("warning:") && line.contains("'v'") && line.contains("5"),
+        "{line}"
+    );
+}
+
 /// A scratch folder of this test's own.
 fn scratch(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("brickworld-{name}-{}", std::process::id()));
