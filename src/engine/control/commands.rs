@@ -132,9 +132,9 @@ pub fn parse_command(path: &str, body: &str, status: &Status) -> Result<Command,
                 let Some(p) = s.params.iter().find(|p| &p.name == k) else {
                     let known: Vec<&str> = s.params.iter().map(|p| p.name.as_str()).collect();
                     return Err(bad(format!(
-                        "script '{script}' has no parameter '{}' (known: {})",
+                        "script '{script}' has no parameter '{}' ({})",
                         shown(k),
-                        known.join(", ")
+                        crate::sim::runtime::spec::known_params(&known)
                     )));
                 };
                 if !v.is_finite() || !(p.min..=p.max).contains(v) {

@@ -162,8 +162,8 @@ impl ScriptSpec {
         let Some(i) = self.params.iter().position(|p| p.name == name) else {
             let known: Vec<&str> = self.params.iter().map(|p| p.name.as_str()).collect();
             return Err(err(format!(
-                "no parameter '{name}' (known: {})",
-                known.join(", ")
+                "no parameter '{name}' ({})",
+                known_params(&known)
             )));
         };
         let p = &self.params[i];
@@ -186,4 +186,14 @@ pub struct ScriptSource {
     pub name: String,
     /// Source text.
     pub text: Arc<str>,
+}
+
+/// The parameters a "no parameter" error lists: `known: a, b`, or that
+/// the script declares none (an empty "known: " read as a cut message).
+pub fn known_params(names: &[&str]) -> String {
+    if names.is_empty() {
+        "the script declares no parameters".into()
+    } else {
+        format!("known: {}", names.join(", "))
+    }
 }

@@ -244,6 +244,13 @@ pub(super) fn number(
     match v {
         Value::Number(n) => Ok(*n),
         Value::Integer(n) => Ok(*n as f64),
+        // A key left out reads as nil: say it is missing (modder probe:
+        // "'min' must be a number, found a nil").
+        Value::Nil => Err(declaration(
+            src,
+            Some(needle),
+            format!("{what} is missing: it must be a number"),
+        )),
         other => Err(declaration(
             src,
             Some(needle),
