@@ -329,14 +329,7 @@ fn sim_watch_says_when_a_narrowed_range_clamps_a_parameter() {
     std::fs::write(dir.join("vv.lua"), script(10)).unwrap();
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
         .args([
-            "sim",
-            "--size",
-            "16x16x16",
-            "--steps",
-            "10000000",
-            "--watch",
-            "--param",
-            "vv.v=8",
+            "sim", "--size", "16x16x16", "--steps", "10000000", "--watch", "--param", "vv.v=8",
             "--out",
         ])
         .arg(dir.join("out.png"))

@@ -102,6 +102,9 @@ pub fn run(cli: Cli) -> Result<()> {
                 r.frame_ms_mean,
                 r.ground_plus_sediment_drift
             );
+            for (name, d) in &r.conserved_drift {
+                println!("{name} (declared conserved) drift {d:.2e}");
+            }
             Ok(())
         }
         Command::Chart { state } => {

@@ -39,6 +39,11 @@ pub struct SoakReport {
     pub frame_ms_mean: f64,
     /// Relative drift of ground + sediment (conserved exactly) over the run.
     pub ground_plus_sediment_drift: f64,
+    /// Relative drift of each channel a script declares conserved (the
+    /// timeline's `total:SCRIPT.CHANNEL` columns) over the run: a world of
+    /// voxel scripts has no column ground, so ground + sediment alone said
+    /// nothing of it (researcher probe).
+    pub conserved_drift: Vec<(String, f64)>,
     /// Ticks run.
     pub ticks: u64,
     /// Frames the render thread drew.
@@ -178,6 +183,7 @@ pub fn run(
         (Some(a), Some(b)) if gs(a) != 0.0 => ((gs(b) - gs(a)) / gs(a)).abs(),
         _ => f64::NAN,
     };
+    let conserved_drift = conserved_drift(&table);
     let frame = rows
         .iter()
         .map(|r| r[col("frame_ms")])
@@ -217,6 +223,7 @@ pub fn run(
         ticks_per_s: (last_tick - first_tick.unwrap_or(0)) as f64 / secs,
         frame_ms_mean: frame.iter().sum::<f64>() / frame.len().max(1) as f64,
         ground_plus_sediment_drift: drift,
+        conserved_drift,
         ticks: last_tick,
         frames: frames.0,
         frames_skipped: frames.1,
@@ -229,4 +236,48 @@ pub fn run(
         memory_budget,
         window: last_window,
     })
+}
+
+/// The drift of each `total:SCRIPT.CHANNEL` column of a timeline from its
+/// first row to its last: relative, or absolute where the total starts at 0.
+fn conserved_drift(table: &crate::engine::timeline::Table) -> Vec<(String, f64)> {
+    let rel = |a: f64, b: f64| {
+        if a != 0.0 {
+            ((b - a) / a).abs()
+        } else {
+            (b - a).abs()
+        }
+    };
+    let rows = &table.rows;
+    (table.columns.iter().enumerate())
+        .filter(|(_, c)| c.starts_with("total:"))
+        .filter_map(|(i, c)| {
+            let (a, b) = (rows.first()?.get(i)?, rows.last()?.get(i)?);
+            Some((c["total:".len()..].to_string(), rel(*a, *b)))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    /// Regression (researcher probe): `soak` reported the drift of ground
+    /// plus sediment only, meaningless on a world of voxel scripts; it
+    /// reports each declared conserved channel's too.
+    #[test]
+    fn soak_reports_the_drift_of_each_declared_conserved_total() {
+        let table = crate::engine::timeline::Table {
+            columns: ["tick", "water", "total:water3d.water", "total:x.y"]
+                .map(String::from)
+                .to_vec(),
+            rows: vec![vec![1.0, 5.0, 200.0, 0.0], vec![2.0, 9.0, 200.5, 0.25]],
+            skipped: 0,
+        };
+        assert_eq!(
+            super::conserved_drift(&table),
+            vec![
+                ("water3d.water".to_string(), 0.0025),
+                ("x.y".to_string(), 0.25)
+            ]
+        );
+    }
 }
