@@ -230,6 +230,86 @@ fn draw_xy(
     Ok(())
 }
 
+/// Like [`xy_svg`], with linear axes: a log axis clamps zeros and hides
+/// a small change in a large total (researcher probe: a conserved total's
+/// drift could not be seen), so a timeline's totals are drawn on these.
+/// Values are drawn as they are, negative ones too; a flat line gets an
+/// axis around it, labelled with as many decimals as its ticks need.
+pub fn line_svg(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[Series],
+) -> Result<String, ChartError> {
+    let mut svg = String::new();
+    draw_lines(&mut svg, title, x_desc, y_desc, series).map_err(|e| ChartError::new(path, e))?;
+    Ok(svg)
+}
+
+fn draw_lines(
+    svg: &mut String,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[Series],
+) -> Result<(), Box<dyn std::error::Error>> {
+    let usable = |p: &&(f64, f64)| p.0.abs() < 1e300 && p.1.abs() < 1e300;
+    let pts = || series.iter().flat_map(|s| s.points.iter()).filter(usable);
+    if pts().next().is_none() {
+        return Err("nothing to plot".into());
+    }
+    let span = |f: fn(&(f64, f64)) -> f64| {
+        let (lo, hi) = pts()
+            .map(f)
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+                (a.min(v), b.max(v))
+            });
+        // A flat line: an axis of a millionth of its value (or ±0.5) around it.
+        let pad = if hi > lo {
+            (hi - lo) * 0.05
+        } else {
+            (hi.abs() * 1e-6).max(0.5)
+        };
+        (lo - pad)..(hi + pad)
+    };
+    let (xs, ys) = (span(|p| p.0), span(|p| p.1));
+    let digits = |r: &std::ops::Range<f64>| {
+        (-((r.end - r.start) / 20.0).log10().floor()).clamp(0.0, 12.0) as usize
+    };
+    let (xd, yd) = (digits(&xs), digits(&ys));
+    let root = SVGBackend::with_string(svg, (800, 520)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(16)
+        .x_label_area_size(40)
+        .y_label_area_size(110)
+        .build_cartesian_2d(xs, ys)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .x_label_formatter(&|v| format!("{v:.xd$}"))
+        .y_label_formatter(&|v| format!("{v:.yd$}"))
+        .draw()?;
+    for s in series {
+        let p: Vec<(f64, f64)> = s.points.iter().filter(usable).copied().collect();
+        let c = s.color;
+        chart
+            .draw_series(LineSeries::new(p, c.stroke_width(2)))?
+            .label(s.name)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()?;
+    root.present()?;
+    Ok(())
+}
+
 /// Most decades a log axis spans: plotters divides the axis's ends, and an
 /// infinite ratio made its tick placement loop for ever (regression, panic
 /// audit: a timeline with 1e-10 and 9e299 in one column hung `chart`).
@@ -269,6 +349,40 @@ mod tick_tests {
         }];
         let svg = super::xy_svg(std::path::Path::new("t.svg"), "t", "x", "y", &series).unwrap();
         assert!(svg.contains("<svg"), "{svg}");
+    }
+
+    #[test]
+    fn linear_charts_draw_flat_negative_and_drifting_lines() {
+        use plotters::style::RGBColor;
+        let line = |pts: Vec<(f64, f64)>| super::Series {
+            name: "t",
+            color: RGBColor(0, 0, 0),
+            points: pts,
+        };
+        let p = std::path::Path::new("t.svg");
+        for pts in [
+            vec![(1.0, 139284.0), (2.0, 139284.0)],
+            vec![(1.0, -3.0), (5.0, -1.0)],
+            vec![(0.0, 0.0), (1.0, 0.0)],
+            vec![(1.0, 139284.0), (2.0, 139284.0 * (1.0 + 1e-9))],
+        ] {
+            let svg = super::line_svg(p, "t", "x", "y", &[line(pts.clone())]).unwrap();
+            assert!(
+                svg.contains("<polyline") || svg.contains("<path"),
+                "{pts:?}"
+            );
+        }
+        // A drift of a billionth shows in the labels' decimals.
+        let svg = super::line_svg(
+            p,
+            "t",
+            "x",
+            "y",
+            &[line(vec![(1.0, 139284.0), (2.0, 139284.0002)])],
+        )
+        .unwrap();
+        assert!(svg.contains("139284.000"), "no decimals on a small span");
+        assert!(super::line_svg(p, "t", "x", "y", &[line(vec![(1.0, f64::NAN)])]).is_err());
     }
 
     #[test]

@@ -256,7 +256,6 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             .flatten()
             .collect(),
         ),
-        ("totals.svg", "Conserved totals", "total (log)", totals),
         (
             "scripts.svg",
             "Time per step of each script (ms)",
@@ -268,25 +267,72 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             continue;
         }
         let path = dir.join(file);
-        // The names are fixed, inside STATE: anything there but a file
-        // is refused, not written into (regression, hostile probe 3: a
-        // FIFO hung `chart`, and a link made it overwrite a file outside
-        // STATE).
-        if std::fs::symlink_metadata(&path).is_ok_and(|m| !m.file_type().is_file()) {
-            bail!(
-                "{} is not a regular file (a link, folder or FIFO): chart replaces its SVGs there, so move it away",
-                path.display()
-            );
-        }
-        // Written beside and renamed over its name: a link or FIFO put
-        // there after the check above is replaced, never written through.
+        refuse_special(&path)?;
         let svg = crate::bench::chart::xy_svg(&path, title, "tick (log)", y, &list)?;
-        crate::files::Staged::replacing(&path)
-            .and_then(|f| std::fs::write(f.path(), &svg).and_then(|_| f.commit()))
-            .with_context(|| format!("cannot write {}", path.display()))?;
+        write_svg(&path, &svg)?;
         out.push(path);
     }
+    // Each total on its own chart, with linear axes, so that its drift
+    // shows (researcher probe: on one log chart of all totals, titled
+    // "Conserved totals", a drift was invisible and rain-fed water looked
+    // conserved). `total-NAME.svg`; the old `totals.svg` is removed.
+    for s in totals {
+        let short = s.name.strip_prefix("total:").unwrap_or(s.name);
+        let safe: String = (short.chars())
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '_' {
+                    c
+                } else {
+                    '-'
+                }
+            })
+            .collect();
+        let path = dir.join(format!("total-{safe}.svg"));
+        refuse_special(&path)?;
+        let raw = Series {
+            points: thin(
+                rows.iter()
+                    .map(|r| (r[0], r[table.col(s.name).unwrap_or(0)]))
+                    .collect(),
+            ),
+            ..s
+        };
+        let what = if s.name.starts_with("total:") {
+            "declared conserved by its script"
+        } else {
+            "a column total, the moat included"
+        };
+        let title = format!("{} ({what})", s.name);
+        let svg = crate::bench::chart::line_svg(&path, &title, "tick", "total", &[raw])?;
+        write_svg(&path, &svg)?;
+        out.push(path);
+    }
+    let old = dir.join("totals.svg");
+    if std::fs::symlink_metadata(&old).is_ok_and(|m| m.file_type().is_file()) {
+        let _ = std::fs::remove_file(old);
+    }
     Ok(out)
+}
+
+/// The names are fixed, inside STATE: anything there but a file is
+/// refused, not written into (regression, hostile probe 3: a FIFO hung
+/// `chart`, and a link made it overwrite a file outside STATE).
+fn refuse_special(path: &Path) -> Result<()> {
+    if std::fs::symlink_metadata(path).is_ok_and(|m| !m.file_type().is_file()) {
+        bail!(
+            "{} is not a regular file (a link, folder or FIFO): chart replaces its SVGs there, so move it away",
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+/// Written beside and renamed over its name: a link or FIFO put there
+/// after [`refuse_special`] is replaced, never written through.
+fn write_svg(path: &Path, svg: &str) -> Result<()> {
+    crate::files::Staged::replacing(path)
+        .and_then(|f| std::fs::write(f.path(), svg).and_then(|_| f.commit()))
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 #[cfg(test)]
@@ -344,14 +390,14 @@ mod tests {
         std::fs::write(&victim, "mine").unwrap();
         #[cfg(unix)]
         {
-            std::os::unix::fs::symlink(&victim, dir.join("charts/totals.svg")).unwrap();
+            std::os::unix::fs::symlink(&victim, dir.join("charts/total-water.svg")).unwrap();
             let e = chart(&dir).unwrap_err().to_string();
-            assert!(e.contains("totals.svg is not a regular file"), "{e}");
+            assert!(e.contains("total-water.svg is not a regular file"), "{e}");
             assert_eq!(std::fs::read_to_string(&victim).unwrap(), "mine");
-            std::fs::remove_file(dir.join("charts/totals.svg")).unwrap();
-            crate::files::mkfifo(&dir.join("charts/totals.svg"));
+            std::fs::remove_file(dir.join("charts/total-water.svg")).unwrap();
+            crate::files::mkfifo(&dir.join("charts/total-water.svg"));
             let e = chart(&dir).unwrap_err().to_string();
-            assert!(e.contains("totals.svg is not a regular file"), "{e}");
+            assert!(e.contains("total-water.svg is not a regular file"), "{e}");
             // A link to a folder elsewhere is no charts folder (review).
             std::fs::remove_dir_all(dir.join("charts")).unwrap();
             let elsewhere = dir.join("elsewhere");
@@ -409,7 +455,7 @@ mod tests {
             .iter()
             .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
             .collect();
-        assert_eq!(names, ["memory.svg", "totals.svg"]);
+        assert_eq!(names, ["memory.svg", "total-water.svg"]);
         // Each script's time per step goes to scripts.svg (audit: the
         // README names it; no test drew it).
         std::fs::write(
