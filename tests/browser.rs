@@ -135,14 +135,10 @@ fn the_viewer_works_in_a_real_browser() {
     // `bw.hiddenCloseMs`, closes its stream; shown again, it reconnects and
     // fetches frames (regression, long-run probe: a tab left open in the
     // background fetched every frame, some 20 GB a day).
+    // First with the stream still open (a long wait before it closes):
+    // frame events arrive, and none is fetched.
     b.eval(
-        "window.bw.hiddenCloseMs = 300; Object.defineProperty(document, 'hidden', { configurable: true, get: () => true }); document.dispatchEvent(new Event('visibilitychange')); true",
-    );
-    b.wait_for(
-        "a hidden tab closes its stream",
-        10,
-        "window.bw.stream()",
-        |v| v == -1,
+        "window.bw.hiddenCloseMs = 600000; Object.defineProperty(document, 'hidden', { configurable: true, get: () => true }); document.dispatchEvent(new Event('visibilitychange')); true",
     );
     std::thread::sleep(Duration::from_millis(200));
     let shown = b.eval("window.bw.frames");
@@ -151,9 +147,22 @@ fn the_viewer_works_in_a_real_browser() {
         s["frames"].as_u64() >= Some(rendered + 3)
     });
     assert_eq!(
+        b.eval("window.bw.stream()"),
+        json!(1),
+        "the stream closed early"
+    );
+    assert_eq!(
         b.eval("window.bw.frames"),
         shown,
         "a hidden tab fetched frames"
+    );
+    // Then the short wait: the stream closes.
+    b.eval("window.bw.hiddenCloseMs = 300; document.dispatchEvent(new Event('visibilitychange')); true");
+    b.wait_for(
+        "a hidden tab closes its stream",
+        10,
+        "window.bw.stream()",
+        |v| v == -1,
     );
     let conn = b.eval("document.getElementById('conn').textContent");
     assert!(conn.as_str().unwrap().contains("hidden"), "{conn}");
@@ -358,6 +367,19 @@ fn the_viewer_works_in_a_real_browser() {
         b.page_errors().is_empty(),
         "page errors: {:?}",
         b.page_errors()
+    );
+    // A tab opened in the background starts hidden, with no
+    // visibilitychange to say so: it still closes its stream (review).
+    b.call(
+        "Page.addScriptToEvaluateOnNewDocument",
+        json!({ "source": "Object.defineProperty(document, 'hidden', { configurable: true, get: () => true });" }),
+    );
+    b.navigate(&format!("http://{addr}/"));
+    b.wait_for(
+        "a tab loaded hidden closes its stream",
+        30,
+        "window.bw && document.hidden && window.bw.stream()",
+        |v| v == -1,
     );
     stop(daemon);
 }

@@ -1264,12 +1264,13 @@ fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
         col("active_bricks")
     );
 
-    // Voxel scripts alone: rain3d runs on the top layer of bricks.
+    // Voxel scripts alone: rain3d's drops keep the top layer of bricks
+    // awake.
     let (cfg, state, _) = setup("timelinevoxels");
     edit_config(
         &cfg,
         "file = \"water.lua\"\nparams = { rain = 0.2 }",
-        "file = \"rain3d.lua\"\nparams = { rain = 0.0 }",
+        "file = \"rain3d.lua\"\nparams = { rain = 0.5 }",
     );
     run_ok(&cfg, &state, "--until-tick", 20);
     let t = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();

@@ -1130,6 +1130,9 @@ fn a_suspended_script_runs_again_when_its_parameters_change() {
     assert_ne!(script["state"], "suspended", "{s}");
     assert_ne!(script["state"], "failing", "{s}");
     assert_eq!(script["failures_in_a_row"], 0, "{s}");
+    // The three failures that suspended it still count (modder probe: a
+    // script failing one step in four looked like a running one).
+    assert_eq!(script["failed_steps"], 3, "{s}");
     let out = stop(d);
     assert_success(&out);
     let err = String::from_utf8_lossy(&out.stderr);

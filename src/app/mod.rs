@@ -103,7 +103,9 @@ pub fn run(cli: Cli) -> Result<()> {
                 r.ground_plus_sediment_drift
             );
             for (name, d) in &r.conserved_drift {
-                println!("{name} (declared conserved) drift {d:.2e}");
+                println!(
+                    "{name} (declared conserved) drift {d:.2e} (relative; absolute where it started at 0)"
+                );
             }
             Ok(())
         }

@@ -61,9 +61,13 @@ pub struct ScriptStatus {
     pub error: Option<String>,
     /// Failed steps in a row.
     pub failures_in_a_row: u32,
+    /// Steps it failed since the engine started (a script failing every
+    /// few ticks shows as running between its failures, and the log says
+    /// that it began to fail at most once a minute).
+    pub failed_steps: u64,
     /// Parameters with their ranges.
     pub params: Vec<ParamStatus>,
-    /// Milliseconds the script took in the last step.
+    /// Milliseconds the script took in its last run (kept between the runs of a script run every N ticks).
     pub ms_per_step: f64,
     /// Totals of the channels it declares `conserved`.
     pub totals: std::collections::BTreeMap<String, f64>,

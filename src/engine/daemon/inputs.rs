@@ -78,6 +78,8 @@ impl Engine {
                         warning: warnings.last().cloned(),
                         reloads,
                         reloaded_at: self.ws.sim.tick(),
+                        // Counted over the run, reloads included.
+                        failed_steps: self.notes[i].failed_steps,
                         ..Default::default()
                     };
                 }

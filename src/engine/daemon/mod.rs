@@ -131,6 +131,10 @@ struct ScriptNotes {
     idle_steps: u64,
     /// When the log last said that it began to fail.
     announced: Option<Instant>,
+    /// Steps it failed in this run (modder probe: a script failing one
+    /// step in four showed as running most of the time, with nothing to
+    /// count its failures).
+    failed_steps: u64,
 }
 
 /// How often the log may say that one script began to fail again.
@@ -283,13 +287,18 @@ impl Engine {
                 n.step_error = None;
             }
         }
+        let mut failed = vec![false; self.notes.len()];
         for e in &r.errors {
             if let Some(i) = self.ws.script_index(error_script(e)) {
                 self.notes[i].step_error = Some(e.to_string());
+                failed[i] = true;
             }
         }
+        for (n, f) in self.notes.iter_mut().zip(failed) {
+            n.failed_steps += f as u64;
+        }
         self.rate.step(Instant::now());
-        self.active_bricks = report::active_count(&r);
+        self.active_bricks = report::active_count(&r, &self.ws);
         // A script's time in its last run: a script run every N ticks
         // keeps it between its runs (regression, researcher probe: one run
         // every 2 ticks showed 0 ms in every timeline row, which fall on

@@ -11,10 +11,10 @@ use crate::sim::{StepReport, WorldSim};
 
 /// What the timeline and `/status` call active bricks: the column
 /// scripts' awake tiles (each a column of 8×8 voxel columns; the moat's
-/// count too) plus the voxel scripts' candidate bricks (regression,
+/// count too) plus the voxel simulation's awake bricks (regression,
 /// researcher probe: a world of voxel scripts alone read 0).
-pub(super) fn active_count(r: &StepReport) -> usize {
-    r.active_tiles + r.voxel.candidates
+pub(super) fn active_count(r: &StepReport, ws: &WorldSim) -> usize {
+    r.active_tiles + ws.vox.active_bricks()
 }
 
 impl Engine {
@@ -35,7 +35,7 @@ impl Engine {
         let row = Row {
             tick,
             steps_per_s: self.rate.per_s(Instant::now()),
-            active_bricks: active_count(r),
+            active_bricks: active_count(r, &self.ws),
             // The bricks this step changed: the renderer's pending set was
             // just handed over with the frame (regression, researcher
             // probe: the column read 0 in every row).
@@ -100,6 +100,7 @@ impl Engine {
             state: state.into(),
             error,
             failures_in_a_row: sim.failures(i),
+            failed_steps: note.failed_steps,
             params: spec
                 .params
                 .iter()

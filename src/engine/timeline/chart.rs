@@ -280,7 +280,7 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
         let short = s.name.strip_prefix("total:").unwrap_or(s.name);
         let safe: String = (short.chars())
             .map(|c| {
-                if c.is_ascii_alphanumeric() || c == '_' {
+                if c.is_ascii_alphanumeric() || c == '_' || c == '.' {
                     c
                 } else {
                     '-'
@@ -303,13 +303,32 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             "a column total, the moat included"
         };
         let title = format!("{} ({what})", s.name);
-        let svg = crate::bench::chart::line_svg(&path, &title, "tick", "total", &[raw])?;
+        // A column with no finite value (a hand-made file) is skipped,
+        // not the end of every chart (review).
+        let svg = match crate::bench::chart::line_svg(&path, &title, "tick", "total", &[raw]) {
+            Ok(svg) => svg,
+            Err(e) => {
+                crate::say!("warning: {e}");
+                continue;
+            }
+        };
         write_svg(&path, &svg)?;
         out.push(path);
     }
-    let old = dir.join("totals.svg");
-    if std::fs::symlink_metadata(&old).is_ok_and(|m| m.file_type().is_file()) {
-        let _ = std::fs::remove_file(old);
+    // Charts of totals this timeline no longer has (another set of
+    // scripts), and the old single `totals.svg`, are removed (review).
+    if let Ok(entries) = std::fs::read_dir(&dir) {
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            let stale = (name == "totals.svg"
+                || (name.starts_with("total-") && name.ends_with(".svg")))
+                && !out
+                    .iter()
+                    .any(|p| p.file_name() == Some(e.file_name().as_os_str()));
+            if stale && e.file_type().is_ok_and(|t| t.is_file()) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
     }
     Ok(out)
 }
@@ -470,6 +489,17 @@ mod tests {
             .expect("scripts.svg");
         let text = std::fs::read_to_string(svg).unwrap();
         assert!(text.contains("water") && text.contains("snow"), "{text}");
+        // A total with no finite value is skipped, not the end of every
+        // chart, and the chart of a total the timeline no longer has is
+        // removed (review).
+        std::fs::write(&csv, "tick,water,snow\n1,nan,1\n2,nan,2\n").unwrap();
+        let drawn = chart(&dir).unwrap();
+        let names: Vec<String> = std::fs::read_dir(dir.join("charts"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .filter(|n| n.starts_with("total"))
+            .collect();
+        assert_eq!(names, ["total-snow.svg"], "{drawn:?}");
         std::fs::write(&csv, "a,b\n1,2\n3,4\n").unwrap();
         assert!(
             chart(&dir)

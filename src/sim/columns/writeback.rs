@@ -84,11 +84,13 @@ pub struct ColumnSync {
     outside: FxHashMap<TileCoord, u64>,
 }
 
-/// Whether a voxel is air or a material the column write-back writes
-/// (water, snow, sediment): above a column's old ground, only these are
-/// the column's to change.
-fn is_column_voxel(m: u8) -> bool {
-    m == 0 || m == WATER || m == SNOW || m == SEDIMENT
+/// Whether voxel `m` at height `y`, at or above a column's old ground, is
+/// the column's to change given its old surfaces `old`: air, or the water
+/// and snow it wrote there, below its old top. The materials alone do not
+/// say it: a voxel script's water (water3d's material is the column's
+/// `water`) above the column's top is another's (review).
+fn is_column_voxel(m: u8, y: i32, old: [i32; 3]) -> bool {
+    m == 0 || ((m == WATER || m == SNOW) && y < old[2].max(old[0]))
 }
 
 /// Water shallower than this many voxels is not drawn.
@@ -219,7 +221,7 @@ impl ColumnSync {
                                 // modder probe: water rising over sand a
                                 // voxel script had piled turned it to water,
                                 // and falling again cleared it).
-                                if y >= old[c][0] && !is_column_voxel(cur) {
+                                if y >= old[c][0] && !is_column_voxel(cur, y, old[c]) {
                                     continue;
                                 }
                                 d[i] = if y < gt {
@@ -351,6 +353,18 @@ mod tests {
         assert_eq!(at(&store, 2, 5, 3), SAND);
         assert_eq!(at(&store, 2, 6, 3), 0);
         assert_eq!(at(&store, 1, 5, 3), 0);
+        // A voxel script's water above the column's top (water3d uses the
+        // same material) is not the column's either: deposition under it
+        // does not turn it to sediment (review).
+        store.edit_brick(IVec3::ZERO, |d| d[voxel_index(5, 5, 5)] = WATER);
+        let mut g6 = [4.0; TILE_CELLS];
+        g6[cell(5, 5)] = 6.0;
+        ch.set(t, g, &g6);
+        sync.write(&ch, &[t], &mut store);
+        assert_eq!(at(&store, 5, 4, 5), SEDIMENT, "the column's deposit");
+        assert_eq!(at(&store, 5, 5, 5), WATER, "another's water is kept");
+        ch.set(t, g, &[4.0; TILE_CELLS]);
+        sync.write(&ch, &[t], &mut store);
         // Erosion takes a voxel of ground from under it: the column's own
         // ground changes as before, and the sand is left where it was.
         ch.set(t, g, &[3.0; TILE_CELLS]);
