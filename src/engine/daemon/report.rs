@@ -14,7 +14,14 @@ use crate::sim::{StepReport, WorldSim};
 /// count too) plus the voxel simulation's awake bricks (regression,
 /// researcher probe: a world of voxel scripts alone read 0).
 pub(super) fn active_count(r: &StepReport, ws: &WorldSim) -> usize {
-    r.active_tiles + ws.vox.active_bricks()
+    // Without voxel scripts the voxel set is never stepped, so it never
+    // sleeps: it holds every solid brick of the world as built.
+    let voxel = if ws.vox.script_count() > 0 {
+        ws.vox.active_bricks()
+    } else {
+        0
+    };
+    r.active_tiles + voxel
 }
 
 impl Engine {
