@@ -184,7 +184,6 @@ fn a_scripts_directory_removed_and_made_again_is_watched_anew() {
 /// the refused script is reloaded, as the daemon does.
 #[test]
 fn sim_watch_applies_materials_lua_and_retries_a_refused_script() {
-    use std::io::BufRead;
     let dir = std::env::temp_dir().join(format!("brickworld-simwatch-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
@@ -205,27 +204,7 @@ fn sim_watch_applies_materials_lua_and_retries_a_refused_script() {
     };
     std::fs::write(dir.join("materials.lua"), mat(&["moss"])).unwrap();
     std::fs::write(dir.join("grow.lua"), grow("\"moss\"")).unwrap();
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .args([
-            "sim", "--size", "16x16x16", "--steps", "10000000", "--watch", "--out",
-        ])
-        .arg(dir.join("out.png"))
-        .arg("--script")
-        .arg(dir.join("grow.lua"))
-        .stderr(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let stderr = child.stderr.take().unwrap();
-    std::thread::spawn(move || {
-        for l in std::io::BufReader::new(stderr)
-            .lines()
-            .map_while(Result::ok)
-        {
-            let _ = tx.send(l);
-        }
-    });
+    let (mut child, rx) = sim_watch(&dir, "grow.lua", &[]);
     let mut seen = Vec::new();
     let mut wait_for = |needle: &str| {
         let t = Instant::now();
@@ -318,7 +297,6 @@ fn sim_watch_that_reloaded_a_failed_script_exits_0_with_its_image() {
 /// range a save narrowed without a word, where the engine warns.
 #[test]
 fn sim_watch_says_when_a_narrowed_range_clamps_a_parameter() {
-    use std::io::BufRead;
     let dir = scratch("simwatchclamp");
     let script = |max: u32| {
         format!(
@@ -327,28 +305,7 @@ fn sim_watch_says_when_a_narrowed_range_clamps_a_parameter() {
         )
     };
     std::fs::write(dir.join("vv.lua"), script(10)).unwrap();
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
-        .args([
-            "sim", "--size", "16x16x16", "--steps", "10000000", "--watch", "--param", "vv.v=8",
-            "--out",
-        ])
-        .arg(dir.join("out.png"))
-        .arg("--script")
-        .arg(dir.join("vv.lua"))
-        .stderr(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let stderr = child.stderr.take().unwrap();
-    std::thread::spawn(move || {
-        for l in std::io::BufReader::new(stderr)
-            .lines()
-            .map_while(Result::ok)
-        {
-            let _ = tx.send(l);
-        }
-    });
+    let (mut child, rx) = sim_watch(&dir, "vv.lua", &["--param", "vv.v=8"]);
     std::thread::sleep(Duration::from_millis(1500));
     save_like_an_editor(&dir.join("vv.lua"), &script(5));
     let mut seen = Vec::new();
@@ -370,6 +327,40 @@ fn sim_watch_says_when_a_narrowed_range_clamps_a_parameter() {
         line.starts_with("warning:") && line.contains("'v'") && line.contains("5"),
         "{line}"
     );
+}
+
+/// `sim --watch` on `DIR/SCRIPT` (16³ voxels, steps enough to outlast a
+/// test, `extra` flags), with its standard error as a channel of lines.
+fn sim_watch(
+    dir: &std::path::Path,
+    script: &str,
+    extra: &[&str],
+) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args([
+            "sim", "--size", "16x16x16", "--steps", "10000000", "--watch",
+        ])
+        .args(extra)
+        .arg("--out")
+        .arg(dir.join("out.png"))
+        .arg("--script")
+        .arg(dir.join(script))
+        .stderr(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for l in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = tx.send(l);
+        }
+    });
+    (child, rx)
 }
 
 /// A scratch folder of this test's own.

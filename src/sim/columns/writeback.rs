@@ -11,8 +11,8 @@
 //! between a column's own old and new surfaces are touched, never below its
 //! topmost solid voxel (a column cannot see a cave or an overhang's
 //! underside, so it must not write there), and above its old ground only
-//! air and the column's own materials (water, snow, sediment) are
-//! changed: a voxel another script placed in its way is kept. All of it goes through
+//! air and the water and snow it wrote below its old top are changed: a
+//! voxel another script placed in its way is kept. All of it goes through
 //! [`BrickStore::edit_brick`], so every change is recorded as a dirty brick
 //! for the renderer.
 
