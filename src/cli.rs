@@ -211,6 +211,45 @@ pub enum BenchCommand {
     Store(BenchStoreArgs),
     /// Fly a streamed world's render window a long way: memory against the budget, slides, frames.
     Flight(BenchFlightArgs),
+    /// The GPU tracer's primary rays per second at 1920x1080: device time and whole frames, per view, exact and with LOD.
+    Gpu(BenchGpuArgs),
+}
+
+/// `brickworld bench gpu`.
+#[derive(Debug, Args)]
+pub struct BenchGpuArgs {
+    #[allow(missing_docs)]
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    /// A streamed world's config: trace its render window at the camera's start instead of a scene
+    #[arg(long, conflicts_with = "size")]
+    pub world: Option<PathBuf>,
+    /// Image width
+    #[arg(long, default_value_t = 1920)]
+    pub width: u32,
+    /// Image height
+    #[arg(long, default_value_t = 1080)]
+    pub height: u32,
+    /// Footprints C to measure besides exact tracing, comma-separated ("none": exact only)
+    #[arg(
+        long,
+        value_name = "C,C,...",
+        default_value = "1",
+        allow_hyphen_values = true
+    )]
+    pub lod: String,
+    /// Timed frames per view and setting, one by one and back to back; medians count (1 to 1000)
+    #[arg(long, default_value_t = 20)]
+    pub frames: u32,
+    /// Most bricks uploaded per frame while the view converges
+    #[arg(long, default_value_t = 16_384)]
+    pub uploads: u32,
+    /// Untimed back-to-back tracing before each setting's timed runs, ms (0 to 60000)
+    #[arg(long, default_value_t = 1000)]
+    pub warmup_ms: u64,
+    /// Write the results as JSON here
+    #[arg(long)]
+    pub json: PathBuf,
 }
 
 /// `brickworld bench flight`.

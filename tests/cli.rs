@@ -2069,3 +2069,38 @@ fn a_script_name_that_is_not_utf8_is_refused() {
         "script file names must be UTF-8",
     );
 }
+
+/// `bench gpu` refuses bad sizes, counts, footprints and worlds with one
+/// line, before any scene is built or device opened.
+#[test]
+fn bench_gpu_refuses_bad_input_up_front() {
+    let j = tmp("gpu.json");
+    let j = j.to_str().unwrap();
+    let base = ["bench", "gpu", "--json", j];
+    let with = |extra: &[&str]| -> Vec<String> {
+        base.iter()
+            .chain(extra)
+            .map(|s| s.to_string())
+            .collect::<Vec<_>>()
+    };
+    for (extra, msg) in [
+        (&["--width", "0"][..], "invalid image size"),
+        (&["--height", "9000"][..], "invalid image size"),
+        (&["--frames", "0"][..], "invalid --frames"),
+        (&["--frames", "1001"][..], "invalid --frames"),
+        (&["--uploads", "0"][..], "invalid --uploads"),
+        (&["--warmup-ms", "60001"][..], "invalid --warmup-ms"),
+        (&["--lod", "0"][..], "invalid --lod"),
+        (&["--lod", "1,x"][..], "'x' is not a number"),
+        (&["--lod", "nan"][..], "invalid --lod"),
+        (
+            &["--world", "worlds/default.toml"][..],
+            "needs a streamed world",
+        ),
+        (&["--world", "no/such.toml"][..], "no/such.toml"),
+    ] {
+        let args = with(extra);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        expect_failure(&args, msg);
+    }
+}

@@ -519,3 +519,106 @@ fn bricks_taken_whole_are_never_requested() {
     let (_, s) = draw(&ctx, &mut plain, &w, &cam);
     assert!(s.requests > 0, "an exact frame asks for its bricks");
 }
+
+/// The tracer's device time: each frame reports it where the device has
+/// timestamps (lavapipe has), within the frame's wall time, with the beam
+/// pass inside it; back-to-back tracing reports a positive time per frame
+/// and leaves the next frame exactly as it was.
+#[test]
+fn frames_report_their_device_time_and_sustained_tracing_changes_nothing() {
+    let Some(ctx) = context() else { return };
+    let w = terrain();
+    let cam = camera(&w, 1);
+    let mut gpu =
+        GpuBrickmap::preloaded(&ctx, w.grid(), w.store().pool(), w.store().palette()).unwrap();
+    let beam = RenderOptions {
+        beam: true,
+        ..Default::default()
+    };
+    for opts in [RenderOptions::default(), beam] {
+        let t = std::time::Instant::now();
+        let (before, s) = gpu
+            .render(&ctx, &cam, &opts, w.grid(), w.store().pool())
+            .unwrap();
+        let wall_ms = t.elapsed().as_secs_f64() * 1e3;
+        let sustained = gpu.sustained_ms(&ctx, &cam, &opts, w.grid(), 3).unwrap();
+        let (after, _) = gpu
+            .render(&ctx, &cam, &opts, w.grid(), w.store().pool())
+            .unwrap();
+        assert_eq!(before.hits, after.hits);
+        assert_eq!(before.rgb, after.rgb);
+        if ctx.has_timestamps() {
+            let ms = s.gpu_ms.expect("a device with timestamps times its frames");
+            assert!(
+                ms > 0.0 && ms <= wall_ms,
+                "device {ms} ms, wall {wall_ms} ms"
+            );
+            match s.beam_ms {
+                Some(b) => assert!(opts.beam && b > 0.0 && b <= ms, "beam {b} of {ms} ms"),
+                None => assert!(!opts.beam, "the beam pass went untimed"),
+            }
+            assert!(sustained.is_some_and(|ms| ms > 0.0), "{sustained:?}");
+        } else {
+            assert_eq!((s.gpu_ms, s.beam_ms, sustained), (None, None, None));
+        }
+    }
+}
+
+/// `bench gpu` measures every view at every setting (exact and each C,
+/// beams off and on), each converged, with its device times where the
+/// device has timestamps; `--world` traces a streamed world's window.
+#[test]
+fn bench_gpu_reports_every_view_and_setting() {
+    if context().is_none() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("brickworld-bench-gpu-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let world = dir.join("streamed.toml");
+    std::fs::write(
+        &world,
+        "[world]\nsource = \"terrain\"\nsize = [512, 64, 512]\nseed = 2\n\n\
+         [stream]\nview_distance = 96.0\nmemory_budget = \"512MiB\"\nfetchers = 1\n\n\
+         [sim]\nradius = 64.0\n\n\
+         [camera]\neye = [256.0, 80.0, 256.0]\ntarget = [320.0, 40.0, 300.0]\n",
+    )
+    .unwrap();
+    let scene: &[&str] = &["--size", "64x32x64"];
+    let streamed: &[&str] = &["--world", world.to_str().unwrap()];
+    for (source, views) in [(scene, 3), (streamed, 2)] {
+        let json = dir.join("gpu.json");
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+            .args(["bench", "gpu", "--width", "64", "--height", "48"])
+            .args(["--frames", "2", "--warmup-ms", "0", "--lod", "1,2"])
+            .args(source)
+            .arg("--json")
+            .arg(&json)
+            .output()
+            .unwrap();
+        assert_success(&out);
+        let v = read_json(&json);
+        let rows = v["rows"].as_array().unwrap();
+        assert_eq!(rows.len(), views * 3 * 2, "{v}");
+        let timestamps = v["timestamps"].as_bool().unwrap();
+        for r in rows {
+            assert!(r["frames_to_converge"].as_u64().unwrap() > 0, "{r}");
+            let frame_ms = r["frame_ms"].as_f64().unwrap();
+            assert!(frame_ms > 0.0);
+            let hits = r["hit_fraction"].as_f64().unwrap();
+            assert!(hits > 0.0 && hits <= 1.0, "{r}");
+            let expect_mrays = 64.0 * 48.0 / frame_ms / 1e3;
+            let mrays = r["frame_mrays_per_s"].as_f64().unwrap();
+            assert!(
+                (mrays - expect_mrays).abs() < 1e-9 * expect_mrays.max(1.0),
+                "{r}"
+            );
+            assert_eq!(r["gpu_ms"].is_f64(), timestamps, "{r}");
+            assert_eq!(r["sustained_mrays_per_s"].is_f64(), timestamps, "{r}");
+            let beam = r["beam"].as_bool().unwrap();
+            assert_eq!(r["beam_ms"].is_f64(), timestamps && beam, "{r}");
+        }
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(text.contains("sustained ms"), "{text}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

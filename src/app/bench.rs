@@ -317,3 +317,166 @@ pub(super) fn run_bench_voxels(a: &crate::cli::BenchVoxelsArgs) -> Result<()> {
         Ok(())
     })
 }
+
+pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
+    use crate::bench::gpu::{GpuBenchSetup, NamedView};
+    if a.width == 0 || a.height == 0 || a.width > 8192 || a.height > 8192 {
+        anyhow::bail!(
+            "invalid image size {}x{}: each side must be in 1..=8192",
+            a.width,
+            a.height
+        );
+    }
+    if a.frames == 0 || a.frames > 1000 {
+        anyhow::bail!("invalid --frames {}: 1 to 1000 timed frames", a.frames);
+    }
+    if a.warmup_ms > 60_000 {
+        anyhow::bail!("invalid --warmup-ms {}: at most 60000", a.warmup_ms);
+    }
+    if a.uploads == 0 || a.uploads > crate::gpu::MAX_POOL_SLOTS {
+        anyhow::bail!(
+            "invalid --uploads {}: 1 to {} bricks per frame",
+            a.uploads,
+            crate::gpu::MAX_POOL_SLOTS
+        );
+    }
+    let mut lods = vec![0.0f32];
+    if a.lod.trim() != "none" {
+        for part in a.lod.split(',') {
+            let c: f64 = part.trim().parse().map_err(|_| {
+                anyhow::anyhow!(
+                    "invalid --lod '{}': '{part}' is not a number (or give \"none\")",
+                    a.lod
+                )
+            })?;
+            let c = crate::config::lod_c("--lod", c)?;
+            if !lods.contains(&c) {
+                lods.push(c);
+            }
+        }
+    }
+    crate::config::check_bench_outputs(&a.json, None)?;
+    let mut setup = GpuBenchSetup {
+        width: a.width,
+        height: a.height,
+        lods,
+        frames: a.frames,
+        uploads: a.uploads,
+        warmup: std::time::Duration::from_millis(a.warmup_ms),
+        look: RenderOptions {
+            ao: true,
+            ..Default::default()
+        },
+    };
+    let r = match &a.world {
+        Some(path) => {
+            crate::config::not_an_input("--json", &a.json, &[("world config", path)])?;
+            let cfg = crate::engine::world_config::WorldConfig::load(path)?;
+            // The daemon's look, primary rays only.
+            setup.look = RenderOptions {
+                shadows: false,
+                ..cfg.look.options()
+            };
+            let pb = bar("render window", 0);
+            let (w, views) =
+                crate::bench::gpu::open_window(&cfg, std::time::Duration::from_secs(600))?;
+            pb.finish_and_clear();
+            let label = format!(
+                "{}: render window of {} bricks at the camera's start",
+                path.display(),
+                w.world().store().pool().len()
+            );
+            let pb = bar("bench gpu (settings)", 0);
+            let r = crate::bench::gpu::run(w.world(), &label, &views, &setup, &pb)?;
+            pb.finish_and_clear();
+            r
+        }
+        None => {
+            let scene = SceneSettings::from_args(&a.scene, glam::IVec3::new(2048, 256, 2048))?;
+            let world = build_world(&scene)?;
+            let names = ["overview", "medium", "close-up"];
+            let views: Vec<NamedView> = world
+                .default_views()
+                .iter()
+                .zip(names)
+                .map(|(v, name)| NamedView {
+                    name: name.into(),
+                    eye: glam::DVec3::from(v.eye),
+                    target: glam::DVec3::from(v.target),
+                    fov: v.fov,
+                })
+                .collect();
+            let label = format!(
+                "{} {}x{}x{} ({} bricks)",
+                a.scene.scene,
+                scene.size.x,
+                scene.size.y,
+                scene.size.z,
+                world.store().pool().len()
+            );
+            let pb = bar("bench gpu (settings)", 0);
+            let r = crate::bench::gpu::run(&world, &label, &views, &setup, &pb)?;
+            pb.finish_and_clear();
+            r
+        }
+    };
+    crate::bench::write_json(&a.json, &r)?;
+    println!(
+        "adapter: {}{}; {}; {}x{}",
+        r.adapter,
+        if r.software {
+            " (a software rasterizer: these figures measure the CPU)"
+        } else {
+            ""
+        },
+        r.world,
+        r.width,
+        r.height
+    );
+    println!(
+        "{:<9} {:>5} {:>5} {:>9} {:>6} {:>9} {:>8} {:>11} {:>13} {:>8}",
+        "view",
+        "C",
+        "beam",
+        "converge",
+        "hits",
+        "frame ms",
+        "Mrays/s",
+        "1 frame ms",
+        "sustained ms",
+        "Mrays/s"
+    );
+    for row in &r.rows {
+        let opt =
+            |v: Option<f64>, digits: usize| v.map_or("-".to_string(), |x| format!("{x:.digits$}"));
+        println!(
+            "{:<9} {:>5} {:>5} {:>9} {:>5.0}% {:>9.2} {:>8.1} {:>11} {:>13} {:>8}",
+            row.view,
+            if row.lod_c == 0.0 {
+                "exact".to_string()
+            } else {
+                format!("{}", row.lod_c)
+            },
+            if row.beam { "on" } else { "off" },
+            if row.frames_to_converge == 0 {
+                "no".to_string()
+            } else {
+                row.frames_to_converge.to_string()
+            },
+            row.hit_fraction * 100.0,
+            row.frame_ms,
+            row.frame_mrays_per_s,
+            opt(row.gpu_ms, 3),
+            opt(row.sustained_ms, 3),
+            opt(row.sustained_mrays_per_s, 1),
+        );
+    }
+    if !r.timestamps {
+        println!("this device writes no timestamps: only whole frames were timed");
+    } else {
+        println!(
+            "Mrays/s: the first over whole frames (readback and decoding included), the last over the tracer's device time with frames traced back to back"
+        );
+    }
+    Ok(())
+}

@@ -57,6 +57,20 @@ pub struct FlightReport {
     pub window: crate::scene::WindowStats,
 }
 
+/// A streamed world's camera at the start of a benchmark: the config's
+/// eye and target, else above the origin looking along +x and down.
+pub fn start_view(cfg: &WorldConfig) -> (DVec3, DVec3) {
+    let eye = cfg
+        .camera
+        .eye
+        .unwrap_or(DVec3::new(0.0, cfg.size.y as f64 * 1.2, 0.0));
+    let target = cfg
+        .camera
+        .target
+        .unwrap_or(eye + DVec3::new(300.0, -100.0, 0.0));
+    (eye, target)
+}
+
 /// Fly `distance` voxels in `step`-voxel steps along the world's camera
 /// line (or along +x), drawing a frame every `frame_every` voxels.
 pub fn run(
@@ -75,14 +89,7 @@ pub fn run(
     }
     let size = (!cfg.unbounded).then_some(cfg.size);
     let gen_ = Arc::new(ChunkGen::new(&cfg.source, size, cfg.size.y, cfg.seed)?);
-    let eye0 = cfg
-        .camera
-        .eye
-        .unwrap_or(DVec3::new(0.0, cfg.size.y as f64 * 1.2, 0.0));
-    let target0 = cfg
-        .camera
-        .target
-        .unwrap_or(eye0 + DVec3::new(300.0, -100.0, 0.0));
+    let (eye0, target0) = start_view(cfg);
     let dir = match cfg.camera.mode {
         CameraMode::Line { velocity } if velocity.length() > 0.0 => velocity.normalize(),
         _ => DVec3::X,

@@ -3,6 +3,7 @@
 
 pub mod chart;
 pub mod flight;
+pub mod gpu;
 pub mod lod;
 pub mod sim;
 pub mod soak;

@@ -60,23 +60,24 @@ struct PixelOut {
 }
 
 impl GpuBrickmap {
-    /// Render one frame; when streaming, then upload what rays asked for.
-    /// `grid` and `pool` are the world's (the source of streamed bricks).
-    pub fn render(
+    /// Start a frame of `camera`: its number and anchor, its parameters,
+    /// the feedback count reset, its pixel and beam buffers and the bind
+    /// group over them and the brick buffers; returns the bind group and
+    /// the pixel buffer.
+    fn frame_bindings(
         &mut self,
         ctx: &GpuContext,
         camera: &Camera,
         opts: &RenderOptions,
         grid: &BrickGrid,
-        pool: &BrickPool,
-    ) -> Result<(GpuFrame, FrameStats), GpuError> {
+    ) -> Result<(wgpu::BindGroup, wgpu::Buffer), GpuError> {
+        let dev = &ctx.device;
         self.frame_no += 1;
         // A sliding grid moves its origin; its buffers are addressed
         // physically, through the ring.
         self.frame = Frame {
             anchor: grid.origin() << BRICK_SHIFT,
         };
-        let dev = &ctx.device;
         let (w, h) = (camera.width, camera.height);
         let f = (camera.target - camera.eye).normalize();
         let r = f.cross(DVec3::Y).normalize();
@@ -124,8 +125,6 @@ impl GpuBrickmap {
                 limit,
             });
         }
-        let fb_size = self.feedback.size();
-        let ls_size = self.last_seen.size();
         let uniform = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("params"),
             contents: bytemuck::bytes_of(&params),
@@ -137,12 +136,22 @@ impl GpuBrickmap {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size: out_size + fb_size + ls_size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        // Timestamps: [0] the first pass's start, [1] the trace's end,
+        // [2] the beam pass's end.
+        if ctx.timestamps && self.timer.is_none() {
+            let set = dev.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("tracer time"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 3,
+            });
+            let resolve = dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("tracer time"),
+                size: 3 * 8,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            self.timer = Some((set, resolve));
+        }
         let (bw, bh) = (w.div_ceil(8), h.div_ceil(8));
         let beams = dev.create_buffer(&wgpu::BufferDescriptor {
             label: Some("beam starts"),
@@ -176,49 +185,68 @@ impl GpuBrickmap {
             layout: &self.layout,
             entries: &entries,
         });
+        Ok((bind, out))
+    }
+
+    /// Render one frame; when streaming, then upload what rays asked for.
+    /// `grid` and `pool` are the world's (the source of streamed bricks).
+    pub fn render(
+        &mut self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        opts: &RenderOptions,
+        grid: &BrickGrid,
+        pool: &BrickPool,
+    ) -> Result<(GpuFrame, FrameStats), GpuError> {
+        let dev = &ctx.device;
+        let (w, h) = (camera.width, camera.height);
+        let (bind, out) = self.frame_bindings(ctx, camera, opts, grid)?;
+        let pixels = w as u64 * h as u64;
+        let out_size = out.size();
+        let fb_size = self.feedback.size();
+        let ls_size = self.last_seen.size();
+        let ts_size = if self.timer.is_some() { 3 * 8 } else { 0 };
+        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size: out_size + fb_size + ls_size + ts_size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
         let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("frame"),
         });
-        if opts.beam {
-            // Its own pass, so that its writes are visible to the next.
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("beam starts"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&self.beam_pipeline);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(bw.div_ceil(8), bh.div_ceil(8), 1);
-        }
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("trace"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
-        }
+        self.encode_passes(&mut enc, &bind, opts, (w, h), (true, true));
         enc.copy_buffer_to_buffer(&out, 0, &staging, 0, out_size);
         enc.copy_buffer_to_buffer(&self.feedback, 0, &staging, out_size, fb_size);
         enc.copy_buffer_to_buffer(&self.last_seen, 0, &staging, out_size + fb_size, ls_size);
+        let queries = if opts.beam { 3 } else { 2 };
+        if let Some((set, resolve)) = &self.timer {
+            enc.resolve_query_set(set, 0..queries, resolve, 0);
+            enc.copy_buffer_to_buffer(
+                resolve,
+                0,
+                &staging,
+                out_size + fb_size + ls_size,
+                queries as u64 * 8,
+            );
+        }
         ctx.queue.submit([enc.finish()]);
         let slice = staging.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        dev.poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Runtime(e.to_string()))?;
-        rx.recv()
-            .map_err(|e| GpuError::Runtime(e.to_string()))?
-            .map_err(|e| GpuError::Runtime(e.to_string()))?;
-        let data = slice
-            .get_mapped_range()
-            .map_err(|e| GpuError::Runtime(e.to_string()))?;
+        let data = map_read(dev, &slice)?;
         let px: &[PixelOut] = bytemuck::cast_slice(&data[..out_size as usize]);
         let fb: &[u32] =
             bytemuck::cast_slice(&data[out_size as usize..(out_size + fb_size) as usize]);
-        let ls: &[u32] = bytemuck::cast_slice(&data[(out_size + fb_size) as usize..]);
+        let ls_end = (out_size + fb_size + ls_size) as usize;
+        let ls: &[u32] = bytemuck::cast_slice(&data[(out_size + fb_size) as usize..ls_end]);
+        // Ticks to ms; read unaligned (the staging offset is only 4-aligned).
+        let period_ms = ctx.queue.get_timestamp_period() as f64 * 1e-6;
+        let tick = |i: usize| {
+            let b = &data[ls_end + i * 8..ls_end + i * 8 + 8];
+            u64::from_le_bytes(b.try_into().unwrap_or([0; 8]))
+        };
+        let span = |a: usize, b: usize| tick(b).saturating_sub(tick(a)) as f64 * period_ms;
+        let gpu_ms = self.timer.is_some().then(|| span(0, 1));
+        let beam_ms = (self.timer.is_some() && opts.beam).then(|| span(0, 2));
         let mut frame = GpuFrame {
             width: w,
             height: h,
@@ -259,6 +287,8 @@ impl GpuBrickmap {
         let mut stats = FrameStats {
             requests: requests.len() as u32,
             overflowed: count.saturating_sub(self.feedback_capacity),
+            gpu_ms,
+            beam_ms,
             ..Default::default()
         };
         if self.residency.is_some() {
@@ -273,4 +303,121 @@ impl GpuBrickmap {
         }
         Ok((frame, stats))
     }
+
+    /// The beam-start pass (with beams on) and the trace of one frame into
+    /// `enc`. With timestamps, `first` writes the start of the frame's
+    /// first pass into query 0 and `last` the trace's end into query 1
+    /// (and, when both, the beam pass's end into query 2), so that several
+    /// frames encoded back to back are timed as one span.
+    fn encode_passes(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        bind: &wgpu::BindGroup,
+        opts: &RenderOptions,
+        (w, h): (u32, u32),
+        (first, last): (bool, bool),
+    ) {
+        let (bw, bh) = (w.div_ceil(8), h.div_ceil(8));
+        if opts.beam {
+            // Its own pass, so that its writes are visible to the next.
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("beam starts"),
+                timestamp_writes: self.timer.as_ref().filter(|_| first).map(|(set, _)| {
+                    wgpu::ComputePassTimestampWrites {
+                        query_set: set,
+                        beginning_of_pass_write_index: Some(0),
+                        end_of_pass_write_index: last.then_some(2),
+                    }
+                }),
+            });
+            pass.set_pipeline(&self.beam_pipeline);
+            pass.set_bind_group(0, bind, &[]);
+            pass.dispatch_workgroups(bw.div_ceil(8), bh.div_ceil(8), 1);
+        }
+        let begin = (first && !opts.beam).then_some(0);
+        let end = last.then_some(1);
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("trace"),
+            timestamp_writes: self
+                .timer
+                .as_ref()
+                .filter(|_| begin.is_some() || end.is_some())
+                .map(|(set, _)| wgpu::ComputePassTimestampWrites {
+                    query_set: set,
+                    beginning_of_pass_write_index: begin,
+                    end_of_pass_write_index: end,
+                }),
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, bind, &[]);
+        pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
+    }
+
+    /// The tracer's device time per frame, ms, over `repeats` frames of
+    /// `camera` traced back to back in one submission with nothing read
+    /// back between them (so that the device stays busy and at its working
+    /// clocks); `None` where the device has no timestamps. For benchmarks:
+    /// call it on a converged view, after [`render`](Self::render).
+    pub fn sustained_ms(
+        &mut self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        opts: &RenderOptions,
+        grid: &BrickGrid,
+        repeats: u32,
+    ) -> Result<Option<f64>, GpuError> {
+        if !ctx.timestamps {
+            return Ok(None);
+        }
+        let (w, h) = (camera.width, camera.height);
+        let (bind, _out) = self.frame_bindings(ctx, camera, opts, grid)?;
+        let Some((set, resolve)) = &self.timer else {
+            return Ok(None);
+        };
+        let dev = &ctx.device;
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("sustained"),
+        });
+        let repeats = repeats.max(1);
+        for i in 0..repeats {
+            self.encode_passes(&mut enc, &bind, opts, (w, h), (i == 0, i + 1 == repeats));
+        }
+        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("tracer time"),
+            size: 16,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        enc.resolve_query_set(set, 0..2, resolve, 0);
+        enc.copy_buffer_to_buffer(resolve, 0, &staging, 0, 16);
+        ctx.queue.submit([enc.finish()]);
+        let slice = staging.slice(..);
+        let data = map_read(dev, &slice)?;
+        let t: &[u64] = bytemuck::cast_slice(&data[..]);
+        let ticks = t[1].saturating_sub(t[0]) as f64;
+        drop(data);
+        staging.unmap();
+        Ok(Some(
+            ticks * ctx.queue.get_timestamp_period() as f64 * 1e-6 / repeats as f64,
+        ))
+    }
+}
+
+/// Map `slice` for reading, waiting for the device.
+fn map_read<'a>(
+    dev: &wgpu::Device,
+    slice: &wgpu::BufferSlice<'a>,
+) -> Result<wgpu::BufferView, GpuError> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    dev.poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| GpuError::Runtime(e.to_string()))?;
+    rx.recv()
+        .map_err(|e| GpuError::Runtime(e.to_string()))?
+        .map_err(|e| GpuError::Runtime(e.to_string()))?;
+    slice
+        .get_mapped_range()
+        .map_err(|e| GpuError::Runtime(e.to_string()))
 }

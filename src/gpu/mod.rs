@@ -127,6 +127,9 @@ pub struct GpuContext {
     /// What the adapter is (name, backend, device type).
     pub info: wgpu::AdapterInfo,
     pub(crate) limits: wgpu::Limits,
+    /// Whether the device writes timestamps at pass boundaries (frames
+    /// then report the tracer's own time, [`FrameStats::gpu_ms`]).
+    pub(crate) timestamps: bool,
 }
 
 impl GpuContext {
@@ -145,9 +148,17 @@ impl GpuContext {
         .map_err(|_| GpuError::NoAdapter)?;
         let info = adapter.get_info();
         let limits = adapter.limits();
+        // Timestamps only measure (`bench gpu`); a device without them
+        // renders the same frames.
+        let timestamps = adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("brickworld"),
             required_limits: limits.clone(),
+            required_features: if timestamps {
+                wgpu::Features::TIMESTAMP_QUERY
+            } else {
+                wgpu::Features::empty()
+            },
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(e.to_string()))?;
@@ -156,6 +167,7 @@ impl GpuContext {
             queue,
             info,
             limits,
+            timestamps,
         })
     }
 
@@ -173,6 +185,12 @@ impl GpuContext {
             Some(e) => Err(GpuError::Shader(e.to_string())),
             None => Ok(()),
         }
+    }
+
+    /// Whether frames report the tracer's device time
+    /// ([`FrameStats::gpu_ms`], [`GpuBrickmap::sustained_ms`]).
+    pub fn has_timestamps(&self) -> bool {
+        self.timestamps
     }
 
     /// Whether the adapter is a software rasterizer (lavapipe, llvmpipe,

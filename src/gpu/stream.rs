@@ -63,7 +63,7 @@ pub fn fit_pool(mut cfg: StreamConfig, limit: u64) -> (StreamConfig, Option<Stri
 }
 
 /// What one streamed frame did.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct FrameStats {
     /// Distinct bricks requested by rays this frame (recorded).
     pub requests: u32,
@@ -84,6 +84,11 @@ pub struct FrameStats {
     pub material_bytes: u64,
     /// Times the pool doubled this frame.
     pub grown: u32,
+    /// The tracer's passes on the device (beam starts and trace), ms, from
+    /// timestamp queries; `None` where the device has none.
+    pub gpu_ms: Option<f64>,
+    /// Of which the beam-start pass, ms (with beams on).
+    pub beam_ms: Option<f64>,
 }
 
 /// Residency bookkeeping of a streaming pool.

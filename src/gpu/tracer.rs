@@ -46,6 +46,9 @@ pub struct GpuBrickmap {
     pub(super) frame: Frame,
     pub(super) dims: IVec3,
     pub(super) slots: u32,
+    /// Timestamp queries and their resolve buffer, made at the first frame
+    /// on a device that has them.
+    pub(super) timer: Option<(wgpu::QuerySet, wgpu::Buffer)>,
 }
 
 /// The palette as the shader reads it: one `0x00BBGGRR` word per material.
@@ -355,6 +358,7 @@ impl GpuBrickmap {
             },
             dims: grid.dims() << BRICK_SHIFT,
             slots,
+            timer: None,
         })
     }
 

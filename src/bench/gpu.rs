@@ -1,0 +1,298 @@
+//! `brickworld bench gpu`: the GPU tracer's primary-ray throughput at a
+//! chosen resolution (1920×1080 by default), per view, exact and at each
+//! level-of-detail `C`, with beam starts off and on.
+//!
+//! Each setting first streams until the view is converged (no requests,
+//! no pixel shown by an unloaded brick's LOD colour), then times frames.
+//! Three times are reported: the whole frame by the wall clock
+//! (parameters, dispatch, readback of every pixel and its decoding on the
+//! CPU, which is what `render` and the daemon pay); the tracer's passes
+//! of such a frame on the device, from timestamp queries written at the
+//! passes' boundaries; and the tracer's device time per frame with many
+//! frames traced back to back (what a renderer that kept its pixels on
+//! the GPU would pay). The last is the headline: one frame at a time leaves
+//! the device idle while the CPU reads and decodes, and an NVIDIA H200 so
+//! loaded ran its passes up to several times slower (lower clocks) than
+//! when kept busy.
+//!
+//! The scene is a built world (`--scene`, three default views) or a
+//! streamed world's render window at its camera's start (`--world`, the
+//! start view and a view to the horizon).
+
+use std::time::{Duration, Instant};
+
+use anyhow::{Result, bail};
+use glam::DVec3;
+use serde::Serialize;
+
+use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
+use crate::scene::SceneWorld;
+use crate::trace::{Camera, RenderOptions};
+
+/// One named camera view.
+#[derive(Clone, Debug)]
+pub struct NamedView {
+    /// Its name in the report.
+    pub name: String,
+    /// Eye.
+    pub eye: DVec3,
+    /// Look-at point.
+    pub target: DVec3,
+    /// Vertical field of view, degrees.
+    pub fov: f64,
+}
+
+/// What to measure.
+#[derive(Clone, Debug)]
+pub struct GpuBenchSetup {
+    /// Image size.
+    pub width: u32,
+    /// Image size.
+    pub height: u32,
+    /// Footprints `C` (0: exact), in the order measured.
+    pub lods: Vec<f32>,
+    /// Timed frames per view and setting (the median counts).
+    pub frames: u32,
+    /// Most bricks uploaded per frame while converging.
+    pub uploads: u32,
+    /// Shading besides LOD and beams (AO, fog).
+    pub look: RenderOptions,
+    /// Untimed back-to-back tracing before each setting's timed runs.
+    pub warmup: Duration,
+}
+
+/// One view at one setting.
+#[derive(Debug, Serialize)]
+pub struct GpuRow {
+    /// View name.
+    pub view: String,
+    /// Footprint `C` (0: exact).
+    pub lod_c: f32,
+    /// Beam starts on.
+    pub beam: bool,
+    /// Frames until nothing was requested and no pixel showed an unloaded
+    /// brick (0: not within 400 frames; the timed frames then show some
+    /// bricks by their LOD colour).
+    pub frames_to_converge: u32,
+    /// Bricks resident on the device when timed.
+    pub resident_bricks: u32,
+    /// Pool slots when timed.
+    pub pool_slots: u32,
+    /// Fraction of pixels whose ray hit something.
+    pub hit_fraction: f64,
+    /// Median whole frame by the wall clock, ms.
+    pub frame_ms: f64,
+    /// Median of the tracer's passes on the device, ms (`None`: the device
+    /// has no timestamp queries).
+    pub gpu_ms: Option<f64>,
+    /// Of which the beam-start pass, ms.
+    pub beam_ms: Option<f64>,
+    /// Primary rays per second over the whole frame, millions.
+    pub frame_mrays_per_s: f64,
+    /// Primary rays per second over the tracer's passes, millions.
+    pub gpu_mrays_per_s: Option<f64>,
+    /// The tracer's device time per frame with `frames` frames traced back
+    /// to back in one submission (median of three such runs), ms: the
+    /// device busy at its working clocks, as in a renderer that keeps its
+    /// pixels on the GPU. One frame at a time leaves it idle between
+    /// frames, and a lightly loaded GPU runs at lower clocks.
+    pub sustained_ms: Option<f64>,
+    /// Whether the last three back-to-back runs agreed within 5 % (else
+    /// the median of the last three of 20 runs).
+    pub sustained_stable: bool,
+    /// Primary rays per second back to back, millions (the headline).
+    pub sustained_mrays_per_s: Option<f64>,
+}
+
+/// The report.
+#[derive(Debug, Serialize)]
+pub struct GpuBenchReport {
+    /// The adapter.
+    pub adapter: String,
+    /// Whether it is a software rasterizer (its figures measure a CPU).
+    pub software: bool,
+    /// Whether the device wrote timestamps.
+    pub timestamps: bool,
+    /// What was traced.
+    pub world: String,
+    /// Image size.
+    pub width: u32,
+    /// Image size.
+    pub height: u32,
+    /// Rows, view by view.
+    pub rows: Vec<GpuRow>,
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Measure `views` of `world` as `setup` says; `label` names the world in
+/// the report.
+pub fn run(
+    world: &SceneWorld,
+    label: &str,
+    views: &[NamedView],
+    setup: &GpuBenchSetup,
+    progress: &indicatif::ProgressBar,
+) -> Result<GpuBenchReport> {
+    let ctx = GpuContext::new()?;
+    let settings: Vec<(f32, bool)> = setup
+        .lods
+        .iter()
+        .flat_map(|&c| [(c, false), (c, true)])
+        .collect();
+    progress.set_length((views.len() * settings.len()) as u64);
+    let rays = setup.width as f64 * setup.height as f64;
+    let mut rows = Vec::new();
+    for v in views {
+        let cam = Camera::new(v.eye, v.target, v.fov, setup.width, setup.height)?;
+        let cfg = StreamConfig {
+            uploads_per_frame: setup.uploads,
+            feedback_capacity: setup.uploads.max(4096),
+            ..Default::default()
+        };
+        let mut gpu = GpuBrickmap::streaming(
+            &ctx,
+            world.grid(),
+            world.store().pool(),
+            world.store().palette(),
+            cfg,
+        )?;
+        for &(lod, beam) in &settings {
+            let opts = RenderOptions {
+                lod,
+                beam,
+                ..setup.look
+            };
+            let mut frames_to_converge = 0;
+            for n in 1..=400u32 {
+                let (f, s) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+                if s.requests == 0 && f.lod_pixels == 0 {
+                    frames_to_converge = n;
+                    break;
+                }
+            }
+            // One untimed frame more: the first after uploads pays for them.
+            let (f, _) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+            let hit_fraction = f.hits.iter().filter(|h| h.is_some()).count() as f64 / rays;
+            let (mut wall, mut dev, mut beam_dev) = (Vec::new(), Vec::new(), Vec::new());
+            for _ in 0..setup.frames {
+                let t = Instant::now();
+                let (_, s) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+                wall.push(t.elapsed().as_secs_f64() * 1e3);
+                dev.extend(s.gpu_ms);
+                beam_dev.extend(s.beam_ms);
+            }
+            // Back to back: untimed runs for `warmup` bring the clocks up
+            // (on the H200 the first setting of a view read up to 2× slow
+            // without), then runs until the last three agree within 5 %
+            // (at most 20); their median counts.
+            let t = Instant::now();
+            while t.elapsed() < setup.warmup {
+                if gpu
+                    .sustained_ms(&ctx, &cam, &opts, world.grid(), setup.frames)?
+                    .is_none()
+                {
+                    break;
+                }
+            }
+            let mut runs: Vec<f64> = Vec::new();
+            let mut sustained_stable = false;
+            while runs.len() < 20 {
+                let Some(ms) = gpu.sustained_ms(&ctx, &cam, &opts, world.grid(), setup.frames)?
+                else {
+                    break;
+                };
+                runs.push(ms);
+                if let [.., a, b, c] = runs[..] {
+                    let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
+                    if hi <= lo * 1.05 {
+                        sustained_stable = true;
+                        break;
+                    }
+                }
+            }
+            let n = runs.len();
+            let sustained_ms = (n > 0).then(|| median(&mut runs[n.saturating_sub(3)..]));
+            let frame_ms = median(&mut wall);
+            let gpu_ms = (!dev.is_empty()).then(|| median(&mut dev));
+            rows.push(GpuRow {
+                view: v.name.clone(),
+                lod_c: lod,
+                beam,
+                frames_to_converge,
+                resident_bricks: gpu.resident(),
+                pool_slots: gpu.pool_slots(),
+                hit_fraction,
+                frame_ms,
+                gpu_ms,
+                beam_ms: (!beam_dev.is_empty()).then(|| median(&mut beam_dev)),
+                frame_mrays_per_s: rays / frame_ms / 1e3,
+                gpu_mrays_per_s: gpu_ms.filter(|&ms| ms > 0.0).map(|ms| rays / ms / 1e3),
+                sustained_ms,
+                sustained_stable,
+                sustained_mrays_per_s: sustained_ms
+                    .filter(|&ms| ms > 0.0)
+                    .map(|ms| rays / ms / 1e3),
+            });
+            progress.inc(1);
+        }
+    }
+    Ok(GpuBenchReport {
+        adapter: ctx.describe(),
+        software: ctx.is_software(),
+        timestamps: ctx.timestamps,
+        world: label.to_string(),
+        width: setup.width,
+        height: setup.height,
+        rows,
+    })
+}
+
+/// A streamed world's render window opened at its camera's start and
+/// settled (every column exact, or `limit` passed), with the start view
+/// and a level view to the horizon along the same heading.
+pub fn open_window(
+    cfg: &crate::engine::world_config::WorldConfig,
+    limit: Duration,
+) -> Result<(crate::scene::RenderWindow, Vec<NamedView>)> {
+    use crate::scene::{ChunkGen, RenderWindow, WindowSettings};
+    let Some(stream) = cfg.stream else {
+        bail!(
+            "--world needs a streamed world (a [stream] table in its config); use --scene for one built whole"
+        );
+    };
+    let size = (!cfg.unbounded).then_some(cfg.size);
+    let gen_ = std::sync::Arc::new(ChunkGen::new(&cfg.source, size, cfg.size.y, cfg.seed)?);
+    let (eye, target) = super::flight::start_view(cfg);
+    let settings = WindowSettings {
+        radius: WindowSettings::radius_for(stream.view_distance),
+        budget_bytes: stream.memory_budget,
+        fetchers: stream.fetchers,
+    };
+    let mut w = RenderWindow::new(gen_, None, settings, eye, None, None)?;
+    if !w.settle(limit) {
+        bail!(
+            "the render window was not exact within {} s",
+            limit.as_secs()
+        );
+    }
+    let heading = DVec3::new(target.x - eye.x, 0.0, target.z - eye.z).normalize_or(DVec3::X);
+    let views = vec![
+        NamedView {
+            name: "start".into(),
+            eye,
+            target,
+            fov: cfg.camera.fov,
+        },
+        NamedView {
+            name: "horizon".into(),
+            eye,
+            target: eye + heading * 1000.0 - DVec3::Y * 50.0,
+            fov: cfg.camera.fov,
+        },
+    ];
+    Ok((w, views))
+}
