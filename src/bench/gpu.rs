@@ -4,9 +4,10 @@
 //!
 //! Each setting first streams until the view is converged (no requests,
 //! no pixel shown by an unloaded brick's LOD colour), then times frames.
-//! Three times are reported: the whole frame by the wall clock
-//! (parameters, dispatch, readback of every pixel and its decoding on the
-//! CPU, which is what `render` and the daemon pay); the tracer's passes
+//! Four times are reported: the whole frame by the wall clock
+//! (parameters, dispatch, readback of every pixel's outputs and their
+//! decoding on the CPU, which is what `render` pays); the whole frame of
+//! the image alone (`render_image`, what the daemon pays); the tracer's passes
 //! of such a frame on the device, from timestamp queries written at the
 //! passes' boundaries; and the tracer's device time per frame with many
 //! frames traced back to back (what a renderer that kept its pixels on
@@ -82,6 +83,11 @@ pub struct GpuRow {
     pub hit_fraction: f64,
     /// Median whole frame by the wall clock, ms.
     pub frame_ms: f64,
+    /// Median whole frame of the image alone (`render_image`, as the
+    /// daemon draws: 4 bytes a pixel read back), by the wall clock, ms.
+    pub image_ms: f64,
+    /// Primary rays per second over such frames, millions.
+    pub image_mrays_per_s: f64,
     /// Median of the tracer's passes on the device, ms (`None`: the device
     /// has no timestamp queries).
     pub gpu_ms: Option<f64>,
@@ -185,6 +191,13 @@ pub fn run(
                 dev.extend(s.gpu_ms);
                 beam_dev.extend(s.beam_ms);
             }
+            let mut image_wall = Vec::new();
+            for _ in 0..setup.frames {
+                let t = Instant::now();
+                gpu.render_image(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+                image_wall.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            let image_ms = median(&mut image_wall);
             // Back to back: untimed runs for `warmup` bring the clocks up
             // (on the H200 the first setting of a view read up to 2× slow
             // without), then runs until the last three agree within 5 %
@@ -230,6 +243,8 @@ pub fn run(
                 gpu_ms,
                 beam_ms: (!beam_dev.is_empty()).then(|| median(&mut beam_dev)),
                 frame_mrays_per_s: rays / frame_ms / 1e3,
+                image_ms,
+                image_mrays_per_s: rays / image_ms / 1e3,
                 gpu_mrays_per_s: gpu_ms.filter(|&ms| ms > 0.0).map(|ms| rays / ms / 1e3),
                 sustained_ms,
                 sustained_stable,

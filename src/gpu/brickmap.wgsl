@@ -37,7 +37,7 @@ struct Params {
     anchor: vec3<i32>, frame: u32,  // world voxel of local (0, 0, 0); frame number
     feedback_capacity: u32, ring_x: i32, ring_y: i32, ring_z: i32, // ring: physical brick of local (0, 0, 0)
     fog: f32, lod_k: f32, l4_offset: u32, ao: u32,  // fog extent (0: none); C * pixel angle (0: exact); level 4's word offset in `coarse`
-    jitter: vec2<f32>, beam: u32, pad2: u32,          // where primary rays pass in each pixel; beam starts on (1)
+    jitter: vec2<f32>, beam: u32, image_only: u32,    // where primary rays pass in each pixel; beam starts on (1); colour alone, into `image` (1)
 };
 
 struct PixelOut {
@@ -60,6 +60,7 @@ struct PixelOut {
 @group(0) @binding(8) var<storage, read_write> feedback: array<atomic<u32>>; // [0] = count, then brick indices
 @group(0) @binding(9) var<storage, read_write> last_seen: array<u32>;        // per pool slot
 @group(0) @binding(10) var<storage, read_write> beams: array<f32>;           // per 8x8 block: where its rays start
+@group(0) @binding(11) var<storage, read_write> image: array<u32>;          // per pixel 0xAABBGGRR, when P.image_only
 
 const BIG: f32 = 1e30;
 const STATE_MASK: u32 = 0xC0000000u;
@@ -692,5 +693,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let c = vec3<u32>(clamp(color, vec3<f32>(0.0), vec3<f32>(1.0)) * 255.0 + 0.5);
     o.rgba = c.x | (c.y << 8u) | (c.z << 16u) | (255u << 24u);
-    out[gid.y * P.width + gid.x] = o;
+    let idx = gid.y * P.width + gid.x;
+    if (P.image_only != 0u) { image[idx] = o.rgba; } else { out[idx] = o; }
 }

@@ -308,6 +308,7 @@ impl GpuBrickmap {
             entry(8, rw),
             entry(9, rw),
             entry(10, rw),
+            entry(11, rw),
         ];
         let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("brickmap"),

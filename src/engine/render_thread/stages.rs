@@ -344,12 +344,13 @@ fn draw(
     stats: &RenderStats,
 ) -> Vec<u8> {
     if let Some((ctx, g)) = gpu.as_mut() {
-        match g.render(ctx, camera, opts, world.grid(), world.store().pool()) {
-            Ok((f, s)) => {
+        // The image alone: a frame here is only shown.
+        match g.render_image(ctx, camera, opts, world.grid(), world.store().pool()) {
+            Ok((rgb, s)) => {
                 stats
                     .streamed
                     .fetch_add(s.uploads as u64, Ordering::Relaxed);
-                return f.rgb;
+                return rgb;
             }
             Err(e) => {
                 crate::say!("warning: GPU frame failed ({e}); rendering on the CPU from now on");
