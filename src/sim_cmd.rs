@@ -317,6 +317,12 @@ impl<'a> SimRun<'a> {
         if s.drain && ws.sim.channels().find("water").is_some() {
             crate::say!("  water drained over the edges: {}", six_places(ws.drained));
         }
+        // The daemon's hash (bricks and every channel): the same for any
+        // thread count, so two runs can be compared by one line.
+        crate::say!(
+            "  world hash {:#018x}",
+            crate::engine::persistence::engine_hash(&self.world, ws)
+        );
     }
 
     /// Stage 4: the final image, unless a script failed: a failed run
