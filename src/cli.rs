@@ -211,7 +211,7 @@ pub enum BenchCommand {
     Store(BenchStoreArgs),
     /// Fly a streamed world's render window a long way: memory against the budget, slides, frames.
     Flight(BenchFlightArgs),
-    /// The GPU tracer's primary rays per second at 1920x1080: device time and whole frames, per view, exact and with LOD.
+    /// The GPU tracer's primary rays per second (1920x1080 by default): whole frames and device time, per view, exact and with LOD.
     Gpu(BenchGpuArgs),
 }
 
@@ -221,13 +221,13 @@ pub struct BenchGpuArgs {
     #[allow(missing_docs)]
     #[command(flatten)]
     pub scene: SceneArgs,
-    /// A streamed world's config: trace its render window at the camera's start instead of a scene
-    #[arg(long, conflicts_with = "size")]
+    /// A streamed world's config: trace its render window at the camera's start instead of a scene (whose --size defaults to 2048x256x2048 here)
+    #[arg(long, conflicts_with_all = ["size", "scene", "seed"])]
     pub world: Option<PathBuf>,
-    /// Image width
+    /// Image width (1 to 8192)
     #[arg(long, default_value_t = 1920)]
     pub width: u32,
-    /// Image height
+    /// Image height (1 to 8192)
     #[arg(long, default_value_t = 1080)]
     pub height: u32,
     /// Footprints C to measure besides exact tracing, comma-separated ("none": exact only)
@@ -238,13 +238,13 @@ pub struct BenchGpuArgs {
         allow_hyphen_values = true
     )]
     pub lod: String,
-    /// Timed frames per view and setting, one by one and back to back; medians count (1 to 1000)
+    /// Timed frames per view and setting, one by one, then back to back (at most 100 per submission); medians count (1 to 1000)
     #[arg(long, default_value_t = 20)]
     pub frames: u32,
-    /// Most bricks uploaded per frame while the view converges
+    /// Most bricks uploaded per frame while the view converges (1 to 1048576)
     #[arg(long, default_value_t = 16_384)]
     pub uploads: u32,
-    /// Untimed back-to-back tracing before each setting's timed runs, ms (0 to 60000)
+    /// Untimed back-to-back tracing before each setting's timed runs, ms (0 to 60000; a run of frames started is finished)
     #[arg(long, default_value_t = 1000)]
     pub warmup_ms: u64,
     /// Write the results as JSON here

@@ -2098,6 +2098,17 @@ fn bench_gpu_refuses_bad_input_up_front() {
             "needs a streamed world",
         ),
         (&["--world", "no/such.toml"][..], "no/such.toml"),
+        (&["--lod", "none,1"][..], "\"none\" alone"),
+        (&["--lod", "0.001"][..], "0.001 is out of range"),
+        // Regression (hostile review): ignored without a word.
+        (
+            &["--world", "worlds/continent.toml", "--scene", "balls"][..],
+            "cannot be used with",
+        ),
+        (
+            &["--world", "worlds/continent.toml", "--seed", "3"][..],
+            "cannot be used with",
+        ),
     ] {
         let args = with(extra);
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
@@ -2146,4 +2157,36 @@ fn sim_prints_a_world_hash_that_thread_counts_keep() {
     let one = hash_of("1", "0.1");
     assert_eq!(one, hash_of("2", "0.1"));
     assert_ne!(one, hash_of("2", "0.3"));
+}
+
+/// Regression (hostile review of `bench gpu`): a bench's `--json` (or
+/// `--chart`) naming its own heightmap replaced the heightmap with JSON.
+/// `bench gpu`, `bench lod`, `bench tracers` and `bench stream` refuse it
+/// before any work, and the file is kept.
+#[test]
+fn a_bench_output_naming_its_scene_file_is_refused() {
+    let hm = tmp("scene-hm.png");
+    {
+        let f = std::fs::File::create(&hm).unwrap();
+        let mut enc = png::Encoder::new(f, 16, 16);
+        enc.set_color(png::ColorType::Grayscale);
+        let mut w = enc.write_header().unwrap();
+        w.write_image_data(&[40u8; 256]).unwrap();
+    }
+    let before = std::fs::read(&hm).unwrap();
+    let scene = format!("heightmap:{}", hm.display());
+    let hm_s = hm.to_str().unwrap();
+    for args in [
+        vec!["bench", "gpu", "--scene", &scene, "--json", hm_s],
+        vec!["bench", "lod", "--scene", &scene, "--json", hm_s],
+        vec!["bench", "tracers", "--scene", &scene, "--json", hm_s],
+        vec!["bench", "stream", "--scene", &scene, "--json", hm_s],
+    ] {
+        expect_failure(&args, "scene file");
+        assert_eq!(
+            std::fs::read(&hm).unwrap(),
+            before,
+            "{args:?} changed the heightmap"
+        );
+    }
 }

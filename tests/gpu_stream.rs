@@ -682,3 +682,44 @@ fn render_image_draws_exactly_the_image_render_draws() {
         assert!(streamed > 0, "view {view}: nothing was streamed");
     }
 }
+
+/// Regression (hostile review of `bench gpu`): tracing a view back to back
+/// before it had converged left its rays' claims in place on the device,
+/// with nobody to serve them, so those bricks were never asked for again
+/// and the view never converged. The claims are now undone: streaming
+/// goes on to the fully loaded image.
+#[test]
+fn sustained_tracing_before_convergence_leaves_streaming_able_to_converge() {
+    let Some(ctx) = context() else { return };
+    if !ctx.has_timestamps() {
+        return; // sustained_ms traces nothing without timestamps
+    }
+    let w = terrain();
+    let cam = camera(&w, 1);
+    let cfg = StreamConfig {
+        uploads_per_frame: 8,
+        ..Default::default()
+    };
+    let mut gpu =
+        GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg).unwrap();
+    let opts = RenderOptions::default();
+    let mut last = None;
+    for n in 0..400 {
+        let (f, s) = gpu
+            .render(&ctx, &cam, &opts, w.grid(), w.store().pool())
+            .unwrap();
+        if s.requests == 0 && f.lod_pixels == 0 {
+            last = Some(f);
+            break;
+        }
+        if n % 3 == 0 {
+            gpu.sustained_ms(&ctx, &cam, &opts, w.grid(), 2).unwrap();
+        }
+    }
+    let last = last.expect("the view converges between back-to-back runs");
+    let mut full =
+        GpuBrickmap::preloaded(&ctx, w.grid(), w.store().pool(), w.store().palette()).unwrap();
+    let (reference, _) = draw(&ctx, &mut full, &w, &cam);
+    assert_eq!(last.hits, reference.hits);
+    assert_eq!(last.rgb, reference.rgb);
+}

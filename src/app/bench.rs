@@ -25,6 +25,7 @@ pub(super) fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
         anyhow::bail!("invalid --uploads 0: at least one brick per frame");
     }
     crate::config::check_bench_outputs(&a.json, a.chart.as_deref())?;
+    scene.check_outputs(&a.json, a.chart.as_deref())?;
     if a.pool == 0 || a.pool > crate::gpu::MAX_POOL_SLOTS {
         anyhow::bail!(
             "invalid --pool {}: must be in 1..={} slots (the pool's cap)",
@@ -340,21 +341,7 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
             crate::gpu::MAX_POOL_SLOTS
         );
     }
-    let mut lods = vec![0.0f32];
-    if a.lod.trim() != "none" {
-        for part in a.lod.split(',') {
-            let c: f64 = part.trim().parse().map_err(|_| {
-                anyhow::anyhow!(
-                    "invalid --lod '{}': '{part}' is not a number (or give \"none\")",
-                    a.lod
-                )
-            })?;
-            let c = crate::config::lod_c("--lod", c)?;
-            if !lods.contains(&c) {
-                lods.push(c);
-            }
-        }
-    }
+    let lods = gpu_lods(&a.lod)?;
     crate::config::check_bench_outputs(&a.json, None)?;
     let mut setup = GpuBenchSetup {
         width: a.width,
@@ -393,6 +380,7 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
         }
         None => {
             let scene = SceneSettings::from_args(&a.scene, glam::IVec3::new(2048, 256, 2048))?;
+            scene.check_outputs(&a.json, None)?;
             let world = build_world(&scene)?;
             let names = ["overview", "medium", "close-up"];
             let views: Vec<NamedView> = world
@@ -406,12 +394,15 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
                     fov: v.fov,
                 })
                 .collect();
+            // The world's own extent: file scenes ignore the default size.
+            let (lo, hi) = world.bounds();
+            let e = hi - lo;
             let label = format!(
                 "{} {}x{}x{} ({} bricks)",
                 a.scene.scene,
-                scene.size.x,
-                scene.size.y,
-                scene.size.z,
+                e.x,
+                e.y,
+                e.z,
                 world.store().pool().len()
             );
             let pb = bar("bench gpu (settings)", 0);
@@ -483,4 +474,34 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `bench gpu --lod`: exact tracing (always measured, first), then each
+/// distinct C of the list; "none" (alone) measures exact tracing only.
+fn gpu_lods(text: &str) -> Result<Vec<f32>> {
+    let mut lods = vec![0.0f32];
+    if text.trim().eq_ignore_ascii_case("none") {
+        return Ok(lods);
+    }
+    for part in text.split(',') {
+        let part = part.trim();
+        let bad = |why: &str| {
+            anyhow::anyhow!(
+                "invalid --lod '{text}': {why} (a list of C in {}..={} pixels; exact tracing is always measured; \"none\" alone measures only it)",
+                crate::config::MIN_LOD,
+                crate::config::MAX_LOD
+            )
+        };
+        let c: f64 = part
+            .parse()
+            .map_err(|_| bad(&format!("'{part}' is not a number")))?;
+        if !crate::config::lod_in_range(c) {
+            return Err(bad(&format!("{part} is out of range")));
+        }
+        let c = c as f32;
+        if !lods.contains(&c) {
+            lods.push(c);
+        }
+    }
+    Ok(lods)
 }

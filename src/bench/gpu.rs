@@ -52,7 +52,8 @@ pub struct GpuBenchSetup {
     pub height: u32,
     /// Footprints `C` (0: exact), in the order measured.
     pub lods: Vec<f32>,
-    /// Timed frames per view and setting (the median counts).
+    /// Timed frames per view and setting (the median counts); as many
+    /// back to back per submission, at most 100.
     pub frames: u32,
     /// Most bricks uploaded per frame while converging.
     pub uploads: u32,
@@ -151,6 +152,16 @@ pub fn run(
         .collect();
     progress.set_length((views.len() * settings.len()) as u64);
     let rays = setup.width as f64 * setup.height as f64;
+    // One submission of many frames can outlast a display GPU's watchdog.
+    let back_to_back = setup.frames.min(100);
+    if ctx.is_software() {
+        progress.suspend(|| {
+            crate::say!(
+                "note: {} is a software rasterizer: these figures measure the CPU, and at large sizes they take long",
+                ctx.describe()
+            )
+        });
+    }
     let mut rows = Vec::new();
     for v in views {
         let cam = Camera::new(v.eye, v.target, v.fov, setup.width, setup.height)?;
@@ -205,7 +216,7 @@ pub fn run(
             let t = Instant::now();
             while t.elapsed() < setup.warmup {
                 if gpu
-                    .sustained_ms(&ctx, &cam, &opts, world.grid(), setup.frames)?
+                    .sustained_ms(&ctx, &cam, &opts, world.grid(), back_to_back)?
                     .is_none()
                 {
                     break;
@@ -214,7 +225,7 @@ pub fn run(
             let mut runs: Vec<f64> = Vec::new();
             let mut sustained_stable = false;
             while runs.len() < 20 {
-                let Some(ms) = gpu.sustained_ms(&ctx, &cam, &opts, world.grid(), setup.frames)?
+                let Some(ms) = gpu.sustained_ms(&ctx, &cam, &opts, world.grid(), back_to_back)?
                 else {
                     break;
                 };

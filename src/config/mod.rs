@@ -4,7 +4,7 @@
 
 mod values;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use glam::{DVec3, IVec3};
 
@@ -29,6 +29,20 @@ pub struct SceneSettings {
 }
 
 impl SceneSettings {
+    /// Refuse a bench's outputs (`--json`, `--chart`) that name the scene's
+    /// own file (a heightmap or `.vox`), which they would overwrite
+    /// (regression, hostile probe: `bench gpu --scene heightmap:h.png
+    /// --json h.png` replaced the heightmap).
+    pub fn check_outputs(&self, json: &Path, chart: Option<&Path>) -> Result<(), ConfigError> {
+        if let Some(file) = self.spec.file() {
+            values::not_an_input("--json", json, &[("scene file", file)])?;
+            if let Some(c) = chart {
+                values::not_an_input("--chart", c, &[("scene file", file)])?;
+            }
+        }
+        Ok(())
+    }
+
     /// Validate scene flags; `default_size` applies when `--size` is absent.
     pub fn from_args(a: &SceneArgs, default_size: IVec3) -> Result<Self, ConfigError> {
         let spec: SceneSpec = a
@@ -283,8 +297,10 @@ impl BenchLodSettings {
         lods.sort_by(f32::total_cmp);
         lods.dedup();
         check_bench_outputs(&a.json, a.chart.as_deref())?;
+        let scene = SceneSettings::from_args(&a.scene, BENCH_LOD_DEFAULT_SIZE)?;
+        scene.check_outputs(&a.json, a.chart.as_deref())?;
         Ok(BenchLodSettings {
-            scene: SceneSettings::from_args(&a.scene, BENCH_LOD_DEFAULT_SIZE)?,
+            scene,
             view: ViewSettings::from_args(&a.view, 960, 540)?,
             lods,
             spp: parse_num("--spp", &a.spp, 16u32, 1024)?,
@@ -319,8 +335,10 @@ impl BenchTracersSettings {
             return Err(bad("--repeat", &a.repeat.to_string(), "must be in 1..=100"));
         }
         check_bench_outputs(&a.json, a.chart.as_deref())?;
+        let scene = SceneSettings::from_args(&a.scene, BENCH_DEFAULT_SIZE)?;
+        scene.check_outputs(&a.json, a.chart.as_deref())?;
         Ok(BenchTracersSettings {
-            scene: SceneSettings::from_args(&a.scene, BENCH_DEFAULT_SIZE)?,
+            scene,
             view: ViewSettings::from_args(&a.view, 1024, 768)?,
             json: a.json.clone(),
             chart: a.chart.clone(),
