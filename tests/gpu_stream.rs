@@ -723,3 +723,25 @@ fn sustained_tracing_before_convergence_leaves_streaming_able_to_converge() {
     assert_eq!(last.hits, reference.hits);
     assert_eq!(last.rgb, reference.rgb);
 }
+
+/// `bench gpu` asks the device whether a frame fits before it builds any
+/// world (regression, hostile review: 8192×8192 was refused only after
+/// the scene or window had been built).
+#[test]
+fn bench_gpu_refuses_a_frame_the_device_cannot_hold_before_building() {
+    let Some(ctx) = context() else { return };
+    if ctx.check_frame(8192, 8192).is_ok() {
+        return; // this device holds it
+    }
+    let json = std::env::temp_dir().join(format!("brickworld-gpu-big-{}.json", std::process::id()));
+    // The heightmap does not exist: building the scene would fail on it,
+    // so the frame's error shows the scene was never built.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["bench", "gpu", "--scene", "heightmap:/no/such/map.png"])
+        .args(["--width", "8192", "--height", "8192", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(&out, "bench gpu 8192x8192", "GPU pixel buffer");
+    assert!(!json.exists());
+}

@@ -355,9 +355,36 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
             ..Default::default()
         },
     };
-    let r = match &a.world {
+    // Flags first, then the device: a frame it cannot hold is refused
+    // before any world is built, and a software rasterizer is named before
+    // the run.
+    enum Source<'a> {
+        World(&'a std::path::Path),
+        Scene(SceneSettings),
+    }
+    let source = match &a.world {
         Some(path) => {
             crate::config::not_an_input("--json", &a.json, &[("world config", path)])?;
+            Source::World(path)
+        }
+        None => {
+            let s = SceneSettings::from_args(&a.scene, glam::IVec3::new(2048, 256, 2048))?;
+            s.check_outputs(&a.json, None)?;
+            Source::Scene(s)
+        }
+    };
+    // The device: a frame it cannot hold is refused before any
+    // world is built, and a software rasterizer is named before the run.
+    let ctx = crate::gpu::GpuContext::new()?;
+    ctx.check_frame(a.width, a.height)?;
+    if ctx.is_software() {
+        crate::say!(
+            "note: {} is a software rasterizer: these figures measure the CPU, and at large sizes they take long",
+            ctx.describe()
+        );
+    }
+    let r = match source {
+        Source::World(path) => {
             let cfg = crate::engine::world_config::WorldConfig::load(path)?;
             // The daemon's look, primary rays only.
             setup.look = RenderOptions {
@@ -374,13 +401,11 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
                 w.world().store().pool().len()
             );
             let pb = bar("bench gpu (settings)", 0);
-            let r = crate::bench::gpu::run(w.world(), &label, &views, &setup, &pb)?;
+            let r = crate::bench::gpu::run(&ctx, w.world(), &label, &views, &setup, &pb)?;
             pb.finish_and_clear();
             r
         }
-        None => {
-            let scene = SceneSettings::from_args(&a.scene, glam::IVec3::new(2048, 256, 2048))?;
-            scene.check_outputs(&a.json, None)?;
+        Source::Scene(scene) => {
             let world = build_world(&scene)?;
             let names = ["overview", "medium", "close-up"];
             let views: Vec<NamedView> = world
@@ -406,7 +431,7 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
                 world.store().pool().len()
             );
             let pb = bar("bench gpu (settings)", 0);
-            let r = crate::bench::gpu::run(&world, &label, &views, &setup, &pb)?;
+            let r = crate::bench::gpu::run(&ctx, &world, &label, &views, &setup, &pb)?;
             pb.finish_and_clear();
             r
         }

@@ -138,13 +138,13 @@ fn median(v: &mut [f64]) -> f64 {
 /// Measure `views` of `world` as `setup` says; `label` names the world in
 /// the report.
 pub fn run(
+    ctx: &GpuContext,
     world: &SceneWorld,
     label: &str,
     views: &[NamedView],
     setup: &GpuBenchSetup,
     progress: &indicatif::ProgressBar,
 ) -> Result<GpuBenchReport> {
-    let ctx = GpuContext::new()?;
     let settings: Vec<(f32, bool)> = setup
         .lods
         .iter()
@@ -154,14 +154,6 @@ pub fn run(
     let rays = setup.width as f64 * setup.height as f64;
     // One submission of many frames can outlast a display GPU's watchdog.
     let back_to_back = setup.frames.min(100);
-    if ctx.is_software() {
-        progress.suspend(|| {
-            crate::say!(
-                "note: {} is a software rasterizer: these figures measure the CPU, and at large sizes they take long",
-                ctx.describe()
-            )
-        });
-    }
     let mut rows = Vec::new();
     for v in views {
         let cam = Camera::new(v.eye, v.target, v.fov, setup.width, setup.height)?;
@@ -171,7 +163,7 @@ pub fn run(
             ..Default::default()
         };
         let mut gpu = GpuBrickmap::streaming(
-            &ctx,
+            ctx,
             world.grid(),
             world.store().pool(),
             world.store().palette(),
@@ -185,19 +177,19 @@ pub fn run(
             };
             let mut frames_to_converge = 0;
             for n in 1..=400u32 {
-                let (f, s) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+                let (f, s) = gpu.render(ctx, &cam, &opts, world.grid(), world.store().pool())?;
                 if s.requests == 0 && f.lod_pixels == 0 {
                     frames_to_converge = n;
                     break;
                 }
             }
             // One untimed frame more: the first after uploads pays for them.
-            let (f, _) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+            let (f, _) = gpu.render(ctx, &cam, &opts, world.grid(), world.store().pool())?;
             let hit_fraction = f.hits.iter().filter(|h| h.is_some()).count() as f64 / rays;
             let (mut wall, mut dev, mut beam_dev) = (Vec::new(), Vec::new(), Vec::new());
             for _ in 0..setup.frames {
                 let t = Instant::now();
-                let (_, s) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+                let (_, s) = gpu.render(ctx, &cam, &opts, world.grid(), world.store().pool())?;
                 wall.push(t.elapsed().as_secs_f64() * 1e3);
                 dev.extend(s.gpu_ms);
                 beam_dev.extend(s.beam_ms);
@@ -205,7 +197,7 @@ pub fn run(
             let mut image_wall = Vec::new();
             for _ in 0..setup.frames {
                 let t = Instant::now();
-                gpu.render_image(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
+                gpu.render_image(ctx, &cam, &opts, world.grid(), world.store().pool())?;
                 image_wall.push(t.elapsed().as_secs_f64() * 1e3);
             }
             let image_ms = median(&mut image_wall);
@@ -216,7 +208,7 @@ pub fn run(
             let t = Instant::now();
             while t.elapsed() < setup.warmup {
                 if gpu
-                    .sustained_ms(&ctx, &cam, &opts, world.grid(), back_to_back)?
+                    .sustained_ms(ctx, &cam, &opts, world.grid(), back_to_back)?
                     .is_none()
                 {
                     break;
@@ -225,7 +217,7 @@ pub fn run(
             let mut runs: Vec<f64> = Vec::new();
             let mut sustained_stable = false;
             while runs.len() < 20 {
-                let Some(ms) = gpu.sustained_ms(&ctx, &cam, &opts, world.grid(), back_to_back)?
+                let Some(ms) = gpu.sustained_ms(ctx, &cam, &opts, world.grid(), back_to_back)?
                 else {
                     break;
                 };

@@ -61,6 +61,33 @@ struct PixelOut {
     normal: u32,
 }
 
+impl GpuContext {
+    /// Whether a `w`×`h` frame of [`GpuBrickmap::render`] (every output,
+    /// the larger need) fits this device's buffers: a
+    /// [`GpuError::FrameTooLarge`] naming the figures if not. Benchmarks
+    /// ask before building a world.
+    pub fn check_frame(&self, w: u32, h: u32) -> Result<(), GpuError> {
+        let px = std::mem::size_of::<PixelOut>() as u64;
+        self.check_frame_bytes(w, h, w as u64 * h as u64 * px)
+    }
+
+    fn check_frame_bytes(&self, w: u32, h: u32, needed: u64) -> Result<(), GpuError> {
+        let limit = self
+            .limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size);
+        if needed > limit {
+            return Err(GpuError::FrameTooLarge {
+                width: w,
+                height: h,
+                needed,
+                limit,
+            });
+        }
+        Ok(())
+    }
+}
+
 impl GpuBrickmap {
     /// Start a frame of `camera`: its number and anchor, its parameters,
     /// the feedback count reset, its output and beam buffers and the bind
@@ -123,18 +150,7 @@ impl GpuBrickmap {
         let image_size = if image_only { pixels * 4 } else { 4 };
         // Checked before any buffer exists: past the binding limit wgpu
         // fails validation with a panic (regression: 3840×2160 on lavapipe).
-        let limit = ctx
-            .limits
-            .max_storage_buffer_binding_size
-            .min(ctx.limits.max_buffer_size);
-        if out_size.max(image_size) > limit {
-            return Err(GpuError::FrameTooLarge {
-                width: w,
-                height: h,
-                needed: out_size.max(image_size),
-                limit,
-            });
-        }
+        ctx.check_frame_bytes(w, h, out_size.max(image_size))?;
         let uniform = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("params"),
             contents: bytemuck::bytes_of(&params),
