@@ -172,11 +172,11 @@ fn bad_voxel_scripts_are_refused_clearly() {
     let before = brickworld::engine::checkpoint::world_hash(&store, &Default::default());
     let r = sim.step(&mut store, &reg, 0.05);
     assert_eq!(r.errors.len(), 1);
-    assert!(
-        r.errors[0].to_string().contains("wrote material id 77"),
-        "{}",
-        r.errors[0]
-    );
+    let e = r.errors[0].to_string();
+    assert!(e.contains("wrote material id 77"), "{e}");
+    // Named by its brick, never as a column tile (regression, modder
+    // probe: "on tile (1, 0): brick (1, 0, 0): …").
+    assert!(e.contains("on brick (") && !e.contains("tile"), "{e}");
     assert_eq!(
         brickworld::engine::checkpoint::world_hash(&store, &Default::default()),
         before,
@@ -237,7 +237,7 @@ fn the_smoke_test_brick_holds_an_only_scripts_material() {
         .add_script(needs_sand(""), Limits::default(), &reg)
         .unwrap_err()
         .to_string();
-    assert!(e.contains("at load, on a test brick of air"), "{e}");
+    assert!(e.contains("on a test brick of air, at load"), "{e}");
 }
 
 /// Communicating vessels (the `verify sims` case): two basins joined by a
@@ -909,4 +909,33 @@ fn a_voxel_script_run_every_n_ticks_sees_n_times_the_step_as_c_dt() {
     // Ticks 0 to 3: every tick 4 × 0.05; every 2 ticks (0 and 2) 2 × 0.1.
     assert!((total(1) - 0.2).abs() < 1e-6, "{}", total(1));
     assert!((total(2) - 0.2).abs() < 1e-6, "{}", total(2));
+}
+
+/// Regression (modder probe): a voxel script's kernel error named a
+/// column "tile" made of its brick's x and z, then the brick. It names the
+/// brick alone: "pass 'p' on brick (x, y, z)".
+#[test]
+fn a_voxel_kernel_error_names_its_brick_not_a_tile() {
+    let reg = shipped_registry();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    let stone = reg.id("stone").unwrap();
+    store.fill_box(IVec3::ZERO, IVec3::new(15, 3, 7), stone);
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 16, 32), 1);
+    sim.add_script(
+        ScriptSource {
+            name: "fails".into(),
+            text: "return { grid = \"voxels\", passes = { { name = \"p\", reads = {}, writes = { \"mat\" }, kernel = function(c, bx, by, bz)\n if bx == 1 then error(\"boom\") end\n end } } }".into(),
+        },
+        Limits::default(),
+        &reg,
+    )
+    .unwrap();
+    let r = sim.step(&mut store, &reg, 0.05);
+    assert_eq!(r.errors.len(), 1, "{:?}", r.errors);
+    let e = r.errors[0].to_string();
+    assert!(
+        e.contains("pass 'p' on brick (1, 0, 0)") && e.contains("boom"),
+        "{e}"
+    );
+    assert!(!e.contains("tile"), "{e}");
 }

@@ -170,6 +170,27 @@ impl std::fmt::Display for Place {
     }
 }
 
+/// Where a kernel call ran, as an error names it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CallSite {
+    /// A column script's tile of 8×8 columns (x, z).
+    Tile(i32, i32),
+    /// A voxel script's brick (x, y, z).
+    Brick([i32; 3]),
+    /// The brick of a material a voxel script is tried on at load.
+    TestBrick(String),
+}
+
+impl std::fmt::Display for CallSite {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            CallSite::Tile(x, z) => write!(f, "tile ({x}, {z})"),
+            CallSite::Brick([x, y, z]) => write!(f, "brick ({x}, {y}, {z})"),
+            CallSite::TestBrick(m) => write!(f, "a test brick of {m}, at load"),
+        }
+    }
+}
+
 /// A number for a message: plain when moderate, in scientific notation
 /// when huge or tiny (a 1e300 is not printed as 301 digits).
 pub fn fmt_num(v: f64) -> String {
@@ -210,14 +231,16 @@ pub enum SimError {
         msg: String,
     },
     /// A kernel failed (error, budget, memory) during a step.
-    #[error("{script}.lua{}: pass '{pass}' on tile {tile:?}: {msg}", at_line(*line))]
+    #[error("{script}.lua{}: pass '{pass}' on {at}: {msg}", at_line(*line))]
     Runtime {
         /// Script name.
         script: String,
         /// Pass name.
         pass: String,
-        /// Tile.
-        tile: (i32, i32),
+        /// Where the call ran: a column script's tile, a voxel script's
+        /// brick (regression, modder probe: voxel errors named a "tile"
+        /// that was a brick's x and z), or the test brick of a load.
+        at: CallSite,
         /// Line, if known.
         line: Option<usize>,
         /// Message.

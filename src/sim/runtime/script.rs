@@ -362,9 +362,9 @@ impl ScriptVm {
                 } => SimError::Runtime {
                     script,
                     pass,
-                    tile: (b[0], b[2]),
+                    at: crate::sim::CallSite::Brick(b),
                     line,
-                    msg: format!("brick ({}, {}, {}): {msg}", b[0], b[1], b[2]),
+                    msg,
                 },
                 other => other,
             })
@@ -509,7 +509,7 @@ impl ScriptVm {
             SimError::Runtime {
                 script: self.name.clone(),
                 pass: pass_name.to_string(),
-                tile: (tx, tz),
+                at: crate::sim::CallSite::Tile(tx, tz),
                 line,
                 msg: one_line(&first),
             }

@@ -293,12 +293,9 @@ pub(super) fn run_script(
                     return Err(SimError::Runtime {
                         script: spec.name.clone(),
                         pass: pass.name.clone(),
-                        tile: (b.x, b.z),
+                        at: crate::sim::CallSite::Brick(b.to_array()),
                         line: None,
-                        msg: format!(
-                            "brick ({}, {}, {}): wrote material id {bad}, which is not registered",
-                            b.x, b.y, b.z
-                        ),
+                        msg: format!("wrote material id {bad}, which is not registered"),
                     });
                 }
                 work.mats[ci] = *mat;

@@ -208,15 +208,15 @@ impl VoxelSim {
                 SimError::Runtime {
                     script,
                     pass,
-                    tile,
                     line,
                     msg,
+                    ..
                 } => SimError::Runtime {
                     script,
                     pass,
-                    tile,
+                    at: crate::sim::CallSite::TestBrick(sample_name.to_string()),
                     line,
-                    msg: format!("at load, on a test brick of {sample_name}: {msg}"),
+                    msg,
                 },
                 other => other,
             })?;
@@ -231,11 +231,9 @@ impl VoxelSim {
                 return Err(SimError::Runtime {
                     script: spec.name.clone(),
                     pass: pass.name.clone(),
-                    tile: (0, 0),
+                    at: crate::sim::CallSite::TestBrick(sample_name.to_string()),
                     line: None,
-                    msg: format!(
-                        "at load, on a test brick of {sample_name}: wrote material id {bad}, which is not registered"
-                    ),
+                    msg: format!("wrote material id {bad}, which is not registered"),
                 });
             }
         }
