@@ -2098,7 +2098,7 @@ fn bench_gpu_refuses_bad_input_up_front() {
             "needs a streamed world",
         ),
         (&["--world", "no/such.toml"][..], "no/such.toml"),
-        (&["--lod", "none,1"][..], "\"none\" alone"),
+        (&["--lod", "none,1"][..], "'none' is not a number"),
         (&["--lod", "0.001"][..], "0.001 is out of range"),
         // Regression (hostile review): ignored without a word.
         (

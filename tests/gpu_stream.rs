@@ -583,13 +583,29 @@ fn bench_gpu_reports_every_view_and_setting() {
          [camera]\neye = [256.0, 80.0, 256.0]\ntarget = [320.0, 40.0, 300.0]\n",
     )
     .unwrap();
-    let scene: &[&str] = &["--size", "64x32x64"];
-    let streamed: &[&str] = &["--world", world.to_str().unwrap()];
-    for (source, views) in [(scene, 3), (streamed, 2)] {
+    // A 16 × 16 heightmap: its label gives its own size, not the default.
+    let hm = dir.join("hm.png");
+    {
+        let f = std::fs::File::create(&hm).unwrap();
+        let mut enc = png::Encoder::new(f, 16, 16);
+        enc.set_color(png::ColorType::Grayscale);
+        let mut w = enc.write_header().unwrap();
+        w.write_image_data(&[40u8; 256]).unwrap();
+    }
+    let hm_scene = format!("heightmap:{}", hm.display());
+    let scene: &[&str] = &["--size", "64x32x64", "--lod", "1,2"];
+    let streamed: &[&str] = &["--world", world.to_str().unwrap(), "--lod", "1,2"];
+    // "none" in any case: exact tracing alone.
+    let heightmap: &[&str] = &["--scene", &hm_scene, "--lod", "NONE"];
+    for (source, rows_expected, size) in [
+        (scene, 3 * 3 * 2, Some("64x32x64")),
+        (streamed, 2 * 3 * 2, None),
+        (heightmap, 3 * 2, Some("16x")),
+    ] {
         let json = dir.join("gpu.json");
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
             .args(["bench", "gpu", "--width", "64", "--height", "48"])
-            .args(["--frames", "2", "--warmup-ms", "0", "--lod", "1,2"])
+            .args(["--frames", "2", "--warmup-ms", "0"])
             .args(source)
             .arg("--json")
             .arg(&json)
@@ -598,7 +614,18 @@ fn bench_gpu_reports_every_view_and_setting() {
         assert_success(&out);
         let v = read_json(&json);
         let rows = v["rows"].as_array().unwrap();
-        assert_eq!(rows.len(), views * 3 * 2, "{v}");
+        assert_eq!(rows.len(), rows_expected, "{v}");
+        let label = v["world"].as_str().unwrap();
+        if let Some(size) = size {
+            assert!(label.contains(size) && !label.contains("2048"), "{label}");
+        }
+        // A software rasterizer is named before the run, on stderr.
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(
+            v["software"].as_bool().unwrap(),
+            err.contains("is a software rasterizer"),
+            "{err}"
+        );
         let timestamps = v["timestamps"].as_bool().unwrap();
         for r in rows {
             assert!(r["frames_to_converge"].as_u64().unwrap() > 0, "{r}");
@@ -692,7 +719,9 @@ fn render_image_draws_exactly_the_image_render_draws() {
 fn sustained_tracing_before_convergence_leaves_streaming_able_to_converge() {
     let Some(ctx) = context() else { return };
     if !ctx.has_timestamps() {
-        return; // sustained_ms traces nothing without timestamps
+        // sustained_ms traces nothing without timestamps.
+        eprintln!("skipping: this device has no timestamp queries");
+        return;
     }
     let w = terrain();
     let cam = camera(&w, 1);
@@ -731,7 +760,8 @@ fn sustained_tracing_before_convergence_leaves_streaming_able_to_converge() {
 fn bench_gpu_refuses_a_frame_the_device_cannot_hold_before_building() {
     let Some(ctx) = context() else { return };
     if ctx.check_frame(8192, 8192).is_ok() {
-        return; // this device holds it
+        eprintln!("skipping: this device holds an 8192x8192 frame");
+        return;
     }
     let json = std::env::temp_dir().join(format!("brickworld-gpu-big-{}.json", std::process::id()));
     // The heightmap does not exist: building the scene would fail on it,

@@ -2,6 +2,7 @@
 //! with context (anyhow lives here and in `main`, nowhere else).
 
 mod bench;
+mod bench_gpu;
 mod render;
 
 use anyhow::{Context, Result, bail};
@@ -10,10 +11,7 @@ use crate::cli::{BenchCommand, Cli, Command, VerifyCommand};
 use crate::config::{BenchTracersSettings, RenderSettings, SceneSettings};
 use crate::progress::bar;
 use crate::scene::{SceneWorld, build_scene};
-use bench::{
-    run_bench_flight, run_bench_gpu, run_bench_sim, run_bench_store, run_bench_stream,
-    run_bench_voxels,
-};
+use bench::{run_bench_flight, run_bench_sim, run_bench_store, run_bench_stream, run_bench_voxels};
 use render::run_render;
 
 /// Run a parsed command line.
@@ -147,7 +145,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Bench(BenchCommand::Voxels(a)) => run_bench_voxels(&a),
         Command::Bench(BenchCommand::Store(a)) => run_bench_store(&a),
         Command::Bench(BenchCommand::Flight(a)) => run_bench_flight(&a),
-        Command::Bench(BenchCommand::Gpu(a)) => run_bench_gpu(&a),
+        Command::Bench(BenchCommand::Gpu(a)) => bench_gpu::run_bench_gpu(&a),
         Command::Bench(BenchCommand::Lod(a)) => {
             crate::bench::lod::run(&crate::config::BenchLodSettings::from_args(&a)?)
         }

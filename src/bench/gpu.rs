@@ -7,11 +7,12 @@
 //! Four times are reported: the whole frame by the wall clock
 //! (parameters, dispatch, readback of every pixel's outputs and their
 //! decoding on the CPU, which is what `render` pays); the whole frame of
-//! the image alone (`render_image`, what the daemon pays); the tracer's passes
-//! of such a frame on the device, from timestamp queries written at the
-//! passes' boundaries; and the tracer's device time per frame with many
-//! frames traced back to back (what a renderer that kept its pixels on
-//! the GPU would pay). The last is the headline: one frame at a time leaves
+//! the image alone (`render_image`, what the daemon pays); the tracer's
+//! passes of a `render` frame on the device, from timestamp queries
+//! written at the passes' boundaries; and the tracer's device time per
+//! frame with many `render` frames traced back to back (what a renderer
+//! that kept its pixels on the GPU would pay; the trace writes every
+//! output, as `render`'s does). The last is the headline: one frame at a time leaves
 //! the device idle while the CPU reads and decodes, and an NVIDIA H200 so
 //! loaded ran its passes up to several times slower (lower clocks) than
 //! when kept busy.
@@ -118,7 +119,8 @@ pub struct GpuBenchReport {
     pub adapter: String,
     /// Whether it is a software rasterizer (its figures measure a CPU).
     pub software: bool,
-    /// Whether the device wrote timestamps.
+    /// Whether the device has timestamp queries (the device times are
+    /// `None` without).
     pub timestamps: bool,
     /// What was traced.
     pub world: String,
@@ -202,7 +204,7 @@ pub fn run(
             }
             let image_ms = median(&mut image_wall);
             // Back to back: untimed runs for `warmup` bring the clocks up
-            // (on the H200 the first setting of a view read up to 2× slow
+            // (on the H200 the first setting of a view read up to 1.5× slow
             // without), then runs until the last three agree within 5 %
             // (at most 20); their median counts.
             let t = Instant::now();
@@ -278,9 +280,7 @@ pub fn open_window(
 ) -> Result<(crate::scene::RenderWindow, Vec<NamedView>)> {
     use crate::scene::{ChunkGen, RenderWindow, WindowSettings};
     let Some(stream) = cfg.stream else {
-        bail!(
-            "--world needs a streamed world (a [stream] table in its config); use --scene for one built whole"
-        );
+        bail!("the world has no [stream] table: it is built whole, not streamed");
     };
     let size = (!cfg.unbounded).then_some(cfg.size);
     let gen_ = std::sync::Arc::new(ChunkGen::new(&cfg.source, size, cfg.size.y, cfg.seed)?);

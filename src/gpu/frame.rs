@@ -7,7 +7,7 @@ use glam::{DVec3, IVec3};
 use wgpu::util::DeviceExt;
 
 use super::stream::FrameStats;
-use super::tracer::{GpuBrickmap, REQUESTED, STATE_MASK, l4_offset};
+use super::tracer::{GpuBrickmap, REQUESTED, STATE_MASK, UNLOADED, l4_offset};
 use super::{GpuContext, GpuError, GpuFrame};
 use crate::trace::{Camera, Frame, RenderOptions};
 use crate::world::{BRICK_SHIFT, BrickGrid, BrickPool};
@@ -50,6 +50,9 @@ struct Params {
     image_only: u32,
 }
 
+/// Bytes a pixel's outputs take on the device and in a `render` readback.
+pub(super) const PIXEL_BYTES: u64 = std::mem::size_of::<PixelOut>() as u64;
+
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable, Debug)]
 struct PixelOut {
@@ -59,33 +62,6 @@ struct PixelOut {
     vy: i32,
     vz: i32,
     normal: u32,
-}
-
-impl GpuContext {
-    /// Whether a `w`×`h` frame of [`GpuBrickmap::render`] (every output,
-    /// the larger need) fits this device's buffers: a
-    /// [`GpuError::FrameTooLarge`] naming the figures if not. Benchmarks
-    /// ask before building a world.
-    pub fn check_frame(&self, w: u32, h: u32) -> Result<(), GpuError> {
-        let px = std::mem::size_of::<PixelOut>() as u64;
-        self.check_frame_bytes(w, h, w as u64 * h as u64 * px)
-    }
-
-    fn check_frame_bytes(&self, w: u32, h: u32, needed: u64) -> Result<(), GpuError> {
-        let limit = self
-            .limits
-            .max_storage_buffer_binding_size
-            .min(self.limits.max_buffer_size);
-        if needed > limit {
-            return Err(GpuError::FrameTooLarge {
-                width: w,
-                height: h,
-                needed,
-                limit,
-            });
-        }
-        Ok(())
-    }
 }
 
 impl GpuBrickmap {
@@ -402,7 +378,9 @@ impl GpuBrickmap {
     /// `camera` traced back to back in one submission with nothing read
     /// back between them (so that the device stays busy and at its working
     /// clocks); `None` where the device has no timestamps. For benchmarks:
-    /// call it on a converged view, after [`render`](Self::render).
+    /// on a view not yet converged it times frames that show some bricks
+    /// by their LOD colour; the bricks its rays claimed are put back to
+    /// unloaded, so that the next [`render`](Self::render) asks for them.
     pub fn sustained_ms(
         &mut self,
         ctx: &GpuContext,
@@ -454,7 +432,7 @@ impl GpuBrickmap {
         // holds each claimed brick's unloaded pointer.
         for i in claimed {
             let p = self.shadow[i as usize];
-            self.set_pointer(ctx, i, p);
+            self.set_pointer(ctx, i, (p & !STATE_MASK) | UNLOADED);
         }
         Ok(Some(
             ticks * ctx.queue.get_timestamp_period() as f64 * 1e-6 / repeats as f64,

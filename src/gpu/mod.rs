@@ -227,3 +227,30 @@ pub struct GpuFrame {
     /// Row-major: whether the pixel shows a brick by its LOD colour.
     pub lod: Vec<bool>,
 }
+
+impl GpuContext {
+    /// Whether a `w`×`h` frame of [`GpuBrickmap::render`] (every output,
+    /// the larger need) fits this device's buffers: a
+    /// [`GpuError::FrameTooLarge`] naming the figures if not. Benchmarks
+    /// ask before building a world.
+    pub fn check_frame(&self, w: u32, h: u32) -> Result<(), GpuError> {
+        let px = frame::PIXEL_BYTES;
+        self.check_frame_bytes(w, h, w as u64 * h as u64 * px)
+    }
+
+    pub(crate) fn check_frame_bytes(&self, w: u32, h: u32, needed: u64) -> Result<(), GpuError> {
+        let limit = self
+            .limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size);
+        if needed > limit {
+            return Err(GpuError::FrameTooLarge {
+                width: w,
+                height: h,
+                needed,
+                limit,
+            });
+        }
+        Ok(())
+    }
+}
