@@ -129,11 +129,12 @@ pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
         let mut enc = png::Encoder::new(&mut out, w, h);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
-        // Fast deflate: on a 640×360 frame of the default world 1.1 ms
-        // against the default level's 28, for a file 44 % larger (284
-        // against 197 KB); the default world's frames went from 83 to 68
-        // ms (medians) on the CPU tracer, and on a GPU, whose frames trace
-        // in a few ms, the default level would be nearly all of one.
+        // Fast deflate: on a 640×360 terrain frame 0.98 ms against the
+        // default level's 22.8, for a file 26 % larger (257 against 204
+        // KB; `cargo bench --bench frame_png`). On the CPU tracer the
+        // default world's frames went from about 83 to 68 ms; on a GPU,
+        // whose frames trace in a few ms, the default level would be
+        // nearly all of one.
         enc.set_compression(png::Compression::Fast);
         if let Ok(mut wr) = enc.write_header() {
             let _ = wr.write_image_data(rgb);
