@@ -153,9 +153,6 @@ pub fn run(
         .flat_map(|&c| [(c, false), (c, true)])
         .collect();
     progress.set_length((views.len() * settings.len()) as u64);
-    let rays = setup.width as f64 * setup.height as f64;
-    // One submission of many frames can outlast a display GPU's watchdog.
-    let back_to_back = setup.frames.min(100);
     let mut rows = Vec::new();
     for v in views {
         let cam = Camera::new(v.eye, v.target, v.fov, setup.width, setup.height)?;
@@ -177,86 +174,14 @@ pub fn run(
                 beam,
                 ..setup.look
             };
-            let mut frames_to_converge = 0;
-            for n in 1..=400u32 {
-                let (f, s) = gpu.render(ctx, &cam, &opts, world.grid(), world.store().pool())?;
-                if s.requests == 0 && f.lod_pixels == 0 {
-                    frames_to_converge = n;
-                    break;
-                }
-            }
-            // One untimed frame more: the first after uploads pays for them.
-            let (f, _) = gpu.render(ctx, &cam, &opts, world.grid(), world.store().pool())?;
-            let hit_fraction = f.hits.iter().filter(|h| h.is_some()).count() as f64 / rays;
-            let (mut wall, mut dev, mut beam_dev) = (Vec::new(), Vec::new(), Vec::new());
-            for _ in 0..setup.frames {
-                let t = Instant::now();
-                let (_, s) = gpu.render(ctx, &cam, &opts, world.grid(), world.store().pool())?;
-                wall.push(t.elapsed().as_secs_f64() * 1e3);
-                dev.extend(s.gpu_ms);
-                beam_dev.extend(s.beam_ms);
-            }
-            let mut image_wall = Vec::new();
-            for _ in 0..setup.frames {
-                let t = Instant::now();
-                gpu.render_image(ctx, &cam, &opts, world.grid(), world.store().pool())?;
-                image_wall.push(t.elapsed().as_secs_f64() * 1e3);
-            }
-            let image_ms = median(&mut image_wall);
-            // Back to back: untimed runs for `warmup` bring the clocks up
-            // (on the H200 the first setting of a view read up to 1.5× slow
-            // without), then runs until the last three agree within 5 %
-            // (at most 20); their median counts.
-            let t = Instant::now();
-            while t.elapsed() < setup.warmup {
-                if gpu
-                    .sustained_ms(ctx, &cam, &opts, world.grid(), back_to_back)?
-                    .is_none()
-                {
-                    break;
-                }
-            }
-            let mut runs: Vec<f64> = Vec::new();
-            let mut sustained_stable = false;
-            while runs.len() < 20 {
-                let Some(ms) = gpu.sustained_ms(ctx, &cam, &opts, world.grid(), back_to_back)?
-                else {
-                    break;
-                };
-                runs.push(ms);
-                if let [.., a, b, c] = runs[..] {
-                    let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
-                    if hi <= lo * 1.05 {
-                        sustained_stable = true;
-                        break;
-                    }
-                }
-            }
-            let n = runs.len();
-            let sustained_ms = (n > 0).then(|| median(&mut runs[n.saturating_sub(3)..]));
-            let frame_ms = median(&mut wall);
-            let gpu_ms = (!dev.is_empty()).then(|| median(&mut dev));
-            rows.push(GpuRow {
-                view: v.name.clone(),
-                lod_c: lod,
-                beam,
-                frames_to_converge,
-                resident_bricks: gpu.resident(),
-                pool_slots: gpu.pool_slots(),
-                hit_fraction,
-                frame_ms,
-                gpu_ms,
-                beam_ms: (!beam_dev.is_empty()).then(|| median(&mut beam_dev)),
-                frame_mrays_per_s: rays / frame_ms / 1e3,
-                image_ms,
-                image_mrays_per_s: rays / image_ms / 1e3,
-                gpu_mrays_per_s: gpu_ms.filter(|&ms| ms > 0.0).map(|ms| rays / ms / 1e3),
-                sustained_ms,
-                sustained_stable,
-                sustained_mrays_per_s: sustained_ms
-                    .filter(|&ms| ms > 0.0)
-                    .map(|ms| rays / ms / 1e3),
-            });
+            rows.push(measure(
+                ctx,
+                &mut gpu,
+                world,
+                (&v.name, &cam),
+                &opts,
+                setup,
+            )?);
             progress.inc(1);
         }
     }
@@ -269,6 +194,114 @@ pub fn run(
         height: setup.height,
         rows,
     })
+}
+
+/// One view at one setting: converge, then time `render` frames, image
+/// frames and back-to-back tracing.
+fn measure(
+    ctx: &GpuContext,
+    gpu: &mut GpuBrickmap,
+    world: &SceneWorld,
+    (view, cam): (&str, &Camera),
+    opts: &RenderOptions,
+    setup: &GpuBenchSetup,
+) -> Result<GpuRow> {
+    let (grid, pool) = (world.grid(), world.store().pool());
+    let rays = setup.width as f64 * setup.height as f64;
+    let mut frames_to_converge = 0;
+    for n in 1..=400u32 {
+        let (f, s) = gpu.render(ctx, cam, opts, grid, pool)?;
+        if s.requests == 0 && f.lod_pixels == 0 {
+            frames_to_converge = n;
+            break;
+        }
+    }
+    // One untimed frame more: the first after uploads pays for them.
+    let (f, _) = gpu.render(ctx, cam, opts, grid, pool)?;
+    let hit_fraction = f.hits.iter().filter(|h| h.is_some()).count() as f64 / rays;
+    let (mut wall, mut dev, mut beam_dev) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..setup.frames {
+        let t = Instant::now();
+        let (_, s) = gpu.render(ctx, cam, opts, grid, pool)?;
+        wall.push(t.elapsed().as_secs_f64() * 1e3);
+        dev.extend(s.gpu_ms);
+        beam_dev.extend(s.beam_ms);
+    }
+    let mut image_wall = Vec::new();
+    for _ in 0..setup.frames {
+        let t = Instant::now();
+        gpu.render_image(ctx, cam, opts, grid, pool)?;
+        image_wall.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let image_ms = median(&mut image_wall);
+    let (sustained_ms, sustained_stable) = sustained(ctx, gpu, cam, opts, grid, setup)?;
+    let frame_ms = median(&mut wall);
+    let gpu_ms = (!dev.is_empty()).then(|| median(&mut dev));
+    let mrays = |ms: f64| (ms > 0.0).then(|| rays / ms / 1e3);
+    Ok(GpuRow {
+        view: view.to_string(),
+        lod_c: opts.lod,
+        beam: opts.beam,
+        frames_to_converge,
+        resident_bricks: gpu.resident(),
+        pool_slots: gpu.pool_slots(),
+        hit_fraction,
+        frame_ms,
+        gpu_ms,
+        beam_ms: (!beam_dev.is_empty()).then(|| median(&mut beam_dev)),
+        frame_mrays_per_s: rays / frame_ms / 1e3,
+        image_ms,
+        image_mrays_per_s: rays / image_ms / 1e3,
+        gpu_mrays_per_s: gpu_ms.and_then(mrays),
+        sustained_ms,
+        sustained_stable,
+        sustained_mrays_per_s: sustained_ms.and_then(mrays),
+    })
+}
+
+/// The tracer's device time per frame traced back to back: untimed runs
+/// for `setup.warmup` bring the clocks up (on the H200 the first setting
+/// of a view read up to 1.5× slow without), then runs until the last three
+/// agree within 5 % (at most 20); their median counts, and whether they
+/// agreed. `None` without timestamps.
+fn sustained(
+    ctx: &GpuContext,
+    gpu: &mut GpuBrickmap,
+    cam: &Camera,
+    opts: &RenderOptions,
+    grid: &crate::world::BrickGrid,
+    setup: &GpuBenchSetup,
+) -> Result<(Option<f64>, bool)> {
+    // One submission of many frames can outlast a display GPU's watchdog.
+    let back_to_back = setup.frames.min(100);
+    let t = Instant::now();
+    while t.elapsed() < setup.warmup {
+        if gpu
+            .sustained_ms(ctx, cam, opts, grid, back_to_back)?
+            .is_none()
+        {
+            break;
+        }
+    }
+    let mut runs: Vec<f64> = Vec::new();
+    while runs.len() < 20 {
+        let Some(ms) = gpu.sustained_ms(ctx, cam, opts, grid, back_to_back)? else {
+            break;
+        };
+        runs.push(ms);
+        if let [.., a, b, c] = runs[..] {
+            let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
+            if hi <= lo * 1.05 {
+                let n = runs.len();
+                return Ok((Some(median(&mut runs[n - 3..])), true));
+            }
+        }
+    }
+    let n = runs.len();
+    Ok((
+        (n > 0).then(|| median(&mut runs[n.saturating_sub(3)..])),
+        false,
+    ))
 }
 
 /// A streamed world's render window opened at its camera's start and
