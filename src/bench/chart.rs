@@ -207,26 +207,41 @@ fn draw_xy(
         .x_label_formatter(&|v| tick_label(*v))
         .y_label_formatter(&|v| tick_label(*v))
         .draw()?;
+    let on_log = |p: &(f64, f64)| p.0 > 0.0 && p.1 > 0.0 && p.0.is_finite() && p.1.is_finite();
+    draw_series(&mut chart, series, on_log, true)?;
+    root.present()?;
+    Ok(())
+}
+
+/// Each series of `series` as a line (with markers if `markers`) of its
+/// points that `keep` keeps, and the legend: what the log and the linear
+/// charts draw alike.
+fn draw_series<'a, X, Y>(
+    chart: &mut ChartContext<'a, SVGBackend<'a>, Cartesian2d<X, Y>>,
+    series: &[Series],
+    keep: impl Fn(&(f64, f64)) -> bool,
+    markers: bool,
+) -> Result<(), Box<dyn std::error::Error>>
+where
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
     for s in series {
-        let p: Vec<(f64, f64)> = s
-            .points
-            .iter()
-            .copied()
-            .filter(|p| p.0 > 0.0 && p.1 > 0.0 && p.0.is_finite() && p.1.is_finite())
-            .collect();
+        let p: Vec<(f64, f64)> = s.points.iter().copied().filter(|q| keep(q)).collect();
         let c = s.color;
         chart
             .draw_series(LineSeries::new(p.clone(), c.stroke_width(2)))?
             .label(s.name)
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
-        chart.draw_series(p.into_iter().map(|q| Circle::new(q, 4, c.filled())))?;
+        if markers {
+            chart.draw_series(p.into_iter().map(|q| Circle::new(q, 4, c.filled())))?;
+        }
     }
     chart
         .configure_series_labels()
         .background_style(WHITE.mix(0.8))
         .border_style(BLACK)
         .draw()?;
-    root.present()?;
     Ok(())
 }
 
@@ -293,19 +308,7 @@ fn draw_lines(
         .x_label_formatter(&|v| format!("{v:.xd$}"))
         .y_label_formatter(&|v| format!("{v:.yd$}"))
         .draw()?;
-    for s in series {
-        let p: Vec<(f64, f64)> = s.points.iter().filter(usable).copied().collect();
-        let c = s.color;
-        chart
-            .draw_series(LineSeries::new(p, c.stroke_width(2)))?
-            .label(s.name)
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
-    }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()?;
+    draw_series(&mut chart, series, |p| usable(&p), false)?;
     root.present()?;
     Ok(())
 }

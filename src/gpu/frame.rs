@@ -218,7 +218,7 @@ impl GpuBrickmap {
     /// nothing else; streaming goes on as with `render`. For frames that
     /// are only shown (the daemon's): on an H200 at 1920×1080 a whole
     /// `render` cost 43 to 72 ms, nearly all of it reading back and
-    /// decoding, for 1.2 to 1.8 ms of tracing; `render_image` 3.8 to 6.3.
+    /// decoding, for 1.2 to 2.9 ms of tracing; `render_image` 3.8 to 6.3.
     pub fn render_image(
         &mut self,
         ctx: &GpuContext,
@@ -231,7 +231,7 @@ impl GpuBrickmap {
             let words: &[u32] = bytemuck::cast_slice(bytes);
             let mut rgb = vec![0u8; words.len() * 3];
             for (px, &c) in rgb.chunks_exact_mut(3).zip(words) {
-                px.copy_from_slice(&c.to_le_bytes()[..3]);
+                px.copy_from_slice(&rgb_of(c));
             }
             rgb
         })
@@ -473,9 +473,7 @@ fn decode_pixels(px: &[PixelOut], w: u32, h: u32) -> GpuFrame {
     };
     for p in px {
         frame.lod.push(p.normal & 8 != 0);
-        frame
-            .rgb
-            .extend_from_slice(&[p.rgba as u8, (p.rgba >> 8) as u8, (p.rgba >> 16) as u8]);
+        frame.rgb.extend_from_slice(&rgb_of(p.rgba));
         if p.normal == 0 {
             frame.depth.push(f32::INFINITY);
             frame.hits.push(None);
@@ -492,4 +490,10 @@ fn decode_pixels(px: &[PixelOut], w: u32, h: u32) -> GpuFrame {
         }
     }
     frame
+}
+
+/// A pixel's colour word (`0xAABBGGRR`, as the shader packs it) as RGB8.
+fn rgb_of(word: u32) -> [u8; 3] {
+    let [r, g, b, _] = word.to_le_bytes();
+    [r, g, b]
 }
