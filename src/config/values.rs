@@ -158,6 +158,20 @@ pub fn check_output(flag: &'static str, p: &Path) -> Result<(), ConfigError> {
     if p.is_dir() || p.as_os_str().as_encoded_bytes().ends_with(b"/") {
         return Err(bad(flag, &shown, "is a folder: name a file"));
     }
+    // A dangling link: the file it names is the one to be made.
+    let target;
+    let p = if !p.exists() && crate::files::is_link(p) {
+        target = crate::files::dangling_target(p).map_err(|e| {
+            bad(
+                flag,
+                &shown,
+                format!("is a link that cannot be followed: {e}"),
+            )
+        })?;
+        target.as_path()
+    } else {
+        p
+    };
     match p.parent() {
         Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => Err(bad(
             flag,
@@ -275,6 +289,27 @@ mod tests {
             assert!(e.contains(says), "{s}: {e}");
         }
         assert_eq!(parse_size("+64x 64x64").unwrap(), IVec3::splat(64));
+    }
+
+    /// A dangling link is checked where it leads: its target's folder must
+    /// exist, and a loop of links is refused before the work.
+    #[cfg(unix)]
+    #[test]
+    fn an_output_at_a_dangling_link_is_checked_where_it_leads() {
+        use std::os::unix::fs::symlink;
+        let d = std::env::temp_dir().join(format!("bw-out-link-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        symlink("r.json", d.join("ok.json")).unwrap();
+        assert!(check_output("--json", &d.join("ok.json")).is_ok());
+        symlink("nowhere/r.json", d.join("lost.json")).unwrap();
+        let e = check_output("--json", &d.join("lost.json")).unwrap_err();
+        assert!(e.to_string().contains("does not exist"), "{e}");
+        symlink("b", d.join("a")).unwrap();
+        symlink("a", d.join("b")).unwrap();
+        let e = check_output("--json", &d.join("a")).unwrap_err();
+        assert!(e.to_string().contains("cannot be followed"), "{e}");
+        let _ = std::fs::remove_dir_all(&d);
     }
 
     #[test]

@@ -9,7 +9,7 @@
 //!   is already there, and replaces the destination only on
 //!   [`Staged::commit`]. A command that fails half-way leaves every file it
 //!   was going to replace as it was. A link is followed (the file it names
-//!   is replaced), and a destination that is not a regular file (`/dev/null`,
+//!   is replaced, or made if it is not there yet), and a destination that is not a regular file (`/dev/null`,
 //!   a FIFO) is written directly, never replaced. Temporary files that a
 //!   killed or interrupted process left beside a destination are removed
 //!   by the next write to it, once a minute old.
@@ -37,6 +37,7 @@ pub use temps::{
     Staged, fresh_temp_beside, landing, remove_temps_on_interrupt, remove_writing_temps,
     temp_landed, temp_of_gone_process, temp_writing,
 };
+pub(crate) use temps::{dangling_target, is_link};
 
 /// Why a file could not be read.
 #[derive(Debug, Error)]

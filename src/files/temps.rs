@@ -201,6 +201,10 @@ impl Staged {
             }
             // Through a link to the file it names.
             dest = std::fs::canonicalize(&dest)?;
+        } else if is_link(&dest) {
+            // A dangling link: the file it names is made, as a shell's `>`
+            // makes it, and the link stays (regression: it was replaced).
+            dest = dangling_target(&dest)?;
         }
         let (tmp, _) = fresh_temp_beside(&dest)?;
         Ok(Staged {
@@ -238,6 +242,27 @@ impl Staged {
         self.done = true;
         Ok(())
     }
+}
+
+pub(crate) fn is_link(p: &Path) -> bool {
+    std::fs::symlink_metadata(p).is_ok_and(|m| m.file_type().is_symlink())
+}
+
+/// The path a chain of links ending nowhere names: the first path in the
+/// chain that is not a link. Refused past 40 links, as the OS refuses.
+pub(crate) fn dangling_target(link: &Path) -> std::io::Result<PathBuf> {
+    let mut p = link.to_path_buf();
+    for _ in 0..40 {
+        if !is_link(&p) {
+            return Ok(p);
+        }
+        let target = std::fs::read_link(&p)?;
+        p = match p.parent() {
+            Some(dir) if target.is_relative() => dir.join(target),
+            _ => target,
+        };
+    }
+    Err(std::io::Error::other("too many levels of symbolic links"))
 }
 
 impl Drop for Staged {
@@ -383,5 +408,42 @@ mod tests {
             );
             assert_eq!(std::fs::read_to_string(&dest).unwrap(), "via link");
         }
+    }
+
+    /// Regression (nineteenth session's review): `--json` naming a dangling
+    /// link replaced the link with a file. The file the link names is made
+    /// (through a chain of two links, one relative), and the links stay;
+    /// a loop of links is refused and leaves nothing behind.
+    #[cfg(unix)]
+    #[test]
+    fn a_dangling_link_is_written_through_not_replaced() {
+        use std::os::unix::fs::symlink;
+        let d = dir("dangling");
+        std::fs::create_dir_all(d.join("sub")).unwrap();
+        let first = d.join("out.json");
+        symlink("sub/middle", &first).unwrap();
+        symlink("target.json", d.join("sub/middle")).unwrap();
+        let s = Staged::new(&first).unwrap();
+        std::fs::write(s.path(), "through").unwrap();
+        s.commit().unwrap();
+        for link in [&first, &d.join("sub/middle")] {
+            assert!(is_link(link), "{} is no longer a link", link.display());
+        }
+        assert_eq!(
+            std::fs::read_to_string(d.join("sub/target.json")).unwrap(),
+            "through"
+        );
+        let (a, b) = (d.join("a"), d.join("b"));
+        symlink("b", &a).unwrap();
+        symlink("a", &b).unwrap();
+        assert!(Staged::new(&a).is_err());
+        assert!(is_link(&a) && is_link(&b));
+        let names: Vec<_> = std::fs::read_dir(&d)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        assert_eq!(names.len(), 4, "no temporary left: {names:?}");
+        let _ = std::fs::remove_dir_all(&d);
     }
 }
