@@ -1263,6 +1263,12 @@ fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
         "{:?}",
         col("active_bricks")
     );
+    // No 0 ms frame: a row before the first frame has no frame time.
+    assert!(
+        col("frame_ms").iter().all(|&v| v.is_nan() || v > 0.0),
+        "{:?}",
+        col("frame_ms")
+    );
 
     // Voxel scripts alone: rain3d's drops keep the top layer of bricks
     // awake.

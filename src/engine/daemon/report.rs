@@ -47,7 +47,8 @@ impl Engine {
             // just handed over with the frame (regression, researcher
             // probe: the column read 0 in every row).
             dirty_bricks: r.bricks.len(),
-            frame_ms: stats.frame_ms(),
+            // Regression (note): the first row after a start read 0 ms.
+            frame_ms: stats.last_frame_ms().unwrap_or(f64::NAN),
             bricks_streamed: stats.bricks_streamed(),
             rss_kb: crate::engine::timeline::rss_kb(),
             water: total(&self.ws, "water"),

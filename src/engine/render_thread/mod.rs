@@ -70,6 +70,12 @@ impl RenderStats {
     pub fn frame_ms(&self) -> f64 {
         f64::from_bits(self.frame_ms_bits.load(Ordering::Relaxed))
     }
+    /// The last frame's render time, or `None` before the first frame (the
+    /// timeline writes `NaN` there, not a 0 ms frame).
+    pub fn last_frame_ms(&self) -> Option<f64> {
+        // `publish` stores the time before it counts the frame.
+        (self.frames() > 0).then(|| self.frame_ms())
+    }
     /// Bricks uploaded to the GPU so far.
     pub fn bricks_streamed(&self) -> u64 {
         self.streamed.load(Ordering::Relaxed)
@@ -178,5 +184,23 @@ impl RenderThread {
                 );
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression (note): the timeline's first row after a start read a
+    /// 0 ms frame, before any frame was drawn.
+    #[test]
+    fn no_frame_time_before_the_first_frame() {
+        let stats = RenderStats::default();
+        assert_eq!(stats.last_frame_ms(), None);
+        stats
+            .frame_ms_bits
+            .store(12.5f64.to_bits(), Ordering::Relaxed);
+        stats.frames.fetch_add(1, Ordering::Relaxed);
+        assert_eq!(stats.last_frame_ms(), Some(12.5));
     }
 }
