@@ -132,6 +132,8 @@ pub struct Timeline {
     extra: usize,
     /// Their names.
     extra_names: Vec<String>,
+    /// Bytes toward the next rotation (not the held file's length: after a
+    /// failed rotation the held file is the one moved aside).
     written: u64,
     /// Since a row could not be written: the first such row's tick and
     /// how many were lost, until one is written again.
@@ -267,10 +269,12 @@ impl Timeline {
     }
 
     fn create(path: &Path, header: &str) -> std::io::Result<File> {
-        let fresh = !path.exists();
         let mut file = OpenOptions::new().create(true).append(true).open(path)?;
-        if fresh {
-            writeln!(file, "{header}")?;
+        // An empty file, not only a new one: a header that a full disk
+        // refused is written by the next open (found by review: a file made
+        // but left empty was taken as started, and went on without one).
+        if file.metadata()?.len() == 0 {
+            append(&mut file, format!("{header}\n").as_bytes())?;
         }
         Ok(file)
     }
@@ -358,7 +362,10 @@ impl Timeline {
                 Err(_) => self.written = 0,
             }
         }
-        match self.file.write_all(line.as_bytes()) {
+        // What the held file holds before the row: a row cut by a full
+        // disk is taken back to there.
+        let before = self.file.metadata().map(|m| m.len());
+        match append(&mut self.file, line.as_bytes()) {
             Ok(()) => {
                 self.written += line.len() as u64;
                 if let Some((first, lost)) = self.failing.take() {
@@ -372,8 +379,14 @@ impl Timeline {
             Err(e) => {
                 // A row cut by a full disk is taken back, so the next one
                 // does not start in its middle (regression, hostile probe:
-                // torn rows that `chart` then left out).
-                let _ = self.file.set_len(self.written);
+                // torn rows that `chart` then left out): to the file's own
+                // length, never the rotation count (regression, code
+                // review: after a failed rotation that count restarts at
+                // 0 while the held file is the history moved aside, and
+                // the next failed row emptied it).
+                if let Ok(len) = before {
+                    let _ = self.file.set_len(len);
+                }
                 match &mut self.failing {
                     Some((_, lost)) => *lost += 1,
                     None => {
@@ -454,6 +467,22 @@ impl Timeline {
         prune_aside(&at);
         Ok(Some(beside(&self.path, &aside)))
     }
+}
+
+/// Append `bytes` to `file` (tests: refused while [`FULL_DISK`] is set,
+/// as a full disk refuses, on an ordinary file).
+fn append(file: &mut File, bytes: &[u8]) -> std::io::Result<()> {
+    #[cfg(test)]
+    if FULL_DISK.get() {
+        return Err(std::io::Error::from_raw_os_error(28));
+    }
+    file.write_all(bytes)
+}
+
+#[cfg(test)]
+thread_local! {
+    /// Tests: every append fails, as on a full disk.
+    static FULL_DISK: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 #[cfg(test)]
@@ -624,6 +653,36 @@ mod tests {
         Timeline::open(&path, &extra).unwrap();
         let n = std::fs::read_dir(&dir).unwrap().count();
         assert_eq!(n, 3, "two files aside and the current one");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Regression (code review): a rotation whose new file could not be
+    /// made (a full disk) left rows going into the file moved aside, with
+    /// the rotation count at 0, and the next row the disk refused cut that
+    /// file to the count: the history emptied. It is taken back to its own
+    /// length.
+    #[test]
+    fn a_failed_rotation_then_a_full_disk_keeps_the_history() {
+        let dir = std::env::temp_dir().join(format!("bw-timeline-rotfail-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("timeline.csv");
+        let mut t = Timeline::open(&path, &[]).unwrap();
+        for tick in 1..=5 {
+            t.record(&row(tick));
+        }
+        t.written = ROTATE_BYTES - 10;
+        FULL_DISK.set(true);
+        t.record(&row(6));
+        t.record(&row(7));
+        assert_eq!(t.failing, Some((6, 2)));
+        let moved = dir.join("timeline.1.csv");
+        assert_eq!(ticks_in(&moved), ["1", "2", "3", "4", "5"]);
+        // Space again: the new file gets its header, and the rows go on.
+        FULL_DISK.set(false);
+        t.record(&row(8));
+        assert_eq!(ticks_in(&path), ["8"]);
+        assert_eq!(ticks_in(&moved), ["1", "2", "3", "4", "5"]);
         let _ = std::fs::remove_dir_all(&dir);
     }
 
