@@ -305,6 +305,12 @@ fn bad_configs_name_the_file_field_and_reason() {
             "[world]\nsource = \"terrain\"\n[[place]]\nmaterial = \"lava\"\nat = [0, 0, 0]\nsize = [0, 1, 1]\n",
             "place[0]: at [0, 0, 0] size [0, 1, 1]: sizes must be 1..=65536",
         ),
+        // Regression (code review): `abs()` of i64::MIN wraps to itself,
+        // so this position passed the ±2^24 check and became x = 0.
+        (
+            "[world]\nsource = \"terrain\"\n[[place]]\nmaterial = \"lava\"\nat = [-9223372036854775808, 0, 0]\n",
+            "place[0]: at [-9223372036854775808, 0, 0] size [1, 1, 1]: sizes must be 1..=65536 and positions within ±2^24",
+        ),
         (
             "[world]\nsource = \"terrain\"\n[control]\naddr = \"localhost\"\n",
             "control.addr",

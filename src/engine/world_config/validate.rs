@@ -416,7 +416,9 @@ pub(super) fn place(at: Fields, raw: &[RawPlace]) -> Result<Vec<Placement>, Worl
     let mut place = Vec::new();
     for (i, p) in raw.iter().enumerate() {
         let size = p.size.unwrap_or([1, 1, 1]);
-        if size.iter().any(|v| !(1..=65536).contains(v)) || p.at.iter().any(|v| v.abs() > 1 << 24) {
+        if size.iter().any(|v| !(1..=65536).contains(v))
+            || p.at.iter().any(|v| v.unsigned_abs() > 1 << 24)
+        {
             return Err(at.err(
                 &format!("place[{i}]"),
                 format!(

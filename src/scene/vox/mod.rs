@@ -54,7 +54,12 @@ impl Xform {
             for j in 0..3 {
                 r[i][j] = (0..3).map(|k| self.r[i][k] * child.r[k][j]).sum();
             }
-            t[i] += (0..3).map(|k| self.r[i][k] * child.t[k]).sum::<i32>();
+            // Saturating: a deep chain of translations lands past ±2^30
+            // and is refused there, never wrapped back into range.
+            let moved = (0..3).fold(0i32, |acc, k| {
+                acc.saturating_add(self.r[i][k].saturating_mul(child.t[k]))
+            });
+            t[i] = t[i].saturating_add(moved);
         }
         Xform { r, t }
     }
@@ -96,7 +101,9 @@ fn parse_translation(s: &str) -> Result<[i32; 3], String> {
                 .map_err(|_| format!("translation '{s}' is not three integers"))
         })
         .collect::<Result<_, _>>()?;
-    if v.len() != 3 || v.iter().any(|c| c.abs() > 1 << 20) {
+    // `unsigned_abs`: `i32::MIN.abs()` wraps to itself in a release build
+    // (regression, code review: a translation of -2^31 passed).
+    if v.len() != 3 || v.iter().any(|c| c.unsigned_abs() > 1 << 20) {
         return Err(format!(
             "translation '{s}' is not three integers within ±2^20"
         ));
@@ -437,6 +444,22 @@ mod tests {
         assert!(parse_rotation("x").is_err());
         assert!(parse_translation("1 2").is_err());
         assert_eq!(parse_translation("-1 2 3").unwrap(), [-1, 2, 3]);
+    }
+
+    /// Regression (code review): `abs()` of -2^31 wraps to itself in a
+    /// release build, so that translation passed the ±2^20 check, and
+    /// chained translations wrapped back into range.
+    #[test]
+    fn the_most_negative_translation_is_refused_and_chains_saturate() {
+        assert!(parse_translation("-2147483648 0 0").is_err());
+        assert!(parse_translation("0 0 -1048577").is_err());
+        assert_eq!(parse_translation("0 0 -1048576").unwrap(), [0, 0, -1 << 20]);
+        let far = Xform {
+            r: Xform::IDENTITY.r,
+            t: [i32::MIN, 0, i32::MAX],
+        };
+        let twice = far.then(&far);
+        assert_eq!(twice.t, [i32::MIN, 0, i32::MAX]);
     }
 
     fn one_model(size: [u32; 3], at: &[[u8; 3]]) -> dot_vox::DotVoxData {
