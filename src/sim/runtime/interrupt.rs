@@ -211,14 +211,17 @@ unsafe extern "C-unwind" fn interrupt(l: *mut ffi::lua_State, gc: c_int) {
 }
 
 /// Install the budget hook on `lua` (replacing any interrupt callback).
-pub fn install(lua: &Lua) {
+/// An error means the hook is not there: the VM must not run scripts
+/// (found by review: the result was dropped, so a VM without a budget
+/// could have run).
+pub fn install(lua: &Lua) -> mlua::Result<()> {
     // SAFETY: exec_raw hands us the VM's main state while it holds the VM's
     // lock; lua_callbacks returns the state's callback table, valid for the
     // VM's lifetime, and setting `interrupt` is how the C API installs a hook.
     unsafe {
-        let _: mlua::Result<()> = lua.exec_raw((), |state| {
+        lua.exec_raw((), |state| {
             (*ffi::lua_callbacks(state)).interrupt = Some(interrupt);
-        });
+        })
     }
 }
 
@@ -259,7 +262,7 @@ pub fn seal(lua: &Lua, f: &mlua::Function) -> Result<mlua::Table, String> {
     // protected call holding the VM's lock; the walk checks the stack
     // before each push, pops what it pushes, and only appends functions to
     // `holder` with lua_rawseti.
-    let _: mlua::Result<()> = unsafe {
+    let ran: mlua::Result<()> = unsafe {
         lua.exec_raw((f.clone(), holder.clone()), |state| {
             let top = ffi::lua_gettop(state);
             walk.holder = top;
@@ -267,7 +270,13 @@ pub fn seal(lua: &Lua, f: &mlua::Function) -> Result<mlua::Table, String> {
         })
     };
     match walk.refused {
-        None => Ok(holder),
+        // A walk cut short by an error (memory, while the holder grew) left
+        // part of the kernel unsealed: refused, never half-sealed (found by
+        // review: the error was dropped).
+        None => match ran {
+            Ok(()) => Ok(holder),
+            Err(e) => Err(format!("the kernel could not be sealed: {e}")),
+        },
         Some(Refusal::Buffer) => Err(
             "the kernel captures a buffer from outside itself; buffers are mutable state: create scratch buffers inside the kernel"
                 .into(),
@@ -378,13 +387,16 @@ impl SealWalk {
 /// object by identity. A call that changes it kept state between calls.
 /// Only each function's own upvalues are read (the tables are frozen, and
 /// every function reachable is in `held`), so the cost is the number of
-/// functions, not the size of the tables.
-pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> u64 {
+/// functions, not the size of the tables. `None` when it could not be
+/// taken whole (no stack room, or an error): the caller fails the call
+/// rather than trust a part (found by review: a partial one was returned).
+pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> Option<u64> {
     let mut h = 0xcbf2_9ce4_8422_2325u64;
+    let mut whole = false;
     // SAFETY: exec_raw pushes `held` and runs the closure in a protected
     // call holding the VM's lock; each function is pushed with rawgeti
     // after a stack check, read, and popped.
-    let _: mlua::Result<()> = unsafe {
+    let ran: mlua::Result<()> = unsafe {
         lua.exec_raw(held.clone(), |state| {
             let t = ffi::lua_gettop(state);
             let len = ffi::lua_objlen(state, t) as c_int;
@@ -397,9 +409,10 @@ pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> u64 {
                 mix_upvalues(state, f, &mut h);
                 ffi::lua_pop(state, 1);
             }
+            whole = true;
         })
     };
-    h
+    (ran.is_ok() && whole).then_some(h)
 }
 
 /// Mix the direct upvalues of the function at absolute index `idx` into
@@ -446,5 +459,33 @@ unsafe fn mix_upvalues(state: *mut ffi::lua_State, idx: c_int, h: &mut u64) {
             ffi::lua_pop(state, 1);
             n += 1;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Found by review: a seal cut short by an error (here the memory
+    /// limit, while the holder of 20 000 functions grows) returned the
+    /// kernel as sealed, with the rest of it unfrozen. It is refused.
+    #[test]
+    fn a_seal_cut_short_by_memory_is_refused() {
+        let lua = Lua::new();
+        let f: mlua::Function = lua
+            .load(
+                "local fs = {} for i = 1, 20000 do fs[i] = function() return i end end \
+                 return function() return fs end",
+            )
+            .eval()
+            .unwrap();
+        lua.set_memory_limit(lua.used_memory() + 4096).unwrap();
+        let sealed = seal(&lua, &f);
+        lua.set_memory_limit(0).unwrap();
+        let e = sealed.err().expect("a half-sealed kernel was accepted");
+        assert!(e.contains("could not be sealed"), "{e}");
+        // With room, the same kernel seals, and its fingerprint is whole.
+        let held = seal(&lua, &f).unwrap();
+        assert!(fingerprint(&lua, &held).is_some());
     }
 }

@@ -117,7 +117,7 @@ pub fn sandboxed(limits: Limits, name: &str) -> Result<Lua, SimError> {
     lua.globals().set_readonly(true);
     lua.set_memory_limit(limits.memory)
         .map_err(|e| SimError::Internal(e.to_string()))?;
-    crate::sim::interrupt::install(&lua);
+    crate::sim::interrupt::install(&lua).map_err(|e| SimError::Internal(e.to_string()))?;
     // Optimisation level 2 inlines small local functions and unrolls loops;
     // type information lets native code use annotations (`W: buffer`).
     // The functions the preludes replace are never compiled as builtins:

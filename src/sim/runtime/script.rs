@@ -178,8 +178,18 @@ impl ScriptVm {
                             format!("pass '{}': {m}", spec.passes[i].name),
                         )
                     })?;
-                    vm.prints
-                        .push(crate::sim::interrupt::fingerprint(&vm.lua, &held));
+                    let print = crate::sim::interrupt::fingerprint(&vm.lua, &held)
+                        .ok_or_else(|| {
+                            declaration(
+                                src,
+                                Some("kernel"),
+                                format!(
+                                    "pass '{}': the kernel's state could not be read (out of memory?)",
+                                    spec.passes[i].name
+                                ),
+                            )
+                        })?;
+                    vm.prints.push(print);
                     vm.held.push(held);
                     vm.kernels.push(f);
                 }
@@ -468,11 +478,18 @@ impl ScriptVm {
                 )));
             }
             // State kept between calls would depend on which VM ran which tile.
-            if crate::sim::interrupt::fingerprint(&self.lua, &self.held[pass]) != self.prints[pass]
-            {
-                return Err(mlua::Error::runtime(
-                    "the kernel changed a variable outside itself (a local of the script, or one a helper function captures); kernels must keep no state between calls: use a channel",
-                ));
+            match crate::sim::interrupt::fingerprint(&self.lua, &self.held[pass]) {
+                Some(print) if print == self.prints[pass] => {}
+                Some(_) => {
+                    return Err(mlua::Error::runtime(
+                        "the kernel changed a variable outside itself (a local of the script, or one a helper function captures); kernels must keep no state between calls: use a channel",
+                    ));
+                }
+                None => {
+                    return Err(mlua::Error::runtime(
+                        "the engine could not check that the kernel kept no state (out of memory?)",
+                    ));
+                }
             }
             Ok(())
         };
