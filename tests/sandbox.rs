@@ -997,6 +997,19 @@ fn kernels_keep_no_state_in_metatables_keys_buffers_or_weak_tables() {
             ),
             "changed a variable outside itself",
         ),
+        // Regression (determinism probe): sign flips of two locals, or of
+        // one that a helper captures too, cancelled in the old hash.
+        (
+            kernel("local a, b = 1.0, 1.0", "a = -a; b = -b"),
+            "changed a variable outside itself",
+        ),
+        (
+            kernel(
+                "local a = 1.0; local function g() return a end",
+                "a = -a; local _ = g()",
+            ),
+            "changed a variable outside itself",
+        ),
         (
             kernel("local T = {} for i = 1, 70 do T = { T } end", "local _ = T"),
             "nested more than 64 levels deep",

@@ -382,16 +382,42 @@ impl SealWalk {
     }
 }
 
-/// A fingerprint of the upvalues of every function [`seal`] collected in
-/// `held`: numbers, booleans, strings and vectors by value, every other
-/// object by identity. A call that changes it kept state between calls.
-/// Only each function's own upvalues are read (the tables are frozen, and
-/// every function reachable is in `held`), so the cost is the number of
-/// functions, not the size of the tables. `None` when it could not be
-/// taken whole (no stack room, or an error): the caller fails the call
-/// rather than trust a part (found by review: a partial one was returned).
-pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> Option<u64> {
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
+/// The upvalues of every function [`seal`] collected, word for word:
+/// numbers, booleans, strings and vectors by value, every other object by
+/// identity. A call after which they are not the same kept state between
+/// calls. Kept exactly, not hashed (regression, determinism probe: a
+/// running xor-multiply hash let an even number of sign flips cancel, so
+/// two locals, or one captured by two functions, kept a counter in their
+/// signs unseen).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Fingerprint(Vec<u64>);
+
+/// The [`Fingerprint`] of the functions in `held`. Only each function's
+/// own upvalues are read (the tables are frozen, and every function
+/// reachable is in `held`), so the cost is the number of functions and
+/// upvalues, not the size of the tables. `None` when it could not be taken
+/// whole (no stack room, or an error): the caller fails rather than trust
+/// a part (found by review: a partial one was returned).
+pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> Option<Fingerprint> {
+    let mut words = Vec::new();
+    visit_upvalues(lua, held, &mut |w| words.push(w)).then_some(Fingerprint(words))
+}
+
+/// Whether the functions in `held` still have the upvalues of `print`,
+/// compared word by word as they are read, allocating nothing (after every
+/// kernel call). `None` when they could not be read whole.
+pub fn unchanged(lua: &Lua, held: &mlua::Table, print: &Fingerprint) -> Option<bool> {
+    let (mut at, mut same) = (0usize, true);
+    let whole = visit_upvalues(lua, held, &mut |w| {
+        same &= print.0.get(at) == Some(&w);
+        at += 1;
+    });
+    whole.then_some(same && at == print.0.len())
+}
+
+/// Hand every word of the upvalues of the functions in `held` to `emit`;
+/// whether they were read whole.
+fn visit_upvalues(lua: &Lua, held: &mlua::Table, emit: &mut dyn FnMut(u64)) -> bool {
     let mut whole = false;
     // SAFETY: exec_raw pushes `held` and runs the closure in a protected
     // call holding the VM's lock; each function is pushed with rawgeti
@@ -406,43 +432,43 @@ pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> Option<u64> {
                 }
                 ffi::lua_rawgeti(state, t, i as _);
                 let f = ffi::lua_gettop(state);
-                mix_upvalues(state, f, &mut h);
+                emit_upvalues(state, f, emit);
                 ffi::lua_pop(state, 1);
             }
             whole = true;
         })
     };
-    (ran.is_ok() && whole).then_some(h)
+    ran.is_ok() && whole
 }
 
-/// Mix the direct upvalues of the function at absolute index `idx` into
-/// `h`.
+/// Hand the direct upvalues of the function at absolute index `idx` to
+/// `emit`: the function's identity, then per upvalue its type and value.
 ///
 /// # Safety
 /// `state` must be a live Luau state with a function at `idx` and room for
 /// one more value on its stack.
-unsafe fn mix_upvalues(state: *mut ffi::lua_State, idx: c_int, h: &mut u64) {
-    fn mix(h: &mut u64, v: u64) {
-        *h ^= v;
-        *h = h.wrapping_mul(0x0100_0000_01b3);
-    }
+unsafe fn emit_upvalues(state: *mut ffi::lua_State, idx: c_int, emit: &mut dyn FnMut(u64)) {
     // SAFETY (whole body): the caller's contract; each upvalue pushed is
     // popped before the next.
     unsafe {
-        mix(h, ffi::lua_topointer(state, idx) as u64);
+        emit(ffi::lua_topointer(state, idx) as u64);
         let mut n = 1;
         while !ffi::lua_getupvalue(state, idx, n).is_null() {
             let t = ffi::lua_type(state, -1);
-            mix(h, t as u64);
+            emit(t as u64);
             match t {
-                ffi::LUA_TNUMBER => mix(h, ffi::lua_tonumber(state, -1).to_bits()),
-                ffi::LUA_TBOOLEAN => mix(h, ffi::lua_toboolean(state, -1) as u64),
+                ffi::LUA_TNUMBER => emit(ffi::lua_tonumber(state, -1).to_bits()),
+                ffi::LUA_TBOOLEAN => emit(ffi::lua_toboolean(state, -1) as u64),
                 ffi::LUA_TSTRING => {
                     let mut len = 0usize;
                     let s = ffi::lua_tolstring(state, -1, &mut len);
+                    emit(len as u64);
                     if !s.is_null() {
-                        for b in std::slice::from_raw_parts(s.cast::<u8>(), len) {
-                            mix(h, *b as u64);
+                        // The bytes, eight to a word.
+                        for chunk in std::slice::from_raw_parts(s.cast::<u8>(), len).chunks(8) {
+                            let mut w = [0u8; 8];
+                            w[..chunk.len()].copy_from_slice(chunk);
+                            emit(u64::from_le_bytes(w));
                         }
                     }
                 }
@@ -450,11 +476,11 @@ unsafe fn mix_upvalues(state: *mut ffi::lua_State, idx: c_int, h: &mut u64) {
                     let v = ffi::lua_tovector(state, -1);
                     if !v.is_null() {
                         for k in 0..3 {
-                            mix(h, (*v.add(k)).to_bits() as u64);
+                            emit((*v.add(k)).to_bits() as u64);
                         }
                     }
                 }
-                _ => mix(h, ffi::lua_topointer(state, -1) as u64),
+                _ => emit(ffi::lua_topointer(state, -1) as u64),
             }
             ffi::lua_pop(state, 1);
             n += 1;
@@ -486,6 +512,39 @@ mod tests {
         assert!(e.contains("could not be sealed"), "{e}");
         // With room, the same kernel seals, and its fingerprint is whole.
         let held = seal(&lua, &f).unwrap();
-        assert!(fingerprint(&lua, &held).is_some());
+        let print = fingerprint(&lua, &held).unwrap();
+        assert_eq!(unchanged(&lua, &held, &print), Some(true));
+    }
+
+    /// Regression (determinism probe): sign flips of two upvalues, or of
+    /// one captured by two functions, cancelled in the old hash, so a
+    /// kernel kept a counter between calls unseen. Each flip is seen; a
+    /// string changed to another of the same length is seen too.
+    #[test]
+    fn every_change_of_an_upvalue_is_seen() {
+        let lua = Lua::new();
+        for (prelude, body) in [
+            ("local a, b = 1.0, 1.0", "a = -a; b = -b"),
+            (
+                "local a = 1.0; local function g() return a end",
+                "a = -a; local _ = g()",
+            ),
+            ("local s = 'ab'", "s = if s == 'ab' then 'ba' else 'ab'"),
+            ("local v = 0", "v = v + 1; v = v - 1 + 2^-40"),
+        ] {
+            let f: mlua::Function = lua
+                .load(format!("{prelude}\nreturn function() {body} end"))
+                .eval()
+                .unwrap();
+            let held = seal(&lua, &f).unwrap();
+            let print = fingerprint(&lua, &held).unwrap();
+            assert_eq!(unchanged(&lua, &held, &print), Some(true), "{prelude}");
+            f.call::<()>(()).unwrap();
+            assert_eq!(
+                unchanged(&lua, &held, &print),
+                Some(false),
+                "{prelude}; {body}"
+            );
+        }
     }
 }

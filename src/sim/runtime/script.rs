@@ -68,7 +68,7 @@ pub struct ScriptVm {
     mat: Option<(Buffer, Buffer)>,
     /// Each kernel's [`crate::sim::interrupt::fingerprint`] after loading:
     /// a call that changes it kept state between calls.
-    prints: Vec<u64>,
+    prints: Vec<crate::sim::interrupt::Fingerprint>,
     /// Per kernel: every function it reaches, itself first
     /// ([`crate::sim::interrupt::seal`]).
     held: Vec<Table>,
@@ -478,9 +478,10 @@ impl ScriptVm {
                 )));
             }
             // State kept between calls would depend on which VM ran which tile.
-            match crate::sim::interrupt::fingerprint(&self.lua, &self.held[pass]) {
-                Some(print) if print == self.prints[pass] => {}
-                Some(_) => {
+            match crate::sim::interrupt::unchanged(&self.lua, &self.held[pass], &self.prints[pass])
+            {
+                Some(true) => {}
+                Some(false) => {
                     return Err(mlua::Error::runtime(
                         "the kernel changed a variable outside itself (a local of the script, or one a helper function captures); kernels must keep no state between calls: use a channel",
                     ));
