@@ -508,7 +508,7 @@ mod tests {
         lua.set_memory_limit(lua.used_memory() + 4096).unwrap();
         let sealed = seal(&lua, &f);
         lua.set_memory_limit(0).unwrap();
-        let e = sealed.err().expect("a half-sealed kernel was accepted");
+        let e = sealed.expect_err("a half-sealed kernel was accepted");
         assert!(e.contains("could not be sealed"), "{e}");
         // With room, the same kernel seals, and its fingerprint is whole.
         let held = seal(&lua, &f).unwrap();
