@@ -773,6 +773,58 @@ fn a_suspended_script_stays_suspended_across_a_resume() {
     assert_ne!(changed, kept, "the changed script did not run");
 }
 
+/// A voxel rule that writes nothing: every brick falls asleep.
+const IDLE_RULE: &str = "return { grid = \"voxels\", materials = { \"sand\" }, passes = { { name = \"p\", reads = {}, writes = { \"mat\" },\n\
+    kernel = function(c, bx, by, bz) end } } }\n";
+
+/// Regression (determinism probe): a rule changed while the engine was
+/// stopped found every brick asleep, so it never ran, where the same change
+/// reloaded live at that tick wakes them. A resume now wakes what a changed
+/// script runs on, and says so; an unchanged one keeps its sleep.
+#[test]
+fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
+    let world = |name: &str| {
+        let (cfg, state, _) = setup(name);
+        let dir = cfg.parent().unwrap().join("scripts");
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("paint.lua"), IDLE_RULE).unwrap();
+        let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+        edit_config(
+            &cfg,
+            &format!("scripts_dir = \"{}\"", repo.display()),
+            &format!("scripts_dir = \"{}\"", dir.display()),
+        );
+        edit_config(
+            &cfg,
+            "file = \"water.lua\"\nparams = { rain = 0.2 }",
+            "file = \"paint.lua\"",
+        );
+        run_ok(&cfg, &state, "--until-tick", 20);
+        (cfg, state, dir)
+    };
+    let (cfg, state, _) = world("paintkept");
+    let (_, said) = run_ok(&cfg, &state, "--until-tick", 24);
+    assert!(!said.contains("changed while"), "{said}");
+    let kept = hash_at(&cfg, &state, 26);
+    let (cfg, state, dir) = world("paintchanged");
+    let paint = IDLE_RULE.replace(
+        "end } } }",
+        "buffer.writeu8(c.w.mat, 0, c.m.sand) end } } }",
+    );
+    assert_ne!(paint, IDLE_RULE);
+    std::fs::write(dir.join("paint.lua"), paint).unwrap();
+    let (_, said) = run_ok(&cfg, &state, "--until-tick", 24);
+    assert!(
+        said.contains("paint.lua changed while the engine was stopped: it is reloaded, and what it runs on wakes"),
+        "{said}"
+    );
+    assert_ne!(
+        hash_at(&cfg, &state, 26),
+        kept,
+        "the changed rule never ran"
+    );
+}
+
 /// Regression (review): the log said "failed a step" whenever a streak
 /// began, so a script failing every other tick printed a line every other
 /// tick; and a streak that began with two failures in one engine step

@@ -154,6 +154,25 @@ mod tests {
         }
     }
 
+    /// Every script's source round-trips (a resume compares it to wake a
+    /// script changed while stopped); one named twice is refused.
+    #[test]
+    fn the_scripts_sources_round_trip_and_a_name_twice_is_refused() {
+        let e = SimExtras {
+            sources: vec![("water".into(), 1), ("grass".into(), u64::MAX)],
+            ..extras()
+        };
+        let st = decode(&blob(&e)).unwrap();
+        assert_eq!(st.extras.sources, e.sources);
+        assert_eq!(st.extras.health, e.health);
+        let twice = SimExtras {
+            sources: vec![("water".into(), 1), ("water".into(), 2)],
+            ..Default::default()
+        };
+        let err = decode(&blob(&twice)).unwrap_err();
+        assert!(err.contains("water's source is stored twice"), "{err}");
+    }
+
     /// Regression (fuzzing): a stored state with a NaN or infinite drained
     /// total, an eye at 1e300, or a material named with a newline or a
     /// path loaded with exit 0. Each is refused, naming what is wrong.

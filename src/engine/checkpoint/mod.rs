@@ -183,6 +183,11 @@ pub struct SimExtras {
     /// Scripts that were failing or suspended (an optional trailing
     /// section; empty when every script was healthy).
     pub health: Vec<ScriptHealth>,
+    /// Every script's name and the [`fnv1a`](crate::persist::bytes::fnv1a)
+    /// of the source it ran (an optional trailing section; empty in states
+    /// written before it): a resume wakes what a script whose file changed
+    /// while the engine was stopped runs on, as a hot reload does.
+    pub sources: Vec<(String, u64)>,
 }
 
 /// A failing or suspended script's health at a commit. A resume restores

@@ -151,12 +151,21 @@ pub(crate) fn encode(state: WorldRef<'_>) -> Vec<u8> {
             }
         }
     }
+    if !state.extras.sources.is_empty() {
+        w.u32(SECTION_SOURCES);
+        w.u32(state.extras.sources.len() as u32);
+        for (script, source) in &state.extras.sources {
+            w.str(script);
+            w.u64(*source);
+        }
+    }
     w.0
 }
 
 /// Tags of the optional sections that may follow a state.
 const SECTION_CAMERA: u32 = 1;
 const SECTION_HEALTH: u32 = 2;
+const SECTION_SOURCES: u32 = 3;
 
 /// Highest tick a stored state may claim: 2^53, where a tick stops being
 /// exact as the `f64` of simulated time (285 000 years at 1 000 ticks a
@@ -306,7 +315,7 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
             }
             extras.voxel_sleep = Some((active, quiet));
         }
-        let (mut camera, mut health) = (false, false);
+        let (mut camera, mut health, mut sources) = (false, false, false);
         while r.at < payload.len() {
             match r.u32()? {
                 SECTION_CAMERA if !camera => {
@@ -316,6 +325,10 @@ pub fn decode(tick: u64, version: u32, payload: &[u8]) -> Result<WorldState, Str
                 SECTION_HEALTH if !health && version >= 4 => {
                     health = true;
                     extras.health = read_health(&mut r)?
+                }
+                SECTION_SOURCES if !sources && version >= 4 => {
+                    sources = true;
+                    extras.sources = read_sources(&mut r)?
                 }
                 tag => {
                     return Err(format!(
@@ -365,6 +378,21 @@ fn read_camera(r: &mut Reader) -> Result<CameraOverride, String> {
 /// The most failures in a row a stored health may claim (a script is
 /// suspended after a few; far more is a damaged or forged state).
 const MAX_STORED_FAILURES: u32 = 1 << 20;
+
+/// The scripts' sources at the commit: each script once.
+fn read_sources(r: &mut Reader) -> Result<Vec<(String, u64)>, String> {
+    let n = r.count(1024, "script source")?;
+    let mut sources: Vec<(String, u64)> = Vec::with_capacity(n);
+    for _ in 0..n {
+        let script = r.str()?;
+        let source = r.u64()?;
+        if sources.iter().any(|(s, _)| *s == script) {
+            return Err(format!("script {script}'s source is stored twice"));
+        }
+        sources.push((script, source));
+    }
+    Ok(sources)
+}
 
 fn read_health(r: &mut Reader) -> Result<Vec<ScriptHealth>, String> {
     let n = r.count(1024, "script health")?;

@@ -135,6 +135,15 @@ pub fn sim_state(world: &SceneWorld, ws: &WorldSim) -> (ScriptParams, SimExtras)
         materials: world.materials.entries(),
         camera: None,
         health: script_health(ws),
+        sources: (0..ws.script_count())
+            .map(|i| {
+                let text = ws.source(i).text;
+                (
+                    ws.spec(i).name.clone(),
+                    crate::persist::bytes::fnv1a(text.as_bytes()),
+                )
+            })
+            .collect(),
     };
     (params, extras)
 }

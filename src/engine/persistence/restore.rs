@@ -411,5 +411,21 @@ pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
         Some(s) => ws.sim.restore_sleep_state(s),
         None => ws.sim.wake_all(),
     }
+    // A script whose file changed while the engine was stopped is a
+    // reload: what it runs on wakes, as a hot reload wakes it (regression,
+    // determinism probe: a rule changed while stopped found every brick
+    // asleep, and the world differed from one reloaded live at that tick).
+    for (script, source) in &extras.sources {
+        if let Some(i) = ws.script_index(script)
+            && crate::persist::bytes::fnv1a(ws.source(i).text.as_bytes()) != *source
+        {
+            ws.wake_for_reload(i);
+            // A suspension lifted has said it already.
+            let said = format!("{script}.lua changed while the engine was stopped");
+            if !warnings.iter().any(|w| w.starts_with(&said)) {
+                warnings.push(format!("{said}: it is reloaded, and what it runs on wakes"));
+            }
+        }
+    }
     warnings
 }

@@ -472,6 +472,15 @@ impl WorldSim {
         Ok(Some((index, warnings)))
     }
 
+    /// Wake what script `i` runs on, as its hot reload does (a resume whose
+    /// script changed while the engine was stopped).
+    pub fn wake_for_reload(&mut self, i: usize) {
+        match self.route(i) {
+            Ok(_) => self.sim.wake_all(),
+            Err(_) => self.vox.wake_all(),
+        }
+    }
+
     /// After the channels were replaced (a resume), make the record of the
     /// surfaces last written agree with them, as it does after every step.
     pub fn resync_columns(&mut self) {

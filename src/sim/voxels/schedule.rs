@@ -89,6 +89,12 @@ impl VoxelSim {
         self.wake_pending = true;
     }
 
+    /// Wake every brick before the next step, as a reload or a parameter
+    /// change does.
+    pub fn wake_all(&mut self) {
+        self.wake_all_known();
+    }
+
     /// Wake every brick inside the bounds that is not empty or holds a
     /// channel array (see `wake_pending`).
     pub(super) fn wake_everything(&mut self, store: &BrickStore) {
