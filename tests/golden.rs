@@ -125,6 +125,29 @@ fn hairball_matches_golden() {
     );
 }
 
+/// The daemon's look, as a world config's defaults give it (ambient
+/// occlusion, shadows, level of detail at C = 1), with fog and 4 jittered
+/// samples a pixel turned on: every stage of a daemon frame on the CPU
+/// tracer, held to an image (code review: the goldens above were all of
+/// the exact, unshaded defaults of `RenderOptions`, so a change to
+/// occlusion, fog, LOD or anti-aliasing passed every image test).
+#[test]
+fn the_daemons_look_matches_golden() {
+    use brickworld::engine::world_config::WorldConfig;
+    let text = "[world]\nsource = \"terrain\"\n[render]\nfog = 96\naa = 4\n";
+    let cfg = WorldConfig::parse("golden.toml", text, std::path::Path::new(".")).unwrap();
+    let look = cfg.look;
+    assert!(look.ao && look.shadows && look.lod == 1.0, "{look:?}");
+    let spec: SceneSpec = "terrain".parse().unwrap();
+    let world = build_scene(&spec, IVec3::new(96, 48, 96), 3, &ProgressBar::hidden()).unwrap();
+    let cam = golden_camera(&world);
+    let bm = world.brickmap();
+    let rgb = brickworld::trace::supersample(look.aa, &look.options(), |o| {
+        render(&bm, &cam, world.store().palette(), o).rgb
+    });
+    compare_golden("terrain_look_96x72.png", &rgb);
+}
+
 /// Regression (issue 8, fault 21): a dry column whose surface height ends in
 /// .5 or more showed one voxel of water, so a snow-only world turned blue.
 /// Here the terrain is lifted by 0.6 and snows for 30 steps with no water

@@ -294,6 +294,7 @@ impl SceneWorld {
     /// Change the world: `f` gets the store and the materials; afterwards
     /// the grid is patched with the bricks `f` changed, which are returned
     /// with `f`'s result.
+    #[must_use = "the bricks changed must reach the renderer and the next commit"]
     pub fn edit<R>(
         &mut self,
         f: impl FnOnce(&mut BrickStore, &mut MaterialRegistry) -> R,

@@ -153,7 +153,9 @@ impl WorldSim {
                 }
             }
         }
-        world.edit(|s, _| set_palette(s));
+        // A world being built: nothing has drawn or stored it yet, so the
+        // bricks recoloured go nowhere.
+        let (_, _recoloured) = world.edit(|s, _| set_palette(s));
         for (id, name) in [(WATER, "water"), (SNOW, "snow"), (SEDIMENT, "sediment")] {
             let def = crate::world::MaterialDef {
                 color: world.store().palette().rgb(id),
