@@ -37,6 +37,7 @@ fn status_pause_step_and_control_errors() {
         "last_commit",
         "loaded_from",
         "commit_error",
+        "render_error",
         "dirty_chunks",
         "store_bytes",
     ] {

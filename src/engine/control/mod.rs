@@ -158,6 +158,9 @@ pub struct Status {
     /// The last commit failure (a full disk, say), if any; cleared by the
     /// next commit that succeeds. Nothing committed before it is lost.
     pub commit_error: Option<String>,
+    /// Why the render thread stopped, if it did (a bug): frames are no
+    /// longer drawn, and the simulation goes on.
+    pub render_error: Option<String>,
     /// Set when `materials.lua` changed on disk while the engine ran: what
     /// was applied (new materials, recoloured ones), or why the file was
     /// refused.

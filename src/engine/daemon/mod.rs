@@ -178,6 +178,8 @@ pub struct Engine {
     last_commit: Option<CommitRef>,
     loaded_from: Option<CheckpointRef>,
     commit_error: Option<String>,
+    /// Why the render thread stopped, if it did (`/status`).
+    render_error: Option<String>,
     /// What the last change to `materials.lua` on disk did (applied live,
     /// or refused).
     materials_note: Option<String>,

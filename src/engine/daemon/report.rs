@@ -186,6 +186,7 @@ impl Engine {
             last_commit: self.last_commit.clone(),
             loaded_from: self.loaded_from.clone(),
             commit_error: self.commit_error.clone(),
+            render_error: self.render_error.clone(),
             materials_note: self.materials_note.clone(),
             dirty_chunks: self.dirty_chunks.len(),
             store_bytes: self.db.file_bytes(),

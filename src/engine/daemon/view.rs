@@ -21,6 +21,13 @@ impl Engine {
         if !tick.is_multiple_of(self.cfg.frames_every) {
             return;
         }
+        if let Some(why) = self.renderer.take_death() {
+            let msg = format!(
+                "the render thread stopped ({why}): no more frames are drawn, while the simulation and its commits go on; this is a bug (please report it), and a restart draws again"
+            );
+            crate::say!("error: {msg}");
+            self.render_error = Some(msg);
+        }
         if !self.renderer.ready() {
             self.renderer.skip();
             return;

@@ -140,7 +140,32 @@ impl RenderThread {
     /// Whether a job offered now would be taken. The engine loop checks this
     /// before it spends time on a snapshot.
     pub fn ready(&self) -> bool {
-        self.tx.as_ref().is_some_and(|tx| !tx.is_full())
+        self.tx.as_ref().is_some_and(|tx| !tx.is_full()) && !self.died()
+    }
+
+    fn died(&self) -> bool {
+        self.tx.is_some() && self.handle.as_ref().is_some_and(|h| h.is_finished())
+    }
+
+    /// Why the thread ended while it was still wanted (a panic: a bug), the
+    /// first time this is asked after it did; it is then let go, and every
+    /// later frame is skipped (found by review: a dead render thread went
+    /// unseen, frames stopped, and the engine went on making snapshots for
+    /// nobody).
+    pub fn take_death(&mut self) -> Option<String> {
+        if !self.died() {
+            return None;
+        }
+        self.tx = None;
+        let why = match self.handle.take()?.join() {
+            Ok(()) => "it ended".to_string(),
+            Err(p) => p
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| p.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "it panicked".into()),
+        };
+        Some(why)
     }
 
     /// Offer a job without waiting. If the renderer is busy the frame is
@@ -202,5 +227,27 @@ mod tests {
             .store(12.5f64.to_bits(), Ordering::Relaxed);
         stats.frames.fetch_add(1, Ordering::Relaxed);
         assert_eq!(stats.last_frame_ms(), Some(12.5));
+    }
+
+    /// Found by review: a render thread that panicked went unseen. It is
+    /// found once, with its message; it is then not ready, and a job
+    /// offered gives its bricks back.
+    #[test]
+    fn a_dead_render_thread_is_found_once_and_offered_nothing() {
+        let (tx, _rx) = bounded::<FrameJob>(1);
+        // `resume_unwind`: a panic that skips the hook, which prints.
+        let handle = std::thread::spawn(|| std::panic::resume_unwind(Box::new("boom")));
+        let mut r = RenderThread {
+            tx: Some(tx),
+            handle: Some(handle),
+            stats: Arc::default(),
+        };
+        while !r.handle.as_ref().unwrap().is_finished() {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        assert!(!r.ready());
+        assert_eq!(r.take_death().as_deref(), Some("boom"));
+        assert_eq!(r.take_death(), None);
+        assert!(!r.ready());
     }
 }

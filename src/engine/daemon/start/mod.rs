@@ -209,6 +209,7 @@ impl Engine {
             last_commit: None,
             loaded_from,
             commit_error: None,
+            render_error: None,
             materials_note: None,
             snapshot_ms: 0.0,
             active_bricks: 0,
