@@ -223,6 +223,21 @@ fn the_viewer_works_in_a_real_browser() {
     std::thread::sleep(Duration::from_millis(500));
     check_golden(&mut b);
 
+    // What the engine cannot do is shown in the header, and hidden again
+    // once it can (found by review: a failing commit and a dead render
+    // thread were in /status only). Fed to the page's status handler.
+    let shown = |b: &mut Browser| {
+        b.eval("(() => { const e = document.getElementById('engmsg'); return e.hidden ? null : e.textContent; })()")
+    };
+    assert_eq!(shown(&mut b), Value::Null, "trouble shown with none");
+    b.eval("onStatus(Object.assign({}, window.bw.status, { commit_error: 'disk full', render_error: 'boom' })); true");
+    assert_eq!(
+        shown(&mut b),
+        json!("commits failing: disk full · frames stopped: boom")
+    );
+    b.eval("onStatus(Object.assign({}, window.bw.status, { commit_error: null, render_error: null })); true");
+    assert_eq!(shown(&mut b), Value::Null, "trouble still shown");
+
     // Dragging orbits the camera: /status shows it set by this viewer.
     let before = status(&addr)["camera"]["eye"].clone();
     let r = b.eval("(() => { const r = document.getElementById('view').getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()");
