@@ -469,7 +469,7 @@ impl Timeline {
     }
 }
 
-/// Append `bytes` to `file` (tests: refused while [`FULL_DISK`] is set,
+/// Append `bytes` to `file` (tests: refused while `FULL_DISK` is set,
 /// as a full disk refuses, on an ordinary file).
 fn append(file: &mut File, bytes: &[u8]) -> std::io::Result<()> {
     #[cfg(test)]
