@@ -705,20 +705,32 @@ fn a_heightmap_world_is_imported_once_and_resumes_without_its_file() {
 const FLAKY: &str = "return { channels = { \"flaky_v\" }, passes = { { name = \"p\", reads = {}, writes = { \"flaky_v\" },\n\
     kernel = function(c) if c.tick >= 1 and c.tick < 4 then error(\"flaky\") end buffer.writef64(c.w.flaky_v, 0, c.tick) end } } }\n";
 
-/// The daemon's small world with the flaky script beside water, in a
-/// scripts folder of its own.
-fn flaky_world(name: &str) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
-    let (cfg, state, _) = setup(name);
+/// The daemon's small world with a scripts folder of its own, holding a
+/// copy of water.lua and `name.lua` with `text`: the config, the state
+/// directory and the folder.
+fn own_scripts_world(
+    world: &str,
+    name: &str,
+    text: &str,
+) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+    let (cfg, state, _) = setup(world);
     let dir = cfg.parent().unwrap().join("scripts");
     std::fs::create_dir_all(&dir).unwrap();
     let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
     std::fs::copy(repo.join("water.lua"), dir.join("water.lua")).unwrap();
-    std::fs::write(dir.join("flaky.lua"), FLAKY).unwrap();
+    std::fs::write(dir.join(format!("{name}.lua")), text).unwrap();
     edit_config(
         &cfg,
         &format!("scripts_dir = \"{}\"", repo.display()),
         &format!("scripts_dir = \"{}\"", dir.display()),
     );
+    (cfg, state, dir)
+}
+
+/// The daemon's small world with the flaky script beside water, in a
+/// scripts folder of its own.
+fn flaky_world(name: &str) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+    let (cfg, state, dir) = own_scripts_world(name, "flaky", FLAKY);
     edit_config(
         &cfg,
         "[render]",
@@ -784,16 +796,7 @@ const IDLE_RULE: &str = "return { grid = \"voxels\", materials = { \"sand\" }, p
 #[test]
 fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
     let world = |name: &str| {
-        let (cfg, state, _) = setup(name);
-        let dir = cfg.parent().unwrap().join("scripts");
-        std::fs::create_dir_all(&dir).unwrap();
-        std::fs::write(dir.join("paint.lua"), IDLE_RULE).unwrap();
-        let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
-        edit_config(
-            &cfg,
-            &format!("scripts_dir = \"{}\"", repo.display()),
-            &format!("scripts_dir = \"{}\"", dir.display()),
-        );
+        let (cfg, state, dir) = own_scripts_world(name, "paint", IDLE_RULE);
         edit_config(
             &cfg,
             "file = \"water.lua\"\nparams = { rain = 0.2 }",
