@@ -247,9 +247,15 @@ pub struct BenchGpuArgs {
     /// Untimed back-to-back tracing before each setting's timed runs, ms (0 to 60000; a run of frames started is finished)
     #[arg(long, default_value_t = 1000)]
     pub warmup_ms: u64,
+    /// Samples per pixel of each view's CPU reference, against which each image's error (mean FLIP) is measured (0: no error measured; at most 256)
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
     /// Write the results as JSON here
     #[arg(long)]
     pub json: PathBuf,
+    /// Also draw speed against image error over C as SVG (needs --spp above 0)
+    #[arg(long)]
+    pub chart: Option<PathBuf>,
 }
 
 /// `brickworld bench flight`.

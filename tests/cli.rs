@@ -2100,6 +2100,11 @@ fn bench_gpu_refuses_bad_input_up_front() {
         (&["--world", "no/such.toml"][..], "no/such.toml"),
         (&["--lod", "none,1"][..], "'none' is not a number"),
         (&["--lod", "0.001"][..], "0.001 is out of range"),
+        (&["--spp", "257"][..], "invalid --spp 257"),
+        (
+            &["--spp", "0", "--chart", "g.svg"][..],
+            "--chart needs the image error",
+        ),
         // Regression (hostile review): ignored without a word.
         (
             &["--world", "worlds/continent.toml", "--scene", "balls"][..],

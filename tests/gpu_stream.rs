@@ -602,17 +602,23 @@ fn bench_gpu_reports_every_view_and_setting() {
         (streamed, 2 * 3 * 2, None),
         (heightmap, 3 * 2, Some("16x")),
     ] {
-        let json = dir.join("gpu.json");
+        let (json, chart) = (dir.join("gpu.json"), dir.join("gpu.svg"));
+        let _ = std::fs::remove_file(&chart);
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
             .args(["bench", "gpu", "--width", "64", "--height", "48"])
-            .args(["--frames", "2", "--warmup-ms", "0"])
+            .args(["--frames", "2", "--warmup-ms", "0", "--spp", "4"])
             .args(source)
             .arg("--json")
             .arg(&json)
+            .arg("--chart")
+            .arg(&chart)
             .output()
             .unwrap();
         assert_success(&out);
         let v = read_json(&json);
+        assert_eq!(v["spp"], 4, "{v}");
+        let svg = std::fs::read_to_string(&chart).unwrap();
+        assert!(svg.contains("speed against FLIP over C"), "{svg}");
         let rows = v["rows"].as_array().unwrap();
         assert_eq!(rows.len(), rows_expected, "{v}");
         let label = v["world"].as_str().unwrap();
@@ -643,6 +649,16 @@ fn bench_gpu_reports_every_view_and_setting() {
             assert_eq!(r["sustained_mrays_per_s"].is_f64(), timestamps, "{r}");
             let beam = r["beam"].as_bool().unwrap();
             assert_eq!(r["beam_ms"].is_f64(), timestamps && beam, "{r}");
+            // The image's error against the 4-sample reference: far from a
+            // broken image, and on terrain a real difference (one sample a
+            // pixel; the flat heightmap's views are drawn exactly).
+            let flip = r["flip"].as_f64().unwrap();
+            assert!((0.0..0.3).contains(&flip), "{r}");
+            assert!(source != scene || flip > 0.0, "{r}");
+        }
+        // Beams change no image, so no error.
+        for pair in rows.chunks(2) {
+            assert_eq!(pair[0]["flip"], pair[1]["flip"], "{pair:?}");
         }
         let text = String::from_utf8_lossy(&out.stdout);
         assert!(text.contains("sustained ms"), "{text}");

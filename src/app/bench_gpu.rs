@@ -25,6 +25,9 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
     let source = match &a.world {
         Some(path) => {
             crate::config::not_an_input("--json", &a.json, &[("world config", path)])?;
+            if let Some(c) = &a.chart {
+                crate::config::not_an_input("--chart", c, &[("world config", path)])?;
+            }
             let cfg = WorldConfig::load(path)?;
             if cfg.stream.is_none() {
                 anyhow::bail!(
@@ -35,7 +38,7 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
         }
         None => {
             let s = SceneSettings::from_args(&a.scene, glam::IVec3::new(2048, 256, 2048))?;
-            s.check_outputs(&a.json, None)?;
+            s.check_outputs(&a.json, a.chart.as_deref())?;
             Source::Scene(s)
         }
     };
@@ -95,7 +98,9 @@ pub(super) fn run_bench_gpu(a: &crate::cli::BenchGpuArgs) -> Result<()> {
             run_with_bar(&ctx, &world, &label, &views, &setup)?
         }
     };
-    crate::bench::write_json(&a.json, &r)?;
+    let text = serde_json::to_string_pretty(&r)? + "\n";
+    let draw = |path: &std::path::Path| crate::bench::gpu::draw_chart(path, &r);
+    crate::bench::write_outputs(&a.json, &text, a.chart.as_deref(), draw)?;
     print_table(&r);
     Ok(())
 }
@@ -123,7 +128,13 @@ fn setup_of(a: &crate::cli::BenchGpuArgs) -> Result<GpuBenchSetup> {
         );
     }
     let lods = gpu_lods(&a.lod)?;
-    crate::config::check_bench_outputs(&a.json, None)?;
+    if a.spp > 256 {
+        anyhow::bail!("invalid --spp {}: 0 to 256 samples per pixel", a.spp);
+    }
+    if a.chart.is_some() && a.spp == 0 {
+        anyhow::bail!("--chart needs the image error: give --spp above 0");
+    }
+    crate::config::check_bench_outputs(&a.json, a.chart.as_deref())?;
     Ok(GpuBenchSetup {
         width: a.width,
         height: a.height,
@@ -131,6 +142,7 @@ fn setup_of(a: &crate::cli::BenchGpuArgs) -> Result<GpuBenchSetup> {
         frames: a.frames,
         uploads: a.uploads,
         warmup: std::time::Duration::from_millis(a.warmup_ms),
+        spp: a.spp,
         look: RenderOptions {
             ao: true,
             ..Default::default()
@@ -165,12 +177,13 @@ fn print_table(r: &GpuBenchReport) {
         r.height
     );
     println!(
-        "{:<9} {:>5} {:>5} {:>9} {:>6} {:>9} {:>8} {:>9} {:>8} {:>11} {:>13} {:>8}",
+        "{:<9} {:>5} {:>5} {:>9} {:>6} {:>7} {:>9} {:>8} {:>9} {:>8} {:>11} {:>13} {:>8}",
         "view",
         "C",
         "beam",
         "converge",
         "hits",
+        "FLIP",
         "frame ms",
         "Mrays/s",
         "image ms",
@@ -183,7 +196,7 @@ fn print_table(r: &GpuBenchReport) {
         let opt =
             |v: Option<f64>, digits: usize| v.map_or("-".to_string(), |x| format!("{x:.digits$}"));
         println!(
-            "{:<9} {:>5} {:>5} {:>9} {:>5.0}% {:>9.2} {:>8.1} {:>9.2} {:>8.1} {:>11} {:>13} {:>8}",
+            "{:<9} {:>5} {:>5} {:>9} {:>5.0}% {:>7} {:>9.2} {:>8.1} {:>9.2} {:>8.1} {:>11} {:>13} {:>8}",
             row.view,
             if row.lod_c == 0.0 {
                 "exact".to_string()
@@ -197,6 +210,7 @@ fn print_table(r: &GpuBenchReport) {
                 row.frames_to_converge.to_string()
             },
             row.hit_fraction * 100.0,
+            opt(row.flip, 4),
             row.frame_ms,
             row.frame_mrays_per_s,
             row.image_ms,

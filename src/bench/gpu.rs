@@ -27,9 +27,10 @@ use anyhow::{Result, bail};
 use glam::DVec3;
 use serde::Serialize;
 
+use super::chart::{ChartError, Series, xy_chart};
 use crate::gpu::{GpuBrickmap, GpuContext, StreamConfig};
 use crate::scene::SceneWorld;
-use crate::trace::{Camera, RenderOptions};
+use crate::trace::{Camera, RenderOptions, render, supersample};
 
 /// One named camera view.
 #[derive(Clone, Debug)]
@@ -62,6 +63,8 @@ pub struct GpuBenchSetup {
     pub look: RenderOptions,
     /// Untimed back-to-back tracing before each setting's timed runs.
     pub warmup: Duration,
+    /// Samples per pixel of each view's reference (0: no image error).
+    pub spp: u32,
 }
 
 /// One view at one setting.
@@ -83,6 +86,10 @@ pub struct GpuRow {
     pub pool_slots: u32,
     /// Fraction of pixels whose ray hit something.
     pub hit_fraction: f64,
+    /// Mean FLIP of the converged image (`render_image`'s) against the
+    /// view's reference: the same look traced exactly on the CPU with
+    /// `spp` jittered samples a pixel (`None` without `--spp`).
+    pub flip: Option<f64>,
     /// Median whole frame by the wall clock, ms.
     pub frame_ms: f64,
     /// Median whole frame of the image alone (`render_image`, as the
@@ -128,6 +135,10 @@ pub struct GpuBenchReport {
     pub width: u32,
     /// Image size.
     pub height: u32,
+    /// Samples per pixel of the references (0: no image error measured).
+    pub spp: u32,
+    /// Seconds spent on the references (CPU, untimed by the rows).
+    pub reference_s: f64,
     /// Rows, view by view.
     pub rows: Vec<GpuRow>,
 }
@@ -154,8 +165,12 @@ pub fn run(
         .collect();
     progress.set_length((views.len() * settings.len()) as u64);
     let mut rows = Vec::new();
+    let mut reference_s = 0.0;
     for v in views {
         let cam = Camera::new(v.eye, v.target, v.fov, setup.width, setup.height)?;
+        let t = Instant::now();
+        let reference = reference(world, &cam, setup);
+        reference_s += t.elapsed().as_secs_f64();
         let cfg = StreamConfig {
             uploads_per_frame: setup.uploads,
             feedback_capacity: setup.uploads.max(4096),
@@ -178,7 +193,7 @@ pub fn run(
                 ctx,
                 &mut gpu,
                 world,
-                (&v.name, &cam),
+                (&v.name, &cam, reference.as_deref()),
                 &opts,
                 setup,
             )?);
@@ -192,8 +207,77 @@ pub fn run(
         world: label.to_string(),
         width: setup.width,
         height: setup.height,
+        spp: setup.spp,
+        reference_s,
         rows,
     })
+}
+
+/// The reference a view's images are held to: the look of the rows (LOD
+/// and beams aside) traced exactly on the CPU, `spp` jittered samples a
+/// pixel averaged, as `bench lod`'s are; `None` when `spp` is 0.
+fn reference(world: &SceneWorld, cam: &Camera, setup: &GpuBenchSetup) -> Option<Vec<u8>> {
+    if setup.spp == 0 {
+        return None;
+    }
+    let exact = RenderOptions {
+        lod: 0.0,
+        beam: false,
+        jitter: None,
+        ..setup.look
+    };
+    let tracer = world.brickmap();
+    let palette = world.store().palette();
+    Some(supersample(setup.spp, &exact, |o| {
+        render(&tracer, cam, palette, o).rgb
+    }))
+}
+
+/// The chart of speed against image error over C: per view, the rows
+/// with beams off, at their back-to-back device speed (or the image
+/// frames' wall-clock speed on a device without timestamps).
+pub fn draw_chart(path: &std::path::Path, r: &GpuBenchReport) -> Result<(), ChartError> {
+    const COLOURS: [plotters::style::RGBColor; 3] = [
+        plotters::style::RGBColor(31, 119, 180),
+        plotters::style::RGBColor(214, 39, 40),
+        plotters::style::RGBColor(44, 160, 44),
+    ];
+    let mut names: Vec<&str> = Vec::new();
+    for row in &r.rows {
+        if !names.contains(&row.view.as_str()) {
+            names.push(&row.view);
+        }
+    }
+    let speed = |row: &GpuRow| row.sustained_mrays_per_s.unwrap_or(row.image_mrays_per_s);
+    let series: Vec<Series> = names
+        .iter()
+        .enumerate()
+        .map(|(i, name)| Series {
+            name,
+            color: COLOURS[i % 3],
+            points: r
+                .rows
+                .iter()
+                .filter(|row| row.view == *name && !row.beam)
+                .filter_map(|row| row.flip.map(|f| (f, speed(row))))
+                .collect(),
+        })
+        .collect();
+    let what = if r.timestamps {
+        "device time, frames back to back"
+    } else {
+        "whole image frames"
+    };
+    xy_chart(
+        path,
+        &format!(
+            "{}, {}x{}, {}: speed against FLIP over C",
+            r.world, r.width, r.height, r.adapter
+        ),
+        &format!("mean FLIP vs {}-spp CPU reference (log)", r.spp),
+        &format!("Mrays/s, {what} (log)"),
+        &series,
+    )
 }
 
 /// One view at one setting: converge, then time `render` frames, image
@@ -202,7 +286,7 @@ fn measure(
     ctx: &GpuContext,
     gpu: &mut GpuBrickmap,
     world: &SceneWorld,
-    (view, cam): (&str, &Camera),
+    (view, cam, reference): (&str, &Camera, Option<&[u8]>),
     opts: &RenderOptions,
     setup: &GpuBenchSetup,
 ) -> Result<GpuRow> {
@@ -219,6 +303,13 @@ fn measure(
     // One untimed frame more: the first after uploads pays for them.
     let (f, _) = gpu.render(ctx, cam, opts, grid, pool)?;
     let hit_fraction = f.hits.iter().filter(|h| h.is_some()).count() as f64 / rays;
+    let flip = match reference {
+        Some(r) => {
+            let (image, _) = gpu.render_image(ctx, cam, opts, grid, pool)?;
+            Some(super::lod::flip_mean(r, &image, setup.width, setup.height))
+        }
+        None => None,
+    };
     let (mut wall, mut dev, mut beam_dev) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..setup.frames {
         let t = Instant::now();
@@ -246,6 +337,7 @@ fn measure(
         resident_bricks: gpu.resident(),
         pool_slots: gpu.pool_slots(),
         hit_fraction,
+        flip,
         frame_ms,
         gpu_ms,
         beam_ms: (!beam_dev.is_empty()).then(|| median(&mut beam_dev)),
