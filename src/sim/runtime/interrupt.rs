@@ -383,24 +383,35 @@ impl SealWalk {
 }
 
 /// The upvalues of every function [`seal`] collected, word for word:
-/// numbers, booleans, strings and vectors by value, every other object by
-/// identity. A call after which they are not the same kept state between
-/// calls. Kept exactly, not hashed (regression, determinism probe: a
-/// running xor-multiply hash let an even number of sign flips cancel, so
+/// numbers, booleans and vectors by value, strings and every other object
+/// by identity. A call after which they are not the same kept state
+/// between calls. Kept exactly, not hashed (regression, determinism probe:
+/// a running xor-multiply hash let an even number of sign flips cancel, so
 /// two locals, or one captured by two functions, kept a counter in their
 /// signs unseen).
+///
+/// Strings by identity: Luau interns every string (`luaS_newlstr` and
+/// `luaS_buffinish` return the live string of the same bytes), so two
+/// live strings are the same object exactly when their bytes are equal.
+/// The strings the fingerprint saw are pinned in the holder (`pins`), so
+/// none of them can be freed and its address taken by another string
+/// (regression, review: strings were copied byte by byte into the
+/// fingerprint, once per function capturing them, and read byte by byte
+/// after every call: one 8 MB string captured by 200 closures took 1.6 GB
+/// outside the VM's memory limit and 0.6 s a call).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Fingerprint(Vec<u64>);
 
-/// The [`Fingerprint`] of the functions in `held`. Only each function's
-/// own upvalues are read (the tables are frozen, and every function
-/// reachable is in `held`), so the cost is the number of functions and
-/// upvalues, not the size of the tables. `None` when it could not be taken
-/// whole (no stack room, or an error): the caller fails rather than trust
-/// a part (found by review: a partial one was returned).
+/// The [`Fingerprint`] of the functions in `held`, pinning the strings it
+/// saw in `held`. Only each function's own upvalues are read (the tables
+/// are frozen, and every function reachable is in `held`), so the cost is
+/// the number of functions and upvalues, not the size of the tables or
+/// strings. `None` when it could not be taken whole (no stack room, or an
+/// error): the caller fails rather than trust a part (found by review: a
+/// partial one was returned).
 pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> Option<Fingerprint> {
     let mut words = Vec::new();
-    visit_upvalues(lua, held, &mut |w| words.push(w)).then_some(Fingerprint(words))
+    visit_upvalues(lua, held, true, &mut |w| words.push(w)).then_some(Fingerprint(words))
 }
 
 /// Whether the functions in `held` still have the upvalues of `print`,
@@ -408,32 +419,46 @@ pub fn fingerprint(lua: &Lua, held: &mlua::Table) -> Option<Fingerprint> {
 /// kernel call). `None` when they could not be read whole.
 pub fn unchanged(lua: &Lua, held: &mlua::Table, print: &Fingerprint) -> Option<bool> {
     let (mut at, mut same) = (0usize, true);
-    let whole = visit_upvalues(lua, held, &mut |w| {
+    let whole = visit_upvalues(lua, held, false, &mut |w| {
         same &= print.0.get(at) == Some(&w);
         at += 1;
     });
     whole.then_some(same && at == print.0.len())
 }
 
-/// Hand every word of the upvalues of the functions in `held` to `emit`;
+/// Hand every word of the upvalues of the functions in `held` to `emit`
+/// (and, with `pin`, keep every string upvalue alive in `held.pins`);
 /// whether they were read whole.
-fn visit_upvalues(lua: &Lua, held: &mlua::Table, emit: &mut dyn FnMut(u64)) -> bool {
+fn visit_upvalues(lua: &Lua, held: &mlua::Table, pin: bool, emit: &mut dyn FnMut(u64)) -> bool {
     let mut whole = false;
     // SAFETY: exec_raw pushes `held` and runs the closure in a protected
-    // call holding the VM's lock; each function is pushed with rawgeti
-    // after a stack check, read, and popped.
+    // call holding the VM's lock; the pin table is created after a stack
+    // check, each function is pushed with rawgeti after a stack check for
+    // it, its upvalue and a copy to pin, read, and popped; the pin table is
+    // stored in `held` (which pops it) before the closure returns.
     let ran: mlua::Result<()> = unsafe {
         lua.exec_raw(held.clone(), |state| {
             let t = ffi::lua_gettop(state);
             let len = ffi::lua_objlen(state, t) as c_int;
+            let mut pins = None;
+            if pin {
+                if ffi::lua_checkstack(state, 1) == 0 {
+                    return;
+                }
+                ffi::lua_createtable(state, 0, 0);
+                pins = Some((ffi::lua_gettop(state), 0));
+            }
             for i in 1..=len {
-                if ffi::lua_checkstack(state, 2) == 0 {
+                if ffi::lua_checkstack(state, 3) == 0 {
                     return;
                 }
                 ffi::lua_rawgeti(state, t, i as _);
                 let f = ffi::lua_gettop(state);
-                emit_upvalues(state, f, emit);
+                emit_upvalues(state, f, pins.as_mut(), emit);
                 ffi::lua_pop(state, 1);
+            }
+            if pins.is_some() {
+                ffi::lua_rawsetfield(state, t, c"pins".as_ptr());
             }
             whole = true;
         })
@@ -442,14 +467,21 @@ fn visit_upvalues(lua: &Lua, held: &mlua::Table, emit: &mut dyn FnMut(u64)) -> b
 }
 
 /// Hand the direct upvalues of the function at absolute index `idx` to
-/// `emit`: the function's identity, then per upvalue its type and value.
+/// `emit`: the function's identity, then per upvalue its type and value;
+/// with `pins` (the pin table's index and its count), each string is also
+/// stored there.
 ///
 /// # Safety
-/// `state` must be a live Luau state with a function at `idx` and room for
-/// one more value on its stack.
-unsafe fn emit_upvalues(state: *mut ffi::lua_State, idx: c_int, emit: &mut dyn FnMut(u64)) {
+/// `state` must be a live Luau state with a function at `idx`, the pin
+/// table at its index, and room for two more values on its stack.
+unsafe fn emit_upvalues(
+    state: *mut ffi::lua_State,
+    idx: c_int,
+    mut pins: Option<&mut (c_int, c_int)>,
+    emit: &mut dyn FnMut(u64),
+) {
     // SAFETY (whole body): the caller's contract; each upvalue pushed is
-    // popped before the next.
+    // popped before the next, and its pinned copy is popped by rawseti.
     unsafe {
         emit(ffi::lua_topointer(state, idx) as u64);
         let mut n = 1;
@@ -460,16 +492,12 @@ unsafe fn emit_upvalues(state: *mut ffi::lua_State, idx: c_int, emit: &mut dyn F
                 ffi::LUA_TNUMBER => emit(ffi::lua_tonumber(state, -1).to_bits()),
                 ffi::LUA_TBOOLEAN => emit(ffi::lua_toboolean(state, -1) as u64),
                 ffi::LUA_TSTRING => {
-                    let mut len = 0usize;
-                    let s = ffi::lua_tolstring(state, -1, &mut len);
-                    emit(len as u64);
-                    if !s.is_null() {
-                        // The bytes, eight to a word.
-                        for chunk in std::slice::from_raw_parts(s.cast::<u8>(), len).chunks(8) {
-                            let mut w = [0u8; 8];
-                            w[..chunk.len()].copy_from_slice(chunk);
-                            emit(u64::from_le_bytes(w));
-                        }
+                    // The string object (interned: its bytes), pinned.
+                    emit(ffi::lua_topointer(state, -1) as u64);
+                    if let Some((table, count)) = pins.as_deref_mut() {
+                        *count += 1;
+                        ffi::lua_pushvalue(state, -1);
+                        ffi::lua_rawseti(state, *table, *count as _);
                     }
                 }
                 ffi::LUA_TVECTOR => {
@@ -516,6 +544,45 @@ mod tests {
         assert_eq!(unchanged(&lua, &held, &print), Some(true));
     }
 
+    /// Strings are compared by identity, which interning makes equality:
+    /// a kernel that builds an equal string again (by any route) kept no
+    /// state, and one that changes a 1 MB string is seen at once.
+    #[test]
+    fn an_equal_string_made_again_is_unchanged() {
+        let lua = Lua::new();
+        for (prelude, body, same) in [
+            ("local s = 'xx' .. 'xxx'", "s = string.rep('x', 5)", true),
+            (
+                "local s = string.rep('y', 1048576)",
+                "s = ('y'):rep(1048576)",
+                true,
+            ),
+            (
+                "local s = string.rep('y', 1048576)",
+                "s = ('y'):rep(1048575) .. 'z'",
+                false,
+            ),
+            (
+                "local s = 'a,b'",
+                "s = table.concat({ 'a', 'b' }, ',')",
+                true,
+            ),
+        ] {
+            let f: mlua::Function = lua
+                .load(format!("{prelude}\nreturn function() {body} end"))
+                .eval()
+                .unwrap();
+            let held = seal(&lua, &f).unwrap();
+            let print = fingerprint(&lua, &held).unwrap();
+            // The string seen is pinned: it outlives its upvalue.
+            let pins: mlua::Table = held.get("pins").unwrap();
+            assert_eq!(pins.raw_len(), 1, "{prelude}");
+            f.call::<()>(()).unwrap();
+            lua.gc_collect().unwrap();
+            assert_eq!(unchanged(&lua, &held, &print), Some(same), "{body}");
+        }
+    }
+
     /// Regression (determinism probe): sign flips of two upvalues, or of
     /// one captured by two functions, cancelled in the old hash, so a
     /// kernel kept a counter between calls unseen. Each flip is seen; a
@@ -531,6 +598,13 @@ mod tests {
             ),
             ("local s = 'ab'", "s = if s == 'ab' then 'ba' else 'ab'"),
             ("local v = 0", "v = v + 1; v = v - 1 + 2^-40"),
+            // A string freed and made again in between is still seen: the
+            // one the fingerprint saw is pinned, so its address is not
+            // reused.
+            (
+                "local s = string.rep('a', 100)",
+                "s = nil; collectgarbage(); s = string.rep('c', 100)",
+            ),
         ] {
             let f: mlua::Function = lua
                 .load(format!("{prelude}\nreturn function() {body} end"))
