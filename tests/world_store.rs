@@ -818,13 +818,52 @@ fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
     std::fs::write(dir.join("paint.lua"), paint).unwrap();
     let (_, said) = run_ok(&cfg, &state, "--until-tick", 24);
     assert!(
-        said.contains("paint.lua changed while the engine was stopped: it is reloaded, and what it runs on wakes"),
+        said.contains(
+            "paint.lua changed while the engine was stopped: what it runs on wakes, as at a reload"
+        ),
         "{said}"
     );
     assert_ne!(
         hash_at(&cfg, &state, 26),
         kept,
         "the changed rule never ran"
+    );
+
+    // A rule added while the engine was stopped wakes what it runs on too
+    // (review): with an idle rule alone (every brick asleep by tick 20),
+    // then with the painting rule added.
+    let painting = IDLE_RULE.replace(
+        "end } } }",
+        "buffer.writeu8(c.w.mat, 0, c.m.sand) end } } }",
+    );
+    let idle_only = |name: &str| {
+        let (cfg, state, dir) = own_scripts_world(name, "paint", &painting);
+        std::fs::write(dir.join("idle.lua"), IDLE_RULE).unwrap();
+        edit_config(
+            &cfg,
+            "file = \"water.lua\"\nparams = { rain = 0.2 }",
+            "file = \"idle.lua\"",
+        );
+        run_ok(&cfg, &state, "--until-tick", 20);
+        (cfg, state)
+    };
+    let (cfg, state) = idle_only("paintnone");
+    let without = hash_at(&cfg, &state, 26);
+    let (cfg, state) = idle_only("paintadded");
+    edit_config(
+        &cfg,
+        "[render]",
+        "[[scripts]]\nfile = \"paint.lua\"\n[render]",
+    );
+    let (_, said) = run_ok(&cfg, &state, "--until-tick", 24);
+    assert!(
+        said.contains("paint.lua is new to this world: what it runs on wakes"),
+        "{said}"
+    );
+    assert_ne!(
+        hash_at(&cfg, &state, 26),
+        without,
+        "the added rule never ran"
     );
 }
 

@@ -358,6 +358,7 @@ fn whole(data: &crate::persist::ColumnData) -> bool {
 /// Returns warnings (parameters a changed script no longer accepts, a
 /// suspension lifted because its script changed).
 pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
+    use crate::persist::bytes::fnv1a;
     let mut warnings = Vec::new();
     // Health: a script that failed or was suspended when the state was
     // committed is so again, unless its source changed (a reload).
@@ -415,15 +416,23 @@ pub fn apply_state(st: &WorldState, ws: &mut WorldSim) -> Vec<String> {
     // reload: what it runs on wakes, as a hot reload wakes it (regression,
     // determinism probe: a rule changed while stopped found every brick
     // asleep, and the world differed from one reloaded live at that tick).
-    for (script, source) in &extras.sources {
-        if let Some(i) = ws.script_index(script)
-            && crate::persist::bytes::fnv1a(ws.source(i).text.as_bytes()) != *source
-        {
+    // A script the state does not name was added (or renamed) while it
+    // was stopped: what it runs on wakes too (regression, review: an added
+    // rule found every brick asleep). States written before the sources
+    // were kept name none, and wake nothing more than they did.
+    if !extras.sources.is_empty() {
+        for i in 0..ws.script_count() {
+            let script = ws.spec(i).name.clone();
+            let source = fnv1a(ws.source(i).text.as_bytes());
+            let said = match extras.sources.iter().find(|(s, _)| *s == script) {
+                Some((_, stored)) if *stored == source => continue,
+                Some(_) => format!("{script}.lua changed while the engine was stopped"),
+                None => format!("{script}.lua is new to this world"),
+            };
             ws.wake_for_reload(i);
             // A suspension lifted has said it already.
-            let said = format!("{script}.lua changed while the engine was stopped");
             if !warnings.iter().any(|w| w.starts_with(&said)) {
-                warnings.push(format!("{said}: it is reloaded, and what it runs on wakes"));
+                warnings.push(format!("{said}: what it runs on wakes, as at a reload"));
             }
         }
     }
