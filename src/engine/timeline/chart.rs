@@ -199,7 +199,11 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
             name: table.columns[c].as_str(),
             color,
             points: thin(
+                // No value (NaN: `frame_ms` before a start's first frame,
+                // a column a reload added) is no point, not the floor
+                // (review: each start drew a frame at 1e-9 ms).
                 rows.iter()
+                    .filter(|r| r[c].is_finite())
                     .map(|r| (r[0].max(1.0), r[c].abs().max(1e-9)))
                     .collect(),
             ),
@@ -500,6 +504,23 @@ mod tests {
             .filter(|n| n.starts_with("total"))
             .collect();
         assert_eq!(names, ["total-snow.svg"], "{drawn:?}");
+        // No value is no point (review: the NaN frame time of a start's
+        // first row was drawn at 1e-9, stretching the axis nine decades).
+        std::fs::write(
+            &csv,
+            "tick,steps_per_s,frame_ms\n1,10,NaN\n2,11,5.5\n3,12,6\n",
+        )
+        .unwrap();
+        chart(&dir).unwrap();
+        let svg = std::fs::read_to_string(dir.join("charts/rate.svg")).unwrap();
+        let labels: Vec<f64> = svg
+            .split("</text>")
+            .filter_map(|t| t.rsplit('>').next()?.trim().parse().ok())
+            .collect();
+        assert!(
+            labels.len() >= 3 && labels.iter().all(|&v| v >= 1.0),
+            "{labels:?}"
+        );
         std::fs::write(&csv, "a,b\n1,2\n3,4\n").unwrap();
         assert!(
             chart(&dir)

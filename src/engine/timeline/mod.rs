@@ -231,7 +231,10 @@ impl Timeline {
         if let Ok(f) = crate::files::open_for_reading(&at) {
             let mut first = String::new();
             let _ = BufReader::new(f.take(MAX_HEADER_BYTES)).read_line(&mut first);
-            if first.trim_end() != header {
+            // An empty file (its header refused by a full disk) holds no
+            // history to keep: `create` writes its header (regression,
+            // review: each start moved it aside as a 0-byte file).
+            if !first.is_empty() && first.trim_end() != header {
                 let aside = aside_path(&at);
                 std::fs::rename(&at, &aside).map_err(|error| TimelineError::Io {
                     what: format!(
@@ -683,6 +686,18 @@ mod tests {
         t.record(&row(8));
         assert_eq!(ticks_in(&path), ["8"]);
         assert_eq!(ticks_in(&moved), ["1", "2", "3", "4", "5"]);
+        // An empty timeline left by a full disk is opened as a new one, not
+        // moved aside as another world's (review).
+        std::fs::write(&path, "").unwrap();
+        let mut t = Timeline::open(&path, &[]).unwrap();
+        t.record(&row(9));
+        assert_eq!(ticks_in(&path), ["9"]);
+        let names: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        assert_eq!(names.len(), 2, "nothing moved aside: {names:?}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 
