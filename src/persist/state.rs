@@ -18,8 +18,10 @@ use crate::sim::ChannelStore;
 use crate::world::{BrickStore, Palette};
 
 const MAGIC: &[u8; 4] = b"BWST";
-/// 4: a trailing section with the scripts' health may follow (3 is read).
-const PAYLOAD_VERSION: u32 = 4;
+/// 4: a trailing section with the scripts' health may follow; 5: one with
+/// every script's source hash too (3 and 4 are read). A build that reads
+/// only up to 4 then says the version, not "section 3 … is unknown".
+const PAYLOAD_VERSION: u32 = 5;
 /// The largest state a blob may decompress to (a 64k×64k-tile world's sleep
 /// lists fit many times over).
 const MAX_STATE: usize = 1 << 30;
