@@ -47,13 +47,13 @@ fn bench(c: &mut Criterion) {
     let frame = render(&world.brickmap(), &cam, world.store().palette(), &opts).rgb;
     eprintln!(
         "frame png: fast {} bytes, default level {} bytes",
-        png_bytes(w, h, &frame).len(),
+        png_bytes(w, h, &frame).unwrap().len(),
         png_default(w, h, &frame).len()
     );
     let mut g = c.benchmark_group("frame_png_640x360");
     g.throughput(Throughput::Bytes(frame.len() as u64));
     g.bench_function("png_bytes (fast)", |b| {
-        b.iter(|| png_bytes(w, h, black_box(&frame)))
+        b.iter(|| png_bytes(w, h, black_box(&frame)).unwrap())
     });
     g.bench_function("default level", |b| {
         b.iter(|| png_default(w, h, black_box(&frame)))

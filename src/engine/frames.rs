@@ -122,8 +122,11 @@ pub fn write_frame(dir: &std::path::Path, tick: u64, png: &[u8]) -> std::io::Res
     }
 }
 
-/// Encode an RGB8 image as PNG bytes.
-pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
+/// Encode an RGB8 image as PNG bytes. An error (an image whose bytes do
+/// not fill `w`×`h`) is returned, never a PNG of the header alone (found by
+/// review: the encoder's errors were dropped, and such a file would have
+/// been served and kept as a frame).
+pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Result<Vec<u8>, png::EncodingError> {
     let mut out = Vec::new();
     {
         let mut enc = png::Encoder::new(&mut out, w, h);
@@ -136,16 +139,32 @@ pub fn png_bytes(w: u32, h: u32, rgb: &[u8]) -> Vec<u8> {
         // whose frames trace in a few ms, the default level would be
         // nearly all of one.
         enc.set_compression(png::Compression::Fast);
-        if let Ok(mut wr) = enc.write_header() {
-            let _ = wr.write_image_data(rgb);
-        }
+        let mut wr = enc.write_header()?;
+        wr.write_image_data(rgb)?;
+        wr.finish()?;
     }
-    out
+    Ok(out)
 }
 
 #[cfg(test)]
 mod tests {
     use super::FrameFiles;
+
+    /// Found by review: an image whose bytes do not fill its size made a
+    /// PNG of the header alone, served and kept as a frame. It is an error;
+    /// a whole image still encodes and decodes back.
+    #[test]
+    fn a_short_image_is_an_error_not_a_header_alone() {
+        assert!(super::png_bytes(4, 4, &[0u8; 47]).is_err());
+        let rgb: Vec<u8> = (0..48).collect();
+        let png = super::png_bytes(4, 4, &rgb).unwrap();
+        let mut r = png::Decoder::new(std::io::Cursor::new(png))
+            .read_info()
+            .unwrap();
+        let mut back = vec![0; r.output_buffer_size().unwrap()];
+        r.next_frame(&mut back).unwrap();
+        assert_eq!(back, rgb);
+    }
 
     /// Frames replace by rename, never in place: a frame that already
     /// exists (hard-linked here to a witness) is swapped for a new file, so

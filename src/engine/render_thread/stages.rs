@@ -121,7 +121,14 @@ impl RenderLoop {
             changes.window = changed;
         }
         self.sync_gpu(&changes, &dirty);
-        let png = self.draw(&camera);
+        let png = match self.draw(&camera) {
+            Ok(png) => png,
+            Err(e) => {
+                // A bug, not the world's: said, and the frame skipped.
+                crate::say!("error: a frame of tick {tick} could not be encoded as PNG: {e}");
+                return;
+            }
+        };
         // A view rendered for a camera move is for the live viewers only.
         if keep {
             self.keep_frame(tick, &png);
@@ -240,7 +247,7 @@ impl RenderLoop {
     }
 
     /// The frame as PNG bytes (supersampled as the look asks).
-    fn draw(&mut self, camera: &Camera) -> Vec<u8> {
+    fn draw(&mut self, camera: &Camera) -> Result<Vec<u8>, png::EncodingError> {
         let world = shown(&self.mirror, &self.window);
         let opts = self.settings.look.options();
         let (gpu, stats) = (&mut self.gpu, &self.stats);
