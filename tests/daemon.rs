@@ -44,6 +44,13 @@ fn status_pause_step_and_control_errors() {
         assert!(s.get(k).is_some(), "missing {k} in {s}");
     }
     assert_eq!(s["scripts"][0]["name"], "water");
+    // No frame time before a frame: null, never a 0 ms frame (a frame may
+    // end between the two reads, so only one way round).
+    assert!(
+        s["frame_ms"].is_null()
+            || (s["frame_ms"].as_f64().unwrap() > 0.0 && s["frames"].as_u64().unwrap() > 0),
+        "{s}"
+    );
     status_matches_the_readme(&s);
     // Token file is owner-only.
     #[cfg(unix)]

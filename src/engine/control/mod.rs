@@ -141,8 +141,9 @@ pub struct Status {
     pub active_bricks: usize,
     /// Dirty bricks waiting for the renderer.
     pub dirty_queue: usize,
-    /// Last frame's render time.
-    pub frame_ms: f64,
+    /// Last frame's render time; null before the first frame (it read 0,
+    /// a frame that took no time).
+    pub frame_ms: Option<f64>,
     /// Bricks streamed to the GPU so far.
     pub bricks_streamed: u64,
     /// Frames drawn by the render thread so far.

@@ -178,7 +178,7 @@ impl Engine {
             scripts,
             active_bricks: self.active_bricks,
             dirty_queue: self.dirty_pending.len(),
-            frame_ms: stats.frame_ms(),
+            frame_ms: stats.last_frame_ms(),
             bricks_streamed: stats.bricks_streamed(),
             frames: stats.frames(),
             frames_skipped: stats.skipped(),
