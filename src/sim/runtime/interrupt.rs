@@ -393,8 +393,9 @@ impl SealWalk {
 /// Strings by identity: Luau interns every string (`luaS_newlstr` and
 /// `luaS_buffinish` return the live string of the same bytes), so two
 /// live strings are the same object exactly when their bytes are equal.
-/// The strings the fingerprint saw are pinned in the holder (`pins`), so
-/// none of them can be freed and its address taken by another string
+/// Every object the fingerprint saw by identity (strings, tables,
+/// functions, buffers) is pinned in the holder (`pins`), so none of them
+/// can be freed and its address taken by another
 /// (regression, review: strings were copied byte by byte into the
 /// fingerprint, once per function capturing them, and read byte by byte
 /// after every call: one 8 MB string captured by 200 closures took 1.6 GB
@@ -427,7 +428,8 @@ pub fn unchanged(lua: &Lua, held: &mlua::Table, print: &Fingerprint) -> Option<b
 }
 
 /// Hand every word of the upvalues of the functions in `held` to `emit`
-/// (and, with `pin`, keep every string upvalue alive in `held.pins`);
+/// (and, with `pin`, keep every upvalue seen by identity alive in
+/// `held.pins`);
 /// whether they were read whole.
 fn visit_upvalues(lua: &Lua, held: &mlua::Table, pin: bool, emit: &mut dyn FnMut(u64)) -> bool {
     let mut whole = false;
@@ -468,8 +470,8 @@ fn visit_upvalues(lua: &Lua, held: &mlua::Table, pin: bool, emit: &mut dyn FnMut
 
 /// Hand the direct upvalues of the function at absolute index `idx` to
 /// `emit`: the function's identity, then per upvalue its type and value;
-/// with `pins` (the pin table's index and its count), each string is also
-/// stored there.
+/// with `pins` (the pin table's index and its count), each value seen by
+/// identity is also stored there.
 ///
 /// # Safety
 /// `state` must be a live Luau state with a function at `idx`, the pin
@@ -491,15 +493,6 @@ unsafe fn emit_upvalues(
             match t {
                 ffi::LUA_TNUMBER => emit(ffi::lua_tonumber(state, -1).to_bits()),
                 ffi::LUA_TBOOLEAN => emit(ffi::lua_toboolean(state, -1) as u64),
-                ffi::LUA_TSTRING => {
-                    // The string object (interned: its bytes), pinned.
-                    emit(ffi::lua_topointer(state, -1) as u64);
-                    if let Some((table, count)) = pins.as_deref_mut() {
-                        *count += 1;
-                        ffi::lua_pushvalue(state, -1);
-                        ffi::lua_rawseti(state, *table, *count as _);
-                    }
-                }
                 ffi::LUA_TVECTOR => {
                     let v = ffi::lua_tovector(state, -1);
                     if !v.is_null() {
@@ -508,7 +501,21 @@ unsafe fn emit_upvalues(
                         }
                     }
                 }
-                _ => emit(ffi::lua_topointer(state, -1) as u64),
+                // Strings (interned: identity is their bytes), tables,
+                // functions, buffers and userdata by identity, pinned:
+                // none can be freed and its address taken by another while
+                // the fingerprint stands (regression, review: a table freed
+                // by the collection before a retry after running out of
+                // memory gave its address to a new, unfrozen table, which
+                // then kept state unseen).
+                _ => {
+                    emit(ffi::lua_topointer(state, -1) as u64);
+                    if let Some((table, count)) = pins.as_deref_mut() {
+                        *count += 1;
+                        ffi::lua_pushvalue(state, -1);
+                        ffi::lua_rawseti(state, *table, *count as _);
+                    }
+                }
             }
             ffi::lua_pop(state, 1);
             n += 1;
@@ -580,6 +587,34 @@ mod tests {
             f.call::<()>(()).unwrap();
             lua.gc_collect().unwrap();
             assert_eq!(unchanged(&lua, &held, &print), Some(same), "{body}");
+        }
+    }
+
+    /// Regression (review): a table freed by the collection before a retry
+    /// gave its address to a new, unfrozen table, which kept state unseen.
+    /// Every upvalue held by identity is pinned, so its address stays its
+    /// own; numbers are values and are not.
+    #[test]
+    fn upvalues_held_by_identity_are_pinned() {
+        let lua = Lua::new();
+        let f: mlua::Function = lua
+            .load(
+                "local t, s, n = {}, string.rep('x', 2), tonumber('1')\nlocal function g() return t end\n\
+                 return function() return g(), s, n end",
+            )
+            .eval()
+            .unwrap();
+        let held = seal(&lua, &f).unwrap();
+        fingerprint(&lua, &held).unwrap();
+        let pins: mlua::Table = held.get("pins").unwrap();
+        // The kernel's g, s and n (n is a number), and g's t.
+        let kinds: Vec<String> = pins
+            .sequence_values::<mlua::Value>()
+            .map(|v| v.unwrap().type_name().to_string())
+            .collect();
+        assert_eq!(kinds.len(), 3, "{kinds:?}");
+        for k in ["function", "string", "table"] {
+            assert!(kinds.iter().any(|x| x == k), "{k} not pinned: {kinds:?}");
         }
     }
 
