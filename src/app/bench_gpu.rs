@@ -225,6 +225,12 @@ fn print_table(r: &GpuBenchReport) {
             "warning: a view marked 'no' did not converge within 400 frames: it was timed showing some bricks by their LOD colour (raise --uploads)"
         );
     }
+    if r.spp > 0 {
+        println!(
+            "FLIP: each image's mean error against its view's {}-sample CPU reference ({:.1} s in all, untimed)",
+            r.spp, r.reference_s
+        );
+    }
     if !r.timestamps {
         println!("this device writes no timestamps: only whole frames were timed");
     } else {

@@ -168,9 +168,18 @@ pub fn run(
     let mut reference_s = 0.0;
     for v in views {
         let cam = Camera::new(v.eye, v.target, v.fov, setup.width, setup.height)?;
+        // The reference can take a while on the CPU: the bar says so
+        // (review: it sat at its last count with nothing named).
         let t = Instant::now();
+        let shown = progress.message();
+        if setup.spp > 0 {
+            progress.set_message(format!("{}: {}-sample CPU reference", v.name, setup.spp));
+        }
         let reference = reference(world, &cam, setup);
-        reference_s += t.elapsed().as_secs_f64();
+        progress.set_message(shown);
+        if reference.is_some() {
+            reference_s += t.elapsed().as_secs_f64();
+        }
         let cfg = StreamConfig {
             uploads_per_frame: setup.uploads,
             feedback_capacity: setup.uploads.max(4096),

@@ -229,12 +229,26 @@ impl Timeline {
             });
         }
         if let Ok(f) = crate::files::open_for_reading(&at) {
-            let mut first = String::new();
-            let _ = BufReader::new(f.take(MAX_HEADER_BYTES)).read_line(&mut first);
-            // An empty file (its header refused by a full disk) holds no
-            // history to keep: `create` writes its header (regression,
-            // review: each start moved it aside as a 0-byte file).
-            if !first.is_empty() && first.trim_end() != header {
+            let (mut first, mut second) = (String::new(), String::new());
+            let mut lines = BufReader::new(f.take(MAX_HEADER_BYTES));
+            let _ = lines.read_line(&mut first);
+            let _ = lines.read_line(&mut second);
+            // A file that holds no row, and at most a part of this header
+            // (a full disk cut it, or refused it whole), has no history to
+            // keep: emptied, it gets its header from `create` (regression,
+            // review: each start moved it aside, as a 0- or 1-byte file).
+            let no_rows = second.is_empty() && header.starts_with(first.trim_end());
+            if no_rows && !first.is_empty() {
+                OpenOptions::new()
+                    .write(true)
+                    .open(&at)
+                    .and_then(|f| f.set_len(0))
+                    .map_err(|error| TimelineError::Io {
+                        what: format!("cannot empty {}", path.display()),
+                        error,
+                    })?;
+            }
+            if !no_rows && first.trim_end() != header {
                 let aside = aside_path(&at);
                 std::fs::rename(&at, &aside).map_err(|error| TimelineError::Io {
                     what: format!(
@@ -686,12 +700,15 @@ mod tests {
         t.record(&row(8));
         assert_eq!(ticks_in(&path), ["8"]);
         assert_eq!(ticks_in(&moved), ["1", "2", "3", "4", "5"]);
-        // An empty timeline left by a full disk is opened as a new one, not
-        // moved aside as another world's (review).
-        std::fs::write(&path, "").unwrap();
-        let mut t = Timeline::open(&path, &[]).unwrap();
-        t.record(&row(9));
-        assert_eq!(ticks_in(&path), ["9"]);
+        // An empty timeline left by a full disk, or one with a blank or
+        // cut header and no row, is opened as a new one, not moved aside as
+        // another world's (review).
+        for left in ["", "\n", "tick,steps_p"] {
+            std::fs::write(&path, left).unwrap();
+            let mut t = Timeline::open(&path, &[]).unwrap();
+            t.record(&row(9));
+            assert_eq!(ticks_in(&path), ["9"], "{left:?}");
+        }
         let names: Vec<_> = std::fs::read_dir(&dir)
             .unwrap()
             .flatten()
