@@ -112,6 +112,28 @@ pub const MAX_CHART_POINTS: usize = 2000;
 /// `points` thinned to at most [`MAX_CHART_POINTS`]: consecutive runs of
 /// rows keep their lowest and highest value, in order, so spikes and dips
 /// stay drawn (long-run probe: a day's timeline drew one point per row,
+/// Zeros on a log chart (no dirty bricks, a script that took 0.000 ms) sit
+/// a decade below the chart's least positive value, not at 1e-9, which
+/// stretched its axis nine decades (review); a chart of zeros alone keeps
+/// them at 1e-9.
+fn floor_zeros(list: &mut [crate::bench::chart::Series<'_>]) {
+    const ZERO: f64 = 1e-9;
+    let least = list
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.1))
+        .filter(|&y| y > ZERO)
+        .fold(f64::INFINITY, f64::min);
+    if least.is_finite() {
+        for s in list.iter_mut() {
+            for p in &mut s.points {
+                if p.1 <= ZERO {
+                    p.1 = least / 10.0;
+                }
+            }
+        }
+    }
+}
+
 /// 13 MB of SVG at 11 000 rows and some 300 MB by the timeline's rotation).
 pub fn thin(points: Vec<(f64, f64)>) -> Vec<(f64, f64)> {
     if points.len() <= MAX_CHART_POINTS {
@@ -229,7 +251,7 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
     .collect();
     totals.extend(with_prefix("total:"));
     let mut out = Vec::new();
-    for (file, title, y, list) in [
+    for (file, title, y, mut list) in [
         (
             "rate.svg",
             "Steps per second and frame time",
@@ -270,6 +292,7 @@ pub fn chart(state: &Path) -> Result<Vec<std::path::PathBuf>> {
         if list.is_empty() {
             continue;
         }
+        floor_zeros(&mut list);
         let path = dir.join(file);
         refuse_special(&path)?;
         let svg = crate::bench::chart::xy_svg(&path, title, "tick (log)", y, &list)?;
@@ -521,6 +544,19 @@ mod tests {
             labels.len() >= 3 && labels.iter().all(|&v| v >= 1.0),
             "{labels:?}"
         );
+        // A zero sits a decade below the least value, not at 1e-9 (review).
+        std::fs::write(
+            &csv,
+            "tick,active_bricks,dirty_bricks\n1,100,0\n2,120,5\n3,90,0\n",
+        )
+        .unwrap();
+        chart(&dir).unwrap();
+        let svg = std::fs::read_to_string(dir.join("charts/work.svg")).unwrap();
+        let labels: Vec<f64> = svg
+            .split("</text>")
+            .filter_map(|t| t.rsplit('>').next()?.trim().parse().ok())
+            .collect();
+        assert!(labels.iter().all(|&v| v >= 0.1), "{labels:?}");
         std::fs::write(&csv, "a,b\n1,2\n3,4\n").unwrap();
         assert!(
             chart(&dir)
