@@ -1246,7 +1246,15 @@ fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
         "params = { rain = 0.2 }\n[[scripts]]\nfile = \"snow.lua\"\nevery = 2\nparams = { snowfall = 0.5 }\n",
     );
     edit_config(&cfg, "[frames]\nevery = 5", "[frames]\nevery = 4");
+    let now = || {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_secs_f64()
+    };
+    let began = now();
     run_ok(&cfg, &state, "--until-tick", 40);
+    let ended = now();
     let t = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
     let col = |name: &str| {
         let i = t
@@ -1270,6 +1278,13 @@ fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
         col("active_bricks").iter().all(|&v| v > 0.0),
         "{:?}",
         col("active_bricks")
+    );
+    // Each row says when it was written, in order, within the run.
+    let wall = col("unix_s");
+    assert!(
+        wall.iter().all(|&s| s >= began - 0.01 && s <= ended + 0.01)
+            && wall.windows(2).all(|w| w[0] <= w[1]),
+        "{wall:?} outside {began}..{ended}"
     );
     // No 0 ms frame: a row before the first frame has no frame time.
     assert!(

@@ -55,6 +55,9 @@ impl Engine {
             ground_plus_sediment: total(&self.ws, "ground") + total(&self.ws, "sediment"),
             snow: total(&self.ws, "snow"),
             drained: self.ws.drained,
+            unix_s: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(f64::NAN, |d| (d.as_millis() as f64) / 1e3),
             script_ms: self.script_ms.clone(),
             conserved: (0..self.ws.script_count())
                 .flat_map(|i| self.ws.conserved_totals(i).into_iter().map(|(_, v)| v))

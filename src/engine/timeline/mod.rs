@@ -21,7 +21,7 @@ use aside::{aside_path, prune_aside};
 pub use chart::{Table, chart, read, read_tail};
 
 /// Column names, in order.
-pub const COLUMNS: [&str; 11] = [
+pub const COLUMNS: [&str; 12] = [
     "tick",
     "steps_per_s",
     "active_bricks",
@@ -33,6 +33,7 @@ pub const COLUMNS: [&str; 11] = [
     "ground_plus_sediment",
     "snow",
     "drained",
+    "unix_s",
 ];
 
 /// One row.
@@ -60,6 +61,10 @@ pub struct Row {
     pub snow: f64,
     /// Water drained over the edges so far.
     pub drained: f64,
+    /// When the row was written: seconds since the Unix epoch, to the
+    /// millisecond (a world left running for days is read against the
+    /// wall clock; ticks alone do not say when).
+    pub unix_s: f64,
     /// Each script's time in the step, ms (the `ms:` columns, in order).
     pub script_ms: Vec<f64>,
     /// Each declared conserved total (the `total:` columns, in order).
@@ -82,6 +87,7 @@ impl Row {
             self.ground_plus_sediment,
             self.snow,
             self.drained,
+            self.unix_s,
         ];
         v.extend(&self.script_ms);
         v.extend(&self.conserved);
@@ -334,7 +340,7 @@ impl Timeline {
     /// one before) and a fresh one starts.
     pub fn record(&mut self, r: &Row) {
         let mut line = format!(
-            "{},{:.3},{},{},{:.3},{},{},{:.9},{:.9},{:.9},{:.9}",
+            "{},{:.3},{},{},{:.3},{},{},{:.9},{:.9},{:.9},{:.9},{:.3}",
             r.tick,
             r.steps_per_s,
             r.active_bricks,
@@ -345,7 +351,8 @@ impl Timeline {
             r.water,
             r.ground_plus_sediment,
             r.snow,
-            r.drained
+            r.drained,
+            r.unix_s
         );
         // As many per-script values as the header names (the engine reopens
         // the timeline when a reload changes the columns; this only guards
