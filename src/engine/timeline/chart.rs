@@ -535,14 +535,17 @@ mod tests {
         )
         .unwrap();
         chart(&dir).unwrap();
-        let svg = std::fs::read_to_string(dir.join("charts/rate.svg")).unwrap();
-        let labels: Vec<f64> = svg
-            .split("</text>")
-            .filter_map(|t| t.rsplit('>').next()?.trim().parse().ok())
-            .collect();
+        // The numbers a chart's axes are labelled with.
+        let labels = |file: &str| -> Vec<f64> {
+            let svg = std::fs::read_to_string(dir.join("charts").join(file)).unwrap();
+            svg.split("</text>")
+                .filter_map(|t| t.rsplit('>').next()?.trim().parse().ok())
+                .collect()
+        };
+        let labels_rate = labels("rate.svg");
         assert!(
-            labels.len() >= 3 && labels.iter().all(|&v| v >= 1.0),
-            "{labels:?}"
+            labels_rate.len() >= 3 && labels_rate.iter().all(|&v| v >= 1.0),
+            "{labels_rate:?}"
         );
         // A zero sits a decade below the least value, not at 1e-9 (review).
         std::fs::write(
@@ -551,12 +554,8 @@ mod tests {
         )
         .unwrap();
         chart(&dir).unwrap();
-        let svg = std::fs::read_to_string(dir.join("charts/work.svg")).unwrap();
-        let labels: Vec<f64> = svg
-            .split("</text>")
-            .filter_map(|t| t.rsplit('>').next()?.trim().parse().ok())
-            .collect();
-        assert!(labels.iter().all(|&v| v >= 0.1), "{labels:?}");
+        let labels_work = labels("work.svg");
+        assert!(labels_work.iter().all(|&v| v >= 0.1), "{labels_work:?}");
         std::fs::write(&csv, "a,b\n1,2\n3,4\n").unwrap();
         assert!(
             chart(&dir)

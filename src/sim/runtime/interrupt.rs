@@ -527,6 +527,18 @@ unsafe fn emit_upvalues(
 mod tests {
     use super::*;
 
+    /// A kernel whose chunk runs `prelude` and whose body is `body`, sealed,
+    /// with its fingerprint taken.
+    fn kernel(lua: &Lua, prelude: &str, body: &str) -> (mlua::Function, mlua::Table, Fingerprint) {
+        let f: mlua::Function = lua
+            .load(format!("{prelude}\nreturn function() {body} end"))
+            .eval()
+            .unwrap();
+        let held = seal(lua, &f).unwrap();
+        let print = fingerprint(lua, &held).unwrap();
+        (f, held, print)
+    }
+
     /// Found by review: a seal cut short by an error (here the memory
     /// limit, while the holder of 20 000 functions grows) returned the
     /// kernel as sealed, with the rest of it unfrozen. It is refused.
@@ -575,12 +587,7 @@ mod tests {
                 true,
             ),
         ] {
-            let f: mlua::Function = lua
-                .load(format!("{prelude}\nreturn function() {body} end"))
-                .eval()
-                .unwrap();
-            let held = seal(&lua, &f).unwrap();
-            let print = fingerprint(&lua, &held).unwrap();
+            let (f, held, print) = kernel(&lua, prelude, body);
             // The string seen is pinned: it outlives its upvalue.
             let pins: mlua::Table = held.get("pins").unwrap();
             assert_eq!(pins.raw_len(), 1, "{prelude}");
@@ -641,12 +648,7 @@ mod tests {
                 "s = nil; collectgarbage(); s = string.rep('c', 100)",
             ),
         ] {
-            let f: mlua::Function = lua
-                .load(format!("{prelude}\nreturn function() {body} end"))
-                .eval()
-                .unwrap();
-            let held = seal(&lua, &f).unwrap();
-            let print = fingerprint(&lua, &held).unwrap();
+            let (f, held, print) = kernel(&lua, prelude, body);
             assert_eq!(unchanged(&lua, &held, &print), Some(true), "{prelude}");
             f.call::<()>(()).unwrap();
             assert_eq!(
