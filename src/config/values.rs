@@ -158,21 +158,15 @@ pub fn check_output(flag: &'static str, p: &Path) -> Result<(), ConfigError> {
     if p.is_dir() || p.as_os_str().as_encoded_bytes().ends_with(b"/") {
         return Err(bad(flag, &shown, "is a folder: name a file"));
     }
-    // A dangling link: the file it names is the one to be made.
-    let target;
-    let p = if !p.exists() && crate::files::is_link(p) {
-        target = crate::files::dangling_target(p).map_err(|e| {
-            bad(
-                flag,
-                &shown,
-                format!("is a link that cannot be followed: {e}"),
-            )
-        })?;
-        target.as_path()
-    } else {
-        p
-    };
-    match p.parent() {
+    // Through links: a dangling link's file is the one to be made.
+    let target = crate::files::write_target(p).map_err(|e| {
+        bad(
+            flag,
+            &shown,
+            format!("is a link that cannot be followed: {e}"),
+        )
+    })?;
+    match target.parent() {
         Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => Err(bad(
             flag,
             &shown,
@@ -210,13 +204,8 @@ pub fn same_file(a: &Path, b: &Path) -> bool {
     let resolved = |p: &Path| {
         // A dangling link names the file it will make (regression, review:
         // two outputs linking to one missing file were both written there).
-        let target;
-        let p = if !p.exists() && crate::files::is_link(p) {
-            target = crate::files::dangling_target(p).ok()?;
-            target.as_path()
-        } else {
-            p
-        };
+        let target = crate::files::write_target(p).ok()?;
+        let p = target.as_path();
         let dir = match p.parent() {
             Some(d) if !d.as_os_str().is_empty() => d,
             _ => Path::new("."),

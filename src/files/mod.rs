@@ -33,11 +33,11 @@ use std::path::{Path, PathBuf};
 use thiserror::Error;
 
 mod temps;
+pub(crate) use temps::write_target;
 pub use temps::{
     Staged, fresh_temp_beside, landing, remove_temps_on_interrupt, remove_writing_temps,
     temp_landed, temp_of_gone_process, temp_writing,
 };
-pub(crate) use temps::{dangling_target, is_link};
 
 /// Why a file could not be read.
 #[derive(Debug, Error)]

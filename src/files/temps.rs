@@ -201,10 +201,10 @@ impl Staged {
             }
             // Through a link to the file it names.
             dest = std::fs::canonicalize(&dest)?;
-        } else if is_link(&dest) {
+        } else {
             // A dangling link: the file it names is made, as a shell's `>`
             // makes it, and the link stays (regression: it was replaced).
-            dest = dangling_target(&dest)?;
+            dest = write_target(&dest)?;
         }
         let (tmp, _) = fresh_temp_beside(&dest)?;
         Ok(Staged {
@@ -244,14 +244,16 @@ impl Staged {
     }
 }
 
-pub(crate) fn is_link(p: &Path) -> bool {
+fn is_link(p: &Path) -> bool {
     std::fs::symlink_metadata(p).is_ok_and(|m| m.file_type().is_symlink())
 }
 
-/// The path a chain of links ending nowhere names: the first path in the
-/// chain that is not a link. Refused past 40 links, as the OS refuses.
-pub(crate) fn dangling_target(link: &Path) -> std::io::Result<PathBuf> {
-    let mut p = link.to_path_buf();
+/// The path a write to `p` makes or replaces: `p`, or where its chain of
+/// links ends (the first path in it that is not a link, there or not: a
+/// dangling link's file is made). Refused past 40 links, as the OS
+/// refuses, and for a loop.
+pub(crate) fn write_target(p: &Path) -> std::io::Result<PathBuf> {
+    let mut p = p.to_path_buf();
     for _ in 0..40 {
         if !is_link(&p) {
             return Ok(p);
