@@ -8,7 +8,7 @@ use std::time::Duration;
 use brickworld::persist::bytes::Mixing;
 use brickworld::sim::native::ShallowWater;
 use brickworld::sim::tile::{TILE_CELLS, cell};
-use brickworld::sim::{Kernel, Limits, ScriptSource, SimError, Simulation};
+use brickworld::sim::{Kernel, Limits, Rejection, ScriptSource, SimError, Simulation};
 use glam::IVec2;
 
 mod common;
@@ -463,8 +463,15 @@ fn nan_and_negative_values_are_detected_instead_of_written() {
             .unwrap();
         let before = sim.channels().hash();
         let r = sim.step(0.1);
+        // The kind is typed, so callers (the water3d sweep's `nan`) act on
+        // it without reading the message (regression, code review).
+        let kind = if value == "-1" {
+            Rejection::Negative
+        } else {
+            Rejection::NotFinite
+        };
         assert!(
-            matches!(r.errors.first(), Some(SimError::Unstable { .. })),
+            matches!(r.errors.first(), Some(SimError::Unstable { kind: k, .. }) if *k == kind),
             "{value}: {:?}",
             r.errors
         );

@@ -695,6 +695,17 @@ fn conserved_channels_reject_a_step_that_changes_their_total_and_fills_fill() {
     assert_eq!(filled[1 + 2 * 8 + 2 * 64], 0.0);
     let r = sim.step(&mut store, &reg, 0.05);
     assert_eq!(r.errors.len(), 1, "{:?}", r.errors);
+    assert!(
+        matches!(
+            r.errors[0],
+            brickworld::sim::SimError::Unstable {
+                kind: brickworld::sim::Rejection::Drift,
+                ..
+            }
+        ),
+        "{:?}",
+        r.errors
+    );
     // Named as what it is, not as an instability (regression, modder
     // probe: "step rejected as unstable: conserved channel … drifted").
     let msg = r.errors[0].to_string();

@@ -207,6 +207,17 @@ fn at_line(line: Option<usize>) -> String {
     line.map_or(String::new(), |l| format!(":{l}"))
 }
 
+/// Which check refused a step ([`SimError::Unstable`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rejection {
+    /// A channel value became NaN or infinite.
+    NotFinite,
+    /// A `nonnegative` channel went below 0.
+    Negative,
+    /// A `conserved` channel's total changed in one step.
+    Drift,
+}
+
 /// Errors of the simulation subsystem. Every variant names the script.
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum SimError {
@@ -253,6 +264,9 @@ pub enum SimError {
     Unstable {
         /// Script name.
         script: String,
+        /// Which check refused the step, for callers that act on it
+        /// (the message is for people).
+        kind: Rejection,
         /// What was found.
         msg: String,
     },

@@ -12,7 +12,7 @@ use serde_json::json;
 use super::sims::Case;
 use super::voxels::{STONE, registry, u_tube_run};
 use crate::sim::voxels::VoxelSim;
-use crate::sim::{Limits, ScriptSource};
+use crate::sim::{Limits, Rejection, ScriptSource, SimError};
 use crate::world::{BrickStore, MaterialRegistry, Palette};
 
 const WATER3D: &str = include_str!("../../scripts/water3d.lua");
@@ -228,7 +228,13 @@ fn dam_break(spread: f64, fall: f64, steps: u32, text: &str) -> serde_json::Valu
         let before = (s + 1 == steps).then(|| sim.channels().clone());
         let r = sim.step(&mut store, &reg, 0.05);
         if let Some(e) = r.errors.first() {
-            nan = e.to_string().contains("NaN") || e.to_string().contains("inf");
+            nan = matches!(
+                e,
+                SimError::Unstable {
+                    kind: Rejection::NotFinite,
+                    ..
+                }
+            );
             error = Some(e.to_string());
             break;
         }

@@ -8,11 +8,11 @@ use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
 use super::step::{DEFAULT_BOUND_HEIGHTS, Kernel, Loaded, MIN_BOUND_HEIGHT};
-use crate::sim::SimError;
 use crate::sim::channels::ChannelStore;
 use crate::sim::runtime::vms::{PassChannels, StepStamp};
 use crate::sim::script::StepKey;
 use crate::sim::tile::{HALO_CELLS, TILE, TILE_CELLS, TileCoord, neighbourhood};
+use crate::sim::{Rejection, SimError};
 
 /// A step's dense working buffers, kept between steps.
 #[derive(Default)]
@@ -294,6 +294,11 @@ pub(super) fn run_script(
             let t = ws.tiles[w as usize];
             return Err(SimError::Unstable {
                 script: s.spec.name.clone(),
+                kind: if x.is_finite() {
+                    Rejection::Negative
+                } else {
+                    Rejection::NotFinite
+                },
                 // A negative value in a `nonnegative` channel is named as
                 // such: it may be a plain write, not an unstable step
                 // (regression, fuzzing: "reduce dt" for `c.w[i] = -1`).

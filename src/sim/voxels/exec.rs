@@ -18,7 +18,7 @@ use super::native::{NativeBrick, VoxelNativeKernel};
 use super::step::BOUNDARY;
 use crate::sim::runtime::vms::{PassChannels, StepStamp};
 use crate::sim::script::{MAT, VOXEL_CELLS, VOXEL_HALO};
-use crate::sim::{Limits, ScriptSource, ScriptSpec, SimError};
+use crate::sim::{Limits, Rejection, ScriptSource, ScriptSpec, SimError};
 use crate::world::BrickStore;
 
 /// How a voxel script's kernels run.
@@ -314,6 +314,7 @@ pub(super) fn run_script(
         if (after - was).abs() > tol {
             return Err(SimError::Unstable {
                 script: spec.name.clone(),
+                kind: Rejection::Drift,
                 msg: format!(
                     "conserved channel '{}' drifted from {was} to {after} in one step (tolerance {tol:.3e}): the step's writes do not conserve it",
                     spec.channels[i]
@@ -342,6 +343,7 @@ fn check_channel(
     if let Some((c, x)) = v.iter().enumerate().find(|(_, x)| !x.is_finite()) {
         return Err(SimError::Unstable {
             script: spec.name.clone(),
+            kind: Rejection::NotFinite,
             msg: format!(
                 "channel '{}' = {x} at voxel {} of brick ({}, {}, {}), not a finite number: a kernel wrote it, or the step went unstable",
                 spec.channels[i], c, b.x, b.y, b.z
@@ -353,6 +355,7 @@ fn check_channel(
     {
         return Err(SimError::Unstable {
             script: spec.name.clone(),
+            kind: Rejection::Negative,
             msg: format!(
                 "channel '{}' = {x} at voxel {} of brick ({}, {}, {}), below 0 in a `nonnegative` channel",
                 spec.channels[i], c, b.x, b.y, b.z
