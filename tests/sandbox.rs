@@ -1499,3 +1499,21 @@ fn a_column_script_run_every_n_ticks_sees_n_times_the_step_as_c_dt() {
     assert!((total(1) - 0.2).abs() < 1e-12, "{}", total(1));
     assert!((total(2) - 0.2).abs() < 1e-12, "{}", total(2));
 }
+
+/// A pass's channels are resolved to indices once, at declaration, in the
+/// pass's order and without a voxel script's `mat` (code review: each step
+/// looked names up again, one path falling back to channel 0 and another
+/// skipping a name it did not find).
+#[test]
+fn pass_channels_are_resolved_once_in_order_without_mat() {
+    let text = "return { grid = \"voxels\", channels = { \"a\", \"b\", \"c\" },\n  passes = { { name = \"p\", reads = { \"c\", \"mat\", \"a\" }, writes = { \"b\", \"mat\", \"c\" }, kernel = function() end } } }";
+    let (_, spec) = ScriptVm::load(&src("idx", text), small()).unwrap();
+    let pass = &spec.passes[0];
+    assert_eq!(pass.read_idx, [2, 0]);
+    assert_eq!(pass.write_idx, [1, 2]);
+    // On columns, `mat` is an ordinary channel name.
+    let text = "return { channels = { \"h\", \"mat\" },\n  passes = { { name = \"p\", reads = { \"mat\" }, writes = { \"mat\", \"h\" }, kernel = function() end } } }";
+    let (_, spec) = ScriptVm::load(&src("cols", text), small()).unwrap();
+    assert_eq!(spec.passes[0].read_idx, [1]);
+    assert_eq!(spec.passes[0].write_idx, [1, 0]);
+}

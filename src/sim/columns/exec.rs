@@ -178,16 +178,7 @@ pub(super) fn run_script(
         });
     let mut written = vec![false; n];
     for (pi, pass) in s.spec.passes.iter().enumerate() {
-        let read_idx: Vec<usize> = pass
-            .reads
-            .iter()
-            .map(|r| s.spec.channels.iter().position(|c| c == r).unwrap_or(0))
-            .collect();
-        let write_idx: Vec<usize> = pass
-            .writes
-            .iter()
-            .map(|w| s.spec.channels.iter().position(|c| c == w).unwrap_or(0))
-            .collect();
+        let (read_idx, write_idx) = (pass.read_idx.as_slice(), pass.write_idx.as_slice());
         let data_ref = &*data;
         let nw = write_idx.len();
         outs.resize(ws.active.len() * nw, [0.0; TILE_CELLS]);
@@ -196,11 +187,11 @@ pub(super) fn run_script(
             || (vec![[0.0f64; HALO_CELLS]; n], vec![[0.0f64; TILE_CELLS]; n]),
             |(reads, writes), (k, out)| {
                 failed.run(k, || -> Result<(), SimError> {
-                    for &i in &read_idx {
+                    for &i in read_idx {
                         ws.gather(k, (data_ref, n, i), s.boundary[i], &mut reads[i]);
                     }
                     let w = ws.active[k] as usize;
-                    for &i in &write_idx {
+                    for &i in write_idx {
                         writes[i] = data_ref[w * n + i];
                     }
                     let t = ws.tiles[w];
@@ -209,8 +200,8 @@ pub(super) fn run_script(
                         Kernel::Lua => {
                             let io = PassChannels {
                                 pass: pi,
-                                reads: &read_idx,
-                                writes: &write_idx,
+                                reads: read_idx,
+                                writes: write_idx,
                             };
                             run_lua(s, io, t, stamp, reads, writes)?
                         }
@@ -231,7 +222,7 @@ pub(super) fn run_script(
                 data[w * n + i] = out[j];
             }
         }
-        for &i in &write_idx {
+        for &i in write_idx {
             written[i] = true;
         }
     }

@@ -229,13 +229,8 @@ impl ScriptVm {
                 // Materials are always readable, with the halo.
                 r.set(MAT, mr.clone())?;
             }
-            for name in pass
-                .reads
-                .iter()
-                .filter(|n| spec.grid == Grid::Columns || *n != MAT)
-            {
-                let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
-                r.set(name.as_str(), self.reads[i].clone())?;
+            for &i in &pass.read_idx {
+                r.set(spec.channels[i].as_str(), self.reads[i].clone())?;
             }
             let w = self.lua.create_table()?;
             if let Some((_, mw)) = &self.mat
@@ -243,13 +238,8 @@ impl ScriptVm {
             {
                 w.set(MAT, mw.clone())?;
             }
-            for name in pass
-                .writes
-                .iter()
-                .filter(|n| spec.grid == Grid::Columns || *n != MAT)
-            {
-                let i = spec.channels.iter().position(|c| c == name).unwrap_or(0);
-                w.set(name.as_str(), self.writes[i].clone())?;
+            for &i in &pass.write_idx {
+                w.set(spec.channels[i].as_str(), self.writes[i].clone())?;
             }
             // A name the pass does not list is an error that says so
             // (claims audit: `c.w.mat` in a pass that does not write "mat"

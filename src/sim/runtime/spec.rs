@@ -40,6 +40,12 @@ pub struct PassSpec {
     pub reads: Vec<String>,
     /// Channels written.
     pub writes: Vec<String>,
+    /// `reads` as indices into the script's `channels`, in order, without a
+    /// voxel script's `mat` (not a channel): resolved once, where the names
+    /// are checked, so a step never looks a name up.
+    pub read_idx: Vec<usize>,
+    /// `writes` as indices, likewise.
+    pub write_idx: Vec<usize>,
 }
 
 /// Which grid a script runs over.

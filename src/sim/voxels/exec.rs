@@ -206,16 +206,7 @@ pub(super) fn run_script(
     let mut chans_out = vec![[0.0f32; VOXEL_CELLS]; cands.len() * most_writes.max(1)];
     for (pi, pass) in spec.passes.iter().enumerate() {
         let writes_mat = pass.writes.iter().any(|w| w == MAT);
-        let ridx: Vec<usize> = pass
-            .reads
-            .iter()
-            .filter_map(|r| spec.channels.iter().position(|c| c == r))
-            .collect();
-        let widx: Vec<usize> = pass
-            .writes
-            .iter()
-            .filter_map(|w| spec.channels.iter().position(|c| c == w))
-            .collect();
+        let (ridx, widx) = (pass.read_idx.as_slice(), pass.write_idx.as_slice());
         // A chunk of at least one, cut to the pass's writes (none is
         // possible: a pass may write only materials).
         let width = widx.len().max(1);
@@ -239,7 +230,7 @@ pub(super) fn run_script(
                     failed.run(ci, || -> Result<(), SimError> {
                         let b = cands[ci];
                         gather(&w.neighbours(ci, &w.mats), BOUNDARY, &mut sc.mat);
-                        for &i in &ridx {
+                        for &i in ridx {
                             let nbr = w.neighbours(ci, &w.chans[i]);
                             // Outside the bounds a channel reads 0.
                             let nbr = nbr.map(|n| Some(n.unwrap_or(&ZERO_F32)));
@@ -270,8 +261,8 @@ pub(super) fn run_script(
                             VoxelKernel::Lua => {
                                 let io = PassChannels {
                                     pass: pi,
-                                    reads: &ridx,
-                                    writes: &widx,
+                                    reads: ridx,
+                                    writes: widx,
                                 };
                                 run_lua(job, io, sc, &mut out, b, stamp)
                             }

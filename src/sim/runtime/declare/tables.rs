@@ -18,9 +18,9 @@ pub(super) fn known(
     channels: &[String],
     name: &str,
     what: &str,
-) -> Result<(), SimError> {
-    if channels.iter().any(|c| c == name) {
-        Ok(())
+) -> Result<usize, SimError> {
+    if let Some(i) = channels.iter().position(|c| c == name) {
+        Ok(i)
     } else {
         Err(declaration(
             src,
@@ -324,12 +324,16 @@ pub(super) fn parse_passes(
         let reads = strings(src, &p, "reads")?;
         let writes = strings(src, &p, "writes")?;
         let is_mat = |c: &str| grid == Grid::Voxels && c == MAT;
-        for r in reads.iter().filter(|r| !is_mat(r)) {
-            known(src, channels, r, &format!("pass '{name}' reads"))?;
-        }
-        for w in writes.iter().filter(|w| !is_mat(w)) {
-            known(src, channels, w, &format!("pass '{name}' writes"))?;
-        }
+        let read_idx = reads
+            .iter()
+            .filter(|r| !is_mat(r))
+            .map(|r| known(src, channels, r, &format!("pass '{name}' reads")))
+            .collect::<Result<Vec<_>, _>>()?;
+        let write_idx = writes
+            .iter()
+            .filter(|w| !is_mat(w))
+            .map(|w| known(src, channels, w, &format!("pass '{name}' writes")))
+            .collect::<Result<Vec<_>, _>>()?;
         if writes.is_empty() {
             return Err(declaration(
                 src,
@@ -341,6 +345,8 @@ pub(super) fn parse_passes(
             name,
             reads,
             writes,
+            read_idx,
+            write_idx,
         });
     }
     if passes.is_empty() {
