@@ -295,6 +295,36 @@ fn bench_stream_writes_the_documented_json_keys() {
         assert!(v["frame_ms"].get(k).is_some(), "missing frame_ms.{k}");
     }
     assert!(v["edit_to_visible_frames"].as_u64().unwrap() <= 2);
+    // An edit that one upload a frame cannot show within 20 frames is
+    // reported as not shown (null), not as "visible after 0 frames"
+    // (regression, world review).
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args([
+            "bench",
+            "stream",
+            "--size",
+            "64x64x64",
+            "--width",
+            "128",
+            "--height",
+            "96",
+            "--pool",
+            "1",
+            "--uploads",
+            "1",
+            "--view",
+            "0",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let v: serde_json::Value = read_json(&json);
+    assert!(v["edit_to_visible_frames"].is_null(), "{v}");
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.contains("edit NOT visible within 20 frames"), "{said}");
+    let _ = std::fs::remove_file(&json);
 }
 
 /// Regression: an oversized pool was allocated on the CPU before the device
@@ -790,4 +820,37 @@ fn bench_gpu_refuses_a_frame_the_device_cannot_hold_before_building() {
         .unwrap();
     common::cli::assert_clear_failure(&out, "bench gpu 8192x8192", "GPU pixel buffer");
     assert!(!json.exists());
+}
+
+/// Regression (world review): a solid brick whose surface is all one
+/// material but whose inside holds another became uniform once its hidden
+/// inside was recoloured, and was then skipped: its pointer stayed
+/// requested for ever, drawn in its average colour (inside included), and
+/// `bench stream` on such a model never converged. It is uploaded whole.
+#[test]
+fn a_solid_brick_with_a_hidden_inside_is_streamed() {
+    let Some(ctx) = context() else { return };
+    let mut store = brickworld::world::BrickStore::new(brickworld::world::Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::splat(32), 40);
+    for b in 0..64 {
+        let c = IVec3::new(b % 4, (b / 4) % 4, b / 16) * 8 + IVec3::splat(3);
+        store.set_voxel(c, 200);
+    }
+    let w = SceneWorld::new(store, IVec3::ZERO, IVec3::splat(32)).unwrap();
+    let cam = Camera::new(
+        DVec3::new(80.0, 70.0, 90.0),
+        DVec3::splat(16.0),
+        0.8,
+        128,
+        96,
+    )
+    .unwrap();
+    let mut gpu = streaming(&ctx, &w);
+    let (_, last) = converge(&ctx, &mut gpu, &w, &cam);
+    let mut full =
+        GpuBrickmap::preloaded(&ctx, w.grid(), w.store().pool(), w.store().palette()).unwrap();
+    let (reference, _) = draw(&ctx, &mut full, &w, &cam);
+    assert!(last.hits.iter().filter(|h| h.is_some()).count() > 1000);
+    assert_eq!(last.hits, reference.hits);
+    assert_eq!(last.rgb, reference.rgb, "drawn as loaded, not averaged");
 }

@@ -29,6 +29,10 @@ pub struct FrameMs {
     pub editing: f64,
 }
 
+/// Frames an edit is given to become visible before the report says it
+/// did not (the documented latency is 2).
+pub const EDIT_FRAMES: u32 = 20;
+
 /// The report.
 #[derive(Debug, Clone, Serialize)]
 pub struct StreamReport {
@@ -51,8 +55,10 @@ pub struct StreamReport {
     pub gpu_bytes: u64,
     /// The world's full brick data (grid, occupancy, every brick).
     pub world_brick_bytes: u64,
-    /// Frames from an edit arriving to every edited-brick pixel being exact.
-    pub edit_to_visible_frames: u32,
+    /// Frames from an edit arriving to every edited-brick pixel being exact;
+    /// `None` (JSON `null`) when that did not happen within
+    /// [`EDIT_FRAMES`] frames (a tiny `--uploads` or `--pool` can do it).
+    pub edit_to_visible_frames: Option<u32>,
     /// Converged GPU primary rays per second, millions (shading included).
     pub gpu_mrays_per_s: f64,
     /// CPU brickmap tracer on the same view, millions of rays per second.
@@ -193,8 +199,8 @@ pub fn run(
     gpu.apply_edits(&ctx, world.grid(), world.store().pool(), &changed);
     let edited: rustc_hash::FxHashSet<glam::IVec3> = changed.iter().copied().collect();
     let cpu = render(&world.brickmap(), &cam, world.store().palette(), &opts);
-    let mut edit_to_visible = 0;
-    for n in 1..=20u32 {
+    let mut edit_to_visible = None;
+    for n in 1..=EDIT_FRAMES {
         let (f, _) = gpu.render(&ctx, &cam, &opts, world.grid(), world.store().pool())?;
         progress.inc(1);
         let wrong = (0..f.hits.len())
@@ -202,7 +208,7 @@ pub fn run(
             .filter(|&i| f.lod[i] || f.hits[i].map(|x| x.0) != cpu.hits[i].map(|h| h.voxel))
             .count();
         if wrong == 0 {
-            edit_to_visible = n;
+            edit_to_visible = Some(n);
             break;
         }
     }

@@ -194,15 +194,23 @@ impl GpuBrickmap {
             };
             brick.to_dense(&mut dense);
             let lod = unloaded_bits(&brick);
-            if let BrickContent::Mixed(full) =
-                BrickContent::from_dense(&dense, &Palette::grey_ramp())
-            {
-                stats.unculled_material_bytes += material_bytes(&full);
-            }
-            cull_hidden_materials(&mut dense);
-            let BrickContent::Mixed(b) = BrickContent::from_dense(&dense, &Palette::grey_ramp())
+            let BrickContent::Mixed(full) = BrickContent::from_dense(&dense, &Palette::grey_ramp())
             else {
+                // A pool slot holds a mixed brick; were it not, its pointer
+                // is re-encoded rather than left requested.
+                let np = Self::unloaded_pointer(wp, pool);
+                self.set_pointer(ctx, i, np);
                 continue;
+            };
+            stats.unculled_material_bytes += material_bytes(&full);
+            cull_hidden_materials(&mut dense);
+            // Hiding a solid brick's inside can leave one material (a full
+            // brick whose surface is all one material): it is uploaded whole
+            // then. Skipping it left its pointer requested for ever, drawn
+            // in its average colour (regression, world review).
+            let b = match BrickContent::from_dense(&dense, &Palette::grey_ramp()) {
+                BrickContent::Mixed(b) => b,
+                _ => full,
             };
             // Hidden voxels were recoloured; from afar it must still look
             // like the world's brick.
