@@ -456,3 +456,23 @@ fn a_fixed_region_drains_over_its_edges_and_a_following_one_does_not() {
     run_ok(&cfg, &state, "--ticks", 120);
     assert_eq!(drained(&state), 0.0, "the following region drained water");
 }
+
+/// Regression (world review): a fixed `[sim] region` reaching far past a
+/// bounded streamed world was refused for the size of its unclipped box
+/// ("a 1000064x64x1000064 world needs about 58.7 TiB"), though only the
+/// part inside the world is built; the memory check divided by the same
+/// unclipped count. The region is clipped to the world first.
+#[test]
+fn a_fixed_region_past_a_bounded_world_is_clipped_to_it() {
+    let (cfg, state) = streamed("clip", "size = [2048, 96, 2048]", FLY);
+    common::daemon::edit_config(
+        &cfg,
+        "region = { min = [512, 512], max = [640, 640] }",
+        "region = { min = [-1000000, -1000000], max = [128, 64] }",
+    );
+    let (_, err) = run_ok(&cfg, &state, "--until-tick", 2);
+    assert!(
+        err.contains("streaming: simulated region of 2 chunk columns"),
+        "{err}"
+    );
+}

@@ -93,16 +93,25 @@ impl RegionRule {
     /// The rule of `cfg`'s (validated) simulated region.
     pub fn of(cfg: &WorldConfig, gen_: &ChunkGen) -> Result<Self> {
         match cfg.sim_region {
-            SimRegion::Box { min, max } => Ok(RegionRule::Fixed(
-                IVec2::new(
+            SimRegion::Box { min, max } => {
+                let lo = IVec2::new(
                     min.x.div_euclid(CHUNK_VOXELS),
                     min.y.div_euclid(CHUNK_VOXELS),
-                ),
-                IVec2::new(
+                );
+                let hi = IVec2::new(
                     (max.x + CHUNK_VOXELS - 1).div_euclid(CHUNK_VOXELS),
                     (max.y + CHUNK_VOXELS - 1).div_euclid(CHUNK_VOXELS),
-                ),
-            )),
+                );
+                // Clipped to a bounded world's columns, so that its size and
+                // memory are those of what is built (regression, world
+                // review: a region reaching far past the world was refused
+                // for the terabytes of its unclipped box). Validation holds
+                // it to overlap the world.
+                Ok(match gen_.columns() {
+                    Some((a, b)) => RegionRule::Fixed(lo.max(a), hi.min(b)),
+                    None => RegionRule::Fixed(lo, hi),
+                })
+            }
             SimRegion::AroundCamera { radius } => Ok(RegionRule::Follow {
                 half: (radius / CHUNK_VOXELS as f64).ceil() as i32,
                 world: gen_.columns(),
