@@ -26,7 +26,8 @@ pub enum Command {
     /// Run the engine: simulation, rendering, commits to the world store and the control server.
     Run(RunArgs),
     /// Write the default world and its scripts into DIR for editing
-    /// (DIR/world.toml, DIR/scripts/*.lua); DIR must be new or empty (nothing is overwritten).
+    /// (DIR/world.toml, DIR/scripts/*.lua); DIR may hold other files, but if one of these
+    /// exists nothing is written (nothing is overwritten).
     Init {
         /// Directory to create or fill
         dir: PathBuf,

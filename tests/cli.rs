@@ -1392,6 +1392,38 @@ fn a_materials_file_that_is_not_a_file_is_refused_and_its_errors_say_it_once() {
 /// Regression (hostile probe): `init DIR` wrote through a dangling link at
 /// DIR/world.toml (creating a file outside DIR), and a dangling
 /// DIR/scripts link gave a misleading "File exists".
+/// `init` into a folder holding other files writes its own beside them and
+/// leaves them be; if one of its own is there, it writes nothing at all
+/// (claims audit: the docs said DIR "must be new or empty", which it never
+/// required).
+#[test]
+fn init_fills_a_folder_with_other_files_but_never_overwrites() {
+    let dir = tmp("init-others");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("notes.txt"), "mine").unwrap();
+    let out = bin()
+        .args(["init", dir.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    assert_eq!(
+        std::fs::read_to_string(dir.join("notes.txt")).unwrap(),
+        "mine"
+    );
+    assert!(dir.join("world.toml").is_file() && dir.join("scripts/water.lua").is_file());
+    // A second init finds its own files there and changes nothing.
+    std::fs::write(dir.join("scripts/water.lua"), "-- edited").unwrap();
+    std::fs::remove_file(dir.join("world.toml")).unwrap();
+    expect_failure(&["init", dir.to_str().unwrap()], "already exists");
+    assert_eq!(
+        std::fs::read_to_string(dir.join("scripts/water.lua")).unwrap(),
+        "-- edited"
+    );
+    assert!(!dir.join("world.toml").exists(), "written though refused");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[cfg(unix)]
 #[test]
 fn init_never_writes_through_a_link() {

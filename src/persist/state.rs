@@ -125,6 +125,39 @@ mod tests {
         encode(9, &Palette::grey_ramp(), bounds, &[], extras)
     }
 
+    /// A state of a version this build does not read (a newer build's, or a
+    /// forged one) is refused naming its version and the range read, and
+    /// the versions in that range are read (claims audit: nothing held the
+    /// check to its range).
+    #[test]
+    fn a_state_of_an_unknown_version_is_refused_naming_it() {
+        let good = blob(&extras());
+        for v in [0u32, 2, PAYLOAD_VERSION + 1, u32::MAX] {
+            let mut b = good.clone();
+            b[4..8].copy_from_slice(&v.to_le_bytes());
+            let err = decode(&b).expect_err("refused");
+            assert_eq!(
+                err,
+                format!(
+                    "the simulation state has version {v}; this build reads 3 to {PAYLOAD_VERSION}"
+                )
+            );
+        }
+        assert_eq!(decode(&good).map(|s| s.tick), Ok(9));
+        // Earlier versions pass the version check (version 3 then refuses
+        // this blob's later sections as such).
+        for v in 3..PAYLOAD_VERSION {
+            let mut b = good.clone();
+            b[4..8].copy_from_slice(&v.to_le_bytes());
+            let said = decode(&b).map(|s| s.tick);
+            assert!(
+                said.as_ref().is_ok_and(|t| *t == 9)
+                    || said.as_ref().is_err_and(|e| e.contains("section")),
+                "version {v}: {said:?}"
+            );
+        }
+    }
+
     /// Regression (hostile probe): a forged tick near `u64::MAX` wrapped.
     #[test]
     fn a_forged_tick_past_2_pow_53_is_refused() {
