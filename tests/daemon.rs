@@ -537,7 +537,13 @@ fn hot_reload_of_a_changed_and_a_broken_script() {
     let out = stop(child);
     assert!(out.status.success());
     let log = String::from_utf8_lossy(&out.stderr);
-    assert!(log.contains("reloaded"), "{log}");
+    // Each reload is said with its tick: the one `/status` dated `at` too
+    // (claims audit: only the word "reloaded" was checked).
+    assert!(
+        log.lines()
+            .any(|l| l.contains(&format!("tick {at}: reloaded ")) && l.ends_with("water.lua")),
+        "{log}"
+    );
     common::cli::assert_no_panic(&log, "the engine");
     assert!(!log.contains("other.lua"), "{log}");
 }

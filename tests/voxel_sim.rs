@@ -586,6 +586,92 @@ fn c_w_mat_is_there_only_for_a_pass_that_lists_mat() {
     assert!(!store.take_modified().is_empty(), "nothing published");
 }
 
+/// Claim (lua-api.md): a misspelt parameter, material or context field is
+/// an error saying what is known "on both grids" (claims audit: only
+/// columns tested `c.p`, `c.m` and `c.dT`, and never the list of declared
+/// parameters).
+#[test]
+fn misspelt_names_of_c_are_errors_on_the_voxel_grid_too() {
+    let reg = shipped_registry();
+    let stone = reg.id("stone").unwrap();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(15, 3, 15), stone);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::splat(16), 1);
+    for (body, said) in [
+        (
+            "local x = c.p.rte",
+            r#"c.p.rte: script 'fire' declares no parameter "rte" (its parameters: rate)"#,
+        ),
+        (
+            "local x = c.m.grasss",
+            r#"c.m.grasss: script 'fire' does not list "grasss" in its materials (listed: air, grass)"#,
+        ),
+        (
+            "local x = c.dT",
+            r#"c.dT: the context has no field "dT" (it has dt, tick, random, p, m, r, w)"#,
+        ),
+    ] {
+        let fire = one_pass(
+            "fire",
+            r#"materials = { "grass" }, params = { rate = { default = 1, min = 0, max = 2 } },"#,
+            "",
+            r#""mat""#,
+            body,
+        );
+        let e = sim
+            .add_script(fire, Limits::default(), &reg)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(said), "{body}: {e}");
+    }
+}
+
+/// Claim (lua-api.md, "Which bricks run"): a brick of air alone does not
+/// start awake, unless the script declares `sky = true`; once a change next
+/// to it wakes it, it runs like any other (claims audit: untested, and the
+/// docs said such a brick "is never a seed", which woken ones are). One
+/// voxel in the middle of brick 0 flips between stone and dirt every step,
+/// 3 voxels from the faces, farther than a 1-pass script reaches: the first
+/// step runs brick 0 alone, the next ones its woken air neighbours too;
+/// with `sky = true` the whole top layer (here every brick) runs from the
+/// start.
+#[test]
+fn a_brick_of_air_alone_starts_asleep_without_sky() {
+    let reg = shipped_registry();
+    let stone = reg.id("stone").unwrap();
+    let mut counts = Vec::new();
+    for decl in ["", "sky = true,"] {
+        let mut store = BrickStore::new(Palette::grey_ramp());
+        store.set_voxel(IVec3::new(3, 3, 3), stone);
+        store.take_modified();
+        // A world of 2 × 1 × 2 bricks: all of them are the top layer.
+        let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(16, 8, 16), 1);
+        let flip = one_pass(
+            "flip",
+            &format!(r#"materials = {{ "stone", "dirt" }}, {decl}"#),
+            "",
+            r#""mat""#,
+            r#"if bx == 0 and by == 0 and bz == 0 then
+                buffer.writeu8(c.w.mat, 3 + 3 * 8 + 3 * 64, c.tick % 2 == 0 and c.m.dirt or c.m.stone)
+              end"#,
+        );
+        sim.add_script(flip, Limits::default(), &reg).unwrap();
+        let ran: Vec<usize> = (0..4)
+            .map(|_| {
+                let r = sim.step(&mut store, &reg, 0.05);
+                assert!(r.errors.is_empty(), "{:?}", r.errors);
+                assert_eq!(r.changed.len(), 1, "{r:?}");
+                r.candidates
+            })
+            .collect();
+        counts.push(ran);
+    }
+    eprintln!("{counts:?}");
+    assert_eq!(counts[0], [1, 4, 4, 4], "without sky");
+    assert_eq!(counts[1], [4, 4, 4, 4], "with sky");
+}
+
 /// Claim (README, voxel scripts): `keep_awake = { … }` keeps bricks holding
 /// those materials from sleeping (claims audit: the grass test's bricks
 /// stayed awake for changing anyway). A script that changes nothing runs
