@@ -7,7 +7,7 @@
 //! changed and of a broken script; a port already in use; a bad world config.
 
 use std::path::Path;
-use std::process::Stdio;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use brickworld::engine::ctl::request;
@@ -1311,4 +1311,45 @@ fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
     let t = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
     let i = t.columns.iter().position(|c| c == "active_bricks").unwrap();
     assert!(t.rows.iter().all(|r| r[i] > 0.0), "{:?}", t.rows);
+}
+
+/// Claim (README, `/status`): a render thread that dies (a bug) is said once,
+/// shown in `/status` `render_error`, and the simulation and its commits go
+/// on (claims audit: only the unit test of `take_death` held any of it;
+/// dropping the daemon's `render_error = Some(..)` passed every test). The
+/// test hook `BRICKWORLD_TEST_RENDER_PANIC_AT_TICK` kills the thread.
+#[test]
+fn a_dead_render_thread_is_reported_and_the_simulation_goes_on() {
+    let (cfg, state, addr) = setup("render-death");
+    let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_RENDER_PANIC_AT_TICK", "10"));
+    wait_ready(&addr);
+    let s = wait_status(&addr, "render_error", |s| s["render_error"].is_string());
+    let said = s["render_error"].as_str().unwrap().to_string();
+    assert!(
+        said.contains("the render thread stopped (test hook: the render thread panics at tick")
+            && said.contains("the simulation and its commits go on"),
+        "{said}"
+    );
+    let tick = s["tick"].as_u64().unwrap();
+    let frames = s["frames"].as_u64();
+    let later = wait_status(&addr, "ticks after the death", |s| {
+        s["tick"].as_u64().unwrap() >= tick + 50
+    });
+    assert_eq!(later["render_error"].as_str(), Some(said.as_str()));
+    assert_eq!(
+        later["frames"].as_u64(),
+        frames,
+        "frames drawn after it died"
+    );
+    // A stop commits as usual; the death was said once.
+    let _ = Command::new("kill")
+        .arg("-TERM")
+        .arg(d.id().to_string())
+        .status();
+    let child = d.0.take().unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.matches("the render thread stopped").count(), 1, "{err}");
+    assert!(stored_tick(&cfg, &state).unwrap() >= tick + 50);
 }

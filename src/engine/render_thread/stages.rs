@@ -95,7 +95,19 @@ impl RenderLoop {
     }
 
     pub(super) fn run(mut self, jobs: crossbeam_channel::Receiver<FrameJob>) {
+        // `BRICKWORLD_TEST_RENDER_PANIC_AT_TICK`: a test hook that makes
+        // this thread panic at its first frame of that tick or later, as a
+        // bug would, so that the daemon's tests hold what the engine then
+        // does (`/status` `render_error`, the simulation going on).
+        let panic_at: Option<u64> = std::env::var("BRICKWORLD_TEST_RENDER_PANIC_AT_TICK")
+            .ok()
+            .and_then(|v| v.parse().ok());
         for job in jobs.iter() {
+            if let Some(at) = panic_at
+                && job.tick >= at
+            {
+                panic!("test hook: the render thread panics at tick {}", job.tick);
+            }
             self.frame(job);
         }
     }
