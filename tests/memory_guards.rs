@@ -761,3 +761,76 @@ fn a_region_too_large_for_its_budget_is_refused_before_it_is_built_whole() {
     assert_eq!(columns, 96 * 96, "{err}");
     assert!(built < columns, "refused after {built} of {columns}: {err}");
 }
+
+/// A column script of `n` channels named `prefix…`, one pass writing all of
+/// them on every tile.
+fn wide_script(prefix: &str, n: usize) -> String {
+    let names: Vec<String> = (0..n).map(|i| format!("\"{prefix}{i}\"")).collect();
+    let list = names.join(", ");
+    format!(
+        "local names = {{ {list} }}\nreturn {{\n  channels = {{ {list} }},\n  passes = {{ {{ name = \"fill\", reads = {{}}, writes = {{ {list} }},\n    kernel = function(c)\n      for i = 1, #names do buffer.writef64(c.w[names[i]], 0, 1.0) end\n    end }} }},\n}}\n"
+    )
+}
+
+/// Regression (memory probe): a hot reload passed no memory check. A
+/// running engine under `ulimit -v 1100000`, whose script went from 1 to
+/// 250 channels on a 512² world (about 1.8 GiB more), aborted at its next
+/// step ("memory allocation of 557568000 bytes failed"). The reload is
+/// refused naming the need, the running version kept, the engine going on.
+#[test]
+fn a_reload_whose_channels_do_not_fit_keeps_the_running_version() {
+    use common::daemon::{free_port, status, wait_ready, wait_status};
+    let dir = tmp("mem", "reload");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("scripts")).unwrap();
+    let script = dir.join("scripts/many.lua");
+    std::fs::write(&script, wide_script("a", 1)).unwrap();
+    let addr = format!("127.0.0.1:{}", free_port());
+    let cfg = dir.join("w.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[world]\nsource = \"terrain\"\nsize = [512, 64, 512]\nseed = 3\n[sim]\ndt = 0.05\nscripts_dir = \"scripts\"\n\
+             [[scripts]]\nfile = \"many.lua\"\n[render]\nwidth = 32\nheight = 24\ntracer = \"cpu\"\n\
+             [frames]\nevery = 50\n[checkpoint]\nevery = 100000\n[control]\naddr = \"{addr}\"\n"
+        ),
+    )
+    .unwrap();
+    let child = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 1100000 && exec '{}' run '{}' --state '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            cfg.display(),
+            dir.join("state").display()
+        ))
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let d = common::daemon::Daemon(Some(child));
+    wait_ready(&addr);
+    let tmp_file = dir.join("scripts/.many.tmp");
+    std::fs::write(&tmp_file, wide_script("b", 250)).unwrap();
+    std::fs::rename(&tmp_file, &script).unwrap();
+    let s = wait_status(&addr, "the refused reload", |s| {
+        s["scripts"][0]["error"].is_string()
+    });
+    let e = s["scripts"][0]["error"].as_str().unwrap();
+    assert!(
+        e.contains("many.lua: this version's channels (")
+            && e.contains("so the running version is kept"),
+        "{e}"
+    );
+    let tick = s["tick"].as_u64().unwrap();
+    wait_status(&addr, "ticks after the refusal", |s| {
+        s["tick"].as_u64().unwrap() > tick + 20
+    });
+    assert!(status(&addr)["scripts"][0]["state"] != "failing");
+    let out = common::daemon::stop(d);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

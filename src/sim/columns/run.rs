@@ -181,20 +181,16 @@ impl WorldSim {
     }
 
     /// Bytes the column simulation needs at most once its scripts are
-    /// loaded: every channel dense on every tile of the simulated area (512
-    /// bytes a channel and tile), half as much again for a step's gathered
-    /// inputs and outputs (one script's channels at a time), and the
-    /// tiles' own records. Measured with water, erosion and snow (16
-    /// channels) on 1024² worlds: 8.6 to 9 KiB a tile at peak dry, 11 with
-    /// rain and snowfall on every tile; this says 14 (it said 18, and
-    /// refused worlds that fitted in half the memory there was; review).
+    /// loaded: every channel dense on every tile of the simulated area, and
+    /// a step's outputs for its widest pass
+    /// ([`Simulation::channel_bytes`]). It counted half of every channel
+    /// again instead of the widest pass, and one script writing 250
+    /// channels took twice what it said (memory probe).
     pub fn column_bytes(&self) -> u64 {
-        let (a, b) = self.sim.tile_bounds();
-        let d = (b - a).max(glam::IVec2::ZERO);
-        let tiles = d.x as u64 * d.y as u64;
-        let channels = self.sim.channels().channels().count() as u64;
-        let cell_bytes = crate::sim::tile::TILE_CELLS as u64 * 8;
-        tiles.saturating_mul(cell_bytes * (3 * channels / 2 + 4))
+        self.sim.channel_bytes(
+            self.sim.channels().channels().count(),
+            self.sim.most_writes(),
+        )
     }
 
     /// Refuse a column simulation whose [`column_bytes`](Self::column_bytes)

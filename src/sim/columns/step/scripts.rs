@@ -8,6 +8,7 @@ use crate::sim::SimError;
 use crate::sim::channels::ChannelId;
 use crate::sim::script::{Limits, ScriptSource, ScriptSpec, ScriptVm, StepKey};
 use crate::sim::slot::ScriptSlot;
+use crate::sim::tile::TileCoord;
 
 impl Simulation {
     /// Load a script (validated and smoke-tested on a sample tile). Returns
@@ -18,7 +19,7 @@ impl Simulation {
         kernel: Kernel,
         limits: Limits,
     ) -> Result<usize, SimError> {
-        let loaded = self.prepare(src, kernel, limits)?;
+        let loaded = self.prepare(src, kernel, limits, false)?;
         self.scripts.push(loaded);
         Ok(self.scripts.len() - 1)
     }
@@ -36,7 +37,7 @@ impl Simulation {
             self.scripts[index].kernel.clone(),
             self.scripts[index].limits,
         );
-        let mut loaded = self.prepare(src, kernel, limits)?;
+        let mut loaded = self.prepare(src, kernel, limits, true)?;
         let warnings = loaded.slot.carry_over(&self.scripts[index].slot);
         self.scripts[index] = loaded;
         self.wake_all();
@@ -48,6 +49,7 @@ impl Simulation {
         src: ScriptSource,
         kernel: Kernel,
         limits: Limits,
+        reload: bool,
     ) -> Result<Loaded, SimError> {
         let (mut vm, spec) = ScriptVm::load(&src, limits)?;
         if spec.grid != crate::sim::script::Grid::Columns {
@@ -91,6 +93,9 @@ impl Simulation {
                 Ok(())
             })?;
         }
+        if reload {
+            self.reload_fits(&spec)?;
+        }
         // Registered only once the script has passed every check: a
         // rejected reload must leave the world's registry as it was
         // (regression: its channels stayed and filled the bound).
@@ -106,6 +111,76 @@ impl Simulation {
             nonneg,
             kernel,
         })
+    }
+
+    /// The most channels one pass of any script writes (a step's gathered
+    /// outputs are as many per tile).
+    pub fn most_writes(&self) -> usize {
+        self.scripts
+            .iter()
+            .flat_map(|s| &s.spec.passes)
+            .map(|p| p.write_idx.len())
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// About the bytes `channels` channels take over this simulation's
+    /// tiles when one pass writes `writes` of them: each stored channel
+    /// (512 bytes a tile), a step's outputs and rollback copy for the
+    /// widest pass (2.5 × its channels, measured: one script writing 250
+    /// channels on 512² columns held 1.72 GB, this says 1.79), and the
+    /// tiles' own records (4 channels' worth; water, erosion and snow, 16
+    /// channels, measured 8.6 to 11 KiB a tile, this says 15).
+    pub fn channel_bytes(&self, channels: usize, writes: usize) -> u64 {
+        let d = (self.tiles_max - self.tiles_min).max(TileCoord::ZERO);
+        let tiles = d.x as u64 * d.y as u64;
+        let cell_bytes = crate::sim::tile::TILE_CELLS as u64 * 8;
+        let units = channels as u64 + (5 * writes as u64).div_ceil(2) + 4;
+        tiles.saturating_mul(cell_bytes * units)
+    }
+
+    /// Refuse a reload whose new channels (or wider pass) would need more
+    /// memory than the process may still allocate: the running version is
+    /// kept (regression, memory probe: a reload from 1 to 250 channels on a
+    /// 512² world passed no check, and under `ulimit -v` the running
+    /// engine aborted at its next step).
+    fn reload_fits(&self, spec: &ScriptSpec) -> Result<(), SimError> {
+        use crate::scene::budget::{headroom_bytes, human};
+        let now = self.channels.channels().count();
+        let new = spec
+            .channels
+            .iter()
+            .filter(|c| self.channels.find(c).is_none())
+            .count();
+        let writes = spec
+            .passes
+            .iter()
+            .map(|p| p.write_idx.len())
+            .max()
+            .unwrap_or(0);
+        let most = self.most_writes();
+        let (before, after) = (
+            self.channel_bytes(now, most),
+            self.channel_bytes(now + new, most.max(writes)),
+        );
+        let (more, room) = (after.saturating_sub(before), headroom_bytes());
+        if more > room {
+            let d = self.tiles_max - self.tiles_min;
+            return Err(SimError::Declaration {
+                script: spec.name.clone(),
+                line: None,
+                msg: format!(
+                    "this version's channels ({} in all, {} written by one pass) need about {} more over {} by {} tiles; {} is available, so the running version is kept",
+                    now + new,
+                    most.max(writes),
+                    human(more),
+                    d.x,
+                    d.y,
+                    human(room)
+                ),
+            });
+        }
+        Ok(())
     }
 
     /// Script `i`'s source, limits, rate and health, for a rebuild.
