@@ -21,7 +21,8 @@
 //! malformed requests or refused values 400, a
 //! wrong token 401, a body over [`MAX_BODY`] 413 (decided from the declared
 //! length, before the body is read), a body too slow 408, and a full command
-//! queue 503.
+//! queue 503, as is a timeline answer while others of over
+//! [`super::inflight::MAX_IN_FLIGHT`] bytes are still being sent.
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -288,7 +289,23 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
                 .unwrap_or_else(|p| p.into_inner())
                 .since(since, epoch);
             let body = serde_json::to_string(&rows).unwrap_or_else(|_| "{}".into());
-            reply(200, "application/json", body)
+            // Counted until the client has it: clients that never read
+            // cannot pin a copy each (memory probe).
+            let Some(body) = shared.in_flight.body(body.into()) else {
+                return error(
+                    503,
+                    &format!(
+                        "other clients' timeline answers are still being sent (over {} MiB): try again shortly",
+                        super::inflight::MAX_IN_FLIGHT >> 20
+                    ),
+                );
+            };
+            let mut r = Response::new(body.boxed());
+            r.headers_mut().insert(
+                CONTENT_TYPE,
+                hyper::header::HeaderValue::from_static("application/json"),
+            );
+            r
         }
         (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
         (&Method::POST, p) if allowed_method(p) == Some("GET") => {

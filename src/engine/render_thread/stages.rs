@@ -315,7 +315,7 @@ impl RenderLoop {
     /// value stored, never a wait for them) and the counters.
     fn publish(&self, tick: u64, camera: &Camera, png: Vec<u8>, started: Instant) {
         if let Ok(mut f) = self.shared.frame.lock() {
-            *f = Some(png);
+            *f = Some(png.into());
         }
         let seq = self.stats.frames.load(Ordering::Relaxed) + 1;
         self.shared.frame_events.send_replace(FrameEvent {
