@@ -5,15 +5,10 @@
 //! clients pipelining `GET /timeline` and reading nothing held 2.8 GB).
 //! A response over the bound is refused with 503 instead.
 
-use std::convert::Infallible;
-use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::task::{Context, Poll};
 
 use bytes::Bytes;
-use http_body_util::Full;
-use hyper::body::{Body, Frame, SizeHint};
 
 /// Most bytes of counted responses in flight at once, across clients.
 pub const MAX_IN_FLIGHT: u64 = 64 << 20;
@@ -23,20 +18,22 @@ pub const MAX_IN_FLIGHT: u64 = 64 << 20;
 pub struct InFlight(AtomicU64);
 
 impl InFlight {
-    /// A body for `bytes`, counted until the client has it (or goes away),
-    /// or `None` if it would take the total past [`MAX_IN_FLIGHT`].
-    pub fn body(self: &Arc<Self>, bytes: Bytes) -> Option<Counted> {
-        let n = bytes.len() as u64;
+    /// `body` as bytes that count until the last reference to them is
+    /// dropped (hyper holds them in its write queue until the client has
+    /// read them, or its connection closes), or `None` if they would take
+    /// the total past [`MAX_IN_FLIGHT`] (one body alone always passes).
+    pub fn bytes_of(self: &Arc<Self>, body: Vec<u8>) -> Option<Bytes> {
+        let n = body.len() as u64;
         let before = self.0.fetch_add(n, Ordering::AcqRel);
         if before.saturating_add(n) > MAX_IN_FLIGHT && before > 0 {
             self.0.fetch_sub(n, Ordering::AcqRel);
             return None;
         }
-        Some(Counted {
-            inner: Full::new(bytes),
+        Some(Bytes::from_owner(Counted {
+            body,
             n,
             owner: self.clone(),
-        })
+        }))
     }
 
     /// Bytes in flight now.
@@ -45,13 +42,20 @@ impl InFlight {
     }
 }
 
-/// A whole body whose bytes count in its [`InFlight`] until it is dropped
-/// (sent, or its connection closed).
-#[derive(Debug)]
-pub struct Counted {
-    inner: Full<Bytes>,
+/// A body's bytes, counted in their [`InFlight`] until dropped. (A count
+/// kept by the response body instead fell to 0 as soon as hyper took the
+/// bytes into its write queue, which is where a client that reads nothing
+/// leaves them: the first version of this bound held nothing.)
+struct Counted {
+    body: Vec<u8>,
     n: u64,
     owner: Arc<InFlight>,
+}
+
+impl AsRef<[u8]> for Counted {
+    fn as_ref(&self) -> &[u8] {
+        &self.body
+    }
 }
 
 impl Drop for Counted {
@@ -60,47 +64,33 @@ impl Drop for Counted {
     }
 }
 
-impl Body for Counted {
-    type Data = Bytes;
-    type Error = Infallible;
-
-    fn poll_frame(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-    ) -> Poll<Option<Result<Frame<Bytes>, Infallible>>> {
-        Pin::new(&mut self.inner).poll_frame(cx)
-    }
-
-    fn is_end_stream(&self) -> bool {
-        self.inner.is_end_stream()
-    }
-
-    fn size_hint(&self) -> SizeHint {
-        self.inner.size_hint()
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn bodies_count_until_dropped_and_the_bound_refuses_more() {
+    fn bytes_count_until_their_last_reference_drops_and_the_bound_refuses_more() {
         let f = Arc::new(InFlight::default());
-        let big = Bytes::from(vec![0u8; (MAX_IN_FLIGHT / 2) as usize]);
-        let a = f.body(big.clone()).unwrap();
-        let b = f.body(big.clone()).unwrap();
+        let half = (MAX_IN_FLIGHT / 2) as usize;
+        let a = f.bytes_of(vec![0u8; half]).unwrap();
+        let b = f.bytes_of(vec![0u8; half]).unwrap();
         assert_eq!(f.bytes(), MAX_IN_FLIGHT);
-        assert!(f.body(Bytes::from_static(b"x")).is_none(), "over the bound");
+        assert!(f.bytes_of(vec![1]).is_none(), "over the bound");
         assert_eq!(f.bytes(), MAX_IN_FLIGHT, "a refusal counts nothing");
+        // A slice (as a partial write leaves) keeps the whole counted.
+        let tail = a.slice(half - 10..);
         drop(a);
+        assert_eq!(f.bytes(), MAX_IN_FLIGHT);
+        drop(tail);
         assert_eq!(f.bytes(), MAX_IN_FLIGHT / 2);
-        assert!(f.body(Bytes::from_static(b"x")).is_some());
+        assert!(f.bytes_of(vec![1]).is_some());
         drop(b);
         assert_eq!(f.bytes(), 0);
         // One body larger than the bound alone is still sent.
-        let huge = Bytes::from(vec![0u8; (MAX_IN_FLIGHT + 1) as usize]);
-        assert!(f.body(huge).is_some());
+        assert!(
+            f.bytes_of(vec![0u8; (MAX_IN_FLIGHT + 1) as usize])
+                .is_some()
+        );
         assert_eq!(f.bytes(), 0);
     }
 }

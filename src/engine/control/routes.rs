@@ -291,7 +291,7 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
             let body = serde_json::to_string(&rows).unwrap_or_else(|_| "{}".into());
             // Counted until the client has it: clients that never read
             // cannot pin a copy each (memory probe).
-            let Some(body) = shared.in_flight.body(body.into()) else {
+            let Some(body) = shared.in_flight.bytes_of(body.into_bytes()) else {
                 return error(
                     503,
                     &format!(
@@ -300,12 +300,7 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
                     ),
                 );
             };
-            let mut r = Response::new(body.boxed());
-            r.headers_mut().insert(
-                CONTENT_TYPE,
-                hyper::header::HeaderValue::from_static("application/json"),
-            );
-            r
+            reply(200, "application/json", body)
         }
         (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
         (&Method::POST, p) if allowed_method(p) == Some("GET") => {
