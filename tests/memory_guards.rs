@@ -762,13 +762,18 @@ fn a_region_too_large_for_its_budget_is_refused_before_it_is_built_whole() {
     assert!(built < columns, "refused after {built} of {columns}: {err}");
 }
 
-/// A column script of `n` channels named `prefix…`, one pass writing all of
-/// them on every tile.
-fn wide_script(prefix: &str, n: usize) -> String {
+/// A column script (or with `voxels` a voxel one) of `n` channels named
+/// `prefix…`, one pass writing all of them everywhere it runs.
+fn wide(prefix: &str, n: usize, voxels: bool) -> String {
     let names: Vec<String> = (0..n).map(|i| format!("\"{prefix}{i}\"")).collect();
     let list = names.join(", ");
+    let (grid, write) = if voxels {
+        ("grid = \"voxels\",", "writef32")
+    } else {
+        ("", "writef64")
+    };
     format!(
-        "local names = {{ {list} }}\nreturn {{\n  channels = {{ {list} }},\n  passes = {{ {{ name = \"fill\", reads = {{}}, writes = {{ {list} }},\n    kernel = function(c)\n      for i = 1, #names do buffer.writef64(c.w[names[i]], 0, 1.0) end\n    end }} }},\n}}\n"
+        "local names = {{ {list} }}\nreturn {{ {grid}\n  channels = {{ {list} }},\n  passes = {{ {{ name = \"fill\", reads = {{}}, writes = {{ {list} }},\n    kernel = function(c)\n      for i = 1, #names do buffer.{write}(c.w[names[i]], 0, 1.0) end\n    end }} }},\n}}\n"
     )
 }
 
@@ -777,14 +782,20 @@ fn wide_script(prefix: &str, n: usize) -> String {
 /// 250 channels on a 512² world (about 1.8 GiB more), aborted at its next
 /// step ("memory allocation of 557568000 bytes failed"). The reload is
 /// refused naming the need, the running version kept, the engine going on.
+/// Voxel channels likewise, on a 512 × 64 × 512 box (32 768 bricks).
 #[test]
 fn a_reload_whose_channels_do_not_fit_keeps_the_running_version() {
+    reload_past_memory(false);
+    reload_past_memory(true);
+}
+
+fn reload_past_memory(voxels: bool) {
     use common::daemon::{free_port, status, wait_ready, wait_status};
-    let dir = tmp("mem", "reload");
+    let dir = tmp("mem", if voxels { "reload-vox" } else { "reload" });
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(dir.join("scripts")).unwrap();
     let script = dir.join("scripts/many.lua");
-    std::fs::write(&script, wide_script("a", 1)).unwrap();
+    std::fs::write(&script, wide("a", 1, voxels)).unwrap();
     let addr = format!("127.0.0.1:{}", free_port());
     let cfg = dir.join("w.toml");
     std::fs::write(
@@ -811,15 +822,18 @@ fn a_reload_whose_channels_do_not_fit_keeps_the_running_version() {
     let d = common::daemon::Daemon(Some(child));
     wait_ready(&addr);
     let tmp_file = dir.join("scripts/.many.tmp");
-    std::fs::write(&tmp_file, wide_script("b", 250)).unwrap();
+    std::fs::write(&tmp_file, wide("b", 250, voxels)).unwrap();
     std::fs::rename(&tmp_file, &script).unwrap();
     let s = wait_status(&addr, "the refused reload", |s| {
         s["scripts"][0]["error"].is_string()
     });
     let e = s["scripts"][0]["error"].as_str().unwrap();
     assert!(
-        e.contains("many.lua: this version's channels (")
-            && e.contains("so the running version is kept"),
+        e.contains(if voxels {
+            "many.lua: this version's voxel channels ("
+        } else {
+            "many.lua: this version's channels ("
+        }) && e.contains("so the running version is kept"),
         "{e}"
     );
     let tick = s["tick"].as_u64().unwrap();
@@ -832,5 +846,39 @@ fn a_reload_whose_channels_do_not_fit_keeps_the_running_version() {
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// Regression (memory probe): voxel channels had no memory check at start;
+/// a voxel script of 250 channels on a 128 × 64 × 128 world (2.1 GB held,
+/// 2.9 GB at peak) aborted under `ulimit -v 2000000` at its first step. It
+/// is refused with the need.
+#[test]
+fn voxel_channels_larger_than_memory_are_refused_at_start() {
+    let dir = tmp("mem", "vox-start");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("scripts")).unwrap();
+    std::fs::write(dir.join("scripts/vmany.lua"), wide("v", 250, true)).unwrap();
+    let cfg = dir.join("w.toml");
+    std::fs::write(
+        &cfg,
+        "[world]\nsource = \"terrain\"\nsize = [128, 64, 128]\nseed = 3\n[sim]\ndt = 0.05\nscripts_dir = \"scripts\"\n\
+         [[scripts]]\nfile = \"vmany.lua\"\n[render]\nwidth = 32\nheight = 24\ntracer = \"cpu\"\n[control]\naddr = \"127.0.0.1:0\"\n",
+    )
+    .unwrap();
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 2000000 && exec '{}' run '{}' --state '{}' --ticks 2",
+            env!("CARGO_BIN_EXE_brickworld"),
+            cfg.display(),
+            dir.join("state").display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "250 voxel channels",
+        "voxel channels over the simulated box's bricks need about",
     );
 }
