@@ -10,8 +10,12 @@ pub const SUSPEND_AFTER: u32 = 3;
 /// A script's failed steps in a row and its suspension.
 ///
 /// ```
-/// use brickworld::sim::{Health, SimError};
-/// let boom = SimError::Unstable { script: "s".into(), msg: "boom".into() };
+/// use brickworld::sim::{Health, Rejection, SimError};
+/// let boom = SimError::Unstable {
+///     script: "s".into(),
+///     kind: Rejection::NotFinite,
+///     msg: "boom".into(),
+/// };
 /// let mut h = Health::default();
 /// h.failed(1, &boom);
 /// h.failed(1, &boom); // a second sub-step of tick 1: still one failure
