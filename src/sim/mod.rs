@@ -216,6 +216,8 @@ pub enum Rejection {
     Negative,
     /// A `conserved` channel's total changed in one step.
     Drift,
+    /// The step's working set would not fit in memory.
+    Memory,
 }
 
 /// Errors of the simulation subsystem. Every variant names the script.

@@ -21,8 +21,9 @@
 //! malformed requests or refused values 400, a
 //! wrong token 401, a body over [`MAX_BODY`] 413 (decided from the declared
 //! length, before the body is read), a body too slow 408, and a full command
-//! queue 503, as is a timeline answer while others of over
-//! [`super::inflight::MAX_IN_FLIGHT`] bytes are still being sent.
+//! queue 503, as is a large timeline answer while others of over
+//! [`super::inflight::MAX_IN_FLIGHT`] bytes are still being sent
+//! ([`super::inflight`]).
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -280,27 +281,41 @@ pub async fn handle(req: Request<Incoming>, shared: &Arc<Shared>, stream: &Arc<A
                 Ok(q) => q,
                 Err(msg) => return error(400, &msg),
             };
-            // Copy the rows out and let go of the lock before encoding: the
-            // engine pushes a row every tick under the same lock, and an open
-            // route must not make it wait on a client's megabytes of JSON.
-            let rows = shared
-                .timeline
-                .lock()
-                .unwrap_or_else(|p| p.into_inner())
-                .since(since, epoch);
-            let body = serde_json::to_string(&rows).unwrap_or_else(|_| "{}".into());
-            // Counted until the client has it: clients that never read
-            // cannot pin a copy each (memory probe).
-            let Some(body) = shared.in_flight.bytes_of(body.into_bytes()) else {
-                return error(
+            let busy = || {
+                error(
                     503,
                     &format!(
                         "other clients' timeline answers are still being sent (over {} MiB): try again shortly",
                         super::inflight::MAX_IN_FLIGHT >> 20
                     ),
-                );
+                )
             };
-            reply(200, "application/json", body)
+            // Copy the rows out and let go of the lock before encoding: the
+            // engine pushes a row every tick under the same lock, and an open
+            // route must not make it wait on a client's megabytes of JSON.
+            // A large answer is shared by the clients that ask for the same
+            // rows, and refused while others' are still being sent, before
+            // it is built (memory probe, review).
+            let ring = shared.timeline.lock().unwrap_or_else(|p| p.into_inner());
+            let (key, estimate) = ring.answer_of(since, epoch);
+            if estimate > super::inflight::SMALL {
+                let asked = (if epoch == ring.epoch { since } else { 0 }, ring.epoch);
+                if let Some(body) = shared.in_flight.shared(asked) {
+                    drop(ring);
+                    return reply(200, "application/json", body);
+                }
+                if !shared.in_flight.may_build(estimate) {
+                    drop(ring);
+                    return busy();
+                }
+            }
+            let rows = ring.since(since, epoch);
+            drop(ring);
+            let body = serde_json::to_string(&rows).unwrap_or_else(|_| "{}".into());
+            match shared.in_flight.admit(key, body.into_bytes()) {
+                Some(body) => reply(200, "application/json", body),
+                None => busy(),
+            }
         }
         (&Method::GET, "/") => reply(200, "text/html; charset=utf-8", super::VIEWER),
         (&Method::POST, p) if allowed_method(p) == Some("GET") => {

@@ -214,23 +214,6 @@ impl WorldSim {
                 ),
             });
         }
-        // Voxel channels, likewise (regression, memory probe: they had no
-        // check, and 250 of them aborted the engine under `ulimit -v`).
-        let vox = self
-            .vox
-            .channel_bytes(self.vox.channels().names().len(), self.vox.most_writes());
-        if self.vox.script_count() > 0 && need.saturating_add(vox) > room {
-            return Err(crate::scene::SceneError::OutOfMemory {
-                what: "the voxel simulation".into(),
-                msg: format!(
-                    "{} voxel channels over the simulated box's bricks need about {} (and the column simulation {}); {} is available: simulate a smaller world or region, or fewer voxel channels",
-                    self.vox.channels().names().len(),
-                    human(vox),
-                    human(need),
-                    human(room)
-                ),
-            });
-        }
         Ok(())
     }
 

@@ -64,10 +64,10 @@ impl Working {
     fn build(
         store: &BrickStore,
         channels: &VoxelChannels,
-        channel_ids: &[VoxelChannelId],
+        (spec, channel_ids): (&ScriptSpec, &[VoxelChannelId]),
         cands: &[IVec3],
         (lo, hi): (IVec3, IVec3),
-    ) -> Self {
+    ) -> Result<Self, SimError> {
         let inside = |b: IVec3| b.cmpge(lo).all() && b.cmplt(hi).all();
         let mut index: FxHashMap<IVec3, u32> = FxHashMap::default();
         index.reserve(cands.len() * 2);
@@ -90,6 +90,7 @@ impl Working {
                 })
             })
             .collect();
+        step_fits(spec, channel_ids.len(), cands.len(), bricks.len())?;
         let mats: Vec<[u8; VOXEL_CELLS]> = bricks
             .par_iter()
             .map(|&b| {
@@ -107,13 +108,13 @@ impl Working {
                     .collect()
             })
             .collect();
-        Working {
+        Ok(Working {
             cands: cands.to_vec(),
             orig: mats[..cands.len()].to_vec(),
             mats,
             chans,
             nbr,
-        }
+        })
     }
 
     /// Candidates (by index) whose materials the step changed.
@@ -187,7 +188,7 @@ pub(super) fn run_script(
 ) -> Result<Working, SimError> {
     let dt = stamp.dt;
     let spec = job.spec;
-    let mut work = Working::build(store, channels, job.channel_ids, cands, bounds);
+    let mut work = Working::build(store, channels, (spec, job.channel_ids), cands, bounds)?;
     let nch = job.channel_ids.len();
     let conserved: Vec<usize> = spec
         .conserved
@@ -317,6 +318,52 @@ pub(super) fn run_script(
 }
 
 const ZERO_F32: [f32; VOXEL_CELLS] = [0.0; VOXEL_CELLS];
+
+/// Refuse a step whose working set would not fit what the process may
+/// still allocate: the materials and channels of the candidates and their
+/// neighbours (`bricks`), every pass's outputs for the candidates, and the
+/// values the step may add to the channel store. The step is rejected like
+/// an unstable one (nothing changes; failing steps in a row suspend the
+/// script), where it aborted the engine (regression, memory probe: 250
+/// voxel channels on a 128 × 64 × 128 world under `ulimit -v`). Checked
+/// per step, from the bricks it runs on, because voxel channels are stored
+/// only where they hold values: an estimate over the whole box refused
+/// ordinary worlds (review: three channels on a 2048 × 256 × 2048 terrain,
+/// 28 GiB said, 1.8 GB used).
+fn step_fits(
+    spec: &ScriptSpec,
+    channels: usize,
+    cands: usize,
+    bricks: usize,
+) -> Result<(), SimError> {
+    use crate::scene::budget::{headroom_bytes, human};
+    let chan = (VOXEL_CELLS * 4) as u64;
+    let writes = spec
+        .passes
+        .iter()
+        .map(|p| p.writes.len())
+        .max()
+        .unwrap_or(0) as u64;
+    let need = (bricks as u64).saturating_mul(VOXEL_CELLS as u64 + channels as u64 * chan)
+        + (cands as u64).saturating_mul(VOXEL_CELLS as u64 + (writes + channels as u64) * chan);
+    // Small steps pass without asking the OS.
+    if need < 64 << 20 {
+        return Ok(());
+    }
+    let room = headroom_bytes();
+    if need > room {
+        return Err(SimError::Unstable {
+            script: spec.name.clone(),
+            kind: Rejection::Memory,
+            msg: format!(
+                "its {channels} voxel channels on {cands} bricks (with their neighbours, {bricks}) need about {} for this step; {} is available: fewer channels, or a smaller world or region",
+                human(need),
+                human(room)
+            ),
+        });
+    }
+    Ok(())
+}
 
 /// Index of candidate `ci` itself in the working set.
 fn nbr_self(w: &Working, ci: usize) -> usize {

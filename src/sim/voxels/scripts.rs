@@ -3,7 +3,6 @@
 //! replacing it on hot reload (parameters kept), native reference kernels,
 //! and each script's rate, parameters and health.
 
-use glam::IVec3;
 use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::channels::VoxelChannelId;
@@ -79,7 +78,6 @@ impl VoxelSim {
         };
         trial.add_script(src, self.scripts[i].limits, registry)?;
         let mut new = trial.scripts.pop().expect("added");
-        self.reload_fits(&new.spec, trial.channels.names().len())?;
         for name in trial
             .channels
             .names()
@@ -98,63 +96,6 @@ impl VoxelSim {
         self.scripts[i] = new;
         self.wake_all_known();
         Ok(warnings)
-    }
-
-    /// The most channels one pass of any script writes.
-    pub fn most_writes(&self) -> usize {
-        self.scripts
-            .iter()
-            .flat_map(|s| &s.spec.passes)
-            .map(|p| p.write_idx.len())
-            .max()
-            .unwrap_or(0)
-    }
-
-    /// About the bytes `channels` voxel channels take when one pass writes
-    /// `writes` of them, counted dense on every brick of the simulated box
-    /// (as the column estimate counts every tile): 2 KiB a channel and
-    /// brick stored, as much again for a step's working copy, and the
-    /// widest pass's outputs. Measured: one script writing 250 channels on
-    /// a 128 × 64 × 128 world held 2.1 GB and peaked at 2.9; this says 3.0.
-    pub fn channel_bytes(&self, channels: usize, writes: usize) -> u64 {
-        let d = (self.hi - self.lo).max(IVec3::ZERO).as_u64vec3();
-        let bricks = d.x.saturating_mul(d.y).saturating_mul(d.z);
-        let units = 2 * channels as u64 + writes as u64;
-        bricks.saturating_mul(VOXEL_CELLS as u64 * 4 * units)
-    }
-
-    /// Refuse a reload whose channels (or wider pass) would need more
-    /// memory than the process may still allocate; the running version is
-    /// kept (regression, memory probe: voxel channels had no memory check,
-    /// and 250 of them aborted the engine under `ulimit -v`).
-    fn reload_fits(&self, spec: &ScriptSpec, channels: usize) -> Result<(), SimError> {
-        use crate::scene::budget::{headroom_bytes, human};
-        let writes = spec
-            .passes
-            .iter()
-            .map(|p| p.write_idx.len())
-            .max()
-            .unwrap_or(0);
-        let most = self.most_writes();
-        let now = self.channels.names().len();
-        let (before, after) = (
-            self.channel_bytes(now, most),
-            self.channel_bytes(channels, most.max(writes)),
-        );
-        let (more, room) = (after.saturating_sub(before), headroom_bytes());
-        if more > room {
-            return Err(SimError::Declaration {
-                script: spec.name.clone(),
-                line: None,
-                msg: format!(
-                    "this version's voxel channels ({channels} in all, {} written by one pass) need about {} more over the simulated box's bricks; {} is available, so the running version is kept",
-                    most.max(writes),
-                    human(more),
-                    human(room)
-                ),
-            });
-        }
-        Ok(())
     }
 
     /// Script `i`'s source, limits, rate and health, for a rebuild.
