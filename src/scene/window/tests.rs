@@ -319,3 +319,23 @@ fn columns_entering_after_a_new_palette_take_its_lod_colours() {
     let mixed = assert_lod_colours_follow(&w, &palette);
     assert!(mixed > 100, "{mixed} mixed bricks");
 }
+
+/// The rest of the process is taken again when it grew (memory probe: it
+/// grew from 117 to 330 MB, and the daemon ended 49 to 60 % over its
+/// budget), never lowered, and never so far that the cache keeps less
+/// than a quarter of its first share.
+#[test]
+fn the_rest_is_taken_again_when_it_grew_but_leaves_the_cache_a_quarter() {
+    const MB: u64 = 1 << 20;
+    // Budget 400, window 35: room 365; first rest 117, share 248.
+    assert_eq!(grown_rest(117 * MB, 283 * MB, 365 * MB, 248 * MB), 283 * MB);
+    assert_eq!(
+        grown_rest(283 * MB, 200 * MB, 365 * MB, 248 * MB),
+        283 * MB,
+        "never lowered"
+    );
+    // 330 would leave the cache 35: it keeps 62 (a quarter of 248).
+    assert_eq!(grown_rest(283 * MB, 330 * MB, 365 * MB, 248 * MB), 303 * MB);
+    // A window past the budget leaves no room: the rest stays as it was.
+    assert_eq!(grown_rest(117 * MB, 500 * MB, 0, 248 * MB), 117 * MB);
+}
