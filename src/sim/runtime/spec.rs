@@ -157,6 +157,17 @@ pub struct ScriptSpec {
 }
 
 impl ScriptSpec {
+    /// The most channels one of its passes writes (a voxel pass's `mat` is
+    /// not a channel): how many output buffers a step needs per tile or
+    /// brick.
+    pub fn widest_writes(&self) -> usize {
+        self.passes
+            .iter()
+            .map(|p| p.write_idx.len())
+            .max()
+            .unwrap_or(0)
+    }
+
     /// The index of parameter `name` if `value` may be set: the one check
     /// both grids' `set_param` make (the voxel grid's had drifted: no list
     /// of known names, numbers unformatted).

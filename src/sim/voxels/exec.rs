@@ -197,12 +197,7 @@ pub(super) fn run_script(
         .collect();
     let before: Vec<(f64, f64)> = conserved.iter().map(|&i| work.sums(i)).collect();
     // Every pass's outputs, for every candidate, in two buffers made once.
-    let most_writes = spec
-        .passes
-        .iter()
-        .map(|p| p.writes.len())
-        .max()
-        .unwrap_or(0);
+    let most_writes = spec.widest_writes();
     let mut mats_out = vec![[0u8; VOXEL_CELLS]; cands.len()];
     let mut chans_out = vec![[0.0f32; VOXEL_CELLS]; cands.len() * most_writes.max(1)];
     for (pi, pass) in spec.passes.iter().enumerate() {
@@ -338,12 +333,7 @@ fn step_fits(
 ) -> Result<(), SimError> {
     use crate::scene::budget::{headroom_bytes, human};
     let chan = (VOXEL_CELLS * 4) as u64;
-    let writes = spec
-        .passes
-        .iter()
-        .map(|p| p.writes.len())
-        .max()
-        .unwrap_or(0) as u64;
+    let writes = spec.widest_writes() as u64;
     let need = (bricks as u64).saturating_mul(VOXEL_CELLS as u64 + channels as u64 * chan)
         + (cands as u64).saturating_mul(VOXEL_CELLS as u64 + (writes + channels as u64) * chan);
     // Small steps pass without asking the OS.

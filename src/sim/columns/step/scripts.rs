@@ -118,8 +118,7 @@ impl Simulation {
     pub fn most_writes(&self) -> usize {
         self.scripts
             .iter()
-            .flat_map(|s| &s.spec.passes)
-            .map(|p| p.write_idx.len())
+            .map(|s| s.spec.widest_writes())
             .max()
             .unwrap_or(0)
     }
@@ -152,12 +151,7 @@ impl Simulation {
             .iter()
             .filter(|c| self.channels.find(c).is_none())
             .count();
-        let writes = spec
-            .passes
-            .iter()
-            .map(|p| p.write_idx.len())
-            .max()
-            .unwrap_or(0);
+        let writes = spec.widest_writes();
         let most = self.most_writes();
         let (before, after) = (
             self.channel_bytes(now, most),
