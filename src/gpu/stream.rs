@@ -261,6 +261,16 @@ impl GpuBrickmap {
                     // thrashed on its own uploads and stopped growing, so
                     // `bench stream --pool 1` failed now and then).
                     res.last_seen[slot as usize] = frame_no;
+                    // The GPU's copy too: the next frame's readback
+                    // replaces the CPU's stamps with the GPU's, and a slot
+                    // no ray touches then would take its previous
+                    // occupant's stamp (regression test
+                    // `a_fresh_upload_keeps_its_stamp_through_a_frame_that_does_not_see_it`).
+                    ctx.queue.write_buffer(
+                        &self.last_seen,
+                        slot as u64 * 4,
+                        bytemuck::bytes_of(&frame_no),
+                    );
                     res.owner.insert(slot, index);
                     res.slot_of.insert(index, id);
                     let (mask, meta, block) = res.mirror.raw_slot(slot).expect("inserted above");
@@ -434,20 +444,78 @@ mod tests {
         assert!(none.is_none());
     }
 
-    /// On a device whose storage buffers are small, the default pool
-    /// shrinks to fit and the tracer still draws.
-    #[test]
-    fn a_device_with_small_buffers_gets_a_smaller_pool_that_works() {
-        let mut ctx = match GpuContext::new() {
-            Ok(c) => c,
+    /// A GPU context, or `None` (a skip, unless `BRICKWORLD_REQUIRE_GPU=1`).
+    fn context() -> Option<GpuContext> {
+        match GpuContext::new() {
+            Ok(c) => Some(c),
             Err(e) if std::env::var("BRICKWORLD_REQUIRE_GPU").as_deref() == Ok("1") => {
                 panic!("GPU required but unavailable: {e}")
             }
             Err(e) => {
                 crate::say!("{e}: skipping (set BRICKWORLD_REQUIRE_GPU=1 to fail instead)");
-                return;
+                None
             }
-        };
+        }
+    }
+
+    /// A brick uploaded at frame N keeps stamp N through frame N + 1 when
+    /// no ray of that frame touches it; it used to take its slot's old
+    /// GPU stamp (0 for a fresh slot) at the readback, so eviction took it
+    /// before bricks seen longer ago.
+    #[test]
+    fn a_fresh_upload_keeps_its_stamp_through_a_frame_that_does_not_see_it() {
+        let Some(ctx) = context() else { return };
+        let w = crate::scene::build_scene(
+            &crate::scene::SceneSpec::Terrain { caves: false },
+            IVec3::new(64, 32, 64),
+            3,
+            &indicatif::ProgressBar::hidden(),
+        )
+        .unwrap();
+        let mut g = GpuBrickmap::streaming(
+            &ctx,
+            w.grid(),
+            w.store().pool(),
+            w.store().palette(),
+            StreamConfig::default(),
+        )
+        .unwrap();
+        let v = w.default_views()[1];
+        let eye = glam::DVec3::from(v.eye);
+        let cam =
+            crate::trace::Camera::new(eye, glam::DVec3::from(v.target), v.fov, 32, 24).unwrap();
+        let opts = crate::trace::RenderOptions::default();
+        g.render(&ctx, &cam, &opts, w.grid(), w.store().pool())
+            .unwrap();
+        let first = g.frame_no;
+        assert!(g.resident() > 0, "the first frame uploaded nothing");
+        // Straight up from above the world: no ray meets a brick.
+        let sky = crate::trace::Camera::new(
+            glam::DVec3::new(32.0, 100.0, 32.0),
+            glam::DVec3::new(32.0, 200.0, 32.5),
+            60.0,
+            32,
+            24,
+        )
+        .unwrap();
+        let (_, stats) = g
+            .render(&ctx, &sky, &opts, w.grid(), w.store().pool())
+            .unwrap();
+        assert_eq!(stats.uploads, 0);
+        let res = g.residency.as_ref().expect("streaming");
+        for &slot in res.owner.keys() {
+            assert_eq!(
+                res.last_seen[slot as usize], first,
+                "slot {slot} lost the stamp of the frame that uploaded it"
+            );
+        }
+    }
+
+    /// On a device whose storage buffers are small, the default pool
+    /// shrinks to fit and the tracer still draws.
+    #[test]
+    fn a_device_with_small_buffers_gets_a_smaller_pool_that_works() {
+        let Some(mut ctx) = context() else { return };
         ctx.limits.max_storage_buffer_binding_size = 1 << 20;
         let w = crate::scene::build_scene(
             &crate::scene::SceneSpec::Terrain { caves: false },
