@@ -441,7 +441,7 @@ impl GpuBrickmap {
 }
 
 /// Map `slice` for reading, waiting for the device.
-fn map_read<'a>(
+pub(super) fn map_read<'a>(
     dev: &wgpu::Device,
     slice: &wgpu::BufferSlice<'a>,
 ) -> Result<wgpu::BufferView, GpuError> {

@@ -84,6 +84,9 @@ pub struct FrameStats {
     pub material_bytes: u64,
     /// Times the pool doubled this frame.
     pub grown: u32,
+    /// Times the pool's material arena was compacted this frame (its
+    /// holes dropped, the arena and metadata uploaded whole).
+    pub compactions: u32,
     /// The tracer's passes on the device (beam starts and trace), ms, from
     /// timestamp queries; `None` where the device has none.
     pub gpu_ms: Option<f64>,
@@ -232,7 +235,16 @@ impl GpuBrickmap {
     }
 
     /// Put a brick into the pool (evicting least recently seen bricks if
-    /// needed) and upload it. `None` if nothing could be evicted.
+    /// needed) and upload it. `None` if nothing could be evicted, or four
+    /// evictions did not make room.
+    ///
+    /// Freed material blocks serve only their own size class, so an arena
+    /// full of other sizes' holes cannot take a brick (regression test
+    /// `an_arena_full_of_another_sizes_holes_is_compacted`: every admit
+    /// evicted four bricks and failed). When the arena is what is short,
+    /// least recently seen bricks are evicted until a quarter of it is
+    /// holes, and it is compacted once: each compaction reclaims a quarter
+    /// of the arena, so its cost is O(1) a freed byte.
     fn admit(
         &mut self,
         ctx: &GpuContext,
@@ -240,10 +252,12 @@ impl GpuBrickmap {
         brick: crate::world::Brick,
         stats: &mut FrameStats,
     ) -> Result<Option<u32>, GpuError> {
-        for _attempt in 0..4 {
+        let (mut evicted, mut compacted) = (0, false);
+        loop {
             let frame_no = self.frame_no;
             let res = self.residency.as_mut().expect("streaming");
             let full = res.mirror.len() as u32 >= res.cfg.pool_slots;
+            let mut arena_short = false;
             if !full {
                 let id = res.mirror.insert(brick.clone());
                 let cap = res.cfg.arena_bytes as usize;
@@ -298,7 +312,14 @@ impl GpuBrickmap {
                     stats.uploads += 1;
                     return Ok(Some(slot));
                 }
+                let len = res.mirror.arena_block(id.index()).map_or(0, |(_, l)| l);
                 res.mirror.remove(id);
+                arena_short = id.index() < res.cfg.pool_slots;
+                if arena_short && !compacted && res.mirror.arena_holes() >= (cap / 4).max(len) {
+                    self.compact_arena(ctx, stats);
+                    compacted = true;
+                    continue;
+                }
             }
             // Evict the least recently seen resident brick not seen this frame.
             let victim = res
@@ -318,8 +339,32 @@ impl GpuBrickmap {
             };
             self.evict(ctx, victim_index);
             stats.evictions += 1;
+            evicted += 1;
+            // Past four evictions, go on only towards a compaction.
+            if evicted >= 4 && (compacted || !arena_short) {
+                return Ok(None);
+            }
         }
-        Ok(None)
+    }
+
+    /// Drop the mirror's arena holes and upload its arena and every
+    /// slot's metadata (whose offsets moved) whole.
+    fn compact_arena(&mut self, ctx: &GpuContext, stats: &mut FrameStats) {
+        let Some(res) = self.residency.as_mut() else {
+            return;
+        };
+        res.mirror.compact_arena();
+        let (_, meta, arena) = res.mirror.raw();
+        // The mirror may hold slots past the GPU's (inserts that did not
+        // fit, removed at once); their metadata is that of free slots.
+        let meta = &meta[..meta.len().min(res.cfg.pool_slots as usize)];
+        ctx.queue
+            .write_buffer(&self.meta, 0, bytemuck::cast_slice(meta));
+        // Blocks are whole 16-byte classes, so the length is aligned; the
+        // live blocks each fitted the GPU's arena, so together they do.
+        ctx.queue.write_buffer(&self.arena, 0, arena);
+        stats.upload_bytes += (meta.len() * META_BYTES as usize + arena.len()) as u64;
+        stats.compactions += 1;
     }
 
     /// Double the pool's slots and arena (up to the configured cap and the
@@ -444,6 +489,17 @@ mod tests {
         assert!(none.is_none());
     }
 
+    /// A small terrain world, 64×32×64.
+    fn terrain() -> crate::scene::SceneWorld {
+        crate::scene::build_scene(
+            &crate::scene::SceneSpec::Terrain { caves: false },
+            IVec3::new(64, 32, 64),
+            3,
+            &indicatif::ProgressBar::hidden(),
+        )
+        .unwrap()
+    }
+
     /// A GPU context, or `None` (a skip, unless `BRICKWORLD_REQUIRE_GPU=1`).
     fn context() -> Option<GpuContext> {
         match GpuContext::new() {
@@ -465,13 +521,7 @@ mod tests {
     #[test]
     fn a_fresh_upload_keeps_its_stamp_through_a_frame_that_does_not_see_it() {
         let Some(ctx) = context() else { return };
-        let w = crate::scene::build_scene(
-            &crate::scene::SceneSpec::Terrain { caves: false },
-            IVec3::new(64, 32, 64),
-            3,
-            &indicatif::ProgressBar::hidden(),
-        )
-        .unwrap();
+        let w = terrain();
         let mut g = GpuBrickmap::streaming(
             &ctx,
             w.grid(),
@@ -511,19 +561,83 @@ mod tests {
         }
     }
 
+    /// A pool whose arena is full of one size's blocks, then asked for
+    /// bricks of another size: the old blocks' holes serve only their own
+    /// class, so every admit evicted four bricks and failed. Compaction
+    /// makes room, and the GPU's arena and metadata are the mirror's.
+    #[test]
+    fn an_arena_full_of_another_sizes_holes_is_compacted() {
+        let Some(ctx) = context() else { return };
+        let w = terrain();
+        let cfg = StreamConfig {
+            pool_slots: 256,
+            arena_bytes: 16384,
+            max_pool_slots: 256,
+            ..StreamConfig::default()
+        };
+        let mut g =
+            GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg)
+                .unwrap();
+        let brick = |k: usize, salt: usize| {
+            let d: [u8; BRICK_VOXELS] = std::array::from_fn(|i| 1 + ((i + salt) % k) as u8);
+            match BrickContent::from_dense(&d, &Palette::grey_ramp()) {
+                BrickContent::Mixed(b) => b,
+                _ => unreachable!(),
+            }
+        };
+        let mut stats = FrameStats::default();
+        // 200 materials: 720-byte blocks, 22 of them fill 16 KiB.
+        g.frame_no = 1;
+        for i in 0..20 {
+            assert!(
+                g.admit(&ctx, i, brick(200, i as usize), &mut stats)
+                    .unwrap()
+                    .is_some()
+            );
+        }
+        // Two materials: 80-byte blocks.
+        g.frame_no = 2;
+        for i in 20..120 {
+            let slot = g.admit(&ctx, i, brick(2, i as usize), &mut stats).unwrap();
+            assert!(slot.is_some(), "brick {i} not admitted: {stats:?}");
+        }
+        assert!(stats.compactions > 0, "{stats:?}");
+        let res = g.residency.as_ref().expect("streaming");
+        assert_eq!(res.mirror.arena_holes(), 0);
+        // What the GPU holds is what the mirror says.
+        let (_, meta, arena) = res.mirror.raw();
+        let read = |buf: &wgpu::Buffer, len: u64| -> Vec<u8> {
+            let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("test readback"),
+                size: len,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            enc.copy_buffer_to_buffer(buf, 0, &staging, 0, len);
+            ctx.queue.submit([enc.finish()]);
+            let slice = staging.slice(..);
+            super::super::frame::map_read(&ctx.device, &slice)
+                .unwrap()
+                .to_vec()
+        };
+        assert_eq!(read(&g.arena, arena.len() as u64), arena, "arena");
+        let n = meta.len().min(256);
+        let gpu_meta = read(&g.meta, n as u64 * META_BYTES);
+        assert_eq!(
+            gpu_meta,
+            bytemuck::cast_slice::<_, u8>(&meta[..n]),
+            "metadata"
+        );
+    }
+
     /// On a device whose storage buffers are small, the default pool
     /// shrinks to fit and the tracer still draws.
     #[test]
     fn a_device_with_small_buffers_gets_a_smaller_pool_that_works() {
         let Some(mut ctx) = context() else { return };
         ctx.limits.max_storage_buffer_binding_size = 1 << 20;
-        let w = crate::scene::build_scene(
-            &crate::scene::SceneSpec::Terrain { caves: false },
-            IVec3::new(64, 32, 64),
-            3,
-            &indicatif::ProgressBar::hidden(),
-        )
-        .unwrap();
+        let w = terrain();
         let mut g = GpuBrickmap::streaming(
             &ctx,
             w.grid(),

@@ -10,15 +10,18 @@
 //!   levels ([`BrickLod`]: 8 octants and the whole brick);
 //! - `arena`: for multi-material bricks, `[palette_len, bits, size_class,
 //!   palette…, packed indices…]`, allocated in 16-byte size classes with a free list per
-//!   class (the thesis' colour allocator, simplified), so edits reuse holes.
+//!   class (the thesis' colour allocator, simplified), so edits reuse holes,
+//!   and compacted when holes pass half of it (`arena.rs`).
 //!
 //! A one-material brick therefore costs 84 bytes in total. Generations and
 //! the free slot list are editing bookkeeping, reported by
 //! [`BrickPool::index_bytes`], not by [`BrickPool::bytes`]. Reading one
 //! brick (its mask and materials) is [`BrickRef`], in `brick_ref.rs`.
 
+mod arena;
 mod brick_ref;
 
+use arena::MaterialArena;
 pub use brick_ref::BrickRef;
 
 use super::brick::Brick;
@@ -53,7 +56,6 @@ impl BrickId {
 
 const FLAG_LIVE: u16 = 1;
 const FLAG_MULTI: u16 = 2;
-const CLASS: usize = 16;
 /// Arena block header: palette length, bits per index, size class.
 const HEADER: usize = 3;
 
@@ -78,35 +80,41 @@ pub struct BrickPool {
     meta: Vec<Meta>,
     generations: Vec<u32>,
     free: Vec<u32>,
-    arena: Vec<u8>,
-    /// Free arena blocks per size class (class k holds blocks of 16·(k+1) bytes).
-    arena_free: Vec<Vec<u32>>,
+    arena: MaterialArena,
     live: usize,
 }
 
 impl BrickPool {
-    /// A block of at least `bytes`; returns its offset and size class.
-    fn alloc_arena(&mut self, bytes: usize) -> (u32, usize) {
-        let class = bytes.div_ceil(CLASS) - 1;
-        if self.arena_free.len() <= class {
-            self.arena_free.resize(class + 1, Vec::new());
-        }
-        if let Some(off) = self.arena_free[class].pop() {
-            return (off, class);
-        }
-        let off = self.arena.len();
-        self.arena.resize(off + (class + 1) * CLASS, 0);
-        (
-            u32::try_from(off).expect("material arena exceeds 4 GiB"),
-            class,
-        )
-    }
-
     fn free_arena(&mut self, m: Meta) {
         if m.flags & FLAG_MULTI != 0 {
-            let class = self.arena[m.data as usize + 2] as usize;
-            self.arena_free[class].push(m.data);
+            self.arena.free(m.data);
         }
+    }
+
+    /// Bytes of the material arena in freed blocks that only a block of
+    /// the same size class can reuse.
+    pub fn arena_holes(&self) -> usize {
+        self.arena.holes()
+    }
+
+    /// Whether the arena's holes are over half of it (and at least
+    /// 64 KiB), the point where [`compact_arena`](Self::compact_arena)
+    /// pays.
+    pub fn arena_fragmented(&self) -> bool {
+        self.arena.fragmented()
+    }
+
+    /// Move every many-material brick's block to the front of the arena,
+    /// in slot order, and drop the holes. Slots, ids and every brick's
+    /// contents stay as they were; only arena offsets change, so a copy of
+    /// the arena (a GPU's) must be uploaded whole afterwards.
+    pub fn compact_arena(&mut self) {
+        let live = self
+            .meta
+            .iter_mut()
+            .filter(|m| m.flags & FLAG_LIVE != 0 && m.flags & FLAG_MULTI != 0)
+            .map(|m| &mut m.data);
+        self.arena.compact(live);
     }
 
     fn encode(&mut self, brick: &Brick) -> Meta {
@@ -124,11 +132,10 @@ impl BrickPool {
         let solid = brick.solid_voxels() as usize;
         let index_bytes = (solid * bits as usize).div_ceil(8);
         let len = HEADER + palette.len() + index_bytes;
-        let (off, class) = self.alloc_arena(len);
-        let block = &mut self.arena[off as usize..off as usize + len];
+        let off = self.arena.alloc(len);
+        let block = &mut self.arena.bytes[off as usize..off as usize + len];
         block[0] = palette.len() as u8;
         block[1] = bits;
-        block[2] = class as u8;
         block[HEADER..HEADER + palette.len()].copy_from_slice(palette);
         let idx = &mut block[HEADER + palette.len()..];
         for (i, b) in idx.iter_mut().enumerate() {
@@ -236,7 +243,7 @@ impl BrickPool {
     /// material arena.
     pub fn raw(&self) -> (&[[u64; 8]], Vec<[u32; GPU_META_WORDS]>, &[u8]) {
         let meta = self.meta.iter().map(gpu_meta).collect();
-        (&self.masks, meta, &self.arena)
+        (&self.masks, meta, &self.arena.bytes)
     }
 
     /// One slot's part of [`raw`](Self::raw): its mask, its metadata
@@ -250,7 +257,7 @@ impl BrickPool {
         let m = self.meta.get(i)?;
         let block = self
             .arena_block(index)
-            .map_or(&[][..], |(off, len)| &self.arena[off..off + len]);
+            .map_or(&[][..], |(off, len)| &self.arena.bytes[off..off + len]);
         Some((&self.masks[i], gpu_meta(m), block))
     }
 
@@ -261,8 +268,7 @@ impl BrickPool {
         if m.flags & FLAG_LIVE == 0 || m.flags & FLAG_MULTI == 0 {
             return None;
         }
-        let off = m.data as usize;
-        Some((off, (self.arena[off + 2] as usize + 1) * CLASS))
+        Some((m.data as usize, self.arena.block_len(m.data)))
     }
 
     /// Slot capacity in use (live and free slots).
@@ -283,14 +289,14 @@ impl BrickPool {
     /// Bytes a tracer reads: masks, metadata and the material arena
     /// (free holes included).
     pub fn bytes(&self) -> usize {
-        self.masks.len() * 64 + self.meta.len() * std::mem::size_of::<Meta>() + self.arena.len()
+        self.masks.len() * 64
+            + self.meta.len() * std::mem::size_of::<Meta>()
+            + self.arena.bytes.len()
     }
 
     /// Bytes of editing bookkeeping: generations and free lists.
     pub fn index_bytes(&self) -> usize {
-        self.generations.len() * 4
-            + self.free.len() * 4
-            + self.arena_free.iter().map(|v| v.len() * 4).sum::<usize>()
+        self.generations.len() * 4 + self.free.len() * 4 + self.arena.index_bytes()
     }
 }
 
@@ -374,23 +380,27 @@ mod tests {
             }
             ids.push(id);
         }
-        let arena = pool.arena.len();
+        let arena = pool.arena.bytes.len();
         for id in &ids {
             assert!(pool.replace(*id, brick_from(patterns[3])));
         }
         assert!(
-            pool.arena.len() <= arena + 3 * 544,
+            pool.arena.bytes.len() <= arena + 3 * 544,
             "replacing reuses freed blocks"
         );
-        let before = pool.arena.len();
+        let before = pool.arena.bytes.len();
         let id = pool.insert(brick_from(patterns[2]));
-        let block = pool.arena.len() - before;
+        let block = pool.arena.bytes.len() - before;
         assert!(pool.remove(id));
         for _ in 0..10 {
             let id = pool.insert(brick_from(patterns[2]));
             assert!(pool.remove(id));
         }
-        assert_eq!(pool.arena.len(), before + block, "one block, then reused");
+        assert_eq!(
+            pool.arena.bytes.len(),
+            before + block,
+            "one block, then reused"
+        );
     }
 
     /// `for_each_material` gives what `material_index` gives for every
@@ -414,6 +424,76 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Compaction after random churn of bricks of every size keeps every
+    /// live brick's voxels and every id, and leaves no hole: the arena is
+    /// exactly the live blocks. Fragmentation is what triggers it.
+    #[test]
+    fn compaction_keeps_every_brick_and_drops_every_hole() {
+        let mut pool = BrickPool::default();
+        let mut live: Vec<(BrickId, usize)> = Vec::new();
+        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        let mut was_fragmented = false;
+        for _ in 0..4000 {
+            let r = next();
+            let p = (r >> 8) as usize % PATTERNS.len();
+            match r % 4 {
+                0 | 1 => live.push((pool.insert(brick_from(PATTERNS[p])), p)),
+                2 if !live.is_empty() => {
+                    let k = (r >> 16) as usize % live.len();
+                    assert!(pool.replace(live[k].0, brick_from(PATTERNS[p])));
+                    live[k].1 = p;
+                }
+                _ if !live.is_empty() => {
+                    let k = (r >> 16) as usize % live.len();
+                    assert!(pool.remove(live.swap_remove(k).0));
+                }
+                _ => {}
+            }
+            was_fragmented |= pool.arena_fragmented();
+        }
+        // Keep only the one-material and smallest bricks: most bytes are holes.
+        live.retain(|&(id, p)| p < 2 || !pool.remove(id));
+        assert!(was_fragmented || pool.arena_fragmented(), "churn fragments");
+        assert!(
+            pool.arena_fragmented(),
+            "{} of {}",
+            pool.arena_holes(),
+            pool.arena.bytes.len()
+        );
+        pool.compact_arena();
+        assert_eq!(pool.arena_holes(), 0);
+        let blocks: usize = (0..pool.slots() as u32)
+            .filter_map(|i| pool.arena_block(i).map(|(_, l)| l))
+            .sum();
+        assert_eq!(
+            pool.arena.bytes.len(),
+            blocks,
+            "the arena is its live blocks"
+        );
+        for &(id, p) in &live {
+            let mut dense = [0u8; 512];
+            pool.get(id).expect("ids survive").to_dense(&mut dense);
+            assert!((0..512).all(|i| dense[i] == PATTERNS[p](i)), "pattern {p}");
+        }
+        // And the compacted arena is still an arena: the surviving blocks
+        // free into their classes (regression: the free lists were
+        // dropped, and freeing a surviving block indexed past them), and
+        // churn goes on.
+        for &(id, _) in &live {
+            assert!(pool.remove(id));
+        }
+        let id = pool.insert(brick_from(PATTERNS[3]));
+        assert!(pool.replace(id, brick_from(PATTERNS[2])));
+        assert!(pool.remove(id));
+        assert!(pool.is_empty());
     }
 
     #[test]
