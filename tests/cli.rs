@@ -387,7 +387,8 @@ fn tracer_auto_says_what_it_chose_and_why() {
     match common::gpu_context() {
         Some(ctx) if ctx.is_software() => assert!(
             err.contains("tracer: cpu (auto: the only GPU adapter")
-                && err.contains("is a software rasterizer"),
+                && err.contains("is a software rasterizer")
+                && err.contains("`--tracer gpu` forces it"),
             "{err}"
         ),
         Some(_) => assert!(err.contains("tracer: gpu (auto: "), "{err}"),

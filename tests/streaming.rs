@@ -132,6 +132,26 @@ fn an_unbounded_world_streams_on_the_gpu_too() {
     assert!(frames >= 3, "{frames} frames");
 }
 
+/// The daemon's `auto` names the config field that forces the GPU, not
+/// `render`'s `--tracer` flag, which `run` does not have (regression: it
+/// told a user to pass `run --tracer gpu`).
+#[test]
+fn the_daemons_auto_tracer_names_the_config_field_that_forces_the_gpu() {
+    let (cfg, state) = streamed("auto-hint", "height = 96", FLY);
+    common::daemon::edit_config(&cfg, "tracer = \"cpu\"", "tracer = \"auto\"");
+    let (_, err) = run_ok(&cfg, &state, "--ticks", 40);
+    common::cli::assert_no_panic(&err, "the engine");
+    match common::gpu_context() {
+        Some(ctx) if ctx.is_software() => assert!(
+            err.contains("`tracer = \"gpu\"` under `[render]` in the world config forces it")
+                && !err.contains("--tracer"),
+            "{err}"
+        ),
+        Some(_) => assert!(err.contains("tracer: gpu (auto: "), "{err}"),
+        None => assert!(err.contains("tracer: cpu (auto: "), "{err}"),
+    }
+}
+
 #[test]
 fn a_budget_too_small_for_one_view_names_the_minimum() {
     let (cfg, state) = streamed("budget", "size = [2048, 96, 2048]", FLY);

@@ -39,7 +39,7 @@ pub(super) fn run_render(s: RenderSettings) -> Result<()> {
             // auto traces the dense grid and the octree on the CPU.
             TracerChoice::Auto if s.structure != Structure::Brickmap => None,
             TracerChoice::Auto => {
-                let (ctx, line) = crate::gpu::choose(TracerChoice::Auto);
+                let (ctx, line) = crate::gpu::choose(TracerChoice::Auto, "`--tracer gpu`");
                 crate::say!("{line}");
                 ctx
             }

@@ -93,12 +93,14 @@ impl std::fmt::Display for TracerChoice {
 }
 
 /// Open the GPU `choice` asks for, if any: the context (None: trace on the
-/// CPU) and one line saying which tracer was chosen and why.
+/// CPU) and one line saying which tracer was chosen and why. `forced_by`
+/// names what overrides `auto` where the caller is (`` `--tracer gpu` ``
+/// for `render`, the world config's field for the daemon).
 ///
 /// `auto` refuses a software rasterizer: on this project's machine lavapipe
 /// traces the 2048² terrain at 2.0 Mrays/s against the CPU tracer's 6.3
 /// (README, "GPU tracer and streaming").
-pub fn choose(choice: TracerChoice) -> (Option<GpuContext>, String) {
+pub fn choose(choice: TracerChoice, forced_by: &str) -> (Option<GpuContext>, String) {
     if choice == TracerChoice::Cpu {
         return (None, "tracer: cpu (as configured)".into());
     }
@@ -106,7 +108,7 @@ pub fn choose(choice: TracerChoice) -> (Option<GpuContext>, String) {
         (Ok(ctx), TracerChoice::Auto) if ctx.is_software() => (
             None,
             format!(
-                "tracer: cpu (auto: the only GPU adapter, {}, is a software rasterizer, where the CPU tracer is faster; `--tracer gpu`, or `tracer = \"gpu\"` in a world config, forces it)",
+                "tracer: cpu (auto: the only GPU adapter, {}, is a software rasterizer, where the CPU tracer is faster; {forced_by} forces it)",
                 ctx.describe()
             ),
         ),

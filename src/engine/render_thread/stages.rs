@@ -337,7 +337,10 @@ fn start_gpu(
     world: &SceneWorld,
     choice: crate::gpu::TracerChoice,
 ) -> Option<(GpuContext, GpuBrickmap)> {
-    let (ctx, line) = crate::gpu::choose(choice);
+    let (ctx, line) = crate::gpu::choose(
+        choice,
+        "`tracer = \"gpu\"` under `[render]` in the world config",
+    );
     crate::say!("{line}");
     let ctx = ctx?;
     match GpuBrickmap::streaming(
