@@ -100,6 +100,11 @@ pub(super) fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
         r.resident_bricks,
         r.world_bricks
     );
+    println!(
+        "working set (bricks the converged frame's rays touched): {} bricks, {:.1} % of the world's bytes",
+        r.working_set_bricks,
+        r.working_set_fraction * 100.0
+    );
     let visible = match r.edit_to_visible_frames {
         Some(n) => format!("edit visible after {n} frame(s)"),
         None => format!(

@@ -67,6 +67,13 @@ pub struct StreamReport {
     pub upload_mb_per_s: f64,
     /// Bricks resident once converged, and in the world.
     pub resident_bricks: u32,
+    /// Of the resident bricks, those the converged frame's rays touched:
+    /// the view's working set. The rest were asked for by rays that later
+    /// stopped in front of them (an unloaded brick lets rays walk on
+    /// through it), and stay until the pool needs their room.
+    pub working_set_bricks: u32,
+    /// Bytes of the grid and the working set over `world_brick_bytes`.
+    pub working_set_fraction: f64,
     /// Mixed bricks in the world.
     pub world_bricks: u32,
     /// Slots the pool started with, and holds at the end (it doubles when
@@ -172,6 +179,7 @@ pub fn run(
     }
     let gpu_bytes = gpu.gpu_bytes_used();
     let resident = gpu.resident();
+    let (working_bytes, working_bricks) = gpu.working_set().unwrap_or((gpu_bytes, resident));
     // Converged static frames.
     let mut static_ms = Vec::new();
     for _ in 0..5 {
@@ -262,6 +270,8 @@ pub fn run(
             / 1e6
             / (streaming_ms.iter().sum::<f64>() / 1e3).max(1e-9),
         resident_bricks: resident,
+        working_set_bricks: working_bricks,
+        working_set_fraction: working_bytes as f64 / world_brick_bytes.max(1) as f64,
         world_bricks: world.store().pool().len() as u32,
         uploads_budget: budget,
         material_bytes_culled: culled,

@@ -398,6 +398,29 @@ impl GpuBrickmap {
         }
     }
 
+    /// Of [`gpu_bytes_used`](Self::gpu_bytes_used), the bytes of the bricks
+    /// the last frame's rays touched (its working set), with the grid,
+    /// and how many bricks that is. `None` unless streaming.
+    pub fn working_set(&self) -> Option<(u64, u32)> {
+        let r = self.residency.as_ref()?;
+        let fixed = self.grid.size() + self.coarse.size() + self.palette.size();
+        let seen: Vec<u32> = r
+            .owner
+            .keys()
+            .copied()
+            .filter(|&s| r.last_seen[s as usize] == self.frame_no)
+            .collect();
+        let arena: u64 = seen
+            .iter()
+            .filter_map(|&s| r.mirror.arena_block(s))
+            .map(|(_, len)| len as u64)
+            .sum();
+        Some((
+            fixed + seen.len() as u64 * (64 + META_BYTES) + arena,
+            seen.len() as u32,
+        ))
+    }
+
     /// The grid pointers as the GPU holds them (see the shader for the
     /// encoding): for inspection and tests.
     pub fn pointers(&self) -> &[u32] {
