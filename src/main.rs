@@ -22,9 +22,13 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
         .try_get_matches()
         .and_then(|m| brickworld::cli::Cli::from_arg_matches(&m));
     parsed.map_err(|e| match e.kind() {
-        ErrorKind::DisplayHelp
-        | ErrorKind::DisplayVersion
-        | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
+        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => e.exit(),
+        ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
+            // `brickworld`, `brickworld bench` …: one line naming the
+            // subcommands, exit 1 (newcomer walk: the whole help, exit 2).
+            brickworld::say!("{}", missing_subcommand(std::env::args().skip(1)));
+            ExitCode::FAILURE
+        }
         _ => {
             // clap's message up to its first blank line (what is wrong, and
             // any names it lists), joined into one line; no usage or tips.
@@ -38,6 +42,33 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
             ExitCode::FAILURE
         }
     })
+}
+
+/// "error: `brickworld bench` needs a subcommand: …" for the command
+/// `args` name, its subcommands listed.
+fn missing_subcommand(args: impl Iterator<Item = String>) -> String {
+    let mut cmd = command();
+    let mut path = vec![cmd.get_name().to_string()];
+    for a in args {
+        match cmd.find_subcommand(&a) {
+            Some(sub) => {
+                let sub = sub.clone();
+                path.push(sub.get_name().to_string());
+                cmd = sub;
+            }
+            None => break,
+        }
+    }
+    let subs: Vec<&str> = cmd
+        .get_subcommands()
+        .map(|c| c.get_name())
+        .filter(|n| *n != "help")
+        .collect();
+    format!(
+        "error: `{}` needs a subcommand: {} (see --help)",
+        path.join(" "),
+        subs.join(", ")
+    )
 }
 
 fn main() -> ExitCode {

@@ -138,6 +138,24 @@ fn bad_input_gets_a_clear_error_and_nonzero_exit() {
             "unexpected argument '--frobnicate'",
         ),
         (&["bench", "lod"][..], "not provided: --json"),
+        // Newcomer walk: a missing subcommand printed the whole help with
+        // exit 2, and a negative size was "unexpected argument '-5'".
+        (
+            &[][..],
+            "`brickworld` needs a subcommand: render, run, init",
+        ),
+        (
+            &["bench"][..],
+            "`brickworld bench` needs a subcommand: tracers, lod",
+        ),
+        (
+            &["verify"][..],
+            "`brickworld verify` needs a subcommand: sims",
+        ),
+        (
+            &["render", "--size", "-5x64x64"][..],
+            "invalid --size '-5x64x64'",
+        ),
         (&["render", "--fov", "-1"][..], "invalid --fov '-1'"),
         (&["render", "--threads", "-2"][..], "invalid --threads '-2'"),
         (&["render", "--lod", "1e-40"][..], "invalid --lod '1e-40'"),
@@ -1162,11 +1180,11 @@ fn scratch_directories_that_brickworld_did_not_make_are_not_deleted() {
         &[
             "bench", "store", "--json", j, "--size", "64x32x64", "--dir", c,
         ],
-        "was not made by brickworld",
+        "is not scratch space of this command",
     );
     expect_failure(
         &["soak", "--minutes", "1", "--json", j, "--state", c],
-        "was not made by brickworld",
+        "is not scratch space of this command",
     );
     assert_eq!(
         std::fs::read_to_string(canary.join("precious.txt")).unwrap(),
@@ -2117,8 +2135,8 @@ fn bench_gpu_refuses_bad_input_up_front() {
             .collect::<Vec<_>>()
     };
     for (extra, msg) in [
-        (&["--width", "0"][..], "invalid image size"),
-        (&["--height", "9000"][..], "invalid image size"),
+        (&["--width", "0"][..], "invalid --width x --height 0x"),
+        (&["--height", "9000"][..], "invalid --width x --height"),
         (&["--frames", "0"][..], "invalid --frames"),
         (&["--frames", "1001"][..], "invalid --frames"),
         (&["--uploads", "0"][..], "invalid --uploads"),

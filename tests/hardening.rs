@@ -1055,12 +1055,21 @@ fn until_tick_at_or_below_the_world_tick_runs_nothing() {
     let (said, err) = run_ok(&cfg, &state, "--until-tick", 0);
     assert!(said.contains("stopped at tick 0 "), "{said}");
     assert!(err.contains("already at tick 0: nothing to run"), "{err}");
+    // Nor does it say it is running (newcomer walk).
+    assert!(
+        !said.contains("is running") && !err.contains("is running"),
+        "{said}"
+    );
     let (said, _) = run_ok(&cfg, &state, "--until-tick", 5);
     assert!(said.contains("stopped at tick 5 "), "{said}");
     // A target behind the restored tick leaves the world where it is.
     let (said, err) = run_ok(&cfg, &state, "--until-tick", 3);
     assert!(said.contains("stopped at tick 5 "), "{said}");
     assert!(err.contains("already at tick 5"), "{err}");
+    assert!(
+        !said.contains("is running") && !err.contains("is running"),
+        "{said}"
+    );
 }
 
 /// A failure streak committed with the state shows as "failing" after a
@@ -1416,6 +1425,22 @@ fn a_refused_start_removes_only_the_state_directory_it_made() {
         &out,
         "an unknown place material",
         "world.toml: place[0].material: unknown material 'unobtainium'",
+    );
+    // And a parameter the script does not declare names the file too
+    // (newcomer walk: "in the world config's scripts[0].params" did not).
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    let start = text.find("[[place]]").unwrap();
+    let text = text[..start].replace("rain = 0.2", "rian = 0.2");
+    std::fs::write(&cfg, text).unwrap();
+    let out = run_cmd(&cfg, &state)
+        .arg("--ticks")
+        .arg("1")
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(
+        &out,
+        "an undeclared parameter",
+        "world.toml: scripts[0].params: water.lua: no parameter 'rian'",
     );
     std::fs::create_dir_all(&state).unwrap();
     std::fs::write(state.join("notes.txt"), "mine").unwrap();

@@ -16,7 +16,7 @@ pub(super) fn run_bench_stream(a: &crate::cli::BenchStreamArgs) -> Result<()> {
     }
     if a.width == 0 || a.height == 0 || a.width > 8192 || a.height > 8192 {
         anyhow::bail!(
-            "invalid image size {}x{}: each side must be in 1..=8192",
+            "invalid --width x --height {}x{}: each side must be in 1..=8192",
             a.width,
             a.height
         );

@@ -221,8 +221,9 @@ pub fn fresh_scratch_dir(dir: &Path) -> Result<(), String> {
                 .is_none();
             if !empty && !dir.join(SCRATCH_MARKER).is_file() {
                 return Err(format!(
-                    "{shown} already exists and was not made by brickworld (no {SCRATCH_MARKER} in it): \
-                     name a new or empty directory, or remove it yourself"
+                    "{shown} holds files and is not scratch space of this command (no {SCRATCH_MARKER} in it; \
+                     it empties the directory it is given, so it takes a new or empty one, or one it made): \
+                     name another, or empty it yourself"
                 ));
             }
             std::fs::remove_dir_all(dir).map_err(|e| format!("cannot empty {shown}: {e}"))?;
@@ -305,7 +306,7 @@ mod tests {
         std::fs::create_dir_all(&theirs).unwrap();
         std::fs::write(theirs.join("precious.txt"), "keep").unwrap();
         let e = fresh_scratch_dir(&theirs).unwrap_err();
-        assert!(e.contains("was not made by brickworld"), "{e}");
+        assert!(e.contains("is not scratch space of this command"), "{e}");
         assert_eq!(
             std::fs::read_to_string(theirs.join("precious.txt")).unwrap(),
             "keep"

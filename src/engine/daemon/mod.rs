@@ -198,14 +198,9 @@ pub struct Engine {
 impl Engine {
     /// The loop: stages in order until stopped, then [`finish`](Self::finish).
     pub fn run(mut self) -> Result<()> {
-        if self.reached_stop() {
-            // `--until-tick` at or below the restored tick: nothing to run
-            // (regression: one tick ran before the check).
-            crate::say!(
-                "the world is already at tick {}: nothing to run",
-                self.ws.sim.tick()
-            );
-        }
+        // `--until-tick` at or below the restored tick stops before the
+        // first step (regression: one tick ran before the check); the
+        // start said so.
         loop {
             if self.shared.shutdown.load(Ordering::Relaxed) || self.reached_stop() {
                 break;

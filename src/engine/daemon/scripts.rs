@@ -81,7 +81,7 @@ pub(crate) fn load_scripts(
         ws.set_every(id, s.every);
         for (k, v) in &s.params {
             ws.set_param(id, k, *v)
-                .with_context(|| format!("in the world config's scripts[{i}].params"))?;
+                .with_context(|| format!("{}: scripts[{i}].params", cfg.file))?;
         }
     }
     Ok(())

@@ -167,8 +167,17 @@ impl Engine {
         // A stop asked for while the world loaded: the engine commits and
         // ends before its first step, so it does not say it is running
         // (regression: it printed the viewer's address, then stopped).
+        // `--until-tick` at or below the restored tick: nothing runs, so
+        // the engine does not say it is running either (newcomer walk: it
+        // printed the viewer's address, then "nothing to run").
+        let nothing_to_run = opts.until_tick.is_some_and(|t| ws.sim.tick() >= t);
         if shared.shutdown.load(Ordering::Relaxed) {
             crate::say!("the world is loaded: stopping, as asked during the start");
+        } else if nothing_to_run {
+            crate::say!(
+                "the world is already at tick {}: nothing to run",
+                ws.sim.tick()
+            );
         } else {
             crate::tell!(
                 "brickworld is running: viewer http://{}/ (control token in {}: {token})",
@@ -176,7 +185,7 @@ impl Engine {
                 token_path.display()
             );
         }
-        if opts.paused && !shared.shutdown.load(Ordering::Relaxed) {
+        if opts.paused && !shared.shutdown.load(Ordering::Relaxed) && !nothing_to_run {
             crate::say!(
                 "paused at tick {}: `{ctl} resume` or `{ctl} step N` runs it",
                 ws.sim.tick()
