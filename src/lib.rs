@@ -30,7 +30,7 @@ pub mod trace;
 pub mod verify;
 pub mod world;
 
-pub mod runtime_dir;
+pub mod process_env;
 
 /// `eprintln!` that never panics: standard error that is full or closed
 /// (`2>/dev/full`, `2>&1 | head -1`) loses the line, not the run, whose

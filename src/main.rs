@@ -74,9 +74,10 @@ fn missing_subcommand(args: impl Iterator<Item = String>) -> String {
 fn main() -> ExitCode {
     brickworld::install_panic_hook();
     brickworld::files::no_signal_past_file_size_limit();
-    // Mesa prints "XDG_RUNTIME_DIR is invalid" (twice) when the variable is
-    // missing, which reads like a failure: give it a private directory.
-    brickworld::runtime_dir::ensure();
+    // One re-exec where the environment lacks what the process needs: a
+    // private XDG_RUNTIME_DIR for Mesa, glibc's mmap threshold for the
+    // engine (see the module).
+    brickworld::process_env::ensure();
     let cli = match parse() {
         Ok(cli) => cli,
         Err(code) => return code,

@@ -1353,3 +1353,36 @@ fn a_dead_render_thread_is_reported_and_the_simulation_goes_on() {
     assert_eq!(err.matches("the render thread stopped").count(), 1, "{err}");
     assert!(stored_tick(&cfg, &state).unwrap() >= tick + 50);
 }
+
+/// The engine runs with glibc's mmap threshold fixed (the memory budget's
+/// fix for a heap that fragmented under teleports), through one re-exec
+/// that keeps the pid; a threshold the user chose is left alone.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[test]
+fn the_engine_runs_with_a_fixed_mmap_threshold_unless_the_user_chose_one() {
+    let (cfg, state, addr) = setup("mmap");
+    // The engine's environment once it answers, as `/proc` shows it.
+    let environ = |user: Option<&str>| -> Vec<String> {
+        let mut cmd = run_cmd(&cfg, &state);
+        cmd.env_remove("GLIBC_TUNABLES");
+        match user {
+            Some(v) => cmd.env("MALLOC_MMAP_THRESHOLD_", v),
+            None => cmd.env_remove("MALLOC_MMAP_THRESHOLD_"),
+        };
+        let d = spawn(&mut cmd);
+        wait_ready(&addr);
+        let text = std::fs::read(format!("/proc/{}/environ", d.id())).unwrap();
+        let out = stop(d);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        text.split(|&b| b == 0)
+            .map(|v| String::from_utf8_lossy(v).into_owned())
+            .filter(|v| v.starts_with("MALLOC_MMAP_THRESHOLD_="))
+            .collect()
+    };
+    assert_eq!(environ(None), ["MALLOC_MMAP_THRESHOLD_=131072"]);
+    assert_eq!(environ(Some("65536")), ["MALLOC_MMAP_THRESHOLD_=65536"]);
+}
