@@ -292,7 +292,7 @@ pub struct BenchVoxelsArgs {
     #[arg(long)]
     pub json: PathBuf,
     /// World size XxYxZ in voxels (X and Z multiples of 16 of at least 32, Y at least 48; the pool fills y < 40)
-    #[arg(long, default_value = "256x48x256", allow_hyphen_values = true)]
+    #[arg(long, default_value = "256x48x256")]
     pub size: String,
     /// Timed steps per measurement
     #[arg(long, default_value_t = 10)]
@@ -309,7 +309,7 @@ pub struct BenchStoreArgs {
     #[arg(long)]
     pub json: PathBuf,
     /// Terrain size XxYxZ in voxels
-    #[arg(long, default_value = "2048x256x2048", allow_hyphen_values = true)]
+    #[arg(long, default_value = "2048x256x2048")]
     pub size: String,
     /// Dirty chunks per commit
     #[arg(long, default_value_t = 1000)]
@@ -412,7 +412,7 @@ pub struct SceneArgs {
     #[arg(long, default_value = "terrain")]
     pub scene: String,
     /// Scene size XxYxZ in voxels, Y up (procedural scenes only)
-    #[arg(long, allow_hyphen_values = true)]
+    #[arg(long)]
     pub size: Option<String>,
     /// Seed for procedural scenes
     #[arg(long, default_value_t = 1)]

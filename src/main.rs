@@ -26,7 +26,11 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
         ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
             // `brickworld`, `brickworld bench` …: one line naming the
             // subcommands, exit 1 (newcomer walk: the whole help, exit 2).
-            brickworld::say!("{}", missing_subcommand(std::env::args().skip(1)));
+            let args = std::env::args_os().skip(1);
+            brickworld::say!(
+                "{}",
+                missing_subcommand(args.map(|a| a.to_string_lossy().into_owned()))
+            );
             ExitCode::FAILURE
         }
         _ => {

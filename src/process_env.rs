@@ -23,12 +23,18 @@
 //!   every 0.2 s for 150 s under a 250 MiB budget (`worlds/endless.toml`):
 //!   RSS peaked at 347 MiB with glibc's default, 329 with two arenas
 //!   (`MALLOC_ARENA_MAX=2`), and **268** with the fixed threshold, where
-//!   the cache also kept 35 MB instead of 22 at the same tick rate.
+//!   the cache also kept 35 MB instead of 22 at the same tick rate (a
+//!   7.5-minute run with the binary setting it itself: peak 271 MiB).
+//!   mimalloc as the global allocator was worse (peak 404 MiB, the cache
+//!   squeezed to 3 MB), so glibc stays.
+//!
+//! The re-exec is skipped where it cannot run the program as itself (see
+//! [`re_executable`]); the settings are then simply absent.
 
 use std::path::{Path, PathBuf};
 
 /// Marks the re-executed process, so that it never loops.
-const MARK: &str = "BRICKWORLD_RUNTIME_DIR_SET";
+const MARK: &str = "BRICKWORLD_ENV_SET";
 
 /// Whether `v` names a usable runtime directory.
 pub fn usable(v: Option<&std::ffi::OsStr>) -> bool {
@@ -79,13 +85,39 @@ pub fn ensure() {
         let Ok(exe) = std::env::current_exe() else {
             return;
         };
+        if !re_executable(&exe) {
+            return;
+        }
+        let mut args = std::env::args_os();
+        let mut cmd = std::process::Command::new(exe);
+        if let Some(arg0) = args.next() {
+            // The name the user ran, for usage lines (review: a link's
+            // name became "brickworld").
+            cmd.arg0(arg0);
+        }
         // Returns only if the exec failed: then go on as we are.
-        let _ = std::process::Command::new(exe)
-            .args(std::env::args_os().skip(1))
-            .envs(set)
-            .env(MARK, "1")
-            .exec();
+        let _ = cmd.args(args).envs(set).env(MARK, "1").exec();
     }
+}
+
+/// Whether the program at `exe` (`current_exe`) can be run again as
+/// itself: not when it was started through the dynamic loader
+/// (`ld-linux-x86-64.so.2 brickworld …`, where `exe` is the loader, and
+/// re-running it with the arguments would run the loader on `run`;
+/// review), nor when the file is gone or replaced (`… (deleted)`).
+/// Skipping the re-exec only forgoes its settings; an exec that fails
+/// anyway (an environment past the kernel's limit, a policy that denies
+/// `execve`) returns, and the program goes on, but with SIGPIPE back at
+/// its default, which `std` resets before `execve` and cannot restore
+/// without `unsafe`: a closed standard output then ends the process
+/// instead of failing its writes.
+pub fn re_executable(exe: &Path) -> bool {
+    let name = exe
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let loader = name.starts_with("ld-") || name.starts_with("ld.so");
+    !loader && exe.is_file()
 }
 
 /// `TMPDIR/brickworld-runtime-UID`, created 0700, or `None` if it exists
@@ -123,6 +155,15 @@ mod tests {
         assert!(!wants_mmap_threshold(Some("run".as_ref()), tunables));
         let other = |k: &str| (k == "GLIBC_TUNABLES").then(|| "glibc.malloc.arena_max=2".into());
         assert_eq!(wants_mmap_threshold(Some("run".as_ref()), other), glibc);
+    }
+
+    /// The loader and a deleted binary are not run again.
+    #[test]
+    fn the_loader_and_a_deleted_binary_are_not_re_executed() {
+        assert!(re_executable(&std::env::current_exe().unwrap()));
+        assert!(!re_executable(Path::new("/lib64/ld-linux-x86-64.so.2")));
+        assert!(!re_executable(Path::new("/usr/lib/ld.so")));
+        assert!(!re_executable(Path::new("/tmp/brickworld (deleted)")));
     }
 
     #[test]

@@ -242,9 +242,12 @@ impl GpuBrickmap {
     /// full of other sizes' holes cannot take a brick (regression test
     /// `an_arena_full_of_another_sizes_holes_is_compacted`: every admit
     /// evicted four bricks and failed). When the arena is what is short,
-    /// least recently seen bricks are evicted until a quarter of it is
-    /// holes, and it is compacted once: each compaction reclaims a quarter
-    /// of the arena, so its cost is O(1) a freed byte.
+    /// and evicting bricks not seen this frame can free a quarter of it,
+    /// the least recently seen of those that hold material blocks are
+    /// evicted until a quarter of it (below the GPU's size) is holes, and
+    /// it is compacted once: each compaction reclaims a quarter of the
+    /// arena, so its cost is O(1) a freed byte. Otherwise, as for slots,
+    /// four evictions at most.
     fn admit(
         &mut self,
         ctx: &GpuContext,
@@ -253,6 +256,8 @@ impl GpuBrickmap {
         stats: &mut FrameStats,
     ) -> Result<Option<u32>, GpuError> {
         let (mut evicted, mut compacted) = (0, false);
+        // Whether evictions can reach a compaction; decided once.
+        let mut reachable: Option<bool> = None;
         loop {
             let frame_no = self.frame_no;
             let res = self.residency.as_mut().expect("streaming");
@@ -315,17 +320,34 @@ impl GpuBrickmap {
                 let len = res.mirror.arena_block(id.index()).map_or(0, |(_, l)| l);
                 res.mirror.remove(id);
                 arena_short = id.index() < res.cfg.pool_slots;
-                if arena_short && !compacted && res.mirror.arena_holes() >= (cap / 4).max(len) {
-                    self.compact_arena(ctx, stats);
-                    compacted = true;
-                    continue;
+                if arena_short && !compacted {
+                    // Only holes inside the GPU's arena count (a failed
+                    // insert leaves its block past it).
+                    let (target, holes) = ((cap / 4).max(len), res.mirror.arena_holes_below(cap));
+                    if holes >= target {
+                        self.compact_arena(ctx, stats);
+                        compacted = true;
+                        continue;
+                    }
+                    let mirror = &res.mirror;
+                    reachable.get_or_insert_with(|| {
+                        let evictable: usize = (res.owner.keys())
+                            .filter(|s| res.last_seen[**s as usize] < frame_no)
+                            .filter_map(|s| mirror.arena_block(*s))
+                            .map(|(_, l)| l)
+                            .sum();
+                        holes + evictable >= target
+                    });
                 }
             }
-            // Evict the least recently seen resident brick not seen this frame.
+            let chasing = arena_short && !compacted && reachable == Some(true);
+            // Evict the least recently seen resident brick not seen this
+            // frame; towards a compaction, one that holds a material block.
             let victim = res
                 .owner
                 .iter()
                 .filter(|(slot, _)| res.last_seen[**slot as usize] < frame_no)
+                .filter(|(slot, _)| !chasing || res.mirror.arena_block(**slot).is_some())
                 .min_by_key(|(slot, _)| (res.last_seen[**slot as usize], **slot))
                 .map(|(s, i)| (*s, *i));
             let Some((_, victim_index)) = victim else {
@@ -341,7 +363,7 @@ impl GpuBrickmap {
             stats.evictions += 1;
             evicted += 1;
             // Past four evictions, go on only towards a compaction.
-            if evicted >= 4 && (compacted || !arena_short) {
+            if evicted >= 4 && !chasing {
                 return Ok(None);
             }
         }
@@ -355,8 +377,8 @@ impl GpuBrickmap {
         };
         res.mirror.compact_arena();
         let (_, meta, arena) = res.mirror.raw();
-        // The mirror may hold slots past the GPU's (inserts that did not
-        // fit, removed at once); their metadata is that of free slots.
+        // Never more slots than the GPU's (an insert past them is removed
+        // at once, and its slot reused first); bounded all the same.
         let meta = &meta[..meta.len().min(res.cfg.pool_slots as usize)];
         ctx.queue
             .write_buffer(&self.meta, 0, bytemuck::cast_slice(meta));
@@ -629,6 +651,59 @@ mod tests {
             bytemuck::cast_slice::<_, u8>(&meta[..n]),
             "metadata"
         );
+    }
+
+    /// When the bricks this frame has not seen hold too little to free a
+    /// quarter of the arena, an admit that finds the arena short evicts
+    /// four of them at most, as for slots, instead of every one of them
+    /// (review: it chased a compaction it could not reach).
+    #[test]
+    fn an_arena_that_cannot_reach_a_compaction_evicts_four_bricks_at_most() {
+        let Some(ctx) = context() else { return };
+        let w = terrain();
+        let cfg = StreamConfig {
+            pool_slots: 256,
+            arena_bytes: 16384,
+            max_pool_slots: 256,
+            ..StreamConfig::default()
+        };
+        let mut g =
+            GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg)
+                .unwrap();
+        let brick = |k: usize, salt: usize| {
+            let d: [u8; BRICK_VOXELS] = std::array::from_fn(|i| 1 + ((i + salt) % k) as u8);
+            match BrickContent::from_dense(&d, &Palette::grey_ramp()) {
+                BrickContent::Mixed(b) => b,
+                _ => unreachable!(),
+            }
+        };
+        let mut stats = FrameStats::default();
+        // 40 two-material bricks (80-byte blocks, 3 200 bytes) seen long ago.
+        g.frame_no = 1;
+        for i in 0..40 {
+            assert!(
+                g.admit(&ctx, i, brick(2, i as usize), &mut stats)
+                    .unwrap()
+                    .is_some()
+            );
+        }
+        // This frame's: 18 of 200 materials (720 bytes each).
+        g.frame_no = 2;
+        for i in 40..58 {
+            assert!(
+                g.admit(&ctx, i, brick(200, i as usize), &mut stats)
+                    .unwrap()
+                    .is_some()
+            );
+        }
+        // One of 100 materials (560 bytes) does not fit, and the old
+        // bricks' 3 200 bytes cannot make the 4 096 of a compaction.
+        let before = stats.evictions;
+        let got = g.admit(&ctx, 58, brick(100, 58), &mut stats).unwrap();
+        assert!(got.is_none());
+        assert_eq!(stats.evictions - before, 4, "{stats:?}");
+        assert_eq!(stats.compactions, 0);
+        assert_eq!(g.resident(), 40 + 18 - 4);
     }
 
     /// On a device whose storage buffers are small, the default pool

@@ -400,7 +400,10 @@ impl GpuBrickmap {
 
     /// Of [`gpu_bytes_used`](Self::gpu_bytes_used), the bytes of the bricks
     /// the last frame's rays touched (its working set), with the grid,
-    /// and how many bricks that is. `None` unless streaming.
+    /// and how many bricks that is. Bricks uploaded after that frame carry
+    /// its stamp too, so this is the working set only after a frame that
+    /// asked for nothing (as `bench stream` takes it). `None` unless
+    /// streaming.
     pub fn working_set(&self) -> Option<(u64, u32)> {
         let r = self.residency.as_ref()?;
         let fixed = self.grid.size() + self.coarse.size() + self.palette.size();

@@ -69,6 +69,17 @@ impl MaterialArena {
         self.holes
     }
 
+    /// Bytes in freed blocks that end at or below `limit` (a copy of the
+    /// arena that holds only its first `limit` bytes sees only these).
+    pub(super) fn holes_below(&self, limit: usize) -> usize {
+        let mut sum = 0;
+        for (class, offs) in self.free.iter().enumerate() {
+            let len = (class + 1) * CLASS;
+            sum += offs.iter().filter(|&&o| o as usize + len <= limit).count() * len;
+        }
+        sum
+    }
+
     /// Whether holes are over half the arena (and at least 64 KiB): the
     /// point where [`compact`](Self::compact) at least halves it. Checked
     /// after each free, compaction costs amortised O(1) a freed byte.

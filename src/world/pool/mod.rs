@@ -97,6 +97,13 @@ impl BrickPool {
         self.arena.holes()
     }
 
+    /// Of [`arena_holes`](Self::arena_holes), the bytes in blocks that end
+    /// at or below `limit`: what compaction frees in a copy of the arena
+    /// that holds only its first `limit` bytes (a GPU's).
+    pub fn arena_holes_below(&self, limit: usize) -> usize {
+        self.arena.holes_below(limit)
+    }
+
     /// Whether the arena's holes are over half of it (and at least
     /// 64 KiB), the point where [`compact_arena`](Self::compact_arena)
     /// pays.
