@@ -1391,11 +1391,13 @@ fn a_manifest_copy_that_cannot_be_written_is_a_warning() {
 fn a_refused_start_removes_only_the_state_directory_it_made() {
     let (cfg, state, _) = setup("refused-start");
     edit_config(&cfg, "file = \"water.lua\"", "file = \"missing.lua\"");
-    let out = run_cmd(&cfg, &state)
-        .arg("--ticks")
-        .arg("1")
-        .output()
-        .unwrap();
+    let one_tick = || {
+        run_cmd(&cfg, &state)
+            .args(["--ticks", "1"])
+            .output()
+            .unwrap()
+    };
+    let out = one_tick();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     // No line known: no `:?` after the name (it printed `missing.lua:?:`);
@@ -1416,11 +1418,7 @@ fn a_refused_start_removes_only_the_state_directory_it_made() {
     let mut text = std::fs::read_to_string(&cfg).unwrap();
     text.push_str("[[place]]\nmaterial = \"unobtainium\"\nat = [1, 1, 1]\n");
     std::fs::write(&cfg, text).unwrap();
-    let out = run_cmd(&cfg, &state)
-        .arg("--ticks")
-        .arg("1")
-        .output()
-        .unwrap();
+    let out = one_tick();
     common::cli::assert_clear_failure(
         &out,
         "an unknown place material",
@@ -1432,11 +1430,7 @@ fn a_refused_start_removes_only_the_state_directory_it_made() {
     let start = text.find("[[place]]").unwrap();
     let text = text[..start].replace("rain = 0.2", "rian = 0.2");
     std::fs::write(&cfg, text).unwrap();
-    let out = run_cmd(&cfg, &state)
-        .arg("--ticks")
-        .arg("1")
-        .output()
-        .unwrap();
+    let out = one_tick();
     common::cli::assert_clear_failure(
         &out,
         "an undeclared parameter",
@@ -1444,11 +1438,7 @@ fn a_refused_start_removes_only_the_state_directory_it_made() {
     );
     std::fs::create_dir_all(&state).unwrap();
     std::fs::write(state.join("notes.txt"), "mine").unwrap();
-    let out = run_cmd(&cfg, &state)
-        .arg("--ticks")
-        .arg("1")
-        .output()
-        .unwrap();
+    let out = one_tick();
     assert!(!out.status.success());
     assert!(state.join("notes.txt").exists());
 }

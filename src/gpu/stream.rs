@@ -522,6 +522,42 @@ mod tests {
         .unwrap()
     }
 
+    /// A streaming pool of 256 slots (its cap) and a 16 KiB arena.
+    fn small_arena_pool(ctx: &GpuContext, w: &crate::scene::SceneWorld) -> GpuBrickmap {
+        let cfg = StreamConfig {
+            pool_slots: 256,
+            arena_bytes: 16384,
+            max_pool_slots: 256,
+            ..StreamConfig::default()
+        };
+        GpuBrickmap::streaming(ctx, w.grid(), w.store().pool(), w.store().palette(), cfg).unwrap()
+    }
+
+    /// A full brick of `k` materials (its arena block grows with `k`),
+    /// shifted by `salt`.
+    fn brick(k: usize, salt: usize) -> crate::world::Brick {
+        let d: [u8; BRICK_VOXELS] = std::array::from_fn(|i| 1 + ((i + salt) % k) as u8);
+        match BrickContent::from_dense(&d, &Palette::grey_ramp()) {
+            BrickContent::Mixed(b) => b,
+            _ => unreachable!("a full brick of several materials is mixed"),
+        }
+    }
+
+    /// In frame `frame`, admit a brick of `k` materials for each grid
+    /// index of `indices`, requiring each to be admitted.
+    fn admit_all(
+        ctx: &GpuContext,
+        g: &mut GpuBrickmap,
+        (frame, indices, k): (u32, std::ops::Range<u32>, usize),
+        stats: &mut FrameStats,
+    ) {
+        g.frame_no = frame;
+        for i in indices {
+            let slot = g.admit(ctx, i, brick(k, i as usize), stats).unwrap();
+            assert!(slot.is_some(), "brick {i} not admitted: {stats:?}");
+        }
+    }
+
     /// A GPU context, or `None` (a skip, unless `BRICKWORLD_REQUIRE_GPU=1`).
     fn context() -> Option<GpuContext> {
         match GpuContext::new() {
@@ -591,38 +627,12 @@ mod tests {
     fn an_arena_full_of_another_sizes_holes_is_compacted() {
         let Some(ctx) = context() else { return };
         let w = terrain();
-        let cfg = StreamConfig {
-            pool_slots: 256,
-            arena_bytes: 16384,
-            max_pool_slots: 256,
-            ..StreamConfig::default()
-        };
-        let mut g =
-            GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg)
-                .unwrap();
-        let brick = |k: usize, salt: usize| {
-            let d: [u8; BRICK_VOXELS] = std::array::from_fn(|i| 1 + ((i + salt) % k) as u8);
-            match BrickContent::from_dense(&d, &Palette::grey_ramp()) {
-                BrickContent::Mixed(b) => b,
-                _ => unreachable!(),
-            }
-        };
+        let mut g = small_arena_pool(&ctx, &w);
         let mut stats = FrameStats::default();
         // 200 materials: 720-byte blocks, 22 of them fill 16 KiB.
-        g.frame_no = 1;
-        for i in 0..20 {
-            assert!(
-                g.admit(&ctx, i, brick(200, i as usize), &mut stats)
-                    .unwrap()
-                    .is_some()
-            );
-        }
+        admit_all(&ctx, &mut g, (1, 0..20, 200), &mut stats);
         // Two materials: 80-byte blocks.
-        g.frame_no = 2;
-        for i in 20..120 {
-            let slot = g.admit(&ctx, i, brick(2, i as usize), &mut stats).unwrap();
-            assert!(slot.is_some(), "brick {i} not admitted: {stats:?}");
-        }
+        admit_all(&ctx, &mut g, (2, 20..120, 2), &mut stats);
         assert!(stats.compactions > 0, "{stats:?}");
         let res = g.residency.as_ref().expect("streaming");
         assert_eq!(res.mirror.arena_holes(), 0);
@@ -661,41 +671,12 @@ mod tests {
     fn an_arena_that_cannot_reach_a_compaction_evicts_four_bricks_at_most() {
         let Some(ctx) = context() else { return };
         let w = terrain();
-        let cfg = StreamConfig {
-            pool_slots: 256,
-            arena_bytes: 16384,
-            max_pool_slots: 256,
-            ..StreamConfig::default()
-        };
-        let mut g =
-            GpuBrickmap::streaming(&ctx, w.grid(), w.store().pool(), w.store().palette(), cfg)
-                .unwrap();
-        let brick = |k: usize, salt: usize| {
-            let d: [u8; BRICK_VOXELS] = std::array::from_fn(|i| 1 + ((i + salt) % k) as u8);
-            match BrickContent::from_dense(&d, &Palette::grey_ramp()) {
-                BrickContent::Mixed(b) => b,
-                _ => unreachable!(),
-            }
-        };
+        let mut g = small_arena_pool(&ctx, &w);
         let mut stats = FrameStats::default();
         // 40 two-material bricks (80-byte blocks, 3 200 bytes) seen long ago.
-        g.frame_no = 1;
-        for i in 0..40 {
-            assert!(
-                g.admit(&ctx, i, brick(2, i as usize), &mut stats)
-                    .unwrap()
-                    .is_some()
-            );
-        }
+        admit_all(&ctx, &mut g, (1, 0..40, 2), &mut stats);
         // This frame's: 18 of 200 materials (720 bytes each).
-        g.frame_no = 2;
-        for i in 40..58 {
-            assert!(
-                g.admit(&ctx, i, brick(200, i as usize), &mut stats)
-                    .unwrap()
-                    .is_some()
-            );
-        }
+        admit_all(&ctx, &mut g, (2, 40..58, 200), &mut stats);
         // One of 100 materials (560 bytes) does not fit, and the old
         // bricks' 3 200 bytes cannot make the 4 096 of a compaction.
         let before = stats.evictions;

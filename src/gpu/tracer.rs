@@ -383,19 +383,24 @@ impl GpuBrickmap {
     /// Bytes of GPU memory in use: the grid and its coarse levels, plus the
     /// resident bricks (64-byte mask, 16-byte metadata, material block).
     pub fn gpu_bytes_used(&self) -> u64 {
-        let fixed = self.grid.size() + self.coarse.size() + self.palette.size();
         match &self.residency {
-            Some(r) => {
-                let arena: u64 = r
-                    .owner
-                    .keys()
-                    .filter_map(|s| r.mirror.arena_block(*s))
-                    .map(|(_, len)| len as u64)
-                    .sum();
-                fixed + r.mirror.len() as u64 * (64 + META_BYTES) + arena
-            }
+            Some(r) => self.bytes_with(r, |_| true).0,
             None => self.gpu_bytes(),
         }
+    }
+
+    /// The grid and its coarse levels, plus the resident bricks whose slot
+    /// `keep` takes (64-byte mask, metadata, material block); and how
+    /// many bricks that is.
+    fn bytes_with(&self, r: &super::stream::Residency, keep: impl Fn(u32) -> bool) -> (u64, u32) {
+        let fixed = self.grid.size() + self.coarse.size() + self.palette.size();
+        let (mut bytes, mut n) = (fixed, 0u32);
+        for &s in r.owner.keys().filter(|&&s| keep(s)) {
+            let arena = r.mirror.arena_block(s).map_or(0, |(_, len)| len as u64);
+            bytes += 64 + META_BYTES + arena;
+            n += 1;
+        }
+        (bytes, n)
     }
 
     /// Of [`gpu_bytes_used`](Self::gpu_bytes_used), the bytes of the bricks
@@ -406,22 +411,7 @@ impl GpuBrickmap {
     /// streaming.
     pub fn working_set(&self) -> Option<(u64, u32)> {
         let r = self.residency.as_ref()?;
-        let fixed = self.grid.size() + self.coarse.size() + self.palette.size();
-        let seen: Vec<u32> = r
-            .owner
-            .keys()
-            .copied()
-            .filter(|&s| r.last_seen[s as usize] == self.frame_no)
-            .collect();
-        let arena: u64 = seen
-            .iter()
-            .filter_map(|&s| r.mirror.arena_block(s))
-            .map(|(_, len)| len as u64)
-            .sum();
-        Some((
-            fixed + seen.len() as u64 * (64 + META_BYTES) + arena,
-            seen.len() as u32,
-        ))
+        Some(self.bytes_with(r, |s| r.last_seen[s as usize] == self.frame_no))
     }
 
     /// The grid pointers as the GPU holds them (see the shader for the
