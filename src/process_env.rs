@@ -124,9 +124,15 @@ pub fn re_executable(exe: &Path) -> bool {
 /// and is not a directory of ours that only we can read.
 #[cfg(unix)]
 pub fn private_dir() -> Option<PathBuf> {
+    private_dir_in(&std::env::temp_dir())
+}
+
+/// [`private_dir`] under `base`.
+#[cfg(unix)]
+fn private_dir_in(base: &Path) -> Option<PathBuf> {
     use std::os::unix::fs::{DirBuilderExt, MetadataExt, PermissionsExt};
     let uid = std::fs::metadata("/proc/self").ok()?.uid();
-    let dir = std::env::temp_dir().join(format!("brickworld-runtime-{uid}"));
+    let dir = base.join(format!("brickworld-runtime-{uid}"));
     let _ = std::fs::DirBuilder::new().mode(0o700).create(&dir);
     let m = std::fs::symlink_metadata(&dir).ok()?;
     (m.is_dir() && m.uid() == uid && m.permissions().mode() & 0o077 == 0).then_some(dir)
@@ -179,8 +185,16 @@ mod tests {
     #[test]
     fn the_private_dir_is_ours_and_closed_to_others() {
         use std::os::unix::fs::PermissionsExt;
-        let d = private_dir().expect("a private runtime directory");
+        // Under a folder of the test's own: the real one is kept for
+        // later runs, and a test must leave nothing in the temp dir.
+        let base = std::env::temp_dir().join(format!("bw-private-{}", std::process::id()));
+        std::fs::create_dir_all(&base).unwrap();
+        let d = private_dir_in(&base).expect("a private runtime directory");
         let mode = std::fs::metadata(&d).unwrap().permissions().mode();
         assert_eq!(mode & 0o077, 0, "{} is open to others", d.display());
+        // One open to others is refused.
+        std::fs::set_permissions(&d, std::fs::Permissions::from_mode(0o755)).unwrap();
+        assert_eq!(private_dir_in(&base), None);
+        std::fs::remove_dir_all(&base).unwrap();
     }
 }

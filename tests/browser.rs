@@ -40,10 +40,9 @@ const DIFF_LEVEL: i32 = 24;
 
 /// A world with a copy of the water script (the test breaks it), frames
 /// large enough to see.
-fn world(name: &str) -> (PathBuf, PathBuf, String, PathBuf) {
-    let dir =
-        std::env::temp_dir().join(format!("brickworld-browser-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+fn world(name: &str) -> (common::scratch::Scratch, PathBuf, PathBuf, String, PathBuf) {
+    let scratch = common::scratch::Scratch::dir(&format!("browser-{name}"));
+    let dir = scratch.to_path_buf();
     let scripts = dir.join("scripts");
     std::fs::create_dir_all(&scripts).unwrap();
     let water = scripts.join("water.lua");
@@ -64,7 +63,7 @@ fn world(name: &str) -> (PathBuf, PathBuf, String, PathBuf) {
         ),
     )
     .unwrap();
-    (cfg, dir.join("state"), addr, water)
+    (scratch, cfg, dir.join("state"), addr, water)
 }
 
 fn save_like_an_editor(path: &Path, text: &str) {
@@ -114,7 +113,7 @@ fn the_viewer_works_in_a_real_browser() {
         eprintln!("no Chromium installed: skipping the browser test (apt-get install chromium)");
         return;
     };
-    let (cfg, state, addr, water) = world("viewer");
+    let (_scratch, cfg, state, addr, water) = world("viewer");
     let daemon: Daemon = start(&cfg, &state);
     wait_ready(&addr);
     let mut b = Browser::start(&exe, W, H);
@@ -410,8 +409,7 @@ fn check_golden(b: &mut Browser) {
     let (w, h, shot) = b.screenshot();
     b.eval("document.getElementById('mask').remove()");
     let golden = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden/viewer_page.png");
-    let out =
-        std::env::temp_dir().join(format!("brickworld-viewer-page-{}.png", std::process::id()));
+    let out = common::cli::tmp("viewer-page", "page.png");
     write_png(&out, w, h, &shot);
     if std::env::var("BRICKWORLD_BLESS").as_deref() == Ok("1") {
         std::fs::copy(&out, &golden).unwrap();

@@ -3,6 +3,10 @@
 //! truncated newest checkpoint is reported and the previous one is used;
 //! a write that fails leaves the previous checkpoints untouched.
 
+#[path = "common/scratch.rs"]
+mod scratch;
+use scratch::Scratch;
+
 use brickworld::engine::checkpoint::{self, CheckpointError, WorldState};
 use brickworld::scene::{SceneSpec, build_scene};
 use brickworld::sim::ChannelStore;
@@ -33,10 +37,9 @@ fn state(tick: u64, seed: u64) -> WorldState {
     }
 }
 
-fn dir(name: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("brickworld-ckpt-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+/// A path `ckpt` (not yet made) in a scratch folder of its own.
+fn dir(name: &str) -> Scratch {
+    Scratch::file(&format!("ckpt-{name}"), "ckpt")
 }
 
 #[test]

@@ -2,12 +2,10 @@
 //! `.npy` convention, and bad input gets one clear line and a non-zero exit,
 //! never a panic.
 
-use std::path::PathBuf;
-
 mod common;
 use common::cli::{assert_clear_failure, assert_success, bin, mkfifo, read_json};
 
-fn tmp(name: &str) -> PathBuf {
+fn tmp(name: &str) -> common::scratch::Scratch {
     common::cli::tmp("cli", name)
 }
 
@@ -537,8 +535,11 @@ fn bad_level_of_detail_values_are_refused() {
 #[test]
 fn no_xdg_runtime_dir_noise_when_the_variable_is_missing() {
     let out_png = common::cli::tmp("xdg", "frame.png");
+    // The private runtime folder is made under the temp dir and kept there
+    // for later runs, as `/run/user` would be: here, the test's own.
     let out = bin()
         .env_remove("XDG_RUNTIME_DIR")
+        .env("TMPDIR", out_png.parent().unwrap())
         .args([
             "render", "--scene", "terrain", "--size", "64x32x64", "--tracer", "gpu",
         ])
@@ -1243,7 +1244,7 @@ fn a_refused_import_leaves_no_state_directory_behind() {
         let fifo = tmp("import-fifo");
         let _ = std::fs::remove_file(&fifo);
         mkfifo(&fifo);
-        for path in [fifo.as_path(), std::env::temp_dir().as_path()] {
+        for path in [fifo.path(), std::env::temp_dir().as_path()] {
             let out = bin()
                 .args(["import", path.to_str().unwrap(), "--state", s])
                 .output()
@@ -1337,6 +1338,9 @@ fn a_materials_file_that_is_not_a_file_is_refused_and_its_errors_say_it_once() {
     let sand = dir.join("sand.lua");
     std::fs::write(&sand, include_str!("../scripts/sand.lua")).unwrap();
     let materials = dir.join("materials.lua");
+    // Not the default sim.png in the working tree (regression: the last,
+    // successful run wrote one into the crate's folder).
+    let png = dir.join("sim.png");
     let args = [
         "sim",
         "--size",
@@ -1345,6 +1349,8 @@ fn a_materials_file_that_is_not_a_file_is_refused_and_its_errors_say_it_once() {
         "1",
         "--script",
         sand.to_str().unwrap(),
+        "--out",
+        png.to_str().unwrap(),
     ];
     std::fs::create_dir(&materials).unwrap();
     // Named once, by its path (hostile probe 3: the name came twice).
@@ -1458,7 +1464,8 @@ fn init_never_writes_through_a_link() {
     expect_failure(&["init", dir.to_str().unwrap()], "already exists");
     assert!(!outside.exists(), "written through the link");
     std::fs::remove_file(dir.join("world.toml")).unwrap();
-    std::os::unix::fs::symlink(tmp("nowhere"), dir.join("scripts")).unwrap();
+    let nowhere = tmp("nowhere");
+    std::os::unix::fs::symlink(&nowhere, dir.join("scripts")).unwrap();
     expect_failure(
         &["init", dir.to_str().unwrap()],
         "exists and is not a directory",
@@ -2082,11 +2089,12 @@ fn the_materials_file_as_a_script_and_a_file_as_the_scripts_folder_are_named() {
 /// updates/s", water drained over the edges) and "-0.000000".
 #[test]
 fn sim_with_voxel_scripts_alone_prints_no_column_figures() {
+    let png = tmp("voxels-alone.png");
     let out = bin()
         .args(["sim", "--size", "64x64x64", "--steps", "3", "--script"])
         .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/sand.lua"))
         .arg("--out")
-        .arg(tmp("voxels-alone.png"))
+        .arg(&png)
         .output()
         .unwrap();
     assert_success(&out);

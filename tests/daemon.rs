@@ -19,7 +19,7 @@ use common::daemon::*;
 
 #[test]
 fn status_pause_step_and_control_errors() {
-    let (cfg, state, addr) = setup("control");
+    let (_scratch, cfg, state, addr) = setup("control");
     let child = start(&cfg, &state);
     wait_ready(&addr);
     let s = status(&addr);
@@ -189,7 +189,7 @@ fn status_pause_step_and_control_errors() {
 
 #[test]
 fn kill_dash_nine_then_restart_resumes_from_the_last_commit() {
-    let (cfg, state, addr) = setup("kill");
+    let (_scratch, cfg, state, addr) = setup("kill");
     let mut child = start(&cfg, &state);
     wait_ready(&addr);
     // Let periodic commits happen, then kill without warning.
@@ -219,7 +219,7 @@ fn kill_dash_nine_then_restart_resumes_from_the_last_commit() {
 /// simulated other tiles than a run that never stopped; found by review).
 #[test]
 fn a_camera_set_through_the_api_survives_a_resume() {
-    let (cfg, state, addr) = setup("camera-resume");
+    let (_scratch, cfg, state, addr) = setup("camera-resume");
     edit_config(&cfg, "[sim]\n", "[sim]\nradius = 12.0\n");
     let child = start(&cfg, &state);
     wait_ready(&addr);
@@ -252,7 +252,7 @@ fn a_camera_set_through_the_api_survives_a_resume() {
 
 #[test]
 fn a_port_in_use_and_a_bad_config_are_clear_errors() {
-    let (cfg, state, old_addr) = setup("port");
+    let (_scratch, cfg, state, old_addr) = setup("port");
     // Hold a port we own for the whole test rather than re-binding the one
     // `setup` probed: a parallel test could have been handed that port since
     // (regression: flaky `AddrInUse` panic at the holder's bind).
@@ -386,7 +386,7 @@ fn wait_for_script(addr: &str, pred: impl Fn(&serde_json::Value) -> bool) -> Dur
 
 #[test]
 fn hot_reload_of_a_changed_and_a_broken_script() {
-    let (cfg, state, addr) = setup("reload");
+    let (_scratch, cfg, state, addr) = setup("reload");
     let scripts = cfg.parent().unwrap().join("scripts");
     std::fs::create_dir_all(&scripts).unwrap();
     let original =
@@ -592,7 +592,7 @@ fn kill_9_at_random_moments_and_mid_commit_loses_nothing_and_resumes_bit_identic
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(6);
-    let (cfg, state, addr) = setup("killtrials");
+    let (_scratch, cfg, state, addr) = setup("killtrials");
     set_commit_every(&cfg, 10);
     let mut rng = 0x9e37_79b9_7f4a_7c15u64;
     let mut last_tick = 0;
@@ -629,7 +629,7 @@ fn kill_9_at_random_moments_and_mid_commit_loses_nothing_and_resumes_bit_identic
     }
     let end = last_tick + 30;
     let resumed = hash_at(&cfg, &state, end);
-    let (cfg2, state2, _) = setup("killtrials-straight");
+    let (_scratch, cfg2, state2, _) = setup("killtrials-straight");
     set_commit_every(&cfg2, 10);
     let straight = hash_at(&cfg2, &state2, end);
     assert_eq!(
@@ -640,7 +640,7 @@ fn kill_9_at_random_moments_and_mid_commit_loses_nothing_and_resumes_bit_identic
 
 #[test]
 fn a_slow_renderer_skips_frames_and_never_holds_up_the_simulation() {
-    let (cfg, state, addr) = setup("slowrender");
+    let (_scratch, cfg, state, addr) = setup("slowrender");
     // A frame every tick, far larger than the 48x32x48 world needs: each
     // frame takes many steps' time.
     edit_config(
@@ -677,7 +677,7 @@ fn a_slow_renderer_skips_frames_and_never_holds_up_the_simulation() {
 /// final commit or leaving a half-written frame behind.
 #[test]
 fn a_stop_gives_the_frame_in_flight_3_s_then_abandons_it() {
-    let (cfg, state, addr) = setup("frameinflight");
+    let (_scratch, cfg, state, addr) = setup("frameinflight");
     // 16 samples of 2048 x 1536 with shadows: about 10 s a frame here.
     edit_config(
         &cfg,
@@ -730,7 +730,7 @@ fn a_stop_gives_the_frame_in_flight_3_s_then_abandons_it() {
 #[test]
 fn the_token_printed_at_start_is_the_one_the_state_directory_holds() {
     use std::io::BufRead;
-    let (cfg, state, addr) = setup("tokenline");
+    let (_scratch, cfg, state, addr) = setup("tokenline");
     let child = run_cmd(&cfg, &state)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -762,7 +762,7 @@ fn the_token_printed_at_start_is_the_one_the_state_directory_holds() {
 /// given; an `--addr` given still wins.
 #[test]
 fn ctl_finds_an_engine_on_port_0_through_its_state_directory() {
-    let (cfg, state, addr) = setup("port0");
+    let (_scratch, cfg, state, addr) = setup("port0");
     edit_config(
         &cfg,
         &format!("addr = \"{addr}\""),
@@ -802,7 +802,7 @@ fn ctl_finds_an_engine_on_port_0_through_its_state_directory() {
 /// engine's divided by the script's `every`.
 #[test]
 fn a_scripts_rate_counts_its_own_runs() {
-    let (cfg, state, addr) = setup("script-rate");
+    let (_scratch, cfg, state, addr) = setup("script-rate");
     add_script(
         &cfg,
         "slow.lua",
@@ -841,7 +841,7 @@ fn a_scripts_rate_counts_its_own_runs() {
 /// (regression: values before the refused one stayed applied).
 #[test]
 fn a_parameter_a_reload_narrowed_meanwhile_gets_409() {
-    let (cfg, state, addr) = setup("paramrace");
+    let (_scratch, cfg, state, addr) = setup("paramrace");
     let script = |max: u32| {
         format!(
             "return {{ channels = {{ \"s\" }}, params = {{ j = {{ default = 0, min = 0, max = 100000 }}, k = {{ default = 1, min = 0, max = {max} }} }},\n\
@@ -909,7 +909,7 @@ fn a_parameter_a_reload_narrowed_meanwhile_gets_409() {
 /// cause. `/status` and the log now say it.
 #[test]
 fn a_script_past_the_sub_step_cap_is_told_why() {
-    let (cfg, state, addr) = setup("substepcap");
+    let (_scratch, cfg, state, addr) = setup("substepcap");
     edit_config(
         &cfg,
         "params = { rain = 0.2 }",
@@ -933,7 +933,7 @@ fn a_script_past_the_sub_step_cap_is_told_why() {
 /// create /dev/null: File exists", naming no field.
 #[test]
 fn a_frames_dir_that_is_not_a_folder_names_its_field() {
-    let (cfg, state, _) = setup("framesdir");
+    let (_scratch, cfg, state, _) = setup("framesdir");
     edit_config(
         &cfg,
         "[frames]\nevery = 5",
@@ -953,7 +953,7 @@ fn a_frames_dir_that_is_not_a_folder_names_its_field() {
 /// here is not a multiple of 40, so only the final commit can hold it).
 #[test]
 fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
-    let (cfg, state, addr) = setup("finalcommit");
+    let (_scratch, cfg, state, addr) = setup("finalcommit");
     for sig in ["-TERM", "-INT"] {
         let mut d = start(&cfg, &state);
         wait_ready(&addr);
@@ -1016,7 +1016,7 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
 /// A resume now drops the rows after its tick, and a cut last row.
 #[test]
 fn a_resume_drops_the_timeline_rows_it_will_run_again() {
-    let (cfg, state, _) = setup("timelinecut");
+    let (_scratch, cfg, state, _) = setup("timelinecut");
     hash_at(&cfg, &state, 50);
     let path = state.join("timeline.csv");
     // What a kill leaves: rows past the commit, the last one cut.
@@ -1059,7 +1059,7 @@ fn a_resume_drops_the_timeline_rows_it_will_run_again() {
 /// with the rows on disk, whole and in order.
 #[test]
 fn the_viewers_timeline_starts_with_the_history_on_disk() {
-    let (cfg, state, addr) = setup("timelinehistory");
+    let (_scratch, cfg, state, addr) = setup("timelinehistory");
     hash_at(&cfg, &state, 50);
     let on_disk = brickworld::engine::timeline::read(&state.join("timeline.csv")).unwrap();
     assert!(on_disk.rows.len() >= 5, "{:?}", on_disk.rows);
@@ -1092,7 +1092,7 @@ fn the_viewers_timeline_starts_with_the_history_on_disk() {
 /// same edits made while the engine was stopped give.
 #[test]
 fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_it() {
-    let (cfg, state, addr, scripts) = lava_world("livematerials");
+    let (_scratch, cfg, state, addr, scripts) = lava_world("livematerials");
     let lava_src = shipped_script("lava.lua");
     let materials = scripts.join("materials.lua");
     let shipped = shipped_script("materials.lua");
@@ -1153,7 +1153,7 @@ fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_i
     assert_eq!(palette[id(&live, "obsidian") as usize], [30, 20, 40]);
 
     // The same edits made while the engine was stopped give the same ids.
-    let (cfg2, state2, _, scripts2) = lava_world("livematerials-restart");
+    let (_scratch, cfg2, state2, _, scripts2) = lava_world("livematerials-restart");
     run_ok(&cfg2, &state2, "--ticks", 2);
     std::fs::write(scripts2.join("lava.lua"), &v2).unwrap();
     std::fs::write(scripts2.join("materials.lua"), &declared).unwrap();
@@ -1168,7 +1168,7 @@ fn a_material_declared_while_the_engine_runs_is_used_by_the_script_waiting_for_i
 /// resumed, with no change to the world.
 #[test]
 fn a_reload_that_renames_a_channel_keeps_the_hash_across_a_resume() {
-    let (cfg, state, addr, scripts) = lava_world("renamedchannel");
+    let (_scratch, cfg, state, addr, scripts) = lava_world("renamedchannel");
     let lava_src = shipped_script("lava.lua");
     let mut cmd = run_cmd(&cfg, &state);
     cmd.arg("--paused")
@@ -1205,7 +1205,7 @@ fn a_reload_that_renames_a_channel_keeps_the_hash_across_a_resume() {
 /// failed ticks, not within one.
 #[test]
 fn a_streak_that_suspends_a_script_in_one_tick_is_said_to_begin_too() {
-    let (cfg, state, _) = setup("onetickstreak");
+    let (_scratch, cfg, state, _) = setup("onetickstreak");
     let scripts = cfg.parent().unwrap().join("scripts");
     std::fs::create_dir_all(&scripts).unwrap();
     let water = shipped_script("water.lua").replacen(
@@ -1245,7 +1245,7 @@ fn a_streak_that_suspends_a_script_in_one_tick_is_said_to_begin_too() {
 /// in a world of voxel scripts alone.
 #[test]
 fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
-    let (cfg, state, _) = setup("timelinecounts");
+    let (_scratch, cfg, state, _) = setup("timelinecounts");
     edit_config(
         &cfg,
         "params = { rain = 0.2 }\n",
@@ -1301,7 +1301,7 @@ fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
 
     // Voxel scripts alone: rain3d's drops keep the top layer of bricks
     // awake.
-    let (cfg, state, _) = setup("timelinevoxels");
+    let (_scratch, cfg, state, _) = setup("timelinevoxels");
     edit_config(
         &cfg,
         "file = \"water.lua\"\nparams = { rain = 0.2 }",
@@ -1320,7 +1320,7 @@ fn the_timeline_counts_dirty_and_active_bricks_and_keeps_a_scripts_last_time() {
 /// test hook `BRICKWORLD_TEST_RENDER_PANIC_AT_TICK` kills the thread.
 #[test]
 fn a_dead_render_thread_is_reported_and_the_simulation_goes_on() {
-    let (cfg, state, addr) = setup("render-death");
+    let (_scratch, cfg, state, addr) = setup("render-death");
     let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_RENDER_PANIC_AT_TICK", "10"));
     wait_ready(&addr);
     let s = wait_status(&addr, "render_error", |s| s["render_error"].is_string());
@@ -1360,7 +1360,7 @@ fn a_dead_render_thread_is_reported_and_the_simulation_goes_on() {
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 #[test]
 fn the_engine_runs_with_a_fixed_mmap_threshold_unless_the_user_chose_one() {
-    let (cfg, state, addr) = setup("mmap");
+    let (_scratch, cfg, state, addr) = setup("mmap");
     // The engine's environment once it answers, as `/proc` shows it.
     let environ = |user: Option<&str>| -> Vec<String> {
         let mut cmd = run_cmd(&cfg, &state);

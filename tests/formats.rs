@@ -10,10 +10,8 @@ use brickworld::scene::{SceneError, SceneSpec, build_scene};
 use glam::IVec3;
 use indicatif::ProgressBar;
 
-fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("brickworld-formats-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+fn tmp(name: &str) -> common::scratch::Scratch {
+    common::cli::tmp("formats", name)
 }
 
 /// The `dot_vox` crate's source folder, found through `cargo metadata`.
@@ -44,7 +42,7 @@ fn build(spec: SceneSpec) -> Result<brickworld::scene::SceneWorld, SceneError> {
 #[test]
 fn placeholder_vox_matches_the_crates_documented_voxels() {
     let path = dot_vox_dir().join("src/resources/placeholder.vox");
-    let w = build(SceneSpec::Vox(path)).unwrap();
+    let w = build(SceneSpec::Vox(path.to_path_buf())).unwrap();
     // dot_vox documents model 0 (2×2×2) as voxels (x, y, z, i):
     // (0,0,0,225) (0,1,1,215) (1,0,1,235) (1,1,0,5), under a transform
     // `_t = "0 0 1"`. Centre c = v + 0.5 − 1, plus t, then Z-up → Y-up
@@ -70,7 +68,7 @@ fn every_vox_resource_of_dot_vox_loads_or_fails_cleanly() {
     for entry in std::fs::read_dir(dir).unwrap() {
         let p = entry.unwrap().path();
         if p.extension().is_some_and(|e| e == "vox") {
-            match build(SceneSpec::Vox(p.clone())) {
+            match build(SceneSpec::Vox(p.to_path_buf())) {
                 Ok(w) => assert!(w.store().solid_voxels() > 0, "{}", p.display()),
                 Err(e) => assert!(e.to_string().contains(&*p.to_string_lossy()), "{e}"),
             }
@@ -93,7 +91,7 @@ fn heightmap_png_gives_exactly_the_columns_it_encodes() {
     let heights: Vec<u8> = (0..w * h).map(|i| ((i * 7919) % 38) as u8).collect();
     let path = tmp("h8.png");
     write_gray_png(&path, w, h, png::BitDepth::Eight, &heights);
-    let world = build(SceneSpec::Heightmap(path)).unwrap();
+    let world = build(SceneSpec::Heightmap(path.to_path_buf())).unwrap();
     for v in 0..h as i32 {
         for u in 0..w as i32 {
             let hv = heights[(v as u32 * w + u as u32) as usize] as i32;
@@ -112,7 +110,7 @@ fn heightmap_png_gives_exactly_the_columns_it_encodes() {
     let bytes: Vec<u8> = vals.iter().flat_map(|v| v.to_be_bytes()).collect();
     let path = tmp("h16.png");
     write_gray_png(&path, 2, 2, png::BitDepth::Sixteen, &bytes);
-    let world = build(SceneSpec::Heightmap(path)).unwrap();
+    let world = build(SceneSpec::Heightmap(path.to_path_buf())).unwrap();
     for (i, &hv) in vals.iter().enumerate() {
         let (u, v) = ((i % 2) as i32, (i / 2) as i32);
         let top = (0..600)
@@ -145,7 +143,7 @@ fn a_heightmap_with_a_wrong_zlib_checksum_is_refused() {
         at += 12 + len;
     }
     std::fs::write(&path, &bytes).unwrap();
-    expect_error(SceneSpec::Heightmap(path), "PNG");
+    expect_error(SceneSpec::Heightmap(path.to_path_buf()), "PNG");
 }
 
 fn expect_error(spec: SceneSpec, needle: &str) {
@@ -157,16 +155,19 @@ fn expect_error(spec: SceneSpec, needle: &str) {
 #[test]
 fn bad_files_give_clear_errors() {
     let missing = tmp("does-not-exist.png");
-    expect_error(SceneSpec::Heightmap(missing.clone()), "cannot read");
-    expect_error(SceneSpec::Vox(missing), "cannot read");
+    expect_error(SceneSpec::Heightmap(missing.to_path_buf()), "cannot read");
+    expect_error(SceneSpec::Vox(missing.to_path_buf()), "cannot read");
 
     let garbage = tmp("garbage.bin");
     std::fs::write(&garbage, b"this is not an image at all, just text\n").unwrap();
     expect_error(
-        SceneSpec::Heightmap(garbage.clone()),
+        SceneSpec::Heightmap(garbage.to_path_buf()),
         "not a valid PNG heightmap",
     );
-    expect_error(SceneSpec::Vox(garbage), "not a valid MagicaVoxel .vox");
+    expect_error(
+        SceneSpec::Vox(garbage.to_path_buf()),
+        "not a valid MagicaVoxel .vox",
+    );
 
     // Truncated: a valid PNG cut in half.
     let good = tmp("good.png");
@@ -174,14 +175,17 @@ fn bad_files_give_clear_errors() {
     let bytes = std::fs::read(&good).unwrap();
     let cut = tmp("cut.png");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    expect_error(SceneSpec::Heightmap(cut), "not a valid PNG heightmap");
+    expect_error(
+        SceneSpec::Heightmap(cut.to_path_buf()),
+        "not a valid PNG heightmap",
+    );
 
     // A chunk before IHDR: the decoder's debug text of the chunk type is
     // turned into its name (regression: `ChunkType { type: AGEG, critical:
     // true, private: false, … }`).
     let early = tmp("early-chunk.png");
     std::fs::write(&early, b"\x89PNG\r\n\x1a\nGARBAGEGARBAGE").unwrap();
-    let e = build(SceneSpec::Heightmap(early))
+    let e = build(SceneSpec::Heightmap(early.to_path_buf()))
         .expect_err("must fail")
         .to_string();
     assert!(
@@ -193,33 +197,39 @@ fn bad_files_give_clear_errors() {
     let vox = std::fs::read(dot_vox_dir().join("src/resources/placeholder.vox")).unwrap();
     let cut = tmp("cut.vox");
     std::fs::write(&cut, &vox[..vox.len() / 3]).unwrap();
-    expect_error(SceneSpec::Vox(cut), "not a valid MagicaVoxel .vox");
+    expect_error(
+        SceneSpec::Vox(cut.to_path_buf()),
+        "not a valid MagicaVoxel .vox",
+    );
 
     // Wrong kind of PNG: RGB.
     let rgb = tmp("rgb.png");
     brickworld::trace::write_png(&rgb, 2, 2, &[0u8; 12]).unwrap();
-    expect_error(SceneSpec::Heightmap(rgb), "grayscale");
+    expect_error(SceneSpec::Heightmap(rgb.to_path_buf()), "grayscale");
 
     // Oversized: too wide, and too big a file (sparse, never read).
     let wide = tmp("wide.png");
     write_gray_png(&wide, 16385, 1, png::BitDepth::Eight, &vec![1u8; 16385]);
-    expect_error(SceneSpec::Heightmap(wide), "over the 16384x16384 limit");
+    expect_error(
+        SceneSpec::Heightmap(wide.to_path_buf()),
+        "over the 16384x16384 limit",
+    );
     let huge = tmp("huge.vox");
     std::fs::File::create(&huge)
         .unwrap()
         .set_len(300 << 20)
         .unwrap();
-    expect_error(SceneSpec::Vox(huge.clone()), "too large");
-    std::fs::remove_file(huge).unwrap();
+    expect_error(SceneSpec::Vox(huge.to_path_buf()), "too large");
+    std::fs::remove_file(&huge).unwrap();
 
     // Too tall for the world: a 16-bit value over the height limit.
     let tall = tmp("tall.png");
     write_gray_png(&tall, 1, 1, png::BitDepth::Sixteen, &60000u16.to_be_bytes());
-    expect_error(SceneSpec::Heightmap(tall), "taller than");
+    expect_error(SceneSpec::Heightmap(tall.to_path_buf()), "taller than");
 }
 
 /// A one-model `.vox` file of `size` holding `voxels`, written to `name`.
-fn model_file(name: &str, size: [u32; 3], voxels: Vec<dot_vox::Voxel>) -> PathBuf {
+fn model_file(name: &str, size: [u32; 3], voxels: Vec<dot_vox::Voxel>) -> common::scratch::Scratch {
     use dot_vox::{DotVoxData, Model, Size};
     let data = DotVoxData {
         version: 150,
@@ -246,7 +256,7 @@ fn model_file(name: &str, size: [u32; 3], voxels: Vec<dot_vox::Voxel>) -> PathBu
 
 /// A one-row model whose voxel `k` has colour index `colours[k]` (0-based,
 /// as `dot_vox` reports it), written to `name`.
-fn row_model(name: &str, colours: &[u8]) -> PathBuf {
+fn row_model(name: &str, colours: &[u8]) -> common::scratch::Scratch {
     let voxels = colours
         .iter()
         .enumerate()
@@ -267,7 +277,7 @@ fn sim_on(path: &Path, script: &str) -> std::process::Output {
         .args(["sim", "--steps", "1", "--script"])
         .arg(format!("{}/scripts/{script}", env!("CARGO_MANIFEST_DIR")))
         .arg("--out")
-        .arg(tmp("sim_on.png"))
+        .arg(&tmp("sim_on.png"))
         .arg("--scene")
         .arg(format!("vox:{}", path.display()))
         .output()
@@ -277,7 +287,11 @@ fn sim_on(path: &Path, script: &str) -> std::process::Output {
 /// `run --ticks 1` of the engine on the `.vox` model at `path`, with the
 /// shipped `script`, in a fresh state directory `state` under this test's
 /// folder; returns the output and the state directory.
-fn run_on(path: &Path, script: &str, name: &str) -> (std::process::Output, PathBuf) {
+fn run_on(
+    path: &Path,
+    script: &str,
+    name: &str,
+) -> (std::process::Output, common::scratch::Scratch) {
     let cfg = tmp(&format!("{name}.toml"));
     std::fs::write(
         &cfg,
@@ -330,7 +344,13 @@ fn the_engine_refuses_a_vox_model_on_the_simulations_ids() {
 fn vox_colours_on_the_simulations_ids_move_out_of_their_way() {
     let colours = [0u8, 5, 251, 252, 253];
     let path = row_model("sim_ids.vox", &colours);
-    let world = build_scene(&SceneSpec::Vox(path), IVec3::ONE, 1, &ProgressBar::hidden()).unwrap();
+    let world = build_scene(
+        &SceneSpec::Vox(path.to_path_buf()),
+        IVec3::ONE,
+        1,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
     let (lo, _) = world.bounds();
     let held: Vec<u8> = (0..5)
         .map(|k| world.store().voxel(lo + IVec3::new(k, 0, 0)))

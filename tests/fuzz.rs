@@ -4,6 +4,10 @@
 //! may panic. Cases per target: `BRICKWORLD_FUZZ_CASES` (default 2 000 so
 //! CI stays quick; the README's figure is from 100 000).
 
+#[path = "common/scratch.rs"]
+mod scratch;
+use scratch::Scratch;
+
 use brickworld::engine::checkpoint;
 use brickworld::engine::world_config::WorldConfig;
 use brickworld::scene::{heightmap_from_bytes, vox_voxels_from_bytes};
@@ -64,8 +68,8 @@ fn valid_checkpoint() -> Vec<u8> {
         &indicatif::ProgressBar::hidden(),
     )
     .unwrap();
-    let dir = std::env::temp_dir().join(format!("brickworld-fuzz-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let scratch = Scratch::dir("fuzz");
+    let dir = scratch.join("state");
     let state = checkpoint::WorldState {
         tick: 7,
         store: w.store().clone(),

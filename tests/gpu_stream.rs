@@ -268,7 +268,7 @@ fn bench_stream_writes_the_documented_json_keys() {
     if context().is_none() {
         return;
     }
-    let json = std::env::temp_dir().join(format!("brickworld-stream-{}.json", std::process::id()));
+    let json = common::cli::tmp("stream", "stream.json");
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))
         .args([
             "bench", "stream", "--size", "64x32x64", "--width", "48", "--height", "36", "--json",
@@ -602,8 +602,8 @@ fn bench_gpu_reports_every_view_and_setting() {
     if context().is_none() {
         return;
     }
-    let dir = std::env::temp_dir().join(format!("brickworld-bench-gpu-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let scratch = common::scratch::Scratch::dir("bench-gpu");
+    let dir = scratch.to_path_buf();
     let world = dir.join("streamed.toml");
     std::fs::write(
         &world,
@@ -809,7 +809,7 @@ fn bench_gpu_refuses_a_frame_the_device_cannot_hold_before_building() {
         eprintln!("skipping: this device holds an 8192x8192 frame");
         return;
     }
-    let json = std::env::temp_dir().join(format!("brickworld-gpu-big-{}.json", std::process::id()));
+    let json = common::cli::tmp("gpu-big", "gpu.json");
     // The heightmap does not exist: building the scene would fail on it,
     // so the frame's error shows the scene was never built.
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_brickworld"))

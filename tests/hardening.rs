@@ -32,7 +32,7 @@ fn alive(d: &mut Daemon) -> bool {
 
 #[test]
 fn fault_01_a_huge_content_length_is_refused_before_reading() {
-    let (cfg, state, addr) = setup("f01");
+    let (_scratch, cfg, state, addr) = setup("f01");
     let mut d = start(&cfg, &state);
     wait_ready(&addr);
     let tok = token(&state);
@@ -72,7 +72,7 @@ fn fault_01_a_huge_content_length_is_refused_before_reading() {
 
 #[test]
 fn fault_02_an_idle_body_blocks_no_one_and_sigterm_still_stops() {
-    let (cfg, state, addr) = setup("f02");
+    let (_scratch, cfg, state, addr) = setup("f02");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let tok = token(&state);
@@ -97,7 +97,7 @@ fn fault_02_an_idle_body_blocks_no_one_and_sigterm_still_stops() {
 
 #[test]
 fn fault_03_running_out_of_descriptors_is_survived() {
-    let (cfg, state, addr) = setup("f03");
+    let (_scratch, cfg, state, addr) = setup("f03");
     // The daemon under a 256-descriptor limit.
     let mut d = Daemon(Some(
         std::process::Command::new("bash")
@@ -142,7 +142,7 @@ fn fault_03_running_out_of_descriptors_is_survived() {
 
 #[test]
 fn fault_04_huge_headers_are_refused_and_cost_no_memory() {
-    let (cfg, state, addr) = setup("f04");
+    let (_scratch, cfg, state, addr) = setup("f04");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let before = rss_kb(d.id());
@@ -176,7 +176,7 @@ fn fault_04_huge_headers_are_refused_and_cost_no_memory() {
 
 #[test]
 fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothing() {
-    let (cfg, state, addr) = setup("f05");
+    let (_scratch, cfg, state, addr) = setup("f05");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let (code, body) = post(&addr, &state, "/scripts/nosuch/params", "{\"rain\": 0.1}");
@@ -290,7 +290,7 @@ fn fault_05_params_for_an_unknown_script_or_out_of_range_are_400_and_leak_nothin
 
 #[test]
 fn fault_06_pause_cancels_queued_steps() {
-    let (cfg, state, addr) = setup("f06");
+    let (_scratch, cfg, state, addr) = setup("f06");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     assert_eq!(post(&addr, &state, "/step", "100000").0, 200);
@@ -311,7 +311,7 @@ fn fault_06_pause_cancels_queued_steps() {
 
 #[test]
 fn fault_07_a_script_that_catches_its_budget_error_is_suspended_and_the_daemon_stays_responsive() {
-    let (cfg, state, addr) = setup("f07");
+    let (_scratch, cfg, state, addr) = setup("f07");
     add_script(
         &cfg,
         "evil.lua",
@@ -357,9 +357,9 @@ fn fault_07_a_script_that_catches_its_budget_error_is_suspended_and_the_daemon_s
 /// `brickworld export`, which writes the same format.
 #[test]
 fn fault_13_a_legacy_checkpoint_directory_is_migrated_from_its_newest_good_checkpoint() {
-    let (cfg, state, _) = setup("f13");
+    let (_scratch, cfg, state, _) = setup("f13");
     let expected = {
-        let (cfg_a, state_a, _) = setup("f13a");
+        let (_scratch, cfg_a, state_a, _) = setup("f13a");
         hash_at(&cfg_a, &state_a, 45);
         let backup = state_a.join("backup.bwc");
         let out = backup_cmd("export", &backup, &cfg_a, &state_a)
@@ -408,7 +408,7 @@ fn fault_13_a_legacy_checkpoint_directory_is_migrated_from_its_newest_good_check
 
 #[test]
 fn fault_14_another_worlds_store_is_refused_and_left_alone() {
-    let (cfg, state, _) = setup("f14");
+    let (_scratch, cfg, state, _) = setup("f14");
     assert_success(
         &run_cmd(&cfg, &state)
             .arg("--ticks")
@@ -449,7 +449,7 @@ fn refused_as_another_world(cfg: &Path, state: &Path) {
 /// beside it is now checked first.
 #[test]
 fn fault_14_another_worlds_store_left_by_a_kill_is_refused_unrepaired() {
-    let (cfg, state, addr) = setup("f14kill");
+    let (_scratch, cfg, state, addr) = setup("f14kill");
     let mut child = start(&cfg, &state);
     wait_ready(&addr);
     let t = std::time::Instant::now();
@@ -471,7 +471,7 @@ fn fault_14_another_worlds_store_left_by_a_kill_is_refused_unrepaired() {
 
 #[test]
 fn fault_15_a_second_daemon_on_one_state_directory_exits_clearly() {
-    let (cfg, state, addr) = setup("f15");
+    let (_scratch, cfg, state, addr) = setup("f15");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let tok = token(&state);
@@ -513,7 +513,7 @@ fn fault_15_a_second_daemon_on_one_state_directory_exits_clearly() {
 /// followed, and the PID written into the lock truncated its target.
 #[test]
 fn a_linked_engine_lock_is_refused_and_its_target_left_alone() {
-    let (cfg, state, _) = setup("linklock");
+    let (_scratch, cfg, state, _) = setup("linklock");
     std::fs::create_dir_all(&state).unwrap();
     let victim = state.with_file_name("victim.txt");
     std::fs::write(&victim, "precious").unwrap();
@@ -561,7 +561,7 @@ fn hash_after_legs(cfg: &Path, state: &Path, legs: &[u64], end: u64) -> String {
 #[test]
 fn fault_16_resuming_is_bit_identical_to_not_stopping() {
     let final_hash = |name: &str, legs: &[u64]| -> String {
-        let (cfg, state, _) = setup(name);
+        let (_scratch, cfg, state, _) = setup(name);
         hash_after_legs(&cfg, &state, legs, 100)
     };
     let straight = final_hash("f16a", &[100]);
@@ -574,7 +574,7 @@ fn fault_16_resuming_is_bit_identical_to_not_stopping() {
 
 #[test]
 fn fault_17_the_token_is_random_private_and_fresh() {
-    let (cfg, state, _) = setup("f17");
+    let (_scratch, cfg, state, _) = setup("f17");
     let mut tokens = Vec::new();
     for _ in 0..2 {
         assert_success(
@@ -604,9 +604,8 @@ fn fault_17_the_token_is_random_private_and_fresh() {
 
 #[test]
 fn fault_22_the_default_world_runs_from_any_directory_and_init_writes_it_out() {
-    let dir = std::env::temp_dir().join(format!("brickworld-anywhere-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let scratch = common::scratch::Scratch::dir("anywhere");
+    let dir = scratch.to_path_buf();
     let out = common::cli::bin()
         .current_dir(&dir)
         .args([
@@ -652,7 +651,7 @@ fn fault_22_the_default_world_runs_from_any_directory_and_init_writes_it_out() {
 
 #[test]
 fn frames_are_pruned_to_frames_keep() {
-    let (cfg, state, _) = setup("frames");
+    let (_scratch, cfg, state, _) = setup("frames");
     edit_config(&cfg, "[frames]\nevery = 5", "[frames]\nevery = 1\nkeep = 5");
     assert_success(
         &run_cmd(&cfg, &state)
@@ -677,7 +676,7 @@ fn frames_are_pruned_to_frames_keep() {
 
 #[test]
 fn a_second_signal_exits_at_once() {
-    let (cfg, state, addr) = setup("twice");
+    let (_scratch, cfg, state, addr) = setup("twice");
     // A commit on disk first, so that keeping it is a claim to test
     // (regression, audit: with nothing ever committed the check below held
     // whatever the second signal did).
@@ -720,7 +719,7 @@ fn a_second_signal_exits_at_once() {
 /// step in flight and commits the tick it stopped at.
 #[test]
 fn two_signals_at_once_are_one_request_and_keep_the_final_commit() {
-    let (cfg, state, addr) = setup("twoatonce");
+    let (_scratch, cfg, state, addr) = setup("twoatonce");
     // Every commit takes 1.5 s (test hook), so the second signal arrives
     // while the final commit is being written.
     let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "1500"));
@@ -755,7 +754,7 @@ fn two_signals_at_once_are_one_request_and_keep_the_final_commit() {
 /// none, and the log says why.
 #[test]
 fn frames_never_go_into_a_frames_folder_made_after_the_start() {
-    let (cfg, state, addr) = setup("framesgone");
+    let (_scratch, cfg, state, addr) = setup("framesgone");
     let d = spawn(&mut run_cmd(&cfg, &state));
     wait_ready(&addr);
     let frames = state.join("frames");
@@ -791,7 +790,7 @@ fn frames_never_go_into_a_frames_folder_made_after_the_start() {
 /// LZ4 payload claiming gigabytes aborted the engine on every start.
 #[test]
 fn a_checkpoint_claiming_more_memory_than_there_is_is_set_aside() {
-    let (cfg, state, _) = setup("bomb");
+    let (_scratch, cfg, state, _) = setup("bomb");
     std::fs::create_dir_all(&state).unwrap();
     let claimed: u32 = 2_000_000_000;
     let mut payload = claimed.to_le_bytes().to_vec();
@@ -836,7 +835,7 @@ fn a_checkpoint_claiming_more_memory_than_there_is_is_set_aside() {
 #[cfg(target_os = "linux")]
 #[test]
 fn a_file_size_limit_is_an_error_not_a_silent_kill() {
-    let (cfg, state, _) = setup("fsize");
+    let (_scratch, cfg, state, _) = setup("fsize");
     let out = std::process::Command::new("bash")
         .arg("-c")
         .arg(format!(
@@ -870,7 +869,7 @@ const POST_ROUTES: [&str; 8] = [
 /// `/pause`, `/step`, `/resume` and `/auth` were checked).
 #[test]
 fn every_post_route_needs_the_token() {
-    let (cfg, state, addr) = setup("posttoken");
+    let (_scratch, cfg, state, addr) = setup("posttoken");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let before = status(&addr);
@@ -907,7 +906,7 @@ fn every_post_route_needs_the_token() {
 /// and `[control] hosts` now get 403, on every route.
 #[test]
 fn a_request_naming_a_foreign_host_is_refused() {
-    let (cfg, state, addr) = setup("host");
+    let (_scratch, cfg, state, addr) = setup("host");
     edit_config(&cfg, "[control]\n", "[control]\nhosts = [\"Box.Lan.\"]\n");
     let d = start(&cfg, &state);
     wait_ready(&addr);
@@ -974,7 +973,7 @@ fn a_request_naming_a_foreign_host_is_refused() {
 
 #[test]
 fn camera_requests_are_bounded_like_the_command_line() {
-    let (cfg, state, addr) = setup("cam");
+    let (_scratch, cfg, state, addr) = setup("cam");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     for body in [
@@ -997,7 +996,7 @@ fn camera_requests_are_bounded_like_the_command_line() {
 #[test]
 fn a_voxel_world_resumes_bit_identically() {
     let final_hash = |name: &str, legs: &[(u64, usize)]| -> String {
-        let (cfg, state, _) = setup(name);
+        let (_scratch, cfg, state, _) = setup(name);
         let text = std::fs::read_to_string(&cfg).unwrap();
         let text = text.replace(
             "[[scripts]]\nfile = \"water.lua\"\nparams = { rain = 0.2 }\n",
@@ -1050,7 +1049,7 @@ fn a_voxel_world_resumes_bit_identically() {
 
 #[test]
 fn until_tick_at_or_below_the_world_tick_runs_nothing() {
-    let (cfg, state, _) = setup("until0");
+    let (_scratch, cfg, state, _) = setup("until0");
     // A fresh world and `--until-tick 0`: no tick runs (one used to).
     let (said, err) = run_ok(&cfg, &state, "--until-tick", 0);
     assert!(said.contains("stopped at tick 0 "), "{said}");
@@ -1078,7 +1077,7 @@ fn until_tick_at_or_below_the_world_tick_runs_nothing() {
 /// goes on counting from where it stopped.
 #[test]
 fn a_restored_failure_streak_shows_as_failing_before_any_step() {
-    let (cfg, state, addr) = setup("streak");
+    let (_scratch, cfg, state, addr) = setup("streak");
     add_script(
         &cfg,
         "flaky.lua",
@@ -1123,7 +1122,7 @@ fn a_restored_failure_streak_shows_as_failing_before_any_step() {
 /// lets it run again, and the log says so.
 #[test]
 fn a_suspended_script_runs_again_when_its_parameters_change() {
-    let (cfg, state, addr) = setup("unsuspend");
+    let (_scratch, cfg, state, addr) = setup("unsuspend");
     add_script(
         &cfg,
         "touchy.lua",
@@ -1185,7 +1184,7 @@ fn a_suspended_script_runs_again_when_its_parameters_change() {
 /// they could all have run, and its final commit is where it stopped.
 #[test]
 fn steps_queued_before_a_stop_are_not_run() {
-    let (cfg, state, addr) = setup("queuedstop");
+    let (_scratch, cfg, state, addr) = setup("queuedstop");
     // About 100 ms a step here (4 s for all 40); the tiles never sleep (the value
     // written changes every tick).
     add_script(
@@ -1217,7 +1216,7 @@ fn steps_queued_before_a_stop_are_not_run() {
 /// the world stays as last committed.
 #[test]
 fn sigterm_interrupts_a_step_that_runs_for_minutes() {
-    let (cfg, state, addr) = setup("slowstep");
+    let (_scratch, cfg, state, addr) = setup("slowstep");
     // Tick 1: some 3 s a step on two cores (a slow step, committed at
     // once). From tick 2 on: about 1.4 s a tile (well under the 5 s a call
     // allows), some 25 s a step.
@@ -1282,7 +1281,7 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
 #[cfg(target_os = "linux")]
 #[test]
 fn a_frame_that_cannot_be_written_is_reported_once() {
-    let (cfg, state, _) = setup("framefail");
+    let (_scratch, cfg, state, _) = setup("framefail");
     edit_config(&cfg, "[frames]\n", "[frames]\ndir = \"/proc/self\"\n");
     let (_, err) = run_ok(&cfg, &state, "--ticks", 30);
     assert_eq!(
@@ -1300,7 +1299,7 @@ fn a_frame_that_cannot_be_written_is_reported_once() {
 #[test]
 fn special_files_in_the_state_directory_are_refused_not_waited_on() {
     for name in ["timeline.csv", "engine.lock", "manifest.json", "world.redb"] {
-        let (cfg, state, _) = setup(&format!("fifo-{}", name.replace('.', "-")));
+        let (_scratch, cfg, state, _) = setup(&format!("fifo-{}", name.replace('.', "-")));
         // A world that has run: manifest.json is only read beside a store.
         if name == "manifest.json" {
             run_ok(&cfg, &state, "--ticks", 1);
@@ -1337,7 +1336,7 @@ fn special_files_in_the_state_directory_are_refused_not_waited_on() {
 /// run goes on, and no temporary file is left.
 #[test]
 fn a_manifest_copy_that_cannot_be_written_is_a_warning() {
-    let (cfg, state, _) = setup("manifest-copy");
+    let (_scratch, cfg, state, _) = setup("manifest-copy");
     run_ok(&cfg, &state, "--ticks", 1);
     std::fs::remove_file(state.join("manifest.json")).unwrap();
     // A folder where the copy goes: its write fails.
@@ -1389,7 +1388,7 @@ fn a_manifest_copy_that_cannot_be_written_is_a_warning() {
 /// A directory that was there before is kept, with what it held.
 #[test]
 fn a_refused_start_removes_only_the_state_directory_it_made() {
-    let (cfg, state, _) = setup("refused-start");
+    let (_scratch, cfg, state, _) = setup("refused-start");
     edit_config(&cfg, "file = \"water.lua\"", "file = \"missing.lua\"");
     let one_tick = || {
         run_cmd(&cfg, &state)
@@ -1464,7 +1463,7 @@ fn reply_line(s: &mut TcpStream, limit: Duration) -> String {
 /// and a head over 16 KiB gets 431.
 #[test]
 fn the_control_servers_connection_limits_hold_as_documented() {
-    let (cfg, state, addr) = setup("limits");
+    let (_scratch, cfg, state, addr) = setup("limits");
     let mut d = start(&cfg, &state);
     wait_ready(&addr);
     let tok = token(&state);
@@ -1531,7 +1530,7 @@ fn the_control_servers_connection_limits_hold_as_documented() {
 /// commit (a test hook stalls it) so that commands pile up.
 #[test]
 fn a_full_command_queue_answers_503() {
-    let (cfg, state, addr) = setup("queue");
+    let (_scratch, cfg, state, addr) = setup("queue");
     let d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "60000"));
     wait_ready(&addr);
     // The commit stalls the engine's loop; its verdict waits 3 s: 202.
@@ -1560,7 +1559,7 @@ fn a_full_command_queue_answers_503() {
 #[test]
 fn a_busy_keep_alive_connection_is_closed_after_its_lifetime() {
     use brickworld::engine::control::server::CONNECTION_LIFETIME;
-    let (cfg, state, addr) = setup("lifetime");
+    let (_scratch, cfg, state, addr) = setup("lifetime");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let mut s = TcpStream::connect(&addr).unwrap();
@@ -1616,7 +1615,7 @@ fn a_busy_keep_alive_connection_is_closed_after_its_lifetime() {
 #[test]
 fn silent_connections_cannot_lock_other_clients_out() {
     use brickworld::engine::control::server::MAX_CONNECTIONS;
-    let (cfg, state, addr) = setup("silentflood");
+    let (_scratch, cfg, state, addr) = setup("silentflood");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let flood: Vec<TcpStream> = (0..MAX_CONNECTIONS + 48)
@@ -1653,7 +1652,7 @@ fn silent_connections_cannot_lock_other_clients_out() {
 #[cfg(target_os = "linux")]
 #[test]
 fn a_half_closed_client_gets_its_answer_and_a_closed_viewer_frees_its_connection() {
-    let (cfg, state, addr) = setup("half-close");
+    let (_scratch, cfg, state, addr) = setup("half-close");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let tok = token(&state);
@@ -1723,7 +1722,7 @@ fn a_half_closed_client_gets_its_answer_and_a_closed_viewer_frees_its_connection
 /// commit, and one sent once the stop has begun gets 503, not 200.
 #[test]
 fn a_command_answered_before_a_stop_is_applied_and_committed() {
-    let (cfg, state, addr) = setup("cmdbeforestop");
+    let (_scratch, cfg, state, addr) = setup("cmdbeforestop");
     // Every commit takes 1.5 s (test hook): the loop is held in the
     // commit a /commit asks for while the camera is queued behind it.
     let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "1500"));
@@ -1767,7 +1766,7 @@ fn a_command_answered_before_a_stop_is_applied_and_committed() {
 /// world is loaded; the first status then is the loaded world's.
 #[test]
 fn the_api_says_it_is_starting_until_the_world_is_loaded() {
-    let (cfg, state, addr) = setup("apistarting");
+    let (_scratch, cfg, state, addr) = setup("apistarting");
     let first = run_cmd(&cfg, &state)
         .args(["--ticks", "3"])
         .output()
@@ -1826,7 +1825,7 @@ fn the_api_says_it_is_starting_until_the_world_is_loaded() {
 /// engine stops cleanly with its final commit, without saying it runs.
 #[test]
 fn a_stop_during_a_long_start_stops_cleanly_once_loaded() {
-    let (cfg, state, _) = setup("stopslowstart");
+    let (_scratch, cfg, state, _) = setup("stopslowstart");
     let child = run_cmd(&cfg, &state)
         .env("BRICKWORLD_TEST_START_STALL_MS", "6500")
         .stdout(Stdio::piped())
@@ -1858,7 +1857,7 @@ fn a_stop_during_a_long_start_stops_cleanly_once_loaded() {
 /// name. It is refused as not lying wholly inside, naming the file.
 #[test]
 fn a_place_box_partly_outside_the_world_is_named_as_such() {
-    let (cfg, state, _) = setup("placepartly");
+    let (_scratch, cfg, state, _) = setup("placepartly");
     let mut text = std::fs::read_to_string(&cfg).unwrap();
     text.push_str("[[place]]\nmaterial = \"water\"\nat = [0, 0, 0]\nsize = [65536, 8, 8]\n");
     std::fs::write(&cfg, text).unwrap();
@@ -1892,7 +1891,7 @@ fn wait_for_exit(d: &mut Daemon, secs: u64) -> std::process::ExitStatus {
 /// is read: the save is reloaded once the engine is up.
 #[test]
 fn a_script_saved_while_the_engine_starts_is_reloaded_once_it_is_up() {
-    let (cfg, state, addr) = setup("savestart");
+    let (_scratch, cfg, state, addr) = setup("savestart");
     add_script(&cfg, "snow.lua", &shipped_script("snow.lua"));
     let water = cfg.parent().unwrap().join("scripts/water.lua");
     let d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_START_STALL_MS", "2500"));
@@ -1916,7 +1915,7 @@ fn a_script_saved_while_the_engine_starts_is_reloaded_once_it_is_up() {
 /// with the command that applies the config's.
 #[test]
 fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
-    let (cfg, state, addr) = setup("paramoverride");
+    let (_scratch, cfg, state, addr) = setup("paramoverride");
     run_ok(&cfg, &state, "--ticks", 1);
     edit_config(&cfg, "params = { rain = 0.2 }", "params = { rain = 0.3 }");
     let (_, err) = run_ok(&cfg, &state, "--ticks", 2);
@@ -1951,7 +1950,7 @@ fn a_config_parameter_the_stored_state_overrides_is_named_at_start() {
 #[cfg(unix)]
 #[test]
 fn a_scripts_folder_that_cannot_be_read_is_named_by_its_field() {
-    let (cfg, state, _) = setup("scriptsloop");
+    let (_scratch, cfg, state, _) = setup("scriptsloop");
     let looped = cfg.parent().unwrap().join("loop");
     std::os::unix::fs::symlink(&looped, &looped).unwrap();
     edit_config(

@@ -3,6 +3,10 @@
 //! at a step boundary with its parameters kept; a broken save keeps the old
 //! version running and reports the file and line.
 
+#[path = "common/scratch.rs"]
+mod scratch;
+use scratch::Scratch;
+
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -44,8 +48,8 @@ fn wait_for_change(w: &mut ScriptWatcher) -> Vec<std::path::PathBuf> {
 
 #[test]
 fn edited_scripts_reload_and_broken_saves_keep_the_last_good_version() {
-    let dir = std::env::temp_dir().join(format!("brickworld-reload-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let scratch = Scratch::dir("reload");
+    let dir = scratch.to_path_buf();
     let path = dir.join("heater.lua");
     std::fs::write(&path, V1).unwrap();
     let mut sim = Simulation::new(IVec2::ZERO, IVec2::ONE);
@@ -89,8 +93,8 @@ fn edited_scripts_reload_and_broken_saves_keep_the_last_good_version() {
 /// old one were read from the new one.
 #[test]
 fn a_replaced_scripts_directory_is_watched_anew() {
-    let root = std::env::temp_dir().join(format!("bw-rewatch-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&root);
+    let scratch = Scratch::dir("rewatch");
+    let root = scratch.to_path_buf();
     let dir = root.join("scripts");
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("heat.lua"), V1).unwrap();
@@ -184,9 +188,8 @@ fn a_scripts_directory_removed_and_made_again_is_watched_anew() {
 /// the refused script is reloaded, as the daemon does.
 #[test]
 fn sim_watch_applies_materials_lua_and_retries_a_refused_script() {
-    let dir = std::env::temp_dir().join(format!("brickworld-simwatch-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let scratch = Scratch::dir("simwatch");
+    let dir = scratch.to_path_buf();
     let mat = |names: &[&str]| {
         let body: String = names
             .iter()
@@ -364,11 +367,8 @@ fn sim_watch(
 }
 
 /// A scratch folder of this test's own.
-fn scratch(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("brickworld-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+fn scratch(name: &str) -> Scratch {
+    Scratch::dir(name)
 }
 
 /// Regression (hot-edit probe): a script that is a link was not reloaded

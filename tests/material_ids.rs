@@ -28,16 +28,17 @@ fn world_with_old_names(
     name: &str,
     n: usize,
 ) -> (
+    common::scratch::Scratch,
     std::path::PathBuf,
     std::path::PathBuf,
     std::path::PathBuf,
     Vec<(u8, String)>,
 ) {
-    let (cfg, state, _, scripts) = lava_world(name);
+    let (scratch, cfg, state, _, scripts) = lava_world(name);
     materials_with(&scripts, "old", n);
     run_ok(&cfg, &state, "--ticks", 2);
     let (stored, _) = stored_materials(&cfg, &state);
-    (cfg, state, scripts, stored)
+    (scratch, cfg, state, scripts, stored)
 }
 
 /// The id of `name` in a registry listing.
@@ -50,7 +51,7 @@ fn id(m: &[(u8, String)], name: &str) -> Option<u8> {
 /// name, ever, and a start with one new name failed for good.
 #[test]
 fn a_restart_frees_the_ids_of_names_nothing_declares_and_no_voxel_holds() {
-    let (cfg, state, _, scripts) = lava_world("reclaim");
+    let (_scratch, cfg, state, _, scripts) = lava_world("reclaim");
     // 230 names beside the shipped ones; a box of one of them is stored.
     materials_with(&scripts, "old", 230);
     let mut text = std::fs::read_to_string(&cfg).unwrap();
@@ -98,7 +99,7 @@ fn a_restart_frees_the_ids_of_names_nothing_declares_and_no_voxel_holds() {
 /// uses it still loads.
 #[test]
 fn a_name_a_script_still_uses_is_not_freed() {
-    let (cfg, state, scripts, before) = world_with_old_names("reclaim-used", 230);
+    let (_scratch, cfg, state, scripts, before) = world_with_old_names("reclaim-used", 230);
     // lava.lua lists basalt; materials.lua stops declaring it.
     let basalt = id(&before, "basalt").unwrap();
     let text = std::fs::read_to_string(scripts.join("materials.lua")).unwrap();
@@ -120,7 +121,7 @@ fn a_name_a_script_still_uses_is_not_freed() {
 /// new ids than are free.
 #[test]
 fn a_rename_that_needs_more_ids_than_are_free_starts() {
-    let (cfg, state, scripts, before) = world_with_old_names("reclaim-needed", 200);
+    let (_scratch, cfg, state, scripts, before) = world_with_old_names("reclaim-needed", 200);
     let free = 251
         - before
             .iter()

@@ -4,7 +4,7 @@
 //! The binary runs under a 3 GB address-space limit, as the fault reports
 //! did; it must answer with an error, not be killed.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Output;
 
 mod common;
@@ -42,7 +42,7 @@ fn write_gray_png(path: &Path, w: u32, h: u32) {
 /// A valid .vox whose scene graph has `fan` children per group over
 /// `levels` levels, all sharing one child: fan^levels instances of a
 /// one-voxel model from a file of a few KB.
-fn exploding_vox(fan: u32, levels: u32) -> PathBuf {
+fn exploding_vox(fan: u32, levels: u32) -> common::scratch::Scratch {
     use dot_vox::{Frame, SceneNode};
     let mut scenes = Vec::new();
     // node 2k: transform -> 2k+1; node 2k+1: group of `fan` × node 2k+2.
@@ -88,7 +88,7 @@ fn write_vox(
     model: u32,
     size: u32,
     voxels: Vec<dot_vox::Voxel>,
-) -> PathBuf {
+) -> common::scratch::Scratch {
     write_vox_listing(name, scenes, model, 1, size, voxels)
 }
 
@@ -100,7 +100,7 @@ fn write_vox_listing(
     times: usize,
     size: u32,
     voxels: Vec<dot_vox::Voxel>,
-) -> PathBuf {
+) -> common::scratch::Scratch {
     use dot_vox::{DotVoxData, Model, SceneNode, ShapeModel, Size};
     scenes.push(SceneNode::Shape {
         attributes: Default::default(),
@@ -213,10 +213,9 @@ fn a_daemon_with_frames_larger_than_memory_is_refused_naming_the_fields() {
 /// `run --ticks 1` of a world whose config is `config`, in a folder
 /// `name` of its own, under a 3 GB address-space limit; the output and the
 /// state directory.
-fn engine_capped(name: &str, config: &str) -> (Output, PathBuf) {
-    let dir = tmp("mem", name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+fn engine_capped(name: &str, config: &str) -> (Output, common::scratch::Scratch) {
+    let scratch = common::scratch::Scratch::dir(name);
+    let dir = scratch.to_path_buf();
     let cfg = dir.join("w.toml");
     std::fs::write(&cfg, config).unwrap();
     let state = dir.join("state");
@@ -230,13 +229,13 @@ fn engine_capped(name: &str, config: &str) -> (Output, PathBuf) {
         ))
         .output()
         .unwrap();
-    (out, state)
+    (out, scratch)
 }
 
 /// A .vox whose scene graph is a chain of `levels` groups, each with two
 /// children that are the next group, ending in a shape of model `model`:
 /// 2^levels paths from a file of a few KB.
-fn doubling_vox(levels: u32, model: u32, voxels: Vec<dot_vox::Voxel>) -> PathBuf {
+fn doubling_vox(levels: u32, model: u32, voxels: Vec<dot_vox::Voxel>) -> common::scratch::Scratch {
     write_vox(
         &format!("doubling-{levels}-{model}.vox"),
         doubling_scenes(levels),
@@ -309,7 +308,7 @@ fn a_vox_world_below_zero_runs_its_column_scripts() {
         .arg(&script)
         .args(["--steps", "2", "--out"])
         // Not the default sim.png in the working tree.
-        .arg(tmp("mem", "below-zero.png"))
+        .arg(&tmp("mem", "below-zero.png"))
         .output()
         .unwrap();
     common::cli::assert_success(&out);
@@ -338,7 +337,7 @@ fn a_dense_grid_over_the_memory_there_is_is_refused() {
 /// (a backtrace, status 134). A size that cannot fit is refused first.
 #[test]
 fn bench_sim_sizes_larger_than_memory_are_refused_with_the_need() {
-    let json = std::env::temp_dir().join(format!("bw-benchsim-{}.json", std::process::id()));
+    let json = tmp("benchsim", "sim.json");
     let out = std::process::Command::new("bash")
         .arg("-c")
         .arg(format!(
@@ -355,7 +354,7 @@ fn bench_sim_sizes_larger_than_memory_are_refused_with_the_need() {
 /// A .vox of `instances` copies, side by side along x, of one 256³ model
 /// whose 32³ voxels each lie in a brick of their own: few voxels, many
 /// bricks.
-fn scattered_vox(instances: u32) -> PathBuf {
+fn scattered_vox(instances: u32) -> common::scratch::Scratch {
     use dot_vox::{Frame, SceneNode};
     let mut scenes = vec![
         SceneNode::Transform {
@@ -399,7 +398,7 @@ fn scattered_vox(instances: u32) -> PathBuf {
 
 /// A 16-bit heightmap of `side`² random heights up to 4000: every 8×8
 /// column holds walls the whole height, about 500 bricks with voxels.
-fn rough_heightmap(side: u32) -> PathBuf {
+fn rough_heightmap(side: u32) -> common::scratch::Scratch {
     let path = tmp("mem", &format!("rough-{side}.png"));
     let f = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
     let mut enc = png::Encoder::new(f, side, side);
@@ -444,9 +443,10 @@ fn rough_heightmaps_and_scattered_vox_files_are_refused_not_aborted() {
     // Smaller ones still build. 5 M scattered voxels took about 4 GB while
     // a map of dense bricks was built (an abort under this cap) and take
     // about 1.1 GB now.
+    let (map, vox) = (rough_heightmap(128), scattered_vox(160));
     for scene in [
-        format!("heightmap:{}", rough_heightmap(128).display()),
-        format!("vox:{}", scattered_vox(160).display()),
+        format!("heightmap:{}", map.display()),
+        format!("vox:{}", vox.display()),
     ] {
         let out = render_capped(&scene, None);
         assert!(
@@ -606,7 +606,7 @@ fn column_scripts_larger_than_memory_are_refused_before_the_first_step() {
 /// directory behind.
 #[test]
 fn the_engine_refuses_column_scripts_larger_than_memory_before_the_first_step() {
-    let (out, state) = engine_capped(
+    let (out, scratch) = engine_capped(
         "colsim-engine",
         &format!(
             "[world]\nsource = \"terrain\"\nsize = [6144, 8, 4096]\n[sim]\nscripts_dir = \"{}\"\n\
@@ -624,11 +624,14 @@ fn the_engine_refuses_column_scripts_larger_than_memory_before_the_first_step() 
     );
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("[sim] scripts"), "{err}");
-    assert!(!state.exists(), "a refused start left its state directory");
+    assert!(
+        !scratch.join("state").exists(),
+        "a refused start left its state directory"
+    );
 }
 
 /// An endless world's config with `view_distance` and `memory_budget`.
-fn endless_world(name: &str, view_distance: f64, budget: &str) -> PathBuf {
+fn endless_world(name: &str, view_distance: f64, budget: &str) -> common::scratch::Scratch {
     let text =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("worlds/endless.toml"))
             .unwrap()

@@ -359,7 +359,7 @@ fn erosion_runs_on_a_world_whose_edge_is_at_height_0() {
 mod common;
 use common::cli::{assert_clear_failure, assert_success, bin, read_json};
 
-fn tmp(name: &str) -> std::path::PathBuf {
+fn tmp(name: &str) -> common::scratch::Scratch {
     common::cli::tmp("simcli", name)
 }
 
@@ -678,7 +678,7 @@ fn a_script_file_name_with_control_characters_is_refused() {
             .args(["sim", "--size", "32x32x32", "--steps", "1", "--script"])
             .arg(&path)
             .arg("--out")
-            .arg(tmp("names.png"))
+            .arg(&tmp("names.png"))
             .output()
             .unwrap();
         common::cli::assert_clear_failure(

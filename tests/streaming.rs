@@ -4,6 +4,7 @@
 //! and a budget too small for one view is refused naming the minimum.
 
 mod common;
+use common::scratch::Scratch;
 
 use std::path::{Path, PathBuf};
 
@@ -12,10 +13,9 @@ use common::daemon::{backup_cmd, hash_at, run_cmd, run_ok};
 
 /// A streamed world: 2048² terrain (or unbounded with `height`), a 128²
 /// simulated region with rain, a small view, frames every 5 ticks.
-fn streamed(name: &str, world: &str, camera: &str) -> (PathBuf, PathBuf) {
-    let dir = std::env::temp_dir().join(format!("brickworld-stream-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+fn streamed(name: &str, world: &str, camera: &str) -> (Scratch, PathBuf, PathBuf) {
+    let scratch = Scratch::dir(&format!("stream-{name}"));
+    let dir = scratch.to_path_buf();
     let cfg = dir.join("world.toml");
     std::fs::write(
         &cfg,
@@ -31,7 +31,7 @@ fn streamed(name: &str, world: &str, camera: &str) -> (PathBuf, PathBuf) {
         ),
     )
     .unwrap();
-    (cfg, dir.join("state"))
+    (scratch, cfg, dir.join("state"))
 }
 
 const FLY: &str = "[camera]\nmode = \"line\"\neye = [560.0, 120.0, 560.0]\ntarget = [700.0, 60.0, 580.0]\nvelocity = [400.0, 0.0, 100.0]\n";
@@ -51,7 +51,7 @@ fn stored_chunks(cfg: &Path, state: &Path) -> Vec<[i32; 3]> {
 
 #[test]
 fn a_streamed_world_stores_only_its_region_and_resumes_bit_identically() {
-    let (cfg, state) = streamed("resume", "size = [2048, 96, 2048]", FLY);
+    let (_scratch, cfg, state) = streamed("resume", "size = [2048, 96, 2048]", FLY);
     let (_, err) = run_ok(&cfg, &state, "--until-tick", 30);
     assert!(
         err.contains("streaming: simulated region of 4 chunk columns"),
@@ -92,7 +92,7 @@ fn a_streamed_world_stores_only_its_region_and_resumes_bit_identically() {
 
 #[test]
 fn an_unbounded_world_streams_as_the_camera_flies() {
-    let (cfg, state) = streamed("endless", "height = 96", FLY);
+    let (_scratch, cfg, state) = streamed("endless", "height = 96", FLY);
     let (_, err) = run_ok(&cfg, &state, "--ticks", 200);
     common::cli::assert_no_panic(&err, "the engine");
     assert!(!err.contains("warning"), "{err}");
@@ -117,7 +117,7 @@ fn an_unbounded_world_streams_as_the_camera_flies() {
 /// grid slides under the GPU's streamed copy without a fallback.
 #[test]
 fn an_unbounded_world_streams_on_the_gpu_too() {
-    let (cfg, state) = streamed("endless-gpu", "height = 96", FLY);
+    let (_scratch, cfg, state) = streamed("endless-gpu", "height = 96", FLY);
     common::daemon::edit_config(&cfg, "tracer = \"cpu\"", "tracer = \"gpu\"");
     let (_, err) = run_ok(&cfg, &state, "--ticks", 100);
     common::cli::assert_no_panic(&err, "the engine");
@@ -137,7 +137,7 @@ fn an_unbounded_world_streams_on_the_gpu_too() {
 /// told a user to pass `run --tracer gpu`).
 #[test]
 fn the_daemons_auto_tracer_names_the_config_field_that_forces_the_gpu() {
-    let (cfg, state) = streamed("auto-hint", "height = 96", FLY);
+    let (_scratch, cfg, state) = streamed("auto-hint", "height = 96", FLY);
     common::daemon::edit_config(&cfg, "tracer = \"cpu\"", "tracer = \"auto\"");
     let (_, err) = run_ok(&cfg, &state, "--ticks", 40);
     common::cli::assert_no_panic(&err, "the engine");
@@ -154,7 +154,7 @@ fn the_daemons_auto_tracer_names_the_config_field_that_forces_the_gpu() {
 
 #[test]
 fn a_budget_too_small_for_one_view_names_the_minimum() {
-    let (cfg, state) = streamed("budget", "size = [2048, 96, 2048]", FLY);
+    let (_scratch, cfg, state) = streamed("budget", "size = [2048, 96, 2048]", FLY);
     let out = run_cmd(&cfg, &state)
         .args(["--ticks", "5", "--memory-budget", "64KiB"])
         .output()
@@ -193,7 +193,7 @@ fn a_budget_too_small_for_one_view_names_the_minimum() {
 
 #[test]
 fn a_memory_budget_for_a_world_that_does_not_stream_is_refused() {
-    let (cfg, state, _) = common::daemon::setup("budget-resident");
+    let (_scratch, cfg, state, _) = common::daemon::setup("budget-resident");
     let out = run_cmd(&cfg, &state)
         .args(["--ticks", "5", "--memory-budget", "1GiB"])
         .output()
@@ -228,7 +228,7 @@ fn stored_blobs(cfg: &Path, state: &Path) -> Vec<(Vec<i32>, Vec<u8>)> {
 /// the same region hash and, byte for byte, the same store.
 #[test]
 fn a_region_that_follows_the_camera_moves_with_it_and_resumes_bit_identically() {
-    let (cfg, state) = streamed("follow", "size = [2048, 96, 2048]", FLY);
+    let (_scratch, cfg, state) = streamed("follow", "size = [2048, 96, 2048]", FLY);
     common::daemon::edit_config(
         &cfg,
         "region = { min = [512, 512], max = [640, 640] }",
@@ -279,7 +279,7 @@ fn a_region_that_follows_the_camera_moves_with_it_and_resumes_bit_identically() 
 /// lay the stored chunks over the generated column.
 #[test]
 fn the_store_overlay_shows_what_a_moving_region_left_behind() {
-    let (cfg, state) = streamed("overlay", "size = [2048, 96, 2048]", FLY);
+    let (_scratch, cfg, state) = streamed("overlay", "size = [2048, 96, 2048]", FLY);
     common::daemon::edit_config(
         &cfg,
         "region = { min = [512, 512], max = [640, 640] }",
@@ -347,9 +347,8 @@ fn the_store_overlay_shows_what_a_moving_region_left_behind() {
 /// world's own tiles: the imported world evolves as a fresh one does.
 #[test]
 fn a_regions_backup_imported_into_the_whole_world_keeps_its_ground() {
-    let dir = std::env::temp_dir().join(format!("brickworld-stream-moat-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let scratch = Scratch::dir("stream-moat");
+    let dir = scratch.to_path_buf();
     let config = |name: &str, stream: &str| {
         let cfg = dir.join(name);
         std::fs::write(
@@ -464,10 +463,10 @@ fn drained(state: &Path) -> f64 {
 fn a_fixed_region_drains_over_its_edges_and_a_following_one_does_not() {
     const STILL: &str =
         "[camera]\nmode = \"fixed\"\neye = [576.0, 120.0, 500.0]\ntarget = [576.0, 40.0, 576.0]\n";
-    let (cfg, state) = streamed("edges-fixed", "size = [1024, 96, 1024]", STILL);
+    let (_scratch, cfg, state) = streamed("edges-fixed", "size = [1024, 96, 1024]", STILL);
     run_ok(&cfg, &state, "--ticks", 120);
     assert!(drained(&state) > 0.0, "the fixed region drained nothing");
-    let (cfg, state) = streamed("edges-follow", "size = [1024, 96, 1024]", STILL);
+    let (_scratch, cfg, state) = streamed("edges-follow", "size = [1024, 96, 1024]", STILL);
     common::daemon::edit_config(
         &cfg,
         "region = { min = [512, 512], max = [640, 640] }",
@@ -484,7 +483,7 @@ fn a_fixed_region_drains_over_its_edges_and_a_following_one_does_not() {
 /// unclipped count. The region is clipped to the world first.
 #[test]
 fn a_fixed_region_past_a_bounded_world_is_clipped_to_it() {
-    let (cfg, state) = streamed("clip", "size = [2048, 96, 2048]", FLY);
+    let (_scratch, cfg, state) = streamed("clip", "size = [2048, 96, 2048]", FLY);
     common::daemon::edit_config(
         &cfg,
         "region = { min = [512, 512], max = [640, 640] }",

@@ -58,7 +58,7 @@ fn events(
 
 #[test]
 fn the_event_stream_pushes_frames_status_and_timeline_rows() {
-    let (cfg, state, addr) = setup("viewer-events");
+    let (_scratch, cfg, state, addr) = setup("viewer-events");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let seen = events(&addr, |e| {
@@ -153,7 +153,7 @@ fn the_event_stream_pushes_frames_status_and_timeline_rows() {
 
 #[test]
 fn parameter_changes_get_the_engines_verdict_and_viewers_share_the_camera_by_lease() {
-    let (cfg, state, addr) = setup("viewer-verdicts");
+    let (_scratch, cfg, state, addr) = setup("viewer-verdicts");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     // Applied: the answer says so, and /status agrees.
@@ -249,7 +249,7 @@ fn ctl(state: &Path, addr: &str, args: &[&str]) -> std::process::Output {
 
 #[test]
 fn ctl_params_reads_values_and_ctl_log_prints_a_scripts_lines_once() {
-    let (cfg, state, addr) = setup("viewer-ctl");
+    let (_scratch, cfg, state, addr) = setup("viewer-ctl");
     // A script that logs every step.
     let dir = cfg.parent().unwrap().join("scripts");
     std::fs::create_dir_all(&dir).unwrap();
@@ -389,7 +389,7 @@ fn closed_within(s: &mut TcpStream, limit: Duration) -> bool {
 /// got every later viewer a 503, for ever while the engine was paused).
 #[test]
 fn viewers_that_never_read_do_not_hold_up_the_engine() {
-    let (cfg, state, addr) = setup("viewer-stalled");
+    let (_scratch, cfg, state, addr) = setup("viewer-stalled");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let mut stalled = Vec::new();
@@ -473,7 +473,7 @@ fn viewers_that_never_read_do_not_hold_up_the_engine() {
 /// `frames.every` ticks.
 #[test]
 fn a_camera_move_shows_at_once_even_paused() {
-    let (cfg, state, addr) = setup("viewer-camera-paused");
+    let (_scratch, cfg, state, addr) = setup("viewer-camera-paused");
     let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
     wait_ready(&addr);
     let frames = |addr: &str| status(addr)["frames"].as_u64().unwrap();
@@ -516,7 +516,7 @@ fn a_camera_move_shows_at_once_even_paused() {
 /// A script with nothing awake for it is shown as sleeping, not running.
 #[test]
 fn a_script_with_nothing_awake_is_shown_sleeping() {
-    let (cfg, state, addr) = setup("viewer-sleeping");
+    let (_scratch, cfg, state, addr) = setup("viewer-sleeping");
     edit_config(&cfg, "params = { rain = 0.2 }", "params = { rain = 0.0 }");
     let d = start(&cfg, &state);
     wait_ready(&addr);
@@ -556,7 +556,7 @@ fn a_script_with_nothing_awake_is_shown_sleeping() {
 /// RSS moved, never the same status twice.
 #[test]
 fn status_events_come_at_most_every_250_ms_and_only_when_it_changed() {
-    let (cfg, state, addr) = setup("viewer-throttle");
+    let (_scratch, cfg, state, addr) = setup("viewer-throttle");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     let count =
@@ -634,7 +634,7 @@ fn a_viewer_that_reads_nothing_is_closed_after_the_stall_limit() {
     use nix::sys::socket::{
         AddressFamily, SockFlag, SockType, SockaddrIn, connect, setsockopt, socket, sockopt::RcvBuf,
     };
-    let (cfg, state, addr) = setup("viewer-stall-limit");
+    let (_scratch, cfg, state, addr) = setup("viewer-stall-limit");
     let d = start(&cfg, &state);
     wait_ready(&addr);
     // The receive buffer is set before connecting: the window a connection

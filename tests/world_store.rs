@@ -14,6 +14,7 @@ use glam::{IVec2, IVec3};
 mod common;
 use common::cli::{assert_success, bin};
 use common::daemon::*;
+use common::scratch::Scratch;
 
 /// A chunk with uniform, mixed and empty bricks and a voxel channel.
 fn sample(key: ChunkKey) -> (BrickStore, VoxelChannels) {
@@ -189,7 +190,7 @@ fn corrupt_first_chunk(state: &std::path::Path) -> ChunkKey {
 
 #[test]
 fn a_corrupt_chunk_is_reported_with_its_coordinates_and_only_it_is_regenerated() {
-    let (cfg, state, _) = setup("corruptchunk");
+    let (_scratch, cfg, state, _) = setup("corruptchunk");
     hash_at(&cfg, &state, 20);
     let key = corrupt_first_chunk(&state);
     let err = stderr_of_ticks(&cfg, &state, 10);
@@ -212,7 +213,7 @@ fn a_corrupt_chunk_is_reported_with_its_coordinates_and_only_it_is_regenerated()
 fn a_column_naming_too_many_new_channels_keeps_what_fits() {
     use redb::TableDefinition;
     const COLUMNS: TableDefinition<&[u8], &[u8]> = TableDefinition::new("columns");
-    let (cfg, state, _) = setup("channelflood");
+    let (_scratch, cfg, state, _) = setup("channelflood");
     hash_at(&cfg, &state, 5);
     let key = ColumnKey(IVec2::ZERO);
     let mut flood = ChannelStore::default();
@@ -246,7 +247,7 @@ fn a_column_naming_too_many_new_channels_keeps_what_fits() {
 
 #[test]
 fn a_store_of_another_format_version_is_refused_and_left_alone() {
-    let (cfg, state, _) = setup("formatversion");
+    let (_scratch, cfg, state, _) = setup("formatversion");
     hash_at(&cfg, &state, 5);
     {
         use redb::{ReadableTable, TableDefinition};
@@ -285,7 +286,7 @@ fn a_store_of_another_format_version_is_refused_and_left_alone() {
 /// removing the manifest too starts afresh, as the message says.
 #[test]
 fn a_lost_store_is_refused_not_silently_restarted() {
-    let (cfg, state, _) = setup("loststore");
+    let (_scratch, cfg, state, _) = setup("loststore");
     hash_at(&cfg, &state, 5);
     let db = state.join("world.redb");
     let run = || {
@@ -337,7 +338,7 @@ fn a_lost_store_is_refused_not_silently_restarted() {
 
 #[test]
 fn a_commit_writes_only_what_changed_and_the_state_blob_round_trips() {
-    let (cfg, state, _) = setup("commitsize");
+    let (_scratch, cfg, state, _) = setup("commitsize");
     // A 48x32x48 world is one chunk column of 1 x 1 chunks: after 20 ticks
     // of rain the store holds it and the state.
     hash_at(&cfg, &state, 20);
@@ -359,7 +360,7 @@ fn a_commit_writes_only_what_changed_and_the_state_blob_round_trips() {
 
 #[test]
 fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
-    let (cfg, state, _) = setup("export");
+    let (_scratch, cfg, state, _) = setup("export");
     let ran = hash_at(&cfg, &state, 30);
     let backup = state.parent().unwrap().join("world.bwc");
     let out = backup_cmd("export", &backup, &cfg, &state)
@@ -548,7 +549,7 @@ fn bench_store_writes_the_documented_json_keys_and_refuses_bad_sizes() {
 /// failed had at that tick.
 #[test]
 fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
-    let (cfg, state, _) = setup("fulldisk");
+    let (_scratch, cfg, state, _) = setup("fulldisk");
     edit_config(&cfg, "rain = 0.2", "rain = 2.0");
     edit_config(&cfg, "[checkpoint]\nevery = 40", "[checkpoint]\nevery = 10");
     hash_at(&cfg, &state, 20);
@@ -590,7 +591,7 @@ fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
         .find(|l| l.starts_with("resumed"))
         .unwrap_or_else(|| panic!("{err}"))
         .to_string();
-    let (cfg2, state2, _) = setup("fulldisk-straight");
+    let (_scratch, cfg2, state2, _) = setup("fulldisk-straight");
     edit_config(&cfg2, "rain = 0.2", "rain = 2.0");
     let straight = hash_at(&cfg2, &state2, tick);
     assert!(
@@ -604,7 +605,7 @@ fn a_full_disk_keeps_the_engine_running_and_loses_nothing_committed() {
 /// commit and a failure is a 500 with the reason.
 #[test]
 fn a_commit_that_fails_answers_500_with_the_reason() {
-    let (cfg, state, addr) = setup("commit500");
+    let (_scratch, cfg, state, addr) = setup("commit500");
     edit_config(&cfg, "rain = 0.2", "rain = 2.0");
     hash_at(&cfg, &state, 20);
     let size = std::fs::metadata(state.join("world.redb")).unwrap().len();
@@ -634,7 +635,7 @@ fn a_commit_that_fails_answers_500_with_the_reason() {
 #[test]
 fn a_resume_keeps_sleeping_tiles_asleep() {
     let active_after_40 = |name: &str, legs: &[u64]| -> Vec<f64> {
-        let (cfg, state, _) = setup(name);
+        let (_scratch, cfg, state, _) = setup(name);
         // No rain: the dry terrain falls asleep within a few ticks. A
         // timeline row every tick.
         edit_config(&cfg, "rain = 0.2", "rain = 0.0");
@@ -664,7 +665,7 @@ fn a_resume_keeps_sleeping_tiles_asleep() {
 /// it then resumes without its file, bit-identically.
 #[test]
 fn a_heightmap_world_is_imported_once_and_resumes_without_its_file() {
-    let (cfg, state, _) = setup("import-once");
+    let (_scratch, cfg, state, _) = setup("import-once");
     let dir = cfg.parent().unwrap().to_path_buf();
     std::fs::copy(
         concat!(env!("CARGO_MANIFEST_DIR"), "/worlds/valley.png"),
@@ -686,7 +687,7 @@ fn a_heightmap_world_is_imported_once_and_resumes_without_its_file() {
     std::fs::rename(dir.join("valley.png"), dir.join("moved.png")).unwrap();
     let resumed = hash_at(&cfg, &state, 40);
     std::fs::rename(dir.join("moved.png"), dir.join("valley.png")).unwrap();
-    let (cfg2, state2, _) = setup("import-once-straight");
+    let (_scratch, cfg2, state2, _) = setup("import-once-straight");
     std::fs::copy(
         dir.join("valley.png"),
         cfg2.parent().unwrap().join("valley.png"),
@@ -712,8 +713,13 @@ fn own_scripts_world(
     world: &str,
     name: &str,
     text: &str,
-) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
-    let (cfg, state, _) = setup(world);
+) -> (
+    Scratch,
+    std::path::PathBuf,
+    std::path::PathBuf,
+    std::path::PathBuf,
+) {
+    let (scratch, cfg, state, _) = setup(world);
     let dir = cfg.parent().unwrap().join("scripts");
     std::fs::create_dir_all(&dir).unwrap();
     let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
@@ -724,19 +730,26 @@ fn own_scripts_world(
         &format!("scripts_dir = \"{}\"", repo.display()),
         &format!("scripts_dir = \"{}\"", dir.display()),
     );
-    (cfg, state, dir)
+    (scratch, cfg, state, dir)
 }
 
 /// The daemon's small world with the flaky script beside water, in a
 /// scripts folder of its own.
-fn flaky_world(name: &str) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
-    let (cfg, state, dir) = own_scripts_world(name, "flaky", FLAKY);
+fn flaky_world(
+    name: &str,
+) -> (
+    Scratch,
+    std::path::PathBuf,
+    std::path::PathBuf,
+    std::path::PathBuf,
+) {
+    let (scratch, cfg, state, dir) = own_scripts_world(name, "flaky", FLAKY);
     edit_config(
         &cfg,
         "[render]",
         "[[scripts]]\nfile = \"flaky.lua\"\n[render]",
     );
-    (cfg, state, dir)
+    (scratch, cfg, state, dir)
 }
 
 /// Regression (review of issue 10): a script suspended after repeated
@@ -757,10 +770,10 @@ fn a_suspended_script_stays_suspended_across_a_resume() {
         let hash = line.split("world hash ").nth(1).unwrap();
         (hash.trim_end_matches(')').to_string(), err)
     };
-    let (cfg, state, _) = flaky_world("flakya");
+    let (_scratch, cfg, state, _) = flaky_world("flakya");
     let (straight, said) = until(&cfg, &state, 12);
     assert!(said.contains("flaky"), "the script never failed: {said}");
-    let (cfg, state, dir) = flaky_world("flakyb");
+    let (_scratch, cfg, state, dir) = flaky_world("flakyb");
     until(&cfg, &state, 6);
     let (resumed, said) = until(&cfg, &state, 12);
     assert_eq!(
@@ -770,7 +783,7 @@ fn a_suspended_script_stays_suspended_across_a_resume() {
     assert!(!said.contains("runs again"), "{said}");
 
     // Run on to tick 16 twice: as stored, and with the script changed.
-    let (cfg2, state2, _) = flaky_world("flakyc");
+    let (_scratch, cfg2, state2, _) = flaky_world("flakyc");
     until(&cfg2, &state2, 12);
     let (kept, said) = until(&cfg2, &state2, 16);
     assert!(!said.contains("runs again"), "{said}");
@@ -796,20 +809,20 @@ const IDLE_RULE: &str = "return { grid = \"voxels\", materials = { \"sand\" }, p
 #[test]
 fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
     let world = |name: &str| {
-        let (cfg, state, dir) = own_scripts_world(name, "paint", IDLE_RULE);
+        let (scratch, cfg, state, dir) = own_scripts_world(name, "paint", IDLE_RULE);
         edit_config(
             &cfg,
             "file = \"water.lua\"\nparams = { rain = 0.2 }",
             "file = \"paint.lua\"",
         );
         run_ok(&cfg, &state, "--until-tick", 20);
-        (cfg, state, dir)
+        (scratch, cfg, state, dir)
     };
-    let (cfg, state, _) = world("paintkept");
+    let (_scratch, cfg, state, _) = world("paintkept");
     let (_, said) = run_ok(&cfg, &state, "--until-tick", 24);
     assert!(!said.contains("changed while"), "{said}");
     let kept = hash_at(&cfg, &state, 26);
-    let (cfg, state, dir) = world("paintchanged");
+    let (_scratch, cfg, state, dir) = world("paintchanged");
     let paint = IDLE_RULE.replace(
         "end } } }",
         "buffer.writeu8(c.w.mat, 0, c.m.sand) end } } }",
@@ -837,7 +850,7 @@ fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
         "buffer.writeu8(c.w.mat, 0, c.m.sand) end } } }",
     );
     let idle_only = |name: &str| {
-        let (cfg, state, dir) = own_scripts_world(name, "paint", &painting);
+        let (scratch, cfg, state, dir) = own_scripts_world(name, "paint", &painting);
         std::fs::write(dir.join("idle.lua"), IDLE_RULE).unwrap();
         edit_config(
             &cfg,
@@ -845,11 +858,11 @@ fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
             "file = \"idle.lua\"",
         );
         run_ok(&cfg, &state, "--until-tick", 20);
-        (cfg, state)
+        (scratch, cfg, state)
     };
-    let (cfg, state) = idle_only("paintnone");
+    let (_scratch, cfg, state) = idle_only("paintnone");
     let without = hash_at(&cfg, &state, 26);
-    let (cfg, state) = idle_only("paintadded");
+    let (_scratch, cfg, state) = idle_only("paintadded");
     edit_config(
         &cfg,
         "[render]",
@@ -874,7 +887,7 @@ fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
 /// a minute per script.
 #[test]
 fn a_script_failing_every_other_tick_is_announced_once() {
-    let (cfg, state, dir) = flaky_world("alternate");
+    let (_scratch, cfg, state, dir) = flaky_world("alternate");
     std::fs::write(
         dir.join("flaky.lua"),
         FLAKY.replace("c.tick >= 1 and c.tick < 4", "c.tick % 2 == 1"),
@@ -893,7 +906,7 @@ fn a_script_failing_every_other_tick_is_announced_once() {
 /// is refused and writes nothing.
 #[test]
 fn export_never_replaces_the_world_store_or_a_special_file() {
-    let (cfg, state, _) = setup("exporttarget");
+    let (_scratch, cfg, state, _) = setup("exporttarget");
     hash_at(&cfg, &state, 3);
     let store = state.join("world.redb");
     let before = crc32fast::hash(&std::fs::read(&store).unwrap());
@@ -1043,7 +1056,7 @@ fn import(
 #[test]
 fn a_backup_with_forged_bounds_is_refused_clearly() {
     use brickworld::engine::checkpoint::SimExtras;
-    let (cfg, state, _) = setup("forgedbounds");
+    let (_scratch, cfg, state, _) = setup("forgedbounds");
     let store = BrickStore::new(Palette::grey_ramp());
     let (channels, extras) = (ChannelStore::default(), SimExtras::default());
     let cases = [
@@ -1083,7 +1096,7 @@ fn a_backup_with_forged_bounds_is_refused_clearly() {
 fn a_backup_whose_materials_hold_the_simulations_ids_is_refused_by_import() {
     use brickworld::engine::checkpoint::SimExtras;
     use brickworld::world::MaterialKind;
-    let (cfg, state, _) = setup("reservedids");
+    let (_scratch, cfg, state, _) = setup("reservedids");
     let bounds = (IVec3::ZERO, IVec3::new(48, 32, 48));
     let mut store = BrickStore::new(Palette::grey_ramp());
     store.set_voxel(IVec3::new(5, 5, 5), 253);
@@ -1110,7 +1123,7 @@ fn a_backup_whose_materials_hold_the_simulations_ids_is_refused_by_import() {
 #[test]
 fn a_backup_holding_data_outside_its_bounds_is_refused() {
     use brickworld::engine::checkpoint::SimExtras;
-    let (cfg, state, _) = setup("outsidebounds");
+    let (_scratch, cfg, state, _) = setup("outsidebounds");
     let bounds = (IVec3::ZERO, IVec3::new(48, 32, 48));
     let mut outside = BrickStore::new(Palette::grey_ramp());
     outside.set_voxel(IVec3::new(60, 5, 5), 3);
@@ -1151,7 +1164,7 @@ fn a_backup_holding_data_outside_its_bounds_is_refused() {
 #[test]
 fn a_world_at_the_last_tick_steps_no_further_and_still_resumes() {
     use brickworld::engine::checkpoint::{MAX_TICK, SimExtras, WorldRef, write_at};
-    let (cfg, state, _) = setup("lasttick");
+    let (_scratch, cfg, state, _) = setup("lasttick");
     let store = BrickStore::new(Palette::grey_ramp());
     let (channels, extras) = (ChannelStore::default(), SimExtras::default());
     let identity = brickworld::engine::world_config::WorldConfig::load(&cfg)
@@ -1184,7 +1197,7 @@ fn a_world_at_the_last_tick_steps_no_further_and_still_resumes() {
 #[test]
 fn a_tiny_stored_parameter_is_named_in_scientific_notation() {
     use brickworld::engine::checkpoint::SimExtras;
-    let (cfg, state, _) = setup("tinyparam");
+    let (_scratch, cfg, state, _) = setup("tinyparam");
     let store = BrickStore::new(Palette::grey_ramp());
     let (channels, extras) = (ChannelStore::default(), SimExtras::default());
     let file = state.parent().unwrap().join("tiny.bwc");
@@ -1203,15 +1216,15 @@ fn a_tiny_stored_parameter_is_named_in_scientific_notation() {
 /// The world of `setup`, widened to 4 × 2 chunks, with the column scripts
 /// confined to `[sim] region` (x in `0..max_x`, z in `0..48`): the chunks
 /// it touches are the ones that change.
-fn wide_world(name: &str, max_x: i32) -> (std::path::PathBuf, std::path::PathBuf, String) {
-    let (cfg, state, addr) = setup(name);
+fn wide_world(name: &str, max_x: i32) -> (Scratch, std::path::PathBuf, std::path::PathBuf, String) {
+    let (scratch, cfg, state, addr) = setup(name);
     edit_config(&cfg, "size = [48, 32, 48]", "size = [256, 32, 128]");
     edit_config(
         &cfg,
         "[sim]\n",
         &format!("[sim]\nregion = {{ min = [0, 0], max = [{max_x}, 48] }}\n"),
     );
-    (cfg, state, addr)
+    (scratch, cfg, state, addr)
 }
 
 fn stored_keys(cfg: &std::path::Path, state: &std::path::Path) -> (WorldDb, Vec<ChunkKey>) {
@@ -1229,7 +1242,7 @@ fn stored_keys(cfg: &std::path::Path, state: &std::path::Path) -> (WorldDb, Vec<
 /// has 8 chunks and 8 chunk columns, and rain falls on one of each.
 #[test]
 fn a_commit_of_a_world_of_many_chunks_writes_only_the_chunks_that_changed() {
-    let (cfg, state, _) = wide_world("commitpart", 48);
+    let (_scratch, cfg, state, _) = wide_world("commitpart", 48);
     hash_at(&cfg, &state, 20);
     let (db, keys) = stored_keys(&cfg, &state);
     assert_eq!(
@@ -1251,7 +1264,7 @@ fn a_commit_of_a_world_of_many_chunks_writes_only_the_chunks_that_changed() {
 /// and only the corrupt one is regenerated and written again.
 #[test]
 fn of_two_stored_chunks_only_the_corrupt_one_is_regenerated() {
-    let (cfg, state, addr) = wide_world("corrupttwo", 112);
+    let (_scratch, cfg, state, addr) = wide_world("corrupttwo", 112);
     hash_at(&cfg, &state, 20);
     let (db, keys) = stored_keys(&cfg, &state);
     assert_eq!(
@@ -1299,7 +1312,7 @@ fn of_two_stored_chunks_only_the_corrupt_one_is_regenerated() {
 fn a_corrupt_state_blob_stops_the_resume_and_is_left_alone() {
     use redb::{ReadableDatabase, TableDefinition};
     const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
-    let (cfg, state, _) = setup("badstate");
+    let (_scratch, cfg, state, _) = setup("badstate");
     hash_at(&cfg, &state, 20);
     let path = state.join("world.redb");
     let read_state = || {
@@ -1342,7 +1355,7 @@ fn a_corrupt_state_blob_stops_the_resume_and_is_left_alone() {
 /// the world still resumes from its store; no test covered it.
 #[test]
 fn a_changed_config_is_reported_and_the_world_still_resumes() {
-    let (cfg, state, _) = setup("confchange");
+    let (_scratch, cfg, state, _) = setup("confchange");
     hash_at(&cfg, &state, 20);
     edit_config(&cfg, "every = 5", "every = 7");
     let (said, err) = run_ok(&cfg, &state, "--ticks", 3);
@@ -1359,7 +1372,7 @@ fn a_changed_config_is_reported_and_the_world_still_resumes() {
 /// and the next commit writes everything since the last good one.
 #[test]
 fn writing_resumes_when_the_full_disk_has_room_again() {
-    let (cfg, state, addr) = setup("diskroom");
+    let (_scratch, cfg, state, addr) = setup("diskroom");
     edit_config(&cfg, "rain = 0.2", "rain = 2.0");
     edit_config(&cfg, "[checkpoint]\nevery = 40", "[checkpoint]\nevery = 10");
     hash_at(&cfg, &state, 20);
@@ -1416,7 +1429,7 @@ fn writing_resumes_when_the_full_disk_has_room_again() {
 /// fails with it.
 #[test]
 fn a_state_directory_deleted_while_the_engine_runs_fails_its_commits_loudly() {
-    let (cfg, state, addr) = setup("deleted");
+    let (_scratch, cfg, state, addr) = setup("deleted");
     edit_config(&cfg, "[checkpoint]\nevery = 40", "[checkpoint]\nevery = 5");
     let d = start(&cfg, &state);
     wait_ready(&addr);
@@ -1451,7 +1464,7 @@ fn a_state_directory_deleted_while_the_engine_runs_fails_its_commits_loudly() {
 /// replaces what it left.
 #[test]
 fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
-    let (cfg, state, _) = setup("halfimport");
+    let (_scratch, cfg, state, _) = setup("halfimport");
     hash_at(&cfg, &state, 30);
     let backup = state.with_file_name("w.bwc");
     let export = backup_cmd("export", &backup, &cfg, &state)
@@ -1528,7 +1541,7 @@ fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
 /// as before.
 #[test]
 fn damage_anywhere_in_the_store_file_is_one_line_never_a_panic_or_an_abort() {
-    let (cfg, state, _) = setup("redbflips");
+    let (_scratch, cfg, state, _) = setup("redbflips");
     hash_at(&cfg, &state, 100);
     let good = std::fs::read(state.join("world.redb")).unwrap();
     let mut damaged = 0;
@@ -1609,13 +1622,13 @@ fn damage_anywhere_in_the_store_file_is_one_line_never_a_panic_or_an_abort() {
 #[test]
 fn a_material_declared_before_the_others_keeps_their_stored_ids_across_a_restart() {
     let run_lava = |name: &str| {
-        let (cfg, state, _, scripts) = lava_world(name);
-        (cfg, state, scripts.join("materials.lua"))
+        let (scratch, cfg, state, _, scripts) = lava_world(name);
+        (scratch, cfg, state, scripts.join("materials.lua"))
     };
-    let (cfg_a, state_a, _) = run_lava("matids-a");
+    let (_scratch, cfg_a, state_a, _) = run_lava("matids-a");
     let uninterrupted = hash_at(&cfg_a, &state_a, 12);
 
-    let (cfg, state, materials) = run_lava("matids-b");
+    let (_scratch, cfg, state, materials) = run_lava("matids-b");
     hash_at(&cfg, &state, 2);
     let text = std::fs::read_to_string(&materials).unwrap();
     let edited = text

@@ -251,11 +251,37 @@ pub(crate) fn mkfifo(path: &Path) {
 mod tests {
     use super::*;
 
-    pub(super) fn dir(name: &str) -> PathBuf {
+    /// A test's own empty folder, removed when the test passes (kept to
+    /// look at when it fails). Regression: these folders were never
+    /// removed, four a run.
+    pub(super) struct TestDir(PathBuf);
+
+    impl std::ops::Deref for TestDir {
+        type Target = Path;
+        fn deref(&self) -> &Path {
+            &self.0
+        }
+    }
+
+    impl AsRef<Path> for TestDir {
+        fn as_ref(&self) -> &Path {
+            &self.0
+        }
+    }
+
+    impl Drop for TestDir {
+        fn drop(&mut self) {
+            if !std::thread::panicking() {
+                let _ = std::fs::remove_dir_all(&self.0);
+            }
+        }
+    }
+
+    pub(super) fn dir(name: &str) -> TestDir {
         let d = std::env::temp_dir().join(format!("bw-files-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
-        d
+        TestDir(d)
     }
 
     #[test]
@@ -285,7 +311,8 @@ mod tests {
     #[cfg(unix)]
     #[test]
     fn opening_a_fifo_does_not_wait_for_a_writer() {
-        let fifo = dir("fifo").join("pipe");
+        let d = dir("fifo");
+        let fifo = d.join("pipe");
         mkfifo(&fifo);
         // Returns at once (a blocking open would hang this test).
         let f = open_for_reading(&fifo).unwrap();

@@ -60,8 +60,14 @@ impl Browser {
             std::process::id(),
             Instant::now().elapsed().as_nanos()
         ));
-        std::fs::create_dir_all(&profile).unwrap();
+        // Chromium's own temporary files go inside the profile, which is
+        // removed with it (regression: a killed Chromium left its
+        // `org.chromium.Chromium.*` folders in the temp dir, one a test).
+        let own_tmp = profile.join("tmp");
+        std::fs::create_dir_all(&own_tmp).unwrap();
+        let profile_guard = tempdir::Dir(profile.clone());
         let mut child = Command::new(exe)
+            .env("TMPDIR", &own_tmp)
             .args([
                 "--headless",
                 "--no-sandbox",
@@ -115,7 +121,7 @@ impl Browser {
             session: String::new(),
             next: 1,
             events: Vec::new(),
-            _profile: tempdir::Dir(profile),
+            _profile: profile_guard,
         };
         let target = b.call("Target.createTarget", json!({ "url": "about:blank" }));
         let target = target["targetId"].as_str().unwrap().to_string();

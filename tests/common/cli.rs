@@ -1,6 +1,6 @@
 //! Helpers for tests that run the `brickworld` binary as a user would.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
 /// The binary under test.
@@ -8,11 +8,10 @@ pub fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_brickworld"))
 }
 
-/// A path in this test binary's own temp folder `brickworld-TAG-PID`.
-pub fn tmp(tag: &str, name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("brickworld-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+/// The path `name` in a scratch folder of its own (`brickworld-TAG-…`),
+/// removed when the returned guard is dropped, unless the test fails.
+pub fn tmp(tag: &str, name: &str) -> super::scratch::Scratch {
+    super::scratch::Scratch::file(tag, name)
 }
 
 /// Require a run to have succeeded, showing its stderr otherwise.

@@ -8,6 +8,8 @@ use std::time::{Duration, Instant};
 
 use brickworld::engine::ctl::request;
 
+use super::scratch::Scratch;
+
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -16,10 +18,11 @@ pub fn free_port() -> u16 {
         .port()
 }
 
-pub fn setup(name: &str) -> (PathBuf, PathBuf, String) {
-    let dir = std::env::temp_dir().join(format!("brickworld-daemon-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+/// A small world's folder (removed when the guard is dropped, unless the
+/// test fails), its config, its state directory and its control address.
+pub fn setup(name: &str) -> (Scratch, PathBuf, PathBuf, String) {
+    let scratch = Scratch::dir(&format!("daemon-{name}"));
+    let dir = scratch.to_path_buf();
     let addr = format!("127.0.0.1:{}", free_port());
     let cfg = dir.join("world.toml");
     std::fs::write(
@@ -32,7 +35,7 @@ pub fn setup(name: &str) -> (PathBuf, PathBuf, String) {
         ),
     )
     .unwrap();
-    (cfg, dir.join("state"), addr)
+    (scratch, cfg, dir.join("state"), addr)
 }
 
 /// A daemon that is killed if the test panics before stopping it
@@ -123,8 +126,8 @@ pub fn add_script(cfg: &Path, name: &str, text: &str) {
 /// shipped `materials.lua` beside it and a 2³ `lava_source` placed; its
 /// (config, state, address, scripts directory).
 #[allow(dead_code)]
-pub fn lava_world(name: &str) -> (PathBuf, PathBuf, String, PathBuf) {
-    let (cfg, state, addr) = setup(name);
+pub fn lava_world(name: &str) -> (Scratch, PathBuf, PathBuf, String, PathBuf) {
+    let (scratch, cfg, state, addr) = setup(name);
     add_script(&cfg, "lava.lua", &shipped_script("lava.lua"));
     let scripts = cfg.parent().unwrap().join("scripts");
     std::fs::write(
@@ -135,7 +138,7 @@ pub fn lava_world(name: &str) -> (PathBuf, PathBuf, String, PathBuf) {
     let mut text = std::fs::read_to_string(&cfg).unwrap();
     text.push_str("[[place]]\nmaterial = \"lava_source\"\nat = [20, 28, 20]\nsize = [2, 2, 2]\n");
     std::fs::write(&cfg, text).unwrap();
-    (cfg, state, addr, scripts)
+    (scratch, cfg, state, addr, scripts)
 }
 
 /// The text of a shipped script (`scripts/NAME`).

@@ -4,6 +4,7 @@
 
 pub mod cli;
 pub mod daemon;
+pub mod scratch;
 
 use std::sync::OnceLock;
 

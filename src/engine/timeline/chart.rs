@@ -579,5 +579,6 @@ mod tests {
             let e = chart(&dir).unwrap_err().to_string();
             assert!(e.contains("not a regular file"), "{e}");
         }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
