@@ -317,7 +317,7 @@ pub struct BenchStoreArgs {
     /// Commits to time
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
-    /// Scratch directory for the store (new, empty, or made by an earlier run; removed afterwards)
+    /// Scratch directory for the store (new, empty, or made by an earlier run): removed afterwards with any parent it made, or emptied if it was there
     #[arg(long, default_value = "bench-store")]
     pub dir: PathBuf,
 }
@@ -394,9 +394,9 @@ pub struct BenchSimArgs {
     /// Write the results as JSON here
     #[arg(long)]
     pub json: PathBuf,
-    /// World sizes in columns per side (multiples of 8)
+    /// World sizes in columns per side (multiples of 8 in 8..=8192)
     #[arg(long, value_delimiter = ',', default_value = "512,1024")]
-    pub sizes: Vec<i32>,
+    pub sizes: Vec<String>,
     /// Timed steps per measurement
     #[arg(long, default_value_t = 10)]
     pub steps: u32,

@@ -117,7 +117,7 @@ pub fn install_panic_hook() {
             || msg.starts_with("failed to set up alternative stack guard page")
         {
             crate::say!(
-                "error: cannot start the worker threads: out of memory ({msg}) (ask for fewer with --threads)"
+                "error: cannot start the worker threads: out of memory ({msg}) (ask for fewer with --threads or RAYON_NUM_THREADS)"
             );
             std::process::exit(1);
         }

@@ -85,6 +85,20 @@ fn bad_input_gets_a_clear_error_and_nonzero_exit() {
         &["render", "--out", o, "--eye", "0,9,0", "--target", "0,-9,0"],
         "straight above or below",
     );
+    // Regression (hostile probe): a target 1e-200 from the eye made a NaN
+    // direction and a blank image, exit 0.
+    expect_failure(
+        &[
+            "render",
+            "--out",
+            o,
+            "--eye",
+            "0,5,10",
+            "--target",
+            "1e-200,5,10",
+        ],
+        "equals --eye (or lies within 1e-6 of it)",
+    );
     expect_failure(&["render", "--out", o, "--eye", "1,2,3"], "needs --target");
     expect_failure(&["render", "--out", o, "--width", "0"], "invalid --width");
     expect_failure(&["render", "--out", o, "--fov", "180"], "invalid --fov");
@@ -185,7 +199,9 @@ fn bad_input_gets_a_clear_error_and_nonzero_exit() {
             "--out",
             "/nonexistent-dir/x.png",
         ],
-        "cannot write /nonexistent-dir/x.png",
+        // Before the scene is built (hostile probe: checked up front, as
+        // every other output is).
+        "invalid --out '/nonexistent-dir/x.png': its folder /nonexistent-dir does not exist",
     );
     expect_failure(
         &[
@@ -656,13 +672,14 @@ fn an_output_named_for_another_format_is_refused_before_any_work() {
 #[cfg(target_os = "linux")]
 #[test]
 fn threads_the_os_refuses_get_one_clear_error() {
+    let refused = tmp("refused.png");
     for _ in 0..20 {
         let out = std::process::Command::new("bash")
             .arg("-c")
             .arg(format!(
                 "ulimit -v 1048576; exec '{}' render --size 16x16x16 --threads 1024 --out '{}'",
                 env!("CARGO_BIN_EXE_brickworld"),
-                tmp("refused.png").display()
+                refused.display()
             ))
             .output()
             .unwrap();
@@ -677,6 +694,292 @@ fn threads_the_os_refuses_get_one_clear_error() {
         assert!(err.contains("ask for fewer with --threads"), "{err}");
         assert_eq!(err.trim().lines().count(), 1, "{err}");
     }
+}
+
+/// Run `cmd` for at most 60 s; its output, or a panic if it hung.
+fn output_within_a_minute(cmd: &mut std::process::Command) -> std::process::Output {
+    let mut child = cmd
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > std::time::Duration::from_secs(60) {
+            let _ = child.kill();
+            panic!("{cmd:?} still ran after 60 s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// Regression (hostile probe): an output that is a FIFO nothing reads
+/// hung `render`, `sim` and the benches at their end for good (their
+/// results lost). It is refused before any work; a FIFO with a reader,
+/// like a pipe, still gets the output.
+#[cfg(unix)]
+#[test]
+fn an_output_fifo_nothing_reads_is_refused_and_one_with_a_reader_is_written() {
+    let dir = tmp("fifo-outputs");
+    std::fs::create_dir_all(&*dir).unwrap();
+    let (png, npy, json) = (dir.join("f.png"), dir.join("f.npy"), dir.join("f.json"));
+    for f in [&png, &npy, &json] {
+        mkfifo(f);
+    }
+    let plain = dir.join("plain.png");
+    let water = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua");
+    let small = ["--size", "16x16x16", "--width", "8", "--height", "8"];
+    let cases: [(&str, Vec<&std::ffi::OsStr>); 4] = [
+        (
+            "--out",
+            vec!["render".as_ref(), "--out".as_ref(), png.as_os_str()],
+        ),
+        (
+            "--depth-out",
+            vec![
+                "render".as_ref(),
+                "--out".as_ref(),
+                plain.as_os_str(),
+                "--depth-out".as_ref(),
+                npy.as_os_str(),
+            ],
+        ),
+        (
+            "--out",
+            vec![
+                "sim".as_ref(),
+                "--steps".as_ref(),
+                "1".as_ref(),
+                "--script".as_ref(),
+                water.as_ref(),
+                "--out".as_ref(),
+                png.as_os_str(),
+            ],
+        ),
+        (
+            "--json",
+            vec![
+                "bench".as_ref(),
+                "tracers".as_ref(),
+                "--json".as_ref(),
+                json.as_os_str(),
+            ],
+        ),
+    ];
+    for (flag, args) in cases {
+        let out = output_within_a_minute(bin().args(&args).args(small));
+        assert_clear_failure(&out, &format!("{args:?}"), &format!("invalid {flag} '"));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("is a FIFO that nothing reads"), "{err}");
+    }
+    assert!(!plain.exists(), "a refused render wrote its image");
+    // With a reader (as `render --out /dev/stdout | …`), the image goes
+    // through. The reading end is open before the render starts (a
+    // non-blocking open needs no writer); reads until the writer is gone.
+    let reader = {
+        use std::io::Read;
+        use std::os::unix::fs::OpenOptionsExt;
+        let mut f = std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(&png)
+            .unwrap();
+        std::thread::spawn(move || {
+            let (mut got, mut buf) = (Vec::new(), [0u8; 4096]);
+            let start = std::time::Instant::now();
+            while start.elapsed() < std::time::Duration::from_secs(60) {
+                match f.read(&mut buf) {
+                    Ok(0) if !got.is_empty() => break,
+                    Ok(n) => got.extend_from_slice(&buf[..n]),
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+                    Err(e) => panic!("{e}"),
+                }
+                std::thread::sleep(std::time::Duration::from_millis(5));
+            }
+            got
+        })
+    };
+    let out = output_within_a_minute(bin().args(["render", "--out"]).arg(&png).args(small));
+    assert_success(&out);
+    let got = reader.join().unwrap();
+    assert!(got.starts_with(b"\x89PNG"), "{} bytes read", got.len());
+}
+
+/// Regressions (hostile probe): refused commands left the parent folders
+/// they had made for `--state` or `--dir`; `bench store --dir .` said
+/// "cannot empty .: Invalid argument"; `bench sim --sizes 4294967296`
+/// gave clap's "is not in -2147483648..=2147483647"; `render --size` over
+/// memory named the config key `world.size`; a `control.addr` holding no
+/// address sent `ctl` to the default address, maybe another engine's;
+/// `frames.dir` where no file can be made failed every frame later.
+#[test]
+fn refused_commands_leave_no_folders_and_name_what_is_wrong() {
+    let root = tmp("made-parents");
+    std::fs::create_dir_all(&*root).unwrap();
+    // A backup that is not one, into a state three folders down.
+    let junk = root.join("junk.bwc");
+    std::fs::write(&junk, "not a backup").unwrap();
+    let world = concat!(env!("CARGO_MANIFEST_DIR"), "/worlds/default.toml");
+    let state = root.join("a/b/state");
+    let out = bin()
+        .args(["import"])
+        .arg(&junk)
+        .args(["--world", world, "--state"])
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(
+        !root.join("a").exists(),
+        "a refused import left its parents"
+    );
+    // A start refused after its state directory was made (a taken port).
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let out = bin()
+        .args(["run", world, "--ticks", "1", "--addr"])
+        .arg(taken.local_addr().unwrap().to_string())
+        .arg("--state")
+        .arg(&state)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(!root.join("a").exists(), "a refused start left its parents");
+    // bench store's scratch: made with its parents, removed with them.
+    let json = root.join("store.json");
+    let small = ["--size", "64x32x64", "--chunks", "1", "--repeats", "1"];
+    let out = bin()
+        .args(["bench", "store", "--json"])
+        .arg(&json)
+        .args(small)
+        .arg("--dir")
+        .arg(root.join("s1/s2/scratch"))
+        .output()
+        .unwrap();
+    assert_success(&out);
+    assert!(!root.join("s1").exists(), "bench store left its parents");
+    // `.` is emptied in place, and left with only the scratch marker (so
+    // the next run takes it again).
+    let here = root.join("here");
+    std::fs::create_dir(&here).unwrap();
+    let out = bin()
+        .current_dir(&here)
+        .args(["bench", "store", "--json"])
+        .arg(&json)
+        .args(small)
+        .args(["--dir", "."])
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let left: Vec<_> = std::fs::read_dir(&here)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name())
+        .collect();
+    assert_eq!(left, [brickworld::files::SCRATCH_MARKER], "{left:?}");
+    for (size, said) in [
+        (
+            "4294967296",
+            "invalid --sizes '4294967296': must be in 8..=8192",
+        ),
+        ("12", "invalid --sizes '12': must be a multiple of 8"),
+    ] {
+        let json = json.to_str().unwrap();
+        expect_failure(&["bench", "sim", "--json", json, "--sizes", size], said);
+    }
+    let png = root.join("big.png");
+    expect_failure(
+        &[
+            "render",
+            "--size",
+            "65536x4096x65536",
+            "--out",
+            png.to_str().unwrap(),
+        ],
+        "invalid --size '65536x4096x65536': not enough memory",
+    );
+    // A control.addr that holds no address.
+    let ctl_state = root.join("ctl");
+    std::fs::create_dir(&ctl_state).unwrap();
+    std::fs::write(ctl_state.join("control.addr"), "garbage").unwrap();
+    expect_failure(
+        &["ctl", "--state", ctl_state.to_str().unwrap(), "status"],
+        "control.addr does not hold an address",
+    );
+    // frames.dir where nothing can be written.
+    let cfg = root.join("proc.toml");
+    let text = std::fs::read_to_string(world).unwrap();
+    std::fs::write(
+        &cfg,
+        text.replace("dir = \"frames\"", "dir = \"/proc\"")
+            .replace("size = [256, 96, 256]", "size = [64, 32, 64]")
+            .replace(
+                "scripts_dir = \"../scripts\"",
+                &format!("scripts_dir = \"{}/scripts\"", env!("CARGO_MANIFEST_DIR")),
+            ),
+    )
+    .unwrap();
+    let out = bin()
+        .args(["run"])
+        .arg(&cfg)
+        .args(["--ticks", "1", "--addr", "127.0.0.1:0", "--state"])
+        .arg(root.join("proc-state"))
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "frames.dir = /proc",
+        "frames.dir: cannot write in /proc",
+    );
+}
+
+/// Regression (hostile probe): rayon's global pool, which `run` and the
+/// scene builders use, started on first use, so a `RAYON_NUM_THREADS` it
+/// could not start was rayon's panic ("internal bug"), and 5 000 threads
+/// ran a 64³ world for minutes. The pool is built first: a count outside
+/// 1..=1024 or one the address space cannot hold is one line.
+#[test]
+fn rayon_num_threads_out_of_range_or_unstartable_is_one_line() {
+    let png = tmp("rayon.png");
+    for (v, said) in [
+        (
+            "5000",
+            "invalid RAYON_NUM_THREADS \"5000\": must be a number of worker threads in 1..=1024",
+        ),
+        ("many", "invalid RAYON_NUM_THREADS \"many\""),
+    ] {
+        let out = bin()
+            .env("RAYON_NUM_THREADS", v)
+            .args(["render", "--size", "16x16x16", "--out"])
+            .arg(&png)
+            .output()
+            .unwrap();
+        assert_clear_failure(&out, v, said);
+    }
+    let state = tmp("rayon-state");
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 1500000; exec '{}' run '{}' --state '{}' --ticks 1",
+            env!("CARGO_BIN_EXE_brickworld"),
+            concat!(env!("CARGO_MANIFEST_DIR"), "/worlds/default.toml"),
+            state.display()
+        ))
+        .env("RAYON_NUM_THREADS", "1000")
+        .env_remove("RUST_BACKTRACE")
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "1000 rayon threads in 1.5 GB",
+        "cannot start the worker threads",
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("ask for fewer with RAYON_NUM_THREADS"),
+        "{err}"
+    );
+    assert!(!state.exists(), "a refused start made its state directory");
 }
 
 /// Regressions (second hostile probe of the day), each refused in one line
@@ -809,30 +1112,39 @@ fn a_file_size_limit_fails_the_write_instead_of_killing_the_process() {
 fn a_failed_render_leaves_an_existing_output_untouched() {
     let keep = tmp("keep.png");
     std::fs::write(&keep, "keep").unwrap();
-    let missing = tmp("no-such-folder").join("d.npy");
-    expect_failure(
-        &[
-            "render",
-            "--size",
-            "16x16x16",
-            "--width",
-            "16",
-            "--height",
-            "12",
-            "--out",
-            keep.to_str().unwrap(),
-            "--depth-out",
-            missing.to_str().unwrap(),
-        ],
-        "cannot write",
+    let depth = tmp("d.npy");
+    // The depth's write fails past a 1024-byte file size limit, which the
+    // 48 × 36 PNG (830 bytes) fits and its depth (7 040) does not (a
+    // missing folder is now refused before any work).
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -f 2; exec '{}' render --size 16x16x16 --width 48 --height 36 --out '{}' --depth-out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            keep.display(),
+            depth.display()
+        ))
+        .output()
+        .unwrap();
+    assert_clear_failure(&out, "render past ulimit -f", "File too large");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("d.npy"),
+        "the depth's write must be the one that failed: {err}"
     );
     assert_eq!(std::fs::read_to_string(&keep).unwrap(), "keep");
-    let strays: Vec<_> = std::fs::read_dir(keep.parent().unwrap())
-        .unwrap()
-        .flatten()
-        .filter(|e| e.file_name().to_string_lossy().starts_with(".keep.png"))
-        .collect();
-    assert!(strays.is_empty(), "{strays:?}");
+    for (dir, name) in [
+        (keep.parent().unwrap(), ".keep.png"),
+        (depth.parent().unwrap(), ".d.npy"),
+    ] {
+        let strays: Vec<_> = std::fs::read_dir(dir)
+            .unwrap()
+            .flatten()
+            .filter(|e| e.file_name().to_string_lossy().starts_with(name))
+            .collect();
+        assert!(strays.is_empty(), "{strays:?}");
+    }
+    assert!(!depth.exists(), "a partial depth was left");
 }
 
 /// A one-connection server on a free port that answers with `answer`
@@ -1650,7 +1962,7 @@ fn a_failed_render_leaves_its_png_as_it_was() {
             .unwrap()
     };
     let out = render(&tmp("missing.npy/"));
-    assert_clear_failure(&out, "--depth-out ending in /", "not a file name");
+    assert_clear_failure(&out, "--depth-out ending in /", "is a folder: name a file");
     assert_eq!(
         std::fs::read(&png).unwrap(),
         b"kept",

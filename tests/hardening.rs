@@ -1278,17 +1278,53 @@ fn sigterm_interrupts_a_step_that_runs_for_minutes() {
 
 /// Regression (hostile probe): frames that could not be written (a full
 /// disk, a frames.dir that takes no files) were dropped without a word.
+/// A frames.dir that takes no files is now refused at start (next test),
+/// so here the folder turns into a file while the engine runs: every later
+/// frame fails, and that is said once.
 #[cfg(target_os = "linux")]
 #[test]
 fn a_frame_that_cannot_be_written_is_reported_once() {
-    let (_scratch, cfg, state, _) = setup("framefail");
-    edit_config(&cfg, "[frames]\n", "[frames]\ndir = \"/proc/self\"\n");
-    let (_, err) = run_ok(&cfg, &state, "--ticks", 30);
+    let (_scratch, cfg, state, addr) = setup("framefail");
+    let daemon = start(&cfg, &state);
+    wait_ready(&addr);
+    let frames = state.join("frames");
+    wait_status(&addr, "a first frame", |_| {
+        std::fs::read_dir(&frames).is_ok_and(|mut d| d.next().is_some())
+    });
+    std::fs::remove_dir_all(&frames).unwrap();
+    std::fs::write(&frames, "not a folder").unwrap();
+    // Six frames' worth of ticks (a frame every 5).
+    let at = status(&addr)["tick"].as_u64().unwrap();
+    wait_status(&addr, "30 more ticks", |s| {
+        s["tick"].as_u64().unwrap() >= at + 30
+    });
+    let out = stop(daemon);
+    let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(
         err.matches("warning: cannot write frame").count(),
         1,
         "{err}"
     );
+}
+
+/// Regression (hostile probe): a frames.dir in which no file can be made
+/// (`/proc/self`) was accepted, and every frame failed later, said as "its
+/// folder was deleted or replaced". It is refused at start, in one line.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_frames_dir_that_takes_no_files_is_refused_at_start() {
+    let (_scratch, cfg, state, _) = setup("framesdir-proc");
+    edit_config(&cfg, "[frames]\n", "[frames]\ndir = \"/proc/self\"\n");
+    let out = run_cmd(&cfg, &state)
+        .args(["--ticks", "1"])
+        .output()
+        .unwrap();
+    common::cli::assert_clear_failure(
+        &out,
+        "frames.dir = /proc/self",
+        "frames.dir: cannot write in /proc/self",
+    );
+    assert!(!state.exists(), "a refused start left its state directory");
 }
 
 /// Regression (hostile probe and review): a FIFO at `STATE/timeline.csv`,

@@ -319,12 +319,13 @@ fn a_vox_world_below_zero_runs_its_column_scripts() {
 /// It is refused with both figures (here under a 700 MB address space).
 #[test]
 fn a_dense_grid_over_the_memory_there_is_is_refused() {
+    let png = tmp("mem", "dense.png");
     let out = std::process::Command::new("bash")
         .arg("-c")
         .arg(format!(
             "ulimit -v 700000 && exec '{}' render --scene balls --size 768x768x768 --structure dense --width 16 --height 16 --out '{}'",
             env!("CARGO_BIN_EXE_brickworld"),
-            tmp("mem", "dense.png").display()
+            png.display()
         ))
         .output()
         .unwrap();

@@ -358,6 +358,47 @@ fn a_commit_writes_only_what_changed_and_the_state_blob_round_trips() {
     assert_eq!(m["world"]["seed"], 3);
 }
 
+/// A 48 × 48 8-bit heightmap whose heights are `height(x, z)`.
+fn write_heightmap(path: &std::path::Path, height: impl Fn(u32, u32) -> u8) {
+    let data: Vec<u8> = (0..48 * 48).map(|i| height(i % 48, i / 48)).collect();
+    let mut enc = png::Encoder::new(std::fs::File::create(path).unwrap(), 48, 48);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.write_header().unwrap().write_image_data(&data).unwrap();
+}
+
+/// Regression (hostile probe): `export` rebuilt a heightmap (or .vox)
+/// world from its file, where `run` resumes the copy imported into the
+/// store at the first start; a backup taken after the file changed held
+/// another world, exit 0. Export now starts from the stored world too.
+#[test]
+fn a_heightmap_worlds_backup_is_the_stored_world_after_its_file_changed() {
+    let (_scratch, cfg, state, _) = setup("export-heightmap");
+    let dir = cfg.parent().unwrap();
+    let map = dir.join("h.png");
+    write_heightmap(&map, |x, z| (5 + (x + z) / 8) as u8);
+    edit_config(
+        &cfg,
+        "source = \"terrain\"\nsize = [48, 32, 48]\n",
+        &format!("source = \"heightmap:{}\"\n", map.display()),
+    );
+    let ran = hash_at(&cfg, &state, 5);
+    write_heightmap(&map, |x, z| (20 + (x * z) % 17) as u8);
+    let backup = dir.join("w.bwc");
+    let out = backup_cmd("export", &backup, &cfg, &state)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        said.contains(&format!(
+            "exported tick 5 to {} (world hash {ran})",
+            backup.display()
+        )),
+        "{said} vs {ran}"
+    );
+}
+
 #[test]
 fn export_then_import_resumes_bit_identically_and_bad_imports_are_refused() {
     let (_scratch, cfg, state, _) = setup("export");

@@ -16,6 +16,16 @@ use render::run_render;
 
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> Result<()> {
+    match &cli.command {
+        // Commands that build and run worlds on rayon's global pool.
+        Command::Run(_) | Command::Export { .. } | Command::Import { .. } => global_pool()?,
+        // The others use pools of their own (which read
+        // `RAYON_NUM_THREADS` too), or none.
+        Command::Ctl(_) | Command::Init { .. } | Command::Chart { .. } => {}
+        _ => {
+            rayon_env_threads()?;
+        }
+    }
     match cli.command {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
         Command::Run(a) => run_daemon(&a),
@@ -232,8 +242,61 @@ fn address_space_left() -> Option<u64> {
     None
 }
 
-/// A rayon pool of `threads` workers (all cores when `None`).
+/// A rayon pool of `threads` workers (when `None`, `RAYON_NUM_THREADS`'s
+/// count, else all cores).
 pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
+    let (threads, hint) = match threads {
+        Some(n) => (Some(n), " (ask for fewer with --threads)"),
+        None => (
+            rayon_env_threads()?,
+            " (ask for fewer with --threads or RAYON_NUM_THREADS)",
+        ),
+    };
+    // The build error's text already holds the OS error, which is also its
+    // source: as a context chain it printed twice (regression).
+    pool_builder(threads, hint)?
+        .build()
+        .map_err(|e| pool_error(e, threads.map(|_| hint)))
+}
+
+/// The most workers `RAYON_NUM_THREADS` may ask for (as `--threads`).
+const MAX_THREADS: usize = 1024;
+
+/// Build rayon's global pool, which the engine's stages and the scenes'
+/// builders use, with `RAYON_NUM_THREADS` workers if set (1 to 1024; 0 or
+/// unset: all cores). Built here, so that a pool that cannot start is one
+/// line; on first use, rayon panics instead (regression, hostile probe:
+/// `RAYON_NUM_THREADS=1000 brickworld run` under `ulimit -v` printed an
+/// "internal bug", and 5 000 threads ran a 64³ world for minutes).
+fn global_pool() -> Result<()> {
+    let threads = rayon_env_threads()?;
+    let hint = " (ask for fewer with RAYON_NUM_THREADS)";
+    pool_builder(threads, hint)?
+        .build_global()
+        .map_err(|e| pool_error(e, threads.map(|_| hint)))
+}
+
+/// The worker count `RAYON_NUM_THREADS` asks for: `None` when unset or 0
+/// (all cores), an error outside 1..=1024.
+fn rayon_env_threads() -> Result<Option<usize>> {
+    Ok(match std::env::var("RAYON_NUM_THREADS") {
+        Err(std::env::VarError::NotPresent) => None,
+        Ok(v) => match v.trim().parse::<usize>() {
+            Ok(0) => None,
+            Ok(n) if n <= MAX_THREADS => Some(n),
+            _ => bail!(
+                "invalid RAYON_NUM_THREADS {v:?}: must be a number of worker threads in 1..={MAX_THREADS} (0, or unset, for all cores)"
+            ),
+        },
+        Err(std::env::VarError::NotUnicode(v)) => {
+            bail!("invalid RAYON_NUM_THREADS {v:?}: must be a number in 1..={MAX_THREADS}")
+        }
+    })
+}
+
+/// A pool builder for `threads` workers, refusing a count the address
+/// space cannot hold (`hint` says how to ask for fewer).
+fn pool_builder(threads: Option<usize>, hint: &str) -> Result<rayon::ThreadPoolBuilder> {
     let mut b = rayon::ThreadPoolBuilder::new();
     if let Some(n) = threads {
         // Threads that start in the last of the address space fail inside
@@ -244,23 +307,19 @@ pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
             && need > left / 2
         {
             bail!(
-                "cannot start the worker threads: {n} threads need about {} MiB of address space, and the limit (ulimit -v) leaves {} MiB (ask for fewer with --threads)",
+                "cannot start the worker threads: {n} threads need about {} MiB of address space, and the limit (ulimit -v) leaves {} MiB{hint}",
                 need >> 20,
                 left >> 20
             );
         }
         b = b.num_threads(n);
     }
-    // The build error's text already holds the OS error, which is also its
-    // source: as a context chain it printed twice (regression).
-    b.build().map_err(|e| {
-        let lower = if threads.is_some() {
-            " (ask for fewer with --threads)"
-        } else {
-            ""
-        };
-        anyhow::anyhow!("cannot start the worker threads: {e}{lower}")
-    })
+    Ok(b)
+}
+
+/// The one line for a pool that could not start.
+fn pool_error(e: rayon::ThreadPoolBuildError, hint: Option<&str>) -> anyhow::Error {
+    anyhow::anyhow!("cannot start the worker threads: {e}{}", hint.unwrap_or(""))
 }
 
 /// Build the scene with a progress bar.

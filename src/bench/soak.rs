@@ -79,7 +79,10 @@ pub fn run(
         .local_addr()?
         .port();
     let addr = format!("127.0.0.1:{port}");
-    crate::files::fresh_scratch_dir(state).map_err(|e| anyhow::anyhow!("invalid --state: {e}"))?;
+    // Kept afterwards, to look at (the next soak empties it).
+    crate::files::fresh_scratch_dir(state)
+        .map_err(|e| anyhow::anyhow!("invalid --state: {e}"))?
+        .keep();
     let exe = std::env::current_exe().context("cannot find the brickworld executable")?;
     let mut cmd = Command::new(exe);
     cmd.arg("run");

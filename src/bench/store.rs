@@ -53,7 +53,8 @@ pub fn run(size: IVec3, chunks: usize, repeats: usize, dir: &Path) -> Result<Sto
         seed: 1,
         config_hash: 0,
     };
-    crate::files::fresh_scratch_dir(dir).map_err(|e| anyhow::anyhow!("invalid --dir: {e}"))?;
+    let scratch =
+        crate::files::fresh_scratch_dir(dir).map_err(|e| anyhow::anyhow!("invalid --dir: {e}"))?;
     let hidden = indicatif::ProgressBar::hidden();
     let t = Instant::now();
     let mut world = build_scene(&spec, size, 1, &hidden)?;
@@ -101,7 +102,7 @@ pub fn run(size: IVec3, chunks: usize, repeats: usize, dir: &Path) -> Result<Sto
     };
     restore_chunks(&db, &mut fresh, &mut ws2, &mut dirty, scope)?;
     let restore_ms = t.elapsed().as_secs_f64() * 1e3;
-    let _ = std::fs::remove_dir_all(dir);
+    drop(scratch);
     Ok(StoreBench {
         size: size.to_array(),
         world_chunks,

@@ -13,7 +13,8 @@ use crate::scene::{SceneSpec, View};
 use crate::trace::Structure;
 pub use values::{
     ConfigError, MAX_LOD, MAX_XZ, MAX_Y, MIN_LOD, check_bench_outputs, check_extension,
-    check_output, lod_c, lod_in_range, not_an_input, parse_size, parse_vec3, same_file,
+    check_output, lod_c, lod_in_range, not_an_input, parse_sim_sizes, parse_size, parse_vec3,
+    same_file,
 };
 use values::{bad, parse_num};
 
@@ -57,7 +58,18 @@ impl SceneSettings {
                     "heightmap and vox scenes take their size from the file",
                 ));
             }
-            Some(s) => parse_size(s)?,
+            Some(s) => {
+                let size = parse_size(s)?;
+                // Named by the flag, not the config key the library
+                // checks under (hostile probe: "world.size: not enough
+                // memory" for `render --size`).
+                if let Err(crate::scene::SceneError::OutOfMemory { msg, .. }) =
+                    crate::scene::budget::check_world("--size", size)
+                {
+                    return Err(bad("--size", s, format!("not enough memory: {msg}")));
+                }
+                size
+            }
             None => default_size,
         };
         Ok(SceneSettings {
@@ -111,20 +123,22 @@ impl ViewSettings {
             (Some(e), Some(t)) => {
                 let eye = parse_vec3("--eye", e)?;
                 let target = parse_vec3("--target", t)?;
-                if eye == target {
-                    return Err(bad(
-                        "--target",
-                        t,
-                        "equals --eye, so the view direction is undefined",
-                    ));
-                }
-                let f = (target - eye).normalize();
-                if f.cross(DVec3::Y).length() < 1e-9 {
-                    return Err(bad(
-                        "--target",
-                        t,
-                        "is straight above or below --eye; tilt it slightly",
-                    ));
+                match crate::trace::view_direction(eye, target) {
+                    Ok(_) => {}
+                    Err(crate::trace::CameraError::Vertical) => {
+                        return Err(bad(
+                            "--target",
+                            t,
+                            "is straight above or below --eye; tilt it slightly",
+                        ));
+                    }
+                    Err(_) => {
+                        return Err(bad(
+                            "--target",
+                            t,
+                            "equals --eye (or lies within 1e-6 of it), so the view direction is undefined",
+                        ));
+                    }
                 }
                 Some(View {
                     eye: eye.to_array(),
@@ -210,8 +224,10 @@ impl RenderSettings {
             ));
         }
         check_extension("--out", &a.out, "png")?;
+        check_output("--out", &a.out)?;
         if let Some(d) = &a.depth_out {
             check_extension("--depth-out", d, "npy")?;
+            check_output("--depth-out", d)?;
         }
         let scene = SceneSettings::from_args(&a.scene, RENDER_DEFAULT_SIZE)?;
         if let Some(file) = scene.spec.file() {

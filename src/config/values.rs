@@ -94,6 +94,25 @@ pub fn parse_vec3(flag: &'static str, s: &str) -> Result<DVec3, ConfigError> {
     Ok(DVec3::from(v))
 }
 
+/// `bench sim --sizes`: world sides, each a multiple of 8 in 8..=8192
+/// (regression, hostile probe: clap's own parse said "4294967296 is not
+/// in -2147483648..=2147483647").
+pub fn parse_sim_sizes(sizes: &[String]) -> Result<Vec<i32>, ConfigError> {
+    if sizes.is_empty() {
+        return Err(bad("--sizes", "", "name at least one size"));
+    }
+    sizes
+        .iter()
+        .map(|s| {
+            let v = parse_num("--sizes", s, 8i32, 8192)?;
+            if v % 8 != 0 {
+                return Err(bad("--sizes", s, "must be a multiple of 8"));
+            }
+            Ok(v)
+        })
+        .collect()
+}
+
 pub(super) fn parse_num<T>(flag: &'static str, s: &str, lo: T, hi: T) -> Result<T, ConfigError>
 where
     T: std::str::FromStr + PartialOrd + std::fmt::Display + Copy,
@@ -147,16 +166,20 @@ pub fn check_bench_outputs(json: &Path, chart: Option<&Path>) -> Result<(), Conf
     Ok(())
 }
 
-/// Whether `a` and `b` name the same file however they are spelled
-/// (`./r.svg`, `a/../r.svg`, a symbolic or hard link), for outputs that
-/// must not overwrite each other.
 /// An output file `p` (given with `flag`) can be made: it names a file,
-/// not a folder (nor ends in '/'), in a folder that exists. Checked before
-/// the work, so that a run is not lost to its output's path.
+/// not a folder (nor ends in '/'), in a folder that exists, and if it is a
+/// FIFO, something reads it. Checked before the work, so that a run is not
+/// lost to its output's path.
 pub fn check_output(flag: &'static str, p: &Path) -> Result<(), ConfigError> {
     let shown = p.display().to_string();
     if p.is_dir() || p.as_os_str().as_encoded_bytes().ends_with(b"/") {
         return Err(bad(flag, &shown, "is a folder: name a file"));
+    }
+    // A FIFO is written in place, as a pipe to its reader; with none, the
+    // write would wait for good (regression, hostile probe: `render`,
+    // `sim`, `verify` and `soak` hung at their end, their results lost).
+    if let Err(e) = crate::files::hold_fifo_reader(p) {
+        return Err(bad(flag, &shown, e.to_string()));
     }
     // Through links: a dangling link's file is the one to be made.
     let target = crate::files::write_target(p).map_err(|e| {

@@ -233,9 +233,12 @@ pub fn run(a: &CtlArgs) -> Result<()> {
     // The address given, else the one the engine of `--state` bound (an
     // engine on port 0 picks its own; long-run probe: `ctl --state` could
     // not find it), else the default.
-    let addr = a.addr.clone().unwrap_or_else(|| {
-        crate::engine::state_dir::read_addr(&a.state).unwrap_or_else(|| DEFAULT_ADDR.to_string())
-    });
+    let addr = match &a.addr {
+        Some(addr) => addr.clone(),
+        None => crate::engine::state_dir::read_addr(&a.state)
+            .map_err(|e| anyhow::anyhow!(e))?
+            .unwrap_or_else(|| DEFAULT_ADDR.to_string()),
+    };
     let a = &a;
     let words: Vec<&str> = words.iter().map(|s| s.as_str()).collect();
     let token_path = a.state.join("control.token");

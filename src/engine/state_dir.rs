@@ -57,42 +57,56 @@ impl StateLock {
     }
 }
 
-/// Create the state directory `dir` (and its parents); whether this call
-/// made it, decided by `create_dir` itself, so two processes cannot both
-/// think they did.
-pub fn make(dir: &Path) -> Result<bool, StateDirError> {
+/// Create the state directory `dir` (and its parents); the folders this
+/// call made, outermost first (see [`crate::files::missing_folders`]),
+/// empty if `dir` was there. Whether it made `dir` is decided by
+/// `create_dir` itself, so two processes cannot both think they did.
+pub fn make(dir: &Path) -> Result<Vec<PathBuf>, StateDirError> {
     let ioe = |path: &Path| {
         let path = path.to_path_buf();
         move |error| StateDirError::Io { path, error }
     };
-    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
+    let made =
+        crate::files::missing_folders(dir).map_err(|e| ioe(dir)(std::io::Error::other(e)))?;
+    if let Some(parent) = made.len().checked_sub(2).map(|i| &made[i]) {
         std::fs::create_dir_all(parent).map_err(ioe(parent))?;
     }
-    match std::fs::create_dir(dir) {
-        Ok(()) => Ok(true),
+    let created = match made.last() {
+        Some(last) => std::fs::create_dir(last),
+        None => Err(std::io::ErrorKind::AlreadyExists.into()),
+    };
+    match created {
+        Ok(()) => Ok(made),
         // Something that is not a folder: say so, not "File exists"
         // (regression, hostile probe: `--state /dev/null`).
         Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && !dir.is_dir() => Err(ioe(dir)(
             std::io::Error::other("is not a folder (the state directory must be one)"),
         )),
-        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
-        Err(e) => Err(ioe(dir)(e)),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            // Made meanwhile by another process: its parents, if made
+            // here, are not ours to remove.
+            Ok(Vec::new())
+        }
+        Err(e) => {
+            crate::files::remove_made_if_empty(&made);
+            Err(ioe(dir)(e))
+        }
     }
 }
 
-/// Make (if needed) and lock the state directory `dir`; also whether this
-/// call made it. If the lock is refused, a directory this call made is
-/// removed again while still empty (another process's lock file keeps it).
-/// A caller that fails later and made the directory may remove it while it
-/// holds the lock.
-pub fn claim(dir: &Path) -> Result<(StateLock, bool), StateDirError> {
+/// Make (if needed) and lock the state directory `dir`; also the folders
+/// this call made (`dir` and the parents it needed), empty if `dir` was
+/// there. If the lock is refused, what this call made is removed again
+/// while empty (another process's lock file keeps it). A caller that fails
+/// later and made the directory removes it, and the parents made for it,
+/// with [`crate::files::remove_made`] while it holds the lock.
+pub fn claim(dir: &Path) -> Result<(StateLock, Vec<PathBuf>), StateDirError> {
     let made = make(dir)?;
     match lock(dir) {
         Ok(l) => Ok((l, made)),
         Err(e) => {
-            if made {
-                let _ = std::fs::remove_dir(dir);
-            }
+            // Only while empty: another engine may have taken it meanwhile.
+            crate::files::remove_made_if_empty(&made);
             Err(e)
         }
     }
@@ -207,11 +221,31 @@ pub fn write_addr(dir: &Path, addr: std::net::SocketAddr) -> Result<PathBuf, Sta
     Ok(path)
 }
 
-/// The address `dir/control.addr` names, if it holds one.
-pub fn read_addr(dir: &Path) -> Option<String> {
-    let text = crate::files::read_text(&dir.join(ADDR_FILE), 256).ok()?;
-    let addr: std::net::SocketAddr = text.trim().parse().ok()?;
-    Some(addr.to_string())
+/// The address `dir/control.addr` names: `Ok(None)` if there is no such
+/// file, an error naming it if it is there but holds no address (a FIFO,
+/// a link to a device, garbage), rather than a fall back to the default
+/// address, where another engine may listen (hostile probe).
+pub fn read_addr(dir: &Path) -> Result<Option<String>, String> {
+    let path = dir.join(ADDR_FILE);
+    // Only a missing file means "no address": any other failure (a state
+    // path that is a file, no permission) is said (review).
+    match std::fs::symlink_metadata(&path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        _ => {}
+    }
+    let why = |what: String| {
+        format!(
+            "{} {what}: pass --addr, or start the engine again to rewrite it",
+            path.display()
+        )
+    };
+    let text =
+        crate::files::read_text(&path, 256).map_err(|e| why(format!("cannot be read ({e})")))?;
+    let addr: std::net::SocketAddr = text
+        .trim()
+        .parse()
+        .map_err(|_| why("does not hold an address".into()))?;
+    Ok(Some(addr.to_string()))
 }
 
 #[cfg(test)]

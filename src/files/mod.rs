@@ -112,6 +112,49 @@ pub fn is_there_but_not_a_file(path: &Path) -> bool {
     std::fs::metadata(path).is_ok_and(|m| !m.is_file())
 }
 
+/// Why an output FIFO cannot be written.
+#[derive(Debug, thiserror::Error)]
+pub enum FifoError {
+    /// Nothing has it open for reading: a write would wait for good.
+    #[error(
+        "is a FIFO that nothing reads (a write would wait for ever): start its reader first, or name a file"
+    )]
+    NoReader,
+    /// It could not be opened.
+    #[error("is a FIFO that cannot be opened: {0}")]
+    Open(std::io::Error),
+}
+
+/// If `path` is a FIFO (a named pipe, or a pipe such as `/dev/stdout`),
+/// check that something reads it, and keep it open for writing until the
+/// process ends: the later write then finds its reader still there, which
+/// sees the output as one stream (closing the check's descriptor would
+/// end a named pipe's stream for its reader). Anything else: `Ok`.
+pub fn hold_fifo_reader(path: &Path) -> Result<(), FifoError> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
+        static HELD: std::sync::Mutex<Vec<std::fs::File>> = std::sync::Mutex::new(Vec::new());
+        if !std::fs::metadata(path).is_ok_and(|m| m.file_type().is_fifo()) {
+            return Ok(());
+        }
+        // Opening a FIFO to write without blocking fails with ENXIO when
+        // no reader has it open.
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(path)
+        {
+            Ok(f) => HELD.lock().unwrap_or_else(|e| e.into_inner()).push(f),
+            Err(e) if e.raw_os_error() == Some(libc::ENXIO) => return Err(FifoError::NoReader),
+            Err(e) => return Err(FifoError::Open(e)),
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = path;
+    Ok(())
+}
+
 /// The path of a folder held open as `dir`, through its descriptor
 /// (`/proc/self/fd/N`): it names the folder opened even after the path it
 /// was opened by names another one (a state directory deleted and made
@@ -201,20 +244,162 @@ pub fn read_text(path: &Path, max: u64) -> Result<String, FileError> {
 /// The file that marks a directory as scratch space this program made.
 pub const SCRATCH_MARKER: &str = ".brickworld-scratch";
 
+/// A scratch directory [`fresh_scratch_dir`] prepared. When dropped (the
+/// command is done, or failed part-way), it is removed with the parents
+/// made for it, or, where it was there already, emptied; [`keep`]
+/// (Self::keep) leaves it for the user to look at.
+#[derive(Debug)]
+pub struct ScratchDir {
+    dir: PathBuf,
+    /// The folders made for it, outermost first (see [`missing_folders`]);
+    /// empty if it was there already.
+    made: Vec<PathBuf>,
+    keep: bool,
+}
+
+impl ScratchDir {
+    /// Leave the scratch directory as it is (`soak` keeps its state).
+    pub fn keep(mut self) {
+        self.keep = true;
+    }
+}
+
+impl Drop for ScratchDir {
+    fn drop(&mut self) {
+        if self.keep {
+            return;
+        }
+        if self.made.is_empty() {
+            // Emptied but for its marker, so a next run takes it again.
+            let _ = empty_dir(&self.dir, Some(SCRATCH_MARKER));
+        } else {
+            remove_made(&self.made);
+        }
+    }
+}
+
+/// Remove everything inside `dir` but the entry named `but`.
+fn empty_dir(dir: &Path, but: Option<&str>) -> std::io::Result<()> {
+    for e in std::fs::read_dir(dir)? {
+        let e = e?;
+        if but.is_some_and(|b| e.file_name() == b) {
+            continue;
+        }
+        let p = e.path();
+        if std::fs::symlink_metadata(&p)?.is_dir() {
+            std::fs::remove_dir_all(&p)?;
+        } else {
+            std::fs::remove_file(&p)?;
+        }
+    }
+    Ok(())
+}
+
+/// The folders `create_dir_all(dir)` would make, outermost first, as paths
+/// under the canonical form of the deepest folder that exists (so a link
+/// or `..` on the way cannot make them name something else). An error if a
+/// `..` comes after a folder that does not exist: what it names is not
+/// known until that folder is made (regression, review: `--dir
+/// missing/../victim` emptied `victim` and then removed it).
+pub fn missing_folders(dir: &Path) -> Result<Vec<PathBuf>, String> {
+    use std::path::Component;
+    let mut there = PathBuf::new();
+    let mut comps = dir.components().peekable();
+    while let Some(c) = comps.peek() {
+        let next = there.join(c);
+        if std::fs::symlink_metadata(&next).is_err() {
+            break;
+        }
+        there = next;
+        comps.next();
+    }
+    let base = if there.as_os_str().is_empty() {
+        Path::new(".").canonicalize()
+    } else {
+        there.canonicalize()
+    }
+    .map_err(|e| format!("cannot resolve {}: {e}", there.display()))?;
+    let mut made = Vec::new();
+    let mut at = base;
+    for c in comps {
+        match c {
+            Component::Normal(name) => {
+                at = at.join(name);
+                made.push(at.clone());
+            }
+            Component::CurDir => {}
+            _ => {
+                return Err(format!(
+                    "{} has '..' after a folder that does not exist: name the folder without it",
+                    dir.display()
+                ));
+            }
+        }
+    }
+    Ok(made)
+}
+
+/// Remove the folders `made` (outermost first, from [`missing_folders`]):
+/// the innermost with all it holds, then its parents, each only while
+/// empty. What a command that made them and then failed leaves
+/// (regression, hostile probe: a refused `import --state a/b/c` left
+/// `a/b`).
+pub fn remove_made(made: &[PathBuf]) {
+    if let Some(last) = made.last() {
+        let _ = std::fs::remove_dir_all(last);
+        remove_made_if_empty(&made[..made.len() - 1]);
+    }
+}
+
+/// Remove the folders `made` (outermost first), innermost first, each
+/// only while empty; stop at the first that is not.
+pub fn remove_made_if_empty(made: &[PathBuf]) {
+    for d in made.iter().rev() {
+        if std::fs::remove_dir(d).is_err() {
+            break;
+        }
+    }
+}
+
 /// Make `dir` a fresh, empty scratch directory (holding only
 /// [`SCRATCH_MARKER`]): create it, or empty it if it is empty already or
 /// carries the marker. Any other directory, or a file, is refused and left
 /// untouched (regression: `bench store --dir` and `soak --state` deleted
-/// whatever directory they were given).
-pub fn fresh_scratch_dir(dir: &Path) -> Result<(), String> {
+/// whatever directory they were given). A link to a directory is that
+/// directory, and `.` is emptied in place (regression, hostile probe:
+/// "cannot empty .: Invalid argument").
+pub fn fresh_scratch_dir(dir: &Path) -> Result<ScratchDir, String> {
     let shown = dir.display();
-    match std::fs::symlink_metadata(dir) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-        Err(e) => return Err(format!("cannot use {shown}: {e}")),
-        Ok(m) if !m.is_dir() => {
-            return Err(format!("{shown} exists and is not a directory"));
+    let made = match std::fs::metadata(dir) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let made = missing_folders(dir)?;
+            // The parents with `create_dir_all`, the folder itself with
+            // `create_dir`: made by this call, or it was there after all
+            // (made meanwhile), and then checked as one that was.
+            if let Some(parent) = made.len().checked_sub(2).map(|i| &made[i]) {
+                std::fs::create_dir_all(parent)
+                    .map_err(|e| format!("cannot create {shown}: {e}"))?;
+            }
+            match made.last().map(std::fs::create_dir) {
+                Some(Ok(())) => Some(made),
+                Some(Err(e)) if e.kind() == std::io::ErrorKind::AlreadyExists => None,
+                Some(Err(e)) => {
+                    remove_made_if_empty(&made);
+                    return Err(format!("cannot create {shown}: {e}"));
+                }
+                None => None,
+            }
         }
-        Ok(_) => {
+        Err(e) => return Err(format!("cannot use {shown}: {e}")),
+        Ok(_) => None,
+    };
+    let made = match made {
+        Some(made) => made,
+        None => {
+            let m = std::fs::metadata(dir).map_err(|e| format!("cannot use {shown}: {e}"))?;
+            if !m.is_dir() {
+                return Err(format!("{shown} exists and is not a directory"));
+            }
             let empty = std::fs::read_dir(dir)
                 .map_err(|e| format!("cannot read {shown}: {e}"))?
                 .next()
@@ -226,15 +411,21 @@ pub fn fresh_scratch_dir(dir: &Path) -> Result<(), String> {
                      name another, or empty it yourself"
                 ));
             }
-            std::fs::remove_dir_all(dir).map_err(|e| format!("cannot empty {shown}: {e}"))?;
+            empty_dir(dir, None).map_err(|e| format!("cannot empty {shown}: {e}"))?;
+            Vec::new()
         }
-    }
-    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {shown}: {e}"))?;
+    };
+    let scratch = ScratchDir {
+        dir: dir.to_path_buf(),
+        made,
+        keep: false,
+    };
     std::fs::write(
         dir.join(SCRATCH_MARKER),
         "scratch space of brickworld: emptied without asking by the next run\n",
     )
-    .map_err(|e| format!("cannot write in {shown}: {e}"))
+    .map_err(|e| format!("cannot write in {shown}: {e}"))?;
+    Ok(scratch)
 }
 
 /// Make a FIFO at `path`, for the unit tests of inputs that must not block.
@@ -284,6 +475,52 @@ mod tests {
         TestDir(d)
     }
 
+    /// Regressions (hostile probe, review): a scratch directory's parents
+    /// made for it were left; `missing/../victim` made `missing`, took the
+    /// user's `victim` as new, and removed it afterwards; `.` could not be
+    /// emptied. Made folders go with their parents; one that was there is
+    /// emptied, marker kept; a `..` after a missing folder is refused.
+    #[test]
+    fn scratch_dirs_remove_what_they_made_and_never_what_was_there() {
+        let d = dir("scratchmade");
+        let victim = d.join("victim");
+        std::fs::create_dir(&victim).unwrap();
+        std::fs::write(victim.join("data.txt"), "mine").unwrap();
+        let e = fresh_scratch_dir(&d.join("missing/../victim")).unwrap_err();
+        assert!(e.contains("'..' after a folder that does not exist"), "{e}");
+        assert!(!d.join("missing").exists());
+        assert_eq!(
+            std::fs::read_to_string(victim.join("data.txt")).unwrap(),
+            "mine"
+        );
+        // Made with its parents: removed with them.
+        let s = fresh_scratch_dir(&d.join("a/b/c")).unwrap();
+        std::fs::write(d.join("a/b/c/store"), "x").unwrap();
+        drop(s);
+        assert!(!d.join("a").exists());
+        // There already (through a link, and as `./`): emptied, marker kept.
+        let there = d.join("there");
+        std::fs::create_dir(&there).unwrap();
+        let link = d.join("link");
+        std::os::unix::fs::symlink(&there, &link).unwrap();
+        let s = fresh_scratch_dir(&link.join(".")).unwrap();
+        std::fs::write(there.join("store"), "x").unwrap();
+        drop(s);
+        let left: Vec<_> = std::fs::read_dir(&there)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        assert_eq!(left, [SCRATCH_MARKER]);
+        // Kept when asked.
+        let s = fresh_scratch_dir(&d.join("kept")).unwrap();
+        s.keep();
+        assert!(d.join("kept").join(SCRATCH_MARKER).is_file());
+        // A folder holding another's files is refused, untouched.
+        assert!(fresh_scratch_dir(&victim).is_err());
+        assert!(victim.join("data.txt").is_file());
+    }
+
     #[test]
     fn special_and_oversized_files_are_refused_before_reading() {
         let d = dir("read");
@@ -325,9 +562,10 @@ mod tests {
     fn only_scratch_directories_are_emptied() {
         let d = dir("scratch");
         let mine = d.join("mine");
-        fresh_scratch_dir(&mine).unwrap();
+        // Kept, as `soak` keeps its state for the next run to empty.
+        fresh_scratch_dir(&mine).unwrap().keep();
         std::fs::write(mine.join("world.redb"), "x").unwrap();
-        fresh_scratch_dir(&mine).unwrap();
+        fresh_scratch_dir(&mine).unwrap().keep();
         assert!(!mine.join("world.redb").exists(), "emptied");
         let theirs = d.join("theirs");
         std::fs::create_dir_all(&theirs).unwrap();

@@ -192,7 +192,10 @@ impl Staged {
         if let Ok(meta) = std::fs::metadata(&dest) {
             if !meta.is_file() {
                 // `/dev/null` or a FIFO: written in place, never replaced
-                // (renaming over a device node would remove it).
+                // (renaming over a device node would remove it). A FIFO
+                // whose reader left since the command's check would block
+                // the write for good: checked again here (review).
+                super::hold_fifo_reader(&dest).map_err(std::io::Error::other)?;
                 return Ok(Staged {
                     tmp: dest.clone(),
                     dest,

@@ -21,8 +21,10 @@ pub enum CameraError {
     /// A coordinate is NaN or infinite.
     #[error("camera {0} has a NaN or infinite coordinate")]
     NotFinite(&'static str),
-    /// Eye and target coincide.
-    #[error("camera eye equals its target: the view direction is undefined")]
+    /// Eye and target coincide, or are too close for a direction.
+    #[error(
+        "camera eye equals its target (or lies within 1e-6 of it): the view direction is undefined"
+    )]
     EyeIsTarget,
     /// The view is vertical, so "right" is undefined.
     #[error(
@@ -35,6 +37,28 @@ pub enum CameraError {
     /// Image size out of range.
     #[error("image size must be 1..=16384 on each side, got {0}x{1}")]
     BadSize(u32, u32),
+}
+
+/// The unit direction from `eye` to `target` (both finite), or why there is
+/// none: they coincide or lie within 1e-6 of each other (regression,
+/// hostile probe: a target 1e-200 from the eye passed the equality check,
+/// and its direction, normalised from an underflowed length, was NaN: a
+/// blank image with exit 0), or the view is vertical, so that "right" is
+/// undefined. Every camera check (flags, configs, `POST /camera`) uses it.
+pub fn view_direction(eye: DVec3, target: DVec3) -> Result<DVec3, CameraError> {
+    let d = target - eye;
+    // Coordinates near f64's limits can overflow the difference.
+    if !d.is_finite() {
+        return Err(CameraError::NotFinite("view direction"));
+    }
+    if d.length() < 1e-6 {
+        return Err(CameraError::EyeIsTarget);
+    }
+    let f = d.normalize();
+    if !(f.is_finite() && f.cross(DVec3::Y).length() >= 1e-9) {
+        return Err(CameraError::Vertical);
+    }
+    Ok(f)
 }
 
 /// A validated pinhole camera.
@@ -79,21 +103,14 @@ impl Camera {
         if !target.is_finite() {
             return Err(CameraError::NotFinite("target"));
         }
-        if eye == target {
-            return Err(CameraError::EyeIsTarget);
-        }
+        let f = view_direction(eye, target)?;
         if !(fov_deg > 0.0 && fov_deg < 180.0) {
             return Err(CameraError::BadFov(fov_deg));
         }
         if width == 0 || height == 0 || width > 16384 || height > 16384 {
             return Err(CameraError::BadSize(width, height));
         }
-        let f = (target - eye).normalize();
-        let r = f.cross(DVec3::Y);
-        if r.length() < 1e-9 {
-            return Err(CameraError::Vertical);
-        }
-        let r = r.normalize();
+        let r = f.cross(DVec3::Y).normalize();
         let u = r.cross(f);
         Ok(Camera {
             eye,
@@ -159,6 +176,31 @@ impl Camera {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Regression (hostile probe): a target a hair from the eye (1e-200,
+    /// whose squared length underflows) gave a NaN direction, so every ray
+    /// missed; it is refused as the same point, for `POST /camera` and
+    /// configs too, which build a `Camera`.
+    #[test]
+    fn a_target_a_hair_from_the_eye_is_refused_not_a_nan_direction() {
+        let eye = DVec3::new(0.0, 20.0, 10.0);
+        for d in [1e-200, 1e-160, 1e-7] {
+            let t = eye + DVec3::new(d, 0.0, 0.0);
+            assert!(
+                matches!(
+                    Camera::new(eye, t, 50.0, 8, 8),
+                    Err(CameraError::EyeIsTarget)
+                ),
+                "{d}"
+            );
+        }
+        let f = view_direction(eye, eye + DVec3::new(1e-5, 0.0, 0.0)).unwrap();
+        assert!((f - DVec3::X).length() < 1e-12, "{f}");
+        assert!(matches!(
+            view_direction(eye, eye + DVec3::new(1e-12, 5.0, 0.0)),
+            Err(CameraError::Vertical)
+        ));
+    }
 
     /// A frame's directions, built from per-column and per-row factors,
     /// are the per-pixel formula of `DESIGN.md` §3 bit for bit (depth

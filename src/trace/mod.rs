@@ -35,7 +35,7 @@ use crate::world::Palette;
 pub use ao::{AO_STRENGTH, face_ao};
 pub use beam::{BEAM, beam_of, ray_start};
 pub use brickmap::BrickmapTracer;
-pub use camera::{Camera, CameraError, MAX_FOV, MIN_FOV};
+pub use camera::{Camera, CameraError, MAX_FOV, MIN_FOV, view_direction};
 pub use dense::DenseGrid;
 pub use lod::lod_level;
 pub use output::{write_npy, write_png};

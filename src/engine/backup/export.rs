@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 
 use super::import::refuse_interrupted_import;
 use crate::engine::checkpoint::{self, SimExtras, WorldIdentity, WorldRef, WorldState};
@@ -152,13 +152,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
             let columns = rule.around(glam::DVec3::ZERO);
             crate::engine::streaming::build_columns(&gen_, columns)?
         }
-        None => {
-            let pb = crate::progress::bar("scene", 0);
-            let w = crate::scene::build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
-                .context("cannot build the world")?;
-            pb.finish_and_clear();
-            w
-        }
+        None => crate::engine::daemon::fixed_world(cfg, &db)?,
     };
     let mut ws = WorldSim::with_edges(&mut world, true);
     ws.sim.channels_mut().take_dirty();

@@ -251,8 +251,8 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
     let (lock, created) = crate::engine::state_dir::claim(dir)?;
     let result = import(file, dir, &cfg.identity());
     if result.is_err() {
-        if created {
-            let _ = std::fs::remove_dir_all(dir);
+        if !created.is_empty() {
+            crate::files::remove_made(&created);
         } else if !had_lock {
             let _ = std::fs::remove_file(&lock_file);
         }

@@ -45,6 +45,7 @@ mod view;
 pub use init::init;
 
 pub(crate) use scripts::load_scripts;
+pub(crate) use start::fixed_world;
 
 use super::checkpoint::CameraOverride;
 use super::persistence::{self, DirtyChunks};

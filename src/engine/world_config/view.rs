@@ -121,14 +121,12 @@ pub(super) fn camera(
         coord(at, cam.target, "camera.target")?,
     );
     match (eye, target) {
-        (Some(e), Some(t)) if e == t => {
-            return Err(err("camera.target", "equals camera.eye".into()));
-        }
-        (Some(e), Some(t)) if (t - e).normalize().cross(DVec3::Y).length() < 1e-9 => {
-            return Err(err(
-                "camera.target",
-                "is straight above or below camera.eye".into(),
-            ));
+        (Some(e), Some(t)) if crate::trace::view_direction(e, t).is_err() => {
+            let why = match crate::trace::view_direction(e, t) {
+                Err(crate::trace::CameraError::Vertical) => "is straight above or below camera.eye",
+                _ => "equals camera.eye (or lies within 1e-6 of it)",
+            };
+            return Err(err("camera.target", why.into()));
         }
         (Some(_), None) => {
             return Err(err("camera.target", "is needed with camera.eye".into()));

@@ -6,6 +6,8 @@
 
 mod world;
 
+pub(crate) use world::fixed_world;
+
 use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -40,8 +42,8 @@ impl Engine {
         // have taken the directory meanwhile (one lock, two handles).
         let held = lock.try_clone()?;
         let started = Self::start_locked(opts, lock);
-        if started.is_err() && made {
-            let _ = std::fs::remove_dir_all(&state);
+        if started.is_err() {
+            crate::files::remove_made(&made);
         }
         drop(held);
         started
@@ -249,6 +251,12 @@ fn frames_folder(state: &Path, cfg: &WorldConfig) -> Result<std::path::PathBuf> 
     }
     std::fs::create_dir_all(&frames_dir)
         .with_context(|| format!("frames.dir: cannot create {}", frames_dir.display()))?;
+    // A folder no file can be made in (`/proc`, a read-only mount) is
+    // refused at start (regression, hostile probe: every frame failed,
+    // said once a minute as "its folder was deleted or replaced").
+    let (probe, _) = crate::files::fresh_temp_beside(&frames_dir.join("frame"))
+        .with_context(|| format!("frames.dir: cannot write in {}", frames_dir.display()))?;
+    let _ = std::fs::remove_file(probe);
     Ok(frames_dir)
 }
 

@@ -132,17 +132,9 @@ pub(super) fn build_world(
     cfg: &WorldConfig,
     db: &WorldDb,
 ) -> Result<(SceneWorld, Option<(StreamPlan, RegionRule)>)> {
-    // A procedural world is regenerated on every start (only its edits
-    // are stored); a heightmap or .vox world was imported whole into the
-    // store on its first start, so its file is not read again.
-    let imported = if cfg.source.is_procedural() {
-        None
-    } else {
-        persistence::stored_frame(db)?
-    };
     let mut stream_plan = None;
-    let world = match (imported, &cfg.stream) {
-        (_, Some(st)) => {
+    let world = match &cfg.stream {
+        Some(st) => {
             // A streamed world: only the simulated region is the
             // engine's; the render thread streams the rest.
             let (gen_, rule) = streaming::generator(cfg)?;
@@ -167,18 +159,36 @@ pub(super) fn build_world(
             stream_plan = Some((plan, rule));
             world
         }
-        (Some((palette, (lo, hi))), None) => {
+        None => fixed_world(cfg, db)?,
+    };
+    Ok((world, stream_plan))
+}
+
+/// The world an unstreamed world's stored chunks go over, for `run` and
+/// `export` alike. A procedural world is regenerated (only its edits are
+/// stored); a heightmap or .vox world was imported whole into the store on
+/// its first start, so its file is not read again: an empty world of the
+/// stored frame (regression, hostile probe: `export` rebuilt it from the
+/// file, so a backup taken after the file changed held another world,
+/// exit 0, while `run` resumed the stored one).
+pub(crate) fn fixed_world(cfg: &WorldConfig, db: &WorldDb) -> Result<SceneWorld> {
+    let imported = if cfg.source.is_procedural() {
+        None
+    } else {
+        persistence::stored_frame(db)?
+    };
+    Ok(match imported {
+        Some((palette, (lo, hi))) => {
             SceneWorld::new(crate::world::BrickStore::new(palette), lo, hi)?
         }
-        (None, None) => {
+        None => {
             let pb = bar("scene", 0);
             let w = build_scene(&cfg.source, cfg.size, cfg.seed, &pb)
                 .context("cannot build the world")?;
             pb.finish_and_clear();
             w
         }
-    };
-    Ok((world, stream_plan))
+    })
 }
 
 /// Where the camera starts (every camera mode is at its configured eye at
