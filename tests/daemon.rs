@@ -154,6 +154,12 @@ fn status_pause_step_and_control_errors() {
     // refused as a step count out of range), one more is 413 unread.
     assert_eq!(post(&addr, &state, "/step", &"9".repeat(65_536)).0, 400);
     assert_eq!(post(&addr, &state, "/step", &"9".repeat(65_537)).0, 413);
+    // A tiny value is logged in exponent form (regression, hostile probe:
+    // 1e-320 took about 330 digits), then the one checked below.
+    assert_eq!(
+        post(&addr, &state, "/scripts/water/params", "{\"rain\": 1e-320}").0,
+        200
+    );
     assert_eq!(
         post(&addr, &state, "/scripts/water/params", "{\"rain\": 0.5}").0,
         200
@@ -184,6 +190,7 @@ fn status_pause_step_and_control_errors() {
         .find(|l| l.contains("water.rain = 0.5 (was "))
         .unwrap_or_else(|| panic!("no line for the change: {log}"));
     assert!(line.starts_with("tick "), "{line}");
+    assert!(line.ends_with("(was 1e-320)"), "{line}");
     assert!(!log.contains("water.rain = 99"), "{log}");
 }
 

@@ -273,7 +273,13 @@ impl Engine {
                             // conditions changed (researcher probe: recorded
                             // nowhere).
                             if let Some(was) = was.filter(|w| w.to_bits() != v.to_bits()) {
-                                crate::say!("tick {tick}: {script}.{k} = {v} (was {was})");
+                                // A tiny or huge value in exponent form
+                                // (hostile probe: 1e-320 took 330 digits).
+                                crate::say!(
+                                    "tick {tick}: {script}.{k} = {} (was {})",
+                                    crate::sim::fmt_num(v),
+                                    crate::sim::fmt_num(was)
+                                );
                             }
                         }
                         // A suspended script runs again once its parameters
