@@ -6,6 +6,7 @@
 
 use std::io::{BufRead, BufReader};
 use std::net::TcpStream;
+use std::os::unix::process::CommandExt;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -45,7 +46,15 @@ mod tempdir {
     pub struct Dir(pub std::path::PathBuf);
     impl Drop for Dir {
         fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
+            // A process that was writing in it may take a moment to go
+            // (regression: a profile half removed under a Chromium helper
+            // still writing was left behind, and `.ci/run` failed on it).
+            for _ in 0..100 {
+                if std::fs::remove_dir_all(&self.0).is_ok() || !self.0.exists() {
+                    return;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
         }
     }
 }
@@ -66,7 +75,10 @@ impl Browser {
         let own_tmp = profile.join("tmp");
         std::fs::create_dir_all(&own_tmp).unwrap();
         let profile_guard = tempdir::Dir(profile.clone());
+        // In a process group of its own, so that its helper processes
+        // (renderer, GPU, zygote) go with it (see Drop).
         let mut child = Command::new(exe)
+            .process_group(0)
             .env("TMPDIR", &own_tmp)
             .args([
                 "--headless",
@@ -101,7 +113,9 @@ impl Browser {
         let url = match rx.recv_timeout(Duration::from_secs(60)) {
             Ok(u) => u,
             Err(_) => {
-                let _ = child.kill();
+                let group = nix::unistd::Pid::from_raw(child.id() as i32);
+                let _ = nix::sys::signal::killpg(group, nix::sys::signal::Signal::SIGKILL);
+                let _ = child.wait();
                 panic!("chromium did not open its DevTools port within 60 s");
             }
         };
@@ -293,6 +307,10 @@ impl Browser {
 
 impl Drop for Browser {
     fn drop(&mut self) {
+        // The whole group: killing the browser alone left its helpers
+        // writing into the profile while it was removed.
+        let group = nix::unistd::Pid::from_raw(self.child.id() as i32);
+        let _ = nix::sys::signal::killpg(group, nix::sys::signal::Signal::SIGKILL);
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
