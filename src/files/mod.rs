@@ -246,8 +246,8 @@ pub const SCRATCH_MARKER: &str = ".brickworld-scratch";
 
 /// A scratch directory [`fresh_scratch_dir`] prepared. When dropped (the
 /// command is done, or failed part-way), it is removed with the parents
-/// made for it, or, where it was there already, emptied; [`keep`]
-/// (Self::keep) leaves it for the user to look at.
+/// made for it, or, where it was there already, emptied;
+/// [`keep`](Self::keep) leaves it for the user to look at.
 #[derive(Debug)]
 pub struct ScratchDir {
     dir: PathBuf,
