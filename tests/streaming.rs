@@ -495,3 +495,44 @@ fn a_fixed_region_past_a_bounded_world_is_clipped_to_it() {
         "{err}"
     );
 }
+
+/// Regression (researcher probe): a start that ran no tick committed the
+/// world as its config loaded it. A streamed world with a fixed region,
+/// started once with `[stream]` removed (same world, same region) and
+/// stopped before any tick, had its store rewritten (water moved between
+/// the region and its edge), so its later history differed from one that
+/// never saw the other config. A run in which nothing ran or changed now
+/// leaves the store as it was, and says so.
+#[test]
+fn a_start_that_runs_nothing_leaves_the_store_as_it_was() {
+    let scratch = Scratch::dir("stream-zerotick");
+    let streamed = scratch.join("s.toml");
+    let text = format!(
+        "[world]\nsource = \"terrain\"\nsize = [256, 32, 256]\nseed = 3\n\
+         [stream]\nview_distance = 64.0\nmemory_budget = \"256MiB\"\n\
+         [sim]\ndt = 0.05\nscripts_dir = \"{}/scripts\"\nregion = {{ min = [64, 64], max = [192, 192] }}\n\
+         [[scripts]]\nfile = \"water.lua\"\nparams = {{ rain = 0.05 }}\n\
+         [render]\nwidth = 32\nheight = 24\ntracer = \"cpu\"\n[frames]\nevery = 5\n[checkpoint]\nevery = 10\n\
+         [control]\naddr = \"127.0.0.1:0\"\n",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    std::fs::write(&streamed, &text).unwrap();
+    let resident = scratch.join("n.toml");
+    std::fs::write(
+        &resident,
+        text.replace(
+            "[stream]\nview_distance = 64.0\nmemory_budget = \"256MiB\"\n",
+            "",
+        ),
+    )
+    .unwrap();
+    let (a, b) = (scratch.join("a"), scratch.join("b"));
+    hash_at(&streamed, &a, 20);
+    hash_at(&streamed, &b, 20);
+    let (_, said) = run_ok(&resident, &b, "--until-tick", 20);
+    assert!(
+        said.contains("nothing ran or changed since the world was loaded"),
+        "{said}"
+    );
+    assert_eq!(hash_at(&streamed, &a, 40), hash_at(&streamed, &b, 40));
+}

@@ -21,6 +21,10 @@ impl Engine {
         for note in w.take_notes() {
             crate::say!("{note}");
         }
+        // Any reload, applied or refused, counts: the stop commits.
+        if !changed.is_empty() {
+            self.changed_since_load = true;
+        }
         for path in changed {
             if path.file_name().is_some_and(|n| n == "materials.lua") {
                 self.materials_changed(&path);

@@ -194,6 +194,9 @@ pub struct Engine {
     follow: Option<follow::Follow>,
     /// The stop interrupted a step: no final commit.
     step_cut: bool,
+    /// Something ran or changed since the world was loaded (a step, a
+    /// command, a reload): without it, the stop commits nothing.
+    changed_since_load: bool,
 }
 
 impl Engine {
@@ -218,6 +221,7 @@ impl Engine {
             }
             self.hot_reload();
             if self.apply_commands() {
+                self.changed_since_load = true;
                 // What the commands changed shows at once, not after the
                 // next step (regression: a step of 40 s kept a paused
                 // engine showing as running).
@@ -230,6 +234,7 @@ impl Engine {
                 break;
             }
             if self.should_step() && self.follow_camera() {
+                self.changed_since_load = true;
                 let started = Instant::now();
                 let report = self.step();
                 if crate::sim::interrupt::stopping() {
@@ -445,16 +450,25 @@ impl Engine {
             // Half a step is not committed: its commands go unapplied,
             // and those waiting for a verdict are told so.
             self.shared.commands.lock().expect("command lock").clear();
-        } else {
-            self.apply_commands();
+        } else if self.apply_commands() {
+            self.changed_since_load = true;
         }
         if self.step_cut {
             crate::say!(
                 "a step was still running {} s after the stop request: its scripts were interrupted and the step is dropped; the world stays as last committed",
                 STOP_GRACE.as_secs()
             );
-        } else {
+        } else if self.changed_since_load {
             self.commit();
+        } else {
+            // Nothing ran and nothing changed: the store keeps exactly what
+            // it held. A commit would store the world as this start loaded
+            // it, which a changed config may load otherwise (regression,
+            // researcher probe: a start without `[stream]`, stopped before
+            // any tick, changed a streamed world's later history).
+            crate::say!(
+                "nothing ran or changed since the world was loaded: the store is left as it was"
+            );
         }
         self.renderer.finish(std::time::Duration::from_secs(3));
         self.shared.shutdown.store(true, Ordering::Relaxed);

@@ -194,6 +194,9 @@ impl Engine {
             );
         }
         let n = ws.script_count();
+        // A first start has the world to store; a resumed one has nothing
+        // new until something runs or changes.
+        let changed_since_load = loaded_from.is_none();
         let mut engine = Engine {
             camera,
             camera_override,
@@ -228,6 +231,7 @@ impl Engine {
             script_ms: vec![0.0; n],
             follow,
             step_cut: false,
+            changed_since_load,
         };
         // Publish the loaded world in one go: a client that sees the scripts
         // also sees the tick and where it was resumed from (regression: a
