@@ -194,9 +194,10 @@ impl Engine {
             );
         }
         let n = ws.script_count();
-        // A first start has the world to store; a resumed one has nothing
+        // A first start has the world to store, and a resume that repaired
+        // chunks (regenerated a corrupt one) has them; otherwise nothing is
         // new until something runs or changes.
-        let changed_since_load = loaded_from.is_none();
+        let changed_since_load = loaded_from.is_none() || !dirty_chunks.is_empty();
         let mut engine = Engine {
             camera,
             camera_override,
