@@ -1315,12 +1315,9 @@ fn a_frame_that_cannot_be_written_is_reported_once() {
 fn a_frames_dir_that_takes_no_files_is_refused_at_start() {
     let (_scratch, cfg, state, _) = setup("framesdir-proc");
     edit_config(&cfg, "[frames]\n", "[frames]\ndir = \"/proc/self\"\n");
-    let out = run_cmd(&cfg, &state)
-        .args(["--ticks", "1"])
-        .output()
-        .unwrap();
-    common::cli::assert_clear_failure(
-        &out,
+    refused_start(
+        &cfg,
+        &state,
         "frames.dir = /proc/self",
         "frames.dir: cannot write in /proc/self",
     );
@@ -1897,12 +1894,9 @@ fn a_place_box_partly_outside_the_world_is_named_as_such() {
     let mut text = std::fs::read_to_string(&cfg).unwrap();
     text.push_str("[[place]]\nmaterial = \"water\"\nat = [0, 0, 0]\nsize = [65536, 8, 8]\n");
     std::fs::write(&cfg, text).unwrap();
-    let out = run_cmd(&cfg, &state)
-        .args(["--ticks", "1"])
-        .output()
-        .unwrap();
-    common::cli::assert_clear_failure(
-        &out,
+    refused_start(
+        &cfg,
+        &state,
         "a place box partly outside",
         "world.toml: place[0]: the box at [0, 0, 0] of size [65536, 8, 8] does not lie wholly inside the world",
     );
@@ -1994,12 +1988,9 @@ fn a_scripts_folder_that_cannot_be_read_is_named_by_its_field() {
         concat!(env!("CARGO_MANIFEST_DIR"), "/scripts"),
         looped.to_str().unwrap(),
     );
-    let out = run_cmd(&cfg, &state)
-        .args(["--ticks", "1"])
-        .output()
-        .unwrap();
-    common::cli::assert_clear_failure(
-        &out,
+    refused_start(
+        &cfg,
+        &state,
         "a looping scripts folder",
         "world.toml: sim.scripts_dir: cannot read",
     );

@@ -335,6 +335,15 @@ pub fn hash_at(cfg: &Path, state: &Path, end: u64) -> String {
         .to_string()
 }
 
+/// Run the daemon for one tick, which must be refused in one line saying
+/// `said` (`what` names the case in a failure); its output.
+#[allow(dead_code)]
+pub fn refused_start(cfg: &Path, state: &Path, what: &str, said: &str) -> std::process::Output {
+    let out = run_cmd(cfg, state).args(["--ticks", "1"]).output().unwrap();
+    super::cli::assert_clear_failure(&out, what, said);
+    out
+}
+
 /// Run the daemon for `ticks` ticks, require success; its stderr.
 #[allow(dead_code)]
 pub fn stderr_of_ticks(cfg: &Path, state: &Path, ticks: u64) -> String {

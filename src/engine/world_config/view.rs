@@ -120,14 +120,16 @@ pub(super) fn camera(
         coord(at, cam.eye, "camera.eye")?,
         coord(at, cam.target, "camera.target")?,
     );
+    if let (Some(e), Some(t)) = (eye, target)
+        && let Err(why) = crate::trace::view_direction(e, t)
+    {
+        let why = match why {
+            crate::trace::CameraError::Vertical => "is straight above or below camera.eye",
+            _ => "equals camera.eye (or lies within 1e-6 of it)",
+        };
+        return Err(err("camera.target", why.into()));
+    }
     match (eye, target) {
-        (Some(e), Some(t)) if crate::trace::view_direction(e, t).is_err() => {
-            let why = match crate::trace::view_direction(e, t) {
-                Err(crate::trace::CameraError::Vertical) => "is straight above or below camera.eye",
-                _ => "equals camera.eye (or lies within 1e-6 of it)",
-            };
-            return Err(err("camera.target", why.into()));
-        }
         (Some(_), None) => {
             return Err(err("camera.target", "is needed with camera.eye".into()));
         }
