@@ -66,31 +66,15 @@ pub fn make(dir: &Path) -> Result<Vec<PathBuf>, StateDirError> {
         let path = path.to_path_buf();
         move |error| StateDirError::Io { path, error }
     };
-    let made =
-        crate::files::missing_folders(dir).map_err(|e| ioe(dir)(std::io::Error::other(e)))?;
-    if let Some(parent) = made.len().checked_sub(2).map(|i| &made[i]) {
-        std::fs::create_dir_all(parent).map_err(ioe(parent))?;
-    }
-    let created = match made.last() {
-        Some(last) => std::fs::create_dir(last),
-        None => Err(std::io::ErrorKind::AlreadyExists.into()),
-    };
-    match created {
-        Ok(()) => Ok(made),
+    match crate::files::make_dir(dir).map_err(ioe(dir))? {
+        Some(made) => Ok(made),
         // Something that is not a folder: say so, not "File exists"
         // (regression, hostile probe: `--state /dev/null`).
-        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && !dir.is_dir() => Err(ioe(dir)(
-            std::io::Error::other("is not a folder (the state directory must be one)"),
-        )),
-        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-            // Made meanwhile by another process: its parents, if made
-            // here, are not ours to remove.
-            Ok(Vec::new())
-        }
-        Err(e) => {
-            crate::files::remove_made_if_empty(&made);
-            Err(ioe(dir)(e))
-        }
+        None if !dir.is_dir() => Err(ioe(dir)(std::io::Error::other(
+            "is not a folder (the state directory must be one)",
+        ))),
+        // There already, or made meanwhile by another process: not ours.
+        None => Ok(Vec::new()),
     }
 }
 

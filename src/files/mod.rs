@@ -339,6 +339,31 @@ pub fn missing_folders(dir: &Path) -> Result<Vec<PathBuf>, String> {
     Ok(made)
 }
 
+/// Create `dir` and the parents it needs: `Some` of the folders made
+/// (outermost first, see [`missing_folders`]), or `None` if `dir` was
+/// there, or was made meanwhile by another process (`create_dir` decides,
+/// so two processes cannot both think they made it). A failure removes
+/// what this call made while it is empty.
+pub fn make_dir(dir: &Path) -> std::io::Result<Option<Vec<PathBuf>>> {
+    let made = missing_folders(dir).map_err(std::io::Error::other)?;
+    let parents = &made[..made.len().saturating_sub(1)];
+    if let Some(parent) = parents.last()
+        && let Err(e) = std::fs::create_dir_all(parent)
+    {
+        remove_made_if_empty(parents);
+        return Err(e);
+    }
+    match made.last().map(std::fs::create_dir) {
+        Some(Ok(())) => Ok(Some(made)),
+        Some(Err(e)) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(None),
+        Some(Err(e)) => {
+            remove_made_if_empty(&made);
+            Err(e)
+        }
+        None => Ok(None),
+    }
+}
+
 /// Remove the folders `made` (outermost first, from [`missing_folders`]):
 /// the innermost with all it holds, then its parents, each only while
 /// empty. What a command that made them and then failed leaves
@@ -372,23 +397,7 @@ pub fn fresh_scratch_dir(dir: &Path) -> Result<ScratchDir, String> {
     let shown = dir.display();
     let made = match std::fs::metadata(dir) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            let made = missing_folders(dir)?;
-            // The parents with `create_dir_all`, the folder itself with
-            // `create_dir`: made by this call, or it was there after all
-            // (made meanwhile), and then checked as one that was.
-            if let Some(parent) = made.len().checked_sub(2).map(|i| &made[i]) {
-                std::fs::create_dir_all(parent)
-                    .map_err(|e| format!("cannot create {shown}: {e}"))?;
-            }
-            match made.last().map(std::fs::create_dir) {
-                Some(Ok(())) => Some(made),
-                Some(Err(e)) if e.kind() == std::io::ErrorKind::AlreadyExists => None,
-                Some(Err(e)) => {
-                    remove_made_if_empty(&made);
-                    return Err(format!("cannot create {shown}: {e}"));
-                }
-                None => None,
-            }
+            make_dir(dir).map_err(|e| format!("cannot create {shown}: {e}"))?
         }
         Err(e) => return Err(format!("cannot use {shown}: {e}")),
         Ok(_) => None,
