@@ -20,7 +20,7 @@ use crate::world::{MaterialDef, MaterialKind, MaterialRegistry};
 fn err(src: &ScriptSource, name: Option<&str>, msg: String) -> SimError {
     SimError::Declaration {
         script: src.name.clone(),
-        line: name.and_then(|n| src.text.lines().position(|l| l.contains(n)).map(|i| i + 1)),
+        line: name.and_then(|n| super::declare::line_in(&src.text, n)),
         // Names in it come from the script: no raw control characters.
         msg: crate::text::escape_controls(&msg, false).into_owned(),
     }
@@ -160,4 +160,37 @@ fn parse_def(src: &ScriptSource, name: &str, d: &Table) -> Result<MaterialDef, S
         kind,
         density: density as f32,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn declaration_line(text: &str) -> Option<usize> {
+        let src = ScriptSource {
+            name: "materials".into(),
+            text: text.into(),
+        };
+        match load_materials(&src, &mut MaterialRegistry::new()) {
+            Err(SimError::Declaration { line, .. }) => line,
+            other => panic!("expected a declaration error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn regression_an_entry_that_is_not_a_table_is_reported_at_its_own_line() {
+        // The probe's case: `x = 1,` on line 7 was reported at line 1,
+        // the first line holding an `x`.
+        let text = "-- example materials, extended\nreturn {\n  -- sand: max grain\n  \
+                    sand = { color = { 218, 196, 140 }, kind = \"granular\" },\n\n  \
+                    lava = { color = { 255, 96, 24 } },\n  x = 1,\n}\n";
+        assert_eq!(declaration_line(text), Some(7));
+        // A bracketed key, and a name that is a prefix of another.
+        let text = "return {\n  sandy = { color = { 1, 2, 3 } },\n  [\"sand\"] = 2,\n}\n";
+        assert_eq!(declaration_line(text), Some(3));
+        // An error inside an entry's table names that entry's line, not
+        // a comment that mentions it earlier.
+        let text = "-- lava glows\nreturn {\n  lava = { color = { 300, 0, 0 } },\n}\n";
+        assert_eq!(declaration_line(text), Some(3));
+    }
 }

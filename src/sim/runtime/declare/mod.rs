@@ -18,9 +18,56 @@ use tables::{
     known, parse_boundary, parse_cfl, parse_fills, parse_params, parse_passes, parse_ranges,
 };
 
-/// Line of the first occurrence of `needle` in `text` (for declaration errors).
-fn line_in(text: &str, needle: &str) -> Option<usize> {
-    text.lines().position(|l| l.contains(needle)).map(|i| i + 1)
+/// The line (1-based) where `needle`, a name from a script's returned
+/// table, is most likely declared, for declaration errors. Luau keeps no
+/// line for a table constructor's keys, so this reads the text, outside
+/// `--` comments, preferring in turn:
+/// 1. the name as a whole word used as a key (`name =`, not `name ==`);
+/// 2. the name as a bracketed string key (`["name"]`);
+/// 3. the name as a whole word;
+/// 4. the name anywhere (the one rule before: a one-letter material `x`
+///    was reported at the first line holding an `x`, regression, hostile
+///    probe of the twenty-third session).
+///
+/// ```
+/// use brickworld::sim::runtime::declare::line_in;
+/// let text = "-- an example\nreturn {\n  max = 2,\n  x = 1,\n}\n";
+/// assert_eq!(line_in(text, "x"), Some(4));
+/// assert_eq!(line_in(text, "nowhere"), None);
+/// ```
+pub fn line_in(text: &str, needle: &str) -> Option<usize> {
+    if needle.is_empty() {
+        return None;
+    }
+    let code: Vec<&str> = text
+        .lines()
+        .map(|l| l.find("--").map_or(l, |i| &l[..i]))
+        .collect();
+    let first = |hit: &dyn Fn(&str) -> bool| code.iter().position(|l| hit(l)).map(|i| i + 1);
+    let as_key = |l: &str| {
+        whole_words(l, needle).any(|end| {
+            let rest = l[end..].trim_start();
+            rest.starts_with('=') && !rest.starts_with("==")
+        })
+    };
+    let bracketed =
+        |l: &str| l.contains(&format!("[\"{needle}\"]")) || l.contains(&format!("['{needle}']"));
+    first(&as_key)
+        .or_else(|| first(&bracketed))
+        .or_else(|| first(&|l| whole_words(l, needle).next().is_some()))
+        .or_else(|| text.lines().position(|l| l.contains(needle)).map(|i| i + 1))
+}
+
+/// The end of each occurrence of `needle` in `line` that is not part of a
+/// longer identifier.
+fn whole_words<'a>(line: &'a str, needle: &'a str) -> impl Iterator<Item = usize> + 'a {
+    let ident = |c: char| c.is_alphanumeric() || c == '_';
+    line.match_indices(needle).filter_map(move |(at, _)| {
+        let end = at + needle.len();
+        let before = line[..at].chars().next_back().is_some_and(ident);
+        let after = line[end..].chars().next().is_some_and(ident);
+        (!before && !after).then_some(end)
+    })
 }
 
 /// The most channels one script may declare (the stored blobs' bound: a
