@@ -208,6 +208,51 @@ fn a_broken_voxel_reload_keeps_the_working_version() {
     assert!(top(&store) < before, "the working sand.lua still runs");
 }
 
+/// Regression (hostile probe, twenty-third session): saving a running
+/// script for the other grid was refused with "cannot run on the voxel
+/// grid" alone, as if the switch could never be made. A reload now says
+/// that a restart switches it; a first load does not.
+#[test]
+fn regression_a_reload_onto_the_other_grid_says_a_restart_switches_it() {
+    let (reg, sand) = registry();
+    let store = poured(20, sand);
+    let column = || {
+        ScriptSource {
+        name: "sand".into(),
+        text: "return { channels = { \"h\" }, passes = { { name = \"p\", reads = {}, writes = { \"h\" }, kernel = function(c) end } } }".into(),
+    }
+    };
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 48, 32), 1);
+    let first = sim
+        .add_script(column(), Limits::default(), &reg)
+        .unwrap_err()
+        .to_string();
+    assert!(first.contains("cannot run on the voxel grid"), "{first}");
+    assert!(!first.contains("start it again"), "{first}");
+    let i = sim.add_script(sand_src(), Limits::default(), &reg).unwrap();
+    let e = sim
+        .replace_script(i, column(), &reg)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("cannot run on the voxel grid") && e.contains("stop it and start it again"),
+        "{e}"
+    );
+    // The columns' side says the same of a voxel script.
+    let mut columns = brickworld::sim::Simulation::new(glam::IVec2::ZERO, glam::IVec2::ONE);
+    columns
+        .add_script(column(), brickworld::sim::Kernel::Lua, Limits::default())
+        .unwrap();
+    let e = columns
+        .replace_script(0, sand_src())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("cannot run on the column grid") && e.contains("stop it and start it again"),
+        "{e}"
+    );
+}
+
 /// Regression (review): the load-time smoke test ran every kernel on air,
 /// so a script with `only = { "sand" }` whose kernel counts on finding sand
 /// (it never runs where there is none) was refused. Its test brick is now

@@ -58,6 +58,31 @@ pub enum Grid {
     Voxels,
 }
 
+impl Grid {
+    /// The error for a script declared for this grid and loaded onto the
+    /// other one. On a reload the engine is running, and the message says
+    /// that a restart allows the switch (it said only "cannot run",
+    /// regression, hostile probe of the twenty-third session).
+    pub fn mismatch(self, script: &str, reload: bool) -> crate::sim::SimError {
+        let mut msg = match self {
+            Grid::Voxels => "a voxel script (grid = \"voxels\") cannot run on the column grid",
+            Grid::Columns => "a column script cannot run on the voxel grid",
+        }
+        .to_string();
+        if reload {
+            msg.push_str(
+                "; the engine puts each script on its grid when it starts: stop it and start \
+                 it again to switch this script's grid (the running version keeps running)",
+            );
+        }
+        crate::sim::SimError::Declaration {
+            script: script.into(),
+            line: None,
+            msg,
+        }
+    }
+}
+
 /// The material buffer's name in a voxel kernel's `c.r` / `c.w`.
 pub const MAT: &str = "mat";
 

@@ -76,7 +76,7 @@ impl VoxelSim {
             tick: self.tick,
             seed: self.seed,
         };
-        trial.add_script(src, self.scripts[i].limits, registry)?;
+        trial.load_script(src, self.scripts[i].limits, registry, true)?;
         let mut new = trial.scripts.pop().expect("added");
         for name in trial
             .channels
@@ -132,13 +132,21 @@ impl VoxelSim {
         limits: Limits,
         registry: &MaterialRegistry,
     ) -> Result<usize, SimError> {
+        self.load_script(src, limits, registry, false)
+    }
+
+    /// [`Self::add_script`], for a first load or a `reload` of a running
+    /// script (which changes what a wrong grid's error says).
+    fn load_script(
+        &mut self,
+        src: ScriptSource,
+        limits: Limits,
+        registry: &MaterialRegistry,
+        reload: bool,
+    ) -> Result<usize, SimError> {
         let (mut vm, spec) = ScriptVm::load(&src, limits)?;
         if spec.grid != Grid::Voxels {
-            return Err(SimError::Declaration {
-                script: spec.name.clone(),
-                line: None,
-                msg: "a column script cannot run on the voxel grid".into(),
-            });
+            return Err(spec.grid.mismatch(&spec.name, reload));
         }
         let material_ids = spec
             .materials
@@ -146,11 +154,7 @@ impl VoxelSim {
             .map(|m| {
                 registry.id(m).ok_or_else(|| SimError::Declaration {
                     script: spec.name.clone(),
-                    line: src
-                        .text
-                        .lines()
-                        .position(|l| l.contains(m.as_str()))
-                        .map(|i| i + 1),
+                    line: crate::sim::runtime::declare::line_in(&src.text, m),
                     msg: format!("unknown material '{m}' (declare it in materials.lua)"),
                 })
             })

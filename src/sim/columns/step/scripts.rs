@@ -53,11 +53,7 @@ impl Simulation {
     ) -> Result<Loaded, SimError> {
         let (mut vm, spec) = ScriptVm::load(&src, limits)?;
         if spec.grid != crate::sim::script::Grid::Columns {
-            return Err(SimError::Declaration {
-                script: spec.name.clone(),
-                line: None,
-                msg: "a voxel script (grid = \"voxels\") cannot run on the column grid".into(),
-            });
+            return Err(spec.grid.mismatch(&spec.name, reload));
         }
         let (ch, n) = (&self.channels, self.channels.channels().count());
         crate::sim::channel_room(&spec.name, &spec.channels, |c| ch.find(c).is_some(), n)?;
