@@ -19,7 +19,7 @@ fn command() -> clap::Command {
 /// other error is one line on stderr and exit code 1, as all bad input is.
 fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
     let parsed = command()
-        .try_get_matches()
+        .try_get_matches_from(help_flags_as_topics(std::env::args_os().collect()))
         .and_then(|m| brickworld::cli::Cli::from_arg_matches(&m));
     parsed.map_err(|e| match e.kind() {
         ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => e.exit(),
@@ -46,6 +46,26 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
             ExitCode::FAILURE
         }
     })
+}
+
+/// clap's `help` subcommand takes no flags: `brickworld help --help` said
+/// "unrecognized subcommand '--help'" (regression, hostile probe of the
+/// twenty-third session). After `help`, `-h` and `--help` are dropped, and
+/// `help` with nothing else left asks for the help of `help` itself.
+fn help_flags_as_topics(mut args: Vec<std::ffi::OsString>) -> Vec<std::ffi::OsString> {
+    if args.get(1).is_some_and(|a| a == "help") {
+        let asked: Vec<_> = args.drain(2..).collect();
+        let topics: Vec<_> = asked
+            .iter()
+            .filter(|a| *a != "-h" && *a != "--help")
+            .cloned()
+            .collect();
+        if topics.is_empty() && !asked.is_empty() {
+            args.push("help".into());
+        }
+        args.extend(topics);
+    }
+    args
 }
 
 /// "error: `brickworld bench` needs a subcommand: …" for the command
@@ -77,11 +97,12 @@ fn missing_subcommand(args: impl Iterator<Item = String>) -> String {
 
 fn main() -> ExitCode {
     brickworld::install_panic_hook();
-    brickworld::files::no_signal_past_file_size_limit();
     // One re-exec where the environment lacks what the process needs: a
     // private XDG_RUNTIME_DIR for Mesa, glibc's mmap threshold for the
     // engine (see the module).
     brickworld::process_env::ensure();
+    // After `ensure`: a failed exec leaves the signal mask empty.
+    brickworld::files::no_signal_from_writes();
     let cli = match parse() {
         Ok(cli) => cli,
         Err(code) => return code,

@@ -107,10 +107,10 @@ pub fn ensure() {
 /// review), nor when the file is gone or replaced (`… (deleted)`).
 /// Skipping the re-exec only forgoes its settings; an exec that fails
 /// anyway (an environment past the kernel's limit, a policy that denies
-/// `execve`) returns, and the program goes on, but with SIGPIPE back at
-/// its default, which `std` resets before `execve` and cannot restore
-/// without `unsafe`: a closed standard output then ends the process
-/// instead of failing its writes.
+/// `execve`) returns, and the program goes on, with SIGPIPE back at its
+/// default and the signal mask emptied, as `std` leaves them before
+/// `execve`; `main` then blocks the signals writes raise
+/// ([`crate::files::no_signal_from_writes`]).
 pub fn re_executable(exe: &Path) -> bool {
     let name = exe
         .file_name()

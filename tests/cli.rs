@@ -2569,3 +2569,75 @@ fn a_bench_output_naming_its_scene_file_is_refused() {
         );
     }
 }
+
+/// Regression (hostile probe, twenty-third session): `help --help` was
+/// clap's "unrecognized subcommand '--help'" with exit 1. Flags after
+/// `help` now ask for help, as they do after any other command.
+#[test]
+fn help_takes_help_flags_like_every_command() {
+    for (args, needle) in [
+        (&["help", "--help"][..], "Usage: brickworld help"),
+        (&["help", "-h"][..], "Usage: brickworld help"),
+        (&["help", "run", "--help"][..], "Usage: brickworld run"),
+        (
+            &["help", "--help", "render"][..],
+            "Usage: brickworld render",
+        ),
+        (&["help"][..], "Usage: brickworld"),
+    ] {
+        let out = bin().args(args).output().unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success() && stdout.contains(needle),
+            "{args:?}: {:?}\n{stdout}\n{}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+}
+
+/// Regression (twenty-third session's note): when the start-up re-exec
+/// failed (here: the environment it adds passes the kernel's limit on
+/// arguments and environment, lowered with `ulimit -s`), `std` had put
+/// SIGPIPE back at its default, and a closed standard output killed the
+/// process by signal. The size where the first exec passes and the re-exec
+/// fails is found by bisection; every size near it must end by exit code.
+#[cfg(target_os = "linux")]
+#[test]
+fn regression_a_failed_re_exec_leaves_writes_to_a_closed_pipe_an_error() {
+    use std::os::unix::process::ExitStatusExt;
+    let exe = env!("CARGO_BIN_EXE_brickworld");
+    // None: the shell's own exec of the binary was refused (too big).
+    let run = |pad: usize| -> Option<std::process::ExitStatus> {
+        let (reader, writer) = std::io::pipe().unwrap();
+        drop(reader);
+        let out = std::process::Command::new("sh")
+            .args(["-c", "ulimit -s 512 && exec \"$0\" help", exe])
+            .env_clear()
+            .env("PATH", "/usr/bin:/bin")
+            .env("PAD_A", "a".repeat(60_000))
+            .env("PAD_B", "b".repeat(60_000))
+            .env("PAD_C", "c".repeat(pad))
+            .stdout(writer)
+            .output()
+            .unwrap();
+        let refused = String::from_utf8_lossy(&out.stderr).contains("too long");
+        (!refused).then_some(out.status)
+    };
+    let (mut fits, mut too_big) = (0, 40_000);
+    assert!(run(fits).is_some() && run(too_big).is_none());
+    while too_big - fits > 1 {
+        let mid = (fits + too_big) / 2;
+        if run(mid).is_some() {
+            fits = mid;
+        } else {
+            too_big = mid;
+        }
+    }
+    // The re-exec adds about 70 bytes: the last 200 fitting sizes include
+    // some where it fails.
+    for pad in (fits.saturating_sub(200)..=fits).step_by(10) {
+        let status = run(pad).unwrap();
+        assert_eq!(status.signal(), None, "padding {pad}: killed, {status:?}");
+    }
+}

@@ -88,20 +88,32 @@ pub fn without_waiting(options: &mut std::fs::OpenOptions) -> &mut std::fs::Open
     options
 }
 
-/// Make a write past the process's file size limit (`ulimit -f`,
-/// `RLIMIT_FSIZE`) fail with "File too large" instead of killing the
-/// process: the kernel sends `SIGXFSZ`, whose default action ends the
-/// process without a word, and with the signal blocked the write returns
-/// `EFBIG`, which every writer reports as the error it is (a daemon's
-/// commit keeps the last good checkpoint). Call it first in `main`, before
-/// any thread starts: threads inherit the mask. A no-op off Unix.
-pub fn no_signal_past_file_size_limit() {
+/// Make writes fail instead of killing the process, by blocking the two
+/// signals a write can raise (a blocked signal stays pending, and the
+/// write returns its error, which every writer reports):
+/// - `SIGXFSZ`, past the process's file size limit (`ulimit -f`,
+///   `RLIMIT_FSIZE`): the write returns `EFBIG` (a daemon's commit keeps
+///   the last good checkpoint) instead of the process ending without a
+///   word;
+/// - `SIGPIPE`, on a pipe nothing reads: the write returns `EPIPE`. `std`
+///   ignores it at start, but resets it to its default before an `exec`,
+///   so after a failed re-exec ([`crate::process_env::ensure`]) a closed
+///   standard output killed the process (regression, twenty-third
+///   session's note). `exec` also empties the signal mask, so call this
+///   after `ensure`, before any thread starts: threads inherit the mask.
+///   Children that `std` spawns start with an empty mask.
+///
+/// A no-op off Unix.
+pub fn no_signal_from_writes() {
     #[cfg(unix)]
     {
         use nix::sys::signal::{SigSet, Signal};
-        // Blocking a signal cannot fail with a valid set; if it did, the
-        // default (a silent kill past the limit) is what remains.
-        let _ = SigSet::from(Signal::SIGXFSZ).thread_block();
+        let mut set = SigSet::empty();
+        set.add(Signal::SIGXFSZ);
+        set.add(Signal::SIGPIPE);
+        // Blocking signals cannot fail with a valid set; if it did, the
+        // defaults (a silent kill) are what remains.
+        let _ = set.thread_block();
     }
 }
 
