@@ -2,6 +2,7 @@
 //! generated directly, packing round-trips, the cache keeps its budget,
 //! live and moved regions are copied.
 
+use super::memory::grown_rest;
 use super::pack::{PackScratch, pack, unpack};
 use super::*;
 use crate::scene::SceneSpec;
