@@ -1995,3 +1995,112 @@ fn a_scripts_folder_that_cannot_be_read_is_named_by_its_field() {
         "world.toml: sim.scripts_dir: cannot read",
     );
 }
+
+/// Regression (hostile environment probe): at a low limit on threads
+/// (`ulimit -u`), the script watcher of `run` and `sim --watch` could not
+/// start its thread; notify then panicked twice and the process aborted
+/// (SIGABRT). `bench store` panicked in rayon's lazy start of its global
+/// pool. Every limit from 1 to 10 threads must now end well or in one clear
+/// line, never by a signal or a panic. As root the limit does not hold, so
+/// the commands run as `nobody` (`setpriv`); otherwise as the test's user,
+/// above the threads it already has.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_low_thread_limit_ends_in_one_clear_line_never_an_abort() {
+    use std::os::unix::fs::PermissionsExt;
+    let (scratch, cfg, state, _) = setup("nproc");
+    let dir = scratch.to_path_buf();
+    std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o777)).unwrap();
+    let uid = std::os::unix::fs::MetadataExt::uid(&std::fs::metadata("/proc/self").unwrap());
+    let root = uid == 0;
+    // Tasks (threads) of this user now: the limit counts them all.
+    let base = if root {
+        0
+    } else {
+        std::fs::read_dir("/proc")
+            .unwrap()
+            .flatten()
+            .filter(|e| {
+                e.metadata()
+                    .is_ok_and(|m| std::os::unix::fs::MetadataExt::uid(&m) == uid)
+            })
+            .filter_map(|e| std::fs::read_dir(e.path().join("task")).ok())
+            .map(|t| t.count())
+            .sum::<usize>()
+    };
+    let water = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua");
+    let commands: Vec<Vec<String>> = vec![
+        vec![
+            "run".into(),
+            cfg.display().to_string(),
+            "--state".into(),
+            state.display().to_string(),
+            "--ticks".into(),
+            "1".into(),
+        ],
+        vec![
+            "sim".into(),
+            "--size".into(),
+            "16x16x16".into(),
+            "--script".into(),
+            water.into(),
+            "--steps".into(),
+            "2".into(),
+            "--watch".into(),
+            "--out".into(),
+            dir.join("sim.png").display().to_string(),
+        ],
+        vec![
+            "bench".into(),
+            "store".into(),
+            "--size".into(),
+            "64x32x64".into(),
+            "--chunks".into(),
+            "8".into(),
+            "--repeats".into(),
+            "1".into(),
+            "--dir".into(),
+            dir.join("store").display().to_string(),
+            "--json".into(),
+            dir.join("store.json").display().to_string(),
+        ],
+    ];
+    let mut ran = [0usize; 3];
+    for limit in 1..=10 {
+        for (k, args) in commands.iter().enumerate() {
+            let script = format!("ulimit -u {} && exec \"$0\" \"$@\"", base + limit);
+            let mut c = if root {
+                let mut c = std::process::Command::new("setpriv");
+                c.args(["--reuid=65534", "--regid=65534", "--clear-groups", "bash"]);
+                c
+            } else {
+                std::process::Command::new("bash")
+            };
+            let out = c
+                .args(["-c", &script, env!("CARGO_BIN_EXE_brickworld")])
+                .args(args)
+                .current_dir(&dir)
+                .output()
+                .expect("setpriv and bash run (util-linux is part of every Debian)");
+            let err = String::from_utf8_lossy(&out.stderr);
+            let what = format!("ulimit -u {limit}: {}", args[..2].join(" "));
+            assert!(
+                out.status.code().is_some(),
+                "{what}: ended by a signal, {:?}\n{err}",
+                out.status
+            );
+            assert!(
+                !err.contains("internal bug") && !err.contains("panicked"),
+                "{what}: {err}"
+            );
+            if out.status.success() {
+                ran[k] += 1;
+            } else {
+                let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
+                assert_eq!(errors.len(), 1, "{what}: one error line, got\n{err}");
+            }
+        }
+    }
+    // The sweep reached limits where every command runs whole.
+    assert!(ran.iter().all(|&n| n > 0), "runs that ended well: {ran:?}");
+}

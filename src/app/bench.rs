@@ -275,8 +275,7 @@ pub(super) fn run_bench_store(a: &crate::cli::BenchStoreArgs) -> Result<()> {
     if a.repeats == 0 || a.repeats > 100 {
         anyhow::bail!("invalid --repeats {}: 1 to 100 repeats", a.repeats);
     }
-    let pb = indicatif::ProgressBar::new_spinner().with_message("bench store");
-    pb.enable_steady_tick(std::time::Duration::from_millis(200));
+    let pb = crate::progress::spinner("bench store");
     let r = crate::bench::store::run(size, a.chunks, a.repeats, &a.dir)?;
     pb.finish_and_clear();
     crate::bench::write_json(&a.json, &r)?;

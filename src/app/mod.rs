@@ -16,9 +16,26 @@ use render::run_render;
 
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> Result<()> {
+    if !matches!(
+        cli.command,
+        Command::Ctl(_) | Command::Init { .. } | Command::Chart { .. }
+    ) {
+        min_stack_env()?;
+    }
     match &cli.command {
         // Commands that build and run worlds on rayon's global pool.
-        Command::Run(_) | Command::Export { .. } | Command::Import { .. } => global_pool()?,
+        // The benches that build worlds without a pool of their own too
+        // (regression, hostile environment probe: at a low `ulimit -u`,
+        // rayon's lazy start of the global pool panicked inside them).
+        Command::Run(_)
+        | Command::Export { .. }
+        | Command::Import { .. }
+        | Command::Bench(
+            BenchCommand::Store(_)
+            | BenchCommand::Stream(_)
+            | BenchCommand::Flight(_)
+            | BenchCommand::Gpu(_),
+        ) => global_pool()?,
         // The others use pools of their own (which read
         // `RAYON_NUM_THREADS` too), or none.
         Command::Ctl(_) | Command::Init { .. } | Command::Chart { .. } => {}
@@ -274,6 +291,31 @@ fn global_pool() -> Result<()> {
     pool_builder(threads, hint)?
         .build_global()
         .map_err(|e| pool_error(e, threads.map(|_| hint)))
+}
+
+/// The least stack a thread of ours may be given: std's default for new
+/// threads, which scripts' recursion limits and the tracers are sized for.
+pub const MIN_THREAD_STACK: usize = 2 << 20;
+
+/// Refuse a `RUST_MIN_STACK` below [`MIN_THREAD_STACK`], or not a number:
+/// std gives every new thread (rayon's workers, the render thread) that
+/// much stack, and at 128 KiB a script's deep recursion overflowed a
+/// worker, which aborts the process and loses the work since the last
+/// commit; below 64 KiB even `render` aborted (regression, hostile
+/// environment probe).
+fn min_stack_env() -> Result<()> {
+    let Some(v) = std::env::var_os("RUST_MIN_STACK") else {
+        return Ok(());
+    };
+    match v.to_str().and_then(|t| t.trim().parse::<usize>().ok()) {
+        Some(n) if n >= MIN_THREAD_STACK => Ok(()),
+        Some(n) => bail!(
+            "invalid RUST_MIN_STACK {n}: threads need at least {MIN_THREAD_STACK} bytes (2 MiB) of stack; unset it for the default"
+        ),
+        None => bail!(
+            "invalid RUST_MIN_STACK {v:?}: must be a number of bytes, at least {MIN_THREAD_STACK}; unset it for the default"
+        ),
+    }
 }
 
 /// The worker count `RAYON_NUM_THREADS` asks for: `None` when unset or 0

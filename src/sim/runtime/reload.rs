@@ -206,6 +206,19 @@ fn watch(
         }
     })
     .map_err(|e| SimError::Internal(format!("cannot watch {}: {e}", dir.display())))?;
+    // notify starts its event loop's thread without checking that it
+    // started. With none (the process at its thread limit, `ulimit -u`),
+    // `watch` panicked, and so did dropping the watcher, which aborted
+    // the engine (regression, hostile environment probe). `configure`
+    // asks the loop and fails cleanly when no thread runs it; such a
+    // watcher is forgotten, never dropped.
+    if watcher.configure(notify::Config::default()).is_err() {
+        std::mem::forget(watcher);
+        return Err(SimError::Internal(format!(
+            "cannot watch {}: cannot start the watcher's thread (is the process at its thread limit? see ulimit -u)",
+            dir.display()
+        )));
+    }
     watcher
         .watch(dir, RecursiveMode::NonRecursive)
         .map_err(|e| SimError::Internal(format!("cannot watch {}: {e}", dir.display())))?;

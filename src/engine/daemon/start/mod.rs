@@ -303,7 +303,22 @@ fn open_timeline(state: &Path, ws: &WorldSim, shared: &Shared) -> Result<Timelin
 /// timeout signals the engine and then its process group, so one request
 /// arrives twice (regression, operator probe: a run under `timeout` lost
 /// its final commit one time in three).
+///
+/// The grace timer's thread starts here, not in the handler: a handler
+/// that could not start it (the process at its thread limit) panicked,
+/// which ended the handler's thread, and a second signal no longer stopped
+/// the engine (regression, hostile environment probe).
 fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
+    let (arm, armed) = crossbeam_channel::bounded::<()>(1);
+    std::thread::Builder::new()
+        .name("stop grace".into())
+        .spawn(move || {
+            if armed.recv().is_ok() {
+                std::thread::sleep(super::STOP_GRACE);
+                crate::sim::interrupt::stop_all();
+            }
+        })
+        .context("cannot start the stop timer's thread")?;
     let s = shared.clone();
     let mut first: Option<std::time::Instant> = None;
     ctrlc::set_handler(move || {
@@ -324,10 +339,7 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
             crate::say!("stopping once the world is loaded");
             return;
         }
-        std::thread::spawn(|| {
-            std::thread::sleep(super::STOP_GRACE);
-            crate::sim::interrupt::stop_all();
-        });
+        let _ = arm.try_send(());
     })
     .context("cannot install the SIGINT/SIGTERM handler")?;
     Ok(())
