@@ -22,7 +22,10 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
         .try_get_matches_from(help_flags_as_topics(std::env::args_os().collect()))
         .and_then(|m| brickworld::cli::Cli::from_arg_matches(&m));
     parsed.map_err(|e| match e.kind() {
-        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => e.exit(),
+        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => printed(
+            e.print()
+                .and_then(|()| std::io::Write::flush(&mut std::io::stdout())),
+        ),
         ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
             // `brickworld`, `brickworld bench` …: one line naming the
             // subcommands, exit 1 (newcomer walk: the whole help, exit 2).
@@ -46,6 +49,21 @@ fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
             ExitCode::FAILURE
         }
     })
+}
+
+/// The exit code after printing help or the version: clap's own `exit`
+/// ignored write errors, so `--help > /dev/full` printed nothing and
+/// exited 0 (regression, twenty-fourth session). A closed pipe is quiet
+/// with status 0 (`brickworld --help | head -1`), as everywhere.
+fn printed(result: std::io::Result<()>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => ExitCode::SUCCESS,
+        Err(e) => {
+            brickworld::say!("error: cannot write to standard output: {e}");
+            ExitCode::FAILURE
+        }
+    }
 }
 
 /// clap's `help` subcommand takes no flags: `brickworld help --help` said

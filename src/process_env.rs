@@ -120,11 +120,20 @@ pub fn re_executable(exe: &Path) -> bool {
     !loader && exe.is_file()
 }
 
-/// `TMPDIR/brickworld-runtime-UID`, created 0700, or `None` if it exists
-/// and is not a directory of ours that only we can read.
+/// `TMPDIR/brickworld-runtime-UID`, created 0700, or under `/tmp` when
+/// `TMPDIR` is not an absolute path to a folder where it can be made;
+/// `None` if neither holds a directory of ours that only we can read.
+/// An empty or relative `TMPDIR` made every command create the folder in
+/// the working directory, and passed Mesa a relative path, which it
+/// refused with its noise; a `TMPDIR` that is a file or missing gave the
+/// noise too (regression, hostile environment probe).
 #[cfg(unix)]
 pub fn private_dir() -> Option<PathBuf> {
-    private_dir_in(&std::env::temp_dir())
+    let tmp = std::env::temp_dir();
+    tmp.is_absolute()
+        .then(|| private_dir_in(&tmp))
+        .flatten()
+        .or_else(|| private_dir_in(Path::new("/tmp")))
 }
 
 /// [`private_dir`] under `base`.

@@ -2584,6 +2584,7 @@ fn help_takes_help_flags_like_every_command() {
             "Usage: brickworld render",
         ),
         (&["help"][..], "Usage: brickworld"),
+        (&["--version"][..], "brickworld "),
     ] {
         let out = bin().args(args).output().unwrap();
         let stdout = String::from_utf8_lossy(&out.stdout);
@@ -2640,4 +2641,92 @@ fn regression_a_failed_re_exec_leaves_writes_to_a_closed_pipe_an_error() {
         let status = run(pad).unwrap();
         assert_eq!(status.signal(), None, "padding {pad}: killed, {status:?}");
     }
+}
+
+/// Regression (twenty-fourth session): help and the version were printed
+/// by clap, which ignored write errors: `--help > /dev/full` printed
+/// nothing and exited 0. Now one line and status 1; a closed pipe stays
+/// quiet with status 0, as for every other output.
+#[test]
+fn help_to_a_full_disk_is_an_error_and_to_a_closed_pipe_is_quiet() {
+    for args in [&["--help"][..], &["help", "run"][..], &["--version"][..]] {
+        let full = std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap();
+        let out = bin().args(args).stdout(full).output().unwrap();
+        assert_clear_failure(
+            &out,
+            &format!("{args:?} > /dev/full"),
+            "cannot write to standard output",
+        );
+        let (reader, writer) = std::io::pipe().unwrap();
+        drop(reader);
+        let out = bin().args(args).stdout(writer).output().unwrap();
+        assert!(
+            out.status.success() && out.stderr.is_empty(),
+            "{args:?} | closed: {:?} {}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+}
+
+/// Regression (hostile environment probe): with `XDG_RUNTIME_DIR` unset,
+/// an empty or relative `TMPDIR` made every command, `--version` too,
+/// create `brickworld-runtime-UID` in the working directory. The private
+/// runtime folder now goes under `/tmp` when `TMPDIR` is not an absolute
+/// folder.
+#[test]
+fn an_empty_or_relative_tmpdir_makes_nothing_in_the_working_directory() {
+    let cwd = tmp("cwd");
+    std::fs::create_dir(&cwd).unwrap();
+    for t in ["", "relative", "no/such/folder"] {
+        let out = bin()
+            .arg("--version")
+            .env_remove("XDG_RUNTIME_DIR")
+            .env("TMPDIR", t)
+            .current_dir(&cwd)
+            .output()
+            .unwrap();
+        assert_success(&out);
+        let made: Vec<_> = std::fs::read_dir(&cwd)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert!(made.is_empty(), "TMPDIR={t:?} made {made:?}");
+    }
+}
+
+/// Regression (hostile environment probe): std gives new threads the
+/// stack `RUST_MIN_STACK` asks for; at 128 KiB a script's recursion
+/// overflowed a worker and aborted the engine, and below 64 KiB `render`
+/// aborted. Too small or not a number is now refused in one line.
+#[test]
+fn a_rust_min_stack_too_small_for_the_threads_is_refused() {
+    let out_png = tmp("stack.png");
+    for (v, needle) in [
+        (
+            "131072",
+            "invalid RUST_MIN_STACK 131072: threads need at least",
+        ),
+        ("1", "invalid RUST_MIN_STACK 1"),
+        ("lots", "must be a number of bytes"),
+    ] {
+        let out = bin()
+            .args(["render", "--size", "16x16x16", "--out"])
+            .arg(&out_png)
+            .env("RUST_MIN_STACK", v)
+            .output()
+            .unwrap();
+        assert_clear_failure(&out, &format!("RUST_MIN_STACK={v}"), needle);
+        assert!(!out_png.exists());
+    }
+    let out = bin()
+        .args(["render", "--size", "16x16x16", "--out"])
+        .arg(&out_png)
+        .env("RUST_MIN_STACK", "8388608")
+        .output()
+        .unwrap();
+    assert_success(&out);
 }
