@@ -1713,3 +1713,53 @@ fn a_material_declared_before_the_others_keeps_their_stored_ids_across_a_restart
     assert_eq!(after.store.palette().rgb(id(&after, "lava")), [250, 10, 10]);
     assert_eq!(after.store.palette().rgb(acid), [100, 255, 0]);
 }
+
+/// Regression (hostile environment probe): an export interrupted just
+/// after its backup replaced the earlier one exited 130 without a word,
+/// so a script concluded that nothing was written while the old backup
+/// was gone. Once the backup has landed, an interrupt lets the export
+/// finish: status 0 and its message (a test hook holds the export just
+/// after landing, so that moment is hit every time).
+#[cfg(unix)]
+#[test]
+fn an_export_interrupted_after_its_backup_landed_says_it_was_written() {
+    use nix::sys::signal::{Signal, kill};
+    use nix::unistd::Pid;
+    let (_scratch, cfg, state, _) = setup("export-landed");
+    hash_at(&cfg, &state, 10);
+    let backup = state.parent().unwrap().join("world.bwc");
+    assert_success(
+        &backup_cmd("export", &backup, &cfg, &state)
+            .output()
+            .unwrap(),
+    );
+    let old = std::fs::read(&backup).unwrap();
+    hash_at(&cfg, &state, 20);
+    let child = backup_cmd("export", &backup, &cfg, &state)
+        .env("BRICKWORLD_TEST_LANDED_STALL_MS", "2000")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while std::fs::read(&backup).is_ok_and(|b| b == old) {
+        assert!(t0.elapsed().as_secs() < 60, "the new backup never landed");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
+    let out = child.wait_with_output().unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && said.contains("exported tick 20"),
+        "{:?}: {said}{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Nothing but the backup is left beside it.
+    let names: Vec<String> = std::fs::read_dir(backup.parent().unwrap())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains("world.bwc"))
+        .collect();
+    assert_eq!(names, ["world.bwc"], "{names:?}");
+}

@@ -35,8 +35,8 @@ use thiserror::Error;
 mod temps;
 pub(crate) use temps::write_target;
 pub use temps::{
-    Staged, fresh_temp_beside, landing, remove_temps_on_interrupt, remove_writing_temps,
-    temp_landed, temp_of_gone_process, temp_writing,
+    Staged, fresh_temp_beside, landing, output_landed, remove_temps_on_interrupt,
+    remove_writing_temps, temp_landed, temp_of_gone_process, temp_writing,
 };
 
 /// Why a file could not be read.

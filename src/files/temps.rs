@@ -107,12 +107,32 @@ pub fn remove_temps_on_interrupt() -> std::io::Result<()> {
     INTERRUPTIBLE.store(true, Ordering::Relaxed);
     ctrlc::set_handler(|| {
         let _landing = landing();
+        // The output is complete: the command ends as it would have, in a
+        // moment, with its own message and status (regression, hostile
+        // environment probe: an export interrupted just after its backup
+        // replaced the earlier one exited 130 without a word, as if
+        // nothing had been written).
+        if OUTPUT_LANDED.load(Ordering::Acquire) {
+            return;
+        }
         if remove_writing_temps() > 0 {
             crate::say!("interrupted: the file being written was removed");
         }
         std::process::exit(130);
     })
     .map_err(std::io::Error::other)
+}
+
+/// Whether the command's output has landed (see [`output_landed`]).
+static OUTPUT_LANDED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// The output of a command that [`remove_temps_on_interrupt`] is now
+/// complete under its final name: from now on an interrupt lets the
+/// command finish instead of ending it with status 130. Call it under
+/// [`landing`] where the landing holds it, so that an interrupt waiting
+/// for the landing sees it.
+pub fn output_landed() {
+    OUTPUT_LANDED.store(true, Ordering::Release);
 }
 
 /// The most bytes of a destination's name its temporary's name keeps.

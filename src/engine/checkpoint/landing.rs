@@ -88,6 +88,18 @@ pub fn write_backup(
             Ok(BackupTarget::Free) => land_on_free(tmp, path),
             Err(msg) => Err(std::io::Error::new(std::io::ErrorKind::AlreadyExists, msg)),
         }
+        .inspect(|()| {
+            crate::files::output_landed();
+            // `BRICKWORLD_TEST_LANDED_STALL_MS`: a pause once the backup
+            // has landed, so a test can interrupt the export there. Unset
+            // in normal use.
+            if let Some(ms) = std::env::var("BRICKWORLD_TEST_LANDED_STALL_MS")
+                .ok()
+                .and_then(|v| v.parse().ok())
+            {
+                std::thread::sleep(std::time::Duration::from_millis(ms));
+            }
+        })
     })
     .map_err(|e| match e {
         CheckpointError::Io { error, .. } if error.kind() == std::io::ErrorKind::AlreadyExists => {
@@ -175,6 +187,9 @@ fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
             Ok(()) => {
                 // `tmp` now names what was at `path`.
                 if Seen::of(tmp).is_ok_and(|s| s == *checked) {
+                    // Landed: said under the landing's lock, before the
+                    // earlier backup (perhaps large) is removed.
+                    crate::files::output_landed();
                     let _ = fs::remove_file(tmp);
                     return Ok(());
                 }
