@@ -1393,3 +1393,57 @@ fn the_engine_runs_with_a_fixed_mmap_threshold_unless_the_user_chose_one() {
     assert_eq!(environ(None), ["MALLOC_MMAP_THRESHOLD_=131072"]);
     assert_eq!(environ(Some("65536")), ["MALLOC_MMAP_THRESHOLD_=65536"]);
 }
+
+/// Regression (hostile environment probe): SIGXCPU, which a soft CPU-time
+/// limit sends (batch schedulers set one to say "save now" before the hard
+/// limit), killed the engine without a final commit. It is now a stop
+/// request with one, and its repeats (the kernel sends it again each
+/// second past the limit) are not a second request that exits at once.
+#[cfg(unix)]
+#[test]
+fn sigxcpu_stops_the_engine_with_a_final_commit() {
+    let (_scratch, cfg, state, addr) = setup("sigxcpu");
+    let mut d = start(&cfg, &state);
+    wait_ready(&addr);
+    let out = common::cli::bin()
+        .args(["ctl", "--addr", &addr, "--state"])
+        .arg(&state)
+        .arg("pause")
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let mut tick = paused_tick(&addr, None);
+    if tick.is_multiple_of(40) {
+        let out = common::cli::bin()
+            .args(["ctl", "--addr", &addr, "--state"])
+            .arg(&state)
+            .args(["step", "1"])
+            .output()
+            .unwrap();
+        assert_success(&out);
+        tick = paused_tick(&addr, Some(tick));
+    }
+    for _ in 0..3 {
+        let _ = std::process::Command::new("kill")
+            .args(["-XCPU", &d.id().to_string()])
+            .status();
+        std::thread::sleep(Duration::from_millis(30));
+    }
+    let t = Instant::now();
+    let code = loop {
+        if let Some(s) = d.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "SIGXCPU did not stop it"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(d.stderr.as_mut().unwrap(), &mut err).unwrap();
+    assert!(code.success(), "{code:?}: {err}");
+    assert!(err.contains("soft CPU-time limit"), "{err}");
+    assert!(!err.contains("second signal"), "{err}");
+    assert_eq!(stored_tick(&cfg, &state), Some(tick));
+}

@@ -22,6 +22,10 @@ pub fn run(cli: Cli) -> Result<()> {
     ) {
         min_stack_env()?;
     }
+    if matches!(cli.command, Command::Run(_)) {
+        // Before any thread: the engine stops on it with a commit.
+        crate::files::block_cpu_limit_signal();
+    }
     match &cli.command {
         // Commands that build and run worlds on rayon's global pool.
         // The benches that build worlds without a pool of their own too

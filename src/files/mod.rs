@@ -117,6 +117,20 @@ pub fn no_signal_from_writes() {
     }
 }
 
+/// Block SIGXCPU (sent past a soft CPU-time limit) in this thread and the
+/// threads it starts from now on, so that the engine takes it as a stop
+/// request on a thread of its own instead of dying without a final
+/// commit. Call it before the engine starts any thread. A no-op off Unix.
+pub fn block_cpu_limit_signal() {
+    #[cfg(unix)]
+    {
+        use nix::sys::signal::{SigSet, Signal};
+        // Blocking a signal cannot fail with a valid set; if it did, the
+        // default (death by the signal) is what remains.
+        let _ = SigSet::from(Signal::SIGXCPU).thread_block();
+    }
+}
+
 /// Whether something other than a regular file (a FIFO, a device, a
 /// directory) is at `path`: a file the engine reads or appends to there
 /// would block or never end.

@@ -321,9 +321,11 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
         .context("cannot start the stop timer's thread")?;
     let s = shared.clone();
     let mut first: Option<std::time::Instant> = None;
-    ctrlc::set_handler(move || {
+    // `repeated`: a signal the system sends again by itself (SIGXCPU, each
+    // second past the soft limit), which never counts as a second request.
+    let on_signal = move |repeated: bool| {
         if s.shutdown.swap(true, Ordering::Relaxed) {
-            if first.is_some_and(|t| t.elapsed() < super::SAME_REQUEST) {
+            if repeated || first.is_some_and(|t| t.elapsed() < super::SAME_REQUEST) {
                 return;
             }
             crate::say!("second signal: exiting now, without a final checkpoint");
@@ -340,7 +342,26 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
             return;
         }
         let _ = arm.try_send(());
-    })
-    .context("cannot install the SIGINT/SIGTERM handler")?;
+    };
+    let on_signal = Arc::new(std::sync::Mutex::new(on_signal));
+    let handler = on_signal.clone();
+    ctrlc::set_handler(move || (handler.lock().unwrap_or_else(|e| e.into_inner()))(false))
+        .context("cannot install the SIGINT/SIGTERM handler")?;
+    // SIGXCPU, past a soft CPU-time limit (`ulimit -S -t`, as batch
+    // schedulers set to say "save now" before the hard limit): blocked in
+    // every thread since `app::run` (see [`crate::files::block_cpu_limit_signal`]),
+    // and taken here as a stop request. It killed the engine without a
+    // final commit (regression, hostile environment probe).
+    #[cfg(unix)]
+    std::thread::Builder::new()
+        .name("cpu limit".into())
+        .spawn(move || {
+            let set = nix::sys::signal::SigSet::from(nix::sys::signal::Signal::SIGXCPU);
+            while set.wait().is_ok() {
+                crate::say!("the soft CPU-time limit was reached (SIGXCPU): stopping");
+                (on_signal.lock().unwrap_or_else(|e| e.into_inner()))(true);
+            }
+        })
+        .context("cannot start the CPU-limit signal's thread")?;
     Ok(())
 }
