@@ -2730,3 +2730,58 @@ fn a_rust_min_stack_too_small_for_the_threads_is_refused() {
         .unwrap();
     assert_success(&out);
 }
+
+/// Regressions (hostile environment probe): an interrupted `bench store`
+/// left its scratch store in `--dir` (16 MB at 2048² and more), and one
+/// that could not remove it (at `ulimit -n 4`) said nothing. An interrupt
+/// now clears it and exits 130; a removal that fails is a warning.
+#[cfg(unix)]
+#[test]
+fn bench_store_clears_its_scratch_when_interrupted_and_says_when_it_cannot() {
+    let dir = tmp("store");
+    let json = tmp("store.json");
+    let child = bin()
+        .args(["bench", "store", "--size", "2048x256x2048", "--dir"])
+        .arg(&dir)
+        .arg("--json")
+        .arg(&json)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while !dir.join(".brickworld-scratch").exists() {
+        assert!(t0.elapsed().as_secs() < 60, "no scratch directory");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let _ = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    assert!(
+        err.contains("scratch directory") && err.contains("cleared"),
+        "{err}"
+    );
+    assert!(!dir.exists(), "the scratch directory is still there");
+    // A removal that fails is said.
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -n 4 && exec '{}' bench store --size 64x32x64 --chunks 4 --repeats 1 --dir '{}' --json '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            dir.display(),
+            json.display()
+        ))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("warning: cannot remove the scratch directory"),
+        "{err}"
+    );
+    common::cli::assert_no_panic(&err, "bench store at ulimit -n 4");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -275,6 +275,7 @@ pub(super) fn run_bench_store(a: &crate::cli::BenchStoreArgs) -> Result<()> {
     if a.repeats == 0 || a.repeats > 100 {
         anyhow::bail!("invalid --repeats {}: 1 to 100 repeats", a.repeats);
     }
+    crate::files::remove_scratch_on_interrupt()?;
     let pb = crate::progress::spinner("bench store");
     let r = crate::bench::store::run(size, a.chunks, a.repeats, &a.dir)?;
     pb.finish_and_clear();
