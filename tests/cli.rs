@@ -2785,3 +2785,30 @@ fn bench_store_clears_its_scratch_when_interrupted_and_says_when_it_cannot() {
     common::cli::assert_no_panic(&err, "bench store at ulimit -n 4");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Regression (hostile environment probe): under `ulimit -v 500000`,
+/// `render --tracer gpu` died by SIGSEGV inside Mesa's lavapipe (other
+/// limits near it gave a clean "Not enough memory left" and the CPU
+/// fallback). With less than 1 GiB of address space left the GPU is not
+/// tried: the warning says why, and the CPU renders.
+#[cfg(target_os = "linux")]
+#[test]
+fn too_little_address_space_for_the_gpu_falls_back_to_the_cpu_with_its_figures() {
+    let png = tmp("gpu-as.png");
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 500000 && exec '{}' render --tracer gpu --size 32x32x32 --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            png.display()
+        ))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{:?}: {err}", out.status);
+    assert!(
+        err.contains("of address space is left (ulimit -v)") && err.contains("on the CPU instead"),
+        "{err}"
+    );
+    assert!(png.exists());
+}

@@ -239,30 +239,6 @@ fn run_daemon(a: &crate::cli::RunArgs) -> Result<()> {
 /// signal stack, with room for what it allocates.
 const THREAD_ADDRESS_SPACE: u64 = (2 << 20) + (256 << 10);
 
-/// Address space the process may still map under `ulimit -v`, if limited.
-fn address_space_left() -> Option<u64> {
-    #[cfg(target_os = "linux")]
-    {
-        let (soft, _) =
-            nix::sys::resource::getrlimit(nix::sys::resource::Resource::RLIMIT_AS).ok()?;
-        if soft == nix::sys::resource::RLIM_INFINITY {
-            return None;
-        }
-        let status = std::fs::read_to_string("/proc/self/status").ok()?;
-        let kb: u64 = status
-            .lines()
-            .find_map(|l| l.strip_prefix("VmSize:"))?
-            .trim()
-            .trim_end_matches("kB")
-            .trim()
-            .parse()
-            .ok()?;
-        Some(soft.saturating_sub(kb * 1024))
-    }
-    #[cfg(not(target_os = "linux"))]
-    None
-}
-
 /// A rayon pool of `threads` workers (when `None`, `RAYON_NUM_THREADS`'s
 /// count, else all cores).
 pub fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
@@ -349,7 +325,7 @@ fn pool_builder(threads: Option<usize>, hint: &str) -> Result<rayon::ThreadPoolB
         // the runtime (an abort, now and then) rather than at creation:
         // refuse a count that cannot fit before starting any (regression).
         let need = n as u64 * THREAD_ADDRESS_SPACE;
-        if let Some(left) = address_space_left()
+        if let Some(left) = crate::scene::budget::address_space_left()
             && need > left / 2
         {
             bail!(

@@ -134,9 +134,26 @@ pub struct GpuContext {
     pub(crate) timestamps: bool,
 }
 
+/// The least address space left (under `ulimit -v`) in which a GPU device
+/// is opened.
+pub const MIN_GPU_ADDRESS_SPACE: u64 = 1 << 30;
+
 impl GpuContext {
     /// Open the best available adapter (a real GPU, else lavapipe).
     pub fn new() -> Result<Self, GpuError> {
+        // Mesa's lavapipe fails to create its device below about 870 MB of
+        // address space, and at one limit near 490 MiB it crashed the
+        // process in its own thread (SIGSEGV, hostile environment probe):
+        // with less than this left the GPU is not tried.
+        if let Some(left) = crate::scene::budget::address_space_left()
+            && left < MIN_GPU_ADDRESS_SPACE
+        {
+            return Err(GpuError::Device(format!(
+                "only {} of address space is left (ulimit -v); the GPU driver needs about {}",
+                crate::scene::budget::human(left),
+                crate::scene::budget::human(MIN_GPU_ADDRESS_SPACE)
+            )));
+        }
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
             backends: wgpu::Backends::VULKAN,
             ..wgpu::InstanceDescriptor::new_without_display_handle()

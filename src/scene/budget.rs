@@ -323,6 +323,30 @@ pub fn rss_kb_of(pid: u32) -> u64 {
     status_kb(pid, "VmRSS:").unwrap_or(0)
 }
 
+/// Address space the process may still map under `ulimit -v`, if limited.
+pub fn address_space_left() -> Option<u64> {
+    #[cfg(target_os = "linux")]
+    {
+        let (soft, _) =
+            nix::sys::resource::getrlimit(nix::sys::resource::Resource::RLIMIT_AS).ok()?;
+        if soft == nix::sys::resource::RLIM_INFINITY {
+            return None;
+        }
+        let status = std::fs::read_to_string("/proc/self/status").ok()?;
+        let kb: u64 = status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmSize:"))?
+            .trim()
+            .trim_end_matches("kB")
+            .trim()
+            .parse()
+            .ok()?;
+        Some(soft.saturating_sub(kb * 1024))
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
 #[cfg(test)]
 mod tests {
     /// Sizes under 10 MiB keep a decimal, so that a need just over a
