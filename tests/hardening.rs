@@ -2104,3 +2104,53 @@ fn a_low_thread_limit_ends_in_one_clear_line_never_an_abort() {
     // The sweep reached limits where every command runs whole.
     assert!(ran.iter().all(|&n| n > 0), "runs that ended well: {ran:?}");
 }
+
+/// Regressions (hostile environment probe): out of file handles (`ulimit
+/// -n`), a first start said "engine.lock: Too many open files", naming no
+/// folder, and left a state folder holding only engine.lock. Every limit
+/// from 4 to 24 handles must now start the engine or refuse in one line,
+/// never by a signal or a panic, and a refused first start leaves no state
+/// folder behind.
+#[cfg(unix)]
+#[test]
+fn a_start_out_of_file_handles_is_one_line_and_leaves_no_state_folder() {
+    let (scratch, cfg, _, _) = setup("nofile");
+    let mut started = 0;
+    for n in 4..=24 {
+        let state = scratch.join(format!("state-{n}"));
+        let out = std::process::Command::new("bash")
+            .arg("-c")
+            .arg(format!(
+                "ulimit -n {n} && exec \"$0\" run \"$1\" --state \"$2\" --ticks 1",
+            ))
+            .arg(env!("CARGO_BIN_EXE_brickworld"))
+            .arg(&cfg)
+            .arg(&state)
+            .stdout(Stdio::null())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            out.status.code().is_some(),
+            "ulimit -n {n}: {:?}\n{err}",
+            out.status
+        );
+        common::cli::assert_no_panic(&err, &format!("ulimit -n {n}"));
+        if out.status.success() {
+            started += 1;
+            continue;
+        }
+        let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
+        assert_eq!(errors.len(), 1, "ulimit -n {n}: {err}");
+        assert!(
+            !errors[0].contains(": engine.lock:"),
+            "ulimit -n {n}: the lock file named without its folder: {err}"
+        );
+        assert!(
+            !state.exists(),
+            "ulimit -n {n}: a refused start left {}",
+            state.display()
+        );
+    }
+    assert!(started > 0, "no limit up to 24 let the engine start");
+}

@@ -42,6 +42,8 @@ pub enum StateDirError {
 #[derive(Debug)]
 pub struct StateLock {
     _file: File,
+    /// The lock file, for errors.
+    path: PathBuf,
 }
 
 impl StateLock {
@@ -50,9 +52,12 @@ impl StateLock {
     pub fn try_clone(&self) -> Result<StateLock, StateDirError> {
         Ok(StateLock {
             _file: self._file.try_clone().map_err(|error| StateDirError::Io {
-                path: PathBuf::from("engine.lock"),
+                // The whole path (regression, hostile environment probe:
+                // "engine.lock: Too many open files" named no folder).
+                path: self.path.clone(),
                 error,
             })?,
+            path: self.path.clone(),
         })
     }
 }
@@ -144,7 +149,7 @@ pub fn lock(dir: &Path) -> Result<StateLock, StateDirError> {
     // The holder's PID, for people (the lock itself is what counts).
     let _ = file.set_len(0);
     let _ = writeln!(&file, "{}", std::process::id());
-    Ok(StateLock { _file: file })
+    Ok(StateLock { _file: file, path })
 }
 
 /// A fresh control token: 32 hex digits from the OS's random source.

@@ -81,6 +81,22 @@ pub enum FileError {
     },
 }
 
+impl FileError {
+    /// The same error, naming the file as `path` (the name the user knows
+    /// for a file read through another, such as a held folder's
+    /// `/proc/self/fd/N/…`; regression, hostile environment probe: a
+    /// warning named `/proc/self/fd/15/timeline.csv`).
+    pub fn named(mut self, name: &Path) -> Self {
+        match &mut self {
+            FileError::Io { path, .. }
+            | FileError::NotAFile { path }
+            | FileError::TooLarge { path, .. }
+            | FileError::NotText { path } => *path = name.to_path_buf(),
+        }
+        self
+    }
+}
+
 /// `options` with `O_NONBLOCK` on Unix: opening a FIFO then returns at
 /// once instead of waiting for the other end (a regular file reads and
 /// writes as always).

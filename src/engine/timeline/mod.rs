@@ -367,7 +367,7 @@ impl Timeline {
         let text = crate::files::read_bounded(&at, ROTATE_BYTES * 2).map_err(|error| {
             TimelineError::Read {
                 path: self.path.clone(),
-                error,
+                error: error.named(&self.path),
             }
         })?;
         let mut keep = 0usize;

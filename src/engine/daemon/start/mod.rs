@@ -40,7 +40,21 @@ impl Engine {
         let (lock, made) = state_dir::claim(&state)?;
         // Held through a failed start's clean-up, so no other engine can
         // have taken the directory meanwhile (one lock, two handles).
-        let held = lock.try_clone()?;
+        let held = match lock.try_clone() {
+            Ok(held) => held,
+            Err(e) => {
+                // Still locked by `lock`: what this start made goes
+                // (regression, hostile environment probe: at `ulimit -n 4`
+                // a folder holding only engine.lock was left). Out of file
+                // handles, a folder cannot be opened to be emptied: it holds
+                // only the lock file, which is removed by name.
+                if !made.is_empty() {
+                    let _ = std::fs::remove_file(state.join("engine.lock"));
+                    crate::files::remove_made_if_empty(&made);
+                }
+                return Err(e.into());
+            }
+        };
         let started = Self::start_locked(opts, lock);
         if started.is_err() {
             crate::files::remove_made(&made);
