@@ -302,6 +302,24 @@ pub(crate) fn mkfifo(path: &Path) {
 mod tests {
     use super::*;
 
+    /// A read error names the file as the user knows it, not the path it
+    /// was reached by (regression, hostile environment probe: a warning
+    /// named `/proc/self/fd/15/timeline.csv`).
+    #[test]
+    fn a_read_error_is_named_by_the_path_the_user_knows() {
+        let e = FileError::Io {
+            path: PathBuf::from("/proc/self/fd/15/timeline.csv"),
+            error: std::io::Error::from_raw_os_error(24),
+        }
+        .named(Path::new("state/timeline.csv"));
+        let said = e.to_string();
+        assert!(
+            said.starts_with("cannot read state/timeline.csv: "),
+            "{said}"
+        );
+        assert!(!said.contains("/proc/"), "{said}");
+    }
+
     /// A test's own empty folder, removed when the test passes (kept to
     /// look at when it fails). Regression: these folders were never
     /// removed, four a run.
