@@ -317,7 +317,7 @@ pub struct BenchStoreArgs {
     /// Commits to time
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
-    /// Scratch directory for the store (new, empty, or made by an earlier run): removed afterwards with any parent it made, or emptied if it was there
+    /// Scratch directory for the store (new, empty, or made by an earlier run): removed afterwards (also on Ctrl-C) with any parent it made, or emptied if it was there
     #[arg(long, default_value = "bench-store")]
     pub dir: PathBuf,
 }
