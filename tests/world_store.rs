@@ -1755,6 +1755,36 @@ fn an_export_interrupted_after_its_backup_landed_says_it_was_written() {
         out.status,
         String::from_utf8_lossy(&out.stderr)
     );
+    // A second interrupt ends a held export at once, still with status 0:
+    // the backup is complete.
+    hash_at(&cfg, &state, 30);
+    let landed = std::fs::read(&backup).unwrap();
+    let child = backup_cmd("export", &backup, &cfg, &state)
+        .env("BRICKWORLD_TEST_LANDED_STALL_MS", "60000")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while std::fs::read(&backup).is_ok_and(|b| b == landed) {
+        assert!(t0.elapsed().as_secs() < 60, "the third backup never landed");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    for _ in 0..2 {
+        kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && err.contains("written in full"),
+        "{:?}: {err}",
+        out.status
+    );
+    assert!(
+        t0.elapsed().as_secs() < 30,
+        "the second interrupt did not end it"
+    );
     // Nothing but the backup is left beside it.
     let names: Vec<String> = std::fs::read_dir(backup.parent().unwrap())
         .unwrap()

@@ -83,11 +83,26 @@ fn forget_live(dir: &Path) {
 pub fn remove_scratch_on_interrupt() -> std::io::Result<()> {
     ctrlc::set_handler(|| {
         for (dir, made) in std::mem::take(&mut *live()) {
-            if clear(&dir, &made).is_ok() {
-                crate::say!(
+            // The command writes on meanwhile (a file made between the
+            // listing and the folder's removal fails it), so a few tries.
+            let mut cleared = clear(&dir, &made);
+            for _ in 0..4 {
+                if cleared.is_ok() {
+                    break;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(50));
+                cleared = clear(&dir, &made);
+            }
+            match cleared {
+                Ok(()) => crate::say!(
                     "interrupted: the scratch directory {} was cleared",
                     dir.display()
-                );
+                ),
+                // Said, as the drop says it (review: this path was silent).
+                Err(e) => crate::say!(
+                    "interrupted; warning: cannot remove the scratch directory {}: {e} (remove it by hand)",
+                    dir.display()
+                ),
             }
         }
         std::process::exit(130);

@@ -112,7 +112,15 @@ pub fn remove_temps_on_interrupt() -> std::io::Result<()> {
         // environment probe: an export interrupted just after its backup
         // replaced the earlier one exited 130 without a word, as if
         // nothing had been written).
+        // A second interrupt then ends it at once, still with status 0:
+        // the output is complete (review: a stalled export could not be
+        // stopped but by SIGKILL).
         if OUTPUT_LANDED.load(Ordering::Acquire) {
+            static ASKED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+            if ASKED.swap(true, Ordering::Relaxed) {
+                crate::say!("interrupted after the output was written in full");
+                std::process::exit(0);
+            }
             return;
         }
         if remove_writing_temps() > 0 {

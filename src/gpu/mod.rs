@@ -138,6 +138,10 @@ pub struct GpuContext {
 /// is opened.
 pub const MIN_GPU_ADDRESS_SPACE: u64 = 1 << 30;
 
+/// Threads a GPU device needs besides one per core (the driver's own, and
+/// the process's), where the user's threads are limited.
+pub const MIN_GPU_SPARE_THREADS: u64 = 8;
+
 impl GpuContext {
     /// Open the best available adapter (a real GPU, else lavapipe).
     pub fn new() -> Result<Self, GpuError> {
@@ -152,6 +156,19 @@ impl GpuContext {
                 "only {} of address space is left (ulimit -v); the GPU driver needs about {}",
                 crate::scene::budget::human(left),
                 crate::scene::budget::human(MIN_GPU_ADDRESS_SPACE)
+            )));
+        }
+        // Lavapipe starts a worker thread per core and, when it cannot
+        // (the user at `ulimit -u`), waits for them for ever: `render
+        // --tracer gpu` hung (regression, review of the environment
+        // probe's fixes). With too few threads left the GPU is not tried.
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as u64;
+        if let Some(left) = crate::scene::budget::threads_left()
+            && left < cores + MIN_GPU_SPARE_THREADS
+        {
+            return Err(GpuError::Device(format!(
+                "only {left} more threads may start (ulimit -u); the GPU driver needs about {}",
+                cores + MIN_GPU_SPARE_THREADS
             )));
         }
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {

@@ -323,6 +323,32 @@ pub fn rss_kb_of(pid: u32) -> u64 {
     status_kb(pid, "VmRSS:").unwrap_or(0)
 }
 
+/// Threads (tasks) this user may still start under `ulimit -u`, if
+/// limited: the limit counts every task of the user, this process's and
+/// others'. `None` when unlimited, and for root, whom the kernel exempts.
+pub fn threads_left() -> Option<u64> {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::unix::fs::MetadataExt;
+        let (soft, _) =
+            nix::sys::resource::getrlimit(nix::sys::resource::Resource::RLIMIT_NPROC).ok()?;
+        let uid = std::fs::metadata("/proc/self").ok()?.uid();
+        if soft == nix::sys::resource::RLIM_INFINITY || uid == 0 {
+            return None;
+        }
+        let tasks: u64 = std::fs::read_dir("/proc")
+            .ok()?
+            .flatten()
+            .filter(|e| e.metadata().is_ok_and(|m| m.is_dir() && m.uid() == uid))
+            .filter_map(|e| std::fs::read_dir(e.path().join("task")).ok())
+            .map(|t| t.count() as u64)
+            .sum();
+        Some(soft.saturating_sub(tasks))
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
 /// Address space the process may still map under `ulimit -v`, if limited.
 pub fn address_space_left() -> Option<u64> {
     #[cfg(target_os = "linux")]

@@ -85,7 +85,13 @@ pub fn write_backup(
                 }
                 _ => Err(replaced_meanwhile()),
             },
-            Ok(BackupTarget::Free) => land_on_free(tmp, path),
+            Ok(BackupTarget::Free) => {
+                // Under the landing's lock, the flag set before it is
+                // released: an interrupt between the rename and the flag
+                // exited 130 with the backup in place (review).
+                let _landing = crate::files::landing();
+                land_on_free(tmp, path).inspect(|()| crate::files::output_landed())
+            }
             Err(msg) => Err(std::io::Error::new(std::io::ErrorKind::AlreadyExists, msg)),
         }
         .inspect(|()| {
@@ -174,14 +180,18 @@ impl std::error::Error for AnothersFile {}
 /// file put there since the check) is swapped back and kept, and nothing
 /// is written. Elsewhere a plain rename follows the last look.
 fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
+    // An interrupt waits for the whole landing, and finds the output
+    // landed once it has (review: the plain-rename and free-path landings
+    // set the flag after the lock was released).
+    let _landing = crate::files::landing();
+    let landed = |r: std::io::Result<()>| r.inspect(|()| crate::files::output_landed());
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         use nix::fcntl::{AT_FDCWD, RenameFlags, renameat2};
         let swap = || renameat2(AT_FDCWD, tmp, AT_FDCWD, path, RenameFlags::RENAME_EXCHANGE);
         // From the swap on, `tmp` may name another's file: an interrupt
-        // waits until it is settled, and then must not remove it (review: a
-        // Ctrl-C just after the swap did).
-        let _landing = crate::files::landing();
+        // waits until it is settled (`_landing`, held to the end), and then
+        // must not remove it (review: a Ctrl-C just after the swap did).
         crate::files::temp_landed(tmp);
         match swap() {
             Ok(()) => {
@@ -223,15 +233,15 @@ fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
             // The checked file has gone: the path is free.
             Err(nix::errno::Errno::ENOENT) => {
                 crate::files::temp_writing(tmp);
-                return land_on_free(tmp, path);
+                return landed(land_on_free(tmp, path));
             }
             // No atomic swap here: the last look stands.
             Err(_) => crate::files::temp_writing(tmp),
         }
     }
     match Seen::of(path) {
-        Ok(s) if s == *checked => fs::rename(tmp, path),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => land_on_free(tmp, path),
+        Ok(s) if s == *checked => landed(fs::rename(tmp, path)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => landed(land_on_free(tmp, path)),
         _ => Err(replaced_meanwhile()),
     }
 }
