@@ -66,22 +66,36 @@ fn printed(result: std::io::Result<()>) -> ExitCode {
     }
 }
 
-/// clap's `help` subcommand takes no flags: `brickworld help --help` said
-/// "unrecognized subcommand '--help'" (regression, hostile probe of the
-/// twenty-third session). After `help`, `-h` and `--help` are dropped, and
-/// `help` with nothing else left asks for the help of `help` itself.
+/// clap's `help` subcommands take no flags: `brickworld help --help` and
+/// `brickworld bench help -h` said "unrecognized subcommand '--help'"
+/// (regressions, hostile probe and review of the twenty-fourth session).
+/// After a `help` reached through subcommand names, `-h` and `--help` are
+/// dropped, and a `help` with nothing else left asks for the help of
+/// `help` itself.
 fn help_flags_as_topics(mut args: Vec<std::ffi::OsString>) -> Vec<std::ffi::OsString> {
-    if args.get(1).is_some_and(|a| a == "help") {
-        let asked: Vec<_> = args.drain(2..).collect();
-        let topics: Vec<_> = asked
-            .iter()
-            .filter(|a| *a != "-h" && *a != "--help")
-            .cloned()
-            .collect();
-        if topics.is_empty() && !asked.is_empty() {
-            args.push("help".into());
+    let mut cmd = command();
+    let mut at = 1;
+    while let Some(a) = args.get(at).and_then(|a| a.to_str()) {
+        if a == "help" && cmd.has_subcommands() {
+            let asked: Vec<_> = args.drain(at + 1..).collect();
+            let topics: Vec<_> = asked
+                .iter()
+                .filter(|a| *a != "-h" && *a != "--help")
+                .cloned()
+                .collect();
+            if topics.is_empty() && !asked.is_empty() {
+                args.push("help".into());
+            }
+            args.extend(topics);
+            break;
         }
-        args.extend(topics);
+        match cmd.find_subcommand(a) {
+            Some(sub) => {
+                cmd = sub.clone();
+                at += 1;
+            }
+            None => break,
+        }
     }
     args
 }

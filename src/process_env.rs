@@ -36,9 +36,10 @@ use std::path::{Path, PathBuf};
 /// Marks the re-executed process, so that it never loops.
 const MARK: &str = "BRICKWORLD_ENV_SET";
 
-/// Whether `v` names a usable runtime directory.
+/// Whether `v` names a usable runtime directory: an absolute path to a
+/// folder (Mesa refuses a relative one with its noise; review).
 pub fn usable(v: Option<&std::ffi::OsStr>) -> bool {
-    v.is_some_and(|v| !v.is_empty() && Path::new(v).is_dir())
+    v.is_some_and(|v| Path::new(v).is_absolute() && Path::new(v).is_dir())
 }
 
 /// The engine's commands, which hold a memory budget.
@@ -187,6 +188,9 @@ mod tests {
         assert!(!usable(Some("".as_ref())));
         assert!(!usable(Some("/nonexistent/brickworld".as_ref())));
         assert!(!usable(Some("/proc/self/status".as_ref())));
+        // Relative, though a folder here.
+        assert!(!usable(Some(".".as_ref())));
+        assert!(usable(Some("/".as_ref())));
         assert!(usable(Some(std::env::temp_dir().as_os_str())));
     }
 

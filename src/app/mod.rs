@@ -277,6 +277,9 @@ fn global_pool() -> Result<()> {
 /// threads, which scripts' recursion limits and the tracers are sized for.
 pub const MIN_THREAD_STACK: usize = 2 << 20;
 
+/// The most stack a thread of ours may ask for through `RUST_MIN_STACK`.
+pub const MAX_THREAD_STACK: usize = 1 << 30;
+
 /// Refuse a `RUST_MIN_STACK` below [`MIN_THREAD_STACK`], or not a number:
 /// std gives every new thread (rayon's workers, the render thread) that
 /// much stack, and at 128 KiB a script's deep recursion overflowed a
@@ -287,10 +290,19 @@ fn min_stack_env() -> Result<()> {
     let Some(v) = std::env::var_os("RUST_MIN_STACK") else {
         return Ok(());
     };
+    // Empty is unset, as std reads it (a CI may export it empty; review).
+    if v.to_str().is_some_and(|t| t.trim().is_empty()) {
+        return Ok(());
+    }
     match v.to_str().and_then(|t| t.trim().parse::<usize>().ok()) {
-        Some(n) if n >= MIN_THREAD_STACK => Ok(()),
-        Some(n) => bail!(
+        Some(n) if (MIN_THREAD_STACK..=MAX_THREAD_STACK).contains(&n) => Ok(()),
+        Some(n) if n < MIN_THREAD_STACK => bail!(
             "invalid RUST_MIN_STACK {n}: threads need at least {MIN_THREAD_STACK} bytes (2 MiB) of stack; unset it for the default"
+        ),
+        // Past this, starting threads fails for want of memory, which the
+        // pool's error blamed on the thread limit (review).
+        Some(n) => bail!(
+            "invalid RUST_MIN_STACK {n}: at most {MAX_THREAD_STACK} bytes (1 GiB) of stack a thread; unset it for the default"
         ),
         None => bail!(
             "invalid RUST_MIN_STACK {v:?}: must be a number of bytes, at least {MIN_THREAD_STACK}; unset it for the default"

@@ -137,6 +137,37 @@ fn bound_send_buffer(socket: &impl std::os::fd::AsFd) {
     let _ = nix::sys::socket::setsockopt(socket, nix::sys::socket::sockopt::SndBuf, &SEND_BUFFER);
 }
 
+/// Why the control server did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    /// The address could not be bound.
+    #[error("cannot listen on {addr}: {error}")]
+    Listen {
+        /// The address asked for.
+        addr: SocketAddr,
+        /// What the OS said.
+        error: std::io::Error,
+    },
+    /// Its runtime or thread could not start.
+    #[error("{0}")]
+    Start(String),
+}
+
+impl ServerError {
+    /// Whether the address is to blame (a taken port, an address not of
+    /// this machine), not the process's limits: out of file handles or
+    /// threads, the config's field was named as the cause (review).
+    pub fn blames_addr(&self) -> bool {
+        match self {
+            ServerError::Listen { error, .. } => !matches!(
+                error.raw_os_error(),
+                Some(libc::EMFILE | libc::ENFILE | libc::ENOMEM | libc::ENOBUFS)
+            ),
+            ServerError::Start(_) => false,
+        }
+    }
+}
+
 /// A running control server.
 pub struct ControlServer {
     stop: Option<oneshot::Sender<()>>,
@@ -148,19 +179,15 @@ pub struct ControlServer {
 impl ControlServer {
     /// Bind `addr` (a taken port is a clear error) and serve on a thread of
     /// its own until [`stop`](Self::stop).
-    pub fn start(addr: SocketAddr, shared: Arc<Shared>) -> Result<Self, String> {
-        let listener = std::net::TcpListener::bind(addr)
-            .map_err(|e| format!("cannot listen on {addr}: {e}"))?;
-        let bound = listener
-            .local_addr()
-            .map_err(|e| format!("cannot listen on {addr}: {e}"))?;
-        listener
-            .set_nonblocking(true)
-            .map_err(|e| format!("cannot listen on {addr}: {e}"))?;
+    pub fn start(addr: SocketAddr, shared: Arc<Shared>) -> Result<Self, ServerError> {
+        let listen = |error| ServerError::Listen { addr, error };
+        let listener = std::net::TcpListener::bind(addr).map_err(listen)?;
+        let bound = listener.local_addr().map_err(listen)?;
+        listener.set_nonblocking(true).map_err(listen)?;
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
-            .map_err(|e| format!("cannot start the control server: {e}"))?;
+            .map_err(|e| ServerError::Start(format!("cannot start the control server: {e}")))?;
         let (stop, stopped) = oneshot::channel();
         let thread = std::thread::Builder::new()
             .name("control".into())
@@ -169,7 +196,9 @@ impl ControlServer {
                 // Drop every connection task now: no client is waited for.
                 rt.shutdown_timeout(Duration::ZERO);
             })
-            .map_err(|e| format!("cannot start the control server thread: {e}"))?;
+            .map_err(|e| {
+                ServerError::Start(format!("cannot start the control server thread: {e}"))
+            })?;
         Ok(ControlServer {
             stop: Some(stop),
             thread: Some(thread),

@@ -192,5 +192,19 @@ mod tests {
         // a comment that mentions it earlier.
         let text = "-- lava glows\nreturn {\n  lava = { color = { 300, 0, 0 } },\n}\n";
         assert_eq!(declaration_line(text), Some(3));
+        // Review: a block comment, a long string, and `--` inside a
+        // string key.
+        let text = "--[[ old:\n  x = { color = { 1, 2, 3 } },\n]]\nreturn {\n  sand = { color = { 1, 2, 3 } },\n  x = 1,\n}\n";
+        assert_eq!(declaration_line(text), Some(6));
+        let text = "local doc = [==[\nx = the material\n]==]\nreturn {\n  sand = { color = { 1, 2, 3 } },\n  x = 1,\n}\n";
+        assert_eq!(declaration_line(text), Some(6));
+        let line_in = crate::sim::runtime::declare::line_in;
+        let text = "return {\n  a = \"x--y\", y = 1,\n  z = 2,\n  w = y,\n}\n";
+        assert_eq!(line_in(text, "y"), Some(2));
+        // A name listed as a string is found there, not at a local.
+        let string_line_in = crate::sim::runtime::declare::string_line_in;
+        let text = "local glass = 1\nreturn {\n  materials = { \"sand\", \"glass\" },\n}\n";
+        assert_eq!(string_line_in(text, "glass"), Some(3));
+        assert_eq!(line_in(text, "glass"), Some(1));
     }
 }

@@ -154,7 +154,7 @@ impl VoxelSim {
             .map(|m| {
                 registry.id(m).ok_or_else(|| SimError::Declaration {
                     script: spec.name.clone(),
-                    line: crate::sim::runtime::declare::line_in(&src.text, m),
+                    line: crate::sim::runtime::declare::string_line_in(&src.text, m),
                     msg: format!("unknown material '{m}' (declare it in materials.lua)"),
                 })
             })

@@ -76,8 +76,13 @@ impl Engine {
         let shared = Arc::new(Shared::new(token.clone(), cfg.hosts.clone()));
         // Listen before any work: a taken port is a clear error at once.
         // Named by its field (a taken port is the usual cause).
-        let server = ControlServer::start(cfg.addr, shared.clone())
-            .map_err(|e| anyhow::anyhow!("{}: control.addr (or --addr): {e}", cfg.file))?;
+        let server = ControlServer::start(cfg.addr, shared.clone()).map_err(|e| {
+            if e.blames_addr() {
+                anyhow::anyhow!("{}: control.addr (or --addr): {e}", cfg.file)
+            } else {
+                anyhow::anyhow!("{e}")
+            }
+        })?;
         // The command that reaches this engine, as its hints give it (the
         // bound address: port 0 picks one; review).
         let ctl = crate::engine::ctl::ctl_command(server.addr, &opts.state);
@@ -335,17 +340,31 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
         .context("cannot start the stop timer's thread")?;
     let s = shared.clone();
     let mut first: Option<std::time::Instant> = None;
-    // `repeated`: a signal the system sends again by itself (SIGXCPU, each
-    // second past the soft limit), which never counts as a second request.
-    let on_signal = move |repeated: bool| {
-        if s.shutdown.swap(true, Ordering::Relaxed) {
-            if repeated || first.is_some_and(|t| t.elapsed() < super::SAME_REQUEST) {
+    // `cpu_limit`: SIGXCPU, a request of the system's, which it repeats
+    // each second: its repeats are not a second request, and a user's
+    // signal after it is the user's first (review: each repeat printed its
+    // line again, and a SIGTERM after it skipped the final commit).
+    let on_signal = move |cpu_limit: bool| {
+        let stopping = s.shutdown.swap(true, Ordering::Relaxed);
+        if cpu_limit {
+            if stopping {
                 return;
             }
-            crate::say!("second signal: exiting now, without a final checkpoint");
-            std::process::exit(130);
+            crate::say!("the soft CPU-time limit was reached (SIGXCPU): stopping");
+        } else {
+            if let Some(t) = first {
+                if t.elapsed() < super::SAME_REQUEST {
+                    return;
+                }
+                crate::say!("second signal: exiting now, without a final checkpoint");
+                std::process::exit(130);
+            }
+            first = Some(std::time::Instant::now());
+            if stopping {
+                // A stop is under way (SIGXCPU asked first): this joins it.
+                return;
+            }
         }
-        first = Some(std::time::Instant::now());
         // While the world is still loading no step is in flight,
         // and the loop checks the flag before each: interrupting
         // the scripts would fail the start's own smoke tests
@@ -372,7 +391,6 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
         .spawn(move || {
             let set = nix::sys::signal::SigSet::from(nix::sys::signal::Signal::SIGXCPU);
             while set.wait().is_ok() {
-                crate::say!("the soft CPU-time limit was reached (SIGXCPU): stopping");
                 (on_signal.lock().unwrap_or_else(|e| e.into_inner()))(true);
             }
         })

@@ -39,10 +39,7 @@ pub fn line_in(text: &str, needle: &str) -> Option<usize> {
     if needle.is_empty() {
         return None;
     }
-    let code: Vec<&str> = text
-        .lines()
-        .map(|l| l.find("--").map_or(l, |i| &l[..i]))
-        .collect();
+    let code = code_lines(text);
     let first = |hit: &dyn Fn(&str) -> bool| code.iter().position(|l| hit(l)).map(|i| i + 1);
     let as_key = |l: &str| {
         whole_words(l, needle).any(|end| {
@@ -56,6 +53,100 @@ pub fn line_in(text: &str, needle: &str) -> Option<usize> {
         .or_else(|| first(&bracketed))
         .or_else(|| first(&|l| whole_words(l, needle).next().is_some()))
         .or_else(|| text.lines().position(|l| l.contains(needle)).map(|i| i + 1))
+}
+
+/// The lines of `text` with what is not code blanked: `--` comments and
+/// `--[[ … ]]` block comments, and the insides of `[[ … ]]` long strings
+/// (blanked to spaces, so columns and line numbers stay). Short strings
+/// stay whole, with a `--` inside them kept (`["a--b"]` is a key), so a
+/// quoted name is still found (review: a name in a block comment or a
+/// long string was taken for its declaration, and `--` in a string cut
+/// its line).
+fn code_lines(text: &str) -> Vec<String> {
+    // The closing bracket of the long bracket open at `s` (`[[`, `[==[`).
+    fn long_open(s: &[u8]) -> Option<(usize, Vec<u8>)> {
+        let eq = s.iter().skip(1).take_while(|&&c| c == b'=').count();
+        (s.first() == Some(&b'[') && s.get(1 + eq) == Some(&b'['))
+            .then(|| (2 + eq, [b"]".as_slice(), &vec![b'='; eq], b"]"].concat()))
+    }
+    let mut out: Vec<u8> = Vec::with_capacity(text.len());
+    let b = text.as_bytes();
+    // Inside a long comment or string: its closing bracket.
+    let mut long: Option<Vec<u8>> = None;
+    let mut i = 0;
+    while i < b.len() {
+        if let Some(close) = &long {
+            if b[i..].starts_with(close) {
+                out.extend(std::iter::repeat_n(b' ', close.len()));
+                i += close.len();
+                long = None;
+            } else {
+                out.push(if b[i] == b'\n' { b'\n' } else { b' ' });
+                i += 1;
+            }
+            continue;
+        }
+        match b[i] {
+            b'"' | b'\'' => {
+                // A short string, whole, to its closing quote or line end.
+                let q = b[i];
+                out.push(q);
+                i += 1;
+                while i < b.len() && b[i] != q && b[i] != b'\n' {
+                    if b[i] == b'\\' && i + 1 < b.len() && b[i + 1] != b'\n' {
+                        out.push(b[i]);
+                        i += 1;
+                    }
+                    out.push(b[i]);
+                    i += 1;
+                }
+                if i < b.len() && b[i] == q {
+                    out.push(q);
+                    i += 1;
+                }
+            }
+            b'-' if b[i..].starts_with(b"--") => {
+                if let Some((n, close)) = long_open(&b[i + 2..]) {
+                    out.extend(std::iter::repeat_n(b' ', 2 + n));
+                    i += 2 + n;
+                    long = Some(close);
+                } else {
+                    while i < b.len() && b[i] != b'\n' {
+                        out.push(b' ');
+                        i += 1;
+                    }
+                }
+            }
+            b'[' if long_open(&b[i..]).is_some() => {
+                let (n, close) = long_open(&b[i..]).expect("checked");
+                out.extend(std::iter::repeat_n(b' ', n));
+                i += n;
+                long = Some(close);
+            }
+            c => {
+                out.push(c);
+                i += 1;
+            }
+        }
+    }
+    // Only ASCII bytes were replaced by ASCII, at ASCII positions.
+    String::from_utf8_lossy(&out)
+        .lines()
+        .map(str::to_string)
+        .collect()
+}
+
+/// The line (1-based) where `needle` first stands as a string (`"name"` or
+/// `'name'`) in code, else [`line_in`]'s: for names listed as strings,
+/// such as a voxel script's `materials = { "sand", "glass" }`, which a
+/// `local glass = 1` earlier must not claim (review).
+pub fn string_line_in(text: &str, needle: &str) -> Option<usize> {
+    let quoted = [format!("\"{needle}\""), format!("'{needle}'")];
+    code_lines(text)
+        .iter()
+        .position(|l| quoted.iter().any(|q| l.contains(q.as_str())))
+        .map(|i| i + 1)
+        .or_else(|| line_in(text, needle))
 }
 
 /// The end of each occurrence of `needle` in `line` that is not part of a
