@@ -2732,6 +2732,24 @@ fn a_rust_min_stack_too_small_for_the_threads_is_refused() {
         assert_clear_failure(&out, &format!("RUST_MIN_STACK={v}"), needle);
         assert!(!out_png.exists());
     }
+    // Within the bound, but more than the address space holds for the
+    // threads (review: the threads then failed with errors that blamed the
+    // thread limit).
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 8000000 && exec '{}' render --size 16x16x16 --out '{}'",
+            env!("CARGO_BIN_EXE_brickworld"),
+            out_png.display()
+        ))
+        .env("RUST_MIN_STACK", "1073741824")
+        .output()
+        .unwrap();
+    assert_clear_failure(
+        &out,
+        "RUST_MIN_STACK=1 GiB",
+        "of address space is left (ulimit -v)",
+    );
     for ok in ["8388608", "", " "] {
         let out = bin()
             .args(["render", "--size", "16x16x16", "--out"])

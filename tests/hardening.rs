@@ -2082,6 +2082,9 @@ fn a_low_thread_limit_ends_in_one_clear_line_never_an_abort() {
             let mut child = c
                 .args(["-c", &script, env!("CARGO_BIN_EXE_brickworld")])
                 .args(args)
+                // Lavapipe starts this many workers whatever the cores
+                // (second review: the guard counted cores, and it hung).
+                .env("LP_NUM_THREADS", "16")
                 .current_dir(&dir)
                 .stdout(Stdio::null())
                 .stderr(Stdio::piped())

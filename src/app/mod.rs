@@ -295,7 +295,20 @@ fn min_stack_env() -> Result<()> {
         return Ok(());
     }
     match v.to_str().and_then(|t| t.trim().parse::<usize>().ok()) {
-        Some(n) if (MIN_THREAD_STACK..=MAX_THREAD_STACK).contains(&n) => Ok(()),
+        Some(n) if (MIN_THREAD_STACK..=MAX_THREAD_STACK).contains(&n) => {
+            // Every thread reserves that much address space: under `ulimit
+            // -v` the threads then failed to start with errors that blamed
+            // the thread limit or the signal handler (review).
+            let threads = std::thread::available_parallelism().map_or(1, |c| c.get()) as u64 + 8;
+            match crate::scene::budget::address_space_left() {
+                Some(left) if (n as u64).saturating_mul(threads) > left => bail!(
+                    "invalid RUST_MIN_STACK {n}: about {threads} threads of that stack need {}, and {} of address space is left (ulimit -v); ask for less, or unset it",
+                    crate::scene::budget::human((n as u64).saturating_mul(threads)),
+                    crate::scene::budget::human(left)
+                ),
+                _ => Ok(()),
+            }
+        }
         Some(n) if n < MIN_THREAD_STACK => bail!(
             "invalid RUST_MIN_STACK {n}: threads need at least {MIN_THREAD_STACK} bytes (2 MiB) of stack; unset it for the default"
         ),

@@ -118,6 +118,23 @@ pub fn remove_temps_on_interrupt() -> std::io::Result<()> {
         if OUTPUT_LANDED.load(Ordering::Acquire) {
             static ASKED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
             if ASKED.swap(true, Ordering::Relaxed) {
+                // Its folder synced first, as the command would have
+                // (review: a second Ctrl-C during that sync said "written
+                // in full" before the rename was on disk).
+                let folder = landed_at()
+                    .as_ref()
+                    .and_then(|p| p.parent().map(Path::to_path_buf))
+                    .filter(|d| !d.as_os_str().is_empty())
+                    .unwrap_or_else(|| PathBuf::from("."));
+                if std::fs::File::open(&folder)
+                    .and_then(|d| d.sync_all())
+                    .is_err()
+                {
+                    crate::say!(
+                        "interrupted after the output was written, before its folder was synced"
+                    );
+                    std::process::exit(130);
+                }
                 crate::say!("interrupted after the output was written in full");
                 std::process::exit(0);
             }
@@ -139,8 +156,15 @@ static OUTPUT_LANDED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicB
 /// command finish instead of ending it with status 130. Call it under
 /// [`landing`] where the landing holds it, so that an interrupt waiting
 /// for the landing sees it.
-pub fn output_landed() {
+pub fn output_landed(dest: &Path) {
+    *landed_at() = Some(dest.to_path_buf());
     OUTPUT_LANDED.store(true, Ordering::Release);
+}
+
+/// Where the output landed (see [`output_landed`]).
+fn landed_at() -> std::sync::MutexGuard<'static, Option<PathBuf>> {
+    static AT: std::sync::Mutex<Option<PathBuf>> = std::sync::Mutex::new(None);
+    AT.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// The most bytes of a destination's name its temporary's name keeps.

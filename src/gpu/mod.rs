@@ -162,7 +162,13 @@ impl GpuContext {
         // (the user at `ulimit -u`), waits for them for ever: `render
         // --tracer gpu` hung (regression, review of the environment
         // probe's fixes). With too few threads left the GPU is not tried.
+        // Lavapipe's workers: one per core, or `LP_NUM_THREADS` (review:
+        // with 16 asked for, it hung where the guard counted 2 cores).
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as u64;
+        let cores = std::env::var("LP_NUM_THREADS")
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .map_or(cores, |n| n.max(cores));
         if let Some(left) = crate::scene::budget::threads_left()
             && left < cores + MIN_GPU_SPARE_THREADS
         {

@@ -90,12 +90,12 @@ pub fn write_backup(
                 // released: an interrupt between the rename and the flag
                 // exited 130 with the backup in place (review).
                 let _landing = crate::files::landing();
-                land_on_free(tmp, path).inspect(|()| crate::files::output_landed())
+                land_on_free(tmp, path).inspect(|()| crate::files::output_landed(path))
             }
             Err(msg) => Err(std::io::Error::new(std::io::ErrorKind::AlreadyExists, msg)),
         }
         .inspect(|()| {
-            crate::files::output_landed();
+            crate::files::output_landed(path);
             // `BRICKWORLD_TEST_LANDED_STALL_MS`: a pause once the backup
             // has landed, so a test can interrupt the export there. Unset
             // in normal use.
@@ -184,7 +184,7 @@ fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
     // landed once it has (review: the plain-rename and free-path landings
     // set the flag after the lock was released).
     let _landing = crate::files::landing();
-    let landed = |r: std::io::Result<()>| r.inspect(|()| crate::files::output_landed());
+    let landed = |r: std::io::Result<()>| r.inspect(|()| crate::files::output_landed(path));
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         use nix::fcntl::{AT_FDCWD, RenameFlags, renameat2};
@@ -199,7 +199,7 @@ fn land_over(tmp: &Path, path: &Path, checked: &Seen) -> std::io::Result<()> {
                 if Seen::of(tmp).is_ok_and(|s| s == *checked) {
                     // Landed: said under the landing's lock, before the
                     // earlier backup (perhaps large) is removed.
-                    crate::files::output_landed();
+                    crate::files::output_landed(path);
                     let _ = fs::remove_file(tmp);
                     return Ok(());
                 }

@@ -201,6 +201,20 @@ mod tests {
         let line_in = crate::sim::runtime::declare::line_in;
         let text = "return {\n  a = \"x--y\", y = 1,\n  z = 2,\n  w = y,\n}\n";
         assert_eq!(line_in(text, "y"), Some(2));
+        // Second review: a backtick string holding `--[[`, strings
+        // continued by `\` and `\z` over a line break holding `--[[`, and
+        // a short string holding `speed = 2`.
+        let text = "local tag = `--[[`\nreturn {\n  a = 1,\n  speed = 2,\n}\n-- ]] speed = 3\n";
+        assert_eq!(line_in(text, "speed"), Some(4));
+        let text =
+            "local s = \"a\\\n--[[ b\"\nreturn {\n  a = 1,\n  speed = 2,\n}\n-- ]] speed = 3\n";
+        assert_eq!(line_in(text, "speed"), Some(5));
+        let text =
+            "local s = \"a\\z\n  --[[ b\"\nreturn {\n  a = 1,\n  speed = 2,\n}\n-- ]] speed = 3\n";
+        assert_eq!(line_in(text, "speed"), Some(5));
+        let text =
+            "local USAGE = \"set speed = 2 in world.toml\"\nreturn {\n  a = 1,\n  speed = 2,\n}\n";
+        assert_eq!(line_in(text, "speed"), Some(4));
         // A name listed as a string is found there, not at a local.
         let string_line_in = crate::sim::runtime::declare::string_line_in;
         let text = "local glass = 1\nreturn {\n  materials = { \"sand\", \"glass\" },\n}\n";

@@ -39,8 +39,10 @@ pub fn line_in(text: &str, needle: &str) -> Option<usize> {
     if needle.is_empty() {
         return None;
     }
-    let code = code_lines(text);
-    let first = |hit: &dyn Fn(&str) -> bool| code.iter().position(|l| hit(l)).map(|i| i + 1);
+    let lines = code_lines(text);
+    let first = |hit: &dyn Fn(&str) -> bool| lines.code.iter().position(|l| hit(l)).map(|i| i + 1);
+    let first_in_strings =
+        |hit: &dyn Fn(&str) -> bool| lines.strings.iter().position(|l| hit(l)).map(|i| i + 1);
     let as_key = |l: &str| {
         whole_words(l, needle).any(|end| {
             let rest = l[end..].trim_start();
@@ -50,90 +52,127 @@ pub fn line_in(text: &str, needle: &str) -> Option<usize> {
     let bracketed =
         |l: &str| l.contains(&format!("[\"{needle}\"]")) || l.contains(&format!("['{needle}']"));
     first(&as_key)
-        .or_else(|| first(&bracketed))
+        .or_else(|| first_in_strings(&bracketed))
         .or_else(|| first(&|l| whole_words(l, needle).next().is_some()))
         .or_else(|| text.lines().position(|l| l.contains(needle)).map(|i| i + 1))
 }
 
-/// The lines of `text` with what is not code blanked: `--` comments and
-/// `--[[ … ]]` block comments, and the insides of `[[ … ]]` long strings
-/// (blanked to spaces, so columns and line numbers stay). Short strings
-/// stay whole, with a `--` inside them kept (`["a--b"]` is a key), so a
-/// quoted name is still found (review: a name in a block comment or a
-/// long string was taken for its declaration, and `--` in a string cut
-/// its line).
-fn code_lines(text: &str) -> Vec<String> {
+/// The lines of `text` as code, twice: with every string's contents
+/// blanked (`code`), and with short strings kept whole (`strings`, for
+/// names written as strings: `["name"]`, `{ "sand" }`). Both blank `--`
+/// comments, `--[[ … ]]` block comments and `[[ … ]]` long strings, to
+/// spaces, so lines stay where they were. Short strings are `"…"`, `'…'`
+/// and Luau's `` `…` ``, with `\` escapes, a `\` before a line break and
+/// `\z` continuing them (review: a name in a block comment, a long
+/// string or a short one was taken for its declaration, and `--` in a
+/// string cut its line).
+struct CodeLines {
+    code: Vec<String>,
+    strings: Vec<String>,
+}
+
+fn code_lines(text: &str) -> CodeLines {
     // The closing bracket of the long bracket open at `s` (`[[`, `[==[`).
     fn long_open(s: &[u8]) -> Option<(usize, Vec<u8>)> {
         let eq = s.iter().skip(1).take_while(|&&c| c == b'=').count();
         (s.first() == Some(&b'[') && s.get(1 + eq) == Some(&b'['))
             .then(|| (2 + eq, [b"]".as_slice(), &vec![b'='; eq], b"]"].concat()))
     }
-    let mut out: Vec<u8> = Vec::with_capacity(text.len());
     let b = text.as_bytes();
+    let (mut code, mut strings) = (Vec::with_capacity(b.len()), Vec::with_capacity(b.len()));
+    // Blank `n` bytes in both (a line break stays one).
+    let blank = |code: &mut Vec<u8>, strings: &mut Vec<u8>, bytes: &[u8]| {
+        for &c in bytes {
+            let k = if c == b'\n' { b'\n' } else { b' ' };
+            code.push(k);
+            strings.push(k);
+        }
+    };
     // Inside a long comment or string: its closing bracket.
     let mut long: Option<Vec<u8>> = None;
     let mut i = 0;
     while i < b.len() {
         if let Some(close) = &long {
             if b[i..].starts_with(close) {
-                out.extend(std::iter::repeat_n(b' ', close.len()));
-                i += close.len();
+                let n = close.len();
+                blank(&mut code, &mut strings, &b[i..i + n]);
+                i += n;
                 long = None;
             } else {
-                out.push(if b[i] == b'\n' { b'\n' } else { b' ' });
+                blank(&mut code, &mut strings, &b[i..i + 1]);
                 i += 1;
             }
             continue;
         }
         match b[i] {
-            b'"' | b'\'' => {
-                // A short string, whole, to its closing quote or line end.
-                let q = b[i];
-                out.push(q);
+            q @ (b'"' | b'\'' | b'`') => {
+                code.push(q);
+                strings.push(q);
                 i += 1;
                 while i < b.len() && b[i] != q && b[i] != b'\n' {
-                    if b[i] == b'\\' && i + 1 < b.len() && b[i + 1] != b'\n' {
-                        out.push(b[i]);
-                        i += 1;
+                    if b[i] == b'\\' && i + 1 < b.len() {
+                        let mut n = 2;
+                        if b[i + 1] == b'z' {
+                            // `\z` skips the white space after it, line
+                            // breaks included.
+                            while b.get(i + n).is_some_and(|c| c.is_ascii_whitespace()) {
+                                n += 1;
+                            }
+                        }
+                        for &c in &b[i..i + n] {
+                            code.push(if c == b'\n' { b'\n' } else { b' ' });
+                            strings.push(c);
+                        }
+                        i += n;
+                        continue;
                     }
-                    out.push(b[i]);
+                    code.push(b' ');
+                    strings.push(b[i]);
                     i += 1;
                 }
                 if i < b.len() && b[i] == q {
-                    out.push(q);
+                    code.push(q);
+                    strings.push(q);
                     i += 1;
                 }
             }
             b'-' if b[i..].starts_with(b"--") => {
                 if let Some((n, close)) = long_open(&b[i + 2..]) {
-                    out.extend(std::iter::repeat_n(b' ', 2 + n));
+                    blank(&mut code, &mut strings, &b[i..i + 2 + n]);
                     i += 2 + n;
                     long = Some(close);
                 } else {
-                    while i < b.len() && b[i] != b'\n' {
-                        out.push(b' ');
-                        i += 1;
-                    }
+                    let end = b[i..]
+                        .iter()
+                        .position(|&c| c == b'\n')
+                        .map_or(b.len(), |e| i + e);
+                    blank(&mut code, &mut strings, &b[i..end]);
+                    i = end;
                 }
             }
             b'[' if long_open(&b[i..]).is_some() => {
                 let (n, close) = long_open(&b[i..]).expect("checked");
-                out.extend(std::iter::repeat_n(b' ', n));
+                blank(&mut code, &mut strings, &b[i..i + n]);
                 i += n;
                 long = Some(close);
             }
             c => {
-                out.push(c);
+                code.push(c);
+                strings.push(c);
                 i += 1;
             }
         }
     }
-    // Only ASCII bytes were replaced by ASCII, at ASCII positions.
-    String::from_utf8_lossy(&out)
-        .lines()
-        .map(str::to_string)
-        .collect()
+    let lines = |v: Vec<u8>| -> Vec<String> {
+        String::from_utf8_lossy(&v)
+            .lines()
+            .map(str::to_string)
+            .collect()
+    };
+    CodeLines {
+        code: lines(code),
+        strings: lines(strings),
+    }
 }
 
 /// The line (1-based) where `needle` first stands as a string (`"name"` or
@@ -143,6 +182,7 @@ fn code_lines(text: &str) -> Vec<String> {
 pub fn string_line_in(text: &str, needle: &str) -> Option<usize> {
     let quoted = [format!("\"{needle}\""), format!("'{needle}'")];
     code_lines(text)
+        .strings
         .iter()
         .position(|l| quoted.iter().any(|q| l.contains(q.as_str())))
         .map(|i| i + 1)
