@@ -2012,9 +2012,30 @@ fn a_scripts_folder_that_cannot_be_read_is_named_by_its_field() {
 fn a_low_thread_limit_ends_in_one_clear_line_never_an_abort() {
     use std::os::unix::fs::{MetadataExt, PermissionsExt};
     let (scratch, cfg, state, _) = setup("nproc");
-    let dir = scratch.to_path_buf();
-    std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o777)).unwrap();
     let root = std::fs::metadata("/proc/self").unwrap().uid() == 0;
+    // As `nobody`, the files must be where that user reaches them: the
+    // tests' TMPDIR may be private (`.ci/run` makes it with `mktemp -d`,
+    // 0700; the clean-clone CI failed here), so a folder of /tmp's own.
+    struct Shared(std::path::PathBuf);
+    impl Drop for Shared {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+    let shared = root.then(|| {
+        let d = std::path::PathBuf::from(format!("/tmp/brickworld-nproc-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir(&d).unwrap();
+        Shared(d)
+    });
+    let (dir, cfg, state) = match &shared {
+        Some(d) => {
+            std::fs::copy(&cfg, d.0.join("world.toml")).unwrap();
+            (d.0.clone(), d.0.join("world.toml"), d.0.join("state"))
+        }
+        None => (scratch.to_path_buf(), cfg, state),
+    };
+    std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o777)).unwrap();
     let uid = if root {
         65534
     } else {
