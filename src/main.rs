@@ -18,8 +18,10 @@ fn command() -> clap::Command {
 /// Parse the command line. Help and version print as clap prints them; any
 /// other error is one line on stderr and exit code 1, as all bad input is.
 fn parse() -> Result<brickworld::cli::Cli, ExitCode> {
-    let parsed = command()
-        .try_get_matches_from(help_flags_as_topics(std::env::args_os().collect()))
+    let cmd = command();
+    let args = help_flags_as_topics(&cmd, std::env::args_os().collect());
+    let parsed = cmd
+        .try_get_matches_from(args)
         .and_then(|m| brickworld::cli::Cli::from_arg_matches(&m));
     parsed.map_err(|e| match e.kind() {
         ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => printed(
@@ -72,8 +74,11 @@ fn printed(result: std::io::Result<()>) -> ExitCode {
 /// After a `help` reached through subcommand names, `-h` and `--help` are
 /// dropped, and a `help` with nothing else left asks for the help of
 /// `help` itself.
-fn help_flags_as_topics(mut args: Vec<std::ffi::OsString>) -> Vec<std::ffi::OsString> {
-    let mut cmd = command();
+fn help_flags_as_topics(
+    cli: &clap::Command,
+    mut args: Vec<std::ffi::OsString>,
+) -> Vec<std::ffi::OsString> {
+    let mut cmd = cli;
     let mut at = 1;
     while let Some(a) = args.get(at).and_then(|a| a.to_str()) {
         if a == "help" && cmd.has_subcommands() {
@@ -91,7 +96,7 @@ fn help_flags_as_topics(mut args: Vec<std::ffi::OsString>) -> Vec<std::ffi::OsSt
         }
         match cmd.find_subcommand(a) {
             Some(sub) => {
-                cmd = sub.clone();
+                cmd = sub;
                 at += 1;
             }
             None => break,

@@ -3,7 +3,7 @@
 //! never a panic.
 
 mod common;
-use common::cli::{assert_clear_failure, assert_success, bin, mkfifo, read_json};
+use common::cli::{assert_clear_failure, assert_success, bin, bin_limited, mkfifo, read_json};
 
 fn tmp(name: &str) -> common::scratch::Scratch {
     common::cli::tmp("cli", name)
@@ -674,13 +674,9 @@ fn an_output_named_for_another_format_is_refused_before_any_work() {
 fn threads_the_os_refuses_get_one_clear_error() {
     let refused = tmp("refused.png");
     for _ in 0..20 {
-        let out = std::process::Command::new("bash")
-            .arg("-c")
-            .arg(format!(
-                "ulimit -v 1048576; exec '{}' render --size 16x16x16 --threads 1024 --out '{}'",
-                env!("CARGO_BIN_EXE_brickworld"),
-                refused.display()
-            ))
+        let out = bin_limited("-v 1048576")
+            .args(["render", "--size", "16x16x16", "--threads", "1024", "--out"])
+            .arg(&refused)
             .output()
             .unwrap();
         assert_clear_failure(
@@ -957,14 +953,14 @@ fn rayon_num_threads_out_of_range_or_unstartable_is_one_line() {
         assert_clear_failure(&out, v, said);
     }
     let state = tmp("rayon-state");
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -v 1500000; exec '{}' run '{}' --state '{}' --ticks 1",
-            env!("CARGO_BIN_EXE_brickworld"),
+    let out = bin_limited("-v 1500000")
+        .args([
+            "run",
             concat!(env!("CARGO_MANIFEST_DIR"), "/worlds/default.toml"),
-            state.display()
-        ))
+            "--state",
+        ])
+        .arg(&state)
+        .args(["--ticks", "1"])
         .env("RAYON_NUM_THREADS", "1000")
         .env_remove("RUST_BACKTRACE")
         .output()
@@ -1086,13 +1082,11 @@ fn conflicting_or_useless_outputs_and_flags_are_refused_up_front() {
 fn a_file_size_limit_fails_the_write_instead_of_killing_the_process() {
     let out_png = tmp("fsize.png");
     let _ = std::fs::remove_file(&out_png);
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -f 2; exec '{}' render --size 64x64x64 --width 160 --height 120 --out '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            out_png.display()
-        ))
+    let out = bin_limited("-f 2")
+        .args([
+            "render", "--size", "64x64x64", "--width", "160", "--height", "120", "--out",
+        ])
+        .arg(&out_png)
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(1), "{out:?}");
@@ -1116,14 +1110,13 @@ fn a_failed_render_leaves_an_existing_output_untouched() {
     // The depth's write fails past a 1024-byte file size limit, which the
     // 48 × 36 PNG (830 bytes) fits and its depth (7 040) does not (a
     // missing folder is now refused before any work).
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -f 2; exec '{}' render --size 16x16x16 --width 48 --height 36 --out '{}' --depth-out '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            keep.display(),
-            depth.display()
-        ))
+    let out = bin_limited("-f 2")
+        .args([
+            "render", "--size", "16x16x16", "--width", "48", "--height", "36", "--out",
+        ])
+        .arg(&keep)
+        .arg("--depth-out")
+        .arg(&depth)
         .output()
         .unwrap();
     assert_clear_failure(&out, "render past ulimit -f", "File too large");
@@ -1599,14 +1592,7 @@ fn a_failed_init_leaves_nothing_and_the_next_one_succeeds() {
     let dir = top.join("world");
     let d = dir.to_str().unwrap();
     // 8 KiB: smaller than water3d.lua, larger than most scripts.
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -f 8; exec '{}' init '{d}'",
-            env!("CARGO_BIN_EXE_brickworld")
-        ))
-        .output()
-        .unwrap();
+    let out = bin_limited("-f 8").args(["init", d]).output().unwrap();
     assert_clear_failure(&out, "init past ulimit -f", "File too large");
     // Not even DIR, which it made (hostile probe 3).
     assert!(!top.exists(), "a failed init left {:?}", walk(&top));
@@ -2123,14 +2109,11 @@ fn a_kernel_logging_huge_strings_stays_within_its_memory() {
          kernel = function(c) for i = 1, 400 do log(big, 1) end end } } }\n",
     )
     .unwrap();
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -v 1500000 && exec '{}' sim --size 16x16x16 --script '{}' --steps 2 --threads 2 --out '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            script.display(),
-            dir.join("o.png").display()
-        ))
+    let out = bin_limited("-v 1500000")
+        .args(["sim", "--size", "16x16x16", "--script"])
+        .arg(&script)
+        .args(["--steps", "2", "--threads", "2", "--out"])
+        .arg(dir.join("o.png"))
         .output()
         .unwrap();
     assert_success(&out);
@@ -2735,13 +2718,9 @@ fn a_rust_min_stack_too_small_for_the_threads_is_refused() {
     // Within the bound, but more than the address space holds for the
     // threads (review: the threads then failed with errors that blamed the
     // thread limit).
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -v 8000000 && exec '{}' render --size 16x16x16 --out '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            out_png.display()
-        ))
+    let out = bin_limited("-v 8000000")
+        .args(["render", "--size", "16x16x16", "--out"])
+        .arg(&out_png)
         .env("RUST_MIN_STACK", "1073741824")
         .output()
         .unwrap();
@@ -2796,14 +2775,21 @@ fn bench_store_clears_its_scratch_when_interrupted_and_says_when_it_cannot() {
     );
     assert!(!dir.exists(), "the scratch directory is still there");
     // A removal that fails is said.
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -n 4 && exec '{}' bench store --size 64x32x64 --chunks 4 --repeats 1 --dir '{}' --json '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            dir.display(),
-            json.display()
-        ))
+    let out = bin_limited("-n 4")
+        .args([
+            "bench",
+            "store",
+            "--size",
+            "64x32x64",
+            "--chunks",
+            "4",
+            "--repeats",
+            "1",
+            "--dir",
+        ])
+        .arg(&dir)
+        .arg("--json")
+        .arg(&json)
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
@@ -2825,13 +2811,9 @@ fn bench_store_clears_its_scratch_when_interrupted_and_says_when_it_cannot() {
 #[test]
 fn too_little_address_space_for_the_gpu_falls_back_to_the_cpu_with_its_figures() {
     let png = tmp("gpu-as.png");
-    let out = std::process::Command::new("bash")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -v 500000 && exec '{}' render --tracer gpu --size 32x32x32 --out '{}'",
-            env!("CARGO_BIN_EXE_brickworld"),
-            png.display()
-        ))
+    let out = bin_limited("-v 500000")
+        .args(["render", "--tracer", "gpu", "--size", "32x32x32", "--out"])
+        .arg(&png)
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);

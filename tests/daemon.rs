@@ -698,14 +698,7 @@ fn a_stop_gives_the_frame_in_flight_3_s_then_abandons_it() {
     wait_status(&addr, "no frame in flight", |s| {
         s["frames"] == 0 && s["frames_skipped"].as_u64().unwrap() > 0
     });
-    assert_success(
-        &common::cli::bin()
-            .args(["ctl", "--addr", &addr, "--state"])
-            .arg(&state)
-            .arg("pause")
-            .output()
-            .unwrap(),
-    );
+    ctl_ok(&addr, &state, &["pause"]);
     let s = wait_status(&addr, "pausing", |s| s["paused"] == true);
     let tick = s["tick"].as_u64().unwrap();
     assert_eq!(s["frames"], 0, "the frame must still be in flight: {s}");
@@ -970,15 +963,7 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
         });
         // Through `ctl`, which exits 0 once the engine applied it (audit:
         // no test ran ctl's success path against an engine).
-        let ctl = |args: &[&str]| {
-            let out = common::cli::bin()
-                .args(["ctl", "--addr", &addr, "--state"])
-                .arg(&state)
-                .args(args)
-                .output()
-                .unwrap();
-            assert_success(&out);
-        };
+        let ctl = |args: &[&str]| ctl_ok(&addr, &state, args);
         ctl(&["pause"]);
         let paused = |before: Option<u64>| paused_tick(&addr, before);
         let mut tick = paused(None);
@@ -1001,17 +986,7 @@ fn sigterm_and_sigint_commit_the_tick_the_engine_stopped_at() {
         let _ = std::process::Command::new("kill")
             .args([sig, &d.id().to_string()])
             .status();
-        let t = Instant::now();
-        let code = loop {
-            if let Some(s) = d.try_wait().unwrap() {
-                break s;
-            }
-            assert!(
-                t.elapsed() < Duration::from_secs(30),
-                "{sig} did not stop it"
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        };
+        let code = wait_for_exit(&mut d, 30, &format!("{sig} did not stop it"));
         assert!(code.success(), "{sig}: {code:?}");
         assert_eq!(stored_tick(&cfg, &state), Some(tick), "after {sig}");
     }
@@ -1407,22 +1382,10 @@ fn sigxcpu_stops_the_engine_with_a_final_commit() {
     // final one.
     let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "1500"));
     wait_ready(&addr);
-    let out = common::cli::bin()
-        .args(["ctl", "--addr", &addr, "--state"])
-        .arg(&state)
-        .arg("pause")
-        .output()
-        .unwrap();
-    assert_success(&out);
+    ctl_ok(&addr, &state, &["pause"]);
     let mut tick = paused_tick(&addr, None);
     if tick.is_multiple_of(40) {
-        let out = common::cli::bin()
-            .args(["ctl", "--addr", &addr, "--state"])
-            .arg(&state)
-            .args(["step", "1"])
-            .output()
-            .unwrap();
-        assert_success(&out);
+        ctl_ok(&addr, &state, &["step", "1"]);
         tick = paused_tick(&addr, Some(tick));
     }
     for _ in 0..3 {
@@ -1437,17 +1400,7 @@ fn sigxcpu_stops_the_engine_with_a_final_commit() {
     let _ = std::process::Command::new("kill")
         .args(["-TERM", &d.id().to_string()])
         .status();
-    let t = Instant::now();
-    let code = loop {
-        if let Some(s) = d.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(30),
-            "SIGXCPU did not stop it"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let code = wait_for_exit(&mut d, 30, "SIGXCPU did not stop it");
     let mut err = String::new();
     std::io::Read::read_to_string(d.stderr.as_mut().unwrap(), &mut err).unwrap();
     assert!(code.success(), "{code:?}: {err}");

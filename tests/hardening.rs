@@ -691,20 +691,10 @@ fn a_second_signal_exits_at_once() {
         .status();
     // Past the second within which a second signal is the same request.
     std::thread::sleep(Duration::from_millis(1500));
-    let t = Instant::now();
     let _ = std::process::Command::new("kill")
         .args(["-TERM", &pid])
         .status();
-    let status = loop {
-        if let Some(s) = d.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(10),
-            "the second signal did not end it"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = wait_for_exit(&mut d, 10, "the second signal did not end it");
     assert_eq!(status.code(), Some(130));
     // Whatever was on disk before is still good: the store opens, holds
     // the last commit, and the stalled commit did not land.
@@ -742,7 +732,7 @@ fn two_signals_at_once_are_one_request_and_keep_the_final_commit() {
     // Apart enough to arrive as two signals, not one pending signal.
     std::thread::sleep(Duration::from_millis(100));
     let _ = kill();
-    let code = wait_for_exit(&mut d, 30);
+    let code = wait_for_exit(&mut d, 30, "it did not stop");
     assert!(code.success(), "{code:?}");
     assert_eq!(stored_tick(&cfg, &state), Some(tick));
 }
@@ -1778,7 +1768,7 @@ fn a_command_answered_before_a_stop_is_applied_and_committed() {
     assert_eq!(code, 503, "{body}");
     assert!(body.contains("stopping"), "{body}");
     assert_eq!(commit.join().unwrap(), 200);
-    let code = wait_for_exit(&mut d, 30);
+    let code = wait_for_exit(&mut d, 30, "it did not stop");
     assert!(code.success(), "{code:?}");
     let d = spawn(run_cmd(&cfg, &state).arg("--paused"));
     wait_ready(&addr);
@@ -1870,7 +1860,7 @@ fn a_stop_during_a_long_start_stops_cleanly_once_loaded() {
     let _ = std::process::Command::new("kill")
         .args(["-INT", &d.id().to_string()])
         .status();
-    let code = wait_for_exit(&mut d, 60);
+    let code = wait_for_exit(&mut d, 60, "it did not stop");
     let mut err = String::new();
     d.stderr.take().unwrap().read_to_string(&mut err).unwrap();
     assert!(code.success(), "{code:?}: {err}");
@@ -1900,18 +1890,6 @@ fn a_place_box_partly_outside_the_world_is_named_as_such() {
         "a place box partly outside",
         "world.toml: place[0]: the box at [0, 0, 0] of size [65536, 8, 8] does not lie wholly inside the world",
     );
-}
-
-/// `d`'s exit status once it has exited; a panic after `secs` seconds.
-fn wait_for_exit(d: &mut Daemon, secs: u64) -> std::process::ExitStatus {
-    let t = Instant::now();
-    loop {
-        if let Some(s) = d.try_wait().unwrap() {
-            return s;
-        }
-        assert!(t.elapsed() < Duration::from_secs(secs), "it did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 /// Regression (hot-edit probe): a script saved while the engine was
@@ -2162,14 +2140,12 @@ fn a_start_out_of_file_handles_is_one_line_and_leaves_no_state_folder() {
     let mut started = 0;
     for n in 4..=24 {
         let state = scratch.join(format!("state-{n}"));
-        let out = std::process::Command::new("bash")
-            .arg("-c")
-            .arg(format!(
-                "ulimit -n {n} && exec \"$0\" run \"$1\" --state \"$2\" --ticks 1",
-            ))
-            .arg(env!("CARGO_BIN_EXE_brickworld"))
+        let out = common::cli::bin_limited(&format!("-n {n}"))
+            .arg("run")
             .arg(&cfg)
+            .arg("--state")
             .arg(&state)
+            .args(["--ticks", "1"])
             .stdout(Stdio::null())
             .output()
             .unwrap();

@@ -1733,19 +1733,25 @@ fn an_export_interrupted_after_its_backup_landed_says_it_was_written() {
             .output()
             .unwrap(),
     );
-    let old = std::fs::read(&backup).unwrap();
+    // An export over the backup there, held `stall_ms` once its own has
+    // landed; returned once it has.
+    let held_export = |stall_ms: &str| {
+        let before = std::fs::read(&backup).unwrap();
+        let child = backup_cmd("export", &backup, &cfg, &state)
+            .env("BRICKWORLD_TEST_LANDED_STALL_MS", stall_ms)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let t0 = std::time::Instant::now();
+        while std::fs::read(&backup).is_ok_and(|b| b == before) {
+            assert!(t0.elapsed().as_secs() < 60, "the new backup never landed");
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        (child, t0)
+    };
     hash_at(&cfg, &state, 20);
-    let child = backup_cmd("export", &backup, &cfg, &state)
-        .env("BRICKWORLD_TEST_LANDED_STALL_MS", "2000")
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t0 = std::time::Instant::now();
-    while std::fs::read(&backup).is_ok_and(|b| b == old) {
-        assert!(t0.elapsed().as_secs() < 60, "the new backup never landed");
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
+    let (child, _) = held_export("2000");
     kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
     let out = child.wait_with_output().unwrap();
     let said = String::from_utf8_lossy(&out.stdout);
@@ -1758,18 +1764,7 @@ fn an_export_interrupted_after_its_backup_landed_says_it_was_written() {
     // A second interrupt ends a held export at once, still with status 0:
     // the backup is complete.
     hash_at(&cfg, &state, 30);
-    let landed = std::fs::read(&backup).unwrap();
-    let child = backup_cmd("export", &backup, &cfg, &state)
-        .env("BRICKWORLD_TEST_LANDED_STALL_MS", "60000")
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t0 = std::time::Instant::now();
-    while std::fs::read(&backup).is_ok_and(|b| b == landed) {
-        assert!(t0.elapsed().as_secs() < 60, "the third backup never landed");
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
+    let (child, t0) = held_export("60000");
     for _ in 0..2 {
         kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(200));

@@ -8,6 +8,17 @@ pub fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_brickworld"))
 }
 
+/// The binary under a shell limit (`limit` as `ulimit` takes it, e.g.
+/// `-v 1048576`); add its arguments with `.arg`/`.args`, passed as they
+/// are (no quoting).
+pub fn bin_limited(limit: &str) -> Command {
+    let mut c = Command::new("bash");
+    c.arg("-c")
+        .arg(format!("ulimit {limit} && exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_brickworld"));
+    c
+}
+
 /// The path `name` in a scratch folder of its own (`brickworld-TAG-…`),
 /// removed when the returned guard is dropped, unless the test fails.
 pub fn tmp(tag: &str, name: &str) -> super::scratch::Scratch {

@@ -393,3 +393,32 @@ pub fn holds_socket(pid: u32, inode: u64) -> bool {
             .any(|e| std::fs::read_link(e.path()).is_ok_and(|t| t.to_string_lossy() == want))
     })
 }
+
+/// `brickworld ctl --addr ADDR --state STATE ARGS…`, which must succeed
+/// (it exits 0 once the engine applied the command).
+pub fn ctl_ok(addr: &str, state: &Path, args: &[&str]) {
+    let out = Command::new(env!("CARGO_BIN_EXE_brickworld"))
+        .args(["ctl", "--addr", addr, "--state"])
+        .arg(state)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "ctl {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// `d`'s exit status once it has exited; a panic saying `what` after
+/// `secs` seconds.
+pub fn wait_for_exit(d: &mut Daemon, secs: u64, what: &str) -> std::process::ExitStatus {
+    let t = Instant::now();
+    loop {
+        if let Some(s) = d.try_wait().unwrap() {
+            return s;
+        }
+        assert!(t.elapsed() < Duration::from_secs(secs), "{what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
