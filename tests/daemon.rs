@@ -1408,3 +1408,35 @@ fn sigxcpu_stops_the_engine_with_a_final_commit() {
     assert!(!err.contains("second signal"), "{err}");
     assert_eq!(stored_tick(&cfg, &state), Some(tick));
 }
+
+/// Regression (the last hostile environment probe's leftover): SIGQUIT,
+/// SIGUSR1, SIGUSR2 and SIGALRM kept their default action and killed the
+/// engine without a final commit, losing the ticks since the last one.
+/// Each is now a stop request with a final commit, and says so.
+#[cfg(unix)]
+#[test]
+fn quit_usr_and_alarm_signals_stop_the_engine_with_a_final_commit() {
+    let (_scratch, cfg, state, addr) = setup("stop-signals");
+    for sig in ["QUIT", "USR1", "USR2", "ALRM"] {
+        let mut d = spawn(&mut run_cmd(&cfg, &state));
+        wait_ready(&addr);
+        ctl_ok(&addr, &state, &["pause"]);
+        let mut tick = paused_tick(&addr, None);
+        if tick.is_multiple_of(40) {
+            ctl_ok(&addr, &state, &["step", "1"]);
+            tick = paused_tick(&addr, Some(tick));
+        }
+        let _ = std::process::Command::new("kill")
+            .args([&format!("-{sig}"), &d.id().to_string()])
+            .status();
+        let code = wait_for_exit(&mut d, 30, &format!("SIG{sig} did not stop it"));
+        let mut err = String::new();
+        std::io::Read::read_to_string(d.stderr.as_mut().unwrap(), &mut err).unwrap();
+        assert!(code.success(), "SIG{sig}: {code:?}: {err}");
+        assert!(
+            err.contains(&format!("SIG{sig} received: stopping with a final commit")),
+            "{err}"
+        );
+        assert_eq!(stored_tick(&cfg, &state), Some(tick), "SIG{sig}: {err}");
+    }
+}

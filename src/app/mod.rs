@@ -24,7 +24,7 @@ pub fn run(cli: Cli) -> Result<()> {
     }
     if matches!(cli.command, Command::Run(_)) {
         // Before any thread: the engine stops on it with a commit.
-        crate::files::block_cpu_limit_signal();
+        crate::files::block_stop_signals();
     }
     match &cli.command {
         // Commands that build and run worlds on rayon's global pool.

@@ -138,17 +138,38 @@ pub fn no_signal_from_writes() {
     }
 }
 
-/// Block SIGXCPU (sent past a soft CPU-time limit) in this thread and the
-/// threads it starts from now on, so that the engine takes it as a stop
-/// request on a thread of its own instead of dying without a final
-/// commit. Call it before the engine starts any thread. A no-op off Unix.
-pub fn block_cpu_limit_signal() {
+/// The signals the engine takes as a stop request with a final commit on
+/// a thread of its own, beside SIGINT, SIGTERM and SIGHUP (which `ctrlc`
+/// handles): SIGXCPU (sent past a soft CPU-time limit), SIGQUIT (a
+/// graceful stop, as in nginx), and SIGUSR1, SIGUSR2 and SIGALRM, whose
+/// default action killed the engine without a commit.
+#[cfg(unix)]
+pub fn stop_signals() -> nix::sys::signal::SigSet {
+    use nix::sys::signal::{SigSet, Signal};
+    let mut set = SigSet::empty();
+    for s in [
+        Signal::SIGXCPU,
+        Signal::SIGQUIT,
+        Signal::SIGUSR1,
+        Signal::SIGUSR2,
+        Signal::SIGALRM,
+    ] {
+        set.add(s);
+    }
+    set
+}
+
+/// Block the [`stop_signals`] in this thread and the threads it starts
+/// from now on, so that the engine takes them as a stop request on a
+/// thread of its own instead of dying without a final commit. Call it
+/// before the engine starts any thread. A no-op off Unix. (Child
+/// processes get an empty mask: `std` clears it before `execve`.)
+pub fn block_stop_signals() {
     #[cfg(unix)]
     {
-        use nix::sys::signal::{SigSet, Signal};
-        // Blocking a signal cannot fail with a valid set; if it did, the
-        // default (death by the signal) is what remains.
-        let _ = SigSet::from(Signal::SIGXCPU).thread_block();
+        // Blocking signals cannot fail with a valid set; if it did, the
+        // defaults (death by the signal) are what remains.
+        let _ = stop_signals().thread_block();
     }
 }
 

@@ -315,7 +315,19 @@ fn open_timeline(state: &Path, ws: &WorldSim, shared: &Shared) -> Result<Timelin
     Ok(timeline)
 }
 
-/// The first SIGINT/SIGTERM stops after the step in flight, with a final
+/// Who asked the engine to stop, for [`install_signal_handler`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Asked {
+    /// SIGINT, SIGTERM or SIGHUP (through `ctrlc`).
+    Terminal,
+    /// Another signal a user sends (SIGQUIT, SIGUSR1/2, SIGALRM).
+    Named(&'static str),
+    /// SIGXCPU, which the kernel repeats each second.
+    CpuLimit,
+}
+
+/// The first SIGINT/SIGTERM/SIGHUP (or SIGQUIT, SIGUSR1/2, SIGALRM)
+/// stops after the step in flight, with a final
 /// checkpoint; a step still running after STOP_GRACE is interrupted (and
 /// not committed). A second signal exits at once (the last checkpoint on
 /// disk stays good), unless it came within SAME_REQUEST of the first: GNU
@@ -340,13 +352,14 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
         .context("cannot start the stop timer's thread")?;
     let s = shared.clone();
     let mut first: Option<std::time::Instant> = None;
-    // `cpu_limit`: SIGXCPU, a request of the system's, which it repeats
-    // each second: its repeats are not a second request, and a user's
-    // signal after it is the user's first (review: each repeat printed its
-    // line again, and a SIGTERM after it skipped the final commit).
-    let on_signal = move |cpu_limit: bool| {
+    // `Asked::CpuLimit`: SIGXCPU, a request of the system's, which it
+    // repeats each second: its repeats are not a second request, and a
+    // user's signal after it is the user's first (review: each repeat
+    // printed its line again, and a SIGTERM after it skipped the final
+    // commit).
+    let on_signal = move |asked: Asked| {
         let stopping = s.shutdown.swap(true, Ordering::Relaxed);
-        if cpu_limit {
+        if asked == Asked::CpuLimit {
             if stopping {
                 return;
             }
@@ -360,6 +373,9 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
                 std::process::exit(130);
             }
             first = Some(std::time::Instant::now());
+            if let Asked::Named(name) = asked {
+                crate::say!("{name} received: stopping with a final commit");
+            }
             if stopping {
                 // A stop is under way (SIGXCPU asked first): this joins it.
                 return;
@@ -378,22 +394,30 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
     };
     let on_signal = Arc::new(std::sync::Mutex::new(on_signal));
     let handler = on_signal.clone();
-    ctrlc::set_handler(move || (handler.lock().unwrap_or_else(|e| e.into_inner()))(false))
-        .context("cannot install the SIGINT/SIGTERM handler")?;
-    // SIGXCPU, past a soft CPU-time limit (`ulimit -S -t`, as batch
-    // schedulers set to say "save now" before the hard limit): blocked in
-    // every thread since `app::run` (see [`crate::files::block_cpu_limit_signal`]),
-    // and taken here as a stop request. It killed the engine without a
-    // final commit (regression, hostile environment probe).
+    ctrlc::set_handler(move || {
+        (handler.lock().unwrap_or_else(|e| e.into_inner()))(Asked::Terminal)
+    })
+    .context("cannot install the SIGINT/SIGTERM handler")?;
+    // The other stop signals (SIGXCPU past a soft CPU-time limit, as batch
+    // schedulers set to say "save now" before the hard limit; SIGQUIT;
+    // SIGUSR1/2; SIGALRM): blocked in every thread since `app::run` (see
+    // [`crate::files::block_stop_signals`]), and taken here as a stop
+    // request. Each killed the engine without a final commit (regressions,
+    // hostile environment probe and its follow-up).
     #[cfg(unix)]
     std::thread::Builder::new()
-        .name("cpu limit".into())
+        .name("stop signals".into())
         .spawn(move || {
-            let set = nix::sys::signal::SigSet::from(nix::sys::signal::Signal::SIGXCPU);
-            while set.wait().is_ok() {
-                (on_signal.lock().unwrap_or_else(|e| e.into_inner()))(true);
+            use nix::sys::signal::Signal;
+            let set = crate::files::stop_signals();
+            while let Ok(sig) = set.wait() {
+                let asked = match sig {
+                    Signal::SIGXCPU => Asked::CpuLimit,
+                    other => Asked::Named(other.as_str()),
+                };
+                (on_signal.lock().unwrap_or_else(|e| e.into_inner()))(asked);
             }
         })
-        .context("cannot start the CPU-limit signal's thread")?;
+        .context("cannot start the stop signals' thread")?;
     Ok(())
 }
