@@ -73,7 +73,8 @@ fn printed(result: std::io::Result<()>) -> ExitCode {
 /// (regressions, hostile probe and review of the twenty-fourth session).
 /// After a `help` reached through subcommand names, `-h` and `--help` are
 /// dropped, and a `help` with nothing else left asks for the help of
-/// `help` itself.
+/// `help` itself. So is a `--` (`help -- -h` said "unrecognized
+/// subcommand '--'"; `help -- run` is `help run`).
 fn help_flags_as_topics(
     cli: &clap::Command,
     mut args: Vec<std::ffi::OsString>,
@@ -85,7 +86,7 @@ fn help_flags_as_topics(
             let asked: Vec<_> = args.drain(at + 1..).collect();
             let topics: Vec<_> = asked
                 .iter()
-                .filter(|a| *a != "-h" && *a != "--help")
+                .filter(|a| *a != "-h" && *a != "--help" && *a != "--")
                 .cloned()
                 .collect();
             if topics.is_empty() && !asked.is_empty() {

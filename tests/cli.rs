@@ -2568,6 +2568,9 @@ fn help_takes_help_flags_like_every_command() {
         ),
         (&["help"][..], "Usage: brickworld"),
         (&["--version"][..], "brickworld "),
+        // Last note: `help -- -h` said "unrecognized subcommand '--'".
+        (&["help", "--", "-h"][..], "Usage: brickworld help"),
+        (&["help", "--", "run"][..], "Usage: brickworld run"),
         // Review: a `help` under another command.
         (
             &["bench", "help", "--help"][..],
