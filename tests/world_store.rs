@@ -10,6 +10,7 @@ use brickworld::sim::ChannelStore;
 use brickworld::sim::voxels::VoxelChannels;
 use brickworld::world::{BrickContent, BrickStore, Palette};
 use glam::{IVec2, IVec3};
+use std::time::Duration;
 
 mod common;
 use common::cli::{assert_success, bin};
@@ -1572,6 +1573,82 @@ fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
     );
     let err = stderr_of_ticks(&cfg, &half, 1);
     assert!(err.contains("at tick 30 "), "{err}");
+}
+
+/// Regression (the last note's gap): Ctrl-C or SIGTERM ended `import` by
+/// the signal, without a word. Interrupted while it writes, it now says the
+/// import did not finish and how to redo it (status 130, the marker left);
+/// interrupted while it checks the backup, it removes the state directory
+/// it made and says nothing was imported.
+#[cfg(unix)]
+#[test]
+fn an_interrupted_import_says_what_it_left() {
+    let (_scratch, cfg, state, _) = setup("cutimport");
+    hash_at(&cfg, &state, 10);
+    let backup = state.with_file_name("w.bwc");
+    assert_success(
+        &backup_cmd("export", &backup, &cfg, &state)
+            .output()
+            .unwrap(),
+    );
+    let interrupt = |target: &std::path::Path, hook: &str, began: &dyn Fn() -> bool| {
+        let cut = backup_cmd("import", &backup, &cfg, target)
+            .env(hook, "60000")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let t = std::time::Instant::now();
+        while !began() {
+            assert!(
+                t.elapsed() < Duration::from_secs(30),
+                "the import never began"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        std::thread::sleep(Duration::from_millis(300));
+        let _ = std::process::Command::new("kill")
+            .args(["-INT", &cut.id().to_string()])
+            .status();
+        let out = cut.wait_with_output().unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    // While it writes (held in its commit by the test hook).
+    let half = state.with_file_name("half");
+    let (code, err) = interrupt(&half, "BRICKWORLD_TEST_COMMIT_STALL_MS", &|| {
+        half.join("manifest.json").exists()
+    });
+    assert_eq!(code, Some(130), "{err}");
+    assert!(
+        err.contains("interrupted: the import into")
+            && err.contains("did not finish")
+            && err.contains(&format!("brickworld import {}", backup.display())),
+        "{err}"
+    );
+    assert!(
+        half.join(brickworld::engine::backup::IMPORT_MARKER)
+            .exists()
+    );
+    assert_success(&backup_cmd("import", &backup, &cfg, &half).output().unwrap());
+    assert!(
+        !half
+            .join(brickworld::engine::backup::IMPORT_MARKER)
+            .exists()
+    );
+    // While it checks the backup, into a directory it makes (two levels).
+    let fresh = state.with_file_name("new").join("state");
+    let (code, err) = interrupt(&fresh, "BRICKWORLD_TEST_IMPORT_CHECK_STALL_MS", &|| {
+        fresh.join("engine.lock").exists()
+    });
+    assert_eq!(code, Some(130), "{err}");
+    assert!(
+        err.contains("interrupted: nothing was imported (the state directory is as it was)"),
+        "{err}"
+    );
+    assert!(!state.with_file_name("new").exists(), "{err}");
 }
 
 /// Regression (hostile probe): bytes flipped in redb's own pages made

@@ -66,6 +66,8 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Import { file, world, state } => {
             let cfg = load_world_config(world.as_deref())?;
+            crate::engine::backup::say_interrupted_imports()
+                .context("cannot install the interrupt handler")?;
             let st = crate::engine::backup::import_world(&cfg, &state, &file)?;
             crate::tell!(
                 "imported {} into {} ({} chunks, {} chunk columns, {} bytes)",

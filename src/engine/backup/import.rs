@@ -6,6 +6,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 
+use super::interrupt::{self, Phase};
 use super::write_everything;
 use crate::engine::checkpoint::{self, WorldIdentity, WorldState};
 use crate::engine::world_config::WorldConfig;
@@ -66,6 +67,16 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
         );
     }
     let st = checkpoint::read(file).with_context(|| format!("cannot import {}", file.display()))?;
+    // `BRICKWORLD_TEST_IMPORT_CHECK_STALL_MS`: a pause once the backup is
+    // read, before anything is written, so a test can interrupt the
+    // import there. Unset in normal use.
+    if let Some(ms) = std::env::var("BRICKWORLD_TEST_IMPORT_CHECK_STALL_MS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+    {
+        crate::say!("test hook: the import is stalled before it writes");
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+    }
     match &st.identity {
         Some(id) if !id.same_world(identity) => bail!(
             "{} is a backup of another world ({id}); the config describes {identity}",
@@ -103,7 +114,7 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
             dir.display()
         );
     }
-    let result = import_into(dir, identity, st, had_marker);
+    let result = import_into(file, dir, identity, st, had_marker);
     if result.is_err() && had_marker {
         // What the cut import left is gone, and this one failed too: the
         // directory must still read as interrupted, never as a fresh world
@@ -156,6 +167,7 @@ fn refuse_contents_outside(file: &Path, st: &WorldState) -> Result<()> {
 /// import left (`replace`), refuse a directory holding anything else,
 /// then write the world under the marker.
 fn import_into(
+    file: &Path,
     dir: &Path,
     identity: &WorldIdentity,
     st: WorldState,
@@ -203,6 +215,10 @@ fn import_into(
         );
     }
     let made_store = std::fs::symlink_metadata(&store_file).is_err();
+    interrupt::enter(Phase::Writing {
+        file: file.to_path_buf(),
+        dir: dir.to_path_buf(),
+    });
     write_durable_marker(&marker).with_context(|| format!("cannot write {}", marker.display()))?;
     let written = (|| {
         let (mut db, _) = WorldDb::open(dir, identity)?;
@@ -220,6 +236,7 @@ fn import_into(
         Ok(stats) => {
             std::fs::remove_file(&marker)
                 .with_context(|| format!("cannot remove {}", marker.display()))?;
+            interrupt::enter(Phase::Done);
             if let Ok(d) = std::fs::File::open(dir) {
                 let _ = d.sync_all();
             }
@@ -249,6 +266,10 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
     let lock_file = dir.join("engine.lock");
     let had_lock = lock_file.exists();
     let (lock, created) = crate::engine::state_dir::claim(dir)?;
+    interrupt::enter(Phase::Checking {
+        made: created.clone(),
+        lock_file: (created.is_empty() && !had_lock).then(|| lock_file.clone()),
+    });
     let result = import(file, dir, &cfg.identity());
     if result.is_err() {
         if !created.is_empty() {
@@ -256,6 +277,8 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
         } else if !had_lock {
             let _ = std::fs::remove_file(&lock_file);
         }
+        // As it was found, or refused with the marker an earlier cut left.
+        interrupt::enter(Phase::Idle);
     }
     drop(lock);
     result

@@ -2,14 +2,14 @@
 //! one checkpoint file), [`import`](fn@import) (one into an empty state directory),
 //! and the migration of a state directory written by the whole-world
 //! checkpoints of earlier versions ([`migrate_legacy`]).
-
 //!
 //! `export.rs` writes a backup, `import.rs` reads one into a state
-//! directory; both write through [`write_everything`] or the checkpoint
+//! directory (`interrupt.rs`: what Ctrl-C does meanwhile); both write through [`write_everything`] or the checkpoint
 //! format (`super::checkpoint`).
 
 mod export;
 mod import;
+mod interrupt;
 
 use std::path::Path;
 
@@ -17,6 +17,7 @@ use anyhow::{Context, Result, bail};
 
 pub use export::{export, export_world};
 pub use import::{IMPORT_MARKER, import, import_world, refuse_interrupted_import};
+pub use interrupt::say_interrupted_imports;
 
 use super::checkpoint::{self, WorldIdentity, WorldState};
 use super::persistence::DirtyChunks;
