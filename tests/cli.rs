@@ -720,13 +720,15 @@ fn an_output_fifo_nothing_reads_is_refused_and_one_with_a_reader_is_written() {
     let dir = tmp("fifo-outputs");
     std::fs::create_dir_all(&*dir).unwrap();
     let (png, npy, json) = (dir.join("f.png"), dir.join("f.npy"), dir.join("f.json"));
-    for f in [&png, &npy, &json] {
+    let svg = dir.join("f.svg");
+    for f in [&png, &npy, &json, &svg] {
         mkfifo(f);
     }
     let plain = dir.join("plain.png");
+    let plain_json = dir.join("plain.json");
     let water = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua");
     let small = ["--size", "16x16x16", "--width", "8", "--height", "8"];
-    let cases: [(&str, Vec<&std::ffi::OsStr>); 4] = [
+    let cases: [(&str, Vec<&std::ffi::OsStr>); 5] = [
         (
             "--out",
             vec!["render".as_ref(), "--out".as_ref(), png.as_os_str()],
@@ -762,6 +764,18 @@ fn an_output_fifo_nothing_reads_is_refused_and_one_with_a_reader_is_written() {
                 json.as_os_str(),
             ],
         ),
+        // Claims audit: `--chart` had no case.
+        (
+            "--chart",
+            vec![
+                "bench".as_ref(),
+                "lod".as_ref(),
+                "--json".as_ref(),
+                plain_json.as_os_str(),
+                "--chart".as_ref(),
+                svg.as_os_str(),
+            ],
+        ),
     ];
     for (flag, args) in cases {
         let out = output_within_a_minute(bin().args(&args).args(small));
@@ -770,6 +784,7 @@ fn an_output_fifo_nothing_reads_is_refused_and_one_with_a_reader_is_written() {
         assert!(err.contains("is a FIFO that nothing reads"), "{err}");
     }
     assert!(!plain.exists(), "a refused render wrote its image");
+    assert!(!plain_json.exists(), "a refused bench wrote its JSON");
     // With a reader (as `render --out /dev/stdout | …`), the image goes
     // through. The reading end is open before the render starts (a
     // non-blocking open needs no writer); reads until the writer is gone.
@@ -2672,10 +2687,18 @@ fn help_to_a_full_disk_is_an_error_and_to_a_closed_pipe_is_quiet() {
 /// create `brickworld-runtime-UID` in the working directory. The private
 /// runtime folder now goes under `/tmp` when `TMPDIR` is not an absolute
 /// folder.
+#[cfg(unix)]
 #[test]
 fn an_empty_or_relative_tmpdir_makes_nothing_in_the_working_directory() {
     let cwd = tmp("cwd");
     std::fs::create_dir(&cwd).unwrap();
+    // The folder the binary falls back to, outside the tests' TMPDIR: made
+    // by this test, it is removed again, so the test leaves nothing behind
+    // (claims audit). `remove_dir` leaves it if another process put files
+    // in it meanwhile.
+    let uid = std::os::unix::fs::MetadataExt::uid(&std::fs::metadata("/proc/self").unwrap());
+    let fallback = std::path::PathBuf::from(format!("/tmp/brickworld-runtime-{uid}"));
+    let had_fallback = fallback.exists();
     for t in ["", "relative", "no/such/folder"] {
         let out = bin()
             .arg("--version")
@@ -2690,6 +2713,10 @@ fn an_empty_or_relative_tmpdir_makes_nothing_in_the_working_directory() {
             .map(|e| e.unwrap().file_name())
             .collect();
         assert!(made.is_empty(), "TMPDIR={t:?} made {made:?}");
+    }
+    assert!(fallback.is_dir(), "the runtime folder is not under /tmp");
+    if !had_fallback {
+        let _ = std::fs::remove_dir(&fallback);
     }
 }
 
@@ -2752,31 +2779,34 @@ fn a_rust_min_stack_too_small_for_the_threads_is_refused() {
 fn bench_store_clears_its_scratch_when_interrupted_and_says_when_it_cannot() {
     let dir = tmp("store");
     let json = tmp("store.json");
-    let child = bin()
-        .args(["bench", "store", "--size", "2048x256x2048", "--dir"])
-        .arg(&dir)
-        .arg("--json")
-        .arg(&json)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t0 = std::time::Instant::now();
-    while !dir.join(".brickworld-scratch").exists() {
-        assert!(t0.elapsed().as_secs() < 60, "no scratch directory");
-        std::thread::sleep(std::time::Duration::from_millis(5));
+    // SIGTERM as well as Ctrl-C (claims audit: only SIGINT was sent).
+    for sig in ["-INT", "-TERM"] {
+        let child = bin()
+            .args(["bench", "store", "--size", "2048x256x2048", "--dir"])
+            .arg(&dir)
+            .arg("--json")
+            .arg(&json)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let t0 = std::time::Instant::now();
+        while !dir.join(".brickworld-scratch").exists() {
+            assert!(t0.elapsed().as_secs() < 60, "no scratch directory");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let _ = std::process::Command::new("kill")
+            .args([sig, &child.id().to_string()])
+            .status();
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(130), "{sig}: {err}");
+        assert!(
+            err.contains("scratch directory") && err.contains("cleared"),
+            "{sig}: {err}"
+        );
+        assert!(!dir.exists(), "{sig}: the scratch directory is still there");
     }
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status();
-    let out = child.wait_with_output().unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(130), "{err}");
-    assert!(
-        err.contains("scratch directory") && err.contains("cleared"),
-        "{err}"
-    );
-    assert!(!dir.exists(), "the scratch directory is still there");
     // A removal that fails is said.
     let out = bin_limited("-n 4")
         .args([

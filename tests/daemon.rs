@@ -1412,12 +1412,15 @@ fn sigxcpu_stops_the_engine_with_a_final_commit() {
 /// Regression (the last hostile environment probe's leftover): SIGQUIT,
 /// SIGUSR1, SIGUSR2 and SIGALRM kept their default action and killed the
 /// engine without a final commit, losing the ticks since the last one.
-/// Each is now a stop request with a final commit, and says so.
+/// Each is now a stop request with a final commit, and says so. (SIGHUP,
+/// like SIGINT and SIGTERM, always was.)
 #[cfg(unix)]
 #[test]
 fn quit_usr_and_alarm_signals_stop_the_engine_with_a_final_commit() {
     let (_scratch, cfg, state, addr) = setup("stop-signals");
-    for sig in ["QUIT", "USR1", "USR2", "ALRM"] {
+    // SIGHUP goes through the SIGINT/SIGTERM handler (claims audit: the
+    // docs did not say it stops the engine, and no test held it).
+    for sig in ["QUIT", "USR1", "USR2", "ALRM", "HUP"] {
         let mut d = spawn(&mut run_cmd(&cfg, &state));
         wait_ready(&addr);
         ctl_ok(&addr, &state, &["pause"]);
@@ -1434,7 +1437,8 @@ fn quit_usr_and_alarm_signals_stop_the_engine_with_a_final_commit() {
         std::io::Read::read_to_string(d.stderr.as_mut().unwrap(), &mut err).unwrap();
         assert!(code.success(), "SIG{sig}: {code:?}: {err}");
         assert!(
-            err.contains(&format!("SIG{sig} received: stopping with a final commit")),
+            sig == "HUP"
+                || err.contains(&format!("SIG{sig} received: stopping with a final commit")),
             "{err}"
         );
         assert_eq!(stored_tick(&cfg, &state), Some(tick), "SIG{sig}: {err}");

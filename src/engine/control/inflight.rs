@@ -95,6 +95,14 @@ impl InFlight {
     pub fn bytes(&self) -> u64 {
         self.bytes.load(Ordering::Acquire)
     }
+
+    /// Make the shared answer `by` older (tests of [`FRESH`]).
+    #[cfg(test)]
+    fn age(&self, by: Duration) {
+        if let Some((_, at, _)) = self.last.lock().unwrap().as_mut() {
+            *at = at.checked_sub(by).expect("the clock has run that long");
+        }
+    }
 }
 
 /// An answer's bytes, counted in their [`InFlight`] until dropped. (A count
@@ -122,6 +130,20 @@ impl Drop for Counted {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Claims audit: nothing held the 2 s for which an answer is shared.
+    #[test]
+    fn a_large_answer_is_shared_for_fresh_and_not_after() {
+        let f = Arc::new(InFlight::default());
+        let a = f.admit((0, 1), vec![0u8; SMALL as usize + 1]).unwrap();
+        f.age(FRESH - Duration::from_millis(100));
+        assert!(f.shared((0, 1)).is_some(), "shared within FRESH");
+        f.age(Duration::from_millis(200));
+        assert!(f.shared((0, 1)).is_none(), "shared past FRESH");
+        assert_eq!(f.bytes(), SMALL + 1, "its client still counts it");
+        drop(a);
+        assert_eq!(f.bytes(), 0);
+    }
 
     #[test]
     fn large_answers_are_shared_and_count_until_their_last_reference_drops() {
