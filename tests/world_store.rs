@@ -900,11 +900,11 @@ fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
             "file = \"idle.lua\"",
         );
         run_ok(&cfg, &state, "--until-tick", 20);
-        (scratch, cfg, state)
+        (scratch, cfg, state, dir)
     };
-    let (_scratch, cfg, state) = idle_only("paintnone");
+    let (_scratch, cfg, state, _) = idle_only("paintnone");
     let without = hash_at(&cfg, &state, 26);
-    let (_scratch, cfg, state) = idle_only("paintadded");
+    let (_scratch, cfg, state, _) = idle_only("paintadded");
     edit_config(
         &cfg,
         "[render]",
@@ -919,6 +919,17 @@ fn a_rule_changed_while_stopped_wakes_what_it_runs_on() {
         hash_at(&cfg, &state, 26),
         without,
         "the added rule never ran"
+    );
+
+    // Renamed while stopped (claims audit: the docs say so, no test held
+    // it): to the stored state, a script of a new name.
+    let (_scratch, cfg, state, dir) = idle_only("idlerenamed");
+    std::fs::rename(dir.join("idle.lua"), dir.join("still.lua")).unwrap();
+    edit_config(&cfg, "file = \"idle.lua\"", "file = \"still.lua\"");
+    let (_, said) = run_ok(&cfg, &state, "--until-tick", 24);
+    assert!(
+        said.contains("still.lua is new to this world: what it runs on wakes"),
+        "{said}"
     );
 }
 
@@ -1864,4 +1875,27 @@ fn an_export_interrupted_after_its_backup_landed_says_it_was_written() {
         .filter(|n| n.contains("world.bwc"))
         .collect();
     assert_eq!(names, ["world.bwc"], "{names:?}");
+    // An export to a new name lands by another path (claims audit: only
+    // the path over an earlier backup was run).
+    let fresh = state.parent().unwrap().join("fresh.bwc");
+    let child = backup_cmd("export", &fresh, &cfg, &state)
+        .env("BRICKWORLD_TEST_LANDED_STALL_MS", "2000")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while !fresh.exists() {
+        assert!(t0.elapsed().as_secs() < 60, "the new backup never landed");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
+    let out = child.wait_with_output().unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && said.contains("exported tick 30"),
+        "{:?}: {said}{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
