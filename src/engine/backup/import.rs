@@ -177,9 +177,15 @@ fn import_into(
     let manifest_file = dir.join(crate::persist::db::MANIFEST_FILE);
     let marker = dir.join(IMPORT_MARKER);
     // An interrupted import's store and manifest hold no world: they are
-    // this import's to replace.
+    // this import's to replace. Its marker stays (written again below):
+    // removed first, a cut before the new one was written left a directory
+    // that `run` took for a fresh world (found by review).
     if replace {
-        for p in [&store_file, &manifest_file, &marker] {
+        interrupt::enter(Phase::Writing {
+            file: file.to_path_buf(),
+            dir: dir.to_path_buf(),
+        });
+        for p in [&store_file, &manifest_file] {
             match std::fs::remove_file(p) {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
                     return Err(e).with_context(|| format!("cannot remove {}", p.display()));
