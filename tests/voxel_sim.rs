@@ -1081,3 +1081,52 @@ fn a_voxel_kernel_error_names_its_brick_not_a_tile() {
     );
     assert!(!e.contains("tile"), "{e}");
 }
+
+/// Regression (growth probe): a world whose size is not a multiple of 8
+/// ends inside its edge bricks, and the voxels past its edge read as air
+/// and kept what a script wrote there (a 9³ world's script filled voxel
+/// (13, 13, 13)). They now read as the wall outside the world (255), and
+/// writes there are dropped.
+#[test]
+fn voxels_past_the_edge_of_a_world_not_a_multiple_of_8_are_wall_and_keep_nothing() {
+    let (reg, sand) = registry();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(9, 1, 9), STONE);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::splat(9), 1);
+    // Fills every cell it reads as air with sand, and marks with stone the
+    // cells whose halo neighbour on +x reads anything but the wall where
+    // that neighbour lies outside the world.
+    let src = ScriptSource {
+        name: "fill".into(),
+        text: "return { grid = \"voxels\", materials = { \"sand\", \"stone\" }, passes = { { name = \"p\", reads = {}, writes = { \"mat\" },\n\
+               kernel = function(c, bx, by, bz)\n\
+                 for z = 0, 7 do for y = 0, 7 do for x = 0, 7 do\n\
+                   local i = x + y * 8 + z * 64\n\
+                   local h = (x + 1) + (y + 1) * 10 + (z + 1) * 100\n\
+                   if buffer.readu8(c.r.mat, h) == 0 then buffer.writeu8(c.w.mat, i, c.m.sand) end\n\
+                   if bx * 8 + x + 1 >= 9 and buffer.readu8(c.r.mat, h + 1) ~= 255 then buffer.writeu8(c.w.mat, i, c.m.stone) end\n\
+                 end end end\n\
+               end } } }\n"
+            .into(),
+    };
+    sim.add_script(src, Limits::default(), &reg).unwrap();
+    for _ in 0..3 {
+        let r = sim.step(&mut store, &reg, 0.05);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+    }
+    for z in 0..16 {
+        for y in 0..16 {
+            for x in 0..16 {
+                let p = IVec3::new(x, y, z);
+                let inside = p.cmplt(IVec3::splat(9)).all();
+                let want = match (inside, y) {
+                    (false, _) => 0,
+                    (true, 0) => STONE,
+                    (true, _) => sand,
+                };
+                assert_eq!(store.voxel(p), want, "voxel {p}");
+            }
+        }
+    }
+}

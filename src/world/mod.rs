@@ -18,5 +18,5 @@ pub use mip::{
     exposed_faces, for_each_exposed, representative,
 };
 pub use palette::Palette;
-pub use pool::{BrickId, BrickPool, BrickRef, GPU_META_WORDS};
+pub use pool::{ARENA_LIMIT, BrickId, BrickPool, BrickRef, GPU_META_WORDS};
 pub use store::{BrickStore, Cell, brick_of};

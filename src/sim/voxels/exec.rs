@@ -13,7 +13,8 @@ use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
 use super::channels::{VoxelChannelId, VoxelChannels};
-use super::halo::{SELF, gather, neighbour_offset};
+use super::halo::{SELF, gather, keep_outside, neighbour_offset, wall_off};
+use super::memory::step_fits;
 use super::native::{NativeBrick, VoxelNativeKernel};
 use super::step::BOUNDARY;
 use crate::sim::runtime::vms::{PassChannels, StepStamp};
@@ -175,6 +176,15 @@ fn from_le_bytes(src: &[u8], dst: &mut [f32]) {
     }
 }
 
+/// Where a voxel simulation runs: its bricks `[lo, hi)`, and the world's
+/// voxels `[lo, hi)` within them (the last bricks of a world whose size is
+/// not a multiple of 8 end past it).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Bounds {
+    pub bricks: (IVec3, IVec3),
+    pub voxels: (IVec3, IVec3),
+}
+
 /// Run every pass of one script over `cands`; on success the working set
 /// holds the new generation of the candidates.
 pub(super) fn run_script(
@@ -182,13 +192,19 @@ pub(super) fn run_script(
     store: &BrickStore,
     channels: &VoxelChannels,
     cands: &[IVec3],
-    bounds: (IVec3, IVec3),
+    bounds: Bounds,
     valid: &[bool; 256],
     stamp: StepStamp,
 ) -> Result<Working, SimError> {
     let dt = stamp.dt;
     let spec = job.spec;
-    let mut work = Working::build(store, channels, (spec, job.channel_ids), cands, bounds)?;
+    let mut work = Working::build(
+        store,
+        channels,
+        (spec, job.channel_ids),
+        cands,
+        bounds.bricks,
+    )?;
     let nch = job.channel_ids.len();
     let conserved: Vec<usize> = spec
         .conserved
@@ -199,22 +215,26 @@ pub(super) fn run_script(
     // Every pass's outputs, for every candidate, in two buffers made once.
     let most_writes = spec.widest_writes();
     let mut mats_out = vec![[0u8; VOXEL_CELLS]; cands.len()];
-    let mut chans_out = vec![[0.0f32; VOXEL_CELLS]; cands.len() * most_writes.max(1)];
+    let mut chans_out = vec![[0.0f32; VOXEL_CELLS]; cands.len() * most_writes];
     for (pi, pass) in spec.passes.iter().enumerate() {
         let writes_mat = pass.writes.iter().any(|w| w == MAT);
         let (ridx, widx) = (pass.read_idx.as_slice(), pass.write_idx.as_slice());
-        // A chunk of at least one, cut to the pass's writes (none is
-        // possible: a pass may write only materials).
-        let width = widx.len().max(1);
+        // The pass's channel outputs, `width` to a candidate (none where
+        // it writes only materials: no buffer is made for them).
+        let width = widx.len();
         let w = &work;
         let failed = crate::sim::LowestError::new();
+        let mut no_chans: Vec<&mut [[f32; VOXEL_CELLS]]> = Vec::new();
+        let chans_of: Vec<&mut [[f32; VOXEL_CELLS]]> = if width == 0 {
+            no_chans.resize_with(cands.len(), Default::default);
+            no_chans
+        } else {
+            chans_out[..cands.len() * width].chunks_mut(width).collect()
+        };
         mats_out
             .par_iter_mut()
-            .zip(chans_out[..cands.len() * width].par_chunks_mut(width))
-            .map(|(mat, chans)| BrickOut {
-                mat,
-                chans: &mut chans[..widx.len()],
-            })
+            .zip(chans_of)
+            .map(|(mat, chans)| BrickOut { mat, chans })
             .enumerate()
             .for_each_init(
                 || Scratch {
@@ -226,6 +246,7 @@ pub(super) fn run_script(
                     failed.run(ci, || -> Result<(), SimError> {
                         let b = cands[ci];
                         gather(&w.neighbours(ci, &w.mats), BOUNDARY, &mut sc.mat);
+                        wall_off(b, bounds.voxels, BOUNDARY, &mut sc.mat);
                         for &i in ridx {
                             let nbr = w.neighbours(ci, &w.chans[i]);
                             // Outside the bounds a channel reads 0.
@@ -237,7 +258,7 @@ pub(super) fn run_script(
                         for (j, &i) in widx.iter().enumerate() {
                             out.chans[j] = w.chans[i][nbr_self(w, ci)];
                         }
-                        match job.kernel {
+                        let ran = match job.kernel {
                             VoxelKernel::Native(k) => {
                                 k.run(
                                     pi,
@@ -262,18 +283,16 @@ pub(super) fn run_script(
                                 };
                                 run_lua(job, io, sc, &mut out, b, stamp)
                             }
-                        }
+                        };
+                        keep_outside(b, bounds.voxels, own, out.mat);
+                        ran
                     });
                 },
             );
         failed.result()?;
         // Commit the pass (every brick of it read the previous generation).
-        for (ci, (mat, chans)) in mats_out
-            .iter()
-            .zip(chans_out.chunks(width))
-            .take(cands.len())
-            .enumerate()
-        {
+        for (ci, mat) in mats_out.iter().enumerate() {
+            let chans = &chans_out[ci * width..(ci + 1) * width];
             let b = cands[ci];
             if writes_mat {
                 if let Some(&bad) = mat.iter().find(|&&v| !valid[v as usize]) {
@@ -313,47 +332,6 @@ pub(super) fn run_script(
 }
 
 const ZERO_F32: [f32; VOXEL_CELLS] = [0.0; VOXEL_CELLS];
-
-/// Refuse a step whose working set would not fit what the process may
-/// still allocate: the materials and channels of the candidates and their
-/// neighbours (`bricks`), every pass's outputs for the candidates, and the
-/// values the step may add to the channel store. The step is rejected like
-/// an unstable one (nothing changes; failing steps in a row suspend the
-/// script), where it aborted the engine (regression, memory probe: 250
-/// voxel channels on a 128 × 64 × 128 world under `ulimit -v`). Checked
-/// per step, from the bricks it runs on, because voxel channels are stored
-/// only where they hold values: an estimate over the whole box refused
-/// ordinary worlds (review: three channels on a 2048 × 256 × 2048 terrain,
-/// 28 GiB said, 1.8 GB used).
-fn step_fits(
-    spec: &ScriptSpec,
-    channels: usize,
-    cands: usize,
-    bricks: usize,
-) -> Result<(), SimError> {
-    use crate::scene::budget::{headroom_bytes, human};
-    let chan = (VOXEL_CELLS * 4) as u64;
-    let writes = spec.widest_writes() as u64;
-    let need = (bricks as u64).saturating_mul(VOXEL_CELLS as u64 + channels as u64 * chan)
-        + (cands as u64).saturating_mul(VOXEL_CELLS as u64 + (writes + channels as u64) * chan);
-    // Small steps pass without asking the OS.
-    if need < 64 << 20 {
-        return Ok(());
-    }
-    let room = headroom_bytes();
-    if need > room {
-        return Err(SimError::Unstable {
-            script: spec.name.clone(),
-            kind: Rejection::Memory,
-            msg: format!(
-                "its {channels} voxel channels on {cands} bricks (with their neighbours, {bricks}) need about {} for this step; {} is available: fewer channels, or a smaller world or region",
-                human(need),
-                human(room)
-            ),
-        });
-    }
-    Ok(())
-}
 
 /// Index of candidate `ci` itself in the working set.
 fn nbr_self(w: &Working, ci: usize) -> usize {

@@ -11,6 +11,7 @@ use std::sync::OnceLock;
 use glam::IVec3;
 
 use crate::sim::script::{VOXEL_CELLS, VOXEL_HALO};
+use crate::world::BRICK_EDGE;
 #[cfg(test)]
 use crate::world::voxel_index;
 
@@ -68,6 +69,49 @@ pub fn gather<T: Copy>(
                 None => row[1..9].fill(missing),
             }
             row[9] = nbr[n + 1].map_or(missing, |d| d[base]);
+        }
+    }
+}
+
+/// Halo cells of brick `b` outside the world's voxel box `[lo, hi)` read
+/// `wall`: a world whose size is not a multiple of 8 ends inside its edge
+/// bricks, whose voxels past it read as air before (growth probe: a 9³
+/// world's scripts read and wrote voxel (13, 13, 13)). A brick whose halo
+/// lies inside the box is left at once.
+pub fn wall_off<T: Copy>(b: IVec3, (lo, hi): (IVec3, IVec3), wall: T, out: &mut [T; VOXEL_HALO]) {
+    let o = b * BRICK_EDGE - IVec3::ONE;
+    if o.cmpge(lo).all() && (o + IVec3::splat(10)).cmple(hi).all() {
+        return;
+    }
+    for z in 0..10 {
+        for y in 0..10 {
+            for x in 0..10 {
+                let p = o + IVec3::new(x, y, z);
+                if p.cmplt(lo).any() || p.cmpge(hi).any() {
+                    out[(x + y * 10 + z * 100) as usize] = wall;
+                }
+            }
+        }
+    }
+}
+
+/// Voxels of brick `b` outside the world's voxel box `[lo, hi)` keep what
+/// `before` holds there (air): a kernel's writes past the world's edge are
+/// dropped.
+pub fn keep_outside(
+    b: IVec3,
+    (lo, hi): (IVec3, IVec3),
+    before: &[u8; VOXEL_CELLS],
+    out: &mut [u8; VOXEL_CELLS],
+) {
+    let o = b * BRICK_EDGE;
+    if o.cmpge(lo).all() && (o + IVec3::splat(BRICK_EDGE)).cmple(hi).all() {
+        return;
+    }
+    for (i, v) in out.iter_mut().enumerate() {
+        let p = o + IVec3::new(i as i32 & 7, (i as i32 >> 3) & 7, i as i32 >> 6);
+        if p.cmplt(lo).any() || p.cmpge(hi).any() {
+            *v = before[i];
         }
     }
 }

@@ -9,6 +9,8 @@
 //! - [`native`]: native (Rust) reference kernels of shipped scripts.
 //! - `exec`: one script's step: the dense working set, the parallel
 //!   passes (Lua or native kernels) and their validated commit.
+//! - `memory`: what a step may allocate, checked before it does (its
+//!   working set, and what its changed bricks add to the world).
 //! - `scripts`: loading, smoke-testing and replacing voxel scripts, and
 //!   their rates, parameters and health.
 //! - [`schedule`]: which bricks a step runs and which sleep (the active
@@ -19,6 +21,7 @@
 pub mod channels;
 mod exec;
 pub mod halo;
+mod memory;
 pub mod native;
 pub mod schedule;
 mod scripts;

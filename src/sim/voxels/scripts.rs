@@ -69,6 +69,7 @@ impl VoxelSim {
             scripts: Vec::new(),
             lo: self.lo,
             hi: self.hi,
+            voxels: self.voxels,
             active: FxHashSet::default(),
             quiet: FxHashMap::default(),
             presence: FxHashMap::default(),

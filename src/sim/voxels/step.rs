@@ -25,7 +25,8 @@ use glam::IVec3;
 use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::channels::VoxelChannels;
-use super::exec::{Job, run_script};
+use super::exec::{Bounds, Job, run_script};
+use super::memory::growth_fits;
 use super::schedule::{MatSet, presence_of};
 use super::scripts::Loaded;
 use crate::sim::runtime::vms::StepStamp;
@@ -58,6 +59,8 @@ pub struct VoxelSim {
     /// Brick bounds `[min, max)`.
     pub(super) lo: IVec3,
     pub(super) hi: IVec3,
+    /// The world's voxel box, within the bricks `[lo, hi)`.
+    pub(super) voxels: (IVec3, IVec3),
     pub(super) active: FxHashSet<IVec3>,
     pub(super) quiet: FxHashMap<IVec3, u8>,
     pub(super) presence: FxHashMap<IVec3, MatSet>,
@@ -95,6 +98,7 @@ impl VoxelSim {
             scripts: Vec::new(),
             lo: blo,
             hi: bhi,
+            voxels: (lo, hi),
             active,
             quiet: FxHashMap::default(),
             presence: FxHashMap::default(),
@@ -248,7 +252,10 @@ impl VoxelSim {
                 store,
                 &self.channels,
                 &cands,
-                (self.lo, self.hi),
+                Bounds {
+                    bricks: (self.lo, self.hi),
+                    voxels: self.voxels,
+                },
                 &valid,
                 StepStamp {
                     // Run every N ticks: it covers N steps' time (as the
@@ -258,6 +265,7 @@ impl VoxelSim {
                     key,
                 },
             );
+            let result = result.and_then(|work| growth_fits(job.spec, store, &work).map(|()| work));
             let s = &mut self.scripts[si];
             // Bricks this script changed, woken at once so that the next
             // script's seeds include them (regression, from review: a drop

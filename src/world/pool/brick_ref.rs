@@ -48,7 +48,7 @@ impl<'p> BrickRef<'p> {
             rank += w.count_ones();
         }
         rank += (mask[word] & ((1u64 << (index & 63)) - 1)).count_ones();
-        palette_entry(&self.pool.arena.bytes[m.data as usize..], rank)
+        palette_entry(&self.pool.arena.bytes[super::at(m.data)..], rank)
     }
 
     /// Call `f` with the material of each solid voxel of word `z` set in
@@ -66,7 +66,7 @@ impl<'p> BrickRef<'p> {
             return;
         }
         let base: u32 = mask[..z].iter().map(|w| w.count_ones()).sum();
-        let block = &self.pool.arena.bytes[m.data as usize..];
+        let block = &self.pool.arena.bytes[super::at(m.data)..];
         let mut rest = bits;
         while rest != 0 {
             let b = rest.trailing_zeros();
@@ -85,7 +85,7 @@ impl<'p> BrickRef<'p> {
         if m.flags & FLAG_MULTI == 0 {
             return wanted[m.data as u8 as usize];
         }
-        let block = &self.pool.arena.bytes[m.data as usize..];
+        let block = &self.pool.arena.bytes[super::at(m.data)..];
         block[HEADER..HEADER + block[0] as usize]
             .iter()
             .any(|&id| wanted[id as usize])
@@ -120,7 +120,7 @@ impl<'p> BrickRef<'p> {
         let m = self.pool.meta[self.slot];
         let multi = m.flags & FLAG_MULTI != 0;
         let block = if multi {
-            &self.pool.arena.bytes[m.data as usize..]
+            &self.pool.arena.bytes[super::at(m.data)..]
         } else {
             &[][..]
         };

@@ -21,7 +21,8 @@
 mod arena;
 mod brick_ref;
 
-use arena::MaterialArena;
+pub use arena::ARENA_LIMIT;
+use arena::{MaterialArena, at};
 pub use brick_ref::BrickRef;
 
 use super::brick::Brick;
@@ -32,8 +33,16 @@ pub const GPU_META_WORDS: usize = 4;
 
 fn gpu_meta(m: &Meta) -> [u32; GPU_META_WORDS] {
     let o = m.lod.octants;
+    // A multi-material brick's block as a byte offset: what the shader
+    // reads. An arena past 4 GiB is past every GPU's buffer limit, which
+    // the uploads check first.
+    let data = if m.flags & FLAG_MULTI != 0 {
+        u32::try_from(at(m.data)).unwrap_or(u32::MAX)
+    } else {
+        m.data
+    };
     [
-        m.data,
+        data,
         m.flags as u32 | (m.lod.whole as u32) << 8,
         u32::from_le_bytes([o[0], o[1], o[2], o[3]]),
         u32::from_le_bytes([o[4], o[5], o[6], o[7]]),
@@ -61,7 +70,8 @@ const HEADER: usize = 3;
 
 #[derive(Clone, Copy, Debug, Default)]
 struct Meta {
-    /// Single material, or arena offset for multi-material bricks.
+    /// Single material, or for multi-material bricks the arena offset of
+    /// the block in 16-byte units (`arena::at`).
     data: u32,
     lod565: u16,
     flags: u16,
@@ -139,8 +149,8 @@ impl BrickPool {
         let solid = brick.solid_voxels() as usize;
         let index_bytes = (solid * bits as usize).div_ceil(8);
         let len = HEADER + palette.len() + index_bytes;
-        let off = self.arena.alloc(len);
-        let block = &mut self.arena.bytes[off as usize..off as usize + len];
+        let unit = self.arena.alloc(len);
+        let block = &mut self.arena.bytes[at(unit)..at(unit) + len];
         block[0] = palette.len() as u8;
         block[1] = bits;
         block[HEADER..HEADER + palette.len()].copy_from_slice(palette);
@@ -149,7 +159,7 @@ impl BrickPool {
             *b = (brick.index_words()[i / 8] >> ((i % 8) * 8)) as u8;
         }
         Meta {
-            data: off,
+            data: unit,
             lod565,
             flags: FLAG_LIVE | FLAG_MULTI,
             lod: brick.lod(),
@@ -275,7 +285,7 @@ impl BrickPool {
         if m.flags & FLAG_LIVE == 0 || m.flags & FLAG_MULTI == 0 {
             return None;
         }
-        Some((m.data as usize, self.arena.block_len(m.data)))
+        Some((at(m.data), self.arena.block_len(m.data)))
     }
 
     /// Slot capacity in use (live and free slots).
@@ -301,6 +311,32 @@ impl BrickPool {
             + self.arena.bytes.len()
     }
 
+    /// Bytes the material arena holds (free holes included), against
+    /// [`ARENA_LIMIT`].
+    pub fn arena_len(&self) -> usize {
+        self.arena.bytes.len()
+    }
+
+    /// Bytes that storing `bricks` more bricks with `blocks` more bytes of
+    /// material blocks may allocate beyond those bytes: each of the pool's
+    /// arrays doubles when full, and while it moves the old one is still
+    /// held, so crossing a capacity asks for the new one whole (growth
+    /// probe: a step of a few MB aborted the engine asking for 1.2 GB of
+    /// arena). Counts every brick as a new slot: an upper bound.
+    pub fn growth_reserve(&self, bricks: usize, blocks: usize) -> u64 {
+        fn regrown<T>(v: &Vec<T>, more: usize) -> u64 {
+            let need = v.len() + more;
+            if need <= v.capacity() {
+                return 0;
+            }
+            (need.max(v.capacity() * 2) * std::mem::size_of::<T>()) as u64
+        }
+        regrown(&self.masks, bricks)
+            + regrown(&self.meta, bricks)
+            + regrown(&self.generations, bricks)
+            + regrown(&self.arena.bytes, blocks)
+    }
+
     /// Bytes of editing bookkeeping: generations and free lists.
     pub fn index_bytes(&self) -> usize {
         self.generations.len() * 4 + self.free.len() * 4 + self.arena.index_bytes()
@@ -310,6 +346,7 @@ impl BrickPool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
     use crate::world::{BrickContent, Palette};
 
     fn brick_from(f: impl Fn(usize) -> u8) -> Brick {
@@ -318,6 +355,20 @@ mod tests {
             BrickContent::Mixed(b) => b,
             _ => unreachable!(),
         }
+    }
+
+    /// Regression (growth probe): the guard of a voxel step counts an
+    /// array's move to a larger capacity, not only the bytes added.
+    #[test]
+    fn the_growth_reserve_counts_an_array_moving_to_a_larger_capacity() {
+        let mut pool = BrickPool::default();
+        pool.insert(brick_from(|i| (i % 3) as u8));
+        let cap = pool.arena.bytes.capacity();
+        let len = pool.arena.bytes.len();
+        assert_eq!(pool.growth_reserve(0, cap - len), 0, "fits: nothing moves");
+        let moved = pool.growth_reserve(0, cap - len + 1);
+        assert!(moved >= (2 * cap) as u64, "{moved} for a capacity of {cap}");
+        assert!(pool.growth_reserve(1 << 20, 0) >= ((1 << 20) * 64) as u64);
     }
 
     /// Bricks of one to 200 materials.
