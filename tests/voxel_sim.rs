@@ -1130,3 +1130,94 @@ fn voxels_past_the_edge_of_a_world_not_a_multiple_of_8_are_wall_and_keep_nothing
         }
     }
 }
+
+/// Review: the edge of a world whose bounds are not on brick edges holds
+/// for negative, unaligned bounds (a `.vox` model's tight box) and for
+/// channels too: past the edge a channel's halo reads 0, and what a kernel
+/// writes there is dropped (a diffusing channel spread into it before).
+#[test]
+fn channels_and_negative_unaligned_bounds_keep_to_the_world() {
+    let (reg, _) = registry();
+    let (lo, hi) = (IVec3::splat(-3), IVec3::splat(5));
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(lo, IVec3::new(5, -2, 5), STONE);
+    store.take_modified();
+    let mut sim = VoxelSim::new(&store, lo, hi, 1);
+    // Writes 1 to `heat` everywhere, and 2 where its +x halo neighbour is
+    // past the world's edge but reads anything but 0.
+    let src = ScriptSource {
+        name: "heat".into(),
+        text: "return { grid = \"voxels\", channels = { \"heat\" }, passes = { { name = \"p\", reads = { \"heat\" }, writes = { \"heat\" },\n\
+               kernel = function(c, bx, by, bz)\n\
+                 for z = 0, 7 do for y = 0, 7 do for x = 0, 7 do\n\
+                   local i = x + y * 8 + z * 64\n\
+                   local h = (x + 1) + (y + 1) * 10 + (z + 1) * 100\n\
+                   local v = 1\n\
+                   if bx * 8 + x + 1 >= 5 and buffer.readf32(c.r.heat, (h + 1) * 4) ~= 0 then v = 2 end\n\
+                   buffer.writef32(c.w.heat, i * 4, v)\n\
+                 end end end\n\
+               end } } }\n"
+            .into(),
+    };
+    sim.add_script(src, Limits::default(), &reg).unwrap();
+    for _ in 0..3 {
+        let r = sim.step(&mut store, &reg, 0.05);
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+    }
+    let heat = sim.channels().find("heat").unwrap();
+    let mut seen = 0;
+    for b in sim.channels().sorted_bricks(heat) {
+        let v = sim.channels().get(heat, b).unwrap();
+        for (i, &x) in v.iter().enumerate() {
+            let p = b * 8 + IVec3::new(i as i32 & 7, (i as i32 >> 3) & 7, i as i32 >> 6);
+            let inside = p.cmpge(lo).all() && p.cmplt(hi).all();
+            assert_eq!(x, if inside { 1.0 } else { 0.0 }, "heat at {p}");
+            seen += inside as usize;
+        }
+    }
+    assert_eq!(seen, 8 * 8 * 8, "every voxel of the world holds heat");
+}
+
+/// Regression (growth probe, and review: no test failed without the
+/// guard's call): a voxel step whose many-material bricks would pass the
+/// brick pool's material arena is rejected, the world is left as it was,
+/// and three in a row suspend the script. (The limit is lowered: the
+/// engine's is 64 GiB.)
+#[test]
+fn a_step_past_the_material_arena_is_rejected_and_suspends_the_script() {
+    let (reg, sand) = registry();
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(32, 1, 32), STONE);
+    store.take_modified();
+    let before = store.clone();
+    let mut sim = VoxelSim::new(&store, IVec3::ZERO, IVec3::new(32, 16, 32), 1);
+    sim.set_arena_limit(4096);
+    // Paints every other voxel of its bricks sand: 16 many-material bricks
+    // of 500 bytes and more.
+    let src = ScriptSource {
+        name: "paint".into(),
+        text: "return { grid = \"voxels\", materials = { \"sand\" }, passes = { { name = \"p\", reads = {}, writes = { \"mat\" },\n\
+               kernel = function(c, bx, by, bz)\n\
+                 for i = 0, 511, 2 do buffer.writeu8(c.w.mat, i, c.m.sand) end\n\
+               end } } }\n"
+            .into(),
+    };
+    sim.add_script(src, Limits::default(), &reg).unwrap();
+    let mut said = Vec::new();
+    for _ in 0..4 {
+        let r = sim.step(&mut store, &reg, 0.05);
+        said.extend(r.errors.iter().map(|e| e.to_string()));
+    }
+    assert_eq!(said.len(), 3, "{said:?}");
+    assert!(
+        said[0].contains("paint.lua: step rejected: its ")
+            && said[0].contains("changed bricks could take the world's material arena"),
+        "{said:?}"
+    );
+    assert!(sim.suspended(0).is_some(), "suspended after three");
+    assert_eq!(count(&store, sand), 0, "nothing was stored");
+    assert_eq!(
+        brickworld::engine::checkpoint::world_hash(&store, &Default::default()),
+        brickworld::engine::checkpoint::world_hash(&before, &Default::default())
+    );
+}

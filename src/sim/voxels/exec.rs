@@ -20,7 +20,7 @@ use super::step::BOUNDARY;
 use crate::sim::runtime::vms::{PassChannels, StepStamp};
 use crate::sim::script::{MAT, VOXEL_CELLS, VOXEL_HALO};
 use crate::sim::{Limits, Rejection, ScriptSource, ScriptSpec, SimError};
-use crate::world::BrickStore;
+use crate::world::{BRICK_EDGE, BrickStore};
 
 /// How a voxel script's kernels run.
 #[derive(Clone)]
@@ -185,6 +185,14 @@ pub(super) struct Bounds {
     pub voxels: (IVec3, IVec3),
 }
 
+impl Bounds {
+    /// Whether the world ends on brick edges (its voxel box is its bricks'):
+    /// then no brick holds voxels past it.
+    fn aligned(&self) -> bool {
+        self.voxels.0 == self.bricks.0 * BRICK_EDGE && self.voxels.1 == self.bricks.1 * BRICK_EDGE
+    }
+}
+
 /// Run every pass of one script over `cands`; on success the working set
 /// holds the new generation of the candidates.
 pub(super) fn run_script(
@@ -223,6 +231,7 @@ pub(super) fn run_script(
         // it writes only materials: no buffer is made for them).
         let width = widx.len();
         let w = &work;
+        let aligned = bounds.aligned();
         let failed = crate::sim::LowestError::new();
         let mut no_chans: Vec<&mut [[f32; VOXEL_CELLS]]> = Vec::new();
         let chans_of: Vec<&mut [[f32; VOXEL_CELLS]]> = if width == 0 {
@@ -246,12 +255,17 @@ pub(super) fn run_script(
                     failed.run(ci, || -> Result<(), SimError> {
                         let b = cands[ci];
                         gather(&w.neighbours(ci, &w.mats), BOUNDARY, &mut sc.mat);
-                        wall_off(b, bounds.voxels, BOUNDARY, &mut sc.mat);
+                        if !aligned {
+                            wall_off(b, bounds.voxels, BOUNDARY, &mut sc.mat);
+                        }
                         for &i in ridx {
                             let nbr = w.neighbours(ci, &w.chans[i]);
                             // Outside the bounds a channel reads 0.
                             let nbr = nbr.map(|n| Some(n.unwrap_or(&ZERO_F32)));
                             gather(&nbr, 0.0, &mut sc.chans[i]);
+                            if !aligned {
+                                wall_off(b, bounds.voxels, 0.0, &mut sc.chans[i]);
+                            }
                         }
                         let own = &w.mats[nbr_self(w, ci)];
                         *out.mat = *own;
@@ -284,7 +298,15 @@ pub(super) fn run_script(
                                 run_lua(job, io, sc, &mut out, b, stamp)
                             }
                         };
-                        keep_outside(b, bounds.voxels, own, out.mat);
+                        // Past the world's edge (inside its last bricks):
+                        // materials and channels keep what they held.
+                        if !aligned {
+                            keep_outside(b, bounds.voxels, own, out.mat);
+                            for (j, &i) in widx.iter().enumerate() {
+                                let before = &w.chans[i][nbr_self(w, ci)];
+                                keep_outside(b, bounds.voxels, before, &mut out.chans[j]);
+                            }
+                        }
                         ran
                     });
                 },

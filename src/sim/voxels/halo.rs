@@ -96,13 +96,13 @@ pub fn wall_off<T: Copy>(b: IVec3, (lo, hi): (IVec3, IVec3), wall: T, out: &mut 
 }
 
 /// Voxels of brick `b` outside the world's voxel box `[lo, hi)` keep what
-/// `before` holds there (air): a kernel's writes past the world's edge are
-/// dropped.
-pub fn keep_outside(
+/// `before` holds there (air, or a channel's stored values): a kernel's
+/// writes past the world's edge are dropped.
+pub fn keep_outside<T: Copy>(
     b: IVec3,
     (lo, hi): (IVec3, IVec3),
-    before: &[u8; VOXEL_CELLS],
-    out: &mut [u8; VOXEL_CELLS],
+    before: &[T; VOXEL_CELLS],
+    out: &mut [T; VOXEL_CELLS],
 ) {
     let o = b * BRICK_EDGE;
     if o.cmpge(lo).all() && (o + IVec3::splat(BRICK_EDGE)).cmple(hi).all() {

@@ -70,6 +70,7 @@ impl VoxelSim {
             lo: self.lo,
             hi: self.hi,
             voxels: self.voxels,
+            arena_limit: self.arena_limit,
             active: FxHashSet::default(),
             quiet: FxHashMap::default(),
             presence: FxHashMap::default(),

@@ -61,6 +61,9 @@ pub struct VoxelSim {
     pub(super) hi: IVec3,
     /// The world's voxel box, within the bricks `[lo, hi)`.
     pub(super) voxels: (IVec3, IVec3),
+    /// Most bytes of many-material blocks the world's brick pool may hold
+    /// ([`ARENA_LIMIT`](crate::world::ARENA_LIMIT) unless lowered).
+    pub(super) arena_limit: u64,
     pub(super) active: FxHashSet<IVec3>,
     pub(super) quiet: FxHashMap<IVec3, u8>,
     pub(super) presence: FxHashMap<IVec3, MatSet>,
@@ -99,6 +102,7 @@ impl VoxelSim {
             lo: blo,
             hi: bhi,
             voxels: (lo, hi),
+            arena_limit: crate::world::ARENA_LIMIT,
             active,
             quiet: FxHashMap::default(),
             presence: FxHashMap::default(),
@@ -106,6 +110,14 @@ impl VoxelSim {
             tick: 0,
             seed,
         }
+    }
+
+    /// Lower the bytes of many-material blocks the world may hold (from
+    /// [`ARENA_LIMIT`](crate::world::ARENA_LIMIT)): a step whose changed
+    /// bricks would pass it is rejected. For hosts that cap the world, and
+    /// for tests of the guard.
+    pub fn set_arena_limit(&mut self, bytes: u64) {
+        self.arena_limit = bytes.min(crate::world::ARENA_LIMIT);
     }
 
     pub(super) fn inside(&self, b: IVec3) -> bool {
@@ -265,7 +277,9 @@ impl VoxelSim {
                     key,
                 },
             );
-            let result = result.and_then(|work| growth_fits(job.spec, store, &work).map(|()| work));
+            let result = result.and_then(|work| {
+                growth_fits(job.spec, store, &work, self.arena_limit).map(|()| work)
+            });
             let s = &mut self.scripts[si];
             // Bricks this script changed, woken at once so that the next
             // script's seeds include them (regression, from review: a drop

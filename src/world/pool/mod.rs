@@ -357,6 +357,15 @@ mod tests {
         }
     }
 
+    /// Blocks are addressed in 16-byte units: a `u32` reaches 64 GiB, past
+    /// the 4 GiB at which byte offsets panicked (growth probe).
+    #[test]
+    fn arena_offsets_in_units_reach_64_gib() {
+        assert_eq!(ARENA_LIMIT, 64 << 30);
+        assert_eq!(at(u32::MAX), (64usize << 30) - 16);
+        assert_eq!(at(1 << 28), 4usize << 30, "past 4 GiB");
+    }
+
     /// Regression (growth probe): the guard of a voxel step counts an
     /// array's move to a larger capacity, not only the bytes added.
     #[test]
