@@ -1420,7 +1420,7 @@ fn quit_usr_and_alarm_signals_stop_the_engine_with_a_final_commit() {
     let (_scratch, cfg, state, addr) = setup("stop-signals");
     // SIGHUP goes through the SIGINT/SIGTERM handler (claims audit: the
     // docs did not say it stops the engine, and no test held it).
-    for sig in ["QUIT", "USR1", "USR2", "ALRM", "HUP"] {
+    for sig in ["QUIT", "USR1", "USR2", "ALRM", "VTALRM", "PWR", "HUP"] {
         let mut d = spawn(&mut run_cmd(&cfg, &state));
         wait_ready(&addr);
         ctl_ok(&addr, &state, &["pause"]);

@@ -66,7 +66,16 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Import { file, world, state } => {
             let cfg = load_world_config(world.as_deref())?;
-            crate::engine::backup::say_interrupted_imports()
+            let redo = format!(
+                "brickworld import {}{} --state {}",
+                crate::shell_quoted(&file),
+                world
+                    .as_deref()
+                    .map(|w| format!(" --world {}", crate::shell_quoted(w)))
+                    .unwrap_or_default(),
+                crate::shell_quoted(&state)
+            );
+            crate::engine::backup::say_interrupted_imports(redo)
                 .context("cannot install the interrupt handler")?;
             let st = crate::engine::backup::import_world(&cfg, &state, &file)?;
             crate::tell!(

@@ -141,8 +141,9 @@ pub fn no_signal_from_writes() {
 /// The signals the engine takes as a stop request with a final commit on
 /// a thread of its own, beside SIGINT, SIGTERM and SIGHUP (which `ctrlc`
 /// handles): SIGXCPU (sent past a soft CPU-time limit), SIGQUIT (a
-/// graceful stop, as in nginx), and SIGUSR1, SIGUSR2 and SIGALRM, whose
-/// default action killed the engine without a commit.
+/// graceful stop, as in nginx), and SIGUSR1, SIGUSR2, SIGALRM, SIGVTALRM,
+/// SIGPROF, SIGIO, SIGPWR and SIGSTKFLT, whose default action killed the
+/// engine without a commit. (Real-time signals keep their default.)
 #[cfg(unix)]
 pub fn stop_signals() -> nix::sys::signal::SigSet {
     use nix::sys::signal::{SigSet, Signal};
@@ -153,6 +154,14 @@ pub fn stop_signals() -> nix::sys::signal::SigSet {
         Signal::SIGUSR1,
         Signal::SIGUSR2,
         Signal::SIGALRM,
+        // Others whose default is to end the process (review).
+        Signal::SIGVTALRM,
+        Signal::SIGPROF,
+        Signal::SIGIO,
+        #[cfg(any(target_os = "linux", target_os = "android"))]
+        Signal::SIGPWR,
+        #[cfg(any(target_os = "linux", target_os = "android"))]
+        Signal::SIGSTKFLT,
     ] {
         set.add(s);
     }

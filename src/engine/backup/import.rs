@@ -114,7 +114,7 @@ pub fn import(file: &Path, dir: &Path, identity: &WorldIdentity) -> Result<Commi
             dir.display()
         );
     }
-    let result = import_into(file, dir, identity, st, had_marker);
+    let result = import_into(dir, identity, st, had_marker);
     if result.is_err() && had_marker {
         // What the cut import left is gone, and this one failed too: the
         // directory must still read as interrupted, never as a fresh world
@@ -167,7 +167,6 @@ fn refuse_contents_outside(file: &Path, st: &WorldState) -> Result<()> {
 /// import left (`replace`), refuse a directory holding anything else,
 /// then write the world under the marker.
 fn import_into(
-    file: &Path,
     dir: &Path,
     identity: &WorldIdentity,
     st: WorldState,
@@ -182,7 +181,6 @@ fn import_into(
     // that `run` took for a fresh world (found by review).
     if replace {
         interrupt::enter(Phase::Writing {
-            file: file.to_path_buf(),
             dir: dir.to_path_buf(),
         });
         for p in [&store_file, &manifest_file] {
@@ -221,11 +219,16 @@ fn import_into(
         );
     }
     let made_store = std::fs::symlink_metadata(&store_file).is_err();
-    interrupt::enter(Phase::Writing {
-        file: file.to_path_buf(),
-        dir: dir.to_path_buf(),
-    });
-    write_durable_marker(&marker).with_context(|| format!("cannot write {}", marker.display()))?;
+    // The phase says "writing" once the marker is there (review: said
+    // before, an interrupt then claimed a refusal no marker made, and
+    // left the folders the import had made).
+    interrupt::enter_after(
+        Phase::Writing {
+            dir: dir.to_path_buf(),
+        },
+        || write_durable_marker(&marker),
+    )
+    .with_context(|| format!("cannot write {}", marker.display()))?;
     let written = (|| {
         let (mut db, _) = WorldDb::open(dir, identity)?;
         // Checked again on the open store: nothing may be overwritten.
@@ -240,9 +243,8 @@ fn import_into(
     })();
     match written {
         Ok(stats) => {
-            std::fs::remove_file(&marker)
+            interrupt::enter_after(Phase::Done, || std::fs::remove_file(&marker))
                 .with_context(|| format!("cannot remove {}", marker.display()))?;
-            interrupt::enter(Phase::Done);
             if let Ok(d) = std::fs::File::open(dir) {
                 let _ = d.sync_all();
             }
@@ -255,7 +257,12 @@ fn import_into(
                 let _ = std::fs::remove_file(&store_file);
                 let _ = std::fs::remove_file(&manifest_file);
             }
-            let _ = std::fs::remove_file(&marker);
+            // Redoing a cut import, the marker stays: removed, a cut before
+            // `import` wrote it again left a directory `run` took for a
+            // fresh world (review).
+            if !replace {
+                let _ = interrupt::back_to_checking_after(|| std::fs::remove_file(&marker));
+            }
             Err(e)
         }
     }
@@ -278,6 +285,9 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
     });
     let result = import(file, dir, &cfg.identity());
     if result.is_err() {
+        // An interrupt during the cleanup finishes it (review: it said
+        // "did not finish" and left the folders made).
+        let _ = interrupt::back_to_checking_after(|| Ok::<(), ()>(()));
         if !created.is_empty() {
             crate::files::remove_made(&created);
         } else if !had_lock {
