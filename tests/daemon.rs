@@ -1382,12 +1382,7 @@ fn sigxcpu_stops_the_engine_with_a_final_commit() {
     // final one.
     let mut d = spawn(run_cmd(&cfg, &state).env("BRICKWORLD_TEST_COMMIT_STALL_MS", "1500"));
     wait_ready(&addr);
-    ctl_ok(&addr, &state, &["pause"]);
-    let mut tick = paused_tick(&addr, None);
-    if tick.is_multiple_of(40) {
-        ctl_ok(&addr, &state, &["step", "1"]);
-        tick = paused_tick(&addr, Some(tick));
-    }
+    let tick = paused_between_commits(&addr, &state);
     for _ in 0..3 {
         let _ = std::process::Command::new("kill")
             .args(["-XCPU", &d.id().to_string()])
@@ -1423,12 +1418,7 @@ fn quit_usr_and_alarm_signals_stop_the_engine_with_a_final_commit() {
     for sig in ["QUIT", "USR1", "USR2", "ALRM", "VTALRM", "PWR", "HUP"] {
         let mut d = spawn(&mut run_cmd(&cfg, &state));
         wait_ready(&addr);
-        ctl_ok(&addr, &state, &["pause"]);
-        let mut tick = paused_tick(&addr, None);
-        if tick.is_multiple_of(40) {
-            ctl_ok(&addr, &state, &["step", "1"]);
-            tick = paused_tick(&addr, Some(tick));
-        }
+        let tick = paused_between_commits(&addr, &state);
         let _ = std::process::Command::new("kill")
             .args([&format!("-{sig}"), &d.id().to_string()])
             .status();
@@ -1443,4 +1433,17 @@ fn quit_usr_and_alarm_signals_stop_the_engine_with_a_final_commit() {
         );
         assert_eq!(stored_tick(&cfg, &state), Some(tick), "SIG{sig}: {err}");
     }
+}
+
+/// Pause the engine at `addr` on a tick that is not a commit's
+/// (`checkpoint.every` is 40 in `setup`'s world), so that only a final
+/// commit can store it; that tick.
+fn paused_between_commits(addr: &str, state: &std::path::Path) -> u64 {
+    ctl_ok(addr, state, &["pause"]);
+    let tick = paused_tick(addr, None);
+    if !tick.is_multiple_of(40) {
+        return tick;
+    }
+    ctl_ok(addr, state, &["step", "1"]);
+    paused_tick(addr, Some(tick))
 }
