@@ -1829,38 +1829,41 @@ fn an_export_interrupted_after_its_backup_landed_says_it_was_written() {
             .output()
             .unwrap(),
     );
-    // An export over the backup there, held `stall_ms` once its own has
-    // landed; returned once it has.
-    let held_export = |stall_ms: &str| {
-        let before = std::fs::read(&backup).unwrap();
-        let child = backup_cmd("export", &backup, &cfg, &state)
+    // An export to `target` (over the backup there, or to a new name),
+    // held `stall_ms` once its own has landed; returned once it has.
+    let held_export = |target: &std::path::Path, stall_ms: &str| {
+        let before = std::fs::read(target).ok();
+        let child = backup_cmd("export", target, &cfg, &state)
             .env("BRICKWORLD_TEST_LANDED_STALL_MS", stall_ms)
             .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap();
         let t0 = std::time::Instant::now();
-        while std::fs::read(&backup).is_ok_and(|b| b == before) {
+        while std::fs::read(target).ok() == before {
             assert!(t0.elapsed().as_secs() < 60, "the new backup never landed");
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
         (child, t0)
     };
+    // Interrupted once after landing, it ends as it would have.
+    let interrupted_once_says = |child: std::process::Child, tick: u64| {
+        kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
+        let out = child.wait_with_output().unwrap();
+        let said = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success() && said.contains(&format!("exported tick {tick}")),
+            "{:?}: {said}{}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
     hash_at(&cfg, &state, 20);
-    let (child, _) = held_export("2000");
-    kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
-    let out = child.wait_with_output().unwrap();
-    let said = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success() && said.contains("exported tick 20"),
-        "{:?}: {said}{}",
-        out.status,
-        String::from_utf8_lossy(&out.stderr)
-    );
+    interrupted_once_says(held_export(&backup, "2000").0, 20);
     // A second interrupt ends a held export at once, still with status 0:
     // the backup is complete.
     hash_at(&cfg, &state, 30);
-    let (child, t0) = held_export("60000");
+    let (child, t0) = held_export(&backup, "60000");
     for _ in 0..2 {
         kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
         std::thread::sleep(std::time::Duration::from_millis(200));
@@ -1886,24 +1889,5 @@ fn an_export_interrupted_after_its_backup_landed_says_it_was_written() {
     // An export to a new name lands by another path (claims audit: only
     // the path over an earlier backup was run).
     let fresh = state.parent().unwrap().join("fresh.bwc");
-    let child = backup_cmd("export", &fresh, &cfg, &state)
-        .env("BRICKWORLD_TEST_LANDED_STALL_MS", "2000")
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t0 = std::time::Instant::now();
-    while !fresh.exists() {
-        assert!(t0.elapsed().as_secs() < 60, "the new backup never landed");
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
-    kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
-    let out = child.wait_with_output().unwrap();
-    let said = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success() && said.contains("exported tick 30"),
-        "{:?}: {said}{}",
-        out.status,
-        String::from_utf8_lossy(&out.stderr)
-    );
+    interrupted_once_says(held_export(&fresh, "2000").0, 30);
 }

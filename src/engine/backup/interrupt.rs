@@ -50,8 +50,17 @@ pub(super) fn enter(phase: Phase) {
 
 /// [`enter_after`] the last [`Phase::Checking`] (or [`Phase::Idle`]).
 pub(super) fn back_to_checking_after<E>(step: impl FnOnce() -> Result<(), E>) -> Result<(), E> {
+    enter_after(last_checking(), step)
+}
+
+/// Back to the last [`Phase::Checking`] (or [`Phase::Idle`]) now.
+pub(super) fn back_to_checking() {
+    enter(last_checking());
+}
+
+fn last_checking() -> Phase {
     let checking = CHECKING.lock().unwrap_or_else(|e| e.into_inner()).clone();
-    enter_after(checking.unwrap_or(Phase::Idle), step)
+    checking.unwrap_or(Phase::Idle)
 }
 
 /// Do `step` and, if it succeeds, enter `phase`, with interrupts held off
