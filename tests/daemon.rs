@@ -52,6 +52,16 @@ fn status_pause_step_and_control_errors() {
         "{s}"
     );
     status_matches_the_readme(&s);
+    // The resident memory's high-water mark is read after the tick's
+    // sample, and never falls, so it is at least that sample.
+    #[cfg(target_os = "linux")]
+    {
+        let (rss, peak) = (
+            s["rss_bytes"].as_u64().unwrap(),
+            s["rss_peak_bytes"].as_u64().unwrap(),
+        );
+        assert!(rss > 0 && peak >= rss, "{s}");
+    }
     // Token file is owner-only.
     #[cfg(unix)]
     {

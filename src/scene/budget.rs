@@ -318,6 +318,12 @@ pub fn rss_kb() -> u64 {
     rss_kb_of(std::process::id())
 }
 
+/// The most resident memory this process has held since it started, in
+/// KiB (Linux's `VmHWM`), 0 if unknown.
+pub fn rss_peak_kb() -> u64 {
+    status_kb(std::process::id(), "VmHWM:").unwrap_or(0)
+}
+
 /// Resident memory of process `pid` in KiB (Linux), 0 if unknown.
 pub fn rss_kb_of(pid: u32) -> u64 {
     status_kb(pid, "VmRSS:").unwrap_or(0)

@@ -186,6 +186,11 @@ pub struct Status {
     pub memory_budget: Option<u64>,
     /// The engine process's resident memory (Linux; 0 elsewhere).
     pub rss_bytes: u64,
+    /// The most resident memory the engine process has held since it
+    /// started (the kernel's high-water mark, `VmHWM`; Linux, 0
+    /// elsewhere): unlike `rss_bytes`, which is sampled once a tick, it
+    /// includes the peak inside a long step.
+    pub rss_peak_bytes: u64,
     /// The camera of the next frame.
     pub camera: CameraStatus,
 }

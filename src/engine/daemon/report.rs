@@ -206,6 +206,7 @@ impl Engine {
             window: stats.window(),
             memory_budget: self.cfg.stream.map(|s| s.memory_budget),
             rss_bytes: crate::engine::timeline::rss_kb() * 1024,
+            rss_peak_bytes: crate::scene::budget::rss_peak_kb() * 1024,
             camera: self.camera_status(),
         };
     }
