@@ -143,6 +143,21 @@ impl Working {
     }
 }
 
+/// Every pass's outputs for `cands` candidates, in two buffers made once
+/// per step: a material brick each, and as many channel bricks each as the
+/// widest pass writes. A script that writes no channel gets no channel
+/// buffer (growth probe: it got one a brick, 2 KiB each, which its step's
+/// memory estimate did not count).
+fn output_buffers(
+    spec: &ScriptSpec,
+    cands: usize,
+) -> (Vec<[u8; VOXEL_CELLS]>, Vec<[f32; VOXEL_CELLS]>) {
+    (
+        vec![[0u8; VOXEL_CELLS]; cands],
+        vec![[0.0f32; VOXEL_CELLS]; cands * spec.widest_writes()],
+    )
+}
+
 /// A pass's output for one candidate: materials and written channels.
 /// One brick's outputs of a pass: views into buffers made once per step
 /// for every candidate (code-habits audit: a `Vec` was made for every
@@ -220,10 +235,7 @@ pub(super) fn run_script(
         .filter_map(|c| spec.channels.iter().position(|x| x == c))
         .collect();
     let before: Vec<(f64, f64)> = conserved.iter().map(|&i| work.sums(i)).collect();
-    // Every pass's outputs, for every candidate, in two buffers made once.
-    let most_writes = spec.widest_writes();
-    let mut mats_out = vec![[0u8; VOXEL_CELLS]; cands.len()];
-    let mut chans_out = vec![[0.0f32; VOXEL_CELLS]; cands.len() * most_writes];
+    let (mut mats_out, mut chans_out) = output_buffers(spec, cands.len());
     for (pi, pass) in spec.passes.iter().enumerate() {
         let writes_mat = pass.writes.iter().any(|w| w == MAT);
         let (ridx, widx) = (pass.read_idx.as_slice(), pass.write_idx.as_slice());
@@ -456,4 +468,36 @@ fn run_lua(
         }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::ScriptVm;
+
+    fn spec(channels: &str, writes: &str) -> ScriptSpec {
+        let text = format!(
+            "return {{ grid = \"voxels\", channels = {{ {channels} }},\n  passes = {{ {{ name = \"p\", reads = {{}}, writes = {{ {writes} }}, kernel = function() end }} }} }}"
+        );
+        let src = ScriptSource {
+            name: "out".into(),
+            text: text.into(),
+        };
+        let limits = Limits {
+            memory: 16 << 20,
+            instructions: 200_000,
+            time: std::time::Duration::from_secs(2),
+        };
+        ScriptVm::load(&src, limits).unwrap().1
+    }
+
+    /// Regression (growth probe): a voxel script that writes only `mat`
+    /// got an output channel per brick anyway.
+    #[test]
+    fn a_script_that_writes_no_channel_gets_no_channel_buffer() {
+        let (mats, chans) = output_buffers(&spec("\"a\"", "\"mat\""), 10);
+        assert_eq!((mats.len(), chans.len()), (10, 0));
+        let (mats, chans) = output_buffers(&spec("\"a\", \"b\"", "\"a\", \"mat\", \"b\""), 10);
+        assert_eq!((mats.len(), chans.len()), (10, 20));
+    }
 }
