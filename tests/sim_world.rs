@@ -356,6 +356,73 @@ fn erosion_runs_on_a_world_whose_edge_is_at_height_0() {
     assert!(ws.sim.channels().total(s) >= 0.0);
 }
 
+/// Known gap, closed: the columns read their ground once, at the start,
+/// so their water flowed through what a voxel script piled as if it were
+/// not there. A voxel script raises a sand tower in a shallow lake at tick
+/// 0: the column under it takes the tower's top as its ground, the water
+/// that sat there is drawn on the tower, runs off it, and none is lost.
+#[test]
+fn the_columns_ground_follows_a_tower_a_voxel_script_raises() {
+    use brickworld::world::{BrickStore, Palette};
+    let mut store = BrickStore::new(Palette::grey_ramp());
+    store.fill_box(IVec3::ZERO, IVec3::new(16, 4, 16), 1);
+    store.take_modified();
+    let mut world =
+        brickworld::scene::SceneWorld::new(store, IVec3::ZERO, IVec3::new(16, 32, 16)).unwrap();
+    let def = brickworld::world::MaterialDef {
+        color: [200, 180, 120],
+        kind: brickworld::world::MaterialKind::Granular,
+        density: 1.5,
+    };
+    world.materials.register("sand", def).unwrap();
+    let mut ws = WorldSim::with_edges(&mut world, false);
+    add_shipped(&mut ws, "water");
+    let tower = ScriptSource {
+        name: "tower".into(),
+        text: r#"return { grid = "voxels", materials = { "sand" },
+          passes = { { name = "p", reads = {}, writes = { "mat" },
+            kernel = function(c, bx, by, bz)
+              if c.tick ~= 0 or bx ~= 0 or by ~= 0 or bz ~= 0 then return end
+              for y = 4, 7 do buffer.writeu8(c.w.mat, 5 + y * 8 + 5 * 64, c.m.sand) end
+            end } } }"#
+            .into(),
+    };
+    ws.add_script(&world, tower, Limits::default()).unwrap();
+    let sand = world.materials.id("sand").unwrap();
+    let w = ws.sim.channels_mut().channel("water");
+    for tz in 0..2 {
+        for tx in 0..2 {
+            ws.sim.channels_mut().set(IVec2::new(tx, tz), w, &[2.0; 64]);
+        }
+    }
+    ws.sim.wake_all();
+    let start = ws.sim.channels().total(w);
+    let r = ws.step(&mut world, 0.05);
+    assert!(r.errors.is_empty(), "{:?}", r.errors);
+    let g = ws.sim.channels().find("ground").unwrap();
+    let ground = |ws: &WorldSim| ws.sim.channels().get(IVec2::ZERO, g).unwrap()[5 + 5 * 8];
+    assert_eq!(ground(&ws), 8.0, "the column under the tower");
+    assert_eq!(world.store().voxel(IVec3::new(5, 7, 5)), sand);
+    // Its water is drawn on the tower, not inside it.
+    assert_eq!(
+        world.store().voxel(IVec3::new(5, 8, 5)),
+        world.materials.id("water").unwrap()
+    );
+    for step in 0..200 {
+        let r = ws.step(&mut world, 0.05);
+        assert!(r.errors.is_empty(), "step {step}: {:?}", r.errors);
+    }
+    assert_eq!(ground(&ws), 8.0);
+    let on_top = ws.sim.channels().get(IVec2::ZERO, w).unwrap()[5 + 5 * 8];
+    assert!(on_top < 0.05, "{on_top} of water stays on the tower");
+    assert_eq!(world.store().voxel(IVec3::new(5, 8, 5)), 0);
+    for y in 4..8 {
+        assert_eq!(world.store().voxel(IVec3::new(5, y, 5)), sand, "y = {y}");
+    }
+    let now = ws.sim.channels().total(w);
+    assert!((now - start).abs() < 1e-9 * start, "water {start} -> {now}");
+}
+
 mod common;
 use common::cli::{assert_clear_failure, assert_success, bin, read_json};
 

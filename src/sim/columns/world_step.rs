@@ -98,9 +98,43 @@ impl WorldSim {
         self.vox.notify_edited(bricks);
         self.vox.set_tick(tick);
         let (r, changed) = world.edit(|s, m| self.vox.step(s, m, dt));
+        let redrawn = self.follow_voxels(world, &changed);
         bricks.extend(changed);
+        bricks.extend(redrawn);
         report.errors.extend(r.errors.iter().cloned());
         report.voxel = r;
+    }
+
+    /// Give the columns over the bricks in `changed`, which something
+    /// other than the columns edited, the ground those bricks now hold
+    /// ([`ColumnSync::follow_ground`](super::writeback::ColumnSync::follow_ground)),
+    /// wake them, and redraw their snow and water on it. Returns the
+    /// bricks the redraw changed (the voxel scripts are told of them).
+    pub fn follow_voxels(
+        &mut self,
+        world: &mut SceneWorld,
+        changed: &[glam::IVec3],
+    ) -> Vec<glam::IVec3> {
+        let (tmin, tmax) = self.world_tiles;
+        let mut tiles: Vec<glam::IVec2> = changed
+            .iter()
+            .map(|b| glam::IVec2::new(b.x, b.z))
+            .filter(|t| t.cmpge(tmin).all() && t.cmplt(tmax).all())
+            .collect();
+        if tiles.is_empty() {
+            return Vec::new();
+        }
+        tiles.sort_by_key(|t| (t.y, t.x));
+        tiles.dedup();
+        let moved = self
+            .sync
+            .follow_ground(world.store(), self.sim.channels_mut(), &tiles);
+        for &t in &moved {
+            self.sim.wake(t);
+        }
+        let (_, redrawn) = world.edit(|s, _| self.sync.write(self.sim.channels(), &moved, s));
+        self.vox.notify_edited(&redrawn);
+        redrawn
     }
 
     /// The column scripts for `dt`, written back into bricks; the bricks

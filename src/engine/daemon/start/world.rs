@@ -240,6 +240,10 @@ pub(super) fn first_start(
         let ((), changed) = world.edit(|s, _| s.fill_box(p.at, p.at + p.size, id));
         placed.extend(changed);
     }
+    // The columns' ground follows the boxes (it was read before they were
+    // placed), and their snow and water are redrawn on it.
+    let redrawn = ws.follow_voxels(world, &placed);
+    placed.extend(redrawn);
     dirty_chunks.bricks(&placed);
     ws.vox.notify_edited(&placed);
     ws.vox.apply_fills(world.store(), &world.materials);
