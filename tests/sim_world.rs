@@ -359,8 +359,9 @@ fn erosion_runs_on_a_world_whose_edge_is_at_height_0() {
 /// Known gap, closed: the columns read their ground once, at the start,
 /// so their water flowed through what a voxel script piled as if it were
 /// not there. A voxel script raises a sand tower in a shallow lake at tick
-/// 0: the column under it takes the tower's top as its ground, the water
-/// that sat there is drawn on the tower, runs off it, and none is lost.
+/// 0, and digs a pit: the column under the tower takes its top as its
+/// ground, the water that sat there is drawn on the tower and runs off it,
+/// the pit's column takes the pit's floor and fills, and none is lost.
 #[test]
 fn the_columns_ground_follows_a_tower_a_voxel_script_raises() {
     use brickworld::world::{BrickStore, Palette};
@@ -382,8 +383,12 @@ fn the_columns_ground_follows_a_tower_a_voxel_script_raises() {
         text: r#"return { grid = "voxels", materials = { "sand" },
           passes = { { name = "p", reads = {}, writes = { "mat" },
             kernel = function(c, bx, by, bz)
-              if c.tick ~= 0 or bx ~= 0 or by ~= 0 or bz ~= 0 then return end
-              for y = 4, 7 do buffer.writeu8(c.w.mat, 5 + y * 8 + 5 * 64, c.m.sand) end
+              if c.tick ~= 0 or by ~= 0 then return end
+              if bx == 0 and bz == 0 then
+                for y = 4, 7 do buffer.writeu8(c.w.mat, 5 + y * 8 + 5 * 64, c.m.sand) end
+              elseif bx == 1 and bz == 1 then
+                for y = 2, 3 do buffer.writeu8(c.w.mat, 2 + y * 8 + 2 * 64, 0) end
+              end
             end } } }"#
             .into(),
     };
@@ -402,6 +407,12 @@ fn the_columns_ground_follows_a_tower_a_voxel_script_raises() {
     let g = ws.sim.channels().find("ground").unwrap();
     let ground = |ws: &WorldSim| ws.sim.channels().get(IVec2::ZERO, g).unwrap()[5 + 5 * 8];
     assert_eq!(ground(&ws), 8.0, "the column under the tower");
+    let pit = IVec2::new(1, 1);
+    assert_eq!(
+        ws.sim.channels().get(pit, g).unwrap()[2 + 2 * 8],
+        2.0,
+        "the pit's column"
+    );
     assert_eq!(world.store().voxel(IVec3::new(5, 7, 5)), sand);
     // Its water is drawn on the tower, not inside it.
     assert_eq!(
@@ -416,6 +427,13 @@ fn the_columns_ground_follows_a_tower_a_voxel_script_raises() {
     let on_top = ws.sim.channels().get(IVec2::ZERO, w).unwrap()[5 + 5 * 8];
     assert!(on_top < 0.05, "{on_top} of water stays on the tower");
     assert_eq!(world.store().voxel(IVec3::new(5, 8, 5)), 0);
+    // The pit holds the lake's depth and its own, water to its floor.
+    let in_pit = ws.sim.channels().get(pit, w).unwrap()[2 + 2 * 8];
+    assert!(in_pit > 3.5, "{in_pit} of water in the pit");
+    let water = world.materials.id("water").unwrap();
+    for y in 2..5 {
+        assert_eq!(world.store().voxel(IVec3::new(10, y, 10)), water, "y = {y}");
+    }
     for y in 4..8 {
         assert_eq!(world.store().voxel(IVec3::new(5, y, 5)), sand, "y = {y}");
     }
