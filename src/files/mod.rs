@@ -143,7 +143,8 @@ pub fn no_signal_from_writes() {
 /// handles): SIGXCPU (sent past a soft CPU-time limit), SIGQUIT (a
 /// graceful stop, as in nginx), and SIGUSR1, SIGUSR2, SIGALRM, SIGVTALRM,
 /// SIGPROF, SIGIO, SIGPWR and SIGSTKFLT, whose default action killed the
-/// engine without a commit. (Real-time signals keep their default.)
+/// engine without a commit. (The real-time signals, which `nix`'s sets
+/// cannot name, are taken through `signal-hook` in `engine::daemon::start`.)
 #[cfg(unix)]
 pub fn stop_signals() -> nix::sys::signal::SigSet {
     use nix::sys::signal::{SigSet, Signal};

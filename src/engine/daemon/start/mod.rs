@@ -404,6 +404,8 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
     // [`crate::files::block_stop_signals`]), and taken here as a stop
     // request. Each killed the engine without a final commit (regressions,
     // hostile environment probe and its follow-up).
+    #[cfg(target_os = "linux")]
+    let real_time = on_signal.clone();
     #[cfg(unix)]
     std::thread::Builder::new()
         .name("stop signals".into())
@@ -419,5 +421,75 @@ fn install_signal_handler(shared: &Arc<Shared>) -> Result<()> {
             }
         })
         .context("cannot start the stop signals' thread")?;
+    #[cfg(target_os = "linux")]
+    take_real_time_signals(real_time)?;
+    Ok(())
+}
+
+/// The names of the real-time signals, from `SIGRTMIN` up (Linux has 32
+/// at most; glibc keeps the first two or three for itself).
+#[cfg(target_os = "linux")]
+const REAL_TIME: [&str; 32] = [
+    "SIGRTMIN",
+    "SIGRTMIN+1",
+    "SIGRTMIN+2",
+    "SIGRTMIN+3",
+    "SIGRTMIN+4",
+    "SIGRTMIN+5",
+    "SIGRTMIN+6",
+    "SIGRTMIN+7",
+    "SIGRTMIN+8",
+    "SIGRTMIN+9",
+    "SIGRTMIN+10",
+    "SIGRTMIN+11",
+    "SIGRTMIN+12",
+    "SIGRTMIN+13",
+    "SIGRTMIN+14",
+    "SIGRTMIN+15",
+    "SIGRTMIN+16",
+    "SIGRTMIN+17",
+    "SIGRTMIN+18",
+    "SIGRTMIN+19",
+    "SIGRTMIN+20",
+    "SIGRTMIN+21",
+    "SIGRTMIN+22",
+    "SIGRTMIN+23",
+    "SIGRTMIN+24",
+    "SIGRTMIN+25",
+    "SIGRTMIN+26",
+    "SIGRTMIN+27",
+    "SIGRTMIN+28",
+    "SIGRTMIN+29",
+    "SIGRTMIN+30",
+    "SIGRTMIN+31",
+];
+
+/// Take the real-time signals (`SIGRTMIN` to `SIGRTMAX`) as stop requests
+/// too, on a thread of their own: their default action ended the engine
+/// without a final commit (a known gap). `nix`'s signal sets, which the
+/// other stop signals' thread waits on, cannot name them, so
+/// `signal-hook`'s safe handlers take them here.
+#[cfg(target_os = "linux")]
+fn take_real_time_signals<F: FnMut(Asked) + Send + 'static>(
+    on_signal: Arc<std::sync::Mutex<F>>,
+) -> Result<()> {
+    let (lo, hi) = (libc::SIGRTMIN(), libc::SIGRTMAX());
+    // Registered here, before the thread starts, so that a signal sent once
+    // `run` says it is up is taken.
+    let mut signals = signal_hook::iterator::Signals::new(lo..=hi)
+        .context("cannot take the real-time signals")?;
+    std::thread::Builder::new()
+        .name("real-time signals".into())
+        .spawn(move || {
+            for n in signals.forever() {
+                let name = usize::try_from(n - lo)
+                    .ok()
+                    .and_then(|k| REAL_TIME.get(k))
+                    .copied()
+                    .unwrap_or("a real-time signal");
+                (on_signal.lock().unwrap_or_else(|e| e.into_inner()))(Asked::Named(name));
+            }
+        })
+        .context("cannot start the real-time signals' thread")?;
     Ok(())
 }
