@@ -481,6 +481,60 @@ fn sim_command_runs_all_scripts_and_renders() {
     assert!(std::fs::metadata(&png).unwrap().len() > 100);
 }
 
+/// Regression (stop-path probe): time the process spent stopped (Ctrl-Z,
+/// SIGSTOP, a paused VM) counted against a kernel call's 5 s time budget,
+/// so a 100 ms kernel failed its step after a suspend of 6 s, and `sim`
+/// exited 1. The budget counts the thread's own running time now.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_suspend_longer_than_the_time_budget_fails_no_kernel() {
+    let script = tmp("slow.lua");
+    std::fs::write(
+        &script,
+        r#"return { channels = { "acc" },
+  params = { spin = { default = 15000000, min = 0, max = 20000000 } },
+  passes = { { name = "p", reads = { "acc" }, writes = { "acc" },
+    kernel = function(c)
+      local x = 0
+      for i = 1, c.p.spin do x = x + 1 end
+      buffer.writef64(c.w.acc, 0, buffer.readf64(c.w.acc, 0) + x * 1e-9)
+    end } } }"#,
+    )
+    .unwrap();
+    let png = tmp("slow.png");
+    let mut child = bin()
+        .args([
+            "sim", "--scene", "terrain", "--size", "16x16x16", "--steps", "20", "--width", "16",
+            "--height", "12",
+        ])
+        .arg("--script")
+        .arg(&script)
+        .arg("--out")
+        .arg(&png)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id().to_string();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let kill = |sig: &str| {
+        assert!(
+            std::process::Command::new("kill")
+                .args([sig, &pid])
+                .status()
+                .unwrap()
+                .success()
+        );
+    };
+    kill("-STOP");
+    std::thread::sleep(std::time::Duration::from_secs(6));
+    kill("-CONT");
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(!err.contains("budget"), "{err}");
+}
+
 #[test]
 fn sim_command_rejects_bad_input_clearly() {
     let root = env!("CARGO_MANIFEST_DIR");

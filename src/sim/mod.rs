@@ -52,8 +52,8 @@ pub struct ScriptState {
 }
 
 impl SimError {
-    /// Whether this is a kernel stopped by its wall-clock limit: a matter
-    /// of the machine's load at the time, not of the world.
+    /// Whether this is a kernel stopped by its time limit: a matter of the
+    /// machine at the time, not of the world.
     pub fn is_time_budget(&self) -> bool {
         matches!(self, SimError::Runtime { msg, .. }
             if msg.contains(&format!("{} exceeded", runtime::interrupt::TIME_BUDGET)))

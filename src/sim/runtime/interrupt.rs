@@ -1,5 +1,5 @@
 //! The raw Luau C API, in one place: the per-call budget of kernels
-//! (instructions, wall-clock time, memory), enforced from Luau's interrupt
+//! (instructions, running time, memory), enforced from Luau's interrupt
 //! hook, and the walks that keep kernels stateless: [`seal`] (at load:
 //! freeze what a kernel reaches, collect its functions) and
 //! [`fingerprint`] (after each call: did any of those functions' upvalues
@@ -25,7 +25,9 @@
 
 use std::cell::Cell;
 use std::ffi::c_int;
-use std::time::Instant;
+use std::time::{Duration, Instant};
+
+use super::cpu_clock;
 
 use mlua::{Lua, ffi};
 
@@ -39,7 +41,14 @@ struct Budget {
     /// Interrupts in the batch that ends at the next slow check.
     batch: u64,
     limit: u64,
+    /// When the call's time budget has passed on the wall clock; past it,
+    /// the thread's CPU time decides ([`cpu_clock::spent`]).
     deadline: Instant,
+    /// The call's time budget.
+    time: Duration,
+    /// This thread's CPU time when the call was armed (give or take
+    /// [`cpu_clock::REFRESH`]), if the system has a per-thread CPU clock.
+    cpu_start: Option<Duration>,
     memory_soft_kb: c_int,
 }
 
@@ -56,13 +65,19 @@ thread_local! {
         ticks: 0,
         batch: 1,
         limit: u64::MAX,
-        deadline: Instant::now() + std::time::Duration::from_secs(3600),
+        deadline: Instant::now() + Duration::from_secs(3600),
+        time: Duration::from_secs(3600),
+        cpu_start: None,
         memory_soft_kb: c_int::MAX,
     });
 }
 
-/// Reset the budget before a kernel call on this thread.
-pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
+/// Reset the budget before a kernel call on this thread: `instructions`
+/// interrupts, `time` of the thread's own running time (see [`cpu_clock`]),
+/// and a soft memory limit.
+pub fn arm(instructions: u64, time: Duration, memory_soft_bytes: usize) {
+    let now = Instant::now();
+    let cpu_start = cpu_clock::reference(now);
     COUNTDOWN.with(|c| c.set(0));
     BUDGET.with(|b| {
         b.set(Budget {
@@ -70,13 +85,15 @@ pub fn arm(instructions: u64, deadline: Instant, memory_soft_bytes: usize) {
             ticks: 0,
             batch: 1,
             limit: instructions,
-            deadline,
+            deadline: now + time,
+            time,
+            cpu_start,
             memory_soft_kb: (memory_soft_bytes / 1024).min(c_int::MAX as usize) as c_int,
         })
     });
 }
 
-/// The wall-clock limit's name in a budget error ("time budget exceeded").
+/// The time limit's name in a budget error ("time budget exceeded").
 pub const TIME_BUDGET: &str = "time budget";
 
 /// The memory limit's name in a budget error.
@@ -131,7 +148,9 @@ fn slow_check(l: *mut ffi::lua_State) -> Option<&'static str> {
             what = Some(STOPPING);
         } else if b.ticks > b.limit {
             what = Some("instruction budget");
-        } else if Instant::now() > b.deadline {
+        } else if Instant::now() > b.deadline
+            && cpu_clock::spent(&mut b.deadline, b.time, b.cpu_start)
+        {
             what = Some(TIME_BUDGET);
         } else {
             // SAFETY: `l` is the live state Luau passed to the interrupt

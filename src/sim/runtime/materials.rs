@@ -9,8 +9,6 @@
 //! }
 //! ```
 
-use std::time::Instant;
-
 use mlua::{Table, Value};
 
 use crate::sim::script::sandboxed;
@@ -35,11 +33,7 @@ pub fn load_materials(
     let lua = sandboxed(limits, &src.name)?;
     // Run once, at load: never worth native code.
     lua.enable_jit(false);
-    crate::sim::interrupt::arm(
-        limits.instructions,
-        Instant::now() + limits.time,
-        limits.memory / 10 * 9,
-    );
+    crate::sim::interrupt::arm(limits.instructions, limits.time, limits.memory / 10 * 9);
     let v: Value = lua
         .load(&*src.text)
         .set_name(format!("@{}.lua", src.name))

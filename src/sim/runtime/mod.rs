@@ -6,6 +6,7 @@
 //! into the binary, and how source becomes code in each VM ([`compile`]).
 
 pub mod compile;
+pub(crate) mod cpu_clock;
 pub mod declare;
 pub mod embedded;
 mod errors;

@@ -15,13 +15,13 @@
 //! Globals are read-only (Luau `sandbox`, with the per-thread proxy frozen
 //! too), and `math.random` is gone: `c.random(x, y, z, k)` gives numbers
 //! that are a pure function of (world seed, tick, script, x, y, z, k). Each VM has a memory limit, and
-//! every kernel call an instruction budget and a wall-clock deadline checked
-//! from Luau's interrupt; a script that exceeds them is stopped with an error
+//! every kernel call an instruction budget and a time budget (the thread's
+//! own running time: see `cpu_clock`) checked from Luau's interrupt; a script that exceeds them is stopped with an error
 //! naming the script and line. Out-of-memory errors pass through `pcall`,
 //! and a call that ran out is run once more from collected garbage
 //! ([`ScriptVm::failed_on_memory`]); `tostring` never shows an address.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use mlua::{Buffer, Function, Lua, Table, Value};
 
@@ -43,7 +43,8 @@ pub struct Limits {
     pub memory: usize,
     /// Interrupt ticks (loop iterations and calls) per kernel call.
     pub instructions: u64,
-    /// Wall-clock time per kernel call.
+    /// Running time per kernel call: the calling thread's CPU time, so that
+    /// time the process was stopped or waited for a core is not counted.
     pub time: Duration,
 }
 
@@ -125,11 +126,7 @@ impl ScriptVm {
         }
         .set_name(format!("@{}.lua", src.name));
         // The chunk itself runs under the budget too (a script can loop at load).
-        crate::sim::interrupt::arm(
-            limits.instructions,
-            Instant::now() + limits.time,
-            limits.memory / 10 * 9,
-        );
+        crate::sim::interrupt::arm(limits.instructions, limits.time, limits.memory / 10 * 9);
         let def: Value = chunk.eval().map_err(|e| load_error(src, e))?;
         let Value::Table(def) = def else {
             return Err(declaration(
@@ -454,7 +451,7 @@ impl ScriptVm {
         let run = || -> mlua::Result<()> {
             crate::sim::interrupt::arm(
                 self.limits.instructions,
-                Instant::now() + self.limits.time,
+                self.limits.time,
                 self.memory_soft,
             );
             match third {
