@@ -502,7 +502,7 @@ fn a_suspend_longer_than_the_time_budget_fails_no_kernel() {
     )
     .unwrap();
     let png = tmp("slow.png");
-    let mut child = bin()
+    let child = bin()
         .args([
             "sim", "--scene", "terrain", "--size", "16x16x16", "--steps", "20", "--width", "16",
             "--height", "12",
