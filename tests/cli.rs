@@ -1516,6 +1516,94 @@ fn scratch_directories_that_brickworld_did_not_make_are_not_deleted() {
     );
 }
 
+/// Regression (stop-path probe): an interrupted `soak` exited and left
+/// its engine running for good. The interrupt now stops the engine with
+/// its final commit, says so, and exits 130.
+#[cfg(target_os = "linux")]
+#[test]
+fn an_interrupted_soak_stops_its_engine() {
+    let state = tmp("soak-int");
+    let json = tmp("soak-int.json");
+    let child = bin()
+        .args(["soak", "--minutes", "1", "--json"])
+        .arg(&json)
+        .arg("--state")
+        .arg(&state)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while !state.join("control.addr").exists() {
+        assert!(
+            t0.elapsed().as_secs() < 120,
+            "the soak's engine did not start"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    // The engine of this soak: the process whose command line names it.
+    let needle = state.to_str().unwrap().to_string();
+    let engines = || -> Vec<u32> {
+        std::fs::read_dir("/proc")
+            .unwrap()
+            .flatten()
+            .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
+            .filter(|pid| {
+                let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+                let cmd = String::from_utf8_lossy(&cmd);
+                cmd.contains("\0run\0") && cmd.contains(&needle)
+            })
+            .collect()
+    };
+    assert_eq!(engines().len(), 1, "one engine runs");
+    let _ = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    assert!(
+        err.contains("the soak's engine was stopped with a final commit"),
+        "{err}"
+    );
+    assert!(engines().is_empty(), "the soak's engine still runs");
+    assert!(!json.exists(), "a report of a cut soak");
+}
+
+/// Regression (stop-path probe): `render`, `sim`, `chart` and the benches
+/// were killed by Ctrl-C, silently (leaving the file they were writing),
+/// and `export` said nothing when interrupted before it wrote. One line
+/// now says what is left, with status 130.
+#[cfg(unix)]
+#[test]
+fn an_interrupted_one_shot_command_says_what_it_left() {
+    let png = tmp("int-sim.png");
+    let child = bin()
+        .args([
+            "sim", "--scene", "terrain", "--size", "32x32x32", "--steps", "10000000",
+        ])
+        .arg("--script")
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/water.lua"))
+        .arg("--out")
+        .arg(&png)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let _ = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    assert!(
+        err.contains("interrupted before anything was written"),
+        "{err}"
+    );
+    assert!(!png.exists());
+}
+
 /// Regression (hostile probe): `println!` on a closed pipe or a full disk
 /// was a panic with a backtrace.
 #[cfg(target_os = "linux")]

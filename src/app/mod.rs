@@ -47,6 +47,23 @@ pub fn run(cli: Cli) -> Result<()> {
             rayon_env_threads()?;
         }
     }
+    // One-shot commands that write files: an interrupt removes what they
+    // were writing and says what is left (regression, stop-path probe:
+    // they were killed by the signal and left their temporaries). The
+    // engine, `import` and `soak` take their signals themselves, `export`
+    // below, and `bench store` clears its scratch space too.
+    if matches!(
+        cli.command,
+        Command::Render(_)
+            | Command::Sim(_)
+            | Command::Chart { .. }
+            | Command::Init { .. }
+            | Command::Verify(_)
+    ) || matches!(&cli.command, Command::Bench(b) if !matches!(b, BenchCommand::Store(_)))
+    {
+        crate::files::remove_temps_on_interrupt()
+            .context("cannot install the interrupt handler")?;
+    }
     match cli.command {
         Command::Render(a) => run_render(RenderSettings::from_args(&a)?),
         Command::Run(a) => run_daemon(&a),

@@ -68,6 +68,63 @@ pub struct SoakReport {
     pub window: Option<serde_json::Value>,
 }
 
+/// The engine a soak watches, stopped with SIGTERM (a final commit) when
+/// the soak ends early: an error or an interrupt left it running for good,
+/// with nobody to stop it (regression, stop-path probe).
+struct Engine(std::process::Child);
+
+impl Drop for Engine {
+    fn drop(&mut self) {
+        if matches!(self.0.try_wait(), Ok(None)) {
+            stop_engine(self.0.id());
+            let _ = self.0.wait();
+        }
+    }
+}
+
+/// Ask the engine `pid` to stop (SIGTERM: it commits and exits), and wait
+/// up to a minute for it to be gone (or a zombie, its parent's to reap).
+fn stop_engine(pid: u32) {
+    let _ = Command::new("kill")
+        .arg("-TERM")
+        .arg(pid.to_string())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status();
+    let t = Instant::now();
+    while t.elapsed() < Duration::from_secs(60) {
+        let gone = std::fs::read_to_string(format!("/proc/{pid}/stat")).map_or(true, |s| {
+            s.rsplit(')')
+                .next()
+                .is_some_and(|r| r.trim_start().starts_with('Z'))
+        });
+        if gone {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// The engine's process id while a soak runs (0: none), for the interrupt.
+static ENGINE_PID: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+/// Ctrl-C or SIGTERM stops the soak's engine with its final commit, says
+/// so, and exits with status 130 (no report is written: the run was cut).
+fn stop_engine_on_interrupt(state: &Path) -> Result<()> {
+    let state = state.display().to_string();
+    ctrlc::set_handler(move || {
+        let pid = ENGINE_PID.swap(0, std::sync::atomic::Ordering::SeqCst);
+        if pid != 0 {
+            stop_engine(pid);
+        }
+        crate::say!(
+            "interrupted: the soak's engine was stopped with a final commit (its state is in {state}); no report was written"
+        );
+        std::process::exit(130);
+    })
+    .context("cannot install the interrupt handler")
+}
+
 /// Run the soak.
 pub fn run(
     world: Option<&Path>,
@@ -83,26 +140,29 @@ pub fn run(
     crate::files::fresh_scratch_dir(state)
         .map_err(|e| anyhow::anyhow!("invalid --state: {e}"))?
         .keep();
+    stop_engine_on_interrupt(state)?;
     let exe = std::env::current_exe().context("cannot find the brickworld executable")?;
     let mut cmd = Command::new(exe);
     cmd.arg("run");
     if let Some(w) = world {
         cmd.arg(w);
     }
-    let mut child = cmd
-        .arg("--state")
-        .arg(state)
-        .arg("--addr")
-        .arg(&addr)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("cannot start the daemon")?;
+    let mut child = Engine(
+        cmd.arg("--state")
+            .arg(state)
+            .arg("--addr")
+            .arg(&addr)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .context("cannot start the daemon")?,
+    );
+    ENGINE_PID.store(child.0.id(), std::sync::atomic::Ordering::SeqCst);
     let start = Instant::now();
     let mut first_frame_s = f64::NAN;
     while request(&addr, "GET", "/status", None, "").is_err() {
         if start.elapsed() > Duration::from_secs(120) {
-            let _ = child.kill();
+            let _ = child.0.kill();
             bail!("the daemon did not start within two minutes");
         }
         std::thread::sleep(Duration::from_millis(100));
@@ -148,9 +208,9 @@ pub fn run(
         // One memory sample a second (the fifths compare equal spans).
         let now = t0.elapsed().as_secs_f64();
         if rss.last().is_none_or(|r: &(f64, u64)| now - r.0 >= 0.999) {
-            rss.push((now, crate::engine::timeline::rss_kb_of(child.id())));
+            rss.push((now, crate::engine::timeline::rss_kb_of(child.0.id())));
         }
-        if let Some(status) = child.try_wait()? {
+        if let Some(status) = child.0.try_wait()? {
             bail!("the daemon exited early ({status})");
         }
         progress.set_position(t0.elapsed().as_secs());
@@ -159,11 +219,10 @@ pub fn run(
         std::thread::sleep(Duration::from_millis(period).saturating_sub(t.elapsed()));
     }
     let secs = t0.elapsed().as_secs_f64();
-    let _ = Command::new("kill")
-        .arg("-TERM")
-        .arg(child.id().to_string())
-        .status();
-    let _ = child.wait();
+    // From here the soak stops its engine itself.
+    if ENGINE_PID.swap(0, std::sync::atomic::Ordering::SeqCst) != 0 {
+        drop(child);
+    }
     lat.sort_by(|a, b| a.total_cmp(b));
     let pct = |p: f64| {
         lat.get(((lat.len() as f64 - 1.0) * p) as usize)

@@ -81,7 +81,13 @@ fn forget_live(dir: &Path) {
 /// signals (regression, hostile environment probe: an interrupted `bench
 /// store` left 16 MB in its `--dir`).
 pub fn remove_scratch_on_interrupt() -> std::io::Result<()> {
+    super::interrupt::list_temps();
     ctrlc::set_handler(|| {
+        // The report being written, too (stop-path probe).
+        let removed = super::interrupt::remove_writing_temps();
+        if !removed.is_empty() {
+            crate::say!("interrupted: the file being written was removed");
+        }
         for (dir, made) in std::mem::take(&mut *live()) {
             // The command writes on meanwhile (a file made between the
             // listing and the folder's removal fails it), so a few tries.

@@ -33,16 +33,18 @@ use std::path::{Path, PathBuf};
 use thiserror::Error;
 
 mod folders;
+mod interrupt;
 mod temps;
 pub use folders::{
     SCRATCH_MARKER, ScratchDir, fresh_scratch_dir, make_dir, missing_folders, remove_made,
     remove_made_if_empty, remove_scratch_on_interrupt,
 };
-pub(crate) use temps::write_target;
-pub use temps::{
-    Staged, fresh_temp_beside, landing, output_landed, remove_temps_on_interrupt,
-    remove_writing_temps, temp_landed, temp_of_gone_process, temp_writing,
+pub use interrupt::{
+    keep_undo_list, landing, output_landed, remove_temps_on_interrupt, remove_writing_temps,
+    temp_landed, temp_writing, undo_on_interrupt,
 };
+pub(crate) use temps::write_target;
+pub use temps::{Staged, fresh_temp_beside, temp_of_gone_process};
 
 /// Why a file could not be read.
 #[derive(Debug, Error)]

@@ -1,5 +1,5 @@
 //! Temporary files beside their destinations: made fresh, listed so that an
-//! interrupt removes them, swept when a gone process left them, and
+//! interrupt removes them (see `interrupt`), swept when a gone process left them, and
 //! [`Staged`], the write that replaces its destination only on commit
 //! (see the parent module).
 
@@ -39,132 +39,13 @@ pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File
             .open(&tmp)
         {
             Ok(f) => {
-                if INTERRUPTIBLE.load(Ordering::Relaxed) {
-                    writing().push(tmp.clone());
-                }
+                super::interrupt::note_temp(&tmp, dest);
                 return Ok((tmp, f));
             }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
             Err(e) => return Err(e),
         }
     }
-}
-
-/// Whether an interrupt removes the temporary files being written (see
-/// [`remove_temps_on_interrupt`]); only then are they listed.
-static INTERRUPTIBLE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// The temporary files this process made since interrupts remove them.
-fn writing() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
-    static WRITING: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
-    WRITING.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Remove the temporary files this process made since
-/// [`remove_temps_on_interrupt`]; returns how many were still there
-/// (those already renamed are gone, and stay so: their names are this
-/// process's own).
-pub fn remove_writing_temps() -> usize {
-    writing()
-        .drain(..)
-        .filter(|p| std::fs::remove_file(p).is_ok())
-        .count()
-}
-
-/// `tmp` has landed under its final name: an interrupt no longer removes
-/// anything of it.
-pub fn temp_landed(tmp: &Path) {
-    writing().retain(|p| p != tmp);
-}
-
-/// Held while a file lands by swapping names with another (an export over
-/// an earlier backup): an interrupt waits for it, so it never acts on the
-/// moment a temporary's name holds another's file (review: a Ctrl-C
-/// during the swap back removed a file put at the path meanwhile).
-pub fn landing() -> std::sync::MutexGuard<'static, ()> {
-    static LANDING: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    LANDING.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// `tmp` is this process's temporary again (after [`temp_landed`]): an
-/// interrupt removes it, where interrupts remove temporaries.
-pub fn temp_writing(tmp: &Path) {
-    if INTERRUPTIBLE.load(Ordering::Relaxed) {
-        let mut w = writing();
-        if !w.iter().any(|p| p == tmp) {
-            w.push(tmp.to_path_buf());
-        }
-    }
-}
-
-/// From now on, Ctrl-C or SIGTERM removes the temporary files this process
-/// is writing and exits with status 130: for a command that writes one
-/// large file and has no other use for signals (regression, review: an
-/// `export` stopped with Ctrl-C left a temporary as large as the backup,
-/// swept only by a later export to the same name). The engine handles its
-/// signals itself.
-pub fn remove_temps_on_interrupt() -> std::io::Result<()> {
-    INTERRUPTIBLE.store(true, Ordering::Relaxed);
-    ctrlc::set_handler(|| {
-        let _landing = landing();
-        // The output is complete: the command ends as it would have, in a
-        // moment, with its own message and status (regression, hostile
-        // environment probe: an export interrupted just after its backup
-        // replaced the earlier one exited 130 without a word, as if
-        // nothing had been written).
-        // A second interrupt then ends it at once, still with status 0:
-        // the output is complete (review: a stalled export could not be
-        // stopped but by SIGKILL).
-        if OUTPUT_LANDED.load(Ordering::Acquire) {
-            static ASKED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-            if ASKED.swap(true, Ordering::Relaxed) {
-                // Its folder synced first, as the command would have
-                // (review: a second Ctrl-C during that sync said "written
-                // in full" before the rename was on disk).
-                let folder = landed_at()
-                    .as_ref()
-                    .and_then(|p| p.parent().map(Path::to_path_buf))
-                    .filter(|d| !d.as_os_str().is_empty())
-                    .unwrap_or_else(|| PathBuf::from("."));
-                if std::fs::File::open(&folder)
-                    .and_then(|d| d.sync_all())
-                    .is_err()
-                {
-                    crate::say!(
-                        "interrupted after the output was written, before its folder was synced"
-                    );
-                    std::process::exit(130);
-                }
-                crate::say!("interrupted after the output was written in full");
-                std::process::exit(0);
-            }
-            return;
-        }
-        if remove_writing_temps() > 0 {
-            crate::say!("interrupted: the file being written was removed");
-        }
-        std::process::exit(130);
-    })
-    .map_err(std::io::Error::other)
-}
-
-/// Whether the command's output has landed (see [`output_landed`]).
-static OUTPUT_LANDED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// The output of a command that [`remove_temps_on_interrupt`] is now
-/// complete under its final name: from now on an interrupt lets the
-/// command finish instead of ending it with status 130. Call it under
-/// [`landing`] where the landing holds it, so that an interrupt waiting
-/// for the landing sees it.
-pub fn output_landed(dest: &Path) {
-    *landed_at() = Some(dest.to_path_buf());
-    OUTPUT_LANDED.store(true, Ordering::Release);
-}
-
-/// Where the output landed (see [`output_landed`]).
-fn landed_at() -> std::sync::MutexGuard<'static, Option<PathBuf>> {
-    static AT: std::sync::Mutex<Option<PathBuf>> = std::sync::Mutex::new(None);
-    AT.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// The most bytes of a destination's name its temporary's name keeps.
@@ -294,6 +175,7 @@ impl Staged {
         }
         std::fs::File::open(&self.tmp)?.sync_all()?;
         std::fs::rename(&self.tmp, &self.dest)?;
+        super::interrupt::temp_landed(&self.tmp);
         self.done = true;
         Ok(())
     }
@@ -334,27 +216,6 @@ impl Drop for Staged {
 mod tests {
     use super::super::tests::dir;
     use super::*;
-
-    /// What an interrupt removes: the temporaries being written, and not
-    /// one that has landed (the review's Ctrl-C during `export`; the
-    /// signal itself was tried by hand: exit 130, nothing left).
-    #[test]
-    fn an_interrupt_removes_the_temporaries_being_written_only() {
-        let dir = std::env::temp_dir().join(format!("bw-interrupt-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        let (a, b) = (dir.join(".a.tmp"), dir.join(".b.tmp"));
-        for p in [&a, &b] {
-            std::fs::write(p, "x").unwrap();
-            writing().push(p.to_path_buf());
-        }
-        temp_landed(&b);
-        assert_eq!(remove_writing_temps(), 1);
-        assert!(!a.exists());
-        assert!(b.exists(), "a landed file is not removed");
-        assert_eq!(remove_writing_temps(), 0);
-        let _ = std::fs::remove_dir_all(&dir);
-    }
 
     /// `Staged::replacing` replaces a link at its destination instead of
     /// writing through it, and leaves no temporary file.

@@ -40,6 +40,15 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
     let made_scripts = !there(&scripts);
     std::fs::create_dir_all(&scripts)
         .with_context(|| format!("cannot create {}", scripts.display()))?;
+    // An interrupt undoes all of it, as a failure does (regression,
+    // stop-path probe: a Ctrl-C left some of the files, and the next
+    // `init` refused the folder).
+    for d in made.iter().rev() {
+        crate::files::undo_on_interrupt(d, true);
+    }
+    if made_scripts && !made.contains(&scripts) {
+        crate::files::undo_on_interrupt(&scripts, true);
+    }
     // Every file is written in full beside its place first, then linked in
     // (regression: a write past `ulimit -f` left a truncated script, and
     // the next `init` refused to overwrite it). On any failure, what this
@@ -56,7 +65,9 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
                 .with_context(|| format!("cannot write {}", p.display()))?;
         }
         for ((p, _), tmp) in files.iter().zip(&temps) {
+            let _placing = crate::files::landing();
             place_new(tmp, p).with_context(|| format!("cannot write {}", p.display()))?;
+            crate::files::undo_on_interrupt(p, false);
             placed.push(p);
         }
         Ok(())
@@ -78,6 +89,7 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
         }
         return Err(e);
     }
+    crate::files::keep_undo_list();
     Ok(files.into_iter().map(|(p, _)| p).collect())
 }
 
