@@ -1575,7 +1575,28 @@ fn an_interrupted_import_is_refused_by_run_and_redone_by_import() {
         .output()
         .unwrap();
     common::cli::assert_clear_failure(&out, "run after two cut imports", "was interrupted");
-    let import = backup_cmd("import", &backup, &cfg, &half).output().unwrap();
+    // The refusal's advice, followed with the backup for FILE, redoes it
+    // (regression, stop-path probe: it left out `--world`, so it was
+    // refused as another world's backup).
+    let err = String::from_utf8_lossy(&out.stderr);
+    let advice = err
+        .split(": run ")
+        .nth(1)
+        .and_then(|a| a.split(" again").next())
+        .unwrap_or_else(|| panic!("no advice in {err}"));
+    let redo: Vec<String> = advice
+        .split_whitespace()
+        .map(|w| {
+            if w == "FILE" {
+                backup.to_str().unwrap().to_string()
+            } else {
+                w.trim_matches('\'').to_string()
+            }
+        })
+        .collect();
+    assert_eq!(redo[..2], ["brickworld", "import"], "{err}");
+    assert!(redo.iter().any(|w| w == "--world"), "{err}");
+    let import = bin().args(&redo[1..]).output().unwrap();
     assert_success(&import);
     assert!(
         !half

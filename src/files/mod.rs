@@ -176,13 +176,36 @@ pub fn stop_signals() -> nix::sys::signal::SigSet {
 /// thread of its own instead of dying without a final commit. Call it
 /// before the engine starts any thread. A no-op off Unix. (Child
 /// processes get an empty mask: `std` clears it before `execve`.)
+///
+/// SIGHUP, where the caller set it to be ignored (`nohup`), stays ignored:
+/// it is blocked too, and so never arrives (regression, stop-path probe:
+/// the engine's handler replaced the ignore, and `nohup brickworld run`
+/// stopped when its terminal closed).
 pub fn block_stop_signals() {
     #[cfg(unix)]
     {
+        let mut set = stop_signals();
+        if ignored_at_start(nix::sys::signal::Signal::SIGHUP) {
+            set.add(nix::sys::signal::Signal::SIGHUP);
+        }
         // Blocking signals cannot fail with a valid set; if it did, the
         // defaults (death by the signal) are what remains.
-        let _ = stop_signals().thread_block();
+        let _ = set.thread_block();
     }
+}
+
+/// Whether this process started with `sig` ignored (inherited from its
+/// parent, as `nohup` sets SIGHUP), as Linux's `/proc/self/status` says;
+/// false where it cannot say.
+#[cfg(unix)]
+pub fn ignored_at_start(sig: nix::sys::signal::Signal) -> bool {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            let hex = s.lines().find_map(|l| l.strip_prefix("SigIgn:"))?.trim();
+            u64::from_str_radix(hex, 16).ok()
+        })
+        .is_some_and(|mask| mask >> (sig as i32 - 1) & 1 == 1)
 }
 
 /// Whether something other than a regular file (a FIFO, a device, a

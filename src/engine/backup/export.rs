@@ -142,7 +142,7 @@ pub fn export_world(cfg: &WorldConfig, dir: &Path, out: &Path) -> Result<(u64, O
     let _lock = crate::engine::state_dir::lock(dir)?;
     // Under the lock: a running import holds it (found by review: export
     // called a live import "interrupted").
-    refuse_interrupted_import(dir)?;
+    refuse_interrupted_import(dir, &cfg.file)?;
     let identity = cfg.identity();
     let (db, _) = WorldDb::open(dir, &identity)?;
     let mut world = match &cfg.stream {

@@ -24,18 +24,27 @@ pub const IMPORT_MARKER: &str = "import.incomplete";
 /// Call it holding the directory's lock: a running import holds it too.
 /// A store that holds its state with the marker beside it is a finished
 /// import cut before it removed the marker: the marker goes.
-pub fn refuse_interrupted_import(dir: &Path) -> Result<()> {
+/// The command it prints names the world's config (`world_file`, as the
+/// config's errors name it) unless it is the embedded default, and quotes
+/// both paths for a shell (regression, stop-path probe: it left out
+/// `--world`, so followed for another world it was refused).
+pub fn refuse_interrupted_import(dir: &Path, world_file: &str) -> Result<()> {
     let marker = dir.join(IMPORT_MARKER);
     if std::fs::symlink_metadata(&marker).is_ok() {
         if WorldDb::has_state(dir) {
             let _ = std::fs::remove_file(&marker);
             return Ok(());
         }
+        let world = if world_file == "<embedded default>" {
+            String::new()
+        } else {
+            format!(" --world {}", crate::shell_quoted(Path::new(world_file)))
+        };
         bail!(
-            "an import into {} was interrupted ({} is there): run brickworld import FILE --state {} again",
+            "an import into {} was interrupted ({} is there): run brickworld import FILE{world} --state {} again",
             dir.display(),
             marker.display(),
-            dir.display()
+            crate::shell_quoted(dir)
         );
     }
     Ok(())

@@ -109,7 +109,7 @@ fn config_params_not_in_effect(cfg: &WorldConfig, ws: &WorldSim, ctl: &str) -> V
 /// Open (or create) the world store in `state`, refusing another world's,
 /// and migrate a legacy checkpoint directory into it.
 pub(super) fn open_store(state: &Path, cfg: &WorldConfig) -> Result<WorldDb> {
-    crate::engine::backup::refuse_interrupted_import(state)?;
+    crate::engine::backup::refuse_interrupted_import(state, &cfg.file)?;
     let identity = cfg.identity();
     let (mut db, warnings) = WorldDb::open(state, &identity)?;
     for w in &warnings {
