@@ -1662,6 +1662,22 @@ fn an_interrupted_import_says_what_it_left() {
         half.join(brickworld::engine::backup::IMPORT_MARKER)
             .exists()
     );
+    // Redone, and cut again while it checks the backup: the directory keeps
+    // the marker, and the line says it is still refused (stop-path probe:
+    // "the state directory is as it was" hid that).
+    let t0 = std::time::Instant::now();
+    let (code, err2) = interrupt(&half, "BRICKWORLD_TEST_IMPORT_CHECK_STALL_MS", &|| {
+        t0.elapsed() > Duration::from_secs(1)
+    });
+    assert_eq!(code, Some(130), "{err2}");
+    assert!(
+        err2.contains("still holds the earlier interrupted import"),
+        "{err2}"
+    );
+    assert!(
+        half.join(brickworld::engine::backup::IMPORT_MARKER)
+            .exists()
+    );
     // The command it prints redoes the import (review: it left out
     // `--world`, and named the default world's config instead).
     let redo: Vec<&str> = err

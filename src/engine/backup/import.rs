@@ -291,6 +291,7 @@ pub fn import_world(cfg: &WorldConfig, dir: &Path, file: &Path) -> Result<Commit
     interrupt::enter(Phase::Checking {
         made: created.clone(),
         lock_file: (created.is_empty() && !had_lock).then(|| lock_file.clone()),
+        marker: dir.join(IMPORT_MARKER),
     });
     let result = import(file, dir, &cfg.identity());
     if result.is_err() {

@@ -18,6 +18,8 @@ pub(super) enum Phase {
     Checking {
         made: Vec<PathBuf>,
         lock_file: Option<PathBuf>,
+        /// The marker an earlier import cut short left there, which stays.
+        marker: PathBuf,
     },
     /// Writing the world under the import's marker into `dir`: a cut
     /// leaves the marker, which `run` and `export` refuse and an import
@@ -87,13 +89,28 @@ pub fn say_interrupted_imports(redo: String) -> std::io::Result<()> {
         match &*phase {
             Phase::Done => return,
             Phase::Idle => crate::say!("interrupted: nothing was imported"),
-            Phase::Checking { made, lock_file } => {
+            Phase::Checking {
+                made,
+                lock_file,
+                marker,
+            } => {
                 if !made.is_empty() {
                     crate::files::remove_made(made);
                 } else if let Some(l) = lock_file {
                     let _ = std::fs::remove_file(l);
                 }
-                crate::say!("interrupted: nothing was imported (the state directory is as it was)");
+                // Redoing a cut import: the directory stays refused, and
+                // says so (stop-path probe: "as it was" hid it).
+                if std::fs::symlink_metadata(marker).is_ok() {
+                    crate::say!(
+                        "interrupted: nothing was imported; the directory still holds the earlier interrupted import, refused until `{}` is run again",
+                        REDO.get().map_or("brickworld import", String::as_str)
+                    );
+                } else {
+                    crate::say!(
+                        "interrupted: nothing was imported (the state directory is as it was)"
+                    );
+                }
             }
             Phase::Writing { dir } => crate::say!(
                 "interrupted: the import into {} did not finish, and the directory is refused until `{}` is run again",
