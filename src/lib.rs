@@ -60,9 +60,11 @@ macro_rules! tell {
     }};
 }
 
-/// A path as a shell reads it back: quoted when it holds anything but
-/// plain characters (regression, odd-paths probe: `init 'my world'`
-/// suggested `brickworld run my world/world.toml`).
+/// A path as a shell, and then the command, reads it back: quoted when it
+/// holds anything but plain characters (regression, odd-paths probe: `init
+/// 'my world'` suggested `brickworld run my world/world.toml`), and a
+/// relative path that starts with `-` led by `./`, so that it is not read
+/// as an option (review: an import's advice quoted `-x` as `'-x'`).
 ///
 /// ```
 /// use std::path::Path;
@@ -70,8 +72,12 @@ macro_rules! tell {
 /// assert_eq!(shell_quoted(Path::new("w/world.toml")), "w/world.toml");
 /// assert_eq!(shell_quoted(Path::new("my world/world.toml")), "'my world/world.toml'");
 /// assert_eq!(shell_quoted(Path::new("it's")), r"'it'\''s'");
+/// assert_eq!(shell_quoted(Path::new("-x")), "./-x");
 /// ```
 pub fn shell_quoted(p: &std::path::Path) -> String {
+    if p.is_relative() && p.to_string_lossy().starts_with('-') {
+        return shell_quoted(&std::path::Path::new(".").join(p));
+    }
     let t = p.to_string_lossy();
     let plain = !t.is_empty()
         && !t.starts_with('-')

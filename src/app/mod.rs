@@ -16,6 +16,8 @@ use render::run_render;
 
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> Result<()> {
+    // Before any thread: `nohup`'s ignore of SIGHUP holds for every command.
+    crate::files::keep_sighup_ignored();
     if !matches!(
         cli.command,
         Command::Ctl(_) | Command::Init { .. } | Command::Chart { .. }
@@ -109,16 +111,10 @@ pub fn run(cli: Cli) -> Result<()> {
             for p in crate::engine::daemon::init(&dir)? {
                 crate::tell!("wrote {}", p.display());
             }
-            let cfg = dir.join("world.toml");
-            // `./-x` rather than `-x`, so the suggestion is not a flag.
-            let cfg = if cfg.is_relative() && cfg.to_string_lossy().starts_with('-') {
-                std::path::Path::new(".").join(cfg)
-            } else {
-                cfg
-            };
+            // `shell_quoted` writes `-x` as `./-x`, so it is not a flag.
             crate::tell!(
                 "run it with: brickworld run {} (scripts reload when saved)",
-                crate::shell_quoted(&cfg)
+                crate::shell_quoted(&dir.join("world.toml"))
             );
             Ok(())
         }

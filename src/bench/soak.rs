@@ -114,12 +114,16 @@ fn stop_engine_on_interrupt(state: &Path) -> Result<()> {
     let state = state.display().to_string();
     ctrlc::set_handler(move || {
         let pid = ENGINE_PID.swap(0, std::sync::atomic::Ordering::SeqCst);
-        if pid != 0 {
+        if pid == 0 {
+            crate::say!("interrupted before the soak's engine ran; no report was written");
+        } else {
             stop_engine(pid);
+            // Stopped, with a final commit once it had taken its signals
+            // (in its first milliseconds SIGTERM ends it outright; review).
+            crate::say!(
+                "interrupted: the soak's engine was stopped (its state is in {state}); no report was written"
+            );
         }
-        crate::say!(
-            "interrupted: the soak's engine was stopped with a final commit (its state is in {state}); no report was written"
-        );
         std::process::exit(130);
     })
     .context("cannot install the interrupt handler")

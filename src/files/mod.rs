@@ -176,21 +176,26 @@ pub fn stop_signals() -> nix::sys::signal::SigSet {
 /// thread of its own instead of dying without a final commit. Call it
 /// before the engine starts any thread. A no-op off Unix. (Child
 /// processes get an empty mask: `std` clears it before `execve`.)
-///
-/// SIGHUP, where the caller set it to be ignored (`nohup`), stays ignored:
-/// it is blocked too, and so never arrives (regression, stop-path probe:
-/// the engine's handler replaced the ignore, and `nohup brickworld run`
-/// stopped when its terminal closed).
 pub fn block_stop_signals() {
     #[cfg(unix)]
     {
-        let mut set = stop_signals();
-        if ignored_at_start(nix::sys::signal::Signal::SIGHUP) {
-            set.add(nix::sys::signal::Signal::SIGHUP);
-        }
         // Blocking signals cannot fail with a valid set; if it did, the
         // defaults (death by the signal) are what remains.
-        let _ = set.thread_block();
+        let _ = stop_signals().thread_block();
+    }
+}
+
+/// Where the caller started this process with SIGHUP ignored (`nohup`),
+/// keep it ignored: block it in this thread and every thread it starts
+/// from now on, so it never arrives. Every command's interrupt handler
+/// (`ctrlc`, which takes SIGHUP with SIGINT and SIGTERM) would otherwise
+/// replace the ignore (regression, stop-path probe and its review: `nohup
+/// brickworld run`, and then `nohup brickworld sim`, stopped when their
+/// terminal closed). Call it before any thread starts.
+pub fn keep_sighup_ignored() {
+    #[cfg(unix)]
+    if ignored_at_start(nix::sys::signal::Signal::SIGHUP) {
+        let _ = nix::sys::signal::SigSet::from(nix::sys::signal::Signal::SIGHUP).thread_block();
     }
 }
 

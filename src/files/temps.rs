@@ -174,6 +174,9 @@ impl Staged {
             return Ok(());
         }
         std::fs::File::open(&self.tmp)?.sync_all()?;
+        // Landed and listed as one, for an interrupt (review: one between
+        // the two said nothing was written).
+        let _landing = super::interrupt::landing();
         std::fs::rename(&self.tmp, &self.dest)?;
         super::interrupt::temp_landed(&self.tmp);
         self.done = true;

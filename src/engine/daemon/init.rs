@@ -38,16 +38,20 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
         .map(Path::to_path_buf)
         .collect();
     let made_scripts = !there(&scripts);
-    std::fs::create_dir_all(&scripts)
-        .with_context(|| format!("cannot create {}", scripts.display()))?;
-    // An interrupt undoes all of it, as a failure does (regression,
-    // stop-path probe: a Ctrl-C left some of the files, and the next
-    // `init` refused the folder).
-    for d in made.iter().rev() {
-        crate::files::undo_on_interrupt(d, true);
-    }
-    if made_scripts && !made.contains(&scripts) {
-        crate::files::undo_on_interrupt(&scripts, true);
+    {
+        // An interrupt undoes all of it, as a failure does (regression,
+        // stop-path probe: a Ctrl-C left some of the files, and the next
+        // `init` refused the folder); the folders are made and listed as
+        // one (review).
+        let _making = crate::files::landing();
+        std::fs::create_dir_all(&scripts)
+            .with_context(|| format!("cannot create {}", scripts.display()))?;
+        for d in made.iter().rev() {
+            crate::files::undo_on_interrupt(d, true);
+        }
+        if made_scripts {
+            crate::files::undo_on_interrupt(&scripts, true);
+        }
     }
     // Every file is written in full beside its place first, then linked in
     // (regression: a write past `ulimit -f` left a truncated script, and
@@ -89,7 +93,13 @@ pub fn init(dir: &Path) -> Result<Vec<PathBuf>> {
         }
         return Err(e);
     }
-    crate::files::keep_undo_list();
+    {
+        // Done: an interrupt now lets the command finish (review: it said
+        // nothing was written).
+        let _done = crate::files::landing();
+        crate::files::keep_undo_list();
+        crate::files::output_landed(&dir.join("world.toml"));
+    }
     Ok(files.into_iter().map(|(p, _)| p).collect())
 }
 

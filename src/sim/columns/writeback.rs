@@ -177,6 +177,12 @@ impl ColumnSync {
     /// The columns used to read the ground once, at the start, so their
     /// water flowed through sand a voxel script had piled as if it were
     /// not there (a known gap since the modder probe).
+    ///
+    /// Water and snow voxels found where the ground was (ground that
+    /// melted, or a pit a script dug and filled in one step) join the
+    /// column's `water` and `snow`, so the redraw puts them back on the new
+    /// ground: a column owns the water and snow under its old top, and its
+    /// write-back erased them (review).
     pub fn follow_ground(
         &mut self,
         store: &BrickStore,
@@ -197,6 +203,8 @@ impl ColumnSync {
             };
             let outside = self.outside.get(&t).copied().unwrap_or(0);
             let mut ground = None;
+            // Water and snow voxels found where the ground was, per cell.
+            let (mut water, mut snow) = ([0.0; TILE_CELLS], [0.0; TILE_CELLS]);
             for z in 0..TILE {
                 for x in 0..TILE {
                     let c = cell(x, z);
@@ -209,6 +217,11 @@ impl ColumnSync {
                     if now > 0 && !ground_at(wx, now - 1, wz) {
                         while now > 0 && !ground_at(wx, now - 1, wz) {
                             now -= 1;
+                            match store.voxel(IVec3::new(wx, now, wz)) {
+                                WATER => water[c] += 1.0,
+                                SNOW => snow[c] += 1.0,
+                                _ => {}
+                            }
                         }
                     } else {
                         while ground_at(wx, now, wz) {
@@ -223,6 +236,16 @@ impl ColumnSync {
                     });
                     g[c] = now as f64;
                     rec[c] = [now, rec[c][1].max(now), rec[c][2].max(now)];
+                }
+            }
+            for (name, found) in [("water", &water), ("snow", &snow)] {
+                if found.iter().any(|&v| v > 0.0) {
+                    let id = channels.channel(name);
+                    let mut have = channels.get(t, id).copied().unwrap_or([0.0; TILE_CELLS]);
+                    for (h, f) in have.iter_mut().zip(found) {
+                        *h += f;
+                    }
+                    channels.set(t, id, &have);
                 }
             }
             if let Some(g) = ground {
@@ -419,6 +442,7 @@ mod tests {
         store.set_voxel(IVec3::new(4, 9, 4), SAND); // floating above it
         store.set_voxel(IVec3::new(5, 4, 5), SNOW); // not ground
         store.set_voxel(IVec3::new(0, 4, 7), WATER); // not ground either
+        store.set_voxel(IVec3::new(7, 3, 7), WATER); // ground that melted
         assert_eq!(sync.follow_ground(&store, &mut ch, &[t]), vec![t]);
         let now = *ch.get(t, g).unwrap();
         assert_eq!(now[cell(1, 1)], 6.0);
@@ -428,12 +452,17 @@ mod tests {
             assert_eq!(now[cell(x, z)], 4.0, "column ({x}, {z})");
         }
         assert_eq!(now[cell(6, 6)], 4.7);
+        assert_eq!(now[cell(7, 7)], 3.0);
+        // The melt joined the column's water (review: the redraw erased it).
+        assert_eq!(ch.get(t, w).unwrap()[cell(7, 7)], 1.0);
         // The water is redrawn on the sand it sank under: 3 deep from 5.
         sync.write(&ch, &[t], &mut store);
         for y in 5..8 {
             assert_eq!(store.voxel(IVec3::new(4, y, 4)), WATER, "y = {y}");
         }
         assert_eq!(store.voxel(IVec3::new(4, 8, 4)), 0);
+        assert_eq!(store.voxel(IVec3::new(7, 3, 7)), WATER);
+        assert_eq!(store.voxel(IVec3::new(7, 4, 7)), 0);
         // The record is what a resume would make of the channels.
         let mut resumed = ColumnSync::new(32);
         resumed.resync(&ch, t);
