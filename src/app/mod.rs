@@ -141,6 +141,7 @@ pub fn run(cli: Cli) -> Result<()> {
             let r = crate::bench::soak::run(world.as_deref(), minutes, &state, &pb)?;
             pb.finish_and_clear();
             crate::bench::write_json(&json, &r)?;
+            crate::bench::soak::reported();
             println!(
                 "{:.1} min, {} ticks ({:.1}/s); RSS growth after warm-up {:+.2} % (end points), {:+.2} % (peak), {:+.2} % (median); max dirty queue {}; frames {} ({} skipped); /status p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; frame {:.1} ms; ground+sediment drift {:.2e}",
                 r.minutes,

@@ -105,24 +105,53 @@ fn stop_engine(pid: u32) {
     }
 }
 
-/// The engine's process id while a soak runs (0: none), for the interrupt.
-static ENGINE_PID: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+/// Where a soak stands, for its interrupt (second review: one flag said
+/// "before its engine ran" while the soak stopped it at its end, and
+/// "no report" after the report was written).
+#[derive(Clone, Copy)]
+enum Phase {
+    /// No engine yet.
+    Starting,
+    /// The engine (this process id) runs.
+    Running(u32),
+    /// The minutes are up: the soak stops its engine, then reports.
+    Ending,
+    /// The report is written.
+    Reported,
+}
 
-/// Ctrl-C or SIGTERM stops the soak's engine with its final commit, says
-/// so, and exits with status 130 (no report is written: the run was cut).
+static PHASE: std::sync::Mutex<Phase> = std::sync::Mutex::new(Phase::Starting);
+
+fn phase() -> std::sync::MutexGuard<'static, Phase> {
+    PHASE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The soak's report is written: an interrupt now says so.
+pub fn reported() {
+    *phase() = Phase::Reported;
+}
+
+/// Ctrl-C or SIGTERM stops the soak's engine (with its final commit, once
+/// it has taken its signals), says what is left, and exits with status 130.
 fn stop_engine_on_interrupt(state: &Path) -> Result<()> {
     let state = state.display().to_string();
     ctrlc::set_handler(move || {
-        let pid = ENGINE_PID.swap(0, std::sync::atomic::Ordering::SeqCst);
-        if pid == 0 {
-            crate::say!("interrupted before the soak's engine ran; no report was written");
-        } else {
-            stop_engine(pid);
-            // Stopped, with a final commit once it had taken its signals
-            // (in its first milliseconds SIGTERM ends it outright; review).
-            crate::say!(
-                "interrupted: the soak's engine was stopped (its state is in {state}); no report was written"
-            );
+        // Held to the exit: the soak cannot move on meanwhile.
+        let phase = phase();
+        match *phase {
+            Phase::Starting => {
+                crate::say!("interrupted before the soak's engine ran; no report was written")
+            }
+            Phase::Running(pid) => {
+                stop_engine(pid);
+                crate::say!(
+                    "interrupted: the soak's engine was stopped (its state is in {state}); no report was written"
+                );
+            }
+            Phase::Ending => crate::say!(
+                "interrupted as the soak ended: its engine is stopping with a final commit (its state is in {state}); no report was written"
+            ),
+            Phase::Reported => crate::say!("interrupted after the soak's report was written"),
         }
         std::process::exit(130);
     })
@@ -151,17 +180,22 @@ pub fn run(
     if let Some(w) = world {
         cmd.arg(w);
     }
-    let mut child = Engine(
-        cmd.arg("--state")
-            .arg(state)
-            .arg("--addr")
-            .arg(&addr)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .context("cannot start the daemon")?,
-    );
-    ENGINE_PID.store(child.0.id(), std::sync::atomic::Ordering::SeqCst);
+    // Started and recorded as one: an interrupt waits for both.
+    let mut child = {
+        let mut now = phase();
+        let child = Engine(
+            cmd.arg("--state")
+                .arg(state)
+                .arg("--addr")
+                .arg(&addr)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .context("cannot start the daemon")?,
+        );
+        *now = Phase::Running(child.0.id());
+        child
+    };
     let start = Instant::now();
     let mut first_frame_s = f64::NAN;
     while request(&addr, "GET", "/status", None, "").is_err() {
@@ -224,9 +258,8 @@ pub fn run(
     }
     let secs = t0.elapsed().as_secs_f64();
     // From here the soak stops its engine itself.
-    if ENGINE_PID.swap(0, std::sync::atomic::Ordering::SeqCst) != 0 {
-        drop(child);
-    }
+    *phase() = Phase::Ending;
+    drop(child);
     lat.sort_by(|a, b| a.total_cmp(b));
     let pct = |p: f64| {
         lat.get(((lat.len() as f64 - 1.0) * p) as usize)

@@ -44,6 +44,13 @@ pub(super) fn list_temps() {
     INTERRUPTIBLE.store(true, Ordering::Relaxed);
 }
 
+/// Where interrupts remove temporaries, [`landing`], held while a
+/// temporary is made and listed: the handler holds it until the process
+/// exits, so no temporary appears after it emptied the list.
+pub(super) fn hold_for_listing() -> Option<std::sync::MutexGuard<'static, ()>> {
+    INTERRUPTIBLE.load(Ordering::Relaxed).then(landing)
+}
+
 /// `tmp` was made beside `dest`: listed, where interrupts remove
 /// temporaries.
 pub(super) fn note_temp(tmp: &Path, dest: &Path) {

@@ -30,6 +30,12 @@ pub fn fresh_temp_beside(dest: &Path) -> std::io::Result<(PathBuf, std::fs::File
         None => name,
     };
     sweep_stale_temps(dir, &name);
+    // Made and listed as one where an interrupt removes temporaries: an
+    // interrupt between the two, or one whose handler had already emptied
+    // the list, left the file behind (second review: an interrupted
+    // `init` left one and its folders, saying all was removed). No caller
+    // holds `landing()` here.
+    let _listing = super::interrupt::hold_for_listing();
     loop {
         let n = NEXT.fetch_add(1, Ordering::Relaxed);
         let tmp = dir.join(format!(".{name}.{}-{n}.tmp", std::process::id()));

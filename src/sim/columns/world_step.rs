@@ -126,9 +126,21 @@ impl WorldSim {
         }
         tiles.sort_by_key(|t| (t.y, t.x));
         tiles.dedup();
+        // Water and snow a voxel script holds in its own channel (water3d's
+        // fill) stay that script's.
+        let vch = self.vox.channels();
+        let (vw, vs) = (vch.find("water"), vch.find("snow"));
+        let held = |p: glam::IVec3, m: u8| {
+            let id = if m == super::writeback::WATER { vw } else { vs };
+            id.and_then(|id| vch.get(id, p.div_euclid(glam::IVec3::splat(8))))
+                .is_some_and(|v| {
+                    let l = p.rem_euclid(glam::IVec3::splat(8));
+                    v[crate::world::voxel_index(l.x, l.y, l.z)] > 0.0
+                })
+        };
         let moved = self
             .sync
-            .follow_ground(world.store(), self.sim.channels_mut(), &tiles);
+            .follow_ground(world.store(), self.sim.channels_mut(), &tiles, held);
         for &t in &moved {
             self.sim.wake(t);
         }

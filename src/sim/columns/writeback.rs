@@ -82,6 +82,11 @@ pub struct ColumnSync {
     /// whose size is not a multiple of the tile has partial tiles, whose
     /// outer columns are simulated but never written into voxels.
     outside: FxHashMap<TileCoord, u64>,
+    /// Per tile, for the next [`write`](Self::write) only: per cell, the
+    /// height below which water and snow are another's, left as they are
+    /// (set by [`follow_ground`](Self::follow_ground) where a voxel script
+    /// holds the water or snow found where the ground was).
+    theirs: FxHashMap<TileCoord, [i32; TILE_CELLS]>,
 }
 
 /// Whether voxel `m` at height `y`, at or above a column's old ground, is
@@ -126,6 +131,7 @@ impl ColumnSync {
             last: FxHashMap::default(),
             top,
             outside: FxHashMap::default(),
+            theirs: FxHashMap::default(),
         }
     }
 
@@ -182,12 +188,15 @@ impl ColumnSync {
     /// melted, or a pit a script dug and filled in one step) join the
     /// column's `water` and `snow`, so the redraw puts them back on the new
     /// ground: a column owns the water and snow under its old top, and its
-    /// write-back erased them (review).
+    /// write-back erased them (review). Those a voxel script holds in its
+    /// own channel (`held`: water3d's fill) stay that script's, untouched
+    /// by the next write, and are not counted twice (second review).
     pub fn follow_ground(
         &mut self,
         store: &BrickStore,
         channels: &mut ChannelStore,
         tiles: &[TileCoord],
+        held: impl Fn(IVec3, u8) -> bool,
     ) -> Vec<TileCoord> {
         let Some(g_id) = channels.find("ground") else {
             return Vec::new();
@@ -203,8 +212,10 @@ impl ColumnSync {
             };
             let outside = self.outside.get(&t).copied().unwrap_or(0);
             let mut ground = None;
-            // Water and snow voxels found where the ground was, per cell.
+            // Water and snow voxels found where the ground was, per cell,
+            // and the height below which a voxel script holds some.
             let (mut water, mut snow) = ([0.0; TILE_CELLS], [0.0; TILE_CELLS]);
+            let mut theirs: Option<[i32; TILE_CELLS]> = None;
             for z in 0..TILE {
                 for x in 0..TILE {
                     let c = cell(x, z);
@@ -217,10 +228,14 @@ impl ColumnSync {
                     if now > 0 && !ground_at(wx, now - 1, wz) {
                         while now > 0 && !ground_at(wx, now - 1, wz) {
                             now -= 1;
-                            match store.voxel(IVec3::new(wx, now, wz)) {
-                                WATER => water[c] += 1.0,
-                                SNOW => snow[c] += 1.0,
-                                _ => {}
+                            let p = IVec3::new(wx, now, wz);
+                            let m = store.voxel(p);
+                            if (m == WATER || m == SNOW) && held(p, m) {
+                                theirs.get_or_insert([i32::MIN; TILE_CELLS])[c] = was;
+                            } else if m == WATER {
+                                water[c] += 1.0;
+                            } else if m == SNOW {
+                                snow[c] += 1.0;
                             }
                         }
                     } else {
@@ -247,6 +262,9 @@ impl ColumnSync {
                     }
                     channels.set(t, id, &have);
                 }
+            }
+            if let Some(f) = theirs {
+                self.theirs.insert(t, f);
             }
             if let Some(g) = ground {
                 channels.set(t, g_id, &g);
@@ -277,6 +295,7 @@ impl ColumnSync {
             let s = get(s_id, t).unwrap_or([0.0; TILE_CELLS]);
             let w = get(w_id, t).unwrap_or([0.0; TILE_CELLS]);
             let old = self.last.get(&t).copied().unwrap_or([[0; 3]; TILE_CELLS]);
+            let theirs = self.theirs.remove(&t).unwrap_or([i32::MIN; TILE_CELLS]);
             let mut new = old;
             let (mut lo, mut hi) = (i32::MAX, i32::MIN);
             let outside = self.outside.get(&t).copied().unwrap_or(0);
@@ -323,7 +342,10 @@ impl ColumnSync {
                                 // modder probe: water rising over sand a
                                 // voxel script had piled turned it to water,
                                 // and falling again cleared it).
-                                if y >= old[c][0] && !is_column_voxel(cur, y, old[c]) {
+                                // And water or snow a voxel script holds
+                                // where the ground was (second review).
+                                let held = y < theirs[c] && (cur == WATER || cur == SNOW);
+                                if y >= old[c][0] && (held || !is_column_voxel(cur, y, old[c])) {
                                     continue;
                                 }
                                 d[i] = if y < gt {
@@ -432,7 +454,8 @@ mod tests {
         sync.write(&ch, &[t], &mut store);
         assert_eq!(store.voxel(IVec3::new(4, 6, 4)), WATER);
         // Nothing moved: nothing changes.
-        assert!(sync.follow_ground(&store, &mut ch, &[t]).is_empty());
+        let none = |_: IVec3, _: u8| false;
+        assert!(sync.follow_ground(&store, &mut ch, &[t], none).is_empty());
         store.set_voxel(IVec3::new(1, 4, 1), SAND); // piled, two high
         store.set_voxel(IVec3::new(1, 5, 1), SAND);
         store.set_voxel(IVec3::new(2, 3, 2), 0); // dug, two deep
@@ -443,7 +466,11 @@ mod tests {
         store.set_voxel(IVec3::new(5, 4, 5), SNOW); // not ground
         store.set_voxel(IVec3::new(0, 4, 7), WATER); // not ground either
         store.set_voxel(IVec3::new(7, 3, 7), WATER); // ground that melted
-        assert_eq!(sync.follow_ground(&store, &mut ch, &[t]), vec![t]);
+        // Water a voxel script holds in its own channel (water3d's).
+        let held_at = IVec3::new(6, 3, 1);
+        store.set_voxel(held_at, WATER);
+        let held = |p: IVec3, m: u8| p == held_at && m == WATER;
+        assert_eq!(sync.follow_ground(&store, &mut ch, &[t], held), vec![t]);
         let now = *ch.get(t, g).unwrap();
         assert_eq!(now[cell(1, 1)], 6.0);
         assert_eq!(now[cell(2, 2)], 2.0);
@@ -455,6 +482,9 @@ mod tests {
         assert_eq!(now[cell(7, 7)], 3.0);
         // The melt joined the column's water (review: the redraw erased it).
         assert_eq!(ch.get(t, w).unwrap()[cell(7, 7)], 1.0);
+        // The held water is not the column's: not counted, and left.
+        assert_eq!(now[cell(6, 1)], 3.0);
+        assert_eq!(ch.get(t, w).unwrap()[cell(6, 1)], 0.0);
         // The water is redrawn on the sand it sank under: 3 deep from 5.
         sync.write(&ch, &[t], &mut store);
         for y in 5..8 {
@@ -463,11 +493,16 @@ mod tests {
         assert_eq!(store.voxel(IVec3::new(4, 8, 4)), 0);
         assert_eq!(store.voxel(IVec3::new(7, 3, 7)), WATER);
         assert_eq!(store.voxel(IVec3::new(7, 4, 7)), 0);
+        assert_eq!(
+            store.voxel(held_at),
+            WATER,
+            "the write-back erased held water"
+        );
         // The record is what a resume would make of the channels.
         let mut resumed = ColumnSync::new(32);
         resumed.resync(&ch, t);
         assert_eq!(sync.last.get(&t), resumed.last.get(&t));
-        assert!(sync.follow_ground(&store, &mut ch, &[t]).is_empty());
+        assert!(sync.follow_ground(&store, &mut ch, &[t], none).is_empty());
     }
 
     /// Regression (modder probe): a voxel script's sand on a column's
