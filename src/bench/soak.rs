@@ -249,6 +249,10 @@ pub fn run(
             rss.push((now, crate::engine::timeline::rss_kb_of(child.0.id())));
         }
         if let Some(status) = child.0.try_wait()? {
+            // An interrupt that stopped it holds the phase to its exit:
+            // wait for it rather than report the stop as a failure (a
+            // race seen once: exit 1 instead of 130).
+            let _interrupt_first = phase();
             bail!("the daemon exited early ({status})");
         }
         progress.set_position(t0.elapsed().as_secs());
