@@ -1556,9 +1556,7 @@ fn an_interrupted_soak_stops_its_engine() {
             .collect()
     };
     assert_eq!(engines().len(), 1, "one engine runs");
-    let _ = std::process::Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status();
+    common::signal("-TERM", child.id());
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(130), "{err}");
@@ -1591,18 +1589,13 @@ fn an_interrupted_one_shot_command_says_what_it_left() {
         .spawn()
         .unwrap();
     std::thread::sleep(std::time::Duration::from_millis(1500));
-    let pid = child.id().to_string();
-    let _ = std::process::Command::new("kill")
-        .args(["-HUP", &pid])
-        .status();
+    common::signal("-HUP", child.id());
     std::thread::sleep(std::time::Duration::from_millis(500));
     assert!(
         child.try_wait().unwrap().is_none(),
         "SIGHUP under nohup stopped it"
     );
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &pid])
-        .status();
+    common::signal("-INT", child.id());
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(130), "{err}");

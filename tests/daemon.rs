@@ -1467,17 +1467,11 @@ fn sighup_ignored_at_start_stays_ignored() {
     let mut d = spawn(&mut nohup);
     wait_ready(&addr);
     let tick = paused_between_commits(&addr, &state);
-    let pid = d.id().to_string();
-    let kill = |sig: &str| {
-        let _ = std::process::Command::new("kill")
-            .args([sig, &pid])
-            .status();
-    };
-    kill("-HUP");
+    common::signal("-HUP", d.id());
     std::thread::sleep(Duration::from_millis(1500));
     assert!(d.try_wait().unwrap().is_none(), "SIGHUP stopped it");
     assert_eq!(status(&addr)["tick"].as_u64(), Some(tick));
-    kill("-TERM");
+    common::signal("-TERM", d.id());
     let code = wait_for_exit(&mut d, 30, "SIGTERM did not stop it");
     let mut err = String::new();
     std::io::Read::read_to_string(d.stderr.as_mut().unwrap(), &mut err).unwrap();

@@ -515,20 +515,10 @@ fn a_suspend_longer_than_the_time_budget_fails_no_kernel() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let pid = child.id().to_string();
     std::thread::sleep(std::time::Duration::from_millis(1500));
-    let kill = |sig: &str| {
-        assert!(
-            std::process::Command::new("kill")
-                .args([sig, &pid])
-                .status()
-                .unwrap()
-                .success()
-        );
-    };
-    kill("-STOP");
+    common::signal("-STOP", child.id());
     std::thread::sleep(std::time::Duration::from_secs(6));
-    kill("-CONT");
+    common::signal("-CONT", child.id());
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{err}");

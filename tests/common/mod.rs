@@ -149,3 +149,13 @@ pub fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
         .expect("a thread pool")
         .install(f)
 }
+
+/// Send signal `sig` (as `kill` names it: `-INT`, `-RTMIN+3`) to process
+/// `pid`.
+pub fn signal(sig: &str, pid: u32) {
+    let sent = std::process::Command::new("kill")
+        .args([sig, &pid.to_string()])
+        .status()
+        .unwrap();
+    assert!(sent.success(), "kill {sig} {pid} failed");
+}

@@ -132,11 +132,7 @@ impl WorldSim {
         let (vw, vs) = (vch.find("water"), vch.find("snow"));
         let held = |p: glam::IVec3, m: u8| {
             let id = if m == super::writeback::WATER { vw } else { vs };
-            id.and_then(|id| vch.get(id, p.div_euclid(glam::IVec3::splat(8))))
-                .is_some_and(|v| {
-                    let l = p.rem_euclid(glam::IVec3::splat(8));
-                    v[crate::world::voxel_index(l.x, l.y, l.z)] > 0.0
-                })
+            id.is_some_and(|id| vch.at(id, p) > 0.0)
         };
         let moved = self
             .sync

@@ -57,6 +57,14 @@ impl VoxelChannels {
         self.data[id].get(&b).map(|d| &**d)
     }
 
+    /// The value at voxel `p` (0 where its brick holds none).
+    pub fn at(&self, id: VoxelChannelId, p: IVec3) -> f32 {
+        let b = crate::world::brick_of(p);
+        let l = p - b * crate::world::BRICK_EDGE;
+        self.get(id, b)
+            .map_or(0.0, |v| v[crate::world::voxel_index(l.x, l.y, l.z)])
+    }
+
     /// Set brick `b`'s values; all zeros frees the array.
     pub fn set(&mut self, id: VoxelChannelId, b: IVec3, v: &[f32; VOXEL_CELLS]) {
         self.dirty.insert(b);
@@ -134,6 +142,19 @@ impl VoxelChannels {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A voxel's value, on either side of brick edges and below zero.
+    #[test]
+    fn a_value_is_read_at_its_voxel() {
+        let mut ch = VoxelChannels::default();
+        let id = ch.channel("water");
+        let mut v = [0.0; VOXEL_CELLS];
+        v[crate::world::voxel_index(7, 0, 3)] = 2.5;
+        ch.set(id, IVec3::new(-1, 2, 0), &v);
+        assert_eq!(ch.at(id, IVec3::new(-1, 16, 3)), 2.5);
+        assert_eq!(ch.at(id, IVec3::new(-2, 16, 3)), 0.0);
+        assert_eq!(ch.at(id, IVec3::new(0, 16, 3)), 0.0);
+    }
 
     /// Regression: the hash followed the order channels were registered
     /// in and counted channels without data; a reload that renamed a
